@@ -1,0 +1,1 @@
+"""Subcommands of the `hil` command line, one module each."""

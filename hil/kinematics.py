@@ -1,0 +1,274 @@
+"""Serial-arm kinematic model (standard DH, or DH with Hayati's beta on parallel axes) and batch FK.
+
+Joint i transform, frame i-1 -> frame i:  Rz(q_i + theta_i) Tz(d_i) Tx(a_i) Rx(alpha_i) Ry(beta_i).
+For a joint whose axis is parallel to the next one ("MDH" joint, Hayati 1985), d_i is not
+identifiable and is replaced by beta_i as a parameter; d_i stays fixed at its nominal value.
+For a standard DH joint beta_i is fixed at 0. Lengths in metres, angles in radians.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from scipy.spatial.transform import Rotation
+
+from hil.se3 import rot_y
+
+PARAM_KINDS_DH: tuple[str, ...] = ("theta", "d", "a", "alpha")
+PARAM_KINDS_MDH: tuple[str, ...] = ("theta", "a", "alpha", "beta")
+
+
+@dataclass(frozen=True)
+class KinematicModel:
+    """A serial arm: per-joint geometry, which joints carry beta, joint limits and the flange offset.
+
+    The identifiable parameter vector is built from the geometry: per joint, (theta, d, a, alpha)
+    for a DH joint, (theta, a, alpha, beta) for a beta ("MDH") joint. Immutable: `with_params`
+    returns a new model.
+    """
+
+    name: str
+    theta: np.ndarray  # joint-angle offsets (rad)
+    d: np.ndarray  # (m)
+    a: np.ndarray  # (m)
+    alpha: np.ndarray  # (rad)
+    beta: np.ndarray  # (rad), 0 on DH joints
+    uses_beta: np.ndarray  # bool per joint
+    joint_limits: np.ndarray  # (n, 2) rad, [lower, upper]
+    T_last_flange: np.ndarray = field(default_factory=lambda: np.eye(4))
+
+    def __post_init__(self) -> None:
+        n = len(self.theta)
+        for attr in ("d", "a", "alpha", "beta", "uses_beta"):
+            if len(getattr(self, attr)) != n:
+                raise ValueError(f"{self.name}: '{attr}' has {len(getattr(self, attr))} entries, need {n}")
+        if np.shape(self.joint_limits) != (n, 2):
+            raise ValueError(f"{self.name}: joint_limits must be ({n}, 2)")
+        if np.any(np.asarray(self.beta)[~np.asarray(self.uses_beta, bool)] != 0):
+            raise ValueError(f"{self.name}: beta must be 0 on joints that do not use beta")
+
+    @property
+    def n_joints(self) -> int:
+        return len(self.theta)
+
+    @property
+    def param_names(self) -> list[str]:
+        """Names of the identifiable kinematic parameters, e.g. ['theta1', 'd1', 'a1', 'alpha1', ...]."""
+        names = []
+        for i in range(self.n_joints):
+            kinds = PARAM_KINDS_MDH if self.uses_beta[i] else PARAM_KINDS_DH
+            names.extend(f"{k}{i + 1}" for k in kinds)
+        return names
+
+    @property
+    def params(self) -> np.ndarray:
+        """Current values of the identifiable parameters, in `param_names` order."""
+        return np.array([getattr(self, _kind(nm))[_joint(nm)] for nm in self.param_names])
+
+    def with_params(self, values: np.ndarray) -> KinematicModel:
+        """A copy with the identifiable parameters replaced by `values` (same order as `param_names`)."""
+        values = np.asarray(values, dtype=float)
+        if values.shape != (len(self.param_names),):
+            raise ValueError(f"expected {len(self.param_names)} parameter values, got {values.shape}")
+        arrays = {k: np.array(getattr(self, k), dtype=float) for k in ("theta", "d", "a", "alpha", "beta")}
+        for nm, v in zip(self.param_names, values, strict=True):
+            arrays[_kind(nm)][_joint(nm)] = v
+        return replace(self, **arrays)
+
+    def with_errors(self, errors: dict[str, float]) -> KinematicModel:
+        """A copy with named parameter errors added, e.g. {'a2': 2e-4, 'beta2': 1e-4}."""
+        names = self.param_names
+        p = self.params.copy()
+        for nm, dv in errors.items():
+            if nm not in names:
+                raise KeyError(f"{self.name} has no parameter '{nm}'; known: {', '.join(names)}")
+            p[names.index(nm)] += dv
+        return self.with_params(p)
+
+    def check_joints(self, q: np.ndarray) -> np.ndarray:
+        """Validate and return q as an (N, n) float array; raises ValueError with the bad shape."""
+        q = np.asarray(q, dtype=float)
+        if q.ndim == 1:
+            q = q[None, :]
+        if q.ndim != 2 or q.shape[1] != self.n_joints:
+            raise ValueError(f"{self.name}: joints must be (N, {self.n_joints}), got {q.shape}")
+        if not np.all(np.isfinite(q)):
+            raise ValueError(f"{self.name}: joints contain NaN or inf")
+        return q
+
+    def within_limits(self, q: np.ndarray, tol: float = 0.0) -> np.ndarray:
+        """Bool (N,) whether each joint set lies within the joint limits (plus `tol` rad)."""
+        q = self.check_joints(q)
+        lo, hi = self.joint_limits[:, 0] - tol, self.joint_limits[:, 1] + tol
+        return np.all((q >= lo) & (q <= hi), axis=1)
+
+
+def _kind(param_name: str) -> str:
+    return param_name.rstrip("0123456789")
+
+
+def _joint(param_name: str) -> int:
+    return int(param_name[len(_kind(param_name)) :]) - 1
+
+
+def joint_transforms(model: KinematicModel, q: np.ndarray) -> np.ndarray:
+    """Per-joint transforms (N, n, 4, 4) for joints q (N, n)."""
+    q = model.check_joints(q)
+    th = q + model.theta
+    ct, st = np.cos(th), np.sin(th)
+    ca, sa = np.cos(model.alpha), np.sin(model.alpha)
+    N, n = q.shape
+    A = np.zeros((N, n, 4, 4))
+    A[..., 0, 0] = ct
+    A[..., 0, 1] = -st * ca
+    A[..., 0, 2] = st * sa
+    A[..., 0, 3] = model.a * ct
+    A[..., 1, 0] = st
+    A[..., 1, 1] = ct * ca
+    A[..., 1, 2] = -ct * sa
+    A[..., 1, 3] = model.a * st
+    A[..., 2, 1] = sa
+    A[..., 2, 2] = ca
+    A[..., 2, 3] = model.d
+    A[..., 3, 3] = 1.0
+    if np.any(model.uses_beta):
+        Ry = rot_y(np.asarray(model.beta, dtype=float))  # (n,3,3)
+        A[..., :3, :3] = A[..., :3, :3] @ Ry
+    return A
+
+
+def link_frames(model: KinematicModel, q: np.ndarray) -> np.ndarray:
+    """Frames of every link in the base frame, (N, n+1, 4, 4): index 0 is the base, n the last link."""
+    A = joint_transforms(model, q)
+    N, n = A.shape[:2]
+    frames = np.empty((N, n + 1, 4, 4))
+    frames[:, 0] = np.eye(4)
+    for i in range(n):
+        frames[:, i + 1] = frames[:, i] @ A[:, i]
+    return frames
+
+
+def forward_kinematics(model: KinematicModel, q: np.ndarray) -> np.ndarray:
+    """Flange poses T_base_flange (N, 4, 4) for joints q (N, n)."""
+    A = joint_transforms(model, q)
+    T = A[:, 0]
+    for i in range(1, A.shape[1]):
+        T = T @ A[:, i]
+    return T @ model.T_last_flange
+
+
+def tool_points(model: KinematicModel, q: np.ndarray, p_flange_tool: np.ndarray) -> np.ndarray:
+    """Tool point(s) in the base frame (N, 3) for a point p_flange_tool (3,) given in the flange."""
+    T = forward_kinematics(model, q)
+    return T[:, :3, :3] @ np.asarray(p_flange_tool, dtype=float) + T[:, :3, 3]
+
+
+def tool_poses(model: KinematicModel, q: np.ndarray, T_flange_tool: np.ndarray) -> np.ndarray:
+    """Tool frames T_base_tool (N, 4, 4) for a tool frame T_flange_tool (4, 4)."""
+    return forward_kinematics(model, q) @ np.asarray(T_flange_tool, dtype=float)
+
+
+def geometric_jacobian(
+    model: KinematicModel, q: np.ndarray, p_flange_tool: np.ndarray | None = None
+) -> np.ndarray:
+    """Geometric Jacobian (N, 6, n) in the base frame at the tool point: rows [v; omega]."""
+    frames = link_frames(model, q)
+    T_flange = frames[:, -1] @ model.T_last_flange
+    p = T_flange[:, :3, 3]
+    if p_flange_tool is not None:
+        p = p + T_flange[:, :3, :3] @ np.asarray(p_flange_tool, dtype=float)
+    z = frames[:, :-1, :3, 2]  # (N, n, 3) axis of joint i is z of frame i-1
+    o = frames[:, :-1, :3, 3]
+    Jv = np.cross(z, p[:, None, :] - o)
+    return np.concatenate([np.swapaxes(Jv, 1, 2), np.swapaxes(z, 1, 2)], axis=1)
+
+
+def kinematic_point_jacobian(
+    model: KinematicModel, q: np.ndarray, p_flange_tool: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Derivative of the tool point (base frame) w.r.t. every identifiable parameter.
+
+    Returns (points (N,3), J (N, 3, len(param_names))). Analytic: each elementary factor of a
+    joint transform is a rotation about, or translation along, a known axis in the base frame.
+    """
+    q = model.check_joints(q)
+    frames = link_frames(model, q)
+    T_flange = frames[:, -1] @ model.T_last_flange
+    p = T_flange[:, :3, :3] @ np.asarray(p_flange_tool, dtype=float) + T_flange[:, :3, 3]
+    N = q.shape[0]
+    cols = []
+    th = q + model.theta
+    for i in range(model.n_joints):
+        R_prev = frames[:, i, :3, :3]
+        o_prev = frames[:, i, :3, 3]
+        x_prev, y_prev, z_prev = R_prev[:, :, 0], R_prev[:, :, 1], R_prev[:, :, 2]
+        c, s = np.cos(th[:, i])[:, None], np.sin(th[:, i])[:, None]
+        x_mid = c * x_prev + s * y_prev  # x axis after Rz(theta)
+        y_mid = -s * x_prev + c * y_prev
+        o_i = frames[:, i + 1, :3, 3]  # origin after Tz(d) Tx(a); beta does not translate
+        d_theta = np.cross(z_prev, p - o_prev)
+        d_d = z_prev
+        d_a = x_mid
+        d_alpha = np.cross(x_mid, p - o_i)
+        if model.uses_beta[i]:
+            ca, sa = np.cos(model.alpha[i]), np.sin(model.alpha[i])
+            y_after_alpha = ca * y_mid + sa * z_prev
+            d_beta = np.cross(y_after_alpha, p - o_i)
+            cols.extend([d_theta, d_a, d_alpha, d_beta])
+        else:
+            cols.extend([d_theta, d_d, d_a, d_alpha])
+    J = np.stack(cols, axis=2) if cols else np.zeros((N, 3, 0))
+    return p, J
+
+
+BASE_PARAM_NAMES: tuple[str, ...] = ("base_tx", "base_ty", "base_tz", "base_rx", "base_ry", "base_rz")
+TOOL_PARAM_NAMES: tuple[str, ...] = ("tool_x", "tool_y", "tool_z")
+
+
+def measured_point(
+    model: KinematicModel, q: np.ndarray, T_tracker_base: np.ndarray, p_flange_tool: np.ndarray
+) -> np.ndarray:
+    """Predicted SMR centre in the tracker frame (N, 3)."""
+    p_base = tool_points(model, q, p_flange_tool)
+    return p_base @ T_tracker_base[:3, :3].T + T_tracker_base[:3, 3]
+
+
+def identification_jacobian(
+    model: KinematicModel, q: np.ndarray, T_tracker_base: np.ndarray, p_flange_tool: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Predicted tracker-frame points (N,3) and their Jacobian (N, 3, P) for identification.
+
+    Columns: the model's `param_names`, then the 6 base-frame parameters, then the 3 tool-point
+    coordinates. Base parameters perturb T_tracker_base as Trans(dt) @ T_tracker_base @ Rot(dr):
+    dt in tracker axes, dr a small rotation vector about the robot base origin in base axes
+    (see `perturb_base`).
+    """
+    p_base, J_kin = kinematic_point_jacobian(model, q, p_flange_tool)
+    R_LB = T_tracker_base[:3, :3]
+    p_L = p_base @ R_LB.T + T_tracker_base[:3, 3]
+    N = p_base.shape[0]
+    J_kin_L = np.einsum("ij,njk->nik", R_LB, J_kin)
+    J_base_t = np.broadcast_to(np.eye(3), (N, 3, 3))
+    # d/d(dr) of R_LB (p_B + dr x p_B) = R_LB @ (-[p_B]x)
+    px, py, pz = p_base[:, 0], p_base[:, 1], p_base[:, 2]
+    zero = np.zeros(N)
+    neg_skew = -np.stack(
+        [np.stack([zero, -pz, py], -1), np.stack([pz, zero, -px], -1), np.stack([-py, px, zero], -1)], -2
+    )
+    J_base_r = np.einsum("ij,njk->nik", R_LB, neg_skew)
+    T_flange = forward_kinematics(model, q)
+    J_tool = np.einsum("ij,njk->nik", R_LB, T_flange[:, :3, :3])
+    J = np.concatenate([J_kin_L, J_base_t, J_base_r, J_tool], axis=2)
+    return p_L, J
+
+
+def perturb_base(T_tracker_base: np.ndarray, delta: np.ndarray) -> np.ndarray:
+    """Apply the 6 base-parameter increments [dt (tracker axes), dr (base axes)] to T_tracker_base."""
+    T_t = np.eye(4)
+    T_t[:3, 3] = delta[:3]
+    T_r = np.eye(4)
+    T_r[:3, :3] = Rotation.from_rotvec(delta[3:6]).as_matrix()
+    return T_t @ T_tracker_base @ T_r
+

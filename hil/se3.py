@@ -1,0 +1,175 @@
+"""SE(3) helpers: homogeneous transforms, UR pose vectors, rigid point-set fits, plane and circle fits.
+
+Rotations go through scipy's `Rotation`; everything is vectorised over leading axes where it matters.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+
+def make_transform(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Stack rotation(s) (...,3,3) and translation(s) (...,3) into homogeneous transform(s) (...,4,4)."""
+    R = np.asarray(R, dtype=float)
+    t = np.asarray(t, dtype=float)
+    shape = np.broadcast_shapes(R.shape[:-2], t.shape[:-1])
+    T = np.zeros(shape + (4, 4))
+    T[..., :3, :3] = R
+    T[..., :3, 3] = t
+    T[..., 3, 3] = 1.0
+    return T
+
+
+def invert(T: np.ndarray) -> np.ndarray:
+    """Inverse of rigid transform(s) (...,4,4) without a general matrix inverse."""
+    R = T[..., :3, :3]
+    t = T[..., :3, 3]
+    Rt = np.swapaxes(R, -1, -2)
+    return make_transform(Rt, -np.einsum("...ij,...j->...i", Rt, t))
+
+
+def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Apply transform(s) (...,4,4) to point(s) (...,3)."""
+    return np.einsum("...ij,...j->...i", T[..., :3, :3], points) + T[..., :3, 3]
+
+
+def pose_to_transform(pose: np.ndarray) -> np.ndarray:
+    """UR pose vector(s) [x, y, z, rx, ry, rz] (metres, rotation vector in rad) -> (...,4,4)."""
+    pose = np.asarray(pose, dtype=float)
+    flat = pose.reshape(-1, 6)
+    R = Rotation.from_rotvec(flat[:, 3:]).as_matrix()
+    return make_transform(R, flat[:, :3]).reshape(pose.shape[:-1] + (4, 4))
+
+
+def transform_to_pose(T: np.ndarray) -> np.ndarray:
+    """Transform(s) (...,4,4) -> UR pose vector(s) [x, y, z, rx, ry, rz]."""
+    T = np.asarray(T, dtype=float)
+    flat = T.reshape(-1, 4, 4)
+    rv = Rotation.from_matrix(flat[:, :3, :3]).as_rotvec()
+    return np.concatenate([flat[:, :3, 3], rv], axis=1).reshape(T.shape[:-2] + (6,))
+
+
+def rot_x(angle: np.ndarray | float) -> np.ndarray:
+    """Rotation matrix (or matrices) about x."""
+    c, s = np.cos(angle), np.sin(angle)
+    o, z = np.ones_like(c), np.zeros_like(c)
+    return np.stack([np.stack([o, z, z], -1), np.stack([z, c, -s], -1), np.stack([z, s, c], -1)], -2)
+
+
+def rot_y(angle: np.ndarray | float) -> np.ndarray:
+    """Rotation matrix (or matrices) about y."""
+    c, s = np.cos(angle), np.sin(angle)
+    o, z = np.ones_like(c), np.zeros_like(c)
+    return np.stack([np.stack([c, z, s], -1), np.stack([z, o, z], -1), np.stack([-s, z, c], -1)], -2)
+
+
+def rot_z(angle: np.ndarray | float) -> np.ndarray:
+    """Rotation matrix (or matrices) about z."""
+    c, s = np.cos(angle), np.sin(angle)
+    o, z = np.ones_like(c), np.zeros_like(c)
+    return np.stack([np.stack([c, -s, z], -1), np.stack([s, c, z], -1), np.stack([z, z, o], -1)], -2)
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """Cross-product matrix/matrices [v]x of vector(s) (...,3)."""
+    v = np.asarray(v, dtype=float)
+    z = np.zeros(v.shape[:-1])
+    x, y, w = v[..., 0], v[..., 1], v[..., 2]
+    return np.stack(
+        [np.stack([z, -w, y], -1), np.stack([w, z, -x], -1), np.stack([-y, x, z], -1)], -2
+    )
+
+
+def pose_error(T_actual: np.ndarray, T_desired: np.ndarray) -> np.ndarray:
+    """6-vector error(s) (...,6) taking T_actual to T_desired: [dp (m), rotation vector (rad)], base frame."""
+    dp = T_desired[..., :3, 3] - T_actual[..., :3, 3]
+    R_err = T_desired[..., :3, :3] @ np.swapaxes(T_actual[..., :3, :3], -1, -2)
+    flat = R_err.reshape(-1, 3, 3)
+    rv = Rotation.from_matrix(flat).as_rotvec().reshape(R_err.shape[:-2] + (3,))
+    return np.concatenate([dp, rv], axis=-1)
+
+
+def fit_rigid(
+    source: np.ndarray,
+    target: np.ndarray,
+    weights: np.ndarray | None = None,
+    with_scale: bool = False,
+) -> tuple[np.ndarray, float]:
+    """Kabsch/Umeyama fit: T (4x4) and scale s minimising sum w |target - (s R source + t)|^2.
+
+    Needs at least three non-collinear points; raises ValueError otherwise.
+    """
+    src = np.asarray(source, dtype=float)
+    dst = np.asarray(target, dtype=float)
+    if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3:
+        raise ValueError(f"fit_rigid needs two (N,3) arrays of equal shape, got {src.shape}, {dst.shape}")
+    if src.shape[0] < 3:
+        raise ValueError(f"fit_rigid needs at least 3 point pairs, got {src.shape[0]}")
+    w = np.ones(len(src)) if weights is None else np.asarray(weights, dtype=float)
+    w = w / w.sum()
+    mu_s = w @ src
+    mu_d = w @ dst
+    xs = src - mu_s
+    xd = dst - mu_d
+    cov = (xd * w[:, None]).T @ xs
+    U, S, Vt = np.linalg.svd(cov)
+    if S[1] < 1e-12 * max(S[0], 1e-300):
+        raise ValueError("fit_rigid: points are collinear or coincident; spread them out")
+    D = np.eye(3)
+    D[2, 2] = np.sign(np.linalg.det(U) * np.linalg.det(Vt)) or 1.0
+    R = U @ D @ Vt
+    scale = 1.0
+    if with_scale:
+        var_s = w @ np.sum(xs**2, axis=1)
+        scale = float(np.trace(np.diag(S) @ D) / var_s)
+    t = mu_d - scale * R @ mu_s
+    return make_transform(R, t), scale
+
+
+def fit_plane(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares plane through (N>=3, 3) points: (centroid, unit normal)."""
+    pts = np.asarray(points, dtype=float)
+    if pts.ndim != 2 or pts.shape[0] < 3:
+        raise ValueError(f"fit_plane needs at least 3 points as (N,3), got {pts.shape}")
+    centroid = pts.mean(axis=0)
+    _, S, Vt = np.linalg.svd(pts - centroid)
+    if S[1] < 1e-12 * max(S[0], 1e-300):
+        raise ValueError("fit_plane: points are collinear; a plane is not defined")
+    return centroid, Vt[2]
+
+
+def fit_circle_3d(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """Circle through (N>=3, 3) points in space: (centre, unit plane normal, radius).
+
+    Three points give the circumscribed circle exactly; more points give the algebraic
+    least-squares circle in their best-fit plane.
+    """
+    centroid, normal = fit_plane(points)
+    pts = np.asarray(points, dtype=float)
+    # In-plane orthonormal basis (u, v).
+    u = pts[0] - centroid
+    u -= normal * (u @ normal)
+    if np.linalg.norm(u) < 1e-15:
+        u = pts[1] - centroid
+        u -= normal * (u @ normal)
+    u /= np.linalg.norm(u)
+    v = np.cross(normal, u)
+    x = (pts - centroid) @ u
+    y = (pts - centroid) @ v
+    # x^2 + y^2 + D x + E y + F = 0, linear in (D, E, F).
+    A = np.column_stack([x, y, np.ones_like(x)])
+    b = -(x**2 + y**2)
+    (D, E, F), *_ = np.linalg.lstsq(A, b, rcond=None)
+    cx, cy = -D / 2.0, -E / 2.0
+    radius = float(np.sqrt(max(cx**2 + cy**2 - F, 0.0)))
+    centre = centroid + cx * u + cy * v
+    return centre, normal, radius
+
+
+def orthonormalize(R: np.ndarray) -> np.ndarray:
+    """Nearest rotation matrix to R (polar decomposition through SVD)."""
+    U, _, Vt = np.linalg.svd(R)
+    D = np.eye(3)
+    D[2, 2] = np.sign(np.linalg.det(U @ Vt))
+    return U @ D @ Vt
