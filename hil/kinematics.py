@@ -11,7 +11,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-
 from scipy.spatial.transform import Rotation
 
 from hil.se3 import rot_y
@@ -271,4 +270,3 @@ def perturb_base(T_tracker_base: np.ndarray, delta: np.ndarray) -> np.ndarray:
     T_r = np.eye(4)
     T_r[:3, :3] = Rotation.from_rotvec(delta[3:6]).as_matrix()
     return T_t @ T_tracker_base @ T_r
-
