@@ -1,0 +1,272 @@
+"""A calibrated robot model: geometry, base frame, tool points, effects; predicts, corrects, saves as JSON.
+
+The full parameter vector is the kinematic parameters (`KinematicModel.param_names`), the six base
+parameters (tracker <- robot base, see `hil.kinematics.perturb_base`), three tool coordinates per SMR
+nest, then every effect's coefficients. `predict` applies all of it; `jacobian` differentiates it.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from hil.dataset import joints_rad, points_m, smr_ids
+from hil.effects import Effect, EffectContext, effect_from_dict, growth_direction, tool_points_rows
+from hil.kinematics import (
+    BASE_PARAM_NAMES,
+    KinematicModel,
+    identification_jacobian,
+    perturb_base,
+)
+from hil.robots import get_robot
+
+FORMAT = "hil-calibrated-model/1"
+
+
+@dataclass
+class CalibratedModel:
+    """Everything needed to predict where the SMR is in the tracker frame for given joints."""
+
+    robot: str
+    nominal: KinematicModel
+    kinematic: KinematicModel
+    T_tracker_base: np.ndarray
+    tools: dict[int, np.ndarray]  # SMR nest id -> tool point in the flange (m)
+    effects: list[Effect] = field(default_factory=list)
+    info: dict = field(default_factory=dict)  # solver report: std errors, dropped parameters, outliers...
+
+    # ----- parameter vector ---------------------------------------------------------------------
+    @property
+    def param_names(self) -> list[str]:
+        names = list(self.kinematic.param_names) + list(BASE_PARAM_NAMES)
+        for smr in sorted(self.tools):
+            names += [f"tool{smr}_x", f"tool{smr}_y", f"tool{smr}_z"]
+        for eff in self.effects:
+            names += eff.param_names
+        return names
+
+    def effect_slices(self) -> list[slice]:
+        """Where each effect's coefficients sit in the parameter vector."""
+        start = len(self.kinematic.param_names) + 6 + 3 * len(self.tools)
+        out = []
+        for eff in self.effects:
+            out.append(slice(start, start + len(eff.params)))
+            start += len(eff.params)
+        return out
+
+    def apply_increment(self, dx: np.ndarray) -> CalibratedModel:
+        """A new model with the increment dx (full parameter order) applied."""
+        dx = np.asarray(dx, dtype=float)
+        nk = len(self.kinematic.param_names)
+        kin = self.kinematic.with_params(self.kinematic.params + dx[:nk])
+        T = perturb_base(self.T_tracker_base, dx[nk : nk + 6])
+        tools = {}
+        pos = nk + 6
+        for smr in sorted(self.tools):
+            tools[smr] = self.tools[smr] + dx[pos : pos + 3]
+            pos += 3
+        effects = []
+        for eff, sl in zip(self.effects, self.effect_slices(), strict=True):
+            new = type(eff)(joint=eff.joint, params=eff.params + dx[sl], state=eff.state)
+            effects.append(new)
+        return replace(self, kinematic=kin, T_tracker_base=T, tools=tools, effects=effects)
+
+    def with_effect(self, effect: Effect) -> CalibratedModel:
+        return replace(self, effects=[*self.effects, effect])
+
+    # ----- prediction ---------------------------------------------------------------------------
+    def context(self, df: pd.DataFrame) -> tuple[EffectContext, np.ndarray]:
+        """Effect context and per-row tool points (N, 3) for a dataset frame."""
+        q = joints_rad(df, self.kinematic.n_joints)
+        ctx = EffectContext.from_frame(df, q)
+        ctx.p_flange_tool = self._row_tools(smr_ids(df))
+        return ctx, ctx.p_flange_tool
+
+    def _row_tools(self, smr: np.ndarray) -> np.ndarray:
+        missing = sorted(set(np.unique(smr).tolist()) - set(self.tools))
+        if missing:
+            raise ValueError(
+                f"the model knows tool points for SMR nests {sorted(self.tools)}, the data uses {missing}; "
+                "calibrate with data that contains those nests"
+            )
+        return np.array([self.tools[int(s)] for s in smr]).reshape(-1, 3)
+
+    def joint_offsets(self, ctx: EffectContext) -> np.ndarray:
+        """Output-side joint offsets (N, n) from every joint effect."""
+        dq = np.zeros_like(ctx.q)
+        for eff in self.effects:
+            if eff.kind == "joint":
+                dq[:, eff.joint - 1] += eff.cached_regressors(ctx, self.nominal) @ eff.params
+        return dq
+
+    def predict_ctx(self, ctx: EffectContext) -> np.ndarray:
+        """Predicted SMR centres (N, 3) in the tracker frame, metres."""
+        q_eff = ctx.q + self.joint_offsets(ctx)
+        p_base = tool_points_rows(self.kinematic, q_eff, ctx.p_flange_tool)
+        offset = np.zeros_like(p_base)
+        for eff in self.effects:
+            if eff.kind == "growth":
+                g = eff.cached_regressors(ctx, self.nominal) @ eff.params
+                p_base = p_base + g[:, None] * growth_direction(self.kinematic, q_eff, ctx.p_flange_tool)
+            elif eff.kind == "offset":
+                offset += eff.cached_regressors(ctx, self.nominal)[:, :1] * eff.params[None, :]
+        R, t = self.T_tracker_base[:3, :3], self.T_tracker_base[:3, 3]
+        return p_base @ R.T + t + offset
+
+    def predict(self, df: pd.DataFrame) -> np.ndarray:
+        """Predicted SMR centres (N, 3) in the tracker frame (m) for the joints (and drivers) in df."""
+        ctx, _ = self.context(df)
+        return self.predict_ctx(ctx)
+
+    def jacobian_ctx(self, ctx: EffectContext, smr: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Predicted points (N, 3) and d(points)/d(parameters) (N, 3, P) in the full parameter order."""
+        q_eff = ctx.q + self.joint_offsets(ctx)
+        N = ctx.n
+        nk = len(self.kinematic.param_names)
+        P = len(self.param_names)
+        J = np.zeros((N, 3, P))
+        ids = sorted(self.tools)
+        for k, sid in enumerate(ids):
+            rows = np.flatnonzero(smr == sid)
+            if rows.size == 0:
+                continue
+            _, Jg = identification_jacobian(self.kinematic, q_eff[rows], self.T_tracker_base, self.tools[sid])
+            J[rows, :, : nk + 6] = Jg[:, :, : nk + 6]
+            J[np.ix_(rows, range(3), range(nk + 6 + 3 * k, nk + 9 + 3 * k))] = Jg[:, :, nk + 6 :]
+        # A joint offset moves the point like the joint itself: the theta column of that joint.
+        theta_cols = [
+            self.kinematic.param_names.index(f"theta{j + 1}") for j in range(self.kinematic.n_joints)
+        ]
+        R = self.T_tracker_base[:3, :3]
+        for eff, sl in zip(self.effects, self.effect_slices(), strict=True):
+            reg = eff.cached_regressors(ctx, self.nominal)
+            if eff.kind == "joint":
+                col = J[:, :, theta_cols[eff.joint - 1]]
+                J[:, :, sl] = col[:, :, None] * reg[:, None, :]
+            elif eff.kind == "growth":
+                G = growth_direction(self.kinematic, q_eff, ctx.p_flange_tool) @ R.T
+                J[:, :, sl] = G[:, :, None] * reg[:, None, :]
+            else:
+                J[:, :, sl] = reg[:, :1, None] * np.eye(3)[None]
+        return self.predict_ctx(ctx), J
+
+    # ----- compensation -------------------------------------------------------------------------
+    def corrected_joints(
+        self, targets_tracker: np.ndarray, q_seed: np.ndarray, smr: int | None = None, iterations: int = 20
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Joints to command so that the model puts the SMR at the targets (tracker frame, m).
+
+        Damped Gauss-Newton on the joints from a seed (N, n) (e.g. the nominal IK of the target),
+        position only: the position is 3 equations in 6 joints, so the minimum-norm joint step is
+        taken and the seed's orientation is kept to first order. Returns (q (N, n), error (N,) m).
+        """
+        targets = np.atleast_2d(np.asarray(targets_tracker, float))
+        q = np.atleast_2d(np.asarray(q_seed, float)).copy()
+        sid = sorted(self.tools)[0] if smr is None else int(smr)
+        smr_rows = np.full(len(q), sid)
+        for _ in range(iterations):
+            ctx = EffectContext(q=q, p_flange_tool=self._row_tools(smr_rows))
+            p, J = self.jacobian_ctx(ctx, smr_rows)
+            theta_cols = [self.kinematic.param_names.index(f"theta{j + 1}") for j in range(q.shape[1])]
+            Jq = J[:, :, theta_cols]
+            err = targets - p
+            if np.max(np.linalg.norm(err, axis=1)) < 1e-9:
+                break
+            JJt = Jq @ np.swapaxes(Jq, 1, 2) + 1e-12 * np.eye(3)
+            q = q + np.einsum("nji,nj->ni", Jq, np.linalg.solve(JJt, err[..., None])[..., 0])
+        ctx = EffectContext(q=q, p_flange_tool=self._row_tools(smr_rows))
+        return q, np.linalg.norm(targets - self.predict_ctx(ctx), axis=1)
+
+    # ----- persistence --------------------------------------------------------------------------
+    def to_dict(self) -> dict:
+        return {
+            "format": FORMAT,
+            "robot": self.robot,
+            "nominal": model_to_dict(self.nominal),
+            "kinematic": model_to_dict(self.kinematic),
+            "T_tracker_base": self.T_tracker_base.tolist(),
+            "tools_m": {str(k): v.tolist() for k, v in sorted(self.tools.items())},
+            "effects": [e.to_dict() for e in self.effects],
+            "info": self.info,
+        }
+
+    def save(self, path: str | Path) -> None:
+        Path(path).write_text(json.dumps(self.to_dict(), indent=1, default=_json_default))
+
+    @classmethod
+    def from_dict(cls, data: dict) -> CalibratedModel:
+        if data.get("format") != FORMAT:
+            raise ValueError(
+                f"not a calibrated model file (format {data.get('format')!r}, expected {FORMAT!r})"
+            )
+        return cls(
+            robot=data["robot"],
+            nominal=model_from_dict(data["nominal"]),
+            kinematic=model_from_dict(data["kinematic"]),
+            T_tracker_base=np.asarray(data["T_tracker_base"], float),
+            tools={int(k): np.asarray(v, float) for k, v in data["tools_m"].items()},
+            effects=[effect_from_dict(e) for e in data.get("effects", [])],
+            info=data.get("info", {}),
+        )
+
+    @classmethod
+    def load(cls, path: str | Path) -> CalibratedModel:
+        return cls.from_dict(json.loads(Path(path).read_text()))
+
+
+def model_to_dict(m: KinematicModel) -> dict:
+    """KinematicModel -> JSON-ready dict (all fields)."""
+    return {
+        "name": m.name,
+        "theta": list(map(float, m.theta)),
+        "d": list(map(float, m.d)),
+        "a": list(map(float, m.a)),
+        "alpha": list(map(float, m.alpha)),
+        "beta": list(map(float, m.beta)),
+        "uses_beta": [bool(b) for b in m.uses_beta],
+        "joint_limits": np.asarray(m.joint_limits, float).tolist(),
+        "T_last_flange": np.asarray(m.T_last_flange, float).tolist(),
+    }
+
+
+def model_from_dict(d: dict) -> KinematicModel:
+    return KinematicModel(
+        name=d["name"],
+        theta=np.asarray(d["theta"], float),
+        d=np.asarray(d["d"], float),
+        a=np.asarray(d["a"], float),
+        alpha=np.asarray(d["alpha"], float),
+        beta=np.asarray(d["beta"], float),
+        uses_beta=np.asarray(d["uses_beta"], bool),
+        joint_limits=np.asarray(d["joint_limits"], float),
+        T_last_flange=np.asarray(d["T_last_flange"], float),
+    )
+
+
+def initial_model(
+    robot: str | KinematicModel, df: pd.DataFrame, tool_guess_m: np.ndarray | None = None
+) -> CalibratedModel:
+    """Nominal geometry, tool points at a guess, base frame from a rigid fit of nominal to measured points."""
+    from hil.se3 import fit_rigid
+
+    nominal = get_robot(robot) if isinstance(robot, str) else robot
+    ids = smr_ids(df)
+    guess = np.zeros(3) if tool_guess_m is None else np.asarray(tool_guess_m, float)
+    tools = {int(s): guess.copy() for s in np.unique(ids)}
+    model = CalibratedModel(nominal.name, nominal, nominal, np.eye(4), tools)
+    ctx, _ = model.context(df)
+    p_base = model.predict_ctx(ctx)
+    T, _ = fit_rigid(p_base, points_m(df))
+    return replace(model, T_tracker_base=T)
+
+
+def _json_default(o: object) -> object:
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, np.generic):
+        return o.item()
+    raise TypeError(f"cannot write {type(o).__name__} to JSON")

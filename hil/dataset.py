@@ -1,0 +1,133 @@
+"""The measurement dataset contract: one CSV row per measured robot pose, rows in measurement order.
+
+Required: ``q1_rad .. q6_rad`` (joints the robot reported) and ``x_mm, y_mm, z_mm`` (SMR centre in the
+tracker frame). Optional: ``t_s`` (seconds since the campaign started), ``temperature_c``, ``smr``
+(nest id, integer; default 1), ``payload_kg``, and any further column whose name ends in its unit.
+"""
+
+from __future__ import annotations
+
+import re
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+POSITION_COLUMNS: tuple[str, ...] = ("x_mm", "y_mm", "z_mm")
+OPTIONAL_COLUMNS: tuple[str, ...] = ("t_s", "temperature_c", "smr", "payload_kg")
+UNIT_SUFFIX = re.compile(r"_(mm|m|um|rad|deg|s|ms|c|k|kg|n|nm|hpa|pa|pct|mps|bool|id|count)$", re.IGNORECASE)
+
+
+def joint_columns(n_joints: int = 6) -> list[str]:
+    return [f"q{i + 1}_rad" for i in range(n_joints)]
+
+
+class DatasetError(ValueError):
+    """A dataset that breaks the contract; the message says what to fix."""
+
+
+def validate_dataset(df: pd.DataFrame, n_joints: int = 6, source: str = "dataset") -> pd.DataFrame:
+    """Check a frame against the contract and return it with clean dtypes (raises DatasetError)."""
+    required = joint_columns(n_joints) + list(POSITION_COLUMNS)
+    missing = [c for c in required if c not in df.columns]
+    if missing:
+        raise DatasetError(
+            f"{source}: missing column(s) {', '.join(missing)}; a dataset needs {', '.join(required)} "
+            f"(found: {', '.join(map(str, df.columns))})"
+        )
+    if len(df) == 0:
+        raise DatasetError(f"{source}: no rows")
+    out = df.copy()
+    numeric = required + [c for c in ("t_s", "temperature_c", "payload_kg") if c in df.columns]
+    for col in numeric:
+        values = pd.to_numeric(out[col], errors="coerce")
+        bad = np.flatnonzero(~np.isfinite(values.to_numpy(float)))
+        if bad.size:
+            rows = ", ".join(str(r + 1) for r in bad[:5])
+            raise DatasetError(
+                f"{source}: column '{col}' has missing or non-numeric values in data row(s) {rows}"
+                f"{' ...' if bad.size > 5 else ''} (row 1 = first line after the header)"
+            )
+        out[col] = values.astype(float)
+    if "smr" in out.columns:
+        smr = pd.to_numeric(out["smr"], errors="coerce")
+        if smr.isna().any() or np.any(smr != np.round(smr)):
+            row = int(np.flatnonzero(smr.isna() | (smr != np.round(smr)))[0]) + 1
+            raise DatasetError(
+                f"{source}: column 'smr' must hold integer nest ids (bad value in data row {row})"
+            )
+        out["smr"] = smr.astype(int)
+    q = out[joint_columns(n_joints)].to_numpy()
+    if np.any(np.abs(q) > 4 * np.pi):
+        row = int(np.flatnonzero(np.any(np.abs(q) > 4 * np.pi, axis=1))[0]) + 1
+        raise DatasetError(
+            f"{source}: joint angles beyond 4*pi in data row {row}: are they in degrees? use radians"
+        )
+    if "t_s" in out.columns and np.any(np.diff(out["t_s"].to_numpy()) < 0):
+        row = int(np.flatnonzero(np.diff(out["t_s"].to_numpy()) < 0)[0]) + 2
+        raise DatasetError(
+            f"{source}: t_s goes backwards at data row {row}; rows must be in measurement order"
+        )
+    unknown = [
+        c
+        for c in out.columns
+        if c not in required and c not in OPTIONAL_COLUMNS and not UNIT_SUFFIX.search(str(c))
+    ]
+    if unknown:
+        warnings.warn(
+            f"{source}: column(s) {', '.join(map(str, unknown))} carry no unit suffix (e.g. '_mm'); ignored",
+            stacklevel=2,
+        )
+    return out
+
+
+def load_dataset(path: str | Path, n_joints: int = 6) -> pd.DataFrame:
+    """Read and validate a dataset CSV."""
+    path = Path(path)
+    if not path.exists():
+        raise DatasetError(f"dataset file not found: {path}")
+    try:
+        df = pd.read_csv(path)
+    except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
+        raise DatasetError(f"{path}: not a readable CSV ({exc})") from exc
+    return validate_dataset(df, n_joints, source=str(path))
+
+
+def write_dataset(df: pd.DataFrame, path: str | Path) -> None:
+    """Validate and write a dataset CSV (full float precision)."""
+    validate_dataset(df, source=str(path)).to_csv(path, index=False, float_format="%.10g")
+
+
+def make_dataset(
+    q: np.ndarray,
+    p_tracker_m: np.ndarray,
+    t_s: np.ndarray | None = None,
+    temperature_c: np.ndarray | None = None,
+    smr: np.ndarray | int | None = None,
+) -> pd.DataFrame:
+    """Build a contract frame from arrays in SI units."""
+    q = np.atleast_2d(q)
+    data: dict[str, np.ndarray] = {c: q[:, i] for i, c in enumerate(joint_columns(q.shape[1]))}
+    p_mm = np.atleast_2d(p_tracker_m) * 1000.0
+    for i, c in enumerate(POSITION_COLUMNS):
+        data[c] = p_mm[:, i]
+    if t_s is not None:
+        data["t_s"] = np.asarray(t_s, float)
+    if temperature_c is not None:
+        data["temperature_c"] = np.asarray(temperature_c, float)
+    if smr is not None:
+        data["smr"] = np.broadcast_to(np.asarray(smr, int), (q.shape[0],)).copy()
+    return pd.DataFrame(data)
+
+
+def joints_rad(df: pd.DataFrame, n_joints: int = 6) -> np.ndarray:
+    return df[joint_columns(n_joints)].to_numpy(float)
+
+
+def points_m(df: pd.DataFrame) -> np.ndarray:
+    return df[list(POSITION_COLUMNS)].to_numpy(float) / 1000.0
+
+
+def smr_ids(df: pd.DataFrame) -> np.ndarray:
+    return df["smr"].to_numpy(int) if "smr" in df.columns else np.ones(len(df), int)

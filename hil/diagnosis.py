@@ -1,0 +1,430 @@
+"""Close the loop: calibrate, look at the residual, test candidate effects, add the one that helps, repeat.
+
+Selection rule for each round (every candidate from `hil.effects` the data could reveal):
+1. add the candidate to the current model and re-run the identifiability analysis on the joint
+   (geometry + effects) Jacobian, so coefficients the data cannot separate from the geometry are merged;
+2. k-fold cross-validation (default 5 folds, same folds for every candidate): each fold refits all free
+   parameters on the other folds and predicts the held-out points;
+3. the candidate must (a) lower the held-out squared error per point, tested pairwise against the current
+   model (one-sided t-test, p < alpha), and (b) explain more than measurement noise on the full fit:
+   (SSE_before - SSE_after) / sigma^2 ~ chi2(k) with sigma the larger of the noise-floor sigma and the
+   residual sigma after, p < alpha / number of candidates;
+4. the passing candidate with the largest held-out gain is added and the whole model refitted robustly.
+The loop stops when nothing passes. The residual left is then tested against the noise floor; if it is
+larger and a residual map predicts it on held-out points, the report says structure remains that no
+candidate explains and adds the map as a fallback stage.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+import pandas as pd
+from scipy import stats
+
+from hil.calibrated_model import CalibratedModel, initial_model
+from hil.calibration import CalibrationResult, Problem, calibrate, identify, solve_ridge_igg3
+from hil.effects import Effect, candidate_effects, tool_points_rows
+from hil.kinematics import KinematicModel
+from hil.noise_floor import NoiseFloor, estimate_noise_floor
+from hil.residual_maps import MAP_KINDS, kfold_map_errors, make_map
+
+
+def error_stats(err_m: np.ndarray) -> dict[str, float]:
+    """mean / RMS / max / 95th percentile of 3-D error norms, mm, from (N, 3) errors in metres."""
+    e = np.linalg.norm(np.atleast_2d(err_m), axis=1) * 1000.0
+    return {
+        "mean_mm": float(np.mean(e)),
+        "rms_mm": float(np.sqrt(np.mean(e**2))),
+        "max_mm": float(np.max(e)),
+        "p95_mm": float(np.percentile(e, 95)),
+    }
+
+
+def kfold(n: int, k: int, seed: int) -> list[np.ndarray]:
+    perm = np.random.default_rng(seed).permutation(n)
+    return [np.sort(f) for f in np.array_split(perm, k)]
+
+
+def _fit_plain(model: CalibratedModel, problem: Problem, free: np.ndarray, iters: int = 8) -> CalibratedModel:
+    return solve_ridge_igg3(model, problem, free, robust=False, max_iter=iters).model
+
+
+def cv_residuals(
+    model: CalibratedModel, free: np.ndarray, problem: Problem, folds: list[np.ndarray]
+) -> np.ndarray:
+    """Held-out residuals (N, 3): each fold predicted by the model refitted on the other folds."""
+    n = problem.measured.shape[0]
+    out = np.zeros((n, 3))
+    for test in folds:
+        train = np.setdiff1d(np.arange(n), test)
+        fitted = _fit_plain(model, problem.subset(train), free, iters=5)
+        out[test] = problem.subset(test).residuals(fitted)
+    return out
+
+
+def _free_mask(model: CalibratedModel, problem: Problem) -> tuple[np.ndarray, object]:
+    report = identify(model, problem)
+    return report.keep_mask, report
+
+
+@dataclass
+class Candidate:
+    name: str
+    joint: int | None
+    n_params: int
+    cv_rms_mm: float
+    gain_mm2: float  # mean held-out squared-error reduction per point
+    p_cv: float
+    p_chi2: float
+    passed: bool
+    note: str = ""
+
+    def to_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
+@dataclass
+class Step:
+    effect: dict  # {name, joint}
+    parameters: list[dict]  # {name, value, std}
+    heldout_before: dict
+    heldout_after: dict
+    candidates: list[Candidate]
+    merged: list[dict]  # identifiability notes for the effect's coefficients
+    correlations: list[dict]  # strongest correlation of each effect coefficient with a geometric parameter
+    plot: dict = field(default_factory=dict)  # driver label/values, residual along the effect before/after
+
+    def to_dict(self) -> dict:
+        d = dict(self.__dict__)
+        d["candidates"] = [c.to_dict() for c in self.candidates]
+        return d
+
+
+@dataclass
+class DiagnosisReport:
+    model: CalibratedModel
+    calibration: dict  # both solvers' summaries
+    noise: NoiseFloor
+    stages: list[dict]
+    steps: list[Step]
+    unexplained_structure: bool
+    conclusion: str
+    residual_map: dict | None = None
+    histograms: dict = field(default_factory=dict)  # stage -> held-out error norms (mm)
+    final_round: list[Candidate] = field(default_factory=list)
+
+    @property
+    def effects_added(self) -> list[dict]:
+        return [s.effect for s in self.steps]
+
+    @property
+    def noise_floor_mm(self) -> float:
+        return self.noise.floor_mm
+
+    def to_dict(self) -> dict:
+        return {
+            "effects_added": self.effects_added,
+            "stages": self.stages,
+            "unexplained_structure": self.unexplained_structure,
+            "noise_floor_mm": self.noise.floor_mm,
+            "noise_floor_method": self.noise.method,
+            "conclusion": self.conclusion,
+            "steps": [s.to_dict() for s in self.steps],
+            "final_round_candidates": [c.to_dict() for c in self.final_round],
+            "calibration": self.calibration,
+            "residual_map": self.residual_map,
+        }
+
+    def table(self) -> str:
+        """Plain-text before/after table."""
+        lines = [f"{'stage':<34} {'on':<9} {'mean':>8} {'RMS':>8} {'max':>8} {'p95':>8}   (mm)"]
+        for s in self.stages:
+            lines.append(
+                f"{s['stage']:<34} {s['on']:<9} {s['mean_mm']:8.4f} {s['rms_mm']:8.4f} {s['max_mm']:8.4f} "
+                f"{s['p95_mm']:8.4f}"
+            )
+        lines.append(
+            f"noise floor (RMS of a perfect model): {self.noise.floor_mm:.4f} mm  [{self.noise.method}]"
+        )
+        return "\n".join(lines)
+
+
+def _stage(name: str, on: str, err: np.ndarray) -> dict:
+    return {"stage": name, "on": on, **error_stats(err)}
+
+
+def _effect_params(result: CalibrationResult, eff_index: int) -> list[dict]:
+    model = result.model
+    eff = model.effects[eff_index]
+    out = []
+    for nm, v in zip(eff.param_names, eff.params, strict=True):
+        out.append({"name": nm, "value": float(v), "std": result.std.get(nm), "free": nm in result.std})
+    return out
+
+
+def _correlations(result: CalibrationResult, problem: Problem, eff: Effect) -> list[dict]:
+    """For each free coefficient of `eff`, its strongest correlation with a geometric parameter."""
+    _, J = problem.evaluate(result.model)
+    names = result.model.param_names
+    free = [names.index(n) for n in result.free]
+    Jf = J.reshape(-1, J.shape[-1])[:, free]
+    cov = np.linalg.pinv(Jf.T @ Jf)
+    sd = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
+    corr = cov / np.outer(sd, sd)
+    fnames = result.free
+    out = []
+    for nm in eff.param_names:
+        if nm not in fnames:
+            continue
+        i = fnames.index(nm)
+        geo = [k for k, n in enumerate(fnames) if "." not in n]
+        k = max(geo, key=lambda k: abs(corr[i, k]))
+        out.append({"coefficient": nm, "parameter": fnames[k], "correlation": float(corr[i, k])})
+    return out
+
+
+def _effect_displacement(model: CalibratedModel, problem: Problem, index: int) -> np.ndarray:
+    """Tracker-frame displacement (N, 3) that effect `index` contributes (model with minus without)."""
+    without = replace(model, effects=[e for i, e in enumerate(model.effects) if i != index])
+    problem.ctx.p_flange_tool = model._row_tools(problem.smr)
+    return model.predict_ctx(problem.ctx) - without.predict_ctx(problem.ctx)
+
+
+def run_diagnosis(
+    df: pd.DataFrame,
+    robot: str | KinematicModel,
+    df_validate: pd.DataFrame | None = None,
+    folds: int = 5,
+    alpha: float = 1e-3,
+    seed: int = 0,
+    families: tuple[str, ...] | None = None,
+    max_effects: int = 8,
+    repeatability_mm: float = 0.0,
+    tool_guess_m: np.ndarray | None = None,
+) -> DiagnosisReport:
+    """The whole loop on a training dataset (and an optional validation dataset never used for fitting).
+
+    Held-out figures of every stage are computed at the end on the same rows: all points except those
+    the final model rejects as outliers (a model that lacks an effect rejects the points that show it
+    most, so its own outlier set would flatter it).
+    """
+    noise = estimate_noise_floor(df, repeatability_mm=repeatability_mm)
+    sigma2 = float(np.mean(noise.sigma_axis_m**2))
+    ridge = calibrate(df, robot, "ridge", tool_guess_m=tool_guess_m)
+    lm = calibrate(df, robot, "lm", tool_guess_m=tool_guess_m)
+    calibration = {"ridge_igg3": ridge.to_dict(), "lm": lm.to_dict()}
+    current = ridge
+    full = Problem.from_frame(current.model, df)
+
+    def ok_problem(result: CalibrationResult) -> tuple[Problem, list[np.ndarray]]:
+        rows = np.flatnonzero(~result.outliers)
+        return full.subset(rows), kfold(len(rows), folds, seed)
+
+    prob, fold_idx = ok_problem(current)
+    nominal = initial_model(robot, df, tool_guess_m)
+    reg_free = np.array([n.startswith(("base_", "tool")) for n in nominal.param_names])
+    nominal = _fit_plain(nominal, prob, reg_free)
+    stage_models: list[tuple[str, CalibratedModel]] = [
+        ("uncompensated (nominal)", nominal),
+        ("kinematic", current.model),
+    ]
+    free, _ = _free_mask(current.model, prob)
+    cv_cur = cv_residuals(current.model, free, prob, fold_idx)
+
+    pending: list[dict] = []
+    final_round: list[Candidate] = []
+    for _ in range(max_effects):
+        cands = candidate_effects(full.ctx, current.model.nominal, current.model.effects, families)
+        base_fit = _fit_plain(current.model, prob, free, iters=3)
+        sse0 = float(np.sum(prob.residuals(base_fit) ** 2))
+        e0 = np.sum(cv_cur**2, axis=1)
+        results: list[tuple[Candidate, CalibratedModel | None]] = []
+        for eff in cands:
+            trial = base_fit.with_effect(eff)
+            tfree, _rep = _free_mask(trial, prob)
+            n_new = int(np.sum(tfree[len(trial.param_names) - len(eff.params) :]))
+            if n_new == 0:
+                note = "inseparable from the geometry"
+                results.append(
+                    (Candidate(eff.family, eff.joint, 0, float("nan"), 0.0, 1.0, 1.0, False, note), None)
+                )
+                continue
+            fitted = _fit_plain(trial, prob, tfree, iters=4)
+            r = prob.residuals(fitted)
+            sse = float(np.sum(r**2))
+            dof = max(r.size - int(tfree.sum()), 1)
+            s2 = max(sigma2, sse / dof)
+            p_chi2 = float(stats.chi2.sf((sse0 - sse) / s2, n_new)) if sse0 > sse else 1.0
+            cv = cv_residuals(fitted, tfree, prob, fold_idx)
+            d = e0 - np.sum(cv**2, axis=1)
+            se = float(np.std(d, ddof=1) / np.sqrt(len(d))) if len(d) > 1 else np.inf
+            gain = float(np.mean(d))
+            p_cv = float(stats.t.sf(gain / se, len(d) - 1)) if se > 0 else (0.0 if gain > 0 else 1.0)
+            passed = gain > 0 and p_cv < alpha and p_chi2 < alpha / max(len(cands), 1)
+            cand = Candidate(
+                eff.family, eff.joint, n_new, error_stats(cv)["rms_mm"], gain * 1e6, p_cv, p_chi2, passed
+            )
+            results.append((cand, fitted))
+        winners = [(c, m) for c, m in results if c.passed]
+        if not winners:
+            final_round = [c for c, _ in results]
+            break
+        best, best_model = max(winners, key=lambda cm: cm[0].gain_mm2)
+        current = calibrate(df, best_model, "ridge")
+        prob, fold_idx = ok_problem(current)
+        free, rep = _free_mask(current.model, prob)
+        cv_cur = cv_residuals(current.model, free, prob, fold_idx)
+        label = f"+ {best.name}" + (f" (joint {best.joint})" if best.joint else "")
+        stage_models.append((label, current.model))
+        eff_index = len(current.model.effects) - 1
+        eff = current.model.effects[eff_index]
+        pending.append(
+            {
+                "effect": {"name": best.name, "joint": best.joint},
+                "parameters": _effect_params(current, eff_index),
+                "candidates": [c for c, _ in results],
+                "merged": [d for d in rep.dropped if d["name"] in eff.param_names],
+                "correlations": _correlations(current, prob, eff),
+            }
+        )
+
+    # Every stage on the final rows and folds.
+    stages: list[dict] = []
+    hist: dict[str, list[float]] = {}
+    cv_by_stage: list[np.ndarray] = []
+    for label, m in stage_models:
+        mfree = reg_free if label.startswith("uncompensated") else _free_mask(m, prob)[0]
+        cv = cv_residuals(m, mfree, prob, fold_idx)
+        cv_by_stage.append(cv)
+        stages.append(_stage(label, "heldout", cv))
+        hist[label] = (np.linalg.norm(cv, axis=1) * 1000).tolist()
+    steps: list[Step] = []
+    final_model = current.model
+    for k, info in enumerate(pending):
+        before, after = cv_by_stage[k + 1], cv_by_stage[k + 2]
+        eff_index = k
+        disp = _effect_displacement(final_model, prob, eff_index)
+        norm = np.linalg.norm(disp, axis=1, keepdims=True)
+        u = disp / np.where(norm > 0, norm, 1.0)
+        drv_label, drv = final_model.effects[eff_index].driver(prob.ctx, final_model.nominal)
+        steps.append(
+            Step(
+                heldout_before=error_stats(before),
+                heldout_after=error_stats(after),
+                plot={
+                    "driver_label": drv_label,
+                    "driver": np.asarray(drv).tolist(),
+                    "residual_before_mm": (np.sum(before * u, axis=1) * 1000).tolist(),
+                    "residual_after_mm": (np.sum(after * u, axis=1) * 1000).tolist(),
+                },
+                **info,
+            )
+        )
+    cv_cur = cv_by_stage[-1]
+
+    # What is left: more than noise? structured (a residual map predicts it)?
+    r_fit = prob.residuals(final_model)
+    dof = max(r_fit.size - int(free.sum()), 1)
+    ratio = float(np.sqrt(np.sum(r_fit**2) / dof / sigma2))
+    p_excess = float(stats.chi2.sf(np.sum(r_fit**2) / sigma2, dof))
+    map_report = _try_residual_maps(final_model, prob, cv_cur, fold_idx, noise, alpha)
+    unexplained = bool(p_excess < alpha and ratio > 1.1 and map_report["structured"])
+    residual_map_obj = None
+    if unexplained:
+        best_kind = map_report["winner"]
+        label = f"+ residual map ({best_kind})"
+        stages.append(_stage(label, "heldout", np.asarray(map_report["heldout_residual"])))
+        hist[label] = (np.linalg.norm(map_report["heldout_residual"], axis=1) * 1000).tolist()
+        residual_map_obj = make_map(best_kind).fit(
+            prob.ctx.q, _p_base(final_model, prob), r_fit, float(np.sqrt(sigma2))
+        )
+        final_model.info["residual_map"] = residual_map_obj.to_dict()
+    map_report.pop("heldout_residual", None)
+    added = ", ".join(
+        f"{s.effect['name']}" + (f" (joint {s.effect['joint']})" if s.effect["joint"] else "") for s in steps
+    )
+    if unexplained:
+        conclusion = (
+            f"Added: {added or 'nothing'}. Structured residual remains that no candidate effect explains "
+            f"(residual sigma {ratio:.2f}x the noise floor; a {map_report['winner']} residual map predicts it on "
+            "held-out points), so a residual map is used as the fallback."
+        )
+    elif ratio > 1.1 and p_excess < alpha:
+        conclusion = (
+            f"Added: {added or 'nothing'}. The residual is {ratio:.2f}x the noise floor but shows no structure a "
+            "residual map can predict: the noise floor is probably underestimated (robot repeatability?)."
+        )
+    else:
+        conclusion = f"Added: {added or 'nothing'}. The residual is at the noise floor ({ratio:.2f}x)."
+    if df_validate is not None:
+        val = Problem.from_frame(final_model, df_validate)
+        for label, m in stage_models:
+            stages.append(_stage(label, "validate", val.residuals(m)))
+            hist[f"{label} [validate]"] = (np.linalg.norm(val.residuals(m), axis=1) * 1000).tolist()
+        if residual_map_obj is not None:
+            r_val = val.residuals(final_model)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                corr = residual_map_obj.predict_raw(val.ctx.q, _p_base(final_model, val))
+            stages.append(_stage(f"+ residual map ({map_report['winner']})", "validate", r_val - corr))
+    final_model.info["diagnosis"] = {
+        "effects_added": [s.effect for s in steps],
+        "noise_floor_mm": noise.floor_mm,
+    }
+    return DiagnosisReport(
+        model=final_model,
+        calibration=calibration,
+        noise=noise,
+        stages=stages,
+        steps=steps,
+        unexplained_structure=unexplained,
+        conclusion=conclusion,
+        residual_map={**map_report, "excess_ratio": ratio, "p_excess": p_excess},
+        histograms=hist,
+        final_round=final_round,
+    )
+
+
+def _p_base(model: CalibratedModel, problem: Problem) -> np.ndarray:
+    q_eff = problem.ctx.q + model.joint_offsets(problem.ctx)
+    return tool_points_rows(model.kinematic, q_eff, model._row_tools(problem.smr))
+
+
+def _try_residual_maps(
+    model: CalibratedModel,
+    prob: Problem,
+    cv_res: np.ndarray,
+    folds: list[np.ndarray],
+    noise: NoiseFloor,
+    alpha: float,
+) -> dict:
+    """Can a residual map predict the held-out residual? k-fold comparison of the map kinds."""
+    q = prob.ctx.q
+    p_base = _p_base(model, prob)
+    sigma = float(np.sqrt(np.mean(noise.sigma_axis_m**2)))
+    e0 = np.sum(cv_res**2, axis=1)
+    table = {}
+    best = None
+    for kind in MAP_KINDS:
+        try:
+            res = kfold_map_errors(kind, q, p_base, cv_res, sigma, folds)
+        except Exception as exc:  # a map that cannot be built on this data (e.g. no grid) is skipped
+            table[kind] = {"error": str(exc)}
+            continue
+        d = e0 - np.sum(res**2, axis=1)
+        se = float(np.std(d, ddof=1) / np.sqrt(len(d)))
+        p = float(stats.t.sf(np.mean(d) / se, len(d) - 1)) if se > 0 else 1.0
+        table[kind] = {**error_stats(res), "p_value": p}
+        if best is None or table[kind]["rms_mm"] < table[best]["rms_mm"]:
+            best = kind
+            best_res = res
+    structured = best is not None and table[best]["p_value"] < alpha
+    return {
+        "candidates": table,
+        "winner": best,
+        "structured": bool(structured),
+        "heldout_residual": best_res if best is not None else cv_res,
+    }

@@ -1,0 +1,368 @@
+"""Candidate effects a geometric model lacks, each a small parametric model with its own regressors.
+
+Every family is written from its physics, independently of any simulator:
+
+- ``gravity_compliance`` (joint j): the joint yields in proportion to the gravity torque about its
+  axis. The torque is a mass-weighted sum of lever arms ``z_j . ((p_k - o_j) x e_z)`` of the points
+  downstream of the joint (later frame origins, the tool point, a payload); lumped motor masses sit
+  at frame origins and a uniform link's centre of mass lies between two origins, so the lever arms of
+  the downstream origins span the torque. The unknown masses and the stiffness merge into one
+  coefficient per lever arm; the arms the data cannot tell apart are merged by an SVD at fit time.
+- ``cyclic`` (joint j): 1st and 2nd harmonic of the joint angle (gear eccentricity, encoder mounting).
+- ``backlash`` (joint j): half the gap times the sign of the joint's approach direction (row order).
+- ``thermal_expansion``: every link length (a, d) grows by ``k * dT``; the tool does not.
+- ``thermal_drift``: the tracker sees the base translate by ``v * dT`` (floor, stand or tracker drift).
+
+Thermal families take the structure temperature when the dataset records one that varies, else the
+time since the campaign started. Joint effects are output-side joint offsets added to the reported
+joints before the forward kinematics.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import ClassVar
+
+import numpy as np
+import pandas as pd
+
+from hil.kinematics import KinematicModel, link_frames, tool_points
+
+# Names used in reports and model files (the documented vocabulary).
+EFFECT_FAMILIES: tuple[str, ...] = (
+    "gravity_compliance",
+    "cyclic",
+    "backlash",
+    "thermal_expansion",
+    "thermal_drift",
+)
+
+GRAVITY_DIRECTION_BASE = np.array([0.0, 0.0, -1.0])  # the robot stands upright: base z points up
+
+
+@dataclass
+class EffectContext:
+    """Everything an effect's regressors may depend on, row for row with a dataset."""
+
+    q: np.ndarray  # (N, n) reported joints, rad
+    t_s: np.ndarray | None = None
+    temperature_c: np.ndarray | None = None
+    payload_kg: np.ndarray | None = None
+    p_flange_tool: np.ndarray | None = None  # (N, 3) tool point per row, m (for lever arms)
+    approach: np.ndarray | None = None  # (N, n) approach signs from the full row order (see approach_signs)
+    cache: dict = field(default_factory=dict, repr=False)  # regressors per effect, row for row
+
+    @property
+    def n(self) -> int:
+        return self.q.shape[0]
+
+    @classmethod
+    def from_frame(cls, df: pd.DataFrame, q: np.ndarray) -> EffectContext:
+        """Pick the optional driver columns out of a dataset frame."""
+
+        def col(name: str) -> np.ndarray | None:
+            return df[name].to_numpy(float) if name in df.columns else None
+
+        return cls(
+            q=q,
+            t_s=col("t_s"),
+            temperature_c=col("temperature_c"),
+            payload_kg=col("payload_kg"),
+            approach=approach_signs(q),
+        )
+
+    def subset(self, rows: np.ndarray) -> EffectContext:
+        """The context restricted to some rows (for k-fold splits)."""
+
+        def take(x: np.ndarray | None) -> np.ndarray | None:
+            return None if x is None else x[rows]
+
+        return EffectContext(
+            q=self.q[rows],
+            t_s=take(self.t_s),
+            temperature_c=take(self.temperature_c),
+            payload_kg=take(self.payload_kg),
+            p_flange_tool=take(self.p_flange_tool),
+            approach=take(self.approach),
+            cache={k: v[rows] for k, v in self.cache.items()},
+        )
+
+
+@dataclass
+class Effect:
+    """One effect instance: a family, an optional 1-based joint, its parameters and fitted state."""
+
+    family: ClassVar[str] = ""
+    kind: ClassVar[str] = "joint"  # "joint" (joint offset), "growth" (link lengths), "offset" (tracker)
+    joint: int | None = None
+    params: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    state: dict = field(default_factory=dict)
+
+    @property
+    def label(self) -> str:
+        return self.family if self.joint is None else f"{self.family}_j{self.joint}"
+
+    @property
+    def param_names(self) -> list[str]:
+        return [f"{self.label}.{nm}" for nm in self.coefficient_names()]
+
+    def coefficient_names(self) -> list[str]:
+        raise NotImplementedError
+
+    def prepare(self, ctx: EffectContext, nominal: KinematicModel) -> bool:
+        """Fix the data-dependent state from training data; False when the data cannot show the effect."""
+        self.params = np.zeros(len(self.coefficient_names()))
+        return True
+
+    def regressors(self, ctx: EffectContext, nominal: KinematicModel) -> np.ndarray:
+        """(N, k) regressors: the effect is ``regressors @ params`` (joint offset, growth or offset factor)."""
+        raise NotImplementedError
+
+    def cached_regressors(self, ctx: EffectContext, nominal: KinematicModel) -> np.ndarray:
+        """`regressors`, memoised in the context (tool points rounded to 0.1 mm: lever arms do not care)."""
+        tool = (
+            b"" if ctx.p_flange_tool is None else np.round(ctx.p_flange_tool * 1e4).astype(np.int64).tobytes()
+        )
+        key = (self.label, repr(self.state.get("mix", self.state.get("driver"))), hash(tool))
+        if key not in ctx.cache:
+            ctx.cache[key] = self.regressors(ctx, nominal)
+        return ctx.cache[key]
+
+    def driver(self, ctx: EffectContext, nominal: KinematicModel) -> tuple[str, np.ndarray]:
+        """The physical quantity to plot residuals against: (label with unit, (N,) values)."""
+        raise NotImplementedError
+
+    def to_dict(self) -> dict:
+        return {
+            "family": self.family,
+            "joint": self.joint,
+            "params": [float(v) for v in self.params],
+            "param_names": self.param_names,
+            "state": _jsonable(self.state),
+        }
+
+
+class GravityCompliance(Effect):
+    family = "gravity_compliance"
+
+    def coefficient_names(self) -> list[str]:
+        mix = self.state.get("mix")
+        return [f"c{k + 1}" for k in range(np.shape(mix)[1])] if mix else ["c1"]
+
+    def _levers(self, ctx: EffectContext, nominal: KinematicModel) -> np.ndarray:
+        """Lever arms (N, K) in metres about joint `joint`'s axis of gravity on each downstream point."""
+        j = self.joint - 1
+        frames = link_frames(nominal, ctx.q)
+        z = frames[:, j, :3, 2]
+        o = frames[:, j, :3, 3]
+        points = [frames[:, k, :3, 3] for k in range(j + 1, nominal.n_joints + 1)]
+        T_flange = frames[:, -1] @ nominal.T_last_flange
+        if ctx.p_flange_tool is not None:
+            points.append(
+                np.einsum("nij,nj->ni", T_flange[:, :3, :3], ctx.p_flange_tool) + T_flange[:, :3, 3]
+            )
+        levers = [np.einsum("ni,ni->n", z, np.cross(p - o, GRAVITY_DIRECTION_BASE)) for p in points]
+        if ctx.payload_kg is not None and len(points) > 0:
+            levers.append(levers[-1] * ctx.payload_kg)
+        return np.stack(levers, axis=1)
+
+    def prepare(self, ctx: EffectContext, nominal: KinematicModel) -> bool:
+        L = self._levers(ctx, nominal)
+        if np.max(np.abs(L)) < 1e-6:  # a vertical axis carries no gravity torque
+            return False
+        # Merge lever arms the data cannot tell apart: keep SVD directions above 1e-3 of the largest.
+        _, s, Vt = np.linalg.svd(L, full_matrices=False)
+        keep = s > 1e-3 * s[0]
+        self.state = {"mix": Vt[keep].T.tolist()}  # (K, r)
+        self.params = np.zeros(int(keep.sum()))
+        return True
+
+    def regressors(self, ctx: EffectContext, nominal: KinematicModel) -> np.ndarray:
+        mix = np.asarray(self.state["mix"], dtype=float)
+        L = self._levers(ctx, nominal)
+        if L.shape[1] != mix.shape[0]:  # payload column present in one dataset only
+            L = L[:, : mix.shape[0]] if L.shape[1] > mix.shape[0] else np.pad(L, ((0, 0), (0, 1)))
+        return L @ mix
+
+    def driver(self, ctx: EffectContext, nominal: KinematicModel) -> tuple[str, np.ndarray]:
+        """The fitted deflection, i.e. the gravity torque over the stiffness, in millidegrees."""
+        deflection = self.regressors(ctx, nominal) @ self.params
+        return f"joint {self.joint} gravity deflection = torque / stiffness (mdeg)", np.rad2deg(
+            deflection
+        ) * 1e3
+
+
+class Cyclic(Effect):
+    family = "cyclic"
+
+    def coefficient_names(self) -> list[str]:
+        return ["sin1", "cos1", "sin2", "cos2"]
+
+    def regressors(self, ctx: EffectContext, nominal: KinematicModel) -> np.ndarray:
+        qj = ctx.q[:, self.joint - 1]
+        return np.stack([np.sin(qj), np.cos(qj), np.sin(2 * qj), np.cos(2 * qj)], axis=1)
+
+    def driver(self, ctx: EffectContext, nominal: KinematicModel) -> tuple[str, np.ndarray]:
+        return f"joint {self.joint} angle (deg)", np.rad2deg(ctx.q[:, self.joint - 1])
+
+
+def approach_signs(q: np.ndarray, tol_rad: float = 2e-5) -> np.ndarray:
+    """Sign (+1/-1) of the last motion of each joint before each row, from the row order.
+
+    A joint that did not move keeps its previous sign; before its first motion the sign is 0 (unknown).
+    """
+    step = np.diff(q, axis=0, prepend=q[:1])
+    signs = np.zeros_like(q)
+    last = np.zeros(q.shape[1])
+    for i in range(q.shape[0]):  # a running state: inherently sequential, cheap
+        moved = np.abs(step[i]) > tol_rad
+        last = np.where(moved, np.sign(step[i]), last)
+        signs[i] = last
+    return signs
+
+
+class Backlash(Effect):
+    family = "backlash"
+
+    def coefficient_names(self) -> list[str]:
+        return ["half_gap"]
+
+    def prepare(self, ctx: EffectContext, nominal: KinematicModel) -> bool:
+        s = self.regressors(ctx, nominal)[:, 0]
+        self.params = np.zeros(1)
+        return bool(min(np.sum(s > 0), np.sum(s < 0)) >= 5)  # needs both sides, several times
+
+    def regressors(self, ctx: EffectContext, nominal: KinematicModel) -> np.ndarray:
+        signs = approach_signs(ctx.q) if ctx.approach is None else ctx.approach
+        return signs[:, self.joint - 1 : self.joint]
+
+    def driver(self, ctx: EffectContext, nominal: KinematicModel) -> tuple[str, np.ndarray]:
+        return f"joint {self.joint} approach direction (sign)", self.regressors(ctx, nominal)[:, 0]
+
+
+def _thermal_driver(ctx: EffectContext) -> tuple[str, np.ndarray] | None:
+    """Temperature when it varies, else time; None when the data has neither."""
+    if ctx.temperature_c is not None and np.nanstd(ctx.temperature_c) > 0.02:
+        return "temperature_c", ctx.temperature_c
+    if ctx.t_s is not None and np.ptp(ctx.t_s) > 0:
+        return "t_s", ctx.t_s
+    return None
+
+
+class _Thermal(Effect):
+    def prepare(self, ctx: EffectContext, nominal: KinematicModel) -> bool:
+        found = _thermal_driver(ctx)
+        self.params = np.zeros(len(self.coefficient_names()))
+        if found is None:
+            return False
+        name, values = found
+        self.state = {"driver": name, "reference": float(np.mean(values))}
+        return True
+
+    def delta(self, ctx: EffectContext) -> np.ndarray:
+        name = self.state["driver"]
+        values = ctx.temperature_c if name == "temperature_c" else ctx.t_s
+        if values is None:
+            raise ValueError(f"the model's {self.family} effect needs the '{name}' column in the data")
+        return np.asarray(values, float) - self.state["reference"]
+
+    def regressors(self, ctx: EffectContext, nominal: KinematicModel) -> np.ndarray:
+        return self.delta(ctx)[:, None]
+
+    def driver(self, ctx: EffectContext, nominal: KinematicModel) -> tuple[str, np.ndarray]:
+        unit = "°C" if self.state["driver"] == "temperature_c" else "s"
+        return f"{self.state['driver']} - reference ({unit})", self.delta(ctx)
+
+
+class ThermalExpansion(_Thermal):
+    family = "thermal_expansion"
+    kind = "growth"
+
+    def coefficient_names(self) -> list[str]:
+        return ["per_unit"]
+
+
+class ThermalDrift(_Thermal):
+    family = "thermal_drift"
+    kind = "offset"
+
+    def coefficient_names(self) -> list[str]:
+        return ["vx", "vy", "vz"]
+
+
+_CLASSES: dict[str, type[Effect]] = {
+    c.family: c for c in (GravityCompliance, Cyclic, Backlash, ThermalExpansion, ThermalDrift)
+}
+JOINT_FAMILIES = ("gravity_compliance", "cyclic", "backlash")
+
+
+def make_effect(family: str, joint: int | None = None) -> Effect:
+    """A fresh (unfitted) effect of a documented family."""
+    if family not in _CLASSES:
+        raise ValueError(f"unknown effect family '{family}'; known: {', '.join(EFFECT_FAMILIES)}")
+    if (family in JOINT_FAMILIES) != (joint is not None):
+        raise ValueError(f"effect '{family}' {'needs' if family in JOINT_FAMILIES else 'takes no'} joint")
+    return _CLASSES[family](joint=joint)
+
+
+def effect_from_dict(data: dict) -> Effect:
+    """Rebuild an effect saved by `Effect.to_dict`."""
+    eff = make_effect(data["family"], data.get("joint"))
+    eff.state = dict(data.get("state", {}))
+    eff.params = np.asarray(data["params"], dtype=float)
+    return eff
+
+
+def candidate_effects(
+    ctx: EffectContext,
+    nominal: KinematicModel,
+    present: list[Effect],
+    families: tuple[str, ...] | None = None,
+) -> list[Effect]:
+    """Every effect not yet in the model that this dataset could reveal, prepared on its rows."""
+    have = {(e.family, e.joint) for e in present}
+    out: list[Effect] = []
+    for family in families or EFFECT_FAMILIES:
+        joints = range(1, nominal.n_joints + 1) if family in JOINT_FAMILIES else [None]
+        for j in joints:
+            if (family, j) in have:
+                continue
+            eff = make_effect(family, j)
+            if eff.prepare(ctx, nominal):
+                out.append(eff)
+    return out
+
+
+def growth_direction(model: KinematicModel, q: np.ndarray, p_flange_tool: np.ndarray) -> np.ndarray:
+    """d p_base / d k for all link lengths scaled by (1 + k), tool unchanged: (N, 3), metres."""
+    h = 1e-6
+    grown = _scaled_lengths(model, 1.0 + h)
+    return (tool_points_rows(grown, q, p_flange_tool) - tool_points_rows(model, q, p_flange_tool)) / h
+
+
+def _scaled_lengths(model: KinematicModel, s: float) -> KinematicModel:
+    from dataclasses import replace
+
+    return replace(model, a=np.asarray(model.a) * s, d=np.asarray(model.d) * s)
+
+
+def tool_points_rows(model: KinematicModel, q: np.ndarray, p_flange_tool_rows: np.ndarray) -> np.ndarray:
+    """Tool points (N, 3) in the base frame with one tool point per row."""
+    from hil.kinematics import forward_kinematics
+
+    if np.ndim(p_flange_tool_rows) == 1:
+        return tool_points(model, q, p_flange_tool_rows)
+    T = forward_kinematics(model, q)
+    return np.einsum("nij,nj->ni", T[:, :3, :3], p_flange_tool_rows) + T[:, :3, 3]
+
+
+def _jsonable(value: object) -> object:
+    if isinstance(value, dict):
+        return {k: _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    return value

@@ -1,0 +1,69 @@
+"""How well could a perfect model predict these measurements? The measurement noise floor.
+
+Two estimates, the better one wins:
+- repeated poses (rows whose reported joints agree within `repeat_tol_rad`, at least 5 groups): the
+  pooled scatter of their measured positions;
+- otherwise the tracker's noise model at each point's distance (MPE = a + b * distance, taken as
+  `mpe_sigmas` sigma per axis; defaults: AT901/AT960 class, 15 um + 6 um/m, MPE = 2 sigma), combined
+  with a robot repeatability the user states (default 0).
+The floor is quoted as the RMS of the 3-D error a perfect model would leave, in mm.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pandas as pd
+
+from hil.dataset import joints_rad, points_m
+
+
+@dataclass
+class NoiseFloor:
+    floor_mm: float  # RMS 3-D error of a perfect model
+    sigma_axis_m: np.ndarray  # (N,) per-axis 1-sigma per row
+    method: str
+
+    def to_dict(self) -> dict:
+        return {"noise_floor_mm": self.floor_mm, "method": self.method}
+
+
+def estimate_noise_floor(
+    df: pd.DataFrame,
+    mpe_const_m: float = 15e-6,
+    mpe_per_m: float = 6e-6,
+    mpe_sigmas: float = 2.0,
+    repeatability_mm: float = 0.0,
+    repeat_tol_rad: float = 2e-5,
+) -> NoiseFloor:
+    """Noise floor of a dataset (see module docstring)."""
+    p = points_m(df)
+    dist = np.linalg.norm(p, axis=1)
+    sigma_tracker = (mpe_const_m + mpe_per_m * dist) / mpe_sigmas
+    rep_axis = repeatability_mm / 1000.0 / np.sqrt(3.0)
+    sigma = np.sqrt(sigma_tracker**2 + rep_axis**2)
+    method = (
+        f"tracker noise model {mpe_const_m * 1e6:.0f} um + {mpe_per_m * 1e6:.0f} um/m as {mpe_sigmas:g} sigma "
+        f"at the measured distances ({dist.min():.2f}-{dist.max():.2f} m)"
+        + (f", plus robot repeatability {repeatability_mm} mm" if repeatability_mm else "")
+    )
+    groups = _repeat_groups(joints_rad(df), repeat_tol_rad)
+    if len(groups) >= 5:
+        ss, dof = 0.0, 0
+        for g in groups:
+            ss += float(np.sum((p[g] - p[g].mean(axis=0)) ** 2))
+            dof += 3 * (len(g) - 1)
+        s_axis = np.sqrt(ss / dof)
+        if s_axis > np.sqrt(np.mean(sigma**2)):
+            sigma = np.full(len(p), s_axis)
+            method = f"scatter of {len(groups)} repeated poses (pooled, {dof} degrees of freedom)"
+    floor = float(np.sqrt(3.0 * np.mean(sigma**2)) * 1000.0)
+    return NoiseFloor(floor, sigma, method)
+
+
+def _repeat_groups(q: np.ndarray, tol: float) -> list[np.ndarray]:
+    """Index groups (size >= 2) of rows whose joints agree within tol."""
+    key = np.round(q / tol).astype(np.int64)
+    _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
+    return [np.flatnonzero(inverse.ravel() == k) for k in np.flatnonzero(counts >= 2)]

@@ -1,0 +1,247 @@
+"""Residual maps: what the parametric model still gets wrong, interpolated from measured points.
+
+- ``idw``: inverse-distance weighting over the 8 vertices of the grid cube holding the target
+  (grid paper, methods.md 2c; power 2; a target on a vertex takes that vertex's residual). The grid is
+  found in the robot base frame from the measured points (step = median nearest-neighbour spacing).
+- ``svr``: one RBF-kernel support-vector regressor per axis on the six joint angles (SVR paper,
+  methods.md 3: C = 100, kernel width sigma = 2 rad -> gamma = 1/(2 sigma^2)); epsilon is set to half the
+  per-axis noise sigma of the data instead of the paper's 0.2 mm, since residuals after calibration are
+  far below 0.2 mm.
+- ``gp``: a Gaussian process on the six joint angles (constant x RBF + white noise, hyper-parameters by
+  marginal likelihood), all three axes together.
+
+Maps are fitted with scikit-learn but store plain arrays and predict with numpy, so a calibrated model
+file can carry them. `outside` flags targets beyond the measured volume.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+
+MAP_KINDS: tuple[str, ...] = ("idw", "svr", "gp")
+
+
+class ResidualMap:
+    kind = ""
+
+    def __init__(self, state: dict | None = None) -> None:
+        self.state = state or {}
+
+    def fit(
+        self, q: np.ndarray, p_base: np.ndarray, residual: np.ndarray, noise_sigma_m: float
+    ) -> ResidualMap:
+        raise NotImplementedError
+
+    def predict_raw(self, q: np.ndarray, p_base: np.ndarray) -> np.ndarray:
+        raise NotImplementedError
+
+    def predict(self, q: np.ndarray, p_base: np.ndarray, warn: bool = True) -> np.ndarray:
+        """Predicted residual (N, 3), m; warns when a target lies outside the measured volume."""
+        out = self.outside(p_base)
+        if warn and np.any(out):
+            warnings.warn(
+                f"{int(out.sum())} target(s) lie outside the measured volume; the {self.kind} residual map "
+                "extrapolates there (rows " + ", ".join(map(str, np.flatnonzero(out)[:10])) + ")",
+                stacklevel=2,
+            )
+        return self.predict_raw(q, p_base)
+
+    def _remember_volume(self, p_base: np.ndarray) -> None:
+        d = np.linalg.norm(p_base[:, None] - p_base[None], axis=2)
+        np.fill_diagonal(d, np.inf)
+        spacing = float(np.median(d.min(axis=1)))
+        self.state["volume"] = {
+            "lo": p_base.min(axis=0).tolist(),
+            "hi": p_base.max(axis=0).tolist(),
+            "points": p_base.tolist(),
+            "spacing": spacing,
+        }
+
+    def outside(self, p_base: np.ndarray) -> np.ndarray:
+        """(N,) True where a target is beyond the measured box or far from every measured point."""
+        vol = self.state["volume"]
+        lo, hi, spacing = np.array(vol["lo"]), np.array(vol["hi"]), vol["spacing"]
+        pts = np.asarray(vol["points"])
+        margin = 0.5 * spacing
+        box = np.any((p_base < lo - margin) | (p_base > hi + margin), axis=1)
+        nearest = np.min(np.linalg.norm(p_base[:, None] - pts[None], axis=2), axis=1)
+        return box | (nearest > 2.0 * spacing)
+
+    def to_dict(self) -> dict:
+        return {"kind": self.kind, "state": self.state}
+
+
+class IDWGridMap(ResidualMap):
+    kind = "idw"
+
+    def __init__(self, state: dict | None = None, step_m: float | None = None, power: float = 2.0) -> None:
+        super().__init__(state)
+        self.step_m = step_m
+        self.power = power
+
+    def fit(self, q, p_base, residual, noise_sigma_m):
+        self._remember_volume(p_base)
+        step = self.step_m or self.state["volume"]["spacing"]
+        origin = p_base[0]
+        idx = np.round((p_base - origin) / step)
+        on_grid = np.all(np.abs(p_base - origin - idx * step) < 0.25 * step, axis=1)
+        vertices: dict[tuple, list] = {}
+        for k, r in zip(map(tuple, idx[on_grid].astype(int)), residual[on_grid], strict=True):
+            vertices.setdefault(k, []).append(r)  # repeated vertices are averaged
+        keys = sorted(vertices)
+        self.state.update(
+            {
+                "step_m": float(step),
+                "origin_m": origin.tolist(),
+                "power": self.power,
+                "vertex_index": [list(k) for k in keys],
+                "vertex_residual_m": [np.mean(vertices[k], axis=0).tolist() for k in keys],
+            }
+        )
+        return self
+
+    def predict_raw(self, q, p_base):
+        st = self.state
+        step, origin = st["step_m"], np.array(st["origin_m"])
+        table = {
+            tuple(k): np.array(v) for k, v in zip(st["vertex_index"], st["vertex_residual_m"], strict=True)
+        }
+        keys = np.array(st["vertex_index"])
+        vals = np.array(st["vertex_residual_m"])
+        u = (p_base - origin) / step
+        base = np.floor(u).astype(int)
+        corners = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
+        out = np.zeros((len(p_base), 3))
+        for n in range(len(p_base)):  # at most 8 lookups per target
+            cand = base[n] + corners
+            have = [tuple(c) in table for c in cand]
+            if not any(have):  # no vertex of this cube was measured: use the nearest measured vertex
+                cand = keys[np.argmin(np.linalg.norm(keys - u[n], axis=1))][None]
+                have = [True]
+            cand = cand[np.array(have)]
+            d = np.linalg.norm(u[n] - cand, axis=1) * step
+            if np.min(d) < 1e-9:
+                out[n] = table[tuple(cand[np.argmin(d)])]
+                continue
+            w = (1.0 / d) ** st["power"]
+            out[n] = (w / w.sum()) @ np.array([table[tuple(c)] for c in cand])
+        del vals
+        return out
+
+
+class SVRMap(ResidualMap):
+    kind = "svr"
+
+    def __init__(self, state: dict | None = None, C: float = 100.0, sigma_rad: float = 2.0) -> None:
+        super().__init__(state)
+        self.C, self.gamma = C, 1.0 / (2.0 * sigma_rad**2)
+
+    def fit(self, q, p_base, residual, noise_sigma_m):
+        from sklearn.svm import SVR
+
+        self._remember_volume(p_base)
+        axes = []
+        scale = 1000.0  # fit in mm
+        for k in range(3):
+            svr = SVR(kernel="rbf", C=self.C, gamma=self.gamma, epsilon=0.5 * noise_sigma_m * scale)
+            svr.fit(q, residual[:, k] * scale)
+            axes.append(
+                {
+                    "support": svr.support_vectors_.tolist(),
+                    "dual": svr.dual_coef_[0].tolist(),
+                    "intercept": float(svr.intercept_[0]),
+                }
+            )
+        self.state.update({"gamma": self.gamma, "scale": scale, "axes": axes})
+        return self
+
+    def predict_raw(self, q, p_base):
+        out = np.zeros((len(q), 3))
+        for k, ax in enumerate(self.state["axes"]):
+            sv = np.asarray(ax["support"])
+            if sv.size == 0:
+                out[:, k] = ax["intercept"]
+                continue
+            K = np.exp(-self.state["gamma"] * np.sum((q[:, None] - sv[None]) ** 2, axis=2))
+            out[:, k] = K @ np.asarray(ax["dual"]) + ax["intercept"]
+        return out / self.state["scale"]
+
+
+class GPMap(ResidualMap):
+    kind = "gp"
+
+    def fit(self, q, p_base, residual, noise_sigma_m):
+        from sklearn.gaussian_process import GaussianProcessRegressor
+        from sklearn.gaussian_process.kernels import RBF, ConstantKernel, WhiteKernel
+
+        self._remember_volume(p_base)
+        scale = 1000.0
+        kernel = ConstantKernel(0.01, (1e-8, 1e2)) * RBF(1.0, (0.05, 20.0)) + WhiteKernel(
+            max((noise_sigma_m * scale) ** 2, 1e-8), (1e-10, 1e1)
+        )
+        gp = GaussianProcessRegressor(
+            kernel=kernel, normalize_y=False, n_restarts_optimizer=0, random_state=0
+        )
+        mean = residual.mean(axis=0) * scale
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            gp.fit(q, residual * scale - mean)
+        k = gp.kernel_
+        self.state.update(
+            {
+                "X": q.tolist(),
+                "alpha": np.asarray(gp.alpha_).reshape(len(q), -1).tolist(),
+                "amplitude": float(k.k1.k1.constant_value),
+                "length_scale": float(k.k1.k2.length_scale),
+                "noise": float(k.k2.noise_level),
+                "mean": mean.tolist(),
+                "scale": scale,
+            }
+        )
+        return self
+
+    def predict_raw(self, q, p_base):
+        st = self.state
+        X = np.asarray(st["X"])
+        d2 = np.sum((q[:, None] - X[None]) ** 2, axis=2)
+        K = st["amplitude"] * np.exp(-0.5 * d2 / st["length_scale"] ** 2)
+        return (K @ np.asarray(st["alpha"]) + np.asarray(st["mean"])) / st["scale"]
+
+
+_CLASSES = {c.kind: c for c in (IDWGridMap, SVRMap, GPMap)}
+
+
+def make_map(kind: str) -> ResidualMap:
+    if kind not in _CLASSES:
+        raise ValueError(f"unknown residual map '{kind}'; choose one of {', '.join(MAP_KINDS)}")
+    return _CLASSES[kind]()
+
+
+def map_from_dict(data: dict) -> ResidualMap:
+    m = make_map(data["kind"])
+    m.state = data["state"]
+    if isinstance(m, SVRMap):
+        m.gamma = m.state.get("gamma", m.gamma)
+    return m
+
+
+def kfold_map_errors(
+    kind: str,
+    q: np.ndarray,
+    p_base: np.ndarray,
+    residual: np.ndarray,
+    noise_sigma_m: float,
+    folds: list[np.ndarray],
+) -> np.ndarray:
+    """Held-out corrected residuals (N, 3): residual minus the map fitted on the other folds."""
+    out = np.zeros_like(residual)
+    n = len(q)
+    for test in folds:
+        train = np.setdiff1d(np.arange(n), test)
+        m = make_map(kind).fit(q[train], p_base[train], residual[train], noise_sigma_m)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            out[test] = residual[test] - m.predict_raw(q[test], p_base[test])
+    return out
