@@ -6,7 +6,9 @@ Two solvers over the same model and the same identifiable parameter set:
   ridge term pulls the kinematic and effect parameters towards their nominal values in the scaled
   parameter space: mu = `ridge` x the largest eigenvalue of the scaled normal matrix. IGG3 acts on each
   measured point (one SMR reading is one observation): its standardised residual is the RMS over its
-  three coordinates of v_i / (sigma0 sqrt(r_i)), r_i the redundancy number 1 - a_i N^-1 a_i^T. Weights
+  three coordinates of v_i / (s sqrt(r_i)), r_i the redundancy number 1 - a_i N^-1 a_i^T and s a robust
+  scale (1.4826 x the median absolute residual; the paper's a-posteriori sigma0 shrinks as points are
+  rejected and can make the re-weighting reject ever more points). Weights
   are recomputed from the standardised residuals at every step, so a point rejected while the model was
   still far off can come back.
 - ``lm``: scipy ``least_squares`` (trust-region, Levenberg-Marquardt-like) with a robust loss (soft L1,
@@ -208,9 +210,12 @@ def solve_ridge_igg3(
         warm += 1
         if warm < 3 and not small:
             continue  # let Gauss-Newton reach the basin before judging points
-        Minv = np.linalg.inv(M)
+        Minv = np.linalg.pinv(M)
         red = _redundancy(Js, w_rows, Minv)
-        t_rows = r_new / (max(sigma0, 1e-12) * np.sqrt(red))
+        # Robust scale (median absolute residual of all coordinates): a shrinking weighted sigma0 would
+        # let the re-weighting reject ever more points.
+        sigma_robust = max(1.4826 * float(np.median(np.abs(r_new))), 1e-12)
+        t_rows = r_new / (sigma_robust * np.sqrt(red))
         t_pts = np.sqrt(np.mean(t_rows.reshape(-1, 3) ** 2, axis=1))
         w_new = igg3_weight(t_pts, k0, k1)
         changed = np.max(np.abs(w_new - w_pts)) > 1e-6

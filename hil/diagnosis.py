@@ -53,14 +53,14 @@ def _fit_plain(model: CalibratedModel, problem: Problem, free: np.ndarray, iters
 
 
 def cv_residuals(
-    model: CalibratedModel, free: np.ndarray, problem: Problem, folds: list[np.ndarray]
+    model: CalibratedModel, free: np.ndarray, problem: Problem, folds: list[np.ndarray], iters: int = 3
 ) -> np.ndarray:
     """Held-out residuals (N, 3): each fold predicted by the model refitted on the other folds."""
     n = problem.measured.shape[0]
     out = np.zeros((n, 3))
     for test in folds:
         train = np.setdiff1d(np.arange(n), test)
-        fitted = _fit_plain(model, problem.subset(train), free, iters=5)
+        fitted = _fit_plain(model, problem.subset(train), free, iters=iters)
         out[test] = problem.subset(test).residuals(fitted)
     return out
 
@@ -258,6 +258,10 @@ def run_diagnosis(
             dof = max(r.size - int(tfree.sum()), 1)
             s2 = max(sigma2, sse / dof)
             p_chi2 = float(stats.chi2.sf((sse0 - sse) / s2, n_new)) if sse0 > sse else 1.0
+            if p_chi2 >= alpha / max(len(cands), 1):  # explains no more than noise: no need to cross-validate
+                cand = Candidate(eff.family, eff.joint, n_new, float("nan"), 0.0, 1.0, p_chi2, False, "within noise")
+                results.append((cand, fitted))
+                continue
             cv = cv_residuals(fitted, tfree, prob, fold_idx)
             d = e0 - np.sum(cv**2, axis=1)
             se = float(np.std(d, ddof=1) / np.sqrt(len(d))) if len(d) > 1 else np.inf
@@ -330,7 +334,10 @@ def run_diagnosis(
     dof = max(r_fit.size - int(free.sum()), 1)
     ratio = float(np.sqrt(np.sum(r_fit**2) / dof / sigma2))
     p_excess = float(stats.chi2.sf(np.sum(r_fit**2) / sigma2, dof))
-    map_report = _try_residual_maps(final_model, prob, cv_cur, fold_idx, noise, alpha)
+    if p_excess < alpha and ratio > 1.1:
+        map_report = _try_residual_maps(final_model, prob, cv_cur, fold_idx, noise, alpha)
+    else:  # at the noise floor: nothing for a map to find
+        map_report = {"candidates": {}, "winner": None, "structured": False, "note": "residual at the noise floor"}
     unexplained = bool(p_excess < alpha and ratio > 1.1 and map_report["structured"])
     residual_map_obj = None
     if unexplained:

@@ -172,17 +172,22 @@ class SVRMap(ResidualMap):
 class GPMap(ResidualMap):
     kind = "gp"
 
+    def __init__(self, state: dict | None = None, hyper: dict | None = None) -> None:
+        super().__init__(state)
+        self.hyper = hyper  # fixed hyper-parameters (amplitude, length_scale, noise): no optimisation
+
     def fit(self, q, p_base, residual, noise_sigma_m):
         from sklearn.gaussian_process import GaussianProcessRegressor
         from sklearn.gaussian_process.kernels import RBF, ConstantKernel, WhiteKernel
 
         self._remember_volume(p_base)
         scale = 1000.0
-        kernel = ConstantKernel(0.01, (1e-8, 1e2)) * RBF(1.0, (0.05, 20.0)) + WhiteKernel(
-            max((noise_sigma_m * scale) ** 2, 1e-8), (1e-10, 1e1)
+        h = self.hyper or {"amplitude": 0.01, "length_scale": 1.0, "noise": max((noise_sigma_m * scale) ** 2, 1e-8)}
+        kernel = ConstantKernel(h["amplitude"], (1e-8, 1e2)) * RBF(h["length_scale"], (0.05, 20.0)) + WhiteKernel(
+            h["noise"], (1e-10, 1e1)
         )
         gp = GaussianProcessRegressor(
-            kernel=kernel, normalize_y=False, n_restarts_optimizer=0, random_state=0
+            kernel=kernel, normalize_y=False, optimizer=None if self.hyper else "fmin_l_bfgs_b", random_state=0
         )
         mean = residual.mean(axis=0) * scale
         with warnings.catch_warnings():
@@ -238,9 +243,14 @@ def kfold_map_errors(
     """Held-out corrected residuals (N, 3): residual minus the map fitted on the other folds."""
     out = np.zeros_like(residual)
     n = len(q)
+    hyper = None
+    if kind == "gp":  # hyper-parameters once on all rows, then fixed in the folds (cheap, and stable)
+        st = GPMap().fit(q, p_base, residual, noise_sigma_m).state
+        hyper = {k: st[k] for k in ("amplitude", "length_scale", "noise")}
     for test in folds:
         train = np.setdiff1d(np.arange(n), test)
-        m = make_map(kind).fit(q[train], p_base[train], residual[train], noise_sigma_m)
+        m = GPMap(hyper=hyper) if kind == "gp" else make_map(kind)
+        m.fit(q[train], p_base[train], residual[train], noise_sigma_m)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             out[test] = residual[test] - m.predict_raw(q[test], p_base[test])

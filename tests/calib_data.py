@@ -1,0 +1,58 @@
+"""Datasets for the calibration tests: synthetic (from hil.kinematics only) and from the simulated cell."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from hil.dataset import make_dataset
+from hil.kinematics import measured_point
+from hil.robots import get_robot
+from hil.se3 import make_transform
+
+
+def ur10_joints(rng: np.random.Generator, n: int) -> np.ndarray:
+    """Joint sets spread over a UR10's working volume in front of it (elbow up)."""
+    return np.column_stack(
+        [
+            rng.uniform(-1.2, 1.2, n),
+            rng.uniform(-2.3, -0.7, n),
+            rng.uniform(0.6, 2.3, n),
+            rng.uniform(-2.5, -0.5, n),
+            rng.uniform(-2.2, -0.9, n),
+            rng.uniform(-np.pi, np.pi, n),
+        ]
+    )
+
+
+def synthetic(n: int = 200, seed: int = 0, noise_m: float = 15e-6):
+    """A UR10 with random DH errors, a random tracker pose and tool point; returns (truth, frame, make)."""
+    rng = np.random.default_rng(seed)
+    nominal = get_robot("ur10")
+    errors = {nm: rng.normal(0, 3e-4 if nm[0] in "ad" else 5e-4) for nm in nominal.param_names}
+    true = nominal.with_errors(errors)
+    T = make_transform(Rotation.from_rotvec([0.05, -0.1, 2.0]).as_matrix(), [2.0, 0.5, -0.3])
+    tool = np.array([0.03, -0.02, 0.11])
+
+    def make(k: int, noise: float = noise_m) -> tuple[np.ndarray, np.ndarray]:
+        q = ur10_joints(rng, k)
+        return q, measured_point(true, q, T, tool) + rng.normal(0, noise, (k, 3))
+
+    q, p = make(n)
+    truth = {"model": true, "T_tracker_base": T, "tool": tool}
+    return truth, make_dataset(q, p, smr=1), make
+
+
+def cell_datasets(n: int = 220, n_val: int = 100, seed: int = 0, **config):
+    """Training and held-out validation campaigns on the simulated cell (UR10), both in the contract."""
+    from fakes.cell import CellConfig, SimulatedCell
+
+    cell = SimulatedCell(CellConfig(robot="ur10", seed=seed, **config))
+    rng = np.random.default_rng(seed + 100)
+    frames = []
+    for k in (n, n_val):
+        r = cell.run_sequence(ur10_joints(rng, k), smr_id=1)
+        frames.append(
+            make_dataset(r["q_encoder"], r["p_tracker_measured"], r["t_s"], r["temperature_c"], smr=1)
+        )
+    return cell, frames[0], frames[1]
