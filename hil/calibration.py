@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 from scipy.optimize import least_squares
+from threadpoolctl import threadpool_limits
 
 from hil.calibrated_model import CalibratedModel, initial_model
 from hil.dataset import points_m, smr_ids
@@ -319,6 +320,18 @@ def calibrate(
     `robot` is a catalogue name, a nominal KinematicModel, or a CalibratedModel to start from (its
     effects are refitted together with the geometry). `solver` is "ridge" (IGG3) or "lm".
     """
+    with threadpool_limits(1):  # small dense problems: BLAS threads only contend
+        return _calibrate(df, robot, solver, tol, tool_guess_m, ridge)
+
+
+def _calibrate(
+    df: pd.DataFrame,
+    robot: str | KinematicModel | CalibratedModel,
+    solver: str,
+    tol: float,
+    tool_guess_m: np.ndarray | None,
+    ridge: float,
+) -> CalibrationResult:
     model = robot if isinstance(robot, CalibratedModel) else initial_model(robot, df, tool_guess_m)
     problem = Problem.from_frame(model, df)
     # Tool points first (the registration assumed a guess), so the identifiability sees a sane model.

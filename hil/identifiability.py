@@ -62,7 +62,8 @@ def condition_number(J: np.ndarray) -> float:
     """2-norm condition number of J with unit-norm columns."""
     if J.shape[1] == 0:
         return 1.0
-    s = np.linalg.svd(J, compute_uv=False)
+    R = np.linalg.qr(J, mode="r") if J.shape[0] > J.shape[1] else J  # same singular values, small SVD
+    s = np.linalg.svd(R, compute_uv=False)
     return float(s[0] / s[-1]) if s[-1] > 0 else float("inf")
 
 
@@ -112,7 +113,8 @@ def analyse(
                 {"name": names[i], "reason": "the data does not excite it", "merged_into": []}
             )
             continue
-        coef, *_ = np.linalg.lstsq(J[:, kept_idx], J[:, i], rcond=None)
+        Jk = Js[:, kept_idx]
+        coef = np.linalg.solve(Jk.T @ Jk, Jk.T @ Js[:, i]) * raw_norm[i] / raw_norm[kept_idx]
         contrib = np.abs(coef) * np.linalg.norm(J[:, kept_idx], axis=0)
         top = np.argsort(-contrib)[:3]
         merged = [[names[kept_idx[k]], float(coef[k])] for k in top if contrib[k] > 1e-3 * contrib.max()]

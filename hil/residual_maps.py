@@ -182,12 +182,19 @@ class GPMap(ResidualMap):
 
         self._remember_volume(p_base)
         scale = 1000.0
-        h = self.hyper or {"amplitude": 0.01, "length_scale": 1.0, "noise": max((noise_sigma_m * scale) ** 2, 1e-8)}
-        kernel = ConstantKernel(h["amplitude"], (1e-8, 1e2)) * RBF(h["length_scale"], (0.05, 20.0)) + WhiteKernel(
-            h["noise"], (1e-10, 1e1)
-        )
+        h = self.hyper or {
+            "amplitude": 0.01,
+            "length_scale": 1.0,
+            "noise": max((noise_sigma_m * scale) ** 2, 1e-8),
+        }
+        kernel = ConstantKernel(h["amplitude"], (1e-8, 1e2)) * RBF(
+            h["length_scale"], (0.05, 20.0)
+        ) + WhiteKernel(h["noise"], (1e-10, 1e1))
         gp = GaussianProcessRegressor(
-            kernel=kernel, normalize_y=False, optimizer=None if self.hyper else "fmin_l_bfgs_b", random_state=0
+            kernel=kernel,
+            normalize_y=False,
+            optimizer=None if self.hyper else "fmin_l_bfgs_b",
+            random_state=0,
         )
         mean = residual.mean(axis=0) * scale
         with warnings.catch_warnings():

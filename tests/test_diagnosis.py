@@ -1,0 +1,106 @@
+"""The diagnosis loop on the simulated cell: held-out points never used for fitting.
+
+hil/ models each effect its own way; the cell's physics lives in fakes/. These tests read the cell's
+hidden truth only to check the answer.
+"""
+
+import ast
+import pathlib
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from calib_data import cell_datasets
+
+from hil.diagnosis import run_diagnosis
+
+pytestmark = pytest.mark.timeout(120)
+
+
+def _rms(report, stage, on="heldout"):
+    return next(s["rms_mm"] for s in report.stages if s["stage"] == stage and s["on"] == on)
+
+
+def _last(report, on="heldout"):
+    return [s for s in report.stages if s["on"] == on][-1]["rms_mm"]
+
+
+def test_clean_robot_gets_nothing_added():
+    _, train, val = cell_datasets(seed=1, compliance=False)
+    report = run_diagnosis(train, "ur10", df_validate=val)
+    assert report.effects_added == []
+    assert not report.unexplained_structure
+    assert _rms(report, "kinematic") <= 1.2 * report.noise_floor_mm
+    assert _rms(report, "kinematic", "validate") <= 1.2 * report.noise_floor_mm
+
+
+def test_gravity_compliance_is_found():
+    # The cell's default: geometric errors plus gravity compliance from link masses.
+    _, train, val = cell_datasets(seed=2)
+    report = run_diagnosis(train, "ur10", df_validate=val)
+    names = [e["name"] for e in report.effects_added]
+    assert names and set(names) == {"gravity_compliance"}
+    assert report.effects_added[0]["joint"] in (2, 3)  # the shoulder and elbow carry the arm
+    before, after = _rms(report, "kinematic"), _last(report)
+    floor = report.noise_floor_mm
+    assert after <= 1.2 * floor
+    assert before >= 1.5 * after
+    assert _last(report, "validate") <= 1.2 * floor
+    step = report.steps[0]
+    assert all(p["std"] is None or p["std"] > 0 for p in step.parameters)
+    assert step.heldout_after["rms_mm"] < step.heldout_before["rms_mm"]
+
+
+@pytest.mark.parametrize(
+    ("config", "family"),
+    [
+        ({"compliance": False, "backlash": True}, "backlash"),
+        ({"compliance": False, "thermal": True}, "thermal_expansion"),
+        ({"compliance": False, "cyclic": True}, "cyclic"),
+    ],
+)
+def test_other_effect_families_are_named(config, family):
+    cell, train, val = cell_datasets(seed=3, **config)
+    report = run_diagnosis(train, "ur10", df_validate=val)
+    assert report.effects_added and {e["name"] for e in report.effects_added} == {family}
+    truth = cell.ground_truth()
+    if family in ("backlash", "cyclic"):
+        true_joints = set(truth["config"][f"{family}_joints"])
+        assert {e["joint"] for e in report.effects_added} <= true_joints
+    if family == "thermal_expansion":
+        k = report.model.effects[0].params[0]
+        assert k == pytest.approx(truth["config"]["expansion_per_k"], rel=0.1)
+    assert _last(report) <= 1.2 * report.noise_floor_mm
+    assert _last(report, "validate") <= 1.2 * report.noise_floor_mm
+
+
+def test_structure_no_candidate_explains_is_reported():
+    # An undeclared effect outside every family: a smooth error field of the tracker itself.
+    _, train, val = cell_datasets(seed=4, compliance=False)
+    for df in (train, val):
+        p = df[["x_mm", "y_mm", "z_mm"]].to_numpy() / 1000.0
+        field = 0.08 * np.stack(
+            [np.sin(p[:, 1] / 0.25), np.cos(p[:, 2] / 0.3), np.sin(p[:, 0] / 0.35)], axis=1
+        )
+        df[["x_mm", "y_mm", "z_mm"]] += field
+    report = run_diagnosis(train, "ur10", df_validate=val)
+    assert report.unexplained_structure
+    assert "residual map" in report.stages[-1]["stage"]
+
+
+def test_model_code_never_imports_the_simulator():
+    # The analysis modules (the CLI's `demo` may drive the simulator; the model code may not).
+    root = pathlib.Path(__file__).resolve().parents[1] / "hil"
+    for path in root.glob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                mods = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                mods = [node.module or ""]
+            else:
+                continue
+            assert not any(m.split(".")[0] == "fakes" for m in mods), f"{path} imports {mods}"
+    code = "import sys, hil.diagnosis, hil.calibration, hil.effects; print('fakes' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
