@@ -38,6 +38,7 @@ class CalibratedModel:
     tools: dict[int, np.ndarray]  # SMR nest id -> tool point in the flange (m)
     effects: list[Effect] = field(default_factory=list)
     info: dict = field(default_factory=dict)  # solver report: std errors, dropped parameters, outliers...
+    residual_map: dict | None = None  # fallback residual map (hil.residual_maps), applied by `predict`
 
     # ----- parameter vector ---------------------------------------------------------------------
     @property
@@ -117,10 +118,21 @@ class CalibratedModel:
         R, t = self.T_tracker_base[:3, :3], self.T_tracker_base[:3, 3]
         return p_base @ R.T + t + offset
 
-    def predict(self, df: pd.DataFrame) -> np.ndarray:
-        """Predicted SMR centres (N, 3) in the tracker frame (m) for the joints (and drivers) in df."""
+    def predict(self, df: pd.DataFrame, with_map: bool = True) -> np.ndarray:
+        """Predicted SMR centres (N, 3) in the tracker frame (m) for the joints (and drivers) in df.
+
+        Applies geometry, base, tool, every effect and, when the model carries one, the residual map
+        (which warns for targets outside the measured volume).
+        """
         ctx, _ = self.context(df)
-        return self.predict_ctx(ctx)
+        p = self.predict_ctx(ctx)
+        if with_map and self.residual_map is not None:
+            from hil.residual_maps import map_from_dict
+
+            q_eff = ctx.q + self.joint_offsets(ctx)
+            p_base = tool_points_rows(self.kinematic, q_eff, ctx.p_flange_tool)
+            p = p + map_from_dict(self.residual_map).predict(ctx.q, p_base)
+        return p
 
     def jacobian_ctx(self, ctx: EffectContext, smr: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Predicted points (N, 3) and d(points)/d(parameters) (N, 3, P) in the full parameter order."""
@@ -191,6 +203,7 @@ class CalibratedModel:
             "T_tracker_base": self.T_tracker_base.tolist(),
             "tools_m": {str(k): v.tolist() for k, v in sorted(self.tools.items())},
             "effects": [e.to_dict() for e in self.effects],
+            "residual_map": self.residual_map,
             "info": self.info,
         }
 
@@ -211,6 +224,7 @@ class CalibratedModel:
             tools={int(k): np.asarray(v, float) for k, v in data["tools_m"].items()},
             effects=[effect_from_dict(e) for e in data.get("effects", [])],
             info=data.get("info", {}),
+            residual_map=data.get("residual_map"),
         )
 
     @classmethod

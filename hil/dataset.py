@@ -27,9 +27,14 @@ class DatasetError(ValueError):
     """A dataset that breaks the contract; the message says what to fix."""
 
 
-def validate_dataset(df: pd.DataFrame, n_joints: int = 6, source: str = "dataset") -> pd.DataFrame:
-    """Check a frame against the contract and return it with clean dtypes (raises DatasetError)."""
-    required = joint_columns(n_joints) + list(POSITION_COLUMNS)
+def validate_dataset(
+    df: pd.DataFrame, n_joints: int = 6, source: str = "dataset", require_positions: bool = True
+) -> pd.DataFrame:
+    """Check a frame against the contract and return it with clean dtypes (raises DatasetError).
+
+    `require_positions=False` accepts a joints-only file (targets to predict).
+    """
+    required = joint_columns(n_joints) + (list(POSITION_COLUMNS) if require_positions else [])
     missing = [c for c in required if c not in df.columns]
     if missing:
         raise DatasetError(
@@ -82,7 +87,7 @@ def validate_dataset(df: pd.DataFrame, n_joints: int = 6, source: str = "dataset
     return out
 
 
-def load_dataset(path: str | Path, n_joints: int = 6) -> pd.DataFrame:
+def load_dataset(path: str | Path, n_joints: int = 6, require_positions: bool = True) -> pd.DataFrame:
     """Read and validate a dataset CSV."""
     path = Path(path)
     if not path.exists():
@@ -91,7 +96,7 @@ def load_dataset(path: str | Path, n_joints: int = 6) -> pd.DataFrame:
         df = pd.read_csv(path)
     except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
         raise DatasetError(f"{path}: not a readable CSV ({exc})") from exc
-    return validate_dataset(df, n_joints, source=str(path))
+    return validate_dataset(df, n_joints, source=str(path), require_positions=require_positions)
 
 
 def write_dataset(df: pd.DataFrame, path: str | Path) -> None:

@@ -394,7 +394,7 @@ def _run_diagnosis(
         residual_map_obj = make_map(best_kind).fit(
             prob.ctx.q, _p_base(final_model, prob), r_fit, float(np.sqrt(sigma2))
         )
-        final_model.info["residual_map"] = residual_map_obj.to_dict()
+        final_model.residual_map = residual_map_obj.to_dict()
     map_report.pop("heldout_residual", None)
     added = ", ".join(
         f"{s.effect['name']}" + (f" (joint {s.effect['joint']})" if s.effect["joint"] else "") for s in steps

@@ -1,0 +1,88 @@
+"""`hil diagnose DATA.csv --robot ur10 [--validate VAL.csv] [-o model.json] --json report.json [--html ...]`."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from hil.commands.calibrate import parse_mm_vector
+from hil.dataset import DatasetError, load_dataset
+from hil.diagnosis import run_diagnosis
+from hil.effects import EFFECT_FAMILIES
+from hil.robots import ROBOT_NAMES
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "diagnose",
+        help="calibrate, trace the residual to missing effects, add them, report before/after",
+        description="Calibrate, then test candidate effects the model lacks (gravity compliance, cyclic joint "
+        "errors, backlash, thermal expansion/drift) by k-fold held-out improvement and a significance test "
+        "against the measurement noise; add the winner, refit, repeat.",
+    )
+    p.add_argument("data", help="training dataset CSV")
+    p.add_argument("--robot", default="ur10", choices=ROBOT_NAMES)
+    p.add_argument("--validate", default=None, help="a separate dataset CSV never used for fitting")
+    p.add_argument("-o", "--output", default=None, help="write the final model (effects included) as JSON")
+    p.add_argument("--json", required=True, dest="json_path", help="write the report as JSON")
+    p.add_argument("--html", default=None, help="write the report as a self-contained HTML page")
+    p.add_argument("--folds", type=int, default=5, help="k of the k-fold cross-validation (default 5)")
+    p.add_argument("--alpha", type=float, default=1e-3, help="significance level of the tests (default 1e-3)")
+    p.add_argument(
+        "--families",
+        default=",".join(EFFECT_FAMILIES),
+        help=f"candidate effect families, comma separated (default all: {','.join(EFFECT_FAMILIES)})",
+    )
+    p.add_argument(
+        "--repeatability-mm", type=float, default=0.0, help="robot repeatability added to the floor"
+    )
+    p.add_argument("--tool-mm", default=None, help="initial guess of the tool point, 'x,y,z' mm")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from hil.report import write_html, write_json
+
+    try:
+        df = load_dataset(args.data)
+        val = load_dataset(args.validate) if args.validate else None
+        tool = parse_mm_vector(args.tool_mm)
+        families = tuple(f.strip() for f in args.families.split(",") if f.strip())
+        unknown = [f for f in families if f not in EFFECT_FAMILIES]
+        if unknown:
+            raise ValueError(
+                f"unknown effect famil{'y' if len(unknown) == 1 else 'ies'} {unknown}; "
+                f"known: {', '.join(EFFECT_FAMILIES)}"
+            )
+        if args.folds < 2:
+            raise ValueError("--folds must be at least 2")
+    except (DatasetError, ValueError, argparse.ArgumentTypeError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    report = run_diagnosis(
+        df,
+        args.robot,
+        df_validate=val,
+        folds=args.folds,
+        alpha=args.alpha,
+        families=families,
+        repeatability_mm=args.repeatability_mm,
+        tool_guess_m=tool,
+    )
+    print(report.table())
+    print(report.conclusion)
+    for step in report.steps:
+        j = step.effect["joint"]
+        print(f"  {step.effect['name']}{f' joint {j}' if j else ''}:")
+        for p in step.parameters:
+            std = "merged" if p["std"] is None else f"+- {p['std']:.2e}"
+            print(f"    {p['name']:<34} {p['value']: .4e} {std}")
+    write_json(report, args.json_path)
+    print(f"report written to {args.json_path}")
+    if args.html:
+        write_html(report, args.html)
+        print(f"HTML report written to {args.html}")
+    if args.output:
+        report.model.save(args.output)
+        print(f"model written to {args.output}")
+    return 0

@@ -1,0 +1,43 @@
+"""`hil predict model.json DATA.csv -o predicted.csv`: tracker-frame SMR positions the model predicts."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import warnings
+
+from hil.calibrated_model import CalibratedModel
+from hil.dataset import POSITION_COLUMNS, DatasetError, load_dataset
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "predict",
+        help="predict x_mm, y_mm, z_mm (tracker frame) for the joints in a CSV with a calibrated model",
+    )
+    p.add_argument("model", help="model JSON written by 'hil calibrate' or 'hil diagnose -o'")
+    p.add_argument(
+        "data", help="CSV with q1_rad..q6_rad (and the drivers the model's effects need: t_s, ...)"
+    )
+    p.add_argument("-o", "--output", required=True, help="CSV to write: the input columns, x/y/z_mm replaced")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        model = CalibratedModel.load(args.model)
+        df = load_dataset(args.data, require_positions=False)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            p = model.predict(df)
+    except (DatasetError, ValueError, OSError, KeyError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    for w in caught:
+        print(f"warning: {w.message}", file=sys.stderr)
+    out = df.copy()
+    for i, col in enumerate(POSITION_COLUMNS):
+        out[col] = p[:, i] * 1000.0
+    out.to_csv(args.output, index=False, float_format="%.10g")
+    print(f"{len(out)} predicted positions written to {args.output}")
+    return 0

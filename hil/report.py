@@ -1,0 +1,185 @@
+"""Diagnosis report as JSON (machine-readable) and as one self-contained HTML page with embedded plots."""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+import json
+from pathlib import Path
+
+import numpy as np
+
+from hil.diagnosis import DiagnosisReport
+
+
+def write_json(report: DiagnosisReport, path: str | Path) -> None:
+    """The report's JSON: effects_added, stages, unexplained_structure, noise_floor_mm and the details."""
+    Path(path).write_text(json.dumps(report.to_dict(), indent=1, default=_default))
+
+
+def _default(o: object) -> object:
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, np.generic):
+        return o.item()
+    raise TypeError(f"cannot write {type(o).__name__} to JSON")
+
+
+def _png(fig) -> str:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)
+    return '<img src="data:image/png;base64,' + base64.b64encode(buf.getvalue()).decode() + '">'
+
+
+def _plots(report: DiagnosisReport) -> list[tuple[str, str]]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out = []
+    for step in report.steps:
+        p = step.plot
+        if not p:
+            continue
+        fig, ax = plt.subplots(figsize=(6.5, 3.6))
+        x = np.asarray(p["driver"])
+        ax.scatter(x, p["residual_before_mm"], s=9, alpha=0.6, label="before (held-out)")
+        ax.scatter(x, p["residual_after_mm"], s=9, alpha=0.6, label="after (held-out)")
+        ax.axhline(0, color="k", lw=0.5)
+        ax.set_xlabel(p["driver_label"])
+        ax.set_ylabel("residual along the effect (mm)")
+        joint = step.effect["joint"]
+        ax.set_title(f"{step.effect['name']}" + (f" joint {joint}" if joint else ""))
+        ax.legend(fontsize=8)
+        out.append((f"Residual against the driver of {step.effect['name']}", _png(fig)))
+    held = [(k, v) for k, v in report.histograms.items() if not k.endswith("[validate]")]
+    if len(held) >= 2:
+        fig, ax = plt.subplots(figsize=(6.5, 3.6))
+        first, last = held[1] if len(held) > 2 else held[0], held[-1]
+        bins = np.linspace(0, max(np.percentile(first[1], 99), np.percentile(last[1], 99)), 40)
+        for label, values in (first, last):
+            ax.hist(values, bins=bins, alpha=0.55, label=label)
+        ax.axvline(report.noise_floor_mm, color="k", ls="--", lw=1, label="noise floor (RMS)")
+        ax.set_xlabel("held-out 3-D error (mm)")
+        ax.set_ylabel("points")
+        ax.legend(fontsize=8)
+        out.append(("Held-out error before and after", _png(fig)))
+    return out
+
+
+def _table(rows: list[dict], columns: list[str], fmt: dict | None = None) -> str:
+    fmt = fmt or {}
+    head = "".join(f"<th>{html.escape(c)}</th>" for c in columns)
+    body = []
+    for r in rows:
+        cells = []
+        for c in columns:
+            v = r.get(c)
+            if isinstance(v, float):
+                v = format(v, fmt.get(c, ".4g"))
+            cells.append(f"<td>{html.escape('' if v is None else str(v))}</td>")
+        body.append("<tr>" + "".join(cells) + "</tr>")
+    return f"<table><tr>{head}</tr>{''.join(body)}</table>"
+
+
+def render_html(report: DiagnosisReport) -> str:
+    d = report.to_dict()
+    parts = [
+        "<!doctype html><html><head><meta charset='utf-8'><title>hil calibration report</title>",
+        "<style>body{font-family:sans-serif;max-width:1000px;margin:2em auto}table{border-collapse:collapse;"
+        "margin:0.5em 0}td,th{border:1px solid #bbb;padding:2px 8px;text-align:right}th{background:#eee}"
+        "h2{border-bottom:1px solid #888}</style></head><body>",
+        "<h1>Calibration and diagnosis</h1>",
+        f"<p><b>{html.escape(report.conclusion)}</b></p>",
+        f"<p>Noise floor: {report.noise_floor_mm:.4f} mm RMS ({html.escape(report.noise.method)}).</p>",
+        "<h2>Error at each stage (mm)</h2>",
+        _table(
+            d["stages"],
+            ["stage", "on", "mean_mm", "rms_mm", "max_mm", "p95_mm"],
+            dict.fromkeys(["mean_mm", "rms_mm", "max_mm", "p95_mm"], ".4f"),
+        ),
+        "<p>held-out = k-fold cross-validation on the training campaign; validate = a separate campaign "
+        "never used for fitting.</p>",
+    ]
+    parts.append("<h2>Effects added</h2>")
+    if not report.steps:
+        parts.append("<p>None: no candidate effect improved the held-out error significantly.</p>")
+    for step in report.steps:
+        j = step.effect["joint"]
+        parts.append(f"<h3>{html.escape(step.effect['name'])}{f' (joint {j})' if j else ''}</h3>")
+        parts.append(
+            f"<p>held-out RMS {step.heldout_before['rms_mm']:.4f} &rarr; {step.heldout_after['rms_mm']:.4f} mm, "
+            f"max {step.heldout_before['max_mm']:.4f} &rarr; {step.heldout_after['max_mm']:.4f} mm</p>"
+        )
+        parts.append(_table(step.parameters, ["name", "value", "std", "free"]))
+        if step.merged:
+            parts.append(
+                "<p>Merged (not separable from the geometry): "
+                + html.escape(", ".join(m["name"] for m in step.merged))
+                + "</p>"
+            )
+        if step.correlations:
+            parts.append(_table(step.correlations, ["coefficient", "parameter", "correlation"]))
+        cands = [c.to_dict() for c in step.candidates]
+        parts.append("<details><summary>candidates tested in this round</summary>")
+        parts.append(
+            _table(
+                cands,
+                ["name", "joint", "n_params", "cv_rms_mm", "gain_mm2", "p_cv", "p_chi2", "passed", "note"],
+            )
+        )
+        parts.append("</details>")
+    if report.final_round:
+        parts.append("<h3>Last round (nothing passed)</h3>")
+        parts.append(
+            _table(
+                [c.to_dict() for c in report.final_round],
+                ["name", "joint", "n_params", "cv_rms_mm", "gain_mm2", "p_cv", "p_chi2", "note"],
+            )
+        )
+    rm = d.get("residual_map") or {}
+    parts.append("<h2>Residual left</h2>")
+    parts.append(
+        f"<p>residual sigma / noise sigma = {rm.get('excess_ratio', float('nan')):.3f}; "
+        f"unexplained structure: {report.unexplained_structure}</p>"
+    )
+    if rm.get("candidates"):
+        rows = [{"map": k, **v} for k, v in rm["candidates"].items()]
+        parts.append(_table(rows, ["map", "rms_mm", "max_mm", "p95_mm", "p_value", "error"]))
+    parts.append("<h2>Plots</h2>")
+    for title, img in _plots(report):
+        parts.append(f"<h3>{html.escape(title)}</h3>{img}")
+    parts.append("<h2>Geometric calibration: both solvers</h2>")
+    for name, cal in d["calibration"].items():
+        parts.append(
+            f"<h3>{html.escape(name)}</h3><p>sigma0 {cal['sigma0_mm']:.4f} mm, RMS {cal['rms_mm']:.4f} mm, "
+            f"outlier rows {cal['outlier_rows']}</p>"
+        )
+        ident = cal.get("identifiability") or {}
+        if ident:
+            parts.append(
+                f"<p>condition number {ident['condition_before']:.3g} &rarr; {ident['condition_after']:.3g}; "
+                "dropped: "
+                + html.escape(
+                    "; ".join(
+                        f"{x['name']} (~ {' '.join(f'{c:+.3g}*{n}' for n, c in x['merged_into'])})"
+                        for x in ident["dropped"]
+                    )
+                )
+                + "</p>"
+            )
+        parts.append("<details><summary>parameters</summary>")
+        parts.append(_table(cal["parameters"], ["name", "value", "delta", "std", "unit"]))
+        parts.append("</details>")
+    parts.append("</body></html>")
+    return "\n".join(parts)
+
+
+def write_html(report: DiagnosisReport, path: str | Path) -> None:
+    """Write the self-contained HTML report (tables + PNG plots embedded as base64)."""
+    Path(path).write_text(render_html(report))

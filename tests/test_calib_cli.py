@@ -1,0 +1,75 @@
+"""The stable CLI: hil calibrate / diagnose / predict on a simulated campaign, through `python -m hil`."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pandas as pd
+import pytest
+from calib_data import cell_datasets
+
+pytestmark = pytest.mark.timeout(120)
+
+
+def _hil(*args, cwd):
+    return subprocess.run([sys.executable, "-m", "hil", *args], capture_output=True, text=True, cwd=cwd)
+
+
+@pytest.fixture(scope="module")
+def campaign(tmp_path_factory):
+    d = tmp_path_factory.mktemp("campaign")
+    _, train, val = cell_datasets(n=200, n_val=60, seed=5)
+    train.to_csv(d / "train.csv", index=False)
+    val.to_csv(d / "val.csv", index=False)
+    return d
+
+
+def test_calibrate_diagnose_predict(campaign):
+    d = campaign
+    out = _hil("calibrate", "train.csv", "--robot", "ur10", "-o", "kin.json", cwd=d)
+    assert out.returncode == 0, out.stderr
+    assert "ridge-igg3" in out.stdout and "lm-soft_l1" in out.stdout and "condition number" in out.stdout
+    out = _hil(
+        "diagnose",
+        "train.csv",
+        "--robot",
+        "ur10",
+        "--validate",
+        "val.csv",
+        "-o",
+        "model.json",
+        "--json",
+        "report.json",
+        "--html",
+        "report.html",
+        cwd=d,
+    )
+    assert out.returncode == 0, out.stderr
+    report = json.loads((d / "report.json").read_text())
+    assert {"effects_added", "stages", "unexplained_structure", "noise_floor_mm"} <= set(report)
+    assert report["effects_added"] and report["effects_added"][0]["name"] == "gravity_compliance"
+    for stage in report["stages"]:
+        assert stage["on"] in ("heldout", "validate")
+        assert {"stage", "mean_mm", "rms_mm", "max_mm", "p95_mm"} <= set(stage)
+    page = (d / "report.html").read_text()
+    assert "data:image/png;base64," in page and "gravity_compliance" in page
+    # predict applies everything the model holds: on the validation joints it matches the tracker.
+    joints = pd.read_csv(d / "val.csv").drop(columns=["x_mm", "y_mm", "z_mm"])
+    joints.to_csv(d / "joints.csv", index=False)
+    out = _hil("predict", "model.json", "joints.csv", "-o", "pred.csv", cwd=d)
+    assert out.returncode == 0, out.stderr
+    pred = pd.read_csv(d / "pred.csv")[["x_mm", "y_mm", "z_mm"]].to_numpy()
+    meas = pd.read_csv(d / "val.csv")[["x_mm", "y_mm", "z_mm"]].to_numpy()
+    rms = np.sqrt(np.mean(np.sum((pred - meas) ** 2, axis=1)))
+    val_final = [s for s in report["stages"] if s["on"] == "validate"][-1]["rms_mm"]
+    assert rms == pytest.approx(val_final, rel=1e-4)  # CSV rounding only
+
+
+def test_bad_input_gets_a_clear_error(campaign):
+    d = campaign
+    pd.read_csv(d / "train.csv").drop(columns=["z_mm"]).to_csv(d / "broken.csv", index=False)
+    out = _hil("calibrate", "broken.csv", "-o", "x.json", cwd=d)
+    assert out.returncode == 2 and "z_mm" in out.stderr
+    out = _hil("diagnose", "train.csv", "--json", "r.json", "--families", "gravity,cyclic", cwd=d)
+    assert out.returncode == 2 and "gravity" in out.stderr
