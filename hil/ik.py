@@ -34,7 +34,7 @@ REASONS: tuple[str, ...] = (
 
 UR_ALPHA = np.array([np.pi / 2, 0.0, 0.0, np.pi / 2, -np.pi / 2, 0.0])
 TWO_PI = 2.0 * np.pi
-SEED_SLACK = 0.02  # analytic seeds: accept targets up to 2 % beyond the nominal reach (clipped)
+REACH_SLACK = 0.1  # a UR pose counts as unreachable only if >10 % beyond the nominal reach (cos q3, shoulder)
 LAM_MIN = 1e-8  # floor of the adaptive bias multiplier (bias = LAM_MIN * wbar near convergence)
 
 
@@ -376,23 +376,28 @@ def _tool_frame(mode: str, T_flange_tool: np.ndarray | None, p_flange_tool: np.n
     return T
 
 
-def _analytic_seeds(
-    model: KinematicModel, prob: _Problem, q_ref: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Analytic-branch seeds ranked by distance to q_ref: (q (N,8,n), usable (N,8), any_geometric (N,))."""
+def _analytic_flange_targets(model: KinematicModel, prob: _Problem, q_ref: np.ndarray) -> np.ndarray:
+    """T_base_flange per target for the closed form; in position mode with the reference tool orientation."""
     if prob.mode == "pose":
-        T_base_flange = prob.targets @ invert(prob.T_flange_tool)
-    else:
-        # Keep the reference posture's tool orientation and ask for the target point.
-        R_ref = (forward_kinematics(model, q_ref) @ prob.T_flange_tool)[:, :3, :3]
-        T_base_tool = np.zeros((len(prob.targets), 4, 4))
-        T_base_tool[:, :3, :3] = R_ref
-        T_base_tool[:, :3, 3] = prob.targets
-        T_base_tool[:, 3, 3] = 1.0
-        T_base_flange = T_base_tool @ invert(prob.T_flange_tool)
-    qb, valid = ur_analytic_ik(model, T_base_flange, slack=SEED_SLACK)
-    ranked, usable = _ranked_branches(model, qb, valid, q_ref)
-    return ranked, usable, np.any(valid, axis=1)
+        return prob.targets @ invert(prob.T_flange_tool)
+    R_ref = (forward_kinematics(model, q_ref) @ prob.T_flange_tool)[:, :3, :3]
+    T_base_tool = np.zeros((len(prob.targets), 4, 4))
+    T_base_tool[:, :3, :3] = R_ref
+    T_base_tool[:, :3, 3] = prob.targets
+    T_base_tool[:, 3, 3] = 1.0
+    return T_base_tool @ invert(prob.T_flange_tool)
+
+
+def _analytic_seeds(
+    model: KinematicModel, T_base_flange: np.ndarray, q_ref: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Analytic-branch seeds ranked by distance to q_ref: (q (N, 8, n), usable (N, 8)).
+
+    Out-of-reach branches are clipped (not dropped): on a real arm, or near a wrist singularity where the
+    closed form is ill-conditioned, the nearest stretched posture is still a good seed.
+    """
+    qb, valid = ur_analytic_ik(model, T_base_flange, slack=1e9)
+    return _ranked_branches(model, qb, valid, q_ref)
 
 
 def solve_ik(
@@ -437,7 +442,6 @@ def solve_ik(
     seeds: list[np.ndarray] = []
     seed_ok: list[np.ndarray] = []
     ur = use_analytic and is_ur_like(model)
-    any_branch = np.ones(N, bool)
     if q_seed is not None:
         qs = np.asarray(q_seed, dtype=float)
         qs = np.broadcast_to(qs, (N, n)) if qs.shape == (n,) else qs
@@ -446,7 +450,8 @@ def solve_ik(
         seeds.append(qs)
         seed_ok.append(np.ones(N, bool))
     if ur:
-        ranked, usable, any_branch = _analytic_seeds(model, prob, q_ref)
+        T_base_flange = _analytic_flange_targets(model, prob, q_ref)
+        ranked, usable = _analytic_seeds(model, T_base_flange, q_ref)
         for b in range(ranked.shape[1]):
             seeds.append(np.where(usable[:, b, None], ranked[:, b], q_ref))
             seed_ok.append(usable[:, b])
@@ -486,7 +491,12 @@ def solve_ik(
     err_pos = np.linalg.norm(e_best[:, :3], axis=1)
     err_rot = np.linalg.norm(e_best[:, 3:], axis=1) if mode == "pose" else np.full(N, np.nan)
     success &= model.within_limits(q_best, tol=1e-12)
-    reason = _diagnose(prob, q_best, success, beyond, ~any_branch if ur and mode == "pose" else None)
+    no_branch = None
+    if ur and mode == "pose" and not success.all():
+        no_branch = np.zeros(N, bool)
+        failed = ~success
+        no_branch[failed] = ~ur_analytic_ik(model, T_base_flange[failed], slack=REACH_SLACK)[1].any(axis=1)
+    reason = _diagnose(prob, q_best, success, beyond, no_branch)
     return IKResult(q_best, success, iterations, reason, err_pos, err_rot, attempts)
 
 
