@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from hil.kinematics import KinematicModel, forward_kinematics, geometric_jacobian
-from hil.se3 import invert, pose_error, rot_x, rot_z
+from hil.se3 import invert, rot_x, rot_z
 
 # Failure vocabulary of IKResult.reason.
 REASON_OK = "ok"  # converged below tolerance, within joint limits
@@ -36,6 +36,7 @@ UR_ALPHA = np.array([np.pi / 2, 0.0, 0.0, np.pi / 2, -np.pi / 2, 0.0])
 TWO_PI = 2.0 * np.pi
 REACH_SLACK = 0.1  # a UR pose counts as unreachable only if >10 % beyond the nominal reach (cos q3, shoulder)
 LAM_MIN = 1e-8  # floor of the adaptive bias multiplier (bias = LAM_MIN * wbar near convergence)
+LAM_DOWN, LAM_UP = 0.1, 10.0  # bias multiplier after an accepted / rejected step
 
 
 @dataclass(frozen=True)
@@ -103,11 +104,18 @@ def ur_analytic_ik(
     Uses d1, a2, a3, d4, d5, d6 and the theta offsets of `model` and ignores its small errors (beta,
     alpha deviations): exact on a nominal UR, approximate (a seed) on a calibrated one.
     Branch index = 4*shoulder + 2*wrist + elbow (each bit picks one of the two solutions).
-    Invalid branches (target out of reach of that branch) are NaN. `slack` (dimensionless) is how far
-    beyond the reach a target may be and still yield the nearest (clipped) branch, e.g. 1e-2 for seeding
-    a slightly different real arm whose reach differs from the nominal one. At a wrist singularity (q5 = 0 or pi)
-    q6 is set to 0 and q4 takes up the rest.
+    Invalid branches (target out of reach of that branch) are NaN. `slack` (dimensionless, on cos q3 and
+    on the shoulder offset ratio) is how far beyond reach a target may be and still give the nearest
+    (stretched) posture. At a wrist singularity (q5 = 0 or pi) q6 is set to 0 and q4 takes up the rest.
     """
+    q, overshoot = _ur_branches(model, T_base_flange)
+    valid = overshoot <= slack
+    q[~valid] = np.nan
+    return q, valid
+
+
+def _ur_branches(model: KinematicModel, T_base_flange: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Closed-form branches, stretched where out of reach: (q (N, 8, 6), overshoot (N, 8) >= 0, 0 = exact)."""
     if not is_ur_like(model):
         raise ValueError(f"{model.name} is not a UR-shaped arm (standard DH alphas pi/2,0,0,pi/2,-pi/2,0)")
     T = _as_transforms(T_base_flange, "T_base_flange") @ invert(np.asarray(model.T_last_flange, float))
@@ -118,11 +126,11 @@ def ur_analytic_ik(
     z6 = R[:, :, 2]
     p5 = p - d6 * z6  # origin of frame 5, which lies at offset d4 along the joint-2 axis z1
 
-    q = np.full((N, 8, 6), np.nan)
-    valid = np.zeros((N, 8), bool)
+    q = np.empty((N, 8, 6))
+    overshoot = np.empty((N, 8))
     r2 = p5[:, 0] ** 2 + p5[:, 1] ** 2
     # Shoulder: z1 = (sin q1, -cos q1, 0) and p5 . z1 = d4  =>  r sin(q1 - phi) = d4.
-    shoulder_ok = np.sqrt(r2) >= abs(d4) * (1.0 - slack) - 1e-12
+    shoulder_over = np.maximum(1.0 - np.sqrt(r2) / abs(d4), 0.0)
     ratio = np.clip(d4 / np.sqrt(np.maximum(r2, 1e-300)), -1.0, 1.0)
     phi = np.arctan2(p5[:, 1], p5[:, 0])
     for sh in range(2):
@@ -154,18 +162,17 @@ def ur_analytic_ik(
             u = np.einsum("ni,ni->n", w, x1)
             v = w[:, 2]
             c3 = (u**2 + v**2 - a2**2 - a3**2) / (2.0 * a2 * a3)
-            elbow_ok = np.abs(c3) <= 1.0 + slack
+            elbow_over = np.maximum(np.abs(c3) - 1.0, 0.0)
             c3 = np.clip(c3, -1.0, 1.0)
             for el in range(2):
                 q3 = np.arccos(c3) * (1.0 if el == 0 else -1.0)
                 q2 = np.arctan2(v, u) - np.arctan2(a3 * np.sin(q3), a2 + a3 * np.cos(q3))
                 q4 = q234 - q2 - q3
                 b = 4 * sh + 2 * wr + el
-                ok = shoulder_ok & elbow_ok
                 sol = np.stack([q1, q2, q3, q4, q5, q6], 1) - np.asarray(model.theta)
-                q[:, b] = np.where(ok[:, None], _wrap_pi(sol), np.nan)
-                valid[:, b] = ok
-    return q, valid
+                q[:, b] = _wrap_pi(sol)
+                overshoot[:, b] = np.maximum(shoulder_over, elbow_over)
+    return q, overshoot
 
 
 def _wrap_pi(q: np.ndarray) -> np.ndarray:
@@ -214,19 +221,6 @@ def select_nearest_branch(
     return q, idx, found
 
 
-def _ranked_branches(
-    model: KinematicModel, q_branches: np.ndarray, valid: np.ndarray, q_ref: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """All branches shifted near q_ref and sorted by distance: (q (N, B, n), usable (N, B))."""
-    N, B, n = q_branches.shape
-    ref = np.broadcast_to(np.asarray(q_ref, dtype=float), (N, n))[:, None, :]
-    shifted, in_limits = nearest_equivalent(model, q_branches, np.broadcast_to(ref, (N, B, n)))
-    usable = valid & in_limits
-    dist = np.where(usable, np.linalg.norm(np.nan_to_num(shifted - ref, nan=np.inf), axis=2), np.inf)
-    order = np.argsort(dist, axis=1, kind="stable")
-    return np.take_along_axis(shifted, order[:, :, None], 1), np.take_along_axis(usable, order, 1)
-
-
 def project_to_limits(model: KinematicModel, q: np.ndarray) -> np.ndarray:
     """Bring joints (N, n) inside the limits: a joint beyond a limit is first shifted by 2 pi (same
     pose, revolute joint) if that lands inside, else clamped to the limit."""
@@ -268,6 +262,26 @@ def reach_bound(model: KinematicModel, tool_offset_m: float = 0.0) -> float:
 # --------------------------------------------------------------------------------------------------
 
 
+def rotation_log(R: np.ndarray) -> np.ndarray:
+    """Rotation vectors (k, 3) of rotation matrices (k, 3, 3); same as se3.pose_error's rotation part
+    (exact near identity, ~1e-13 rad near pi) without scipy's per-call overhead in the LM loop."""
+    s = 0.5 * np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], axis=1)
+    c = 0.5 * (R[:, 0, 0] + R[:, 1, 1] + R[:, 2, 2] - 1.0)
+    sn = np.linalg.norm(s, axis=1)
+    angle = np.arctan2(sn, c)
+    rv = s * np.where(sn > 1e-12, angle / np.maximum(sn, 1e-300), 1.0)[:, None]
+    near_pi = (sn <= 1e-5) & (c < 0)
+    if np.any(near_pi):  # axis from the symmetric part, R + R^T + 2 I ~ 4 n n^T near pi
+        Rn = R[near_pi]
+        B = 0.25 * (Rn + np.swapaxes(Rn, 1, 2)) + 0.5 * np.eye(3)
+        col = np.argmax(np.einsum("kii->ki", B), axis=1)
+        axis = np.take_along_axis(B, col[:, None, None], axis=2)[:, :, 0]
+        axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+        axis *= np.where(np.einsum("ki,ki->k", axis, s[near_pi]) < 0, -1.0, 1.0)[:, None]
+        rv[near_pi] = angle[near_pi, None] * axis
+    return rv
+
+
 @dataclass
 class _Problem:
     model: KinematicModel
@@ -283,7 +297,9 @@ class _Problem:
         """Error e (k, m) taking the current tool to the target, for targets `rows`."""
         T = forward_kinematics(self.model, q) @ self.T_flange_tool
         if self.mode == "pose":
-            return pose_error(T, self.targets[rows])
+            target = self.targets[rows]
+            dp = target[:, :3, 3] - T[:, :3, 3]
+            return np.concatenate([dp, rotation_log(target[:, :3, :3] @ np.swapaxes(T[:, :3, :3], 1, 2))], 1)
         return self.targets[rows] - T[:, :3, 3]
 
     def jacobian(self, q: np.ndarray) -> np.ndarray:
@@ -303,9 +319,11 @@ def _levenberg_marquardt(
     """Run LM on targets `rows` from seeds q0 (k, n). Returns (q, e, iterations).
 
     Step dq = (J^T W_E J + W_N)^-1 J^T W_E e with W_N = (E + lam * wbar) I, E = 1/2 e^T W_E e
-    (Sugihara). Safeguard: a step that does not lower E is rejected and lam grows tenfold; accepted
-    steps shrink lam (down to 1e-3), so the bias vanishes near the solution for fast final convergence.
-    Steps are projected onto the joint limits (wrapped by 2 pi first where that lands inside them). Targets stop when converged or hopelessly stuck.
+    (Sugihara). Safeguard: a step that does not lower E is rejected and lam grows (LAM_UP); accepted
+    steps shrink it (LAM_DOWN, floor LAM_MIN), so the bias fades near the solution for fast final
+    convergence. Steps are projected onto the joint limits (wrapped by 2 pi first where that lands
+    inside them). A target stops when converged or hopelessly stuck (lam > 1e12). The Jacobian is
+    re-evaluated only where a step was accepted.
     """
     q = project_to_limits(prob.model, q0)
     k, n = q.shape
@@ -316,13 +334,18 @@ def _levenberg_marquardt(
     iters = np.zeros(k, int)
     active = ~prob.converged(e)
     eye = np.eye(n)
+    J = np.empty((k, len(W), n))
+    stale = np.ones(k, bool)  # Jacobian to (re)compute: q moved since it was evaluated
     for _ in range(max_iter):
         idx = np.flatnonzero(active)
         if idx.size == 0:
             break
-        J = prob.jacobian(q[idx])
-        JtW = np.swapaxes(J, 1, 2) * W
-        A = JtW @ J + (E[idx] + lam[idx] * prob.wbar)[:, None, None] * eye
+        upd = idx[stale[idx]]
+        if upd.size:
+            J[upd] = prob.jacobian(q[upd])
+            stale[upd] = False
+        JtW = np.swapaxes(J[idx], 1, 2) * W
+        A = JtW @ J[idx] + (E[idx] + lam[idx] * prob.wbar)[:, None, None] * eye
         g = np.einsum("knm,km->kn", JtW, e[idx])
         dq = np.linalg.solve(A, g[..., None])[..., 0]
         q_new = project_to_limits(prob.model, q[idx] + dq)
@@ -331,9 +354,10 @@ def _levenberg_marquardt(
         accept = E_new < E[idx]
         acc = idx[accept]
         q[acc], e[acc], E[acc] = q_new[accept], e_new[accept], E_new[accept]
-        lam[acc] = np.maximum(lam[acc] * 0.1, LAM_MIN)
+        stale[acc] = True
+        lam[acc] = np.maximum(lam[acc] * LAM_DOWN, LAM_MIN)
         rej = idx[~accept]
-        lam[rej] *= 10.0
+        lam[rej] *= LAM_UP
         iters[idx] += 1
         done = prob.converged(e[idx]) | (lam[idx] > 1e12)
         active[idx[done]] = False
@@ -390,14 +414,22 @@ def _analytic_flange_targets(model: KinematicModel, prob: _Problem, q_ref: np.nd
 
 def _analytic_seeds(
     model: KinematicModel, T_base_flange: np.ndarray, q_ref: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Analytic-branch seeds ranked by distance to q_ref: (q (N, 8, n), usable (N, 8)).
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """All 8 analytic branches as seeds, exact ones first, each group by distance to q_ref.
 
-    Out-of-reach branches are clipped (not dropped): on a real arm, or near a wrist singularity where the
-    closed form is ill-conditioned, the nearest stretched posture is still a good seed.
+    Returns (q (N, 8, n), usable (N, 8), no_branch (N,)). Out-of-reach branches are kept, stretched: on a
+    real arm, or near a wrist singularity where the closed form is ill-conditioned, the nearest stretched
+    posture is still a good seed. no_branch marks targets more than REACH_SLACK beyond nominal reach.
     """
-    qb, valid = ur_analytic_ik(model, T_base_flange, slack=1e9)
-    return _ranked_branches(model, qb, valid, q_ref)
+    qb, overshoot = _ur_branches(model, T_base_flange)
+    N, B, n = qb.shape
+    ref = np.broadcast_to(np.asarray(q_ref, dtype=float), (N, n))[:, None, :]
+    shifted, usable = nearest_equivalent(model, qb, np.broadcast_to(ref, (N, B, n)))
+    dist = np.linalg.norm(shifted - ref, axis=2)
+    key = np.where(usable, dist + np.where(overshoot > 1e-9, 1e6, 0.0), np.inf)
+    order = np.argsort(key, axis=1, kind="stable")
+    no_branch = np.all(overshoot > REACH_SLACK, axis=1)
+    return np.take_along_axis(shifted, order[:, :, None], 1), np.take_along_axis(usable, order, 1), no_branch
 
 
 def solve_ik(
@@ -442,6 +474,7 @@ def solve_ik(
     seeds: list[np.ndarray] = []
     seed_ok: list[np.ndarray] = []
     ur = use_analytic and is_ur_like(model)
+    no_branch = None
     if q_seed is not None:
         qs = np.asarray(q_seed, dtype=float)
         qs = np.broadcast_to(qs, (N, n)) if qs.shape == (n,) else qs
@@ -451,7 +484,9 @@ def solve_ik(
         seed_ok.append(np.ones(N, bool))
     if ur:
         T_base_flange = _analytic_flange_targets(model, prob, q_ref)
-        ranked, usable = _analytic_seeds(model, T_base_flange, q_ref)
+        ranked, usable, no_branch = _analytic_seeds(model, T_base_flange, q_ref)
+        if mode != "pose":
+            no_branch = None  # the orientation was made up: no verdict on reach
         for b in range(ranked.shape[1]):
             seeds.append(np.where(usable[:, b, None], ranked[:, b], q_ref))
             seed_ok.append(usable[:, b])
@@ -491,11 +526,6 @@ def solve_ik(
     err_pos = np.linalg.norm(e_best[:, :3], axis=1)
     err_rot = np.linalg.norm(e_best[:, 3:], axis=1) if mode == "pose" else np.full(N, np.nan)
     success &= model.within_limits(q_best, tol=1e-12)
-    no_branch = None
-    if ur and mode == "pose" and not success.all():
-        no_branch = np.zeros(N, bool)
-        failed = ~success
-        no_branch[failed] = ~ur_analytic_ik(model, T_base_flange[failed], slack=REACH_SLACK)[1].any(axis=1)
     reason = _diagnose(prob, q_best, success, beyond, no_branch)
     return IKResult(q_best, success, iterations, reason, err_pos, err_rot, attempts)
 
