@@ -88,6 +88,47 @@ def linear_fit_cv(J: np.ndarray, r: np.ndarray, folds: list[np.ndarray]) -> tupl
     return fit, cv
 
 
+def _weakest_effect(
+    model: CalibratedModel, prob: Problem, folds: list[np.ndarray], sigma2: float, alpha: float
+) -> tuple[int, Candidate] | None:
+    """The earlier effect (not the last added) that no longer improves the model significantly, if any."""
+    r, J = prob.evaluate(model)
+    Jf = _flat(J)
+    keep = analyse(Jf, model.param_names).keep_mask
+    fit, cv = linear_fit_cv(Jf[:, keep], r, folds)
+    sse, e = float(np.sum(fit**2)), np.sum(cv**2, axis=1)
+    s2 = max(sigma2, sse / max(fit.size - int(keep.sum()), 1))
+    weakest = None
+    for i, eff in enumerate(model.effects[:-1]):
+        reduced = replace(model, effects=[x for k, x in enumerate(model.effects) if k != i])
+        rr, Jr = prob.evaluate(reduced)
+        Jrf = _flat(Jr)
+        kr = analyse(Jrf, reduced.param_names).keep_mask
+        fit_r, cv_r = linear_fit_cv(Jrf[:, kr], rr, folds)
+        k = max(int(keep.sum() - kr.sum()), 1)
+        p_chi2 = float(stats.chi2.sf((float(np.sum(fit_r**2)) - sse) / s2, k))
+        d = np.sum(cv_r**2, axis=1) - e  # what removing it costs on held-out points
+        se = float(np.std(d, ddof=1) / np.sqrt(len(d)))
+        gain = float(np.mean(d))
+        p_cv = float(stats.t.sf(gain / se, len(d) - 1)) if se > 0 else 1.0
+        if gain > 0 and p_cv < alpha and p_chi2 < alpha:
+            continue
+        cand = Candidate(
+            eff.family,
+            eff.joint,
+            k,
+            error_stats(cv_r)["rms_mm"],
+            gain * 1e6,
+            p_cv,
+            p_chi2,
+            False,
+            "redundant once a later effect is in the model",
+        )
+        if weakest is None or gain < weakest[1].gain_mm2 / 1e6:
+            weakest = (i, cand)
+    return weakest
+
+
 def _free_mask(model: CalibratedModel, problem: Problem) -> tuple[np.ndarray, object]:
     report = identify(model, problem)
     return report.keep_mask, report
@@ -119,6 +160,7 @@ class Step:
     merged: list[dict]  # identifiability notes for the effect's coefficients
     correlations: list[dict]  # strongest correlation of each effect coefficient with a geometric parameter
     plot: dict = field(default_factory=dict)  # driver label/values, residual along the effect before/after
+    action: str = "added"  # or "removed" (an earlier effect made redundant by a later one)
 
     def to_dict(self) -> dict:
         d = dict(self.__dict__)
@@ -141,7 +183,8 @@ class DiagnosisReport:
 
     @property
     def effects_added(self) -> list[dict]:
-        return [s.effect for s in self.steps]
+        """The effects the final model holds, in the order they were added."""
+        return [{"name": e.family, "joint": e.joint} for e in self.model.effects]
 
     @property
     def noise_floor_mm(self) -> float:
@@ -318,6 +361,11 @@ def _run_diagnosis(
             final_round = [c for c, _ in results]
             break
         best, best_model = max(winners, key=lambda cm: cm[0].gain_mm2)
+        close = [c for c, _ in winners if c is not best and c.gain_mm2 >= 0.8 * best.gain_mm2]
+        if close:  # say so when the data hardly tells two candidates apart
+            best.note = "nearly as good: " + ", ".join(
+                c.name + (f" j{c.joint}" if c.joint else "") for c in close
+            )
         current = calibrate(df, best_model, "ridge")
         prob, fold_idx = ok_problem(current)
         free, rep = _free_mask(current.model, prob)
@@ -335,6 +383,34 @@ def _run_diagnosis(
                 "correlations": _correlations(current, prob, eff),
             }
         )
+        # Backward check: does every earlier effect still earn its place beside the new one?
+        while len(current.model.effects) > 1:
+            weakest = _weakest_effect(current.model, prob, fold_idx, sigma2, alpha)
+            if weakest is None:
+                break
+            idx, cand = weakest
+            gone = current.model.effects[idx]
+            reduced = replace(
+                current.model, effects=[e for k, e in enumerate(current.model.effects) if k != idx]
+            )
+            current = calibrate(df, reduced, "ridge")
+            prob, fold_idx = ok_problem(current)
+            free, rep = _free_mask(current.model, prob)
+            cv_cur = cv_residuals(current.model, free, prob, fold_idx)
+            label = (
+                f"- {gone.family}" + (f" (joint {gone.joint})" if gone.joint else "") + " (no longer needed)"
+            )
+            stage_models.append((label, current.model))
+            pending.append(
+                {
+                    "action": "removed",
+                    "effect": {"name": gone.family, "joint": gone.joint},
+                    "parameters": [],
+                    "candidates": [cand],
+                    "merged": [],
+                    "correlations": [],
+                }
+            )
 
     # Every stage on the final rows and folds.
     stages: list[dict] = []
@@ -350,23 +426,22 @@ def _run_diagnosis(
     final_model = current.model
     for k, info in enumerate(pending):
         before, after = cv_by_stage[k + 1], cv_by_stage[k + 2]
-        eff_index = k
-        disp = _effect_displacement(final_model, prob, eff_index)
-        norm = np.linalg.norm(disp, axis=1, keepdims=True)
-        u = disp / np.where(norm > 0, norm, 1.0)
-        drv_label, drv = final_model.effects[eff_index].driver(prob.ctx, final_model.nominal)
+        plot = {}
+        if info.get("action", "added") == "added":
+            stage_model = stage_models[k + 2][1]
+            eff_index = len(stage_model.effects) - 1
+            disp = _effect_displacement(stage_model, prob, eff_index)
+            norm = np.linalg.norm(disp, axis=1, keepdims=True)
+            u = disp / np.where(norm > 0, norm, 1.0)
+            drv_label, drv = stage_model.effects[eff_index].driver(prob.ctx, stage_model.nominal)
+            plot = {
+                "driver_label": drv_label,
+                "driver": np.asarray(drv).tolist(),
+                "residual_before_mm": (np.sum(before * u, axis=1) * 1000).tolist(),
+                "residual_after_mm": (np.sum(after * u, axis=1) * 1000).tolist(),
+            }
         steps.append(
-            Step(
-                heldout_before=error_stats(before),
-                heldout_after=error_stats(after),
-                plot={
-                    "driver_label": drv_label,
-                    "driver": np.asarray(drv).tolist(),
-                    "residual_before_mm": (np.sum(before * u, axis=1) * 1000).tolist(),
-                    "residual_after_mm": (np.sum(after * u, axis=1) * 1000).tolist(),
-                },
-                **info,
-            )
+            Step(heldout_before=error_stats(before), heldout_after=error_stats(after), plot=plot, **info)
         )
     cv_cur = cv_by_stage[-1]
 
@@ -396,9 +471,7 @@ def _run_diagnosis(
         )
         final_model.residual_map = residual_map_obj.to_dict()
     map_report.pop("heldout_residual", None)
-    added = ", ".join(
-        f"{s.effect['name']}" + (f" (joint {s.effect['joint']})" if s.effect["joint"] else "") for s in steps
-    )
+    added = ", ".join(f"{e.family}" + (f" (joint {e.joint})" if e.joint else "") for e in final_model.effects)
     if unexplained:
         conclusion = (
             f"Added: {added or 'nothing'}. Structured residual remains that no candidate effect explains "

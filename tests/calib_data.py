@@ -43,16 +43,12 @@ def synthetic(n: int = 200, seed: int = 0, noise_m: float = 15e-6):
     return truth, make_dataset(q, p, smr=1), make
 
 
-def cell_datasets(n: int = 220, n_val: int = 100, seed: int = 0, **config):
-    """Training and held-out validation campaigns on the simulated cell (UR10), both in the contract."""
+def cell_datasets(step_m: float = 0.1, n_val: int = 100, seed: int = 0, **config):
+    """A grid campaign (training) and random held-out poses (validation) on the simulated UR10 cell."""
+    from fakes.campaign import grid_joints, random_joints, simulate_campaign
     from fakes.cell import CellConfig, SimulatedCell
 
     cell = SimulatedCell(CellConfig(robot="ur10", seed=seed, **config))
-    rng = np.random.default_rng(seed + 100)
-    frames = []
-    for k in (n, n_val):
-        r = cell.run_sequence(ur10_joints(rng, k), smr_id=1)
-        frames.append(
-            make_dataset(r["q_encoder"], r["p_tracker_measured"], r["t_s"], r["temperature_c"], smr=1)
-        )
-    return cell, frames[0], frames[1]
+    train = simulate_campaign(cell, grid_joints(cell, step_m=step_m, seed=seed))
+    val = simulate_campaign(cell, random_joints(cell, n_val, seed=seed + 1))
+    return cell, train, val

@@ -19,7 +19,7 @@ def _hil(*args, cwd):
 @pytest.fixture(scope="module")
 def campaign(tmp_path_factory):
     d = tmp_path_factory.mktemp("campaign")
-    _, train, val = cell_datasets(n=200, n_val=60, seed=5)
+    _, train, val = cell_datasets(step_m=0.12, n_val=60, seed=5)
     train.to_csv(d / "train.csv", index=False)
     val.to_csv(d / "val.csv", index=False)
     return d
