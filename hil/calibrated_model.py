@@ -168,17 +168,28 @@ class CalibratedModel:
 
     # ----- compensation -------------------------------------------------------------------------
     def corrected_joints(
-        self, targets_tracker: np.ndarray, q_seed: np.ndarray, smr: int | None = None, iterations: int = 20
+        self,
+        targets_tracker: np.ndarray,
+        q_seed: np.ndarray | None = None,
+        smr: int | None = None,
+        iterations: int = 20,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Joints to command so that the model puts the SMR at the targets (tracker frame, m).
 
-        Damped Gauss-Newton on the joints from a seed (N, n) (e.g. the nominal IK of the target),
-        position only: the position is 3 equations in 6 joints, so the minimum-norm joint step is
-        taken and the seed's orientation is kept to first order. Returns (q (N, n), error (N,) m).
+        Gauss-Newton on the joints from a seed (N, n): the joints the controller would use for the target
+        (e.g. its IK of a pose), or by default the calibrated geometry's position IK (`hil.ik.solve_ik`).
+        Position only: 3 equations in 6 joints, so the minimum-norm joint step is taken and the seed's
+        orientation is kept to first order. Returns (q (N, n), remaining model error (N,) m).
         """
         targets = np.atleast_2d(np.asarray(targets_tracker, float))
-        q = np.atleast_2d(np.asarray(q_seed, float)).copy()
         sid = sorted(self.tools)[0] if smr is None else int(smr)
+        if q_seed is None:
+            from hil.ik import solve_ik
+            from hil.se3 import invert, transform_points
+
+            p_base = transform_points(invert(self.T_tracker_base), targets)
+            q_seed = solve_ik(self.kinematic, p_base, mode="position", p_flange_tool=self.tools[sid]).q
+        q = np.atleast_2d(np.asarray(q_seed, float)).copy()
         smr_rows = np.full(len(q), sid)
         for _ in range(iterations):
             ctx = EffectContext(q=q, p_flange_tool=self._row_tools(smr_rows))

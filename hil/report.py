@@ -47,7 +47,9 @@ def _plots(report: DiagnosisReport) -> list[tuple[str, str]]:
         if not p:
             continue
         fig, ax = plt.subplots(figsize=(6.5, 3.6))
-        x = np.asarray(p["driver"])
+        x = np.asarray(p["driver"], float)
+        if len(np.unique(x)) <= 3:  # a sign: spread the points sideways to show their distribution
+            x = x + np.random.default_rng(0).uniform(-0.15, 0.15, len(x))
         ax.scatter(x, p["residual_before_mm"], s=9, alpha=0.6, label="before (held-out)")
         ax.scatter(x, p["residual_after_mm"], s=9, alpha=0.6, label="after (held-out)")
         ax.axhline(0, color="k", lw=0.5)

@@ -1,6 +1,7 @@
 """Geometric calibration on synthetic data made from hil.kinematics: recovery, identifiability, outliers, JSON."""
 
 import numpy as np
+import pandas as pd
 import pytest
 from calib_data import synthetic
 
@@ -8,6 +9,8 @@ from hil.calibrated_model import CalibratedModel
 from hil.calibration import calibrate
 from hil.dataset import make_dataset
 from hil.kinematics import measured_point
+from hil.noise_floor import estimate_noise_floor
+from hil.residual_maps import IDWGridMap
 
 
 @pytest.fixture(scope="module")
@@ -91,3 +94,32 @@ def test_model_file_round_trip_and_corrected_joints(data, tmp_path):
     q_corr, err = back.corrected_joints(p, seed)
     assert err.max() < 1e-9
     np.testing.assert_allclose(back.predict(make_dataset(q_corr, p)), p, atol=1e-9)
+    q_ik, err_ik = back.corrected_joints(p)  # seeded by the position IK of the calibrated geometry
+    assert err_ik.max() < 1e-9
+
+
+def test_noise_floor_from_repeated_poses():
+    truth, df, make = synthetic(n=60, seed=8, noise_m=40e-6)
+    repeated = pd.concat([df, df.iloc[:20]] * 1, ignore_index=True)
+    rng = np.random.default_rng(2)
+    repeated.loc[60:, ["x_mm", "y_mm", "z_mm"]] = df.iloc[:20][
+        ["x_mm", "y_mm", "z_mm"]
+    ].to_numpy() + rng.normal(0, 0.04, (20, 3))
+    floor = estimate_noise_floor(repeated)
+    assert "repeated poses" in floor.method
+    # Pairs of 40 um-per-axis readings: the floor (3-D RMS of one reading's noise) is ~ sqrt(3) * 40 um.
+    assert floor.floor_mm == pytest.approx(np.sqrt(3) * 0.04, rel=0.3)
+    assert "tracker noise model" in estimate_noise_floor(df).method
+
+
+def test_residual_map_warns_outside_the_measured_volume():
+    rng = np.random.default_rng(0)
+    g = np.stack(np.meshgrid(*[np.arange(4) * 0.1] * 3, indexing="ij"), -1).reshape(-1, 3)
+    field = lambda p: 1e-4 * np.sin(p * 7.0)  # noqa: E731
+    m = IDWGridMap().fit(np.zeros((len(g), 6)), g, field(g), 1e-5)
+    inside = rng.uniform(0.02, 0.28, (20, 3))
+    pred = m.predict(np.zeros((20, 6)), inside)
+    assert np.max(np.abs(pred - field(inside))) < 3e-5
+    np.testing.assert_allclose(m.predict(np.zeros((1, 6)), g[5:6]), field(g[5:6]))  # on a vertex
+    with pytest.warns(UserWarning, match="outside the measured volume"):
+        m.predict(np.zeros((1, 6)), np.array([[0.9, 0.1, 0.1]]))
