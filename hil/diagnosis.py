@@ -27,7 +27,7 @@ from threadpoolctl import threadpool_limits
 
 from hil.calibrated_model import CalibratedModel, initial_model
 from hil.calibration import CalibrationResult, Problem, calibrate, identify, solve_ridge_igg3
-from hil.effects import Effect, candidate_effects, tool_points_rows
+from hil.effects import Effect, candidate_effects, make_effect, tool_points_rows
 from hil.identifiability import analyse, scale_columns
 from hil.kinematics import KinematicModel
 from hil.noise_floor import NoiseFloor, estimate_noise_floor
@@ -86,6 +86,50 @@ def linear_fit_cv(J: np.ndarray, r: np.ndarray, folds: list[np.ndarray]) -> tupl
         dxf = np.linalg.solve(N - Jt.T @ Jt, g - Jt.T @ rt)  # fit without the held-out fold
         cv[test] = (rt - Jt @ dxf).reshape(-1, 3)
     return fit, cv
+
+
+class _Screen:
+    """Linearised test of candidate effects against a base model (see the module docstring)."""
+
+    def __init__(
+        self,
+        base: CalibratedModel,
+        prob: Problem,
+        free: np.ndarray,
+        folds: list,
+        sigma2: float,
+        alpha: float,
+        n: int,
+    ) -> None:
+        self.base, self.prob, self.folds, self.sigma2 = base, prob, folds, sigma2
+        self.alpha_cv, self.alpha_chi2 = alpha, alpha / max(n, 1)
+        r, J = prob.evaluate(base)
+        fit0, cv0 = linear_fit_cv(_flat(J)[:, free], r, folds)
+        self.sse0 = float(np.sum(fit0**2))
+        self.e0 = np.sum(cv0**2, axis=1)
+
+    def test(self, eff: Effect) -> tuple[Candidate, CalibratedModel | None]:
+        trial = self.base.with_effect(eff)
+        r_t, J_t = self.prob.evaluate(trial)
+        Jt = _flat(J_t)
+        tfree = analyse(Jt, trial.param_names).keep_mask
+        n_new = int(np.sum(tfree[len(trial.param_names) - len(eff.params) :]))
+        if n_new == 0:
+            note = "inseparable from the geometry"
+            return Candidate(eff.family, eff.joint, 0, float("nan"), 0.0, 1.0, 1.0, False, note), None
+        fit, cv = linear_fit_cv(Jt[:, tfree], r_t, self.folds)
+        sse = float(np.sum(fit**2))
+        s2 = max(self.sigma2, sse / max(fit.size - int(tfree.sum()), 1))
+        p_chi2 = float(stats.chi2.sf((self.sse0 - sse) / s2, n_new)) if self.sse0 > sse else 1.0
+        d = self.e0 - np.sum(cv**2, axis=1)
+        se = float(np.std(d, ddof=1) / np.sqrt(len(d))) if len(d) > 1 else np.inf
+        gain = float(np.mean(d))
+        p_cv = float(stats.t.sf(gain / se, len(d) - 1)) if se > 0 else (0.0 if gain > 0 else 1.0)
+        passed = gain > 0 and p_cv < self.alpha_cv and p_chi2 < self.alpha_chi2
+        cand = Candidate(
+            eff.family, eff.joint, n_new, error_stats(cv)["rms_mm"], gain * 1e6, p_cv, p_chi2, passed
+        )
+        return cand, (trial if passed else None)
 
 
 def _weakest_effect(
@@ -180,6 +224,7 @@ class DiagnosisReport:
     residual_map: dict | None = None
     histograms: dict = field(default_factory=dict)  # stage -> held-out error norms (mm)
     final_round: list[Candidate] = field(default_factory=list)
+    ambiguities: list[dict] = field(default_factory=list)  # effects this data could not tell apart
 
     @property
     def effects_added(self) -> list[dict]:
@@ -200,6 +245,7 @@ class DiagnosisReport:
             "conclusion": self.conclusion,
             "steps": [s.to_dict() for s in self.steps],
             "final_round_candidates": [c.to_dict() for c in self.final_round],
+            "ambiguities": self.ambiguities,
             "calibration": self.calibration,
             "residual_map": self.residual_map,
         }
@@ -267,7 +313,7 @@ def run_diagnosis(
     alpha: float = 1e-3,
     seed: int = 0,
     families: tuple[str, ...] | None = None,
-    max_effects: int = 8,
+    max_effects: int = 15,
     repeatability_mm: float = 0.0,
     tool_guess_m: np.ndarray | None = None,
 ) -> DiagnosisReport:
@@ -319,43 +365,15 @@ def _run_diagnosis(
     cv_cur = cv_residuals(current.model, free, prob, fold_idx)
 
     pending: list[dict] = []
+    ambiguities: list[dict] = []
     final_round: list[Candidate] = []
     for _ in range(max_effects):
         cands = candidate_effects(full.ctx, current.model.nominal, current.model.effects, families)
         base_fit = _fit_plain(current.model, prob, free, iters=3)
         # Screening is linear: one Gauss-Newton step from the current fit, for the current model and for
         # every candidate alike (the problem is nearly linear there); the winner is refitted in full.
-        r_base, J_base = prob.evaluate(base_fit)
-        fit0, cv0 = linear_fit_cv(_flat(J_base)[:, free], r_base, fold_idx)
-        sse0 = float(np.sum(fit0**2))
-        e0 = np.sum(cv0**2, axis=1)
-        results: list[tuple[Candidate, CalibratedModel | None]] = []
-        for eff in cands:
-            trial = base_fit.with_effect(eff)
-            r_t, J_t = prob.evaluate(trial)
-            Jt = _flat(J_t)
-            tfree = analyse(Jt, trial.param_names).keep_mask
-            n_new = int(np.sum(tfree[len(trial.param_names) - len(eff.params) :]))
-            if n_new == 0:
-                note = "inseparable from the geometry"
-                results.append(
-                    (Candidate(eff.family, eff.joint, 0, float("nan"), 0.0, 1.0, 1.0, False, note), None)
-                )
-                continue
-            fit, cv = linear_fit_cv(Jt[:, tfree], r_t, fold_idx)
-            sse = float(np.sum(fit**2))
-            dof = max(fit.size - int(tfree.sum()), 1)
-            s2 = max(sigma2, sse / dof)
-            p_chi2 = float(stats.chi2.sf((sse0 - sse) / s2, n_new)) if sse0 > sse else 1.0
-            d = e0 - np.sum(cv**2, axis=1)
-            se = float(np.std(d, ddof=1) / np.sqrt(len(d))) if len(d) > 1 else np.inf
-            gain = float(np.mean(d))
-            p_cv = float(stats.t.sf(gain / se, len(d) - 1)) if se > 0 else (0.0 if gain > 0 else 1.0)
-            passed = gain > 0 and p_cv < alpha and p_chi2 < alpha / max(len(cands), 1)
-            cand = Candidate(
-                eff.family, eff.joint, n_new, error_stats(cv)["rms_mm"], gain * 1e6, p_cv, p_chi2, passed
-            )
-            results.append((cand, trial if passed else None))
+        screen = _Screen(base_fit, prob, free, fold_idx, sigma2, alpha, len(cands))
+        results = [screen.test(eff) for eff in cands]
         winners = [(c, m) for c, m in results if c.passed]
         if not winners:
             final_round = [c for c, _ in results]
@@ -367,6 +385,24 @@ def _run_diagnosis(
                 c.name + (f" j{c.joint}" if c.joint else "") for c in close
             )
         current = calibrate(df, best_model, "ridge")
+        if close:  # did the winner take the others' gain? Then the data cannot tell them apart.
+            prob_now, folds_now = ok_problem(current)
+            after = _Screen(
+                current.model, prob_now, _free_mask(current.model, prob_now)[0], folds_now, sigma2, alpha, 1
+            )
+            for c in close:
+                eff_c = make_effect(c.name, c.joint)
+                eff_c.prepare(full.ctx, current.model.nominal)
+                left = after.test(eff_c)[0].gain_mm2
+                if left < 0.25 * c.gain_mm2:
+                    ambiguities.append(
+                        {
+                            "chosen": {"name": best.name, "joint": best.joint},
+                            "confounded_with": {"name": c.name, "joint": c.joint},
+                            "gain_before_mm2": c.gain_mm2,
+                            "gain_left_mm2": left,
+                        }
+                    )
         prob, fold_idx = ok_problem(current)
         free, rep = _free_mask(current.model, prob)
         cv_cur = cv_residuals(current.model, free, prob, fold_idx)
@@ -485,6 +521,16 @@ def _run_diagnosis(
         )
     else:
         conclusion = f"Added: {added or 'nothing'}. The residual is at the noise floor ({ratio:.2f}x)."
+    for amb in ambiguities:
+        a, b = amb["chosen"], amb["confounded_with"]
+        conclusion += (
+            f" Caution: on this data {a['name']}"
+            + (f" (joint {a['joint']})" if a["joint"] else "")
+            + f" and {b['name']}"
+            + (f" (joint {b['joint']})" if b["joint"] else "")
+            + " explain the same residual; the choice between them is not reliable (measure poses or approach"
+            " directions that separate them, e.g. a random visiting order)."
+        )
     if df_validate is not None:
         val = Problem.from_frame(final_model, df_validate)
         for label, m in stage_models:
@@ -496,6 +542,14 @@ def _run_diagnosis(
                 warnings.simplefilter("ignore")
                 corr = residual_map_obj.predict_raw(val.ctx.q, _p_base(final_model, val))
             stages.append(_stage(f"+ residual map ({map_report['winner']})", "validate", r_val - corr))
+    held = [st["rms_mm"] for st in stages if st["on"] == "heldout"]
+    valid = [st["rms_mm"] for st in stages if st["on"] == "validate"]
+    if valid and valid[-1] > 1.5 * held[-1]:
+        conclusion += (
+            f" Caution: the validation campaign's RMS ({valid[-1]:.4f} mm) is {valid[-1] / held[-1]:.1f}x the "
+            "held-out one: the training campaign does not represent it (poses, visiting order, time), so an "
+            "effect may be hidden in the training data by another one; measure a campaign in a random order."
+        )
     final_model.info["diagnosis"] = {
         "effects_added": [s.effect for s in steps],
         "noise_floor_mm": noise.floor_mm,
@@ -511,6 +565,7 @@ def _run_diagnosis(
         residual_map={**map_report, "excess_ratio": ratio, "p_excess": p_excess},
         histograms=hist,
         final_round=final_round,
+        ambiguities=ambiguities,
     )
 
 
