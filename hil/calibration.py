@@ -7,8 +7,9 @@ Two solvers over the same model and the same identifiable parameter set:
   parameter space: mu = `ridge` x the largest eigenvalue of the scaled normal matrix. IGG3 acts on each
   measured point (one SMR reading is one observation): its standardised residual is the RMS over its
   three coordinates of v_i / (s sqrt(r_i)), r_i the redundancy number 1 - a_i N^-1 a_i^T and s a robust
-  scale (1.4826 x the median absolute residual; the paper's a-posteriori sigma0 shrinks as points are
-  rejected and can make the re-weighting reject ever more points). Weights
+  scale fixed once from the converged least-squares solution (1.4826 x the median absolute residual; the
+  paper's a-posteriori sigma0 shrinks as points are rejected and can make the re-weighting reject ever
+  more points). Weights
   are recomputed from the standardised residuals at every step, so a point rejected while the model was
   still far off can come back.
 - ``lm``: scipy ``least_squares`` (trust-region, Levenberg-Marquardt-like) with a robust loss (soft L1,
@@ -142,7 +143,7 @@ def _flat(J: np.ndarray) -> np.ndarray:
     return J.reshape(-1, J.shape[-1])
 
 
-def identify(model: CalibratedModel, problem: Problem, tol: float = 1e-4) -> IdentifiabilityReport:
+def identify(model: CalibratedModel, problem: Problem, tol: float = 1e-3) -> IdentifiabilityReport:
     """Identifiability analysis of all parameters of `model` on `problem`."""
     _, J = problem.evaluate(model)
     return analyse(_flat(J), model.param_names, tol=tol)
@@ -168,7 +169,7 @@ def solve_ridge_igg3(
     model: CalibratedModel,
     problem: Problem,
     free: np.ndarray,
-    ridge: float = 1e-9,
+    ridge: float = 1e-7,
     k0: float = K0,
     k1: float = K1,
     max_iter: int = 60,
@@ -183,6 +184,7 @@ def solve_ridge_igg3(
     dev = np.zeros(int(free.sum()))  # accumulated change of the free parameters since the start
     warm = 0
     it = 0
+    sigma_robust: float | None = None
     for it in range(1, max_iter + 1):  # noqa: B007
         r, J = problem.evaluate(model)
         Jf = _flat(J)[:, free]
@@ -195,13 +197,20 @@ def solve_ridge_igg3(
         rhs = Js.T @ (w_rows * rv) - mu * prior_mask * (dev * norms)
         step_s = np.linalg.solve(M + 1e-14 * np.trace(M) / len(M) * np.eye(len(M)), rhs)
         step = step_s / norms
-        dx = np.zeros(len(names))
-        dx[free] = step
-        model = model.apply_increment(dx)
+        # Backtrack when the step does not lower the penalised weighted cost (guards weak directions).
+        cost0 = float(np.sum(w_rows * rv**2) + mu * np.sum(prior_mask * (dev * norms) ** 2))
+        for _ in range(12):
+            dx = np.zeros(len(names))
+            dx[free] = step
+            trial = model.apply_increment(dx)
+            r_new = problem.residuals(trial).reshape(-1)
+            cost = float(np.sum(w_rows * r_new**2) + mu * np.sum(prior_mask * ((dev + step) * norms) ** 2))
+            if cost <= cost0 * (1 + 1e-12):
+                break
+            step, step_s = step / 2, step_s / 2
+        model = trial
         dev += step
-        small = np.max(np.abs(step_s)) < 1e-8  # metres of effect on the data
-        # Re-weight with the residuals at the new parameters.
-        r_new = problem.residuals(model).reshape(-1)
+        small = np.max(np.abs(step_s)) < 1e-8 or cost >= cost0 * (1 - 1e-10)  # converged
         dof = max(np.count_nonzero(w_rows) - len(step), 1)
         sigma0 = float(np.sqrt(np.sum(w_rows * r_new**2) / dof))
         if not robust:
@@ -209,13 +218,15 @@ def solve_ridge_igg3(
                 break
             continue
         warm += 1
-        if warm < 3 and not small:
-            continue  # let Gauss-Newton reach the basin before judging points
+        if warm < 15 and not small and np.all(w_pts == 1):
+            continue  # plain Gauss-Newton to convergence before judging points (IGG3 is not convex)
         Minv = np.linalg.pinv(M)
         red = _redundancy(Js, w_rows, Minv)
-        # Robust scale (median absolute residual of all coordinates): a shrinking weighted sigma0 would
-        # let the re-weighting reject ever more points.
-        sigma_robust = max(1.4826 * float(np.median(np.abs(r_new))), 1e-12)
+        # Robust scale, fixed once from the least-squares solution (1.4826 x median absolute residual of
+        # all coordinates): a weighted sigma0 re-estimated each step shrinks as points are rejected and
+        # lets the re-weighting reject ever more points.
+        if sigma_robust is None:
+            sigma_robust = max(1.4826 * float(np.median(np.abs(r_new))), 1e-12)
         t_rows = r_new / (sigma_robust * np.sqrt(red))
         t_pts = np.sqrt(np.mean(t_rows.reshape(-1, 3) ** 2, axis=1))
         w_new = igg3_weight(t_pts, k0, k1)
@@ -311,9 +322,9 @@ def calibrate(
     df: pd.DataFrame,
     robot: str | KinematicModel | CalibratedModel,
     solver: str = "ridge",
-    tol: float = 1e-4,
+    tol: float = 1e-3,
     tool_guess_m: np.ndarray | None = None,
-    ridge: float = 1e-9,
+    ridge: float = 1e-7,
 ) -> CalibrationResult:
     """Full calibration of a dataset: initial registration, identifiability, robust solve.
 

@@ -55,29 +55,36 @@ def _fit_plain(model: CalibratedModel, problem: Problem, free: np.ndarray, iters
 
 
 def cv_residuals(
-    model: CalibratedModel, free: np.ndarray, problem: Problem, folds: list[np.ndarray], iters: int = 3
+    model: CalibratedModel, free: np.ndarray, problem: Problem, folds: list[np.ndarray]
 ) -> np.ndarray:
-    """Held-out residuals (N, 3): each fold predicted by the model refitted on the other folds."""
-    n = problem.measured.shape[0]
-    out = np.zeros((n, 3))
-    for test in folds:
-        train = np.setdiff1d(np.arange(n), test)
-        fitted = _fit_plain(model, problem.subset(train), free, iters=iters)
-        out[test] = problem.subset(test).residuals(fitted)
-    return out
+    """Held-out residuals (N, 3): each fold predicted by the model refitted on the other folds.
+
+    The refit is one Gauss-Newton step from `model` (fitted on all rows), the same linearisation the
+    candidate screening uses, so every stage and candidate is judged alike.
+    """
+    r, J = problem.evaluate(model)
+    return linear_fit_cv(_flat(J)[:, free], r, folds)[1]
 
 
 def _flat(J: np.ndarray) -> np.ndarray:
     return J.reshape(-1, J.shape[-1])
 
 
-def linear_fit_cv(J: np.ndarray, r: np.ndarray, folds: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """Linearised least squares r ~ J dx: full-fit residuals and k-fold held-out residuals, both (N, 3)."""
-    Js, _ = scale_columns(J)  # unit columns, identifiable set: the normal equations are well conditioned
+def linear_fit_cv(
+    J: np.ndarray, r: np.ndarray, folds: list[np.ndarray], step: list | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Linearised least squares r ~ J dx: full-fit residuals and k-fold held-out residuals, both (N, 3).
+
+    If `step` is a list, the full-fit increment dx (in J's columns) is appended to it.
+    """
+    Js, norms = scale_columns(J)  # unit columns, identifiable set: the normal equations are well conditioned
     rv = r.reshape(-1)
     N = Js.T @ Js
     g = Js.T @ rv
-    fit = (rv - Js @ np.linalg.solve(N, g)).reshape(-1, 3)
+    dx_s = np.linalg.solve(N, g)
+    if step is not None:
+        step.append(dx_s / norms)
+    fit = (rv - Js @ dx_s).reshape(-1, 3)
     n = r.shape[0]
     cv = np.zeros((n, 3))
     for test in folds:
@@ -117,7 +124,8 @@ class _Screen:
         if n_new == 0:
             note = "inseparable from the geometry"
             return Candidate(eff.family, eff.joint, 0, float("nan"), 0.0, 1.0, 1.0, False, note), None
-        fit, cv = linear_fit_cv(Jt[:, tfree], r_t, self.folds)
+        step: list = []
+        fit, cv = linear_fit_cv(Jt[:, tfree], r_t, self.folds, step)
         sse = float(np.sum(fit**2))
         s2 = max(self.sigma2, sse / max(fit.size - int(tfree.sum()), 1))
         p_chi2 = float(stats.chi2.sf((self.sse0 - sse) / s2, n_new)) if self.sse0 > sse else 1.0
@@ -129,7 +137,11 @@ class _Screen:
         cand = Candidate(
             eff.family, eff.joint, n_new, error_stats(cv)["rms_mm"], gain * 1e6, p_cv, p_chi2, passed
         )
-        return cand, (trial if passed else None)
+        if not passed:
+            return cand, None
+        dx = np.zeros(len(trial.param_names))
+        dx[tfree] = step[0]
+        return cand, trial.apply_increment(dx)  # start the full refit from the linear solution
 
 
 def _weakest_effect(

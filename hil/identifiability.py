@@ -2,7 +2,8 @@
 
 Columns are scaled to unit norm (so metres and radians compare), then taken in a priority order
 (base and tool first, then the kinematic parameters joint by joint, then effects) and kept only when
-their component orthogonal to the columns already kept is larger than `tol` (a QR factorisation with
+their component orthogonal to the columns already kept is larger than `tol` (default 1e-3: a parameter
+whose distinct part is smaller is fixed rather than fitted to noise; a QR factorisation with
 a prescribed pivot order). A dropped column is a near-combination of kept ones: it is fixed at its
 current value and its effect is merged into those parameters, which the report names.
 """
@@ -21,7 +22,7 @@ class IdentifiabilityReport:
     dropped: list[dict] = field(default_factory=list)  # {name, reason, merged_into: [[name, coef], ...]}
     condition_before: float = float("nan")
     condition_after: float = float("nan")
-    tol: float = 1e-4
+    tol: float = 1e-3
 
     @property
     def keep_mask(self) -> np.ndarray:
@@ -75,7 +76,7 @@ def scale_columns(J: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def analyse(
-    J: np.ndarray, names: list[str], tol: float = 1e-4, candidates: np.ndarray | None = None
+    J: np.ndarray, names: list[str], tol: float = 1e-3, candidates: np.ndarray | None = None
 ) -> IdentifiabilityReport:
     """Identifiability of the columns of J (M, P) named `names`; `candidates` masks columns to consider."""
     cand = np.ones(len(names), bool) if candidates is None else np.asarray(candidates, bool)
