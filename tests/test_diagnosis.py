@@ -109,3 +109,15 @@ def test_model_code_never_imports_the_simulator():
     code = "import sys, hil.diagnosis, hil.calibration, hil.effects; print('fakes' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
+
+
+def test_gross_outlier_in_a_campaign_is_flagged_and_changes_nothing():
+    _, train, val = cell_datasets(seed=2)
+    clean = run_diagnosis(train, "ur10")
+    bad = train.copy()
+    bad.loc[40, "z_mm"] += 3.0  # a 3 mm blunder: the SMR was bumped in its nest
+    report = run_diagnosis(bad, "ur10", df_validate=val)
+    assert 40 in report.model.info["outlier_rows"]
+    assert report.effects_added == clean.effects_added
+    shift = np.linalg.norm(report.model.predict(val) - clean.model.predict(val), axis=1)
+    assert shift.max() < 5e-6
