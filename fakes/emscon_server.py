@@ -76,6 +76,8 @@ class _Faults:
     slow_delay_s: float = 0.0
     drop_next_command: bool = False
     garbage_bytes: int = 0
+    outlier_count: int = 0  # the next N results are offset by outlier_offset_m along x (air turbulence)
+    outlier_offset_m: float = 0.0
     framing: str = "normal"  # "normal" | "bytewise" | "merged"
 
     def as_dict(self) -> dict:
@@ -697,6 +699,9 @@ class EmsconServer:
     def _result_packet(self) -> bytes:
         st = self.state
         p_m = np.asarray(self.cell.measure_smr(st.locked_smr), dtype=float)
+        if self.faults.outlier_count > 0:
+            self.faults.outlier_count -= 1
+            p_m = p_m + np.array([self.faults.outlier_offset_m, 0.0, 0.0])
         sigma_m = float(self.cell.tracker_sigma_m(float(np.linalg.norm(p_m))))
         values = codec.cartesian_to_wire(p_m, st.cs, st.units)
         std = codec.cartesian_std_to_wire(np.full(3, sigma_m), p_m, st.cs, st.units)
@@ -716,7 +721,7 @@ class EmsconServer:
 
     def _ctl_fault(self, request: dict) -> dict:
         """Inject a fault: kind = beam_break (count), no_target, slow (delay_s), drop (when: next|now),
-        garbage (n_bytes), framing (mode: normal|bytewise|merged), clear."""
+        garbage (n_bytes), outlier (count, offset_m), framing (mode: normal|bytewise|merged), clear."""
         kind = request.get("kind")
         f = self.faults
         if kind == "beam_break":
@@ -738,6 +743,9 @@ class EmsconServer:
                 f.drop_next_command = True
         elif kind == "garbage":
             f.garbage_bytes = max(4, int(request.get("n_bytes", 32)))
+        elif kind == "outlier":
+            f.outlier_count = int(request.get("count", 1))
+            f.outlier_offset_m = float(request.get("offset_m", 1e-3))
         elif kind == "framing":
             mode = request.get("mode", "normal")
             if mode not in ("normal", "bytewise", "merged"):
@@ -747,7 +755,7 @@ class EmsconServer:
             return self._ctl_clear(request)
         else:
             raise ValueError(
-                f"unknown tracker fault {kind!r}; use beam_break, no_target, slow, drop, garbage, framing, clear"
+                f"unknown tracker fault {kind!r}; use beam_break, no_target, slow, drop, garbage, outlier, framing, clear"
             )
         return {"ok": True, "faults": f.as_dict()}
 
