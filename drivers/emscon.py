@@ -370,6 +370,12 @@ class EmsconTracker:
         timestamp = time.time()
         cs = cfg.coordinate_system
         values = np.array([p.values for p in packets])
+        for p in packets:
+            if not np.all(
+                np.isfinite([*p.values, *p.std, p.std_total, p.temperature, p.pressure, p.humidity])
+            ):
+                self._needs_resync = True
+                raise TrackerProtocolError("measurement result with non-finite values", p.raw)
         shots_m = codec.wire_to_cartesian(values, cs, self.units)
         std_m = codec.spherical_std_to_cartesian_m(np.array([p.std for p in packets]), values, cs, self.units)
         std_total_m = self.units.length_from_wire(np.array([p.std_total for p in packets]))

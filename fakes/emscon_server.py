@@ -76,12 +76,14 @@ class _Faults:
     slow_delay_s: float = 0.0
     drop_next_command: bool = False
     garbage_bytes: int = 0
+    inject: bytes | None = None  # sent instead of everything the next command would have produced
     outlier_count: int = 0  # the next N results are offset by outlier_offset_m along x (air turbulence)
     outlier_offset_m: float = 0.0
     framing: str = "normal"  # "normal" | "bytewise" | "merged"
 
     def as_dict(self) -> dict:
-        return dict(self.__dict__)
+        """JSON-able view (bytes as hex)."""
+        return {k: v.hex() if isinstance(v, bytes) else v for k, v in self.__dict__.items()}
 
 
 @dataclass
@@ -182,6 +184,10 @@ class _Session:
                 return
             if faults.slow_delay_s > 0:
                 await asyncio.sleep(faults.slow_delay_s)
+            if faults.inject is not None:
+                data, faults.inject = faults.inject, None
+                self.send(data)
+                return
             if faults.garbage_bytes > 0:
                 n, faults.garbage_bytes = faults.garbage_bytes, 0
                 garbage = b"\xff\xff\xff\x7f" + os.urandom(max(0, n - 4))  # size field 2 GiB: a desync
@@ -721,7 +727,7 @@ class EmsconServer:
 
     def _ctl_fault(self, request: dict) -> dict:
         """Inject a fault: kind = beam_break (count), no_target, slow (delay_s), drop (when: next|now),
-        garbage (n_bytes), outlier (count, offset_m), framing (mode: normal|bytewise|merged), clear."""
+        garbage (n_bytes), inject (hex: raw bytes replacing the next answer), outlier (count, offset_m), framing (mode: normal|bytewise|merged), clear."""
         kind = request.get("kind")
         f = self.faults
         if kind == "beam_break":
@@ -743,6 +749,8 @@ class EmsconServer:
                 f.drop_next_command = True
         elif kind == "garbage":
             f.garbage_bytes = max(4, int(request.get("n_bytes", 32)))
+        elif kind == "inject":
+            f.inject = bytes.fromhex(request["hex"])
         elif kind == "outlier":
             f.outlier_count = int(request.get("count", 1))
             f.outlier_offset_m = float(request.get("offset_m", 1e-3))
@@ -755,7 +763,7 @@ class EmsconServer:
             return self._ctl_clear(request)
         else:
             raise ValueError(
-                f"unknown tracker fault {kind!r}; use beam_break, no_target, slow, drop, garbage, outlier, framing, clear"
+                f"unknown tracker fault {kind!r}; use beam_break, no_target, slow, drop, garbage, inject, outlier, framing, clear"
             )
         return {"ok": True, "faults": f.as_dict()}
 
