@@ -12,8 +12,11 @@ ExitApplication (which stops the emScon server) is never sent.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
+import functools
 import logging
 import math
+import threading
 import time
 from collections import deque
 from dataclasses import dataclass
@@ -47,6 +50,17 @@ def _command_name(command: int) -> str:
         return Command(command).name
     except ValueError:
         return f"command {command}"
+
+
+def _serialised(method):
+    """Run a public method under the driver's lock: one command in flight, even with several threads."""
+
+    @functools.wraps(method)
+    def wrapper(self, *args, **kwargs):
+        with self._lock:
+            return method(self, *args, **kwargs)
+
+    return wrapper
 
 
 def status_error(command: int, status: int, context: str = "") -> TrackerError:
@@ -90,17 +104,17 @@ class EmsconTracker:
     """Leica emScon tracker driver implementing drivers.tracker.Tracker."""
 
     def __init__(self, config: EmsconConfig | None = None, **overrides):
-        config = config or EmsconConfig()
-        for key, value in overrides.items():
-            if not hasattr(config, key):
-                raise TypeError(f"unknown EmsconConfig option {key!r}")
-            setattr(config, key, value)
+        unknown = set(overrides) - {f.name for f in dataclasses.fields(EmsconConfig)}
+        if unknown:
+            raise TypeError(f"unknown EmsconConfig option(s) {sorted(unknown)}")
+        config = dataclasses.replace(config or EmsconConfig(), **overrides)
         if config.meas_time_s <= 0 or config.meas_time_s > 3600:
             raise ValueError(f"meas_time_s must be in (0, 3600] s, got {config.meas_time_s}")
         if config.coordinate_system not in codec.SUPPORTED_SYSTEMS:
             raise ValueError(f"coordinate_system must be RHR, SCC or SCW, got {config.coordinate_system!r}")
         self.config = config
         self.units = codec.Units(length=config.length_unit, angle=config.angle_unit)
+        self._lock = threading.RLock()
         self._port: serial.SerialBase | None = None
         self._splitter = codec.FrameSplitter()
         self._needs_resync = False
@@ -114,6 +128,7 @@ class EmsconTracker:
         self._last_distance_m: float | None = None
 
     # ---- lifecycle ---------------------------------------------------------------------------------------
+    @_serialised
     def connect(self) -> EmsconTracker:
         """Open the byte stream and run the connect-time setup (idempotent)."""
         self._ensure_ready()
@@ -125,6 +140,7 @@ class EmsconTracker:
     def __exit__(self, *exc) -> None:
         self.close()
 
+    @_serialised
     def close(self) -> None:
         """Close the byte stream (never sends ExitApplication)."""
         if self._port is not None:
@@ -316,6 +332,7 @@ class EmsconTracker:
         answers: list[codec.AnswerPacket] = []
         expected = 1
         measurement = None
+        refused = False
         try:
             while True:
                 packet = self._read_packet(deadline, what)
@@ -328,6 +345,7 @@ class EmsconTracker:
                         self._write(data)
                         continue
                     if packet.status != Status.ALL_OK:
+                        refused = True  # a refused command owes nothing more
                         raise status_error(command, packet.status)
                     answers.append(packet)
                     if command == Command.GET_REFLECTORS:
@@ -348,7 +366,7 @@ class EmsconTracker:
                 if len(answers) >= expected and (not result or measurement is not None):
                     return (answers, measurement) if result else answers
         except TrackerError:
-            if len(answers) < expected or (result and measurement is None):
+            if not refused and (len(answers) < expected or (result and measurement is None)):
                 self._needs_resync = True  # whatever is still owed may arrive later: resync first
             raise
 
@@ -358,6 +376,7 @@ class EmsconTracker:
         return self._exchange(command, *params, **kwargs)
 
     # ---- Tracker API -------------------------------------------------------------------------------------
+    @_serialised
     def measure(self, shots: int = 1) -> TrackerMeasurement:
         """`shots` stationary measurements of the locked SMR, averaged after rejecting outliers."""
         if not isinstance(shots, int) or shots < 1:
@@ -415,6 +434,7 @@ class EmsconTracker:
         )
         return distance <= limit
 
+    @_serialised
     def point_at(self, p_tracker_m) -> None:
         """GoPosition to a tracker-frame point (m); raises NoTargetError if no SMR is locked there."""
         p = np.asarray(p_tracker_m, dtype=float)
@@ -427,6 +447,7 @@ class EmsconTracker:
             raise NoTargetError(f"no reflector locked after aiming at {p.tolist()} m")
         self._last_distance_m = float(np.linalg.norm(p))
 
+    @_serialised
     def find_target(self, approx_distance_m: float | None = None) -> None:
         """FindReflector around the current direction at about `approx_distance_m` (default: last distance)."""
         distance = approx_distance_m or self._last_distance_m
@@ -441,6 +462,7 @@ class EmsconTracker:
         if not self.meas_ready:
             raise NoTargetError(f"no reflector found at about {distance:.3f} m")
 
+    @_serialised
     def state(self) -> TrackerState:
         """Ask the tracker for its state (connects if needed)."""
         try:
@@ -466,11 +488,13 @@ class EmsconTracker:
             },
         )
 
+    @_serialised
     def environment(self) -> tuple[float, float, float]:
         """(temperature_c, pressure_hpa, humidity_pct) the tracker currently uses."""
         t, p, h = self._call(Command.GET_ENVIRONMENT_PARAMS)[0].values
         return self.units.temperature_from_wire(t), self.units.pressure_from_wire(p), h
 
+    @_serialised
     def set_environment(self, temperature_c: float, pressure_hpa: float, humidity_pct: float) -> None:
         """Manual meteo input (trackers without a weather monitor); MeteoOutOfRangeError when implausible."""
         self._call(
@@ -480,6 +504,7 @@ class EmsconTracker:
             float(humidity_pct),
         )
 
+    @_serialised
     def initialize(self) -> None:
         """Run the tracker's initialization (the head moves; can take tens of seconds)."""
         self._call(Command.INITIALIZE, timeout=self.config.initialize_timeout_s)

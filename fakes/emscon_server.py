@@ -54,8 +54,12 @@ class EmsconServerConfig:
     max_tracking_speed_m_s: float = 4.0
     capture_m: float = 0.005  # jump the tracker still follows with no time passing
     track_poll_s: float = 0.02
-    advance_clock: bool = True  # cell.advance_time(measurement time) per measurement
-    wall_time_scale: float = 1.0  # wall seconds per simulated measurement second
+    # True: the fake owns the clock, waits wall_time_scale x the measurement time and then calls
+    # cell.advance_time(measurement time). False (inside `hil sim`, whose clock task moves the cell on):
+    # wait until the cell clock has advanced by the measurement time.
+    advance_clock: bool = True
+    wall_time_scale: float = 1.0  # wall seconds per simulated measurement second (own clock only)
+    external_clock_poll_s: float = 0.002
     initial_lock_smr: int | None = None
     reflectors: tuple[Reflector, ...] = (
         Reflector(1, "RRR 1.5in", 5),
@@ -678,7 +682,7 @@ class EmsconServer:
         try:
             if self.faults.beam_break_count > 0:
                 self.faults.beam_break_count -= 1
-                await asyncio.sleep(meas_s * self.config.wall_time_scale / 2)
+                await self._pass_time(meas_s / 2)
                 st.last_result_status = self.config.no_target_status
                 session.send(codec.pack_error(Command.START_MEASUREMENT, self.config.no_target_status))
                 self.broadcast(codec.pack_status_change(StatusChange.MEAS_STATUS_NOT_READY))
@@ -688,9 +692,7 @@ class EmsconServer:
                         codec.pack_status_change(StatusChange.MEAS_STATUS_READY),
                     )
                 return None
-            await asyncio.sleep(meas_s * self.config.wall_time_scale)
-            if self.config.advance_clock:
-                self.cell.advance_time(meas_s)
+            await self._pass_time(meas_s)
             self._track()
         finally:
             st.measuring -= 1
@@ -701,6 +703,16 @@ class EmsconServer:
         session.send(self._result_packet(), codec.pack_status_change(StatusChange.MEAS_STATUS_READY))
         st.last_result_status = 0
         return None
+
+    async def _pass_time(self, dt_s: float) -> None:
+        """Let dt_s of simulated time pass: advance the cell clock ourselves, or wait for its owner."""
+        if self.config.advance_clock:
+            await asyncio.sleep(dt_s * self.config.wall_time_scale)
+            self.cell.advance_time(dt_s)
+            return
+        target = self.cell.time_s + dt_s
+        while self.cell.time_s < target:
+            await asyncio.sleep(self.config.external_clock_poll_s)
 
     def _result_packet(self) -> bytes:
         st = self.state

@@ -1,5 +1,6 @@
 """Driver <-> fake emScon tracker over TCP and over a pseudo-terminal, on the simulated cell."""
 
+import asyncio
 import time
 
 import numpy as np
@@ -290,3 +291,27 @@ def test_two_clients_share_the_server_state(server_thread, cell):
         a.point_at(cell.smr_center_tracker(SMR))
         assert b.measure().p_tracker_m == pytest.approx(cell.smr_center_tracker(SMR), abs=1e-3)
         assert a.state().target_locked
+
+
+def test_external_clock_as_inside_hil_sim(cell):
+    """With advance_clock=False the fake waits for the clock's owner (hil sim's clock task) instead."""
+    server = EmsconServer(cell, config=EmsconServerConfig(initialized=True, advance_clock=False))
+    thread = ServerThread(server)
+    with thread:
+
+        async def clock(stop):  # 10x faster than wall time, ticking every 2 ms
+            while not stop.is_set():
+                await asyncio.sleep(0.002)
+                cell.advance_time(0.02)
+
+        stop = asyncio.Event()
+        thread.loop.call_soon_threadsafe(lambda: thread.loop.create_task(clock(stop)))
+        with _tracker(server.url, meas_time_s=0.2, reflector="RRR 0.5in") as tracker:
+            assert tracker.state().reflector_id == 2 and server.state.reflector_id == 2
+            tracker.point_at(cell.smr_center_tracker(SMR))
+            t0_sim, t0_wall = cell.time_s, time.monotonic()
+            tracker.measure(shots=3)
+            sim_s, wall_s = cell.time_s - t0_sim, time.monotonic() - t0_wall
+        thread.loop.call_soon_threadsafe(stop.set)
+    assert sim_s >= 3 * 0.2
+    assert wall_s < 3 * 0.2  # simulated time ran faster than the wall clock
