@@ -232,6 +232,9 @@ class EmsconTracker:
     def _read_packet(self, deadline: float, what: str) -> codec.ServerPacket:
         """The next whole packet from the stream, or TrackerTimeoutError at `deadline`."""
         while True:
+            if time.monotonic() >= deadline:  # checked first: a flood of events cannot outlast the timeout
+                self._needs_resync = True
+                raise TrackerTimeoutError(f"no {what} within the timeout")
             try:
                 packet = self._splitter.pop()
             except codec.CodecError as exc:
@@ -242,9 +245,6 @@ class EmsconTracker:
                 ) from exc
             if packet is not None:
                 return self._decode(packet, what)
-            if time.monotonic() >= deadline:
-                self._needs_resync = True
-                raise TrackerTimeoutError(f"no {what} within the timeout")
             try:
                 data = self._port.read(self._splitter.bytes_needed())
             except (OSError, serial.SerialException) as exc:

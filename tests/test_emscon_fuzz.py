@@ -10,7 +10,13 @@ from hypothesis import strategies as st
 
 from drivers import emscon_codec as codec
 from drivers.emscon import EmsconTracker
-from drivers.tracker import TrackerConnectionError, TrackerError, TrackerMeasurement
+from drivers.tracker import (
+    TrackerConnectionError,
+    TrackerError,
+    TrackerMeasurement,
+    TrackerProtocolError,
+    TrackerTimeoutError,
+)
 from fakes.cell import CellConfig, SimulatedCell
 from fakes.emscon_server import EmsconServer, EmsconServerConfig, ServerThread
 
@@ -69,8 +75,10 @@ def test_driver_survives_any_server_bytes(fuzz_server, data):
     server.faults.inject = data  # replaces everything the next command would have sent
     tracker.config.measurement_margin_s = MARGIN_S
     start = time.monotonic()
+    succeeded = False
     try:
         result = tracker.measure()
+        succeeded = True
     except TrackerConnectionError:
         raise  # bytes alone must never cost the connection
     except TrackerError:
@@ -81,5 +89,11 @@ def test_driver_survives_any_server_bytes(fuzz_server, data):
     assert time.monotonic() - start < tracker.config.meas_time_s + MARGIN_S + SLACK_S
     server.faults.inject = None
     tracker.config.measurement_margin_s = 2.0
-    m = tracker.measure()  # the same connection recovers: resync, then a good measurement
+    try:
+        m = tracker.measure()  # the same connection recovers: resync, then a good measurement
+    except (TrackerProtocolError, TrackerTimeoutError):
+        # only when the call above succeeded with trailing garbage still unread: it is found now, and the
+        # call after that succeeds
+        assert succeeded
+        m = tracker.measure()
     assert np.all(np.isfinite(m.p_tracker_m))
