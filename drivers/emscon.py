@@ -120,6 +120,7 @@ class EmsconTracker:
         self._needs_resync = False
         self._ready = False  # connect-time setup done on the current port
         self.reflectors: dict[int, str] = {}
+        self.tracker_info: dict = {}
         self.reflector_id: int | None = None
         self.initialized = False
         self.meas_ready: bool | None = None  # from MeasStatus SSC 25/26/27
@@ -177,6 +178,7 @@ class EmsconTracker:
         self._exchange(Command.SET_UNITS, *self.units.as_tuple())
         status = self._exchange(Command.GET_SYSTEM_STATUS)[0].values
         self.initialized = status[1] == codec.TrackerProcessorStatus.INITIALIZED
+        self.tracker_info = self._read_tracker_info()
         if not self.initialized and cfg.auto_initialize:
             log.info("tracker not initialized: sending Initialize (the head moves)")
             self._exchange(Command.INITIALIZE, timeout=cfg.initialize_timeout_s)
@@ -201,6 +203,23 @@ class EmsconTracker:
             self._exchange(Command.SET_REFLECTOR, rid)
         self.reflector_id = self._exchange(Command.GET_REFLECTOR)[0].values[0]
         self._refresh_lock_state()
+
+    def _read_tracker_info(self) -> dict:
+        """Type, name, serial number and range of the tracker ({} if the server does not know the command)."""
+        try:
+            v = self._exchange(Command.GET_TRACKER_INFO)[0].values
+        except TrackerCommandError as exc:
+            log.info("GetTrackerInfo not available: %s", exc)
+            return {}
+        return {
+            "tracker_type": v[0],
+            "name": codec.decode_name(v[1]),
+            "serial_number": v[2],
+            "has_adm": bool(v[4]),
+            "max_distance_m": float(self.units.length_from_wire(v[8])),
+            "min_distance_m": float(self.units.length_from_wire(v[9])),
+            "faces": v[11],
+        }
 
     def _reflector_id(self, wanted: str | int) -> int:
         if isinstance(wanted, int):
@@ -485,6 +504,7 @@ class EmsconTracker:
                 "weather_monitor_status": status[7],
                 "serial_number": status[9],
                 "reflectors": dict(self.reflectors),
+                "tracker_info": dict(self.tracker_info),
             },
         )
 

@@ -47,11 +47,20 @@ class Command(IntEnum):
     EXIT_APPLICATION = 0  # stops the emScon server: never sent by the driver
     GET_SYSTEM_STATUS = 1
     GET_TRACKER_STATUS = 2
+    SET_TEMPERATURE_RANGE = 3
+    GET_TEMPERATURE_RANGE = 4
     SET_UNITS = 5
     GET_UNITS = 6
     INITIALIZE = 7
+    SWITCH_LASER = 11
+    SET_STATION_ORIENTATION_PARAMS = 12
+    GET_STATION_ORIENTATION_PARAMS = 13
+    SET_TRANSFORMATION_PARAMS = 14
+    GET_TRANSFORMATION_PARAMS = 15
     SET_ENVIRONMENT_PARAMS = 20
     GET_ENVIRONMENT_PARAMS = 21
+    SET_REFRACTION_PARAMS = 22
+    GET_REFRACTION_PARAMS = 23
     SET_MEASUREMENT_MODE = 24
     GET_MEASUREMENT_MODE = 25
     SET_COORDINATE_SYSTEM_TYPE = 26
@@ -67,6 +76,8 @@ class Command(IntEnum):
     GET_SYSTEM_SETTINGS = 48
     START_MEASUREMENT = 49
     STOP_MEASUREMENT = 52
+    CHANGE_FACE = 53
+    GO_BIRD_BATH = 54
     GO_POSITION = 55
     GO_POSITION_HVD = 56
     POINT_LASER = 58
@@ -76,7 +87,19 @@ class Command(IntEnum):
     GET_DIRECTION = 66
     SET_STATISTIC_MODE = 80
     GET_STATISTIC_MODE = 81
+    GET_TP_INFO = 90
+    GO_BIRD_BATH2 = 95
+    GET_FACE = 98
+    SET_LONG_SYSTEM_PARAMETER = 120
+    GET_LONG_SYSTEM_PARAMETER = 121
     GET_MEASUREMENT_STATUS_INFO = 122
+    GET_CURRENT_PRISM_POSITION = 124
+    SET_DOUBLE_SYSTEM_PARAMETER = 125
+    GET_DOUBLE_SYSTEM_PARAMETER = 126
+    GET_OBJECT_TEMPERATURE = 127
+    CLEAR_COMMAND_QUEUE = 130
+    GET_TRACKER_INFO = 132
+    GET_SYSTEM_SOFTWARE_VERSION = 142
 
 
 class Status(IntEnum):
@@ -118,17 +141,23 @@ class StatusChange(IntEnum):
     DISTANCE_SET = 0
     LASER_WARMED_UP = 1
     ENVIRONMENT_PARAMS_CHANGED = 2
+    REFRACTION_PARAMS_CHANGED = 3
     SEARCH_PARAMS_CHANGED = 4
     UNITS_CHANGED = 6
     REFLECTOR_CHANGED = 7
     SYSTEM_SETTINGS_CHANGED = 8
+    TEMPERATURE_RANGE_CHANGED = 9
     COORDINATE_SYSTEM_TYPE_CHANGED = 12
+    STATION_ORIENTATION_PARAMS_CHANGED = 15
+    TRANSFORMATION_PARAMS_CHANGED = 16
     MEASUREMENT_MODE_CHANGED = 17
     STATIONARY_MODE_PARAMS_CHANGED = 18
     STATISTIC_MODE_CHANGED = 24
     MEAS_STATUS_NOT_READY = 25
     MEAS_STATUS_BUSY = 26
     MEAS_STATUS_READY = 27
+    IS_FACE1 = 30
+    IS_FACE2 = 31
     INITIALIZATION_STATUS_CHANGED = 151
     TP_CONNECTION_CLOSING = 997
     SERVER_CLOSING = 998
@@ -155,6 +184,11 @@ class TrackerStatus(IntEnum):
     NOT_READY = 0
     BUSY = 1
     READY = 2
+
+
+class LaserStatus(IntEnum):
+    LASER_READY = 3
+    LASER_OFF = 5
 
 
 class TrackerProcessorStatus(IntEnum):
@@ -208,6 +242,8 @@ class HumidityUnit(IntEnum):
     RH = 0
 
 
+LTS_AT901_LR = 15  # ES_LTSensorType of the fake (AT901 long range)
+SP_TCP_COMMAND_QUEUE_SIZE = 200  # ES_SystemParameter: 0 = queue off (the default)
 MSI_REFLECTOR_FOUND = 2048  # ES_MSI bits of GetMeasurementStatusInfo
 MSI_INITIALIZED = 65536
 MSI_TRACKER_FOUND = 1
@@ -358,6 +394,17 @@ def cartesian_std_to_wire(
 # Parameters after the 12-byte command head (CT) and values after the 16-byte answer head (RT).
 _EMPTY = struct.Struct("<")
 COMMAND_PARAMS: dict[Command, struct.Struct] = {
+    Command.SET_TEMPERATURE_RANGE: struct.Struct("<i"),
+    Command.SWITCH_LASER: struct.Struct("<i"),
+    Command.SET_STATION_ORIENTATION_PARAMS: struct.Struct("<6d"),
+    Command.SET_TRANSFORMATION_PARAMS: struct.Struct("<7d"),
+    Command.SET_REFRACTION_PARAMS: struct.Struct("<2d"),
+    Command.GO_BIRD_BATH2: struct.Struct("<i"),
+    Command.SET_LONG_SYSTEM_PARAMETER: struct.Struct("<2i"),
+    Command.GET_LONG_SYSTEM_PARAMETER: struct.Struct("<i"),
+    Command.SET_DOUBLE_SYSTEM_PARAMETER: struct.Struct("<id"),
+    Command.GET_DOUBLE_SYSTEM_PARAMETER: struct.Struct("<i"),
+    Command.CLEAR_COMMAND_QUEUE: struct.Struct("<i"),
     Command.SET_UNITS: struct.Struct("<5i"),
     Command.SET_ENVIRONMENT_PARAMS: struct.Struct("<3d"),
     Command.SET_MEASUREMENT_MODE: struct.Struct("<i"),
@@ -374,6 +421,20 @@ COMMAND_PARAMS: dict[Command, struct.Struct] = {
     Command.SET_STATISTIC_MODE: struct.Struct("<2i"),
 }
 ANSWER_VALUES: dict[Command, struct.Struct] = {
+    Command.GET_TEMPERATURE_RANGE: struct.Struct("<i"),
+    Command.GET_STATION_ORIENTATION_PARAMS: struct.Struct("<6d"),
+    Command.GET_TRANSFORMATION_PARAMS: struct.Struct("<7d"),
+    Command.GET_REFRACTION_PARAMS: struct.Struct("<2d"),
+    Command.GET_TP_INFO: struct.Struct("<10i"),
+    Command.GET_FACE: struct.Struct("<i"),
+    Command.GET_LONG_SYSTEM_PARAMETER: struct.Struct("<2i"),
+    Command.GET_CURRENT_PRISM_POSITION: struct.Struct("<3d"),
+    Command.GET_DOUBLE_SYSTEM_PARAMETER: struct.Struct("<id"),
+    Command.GET_OBJECT_TEMPERATURE: struct.Struct("<d"),
+    # type, name, serial, compensation id, has ADM/overview camera/nivel, nivel mount offset, max/min
+    # distance, max data rate, faces, Hz/V angle range, accuracy model, LCP firmware major/minor
+    Command.GET_TRACKER_INFO: struct.Struct("<i64s5i3d2i2d3i"),
+    Command.GET_SYSTEM_SOFTWARE_VERSION: struct.Struct("<64s"),
     Command.GET_SYSTEM_STATUS: struct.Struct("<10i"),
     Command.GET_TRACKER_STATUS: struct.Struct("<i"),
     Command.GET_UNITS: struct.Struct("<5i"),

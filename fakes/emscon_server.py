@@ -19,6 +19,7 @@ import os
 import socket
 import threading
 import tty
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -66,6 +67,10 @@ class EmsconServerConfig:
         Reflector(2, "RRR 0.5in", 6),
         Reflector(3, "CatsEye", 2),
     )
+    birdbath_point_m: tuple[float, float, float] = (0.15, 0.0, -0.2)  # home nest on the tracker stand
+    tracker_name: str = "AT901-LR"
+    max_distance_m: float = 80.0
+    min_distance_m: float = 0.0
     serial_number: int = 390123
     version: tuple[int, int, int] = (3, 8, 712)
     temperature_range_c: tuple[float, float] = (-20.0, 60.0)
@@ -116,6 +121,15 @@ class _TrackerState:
     last_result_status: int = 0
     measuring: int = 0
     exit_requests: int = 0
+    laser_on: bool = True
+    face: int = 1
+    temperature_range: int = 3  # ES_TR_Automatic
+    station_orientation: tuple = (0.0,) * 6
+    transformation: tuple = (0.0,) * 6 + (1.0,)
+    refraction: tuple[float, float] = (1.000271, 1.000271)
+    long_params: dict = field(default_factory=lambda: {codec.SP_TCP_COMMAND_QUEUE_SIZE: 0})
+    double_params: dict = field(default_factory=dict)
+    command_counts: Counter = field(default_factory=Counter)  # per command name, for tests and tracker.state
 
 
 class _Session:
@@ -411,13 +425,15 @@ class EmsconServer:
         return best
 
     def _ready(self) -> bool:
-        return self.state.locked_smr is not None and not self.faults.no_target
+        st = self.state
+        return st.locked_smr is not None and st.laser_on and not self.faults.no_target
 
     def _acquire(self, p_aim_m: np.ndarray) -> bool:
         """Aim at a point and lock the SMR found there; announces the new state to every client."""
         st = self.state
         st.direction = p_aim_m / max(float(np.linalg.norm(p_aim_m)), 1e-9)
-        found = None if self.faults.no_target else self._search(p_aim_m, st.search_radius_m)
+        blind = self.faults.no_target or not st.laser_on
+        found = None if blind else self._search(p_aim_m, st.search_radius_m)
         if found is None:
             if st.locked_smr is not None:
                 st.locked_smr = None
@@ -452,6 +468,7 @@ class EmsconServer:
         except ValueError:
             session.send(codec.pack_answer(command, Status.NOT_IMPLEMENTED))
             return
+        self.state.command_counts[known.name] += 1
         try:
             cmd = codec.decode_client_packet(packet)
         except codec.CodecError:
@@ -480,7 +497,8 @@ class EmsconServer:
             if st.initialized
             else codec.TrackerProcessorStatus.COMPENSATION_SET
         )
-        return (0, st.last_result_status, tps, 3, 2, *cfg.version, st.settings[0], 0, cfg.serial_number)
+        laser = codec.LaserStatus.LASER_READY if st.laser_on else codec.LaserStatus.LASER_OFF
+        return (0, st.last_result_status, tps, laser, 2, *cfg.version, st.settings[0], 0, cfg.serial_number)
 
     def _cmd_get_tracker_status(self, session):
         if self.state.measuring:
@@ -728,6 +746,110 @@ class EmsconServer:
             0, values, std, std_total, std, std_total, self._meteo_wire(), extended=bool(st.statistic_mode[0])
         )
 
+    # ---- the rest of the fact sheet's command subset ------------------------------------------------------
+    def _cmd_set_temperature_range(self, session, value):
+        if value not in (0, 1, 2, 3):
+            return (Status.WRONG_PARAMETER1,)
+        self.state.temperature_range = value
+        self._changed(session, StatusChange.TEMPERATURE_RANGE_CHANGED, Command.SET_TEMPERATURE_RANGE)
+
+    def _cmd_get_temperature_range(self, session):
+        return (0, self.state.temperature_range)
+
+    def _cmd_switch_laser(self, session, on):
+        self.state.laser_on = bool(on)
+        if not on:
+            self._lose_lock()
+        return (0,)
+
+    def _cmd_set_station_orientation_params(self, session, *values):
+        if any(values):  # the fake reports raw tracker-frame results only
+            return (Status.NOT_IMPLEMENTED,)
+        self.state.station_orientation = values
+        self._changed(
+            session, StatusChange.STATION_ORIENTATION_PARAMS_CHANGED, Command.SET_STATION_ORIENTATION_PARAMS
+        )
+
+    def _cmd_get_station_orientation_params(self, session):
+        return (0, *self.state.station_orientation)
+
+    def _cmd_set_transformation_params(self, session, *values):
+        if any(values[:6]) or values[6] != 1.0:  # identity only, as above
+            return (Status.NOT_IMPLEMENTED,)
+        self.state.transformation = values
+        self._changed(session, StatusChange.TRANSFORMATION_PARAMS_CHANGED, Command.SET_TRANSFORMATION_PARAMS)
+
+    def _cmd_get_transformation_params(self, session):
+        return (0, *self.state.transformation)
+
+    def _cmd_set_refraction_params(self, session, ifm, adm):
+        if not (1.0 <= ifm < 1.001 and 1.0 <= adm < 1.001):
+            return (Status.WRONG_PARAMETER1 if not 1.0 <= ifm < 1.001 else Status.WRONG_PARAMETER2,)
+        self.state.refraction = (ifm, adm)
+        self._changed(session, StatusChange.REFRACTION_PARAMS_CHANGED, Command.SET_REFRACTION_PARAMS)
+
+    def _cmd_get_refraction_params(self, session):
+        return (0, *self.state.refraction)
+
+    def _cmd_change_face(self, session):
+        if not self.state.initialized:
+            return (Status.TRACKER_NOT_INITIALIZED,)
+        self.state.face = 2 if self.state.face == 1 else 1
+        face_event = StatusChange.IS_FACE1 if self.state.face == 1 else StatusChange.IS_FACE2
+        self._changed(session, face_event, Command.CHANGE_FACE)
+
+    def _cmd_get_face(self, session):
+        return (0, self.state.face)
+
+    async def _cmd_go_bird_bath(self, session):
+        await self._go(session, Command.GO_BIRD_BATH, np.array(self.config.birdbath_point_m), True)
+
+    async def _cmd_go_bird_bath2(self, session, clockwise):
+        await self._go(session, Command.GO_BIRD_BATH2, np.array(self.config.birdbath_point_m), True)
+
+    def _cmd_get_tp_info(self, session):
+        # boot, TP firmware and LCP firmware versions, processor type ATC900 (6), uP type, clock, sensor type
+        return (0, 1, 0, 3, 2, 2, 1, 6, 0, 0, codec.LTS_AT901_LR)
+
+    def _cmd_set_long_system_parameter(self, session, param, value):
+        if param == codec.SP_TCP_COMMAND_QUEUE_SIZE and value != 0:
+            return (Status.NOT_IMPLEMENTED,)  # the fake keeps the queue off: one command at a time
+        self.state.long_params[param] = value
+        return (0,)
+
+    def _cmd_get_long_system_parameter(self, session, param):
+        return (0, param, self.state.long_params.get(param, 0))
+
+    def _cmd_set_double_system_parameter(self, session, param, value):
+        self.state.double_params[param] = value
+        return (0,)
+
+    def _cmd_get_double_system_parameter(self, session, param):
+        return (0, param, self.state.double_params.get(param, 0.0))
+
+    def _cmd_get_object_temperature(self, session):
+        return (0, self.state.units.temperature_to_wire(self.cell.meteo().temperature_c))
+
+    def _cmd_clear_command_queue(self, session, which):
+        return (0,) if which in (0, 1) else (Status.WRONG_PARAMETER1,)
+
+    def _cmd_get_current_prism_position(self, session):
+        if not self._ready():
+            return (self.config.no_target_status,)
+        st = self.state
+        return (0, *codec.cartesian_to_wire(st.lock_p_m, st.cs, st.units))
+
+    def _cmd_get_tracker_info(self, session):
+        cfg, u = self.config, self.state.units
+        return (
+            0, codec.LTS_AT901_LR, codec.encode_name(cfg.tracker_name), cfg.serial_number, 1, 1, 1, 1,
+            0.0, u.length_to_wire(cfg.max_distance_m), u.length_to_wire(cfg.min_distance_m), 1000, 2,
+            u.angle_to_wire(2 * math.pi), u.angle_to_wire(math.radians(145.0)), 0, 1, 0,
+        )  # fmt: skip
+
+    def _cmd_get_system_software_version(self, session):
+        return (0, codec.encode_name(".".join(map(str, self.config.version))))
+
     # ---- control channel (fault injection) ---------------------------------------------------------------
     def control_handlers(self) -> dict[str, Callable[[dict], dict]]:
         """Commands for the control channel: tracker.fault, tracker.clear, tracker.state."""
@@ -819,6 +941,7 @@ class EmsconServer:
             "reflector_id": st.reflector_id,
             "system_settings": list(st.settings),
             "exit_requests": st.exit_requests,
+            "commands": dict(st.command_counts),
             "faults": self.faults.as_dict(),
         }
 
