@@ -121,6 +121,7 @@ class _TrackerState:
     last_result_status: int = 0
     measuring: int = 0
     exit_requests: int = 0
+    busy_replies: int = 0  # commands refused with ServerBusy (a client sent while one was pending)
     laser_on: bool = True
     face: int = 1
     temperature_range: int = 3  # ES_TR_Automatic
@@ -186,6 +187,7 @@ class _Session:
         for packet in packets:
             command = codec.COMMAND_HEAD.unpack_from(packet)[2] if len(packet) >= 12 else -1
             if self.busy:
+                self.server.state.busy_replies += 1
                 self.send(codec.pack_answer(command, Status.SERVER_BUSY))
                 continue
             self.busy = True
@@ -942,6 +944,7 @@ class EmsconServer:
             "system_settings": list(st.settings),
             "exit_requests": st.exit_requests,
             "commands": dict(st.command_counts),
+            "busy_replies": st.busy_replies,
             "faults": self.faults.as_dict(),
         }
 

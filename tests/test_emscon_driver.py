@@ -2,6 +2,7 @@
 
 import asyncio
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
@@ -315,3 +316,42 @@ def test_external_clock_as_inside_hil_sim(cell):
         thread.run(asyncio.sleep(0.01))
     assert sim_s >= 3 * 0.2
     assert wall_s < 3 * 0.2  # simulated time ran faster than the wall clock
+
+
+@pytest.mark.parametrize("initialized", [True, False])
+def test_initialize_only_when_the_tracker_is_not_initialized(cell, initialized):
+    server = EmsconServer(cell, config=EmsconServerConfig(initialized=initialized, init_delay_s=0.01))
+    with ServerThread(server):
+        for _ in range(2):  # the second connection finds it initialized either way
+            with _tracker(server.url) as tracker:
+                assert tracker.initialized
+                assert tracker.tracker_info["name"] == "AT901-LR"
+        counts = server.state.command_counts
+        assert counts["INITIALIZE"] == (0 if initialized else 1)
+        assert counts["SET_UNITS"] == 2 and counts["EXIT_APPLICATION"] == 0
+
+
+def test_one_command_in_flight_even_with_several_threads(server_thread, cell):
+    with _tracker(server_thread.server.url) as tracker:
+        tracker.point_at(cell.smr_center_tracker(SMR))
+        with ThreadPoolExecutor(4) as pool:
+            results = list(pool.map(lambda _: tracker.measure(shots=3), range(4)))
+            states = list(pool.map(lambda _: tracker.state(), range(4)))
+    assert all(r.shots_used == 3 for r in results) and all(s.target_locked for s in states)
+    assert server_thread.server.state.busy_replies == 0
+
+
+def test_unsolicited_events_are_tracked_between_answers(server_thread, cell):
+    with _tracker(server_thread.server.url) as tracker:
+        tracker.point_at(cell.smr_center_tracker(SMR))
+        tracker.measure()
+        assert tracker.meas_ready is True
+        moved = cell.smr_center_tracker(SMR) + np.array([0.2, 0.0, 0.0])
+        cell.place_smr(SMR, SmrLocation("fixed", point_m=tuple(moved)))
+        time.sleep(0.1)  # the fake's tracking poll notices and sends an error packet and NotReady
+        tracker.state()
+        assert tracker.meas_ready is False
+        assert tracker.last_async_error.status == codec.Status.NO_DISTANCE_SET
+        changes = [p.change for _, p in tracker.events if isinstance(p, codec.StatusChangePacket)]
+        assert codec.StatusChange.UNITS_CHANGED in changes
+        assert changes[-1] == codec.StatusChange.MEAS_STATUS_NOT_READY
