@@ -52,6 +52,19 @@ def _command_name(command: int) -> str:
         return f"command {command}"
 
 
+# Events announcing a change of server-side state the driver relies on, by the Set command that causes them.
+_WATCHED_EVENTS = {
+    Command.SET_UNITS: StatusChange.UNITS_CHANGED,
+    Command.SET_COORDINATE_SYSTEM_TYPE: StatusChange.COORDINATE_SYSTEM_TYPE_CHANGED,
+    Command.SET_MEASUREMENT_MODE: StatusChange.MEASUREMENT_MODE_CHANGED,
+    Command.SET_STATIONARY_MODE_PARAMS: StatusChange.STATIONARY_MODE_PARAMS_CHANGED,
+    Command.SET_STATISTIC_MODE: StatusChange.STATISTIC_MODE_CHANGED,
+    Command.SET_SYSTEM_SETTINGS: StatusChange.SYSTEM_SETTINGS_CHANGED,
+    Command.SET_REFLECTOR: StatusChange.REFLECTOR_CHANGED,
+}
+_OWN_EVENT_WINDOW_S = 2.0  # an event this soon after our own Set of its kind is taken as its echo
+
+
 def _serialised(method):
     """Run a public method under the driver's lock: one command in flight, even with several threads."""
 
@@ -127,6 +140,9 @@ class EmsconTracker:
         self.last_async_error: codec.ErrorPacket | None = None
         self.events: deque = deque(maxlen=100)  # (time, packet) of unsolicited traffic
         self._last_distance_m: float | None = None
+        self._own_events: list[tuple[int, float]] = []  # (change, expiry) echoes expected of our own Sets
+        self._settings_stale = False  # another client changed units/CS/mode: redo the connect-time setup
+        self.foreign_setting_changes = 0
 
     # ---- lifecycle ---------------------------------------------------------------------------------------
     @_serialised
@@ -168,6 +184,10 @@ class EmsconTracker:
     def _ensure_ready(self) -> None:
         if self._port is None:
             self._open()
+        if self._settings_stale:
+            log.warning("another client changed the tracker's settings: applying ours again")
+            self._settings_stale = False
+            self._ready = False
         if not self._ready:
             self._setup()
             self._ready = True
@@ -280,6 +300,8 @@ class EmsconTracker:
     def _note_unsolicited(self, packet) -> None:
         self.events.append((time.time(), packet))
         if isinstance(packet, codec.StatusChangePacket):
+            if packet.change in _WATCHED_EVENTS.values():
+                self._note_setting_change(packet.change)
             if packet.change == StatusChange.MEAS_STATUS_READY:
                 self.meas_ready = True
             elif packet.change == StatusChange.MEAS_STATUS_NOT_READY:
@@ -288,6 +310,17 @@ class EmsconTracker:
             self.last_async_error = packet
             if packet.status in codec.NO_TARGET_STATUSES:
                 self.meas_ready = False
+
+    def _note_setting_change(self, change: int) -> None:
+        """Our own Set's echo, or a change by another client (then our settings must be applied again)."""
+        now = time.monotonic()
+        self._own_events = [(c, t) for c, t in self._own_events if t > now]
+        for i, (c, _) in enumerate(self._own_events):
+            if c == change:
+                del self._own_events[i]
+                return
+        self._settings_stale = True
+        self.foreign_setting_changes += 1
 
     def _resync(self) -> None:
         """Bring the stream back in step: drain stale bytes, then handshake with GetSystemStatus."""
@@ -367,6 +400,10 @@ class EmsconTracker:
                         refused = True  # a refused command owes nothing more
                         raise status_error(command, packet.status)
                     answers.append(packet)
+                    if command in _WATCHED_EVENTS:
+                        self._own_events.append(
+                            (_WATCHED_EVENTS[command], time.monotonic() + _OWN_EVENT_WINDOW_S)
+                        )
                     if command == Command.GET_REFLECTORS:
                         expected = max(1, packet.values[0])
                 elif isinstance(packet, codec.MeasResultPacket):
@@ -390,9 +427,22 @@ class EmsconTracker:
             raise
 
     def _call(self, command: Command, *params, **kwargs):
-        """Public-method entry: connect (or reconnect) as needed, then exchange."""
-        self._ensure_ready()
-        return self._exchange(command, *params, **kwargs)
+        """Public-method entry: connect (or reconnect) as needed, then exchange.
+
+        Units, CS and modes are server-side state shared by every client. If another client changed them
+        while this command was on its way (its "...Changed" event arrived before the answer), the values
+        exchanged may be in the other client's units: apply our settings again and repeat the command.
+        """
+        for _attempt in range(3):
+            self._ensure_ready()
+            changes_before = self.foreign_setting_changes
+            answer = self._exchange(command, *params, **kwargs)
+            if self.foreign_setting_changes == changes_before:
+                return answer
+            log.warning(
+                "tracker settings changed by another client during %s: repeating it", _command_name(command)
+            )
+        raise TrackerError("another client keeps changing the tracker's units/settings; stop it, then retry")
 
     # ---- Tracker API -------------------------------------------------------------------------------------
     @_serialised

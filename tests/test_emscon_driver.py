@@ -355,3 +355,17 @@ def test_unsolicited_events_are_tracked_between_answers(server_thread, cell):
         changes = [p.change for _, p in tracker.events if isinstance(p, codec.StatusChangePacket)]
         assert codec.StatusChange.UNITS_CHANGED in changes
         assert changes[-1] == codec.StatusChange.MEAS_STATUS_NOT_READY
+
+
+def test_settings_changed_by_another_client_are_applied_again(server_thread, cell):
+    """Units are server-side state: if another client switches them, results must still come out right."""
+    truth = cell.smr_center_tracker(SMR)
+    mm_deg = {"length_unit": codec.LengthUnit.MILLIMETER, "angle_unit": codec.AngleUnit.DEGREE}
+    with _tracker(server_thread.server.url) as a, _tracker(server_thread.server.url, **mm_deg) as b:
+        a.point_at(truth)
+        assert np.linalg.norm(a.measure().p_tracker_m - truth) < 1e-3  # a re-applied metres after b's setup
+        assert a.foreign_setting_changes > 0
+        b.measure()  # b notices a's units and applies millimetres again
+        assert server_thread.server.state.units.length == codec.LengthUnit.MILLIMETER
+        assert np.linalg.norm(a.measure().p_tracker_m - truth) < 1e-3
+        assert np.linalg.norm(b.measure().p_tracker_m - truth) < 1e-3
