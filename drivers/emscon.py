@@ -143,6 +143,7 @@ class EmsconTracker:
         self._own_events: list[tuple[int, float]] = []  # (change, expiry) echoes expected of our own Sets
         self._settings_stale = False  # another client changed units/CS/mode: redo the connect-time setup
         self.foreign_setting_changes = 0
+        self._deadline_cap: float | None = None
 
     # ---- lifecycle ---------------------------------------------------------------------------------------
     @_serialised
@@ -324,7 +325,7 @@ class EmsconTracker:
 
     def _resync(self) -> None:
         """Bring the stream back in step: drain stale bytes, then handshake with GetSystemStatus."""
-        deadline = time.monotonic() + self.config.command_timeout_s
+        deadline = self._deadline(self.config.command_timeout_s)
         self._needs_resync = False
         ping = codec.pack_command(Command.GET_SYSTEM_STATUS)
         while True:
@@ -376,8 +377,7 @@ class EmsconTracker:
             self._open()
         if self._needs_resync:
             self._resync()
-        timeout = self.config.command_timeout_s if timeout is None else timeout
-        deadline = time.monotonic() + timeout
+        deadline = self._deadline(self.config.command_timeout_s if timeout is None else timeout)
         what = f"the answer to {_command_name(command)}"
         data = codec.pack_command(command, *params)
         self._write(data)
@@ -426,6 +426,11 @@ class EmsconTracker:
                 self._needs_resync = True  # whatever is still owed may arrive later: resync first
             raise
 
+    def _deadline(self, timeout_s: float) -> float:
+        """Deadline of one exchange: its own timeout, capped by the public call's when it is retrying."""
+        deadline = time.monotonic() + timeout_s
+        return deadline if self._deadline_cap is None else min(deadline, self._deadline_cap)
+
     def _call(self, command: Command, *params, **kwargs):
         """Public-method entry: connect (or reconnect) as needed, then exchange.
 
@@ -433,15 +438,21 @@ class EmsconTracker:
         while this command was on its way (its "...Changed" event arrived before the answer), the values
         exchanged may be in the other client's units: apply our settings again and repeat the command.
         """
-        for _attempt in range(3):
-            self._ensure_ready()
-            changes_before = self.foreign_setting_changes
-            answer = self._exchange(command, *params, **kwargs)
-            if self.foreign_setting_changes == changes_before:
-                return answer
-            log.warning(
-                "tracker settings changed by another client during %s: repeating it", _command_name(command)
-            )
+        call_deadline = time.monotonic() + (kwargs.get("timeout") or self.config.command_timeout_s)
+        try:
+            for _attempt in range(3):
+                self._ensure_ready()
+                changes_before = self.foreign_setting_changes
+                answer = self._exchange(command, *params, **kwargs)
+                if self.foreign_setting_changes == changes_before:
+                    return answer
+                log.warning(
+                    "tracker settings changed by another client during %s: repeating it",
+                    _command_name(command),
+                )
+                self._deadline_cap = call_deadline  # setup and repeat must fit in the command's own timeout
+        finally:
+            self._deadline_cap = None
         raise TrackerError("another client keeps changing the tracker's units/settings; stop it, then retry")
 
     # ---- Tracker API -------------------------------------------------------------------------------------
