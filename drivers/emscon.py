@@ -134,6 +134,7 @@ class EmsconTracker:
         self._ready = False  # connect-time setup done on the current port
         self.reflectors: dict[int, str] = {}
         self.tracker_info: dict = {}
+        self.last_results: list[codec.MeasResultPacket] = []
         self.reflector_id: int | None = None
         self.initialized = False
         self.meas_ready: bool | None = None  # from MeasStatus SSC 25/26/27
@@ -466,6 +467,7 @@ class EmsconTracker:
         packets = [
             self._call(Command.START_MEASUREMENT, timeout=timeout, result=True)[1] for _ in range(shots)
         ]
+        self.last_results = packets  # as received, raw bytes included (for records and debugging)
         timestamp = time.time()
         cs = cfg.coordinate_system
         values = np.array([p.values for p in packets])

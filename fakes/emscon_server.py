@@ -19,7 +19,7 @@ import os
 import socket
 import threading
 import tty
-from collections import Counter
+from collections import Counter, deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -255,6 +255,7 @@ class EmsconServer:
         self._pty_fds: tuple[int, int] | None = None
         self._pty_out = bytearray()
         self._lock_generation = 0
+        self.sent_results: deque[bytes] = deque(maxlen=1000)  # raw result packets, for tests
 
     @property
     def url(self) -> str:
@@ -720,7 +721,9 @@ class EmsconServer:
             st.last_result_status = self.config.no_target_status
             session.send(codec.pack_error(Command.START_MEASUREMENT, self.config.no_target_status))
             return None
-        session.send(self._result_packet(), codec.pack_status_change(StatusChange.MEAS_STATUS_READY))
+        result = self._result_packet()
+        self.sent_results.append(result)
+        session.send(result, codec.pack_status_change(StatusChange.MEAS_STATUS_READY))
         st.last_result_status = 0
         return None
 

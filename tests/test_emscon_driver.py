@@ -115,6 +115,7 @@ def test_split_and_merged_packets_decode_exactly(url, cell, server_thread, mode)
         m = tracker.measure(shots=3)
         state = tracker.state()
     assert np.linalg.norm(m.p_tracker_m - truth) < _tolerance_m(cell, truth, 3)
+    assert [p.raw for p in tracker.last_results] == list(server_thread.server.sent_results)[-3:]
     assert state.target_locked and state.details["serial_number"] == 390123
 
 
