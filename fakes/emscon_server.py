@@ -84,6 +84,7 @@ class _Faults:
     no_target: bool = False
     slow_delay_s: float = 0.0
     drop_next_command: bool = False
+    line_down: bool = False  # the serial line (pty) is "unplugged": nothing in, nothing out
     garbage_bytes: int = 0
     inject: bytes | None = None  # sent instead of everything the next command would have produced
     outlier_count: int = 0  # the next N results are offset by outlier_offset_m along x (air turbulence)
@@ -149,8 +150,12 @@ class _Session:
         self.writer_task = asyncio.get_running_loop().create_task(self._writer())
         self.tasks: set[asyncio.Task] = set()
 
+    @property
+    def is_serial(self) -> bool:
+        return self._close is None
+
     def send(self, *packets: bytes, flush: bool = True) -> None:
-        if self.closed:
+        if self.closed or (self.is_serial and self.server.faults.line_down):
             return
         for packet in packets:
             self.queue.put_nowait(packet)
@@ -177,6 +182,8 @@ class _Session:
                 self._write(item)
 
     def feed(self, data: bytes) -> None:
+        if self.is_serial and self.server.faults.line_down:
+            return
         try:
             packets = self.splitter.feed(data)
         except codec.CodecError as exc:
@@ -198,9 +205,12 @@ class _Session:
     async def _run(self, packet: bytes, command: int) -> None:
         try:
             faults = self.server.faults
-            if faults.drop_next_command and self._close is not None:
+            if faults.drop_next_command:
                 faults.drop_next_command = False
-                self.shutdown()
+                if self.is_serial:  # a serial line cannot be closed from this end: it goes silent
+                    faults.line_down = True
+                else:
+                    self.shutdown()
                 return
             if faults.slow_delay_s > 0:
                 await asyncio.sleep(faults.slow_delay_s)
@@ -865,8 +875,10 @@ class EmsconServer:
         }
 
     def _ctl_fault(self, request: dict) -> dict:
-        """Inject a fault: kind = beam_break (count), no_target, slow (delay_s), drop (when: next|now),
-        garbage (n_bytes), inject (hex: raw bytes replacing the next answer), outlier (count, offset_m), framing (mode: normal|bytewise|merged), clear."""
+        """Inject a fault. kind: beam_break (count), no_target, slow (delay_s), drop (when: next|now; TCP is
+        closed, the serial line goes silent until cleared), garbage (n_bytes), inject (hex: raw bytes that
+        replace the next answer), outlier (count, offset_m), framing (mode: normal|bytewise|merged), clear.
+        """
         kind = request.get("kind")
         f = self.faults
         if kind == "beam_break":
@@ -928,8 +940,11 @@ class EmsconServer:
             )
 
     def _drop_all(self) -> None:
+        """TCP connections are closed; the serial line goes silent until the faults are cleared."""
+        if self._pty_fds is not None:
+            self.faults.line_down = True
         for session in list(self._sessions):
-            if session._close is not None:
+            if not session.is_serial:
                 session.shutdown()
 
     def _ctl_state(self, request: dict) -> dict:
