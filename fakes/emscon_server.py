@@ -13,6 +13,7 @@ The fake's dStd equals its a-priori std (it does not model averaging within lMea
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import math
 import os
@@ -1003,3 +1004,40 @@ class ServerThread:
             self.loop.call_soon_threadsafe(self.loop.stop)
             self._thread.join(5)
             self.loop.close()
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the fake tracker alone on its own simulated cell (for trying the driver by hand)."""
+    import argparse
+    import json
+
+    from fakes.cell import CellConfig, SimulatedCell
+
+    parser = argparse.ArgumentParser(description="Fake Leica emScon tracker on a simulated cell.")
+    parser.add_argument("--host", default="127.0.0.1", help="loopback address to bind")
+    parser.add_argument("--port", type=int, default=7000, help="TCP port (700 needs root)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the simulated cell")
+    parser.add_argument("--pty", action="store_true", help="also serve on a pseudo-terminal")
+    parser.add_argument("--lock", type=int, default=None, help="SMR id locked at start")
+    args = parser.parse_args(argv)
+    if not args.host.startswith("127."):
+        parser.error("--host must be a loopback address (127.0.0.0/8)")
+
+    async def serve() -> None:
+        cell = SimulatedCell(CellConfig(seed=args.seed))
+        server = EmsconServer(cell, args.host, args.port, EmsconServerConfig(initial_lock_smr=args.lock))
+        await server.start()
+        pty = await server.open_pty() if args.pty else None
+        print(json.dumps({"tracker": {"url": server.url, "pty": pty}}), flush=True)
+        try:
+            await asyncio.Event().wait()
+        finally:
+            await server.close()
+
+    with contextlib.suppress(KeyboardInterrupt):
+        asyncio.run(serve())
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
