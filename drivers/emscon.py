@@ -65,6 +65,23 @@ _WATCHED_EVENTS = {
 _OWN_EVENT_WINDOW_S = 2.0  # an event this soon after our own Set of its kind is taken as its echo
 
 
+# Names accepted for the wire settings (besides the enum values themselves).
+LENGTH_UNITS = {"m": codec.LengthUnit.METER, "mm": codec.LengthUnit.MILLIMETER, "um": codec.LengthUnit.MICRON,
+                "in": codec.LengthUnit.INCH, "ft": codec.LengthUnit.FOOT}  # fmt: skip
+ANGLE_UNITS = {"rad": codec.AngleUnit.RADIAN, "deg": codec.AngleUnit.DEGREE, "gon": codec.AngleUnit.GON}
+COORDINATE_SYSTEMS = {"cartesian": CoordinateSystem.RHR, "spherical": CoordinateSystem.SCC,
+                      "spherical_cw": CoordinateSystem.SCW}  # fmt: skip
+
+
+def _choice(value, names: dict, option: str):
+    """An enum value given as itself or by name; a clear error naming the choices otherwise."""
+    if isinstance(value, str):
+        if value not in names:
+            raise ValueError(f"{option} must be one of {sorted(names)}, got {value!r}")
+        return names[value]
+    return value
+
+
 def _serialised(method):
     """Run a public method under the driver's lock: one command in flight, even with several threads."""
 
@@ -121,6 +138,9 @@ class EmsconTracker:
         if unknown:
             raise TypeError(f"unknown EmsconConfig option(s) {sorted(unknown)}")
         config = dataclasses.replace(config or EmsconConfig(), **overrides)
+        config.length_unit = _choice(config.length_unit, LENGTH_UNITS, "length_unit")
+        config.angle_unit = _choice(config.angle_unit, ANGLE_UNITS, "angle_unit")
+        config.coordinate_system = _choice(config.coordinate_system, COORDINATE_SYSTEMS, "coordinate_system")
         if config.meas_time_s <= 0 or config.meas_time_s > 3600:
             raise ValueError(f"meas_time_s must be in (0, 3600] s, got {config.meas_time_s}")
         if config.coordinate_system not in codec.SUPPORTED_SYSTEMS:

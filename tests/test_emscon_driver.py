@@ -216,6 +216,8 @@ def test_bad_arguments_are_refused_before_anything_is_sent(server_thread):
         tracker._exchange(codec.Command.EXIT_APPLICATION)
     with pytest.raises(ValueError, match="coordinate_system"):
         EmsconTracker(url="socket://127.0.0.1:1", coordinate_system=codec.CoordinateSystem.CCW)
+    with pytest.raises(ValueError, match=r"length_unit must be one of \['ft', 'in', 'm', 'mm', 'um'\]"):
+        EmsconTracker(url="socket://127.0.0.1:1", length_unit="cm")
     with pytest.raises(TrackerConnectionError, match="cannot open"):
         EmsconTracker(url="socket://127.0.0.1:1").connect()
 
@@ -243,8 +245,10 @@ def test_beam_break_on_the_next_measurements(url, server_thread, cell):
 def test_no_target_until_cleared(url, server_thread, cell):
     tracker = _locked(url, cell)
     _fault(server_thread, kind="no_target")
+    start = time.monotonic()
     with pytest.raises(NoTargetError):
         tracker.measure()
+    assert time.monotonic() - start < MEAS_S + tracker.config.measurement_margin_s
     assert tracker.state().target_locked is False
     server_thread.call(server_thread.server.control_handlers()["tracker.clear"], {})
     tracker.measure()
@@ -267,8 +271,10 @@ def test_slow_answers_time_out_then_recover(url, server_thread, cell):
 def test_garbage_bytes_give_a_protocol_error_with_the_bytes_then_recover(url, server_thread, cell):
     tracker = _locked(url, cell)
     _fault(server_thread, kind="garbage", n_bytes=40)
+    start = time.monotonic()
     with pytest.raises(TrackerProtocolError) as info:
         tracker.measure()
+    assert time.monotonic() - start < MEAS_S + tracker.config.measurement_margin_s
     assert info.value.data[:4] == b"\xff\xff\xff\x7f"
     tracker.measure()
     tracker.close()

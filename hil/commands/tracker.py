@@ -5,12 +5,6 @@ from __future__ import annotations
 import argparse
 import json
 
-from drivers import emscon_codec as codec
-
-_CS = {"cartesian": codec.CoordinateSystem.RHR, "spherical": codec.CoordinateSystem.SCC}
-_LENGTH = {"m": codec.LengthUnit.METER, "mm": codec.LengthUnit.MILLIMETER}
-_ANGLE = {"rad": codec.AngleUnit.RADIAN, "deg": codec.AngleUnit.DEGREE}
-
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
@@ -33,7 +27,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--reflector", help="reflector name to select (default: keep the tracker's)")
     parser.add_argument("--wire-units", choices=["m", "mm"], default="m", help="length unit on the wire")
     parser.add_argument("--wire-angles", choices=["rad", "deg"], default="rad", help="angle unit on the wire")
-    parser.add_argument("--coordinates", choices=sorted(_CS), default="cartesian", help="CS on the wire")
+    parser.add_argument(
+        "--coordinates", choices=["cartesian", "spherical"], default="cartesian", help="CS on the wire"
+    )
     parser.add_argument("--timeout", type=float, default=10.0, help="per-command timeout, s")
     parser.set_defaults(func=run)
 
@@ -50,9 +46,9 @@ def run(args: argparse.Namespace) -> int:
         url=args.url,
         meas_time_s=args.meas_time,
         reflector=args.reflector,
-        length_unit=_LENGTH[args.wire_units],
-        angle_unit=_ANGLE[args.wire_angles],
-        coordinate_system=_CS[args.coordinates],
+        length_unit=args.wire_units,
+        angle_unit=args.wire_angles,
+        coordinate_system=args.coordinates,
         command_timeout_s=args.timeout,
     )
     out: dict = {}
