@@ -902,7 +902,12 @@ class EmsconServer:
         elif kind == "garbage":
             f.garbage_bytes = max(4, int(request.get("n_bytes", 32)))
         elif kind == "inject":
-            f.inject = bytes.fromhex(request["hex"])
+            try:
+                f.inject = bytes.fromhex(str(request.get("hex", "")))
+            except ValueError as exc:
+                raise ValueError(f"inject needs 'hex': the bytes as a hex string ({exc})") from exc
+            if not f.inject:
+                raise ValueError("inject needs 'hex': at least one byte as a hex string")
         elif kind == "outlier":
             f.outlier_count = int(request.get("count", 1))
             f.outlier_offset_m = float(request.get("offset_m", 1e-3))
