@@ -1,7 +1,8 @@
 """Benchmark: emScon driver round-trip overhead per measurement beyond the configured measurement time.
 
 The fake tracker runs in a separate process (its own interpreter, so no GIL sharing with the driver) and
-waits exactly the measurement time per shot; everything above that is driver + protocol + fake overhead.
+waits the measurement time per shot; everything above that is driver + protocol + fake overhead. The
+"tcp-bare" rows measure the same with a bare socket client: the difference to "tcp" is the driver's share.
 Run: PYTHONPATH=. python benchmarks/tracker.py [--shots 200]
 """
 
@@ -10,9 +11,11 @@ from __future__ import annotations
 import argparse
 import asyncio
 import multiprocessing as mp
+import socket
 import statistics
 import time
 
+from drivers import emscon_codec as codec
 from drivers.emscon import EmsconTracker
 
 
@@ -33,6 +36,39 @@ def _serve(conn, seed: int) -> None:
     asyncio.run(main())
 
 
+def _bench_raw(url: str, meas_time_s: float, shots: int) -> dict:
+    """Baseline: a bare socket client (no driver) measuring the same way; what remains is fake + TCP."""
+    host, port = url.removeprefix("socket://").rsplit(":", 1)
+    with EmsconTracker(url=url, meas_time_s=meas_time_s):
+        pass  # leaves the server in our units and measurement time
+    sock = socket.create_connection((host, int(port)))
+    sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+    splitter = codec.FrameSplitter()
+    start_cmd = codec.pack_command(codec.Command.START_MEASUREMENT)
+    per_shot = []
+    try:
+        for _ in range(shots + 1):
+            start = time.perf_counter()
+            sock.sendall(start_cmd)
+            while True:
+                packets = splitter.feed(sock.recv(4096))
+                if any(codec.HEADER.unpack_from(p)[1] == codec.DataType.SINGLE_MEAS_RESULT for p in packets):
+                    break
+            per_shot.append(time.perf_counter() - start)
+    finally:
+        sock.close()
+    return _summary(per_shot[1:], meas_time_s)
+
+
+def _summary(per_shot: list[float], meas_time_s: float) -> dict:
+    overhead = sorted(t - meas_time_s for t in per_shot)
+    return {
+        "overhead_mean_ms": 1e3 * statistics.fmean(overhead),
+        "overhead_p50_ms": 1e3 * overhead[len(overhead) // 2],
+        "overhead_p95_ms": 1e3 * overhead[int(0.95 * (len(overhead) - 1))],
+    }
+
+
 def _bench(url: str, meas_time_s: float, shots: int) -> dict:
     with EmsconTracker(url=url, meas_time_s=meas_time_s) as tracker:
         tracker.measure()  # warm-up
@@ -45,13 +81,7 @@ def _bench(url: str, meas_time_s: float, shots: int) -> dict:
         for _ in range(shots):
             tracker.state()  # GetSystemStatus + GetMeasurementStatusInfo: two plain round trips
         state_s = (time.perf_counter() - start) / shots / 2
-    overhead = sorted(t - meas_time_s for t in per_shot)
-    return {
-        "overhead_mean_ms": 1e3 * statistics.fmean(overhead),
-        "overhead_p50_ms": 1e3 * overhead[len(overhead) // 2],
-        "overhead_p95_ms": 1e3 * overhead[int(0.95 * (len(overhead) - 1))],
-        "command_rtt_ms": 1e3 * state_s,
-    }
+    return {**_summary(per_shot, meas_time_s), "command_rtt_ms": 1e3 * state_s}
 
 
 def main() -> None:
@@ -67,13 +97,14 @@ def main() -> None:
             f"{'transport':<10} {'meas_time_ms':>12} {'shots':>6} {'overhead_mean_ms':>17} "
             f"{'overhead_p50_ms':>16} {'overhead_p95_ms':>16} {'command_rtt_ms':>15}"
         )
-        for name, url in (("tcp", tcp_url), ("pty", pty_path)):
+        runs = [("tcp", tcp_url, _bench), ("pty", pty_path, _bench), ("tcp-bare", tcp_url, _bench_raw)]
+        for name, url, bench in runs:
             for meas_time_s in (0.01, 0.1):
                 shots = args.shots if meas_time_s < 0.05 else max(10, args.shots // 10)
-                r = _bench(url, meas_time_s, shots)
+                r = bench(url, meas_time_s, shots)
                 print(
                     f"{name:<10} {meas_time_s * 1e3:>12.0f} {shots:>6} {r['overhead_mean_ms']:>17.2f} "
-                    f"{r['overhead_p50_ms']:>16.2f} {r['overhead_p95_ms']:>16.2f} {r['command_rtt_ms']:>15.2f}"
+                    f"{r['overhead_p50_ms']:>16.2f} {r['overhead_p95_ms']:>16.2f} {r.get('command_rtt_ms', float('nan')):>15.2f}"
                 )
     finally:
         parent.send("stop")
