@@ -649,8 +649,12 @@ class EmsconServer:
         return (0,)
 
     def _wire_point(self, v1, v2, v3, spherical: bool) -> np.ndarray:
-        cs = CoordinateSystem.SCC if spherical and self.state.cs != CoordinateSystem.SCW else self.state.cs
-        if spherical and cs == CoordinateSystem.RHR:
+        """A point from the wire: in the current CS, or (HVD commands) always as Hz, V, D.
+
+        HVD angles follow the current spherical convention when one is selected, else SCC (an assumption).
+        """
+        cs = self.state.cs
+        if spherical and cs not in codec.SPHERICAL_SYSTEMS:
             cs = CoordinateSystem.SCC
         return codec.wire_to_cartesian(np.array([v1, v2, v3]), cs, self.state.units)
 

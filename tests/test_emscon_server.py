@@ -198,3 +198,19 @@ def test_laser_off_means_no_target_until_on_and_reacquired(setup):
     client.command(Command.SWITCH_LASER, 1)
     assert client.command(Command.GO_POSITION, *cell.smr_center_tracker(2), 1)[0].status == 0
     assert client.command(Command.START_MEASUREMENT)[0].status == 0
+
+
+def test_go_position_hvd_locks_in_spherical_and_reports_in_the_current_units(setup):
+    cell, _, client = setup
+    client.command(Command.SET_UNITS, codec.LengthUnit.MILLIMETER, codec.AngleUnit.DEGREE, 0, 0, 0)
+    client.command(Command.SET_COORDINATE_SYSTEM_TYPE, codec.CoordinateSystem.RHR)
+    p = cell.smr_center_tracker(3)
+    units = codec.Units(codec.LengthUnit.MILLIMETER, codec.AngleUnit.DEGREE)
+    hz, v, d = codec.cartesian_to_wire(p, codec.CoordinateSystem.SCC, units)
+    assert client.command(Command.GO_POSITION_HVD, hz, v, d + 20.0, 1)[0].status == 0  # 2 cm long: found
+    info = client.command(Command.GET_MEASUREMENT_STATUS_INFO)[0].values[1]
+    assert info & codec.MSI_REFLECTOR_FOUND
+    prism = client.command(Command.GET_CURRENT_PRISM_POSITION)[0].values
+    np.testing.assert_allclose(prism, p * 1000.0, atol=1e-9)
+    direction = client.command(Command.GET_DIRECTION)[0].values
+    np.testing.assert_allclose(direction, (hz, v), atol=1e-9)
