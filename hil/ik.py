@@ -36,6 +36,7 @@ UR_ALPHA = np.array([np.pi / 2, 0.0, 0.0, np.pi / 2, -np.pi / 2, 0.0])
 TWO_PI = 2.0 * np.pi
 REACH_SLACK = 0.1  # a UR pose counts as unreachable only if >10 % beyond the nominal reach (cos q3, shoulder)
 LAM_MIN = 1e-8  # floor of the adaptive bias multiplier (bias = LAM_MIN * wbar near convergence)
+STALL_WINDOW, STALL_FACTOR = 25, 0.9  # give up an attempt whose E fell less than 10 % in 25 iterations
 LAM_DOWN, LAM_UP = 0.1, 10.0  # bias multiplier after an accepted / rejected step
 
 
@@ -322,7 +323,8 @@ def _levenberg_marquardt(
     (Sugihara). Safeguard: a step that does not lower E is rejected and lam grows (LAM_UP); accepted
     steps shrink it (LAM_DOWN, floor LAM_MIN), so the bias fades near the solution for fast final
     convergence. Steps are projected onto the joint limits (wrapped by 2 pi first where that lands
-    inside them). A target stops when converged or hopelessly stuck (lam > 1e12). The Jacobian is
+    inside them). A target stops when converged, hopelessly stuck (lam > 1e12) or stalled (E not
+    reduced by STALL_FACTOR within STALL_WINDOW iterations). The Jacobian is
     re-evaluated only where a step was accepted.
     """
     q = project_to_limits(prob.model, q0)
@@ -334,9 +336,10 @@ def _levenberg_marquardt(
     iters = np.zeros(k, int)
     active = ~prob.converged(e)
     eye = np.eye(n)
+    E_check = E.copy()  # stall test: E must fall by STALL_FACTOR every STALL_WINDOW iterations
     J = np.empty((k, len(W), n))
     stale = np.ones(k, bool)  # Jacobian to (re)compute: q moved since it was evaluated
-    for _ in range(max_iter):
+    for it in range(1, max_iter + 1):
         idx = np.flatnonzero(active)
         if idx.size == 0:
             break
@@ -360,6 +363,9 @@ def _levenberg_marquardt(
         lam[rej] *= LAM_UP
         iters[idx] += 1
         done = prob.converged(e[idx]) | (lam[idx] > 1e12)
+        if it % STALL_WINDOW == 0:
+            done |= E[idx] > STALL_FACTOR * E_check[idx]
+            E_check[idx] = E[idx]
         active[idx[done]] = False
     return q, e, iters
 
@@ -430,6 +436,14 @@ def _analytic_seeds(
     order = np.argsort(key, axis=1, kind="stable")
     no_branch = np.all(overshoot > REACH_SLACK, axis=1)
     return np.take_along_axis(shifted, order[:, :, None], 1), np.take_along_axis(usable, order, 1), no_branch
+
+
+def ur_seed(model: KinematicModel, T_base_flange: np.ndarray, q_near: np.ndarray | None = None) -> np.ndarray:
+    """The first seed `solve_ik` uses on a UR-shaped model: the exact closed-form branch nearest q_near
+    (default `default_home`), else the nearest stretched one; (N, 6) within the joint limits."""
+    q_ref = default_home(model) if q_near is None else np.asarray(q_near, dtype=float)
+    ranked, usable, _ = _analytic_seeds(model, _as_transforms(T_base_flange, "T_base_flange"), q_ref)
+    return np.where(usable[:, 0, None], ranked[:, 0], q_ref)
 
 
 def solve_ik(
