@@ -300,3 +300,30 @@ def test_single_target_and_empty_batch():
     np.testing.assert_allclose(res.q[0], q, atol=1e-8)  # default home picks the same elbow-up branch
     empty = ik.solve_ik(m, np.zeros((0, 4, 4)))
     assert empty.q.shape == (0, 6) and empty.success.shape == (0,)
+
+
+def test_project_to_limits_wraps_before_clamping():
+    m = get_robot("ur10")  # +-2 pi on every joint
+    q = np.array([[6.5, -6.5, 7.0, 0.1, -7.0, 14.0]])
+    out = ik.project_to_limits(m, q)
+    np.testing.assert_allclose(
+        out[0, :5], [6.5 - 2 * np.pi, -6.5 + 2 * np.pi, 7.0 - 2 * np.pi, 0.1, -7.0 + 2 * np.pi]
+    )
+    assert out[0, 5] == pytest.approx(2 * np.pi)  # 14 - 2 pi is still outside: clamped
+    np.testing.assert_allclose(
+        forward_kinematics(m, np.r_[out[0, :5], 0.0]),
+        forward_kinematics(m, np.r_[q[0, :5], 0.0]),
+        atol=1e-12,
+    )
+
+
+def test_ur_seed_is_the_exact_branch_nearest_the_reference():
+    m = get_robot("ur5")
+    q_true = np.array([[0.4, -1.0, 1.2, -1.7, -1.5, 0.3]])
+    T = forward_kinematics(m, q_true)
+    np.testing.assert_allclose(ik.ur_seed(m, T, q_near=q_true[0] + 0.2), q_true, atol=1e-9)
+    qb, valid = ik.ur_analytic_ik(m, T)
+    other = qb[0, np.argmax(np.where(valid[0], np.linalg.norm(qb[0] - q_true, axis=1), -np.inf))]
+    seed = ik.ur_seed(m, T, q_near=other)
+    assert np.linalg.norm(seed - q_true) > 0.5
+    assert pose_errors(m, seed, T)[0][0] < 1e-9
