@@ -89,6 +89,8 @@ def _as_transforms(T: np.ndarray, what: str) -> np.ndarray:
         raise ValueError(f"{what} must be (N, 4, 4) homogeneous transforms, got shape {T.shape}")
     if not np.all(np.isfinite(T)):
         raise ValueError(f"{what} contains NaN or inf")
+    if np.any(np.abs(T[:, 3] - [0.0, 0.0, 0.0, 1.0]) > 1e-9):
+        raise ValueError(f"{what}: the last row of a homogeneous transform must be [0, 0, 0, 1]")
     R = T[:, :3, :3]
     ortho = np.abs(np.swapaxes(R, 1, 2) @ R - np.eye(3)).max(axis=(1, 2))
     bad = np.flatnonzero((ortho > 1e-6) | (np.linalg.det(R) < 0))
@@ -390,7 +392,7 @@ def _check_targets(model: KinematicModel, targets: np.ndarray, mode: str) -> np.
     raise ValueError(f"mode must be 'pose' or 'position', got {mode!r}")
 
 
-def _tool_frame(mode: str, T_flange_tool: np.ndarray | None, p_flange_tool: np.ndarray | None) -> np.ndarray:
+def _tool_frame(T_flange_tool: np.ndarray | None, p_flange_tool: np.ndarray | None) -> np.ndarray:
     if T_flange_tool is not None and p_flange_tool is not None:
         raise ValueError("give either T_flange_tool or p_flange_tool, not both")
     T = np.eye(4)
@@ -474,9 +476,11 @@ def solve_ik(
     """
     if max_iter < 1 or restarts < 0:
         raise ValueError("max_iter must be >= 1 and restarts >= 0")
+    if min(tol_position, tol_rotation, length_scale, wbar) <= 0:
+        raise ValueError("tol_position, tol_rotation, length_scale and wbar must be positive")
     tgt = _check_targets(model, targets, mode)
     N, n = tgt.shape[0], model.n_joints
-    T_ft = _tool_frame(mode, T_flange_tool, p_flange_tool)
+    T_ft = _tool_frame(T_flange_tool, p_flange_tool)
     weights = np.array([1.0, 1.0, 1.0] + ([length_scale**2] * 3 if mode == "pose" else []))
     prob = _Problem(model, mode, tgt, T_ft, weights, wbar, tol_position, tol_rotation)
     q_ref = default_home(model) if q_near is None else np.asarray(q_near, dtype=float)
@@ -484,8 +488,8 @@ def solve_ik(
         raise ValueError(f"q_near must be a finite ({n},) joint vector, got {q_ref.shape}")
     generator = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
 
-    # Candidate seeds per target, in the order they are tried.
-    seeds: list[np.ndarray] = []
+    # Candidate seeds per target, in the order they are tried (None: random joints, drawn when needed).
+    seeds: list[np.ndarray | None] = []
     seed_ok: list[np.ndarray] = []
     ur = use_analytic and is_ur_like(model)
     no_branch = None
@@ -507,9 +511,8 @@ def solve_ik(
     if q_seed is None:
         seeds.append(np.broadcast_to(q_ref, (N, n)))
         seed_ok.append(np.ones(N, bool))
-    for _ in range(restarts):
-        seeds.append(random_joints(model, N, generator))
-        seed_ok.append(np.ones(N, bool))
+    seeds.extend([None] * restarts)
+    seed_ok.extend([np.ones(N, bool)] * restarts)
 
     q_best = project_to_limits(model, np.broadcast_to(seeds[0], (N, n)))
     e_best = prob.residual(q_best, np.arange(N))
@@ -527,7 +530,8 @@ def solve_ik(
         todo = np.flatnonzero(~success & ~beyond & ok)
         if todo.size == 0:
             continue
-        q, e, it = _levenberg_marquardt(prob, s[todo], todo, max_iter)
+        q0 = random_joints(model, todo.size, generator) if s is None else s[todo]
+        q, e, it = _levenberg_marquardt(prob, q0, todo, max_iter)
         iterations[todo] += it
         attempts[todo] += 1
         cost = 0.5 * np.einsum("km,m,km->k", e, weights, e)

@@ -276,6 +276,12 @@ def test_bad_inputs_raise_clear_errors():
     skewed[0, :3, :3] *= 1.1
     with pytest.raises(ValueError, match="rotation"):
         ik.solve_ik(m, skewed)
+    last_row = T.copy()
+    last_row[0, 3, 0] = 0.5
+    with pytest.raises(ValueError, match="last row"):
+        ik.solve_ik(m, last_row)
+    with pytest.raises(ValueError, match="positive"):
+        ik.solve_ik(m, T, tol_position=0.0)
     with pytest.raises(ValueError, match=r"\(N, 3\)"):
         ik.solve_ik(m, np.zeros((2, 4)), mode="position")
     with pytest.raises(ValueError, match="NaN"):
