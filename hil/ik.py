@@ -34,7 +34,9 @@ REASONS: tuple[str, ...] = (
 
 UR_ALPHA = np.array([np.pi / 2, 0.0, 0.0, np.pi / 2, -np.pi / 2, 0.0])
 TWO_PI = 2.0 * np.pi
-REACH_SLACK = 0.1  # a UR pose counts as unreachable only if >10 % beyond the nominal reach (cos q3, shoulder)
+REACH_SLACK = (
+    0.02  # UR pose unreachable if cos q3 or the shoulder ratio overshoot by > 2 % (>> mm model errors)
+)
 LAM_MIN = 1e-8  # floor of the adaptive bias multiplier (bias = LAM_MIN * wbar near convergence)
 STALL_WINDOW, STALL_FACTOR = 25, 0.9  # give up an attempt whose E fell less than 10 % in 25 iterations
 LAM_DOWN, LAM_UP = 0.1, 10.0  # bias multiplier after an accepted / rejected step
@@ -425,9 +427,9 @@ def _analytic_seeds(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """All 8 analytic branches as seeds, exact ones first, each group by distance to q_ref.
 
-    Returns (q (N, 8, n), usable (N, 8), no_branch (N,)). Out-of-reach branches are kept, stretched: on a
-    real arm, or near a wrist singularity where the closed form is ill-conditioned, the nearest stretched
-    posture is still a good seed. no_branch marks targets more than REACH_SLACK beyond nominal reach.
+    Returns (q (N, 8, n), usable (N, 8), out_of_reach (N,)). Out-of-reach branches are kept, stretched:
+    on a real arm, or near a wrist singularity where the closed form is ill-conditioned, the nearest
+    stretched posture is still a good seed. out_of_reach: see `ur_wrist_out_of_reach`.
     """
     qb, overshoot = _ur_branches(model, T_base_flange)
     N, B, n = qb.shape
@@ -436,8 +438,26 @@ def _analytic_seeds(
     dist = np.linalg.norm(shifted - ref, axis=2)
     key = np.where(usable, dist + np.where(overshoot > 1e-9, 1e6, 0.0), np.inf)
     order = np.argsort(key, axis=1, kind="stable")
-    no_branch = np.all(overshoot > REACH_SLACK, axis=1)
-    return np.take_along_axis(shifted, order[:, :, None], 1), np.take_along_axis(usable, order, 1), no_branch
+    ranked, usable = np.take_along_axis(shifted, order[:, :, None], 1), np.take_along_axis(usable, order, 1)
+    return ranked, usable, ur_wrist_out_of_reach(model, T_base_flange)
+
+
+def ur_wrist_out_of_reach(
+    model: KinematicModel, T_base_flange: np.ndarray, slack: float = REACH_SLACK
+) -> np.ndarray:
+    """(N,) True where the wrist centre (frame-5 origin) is provably out of reach of a UR-shaped arm.
+
+    The wrist centre sits at offset d4 along the joint-2 axis, so it needs r_xy >= |d4|, and within
+    |a2| + |a3| + |d5| of the shoulder in the arm plane. Both tests only use p - d6 z6, which is
+    well-conditioned even at wrist singularities; `slack` (relative) absorbs calibration errors.
+    """
+    T = T_base_flange @ invert(np.asarray(model.T_last_flange, float))
+    p5 = T[:, :3, 3] - model.d[5] * T[:, :3, 2]
+    r_xy = np.hypot(p5[:, 0], p5[:, 1])
+    d4 = abs(model.d[3])
+    planar = abs(model.a[1]) + abs(model.a[2]) + abs(model.d[4])
+    dist = np.linalg.norm(p5 - np.array([0.0, 0.0, model.d[0]]), axis=1)
+    return (r_xy < d4 * (1.0 - slack)) | (dist > np.hypot(planar, d4) * (1.0 + slack))
 
 
 def ur_seed(model: KinematicModel, T_base_flange: np.ndarray, q_near: np.ndarray | None = None) -> np.ndarray:
@@ -523,6 +543,8 @@ def solve_ik(
     tool_len = float(np.linalg.norm(T_ft[:3, 3]))
     point = tgt[:, :3, 3] if mode == "pose" else tgt
     beyond = np.linalg.norm(point, axis=1) > reach_bound(model, tool_len)
+    if no_branch is not None:
+        beyond |= no_branch  # well beyond the nominal reach: no small model error makes it reachable
 
     for s, ok in zip(seeds, seed_ok, strict=True):
         if np.all(success | beyond):

@@ -230,10 +230,17 @@ def test_unreachable_targets_are_failures_not_wrong_joints():
     assert not res.success.any()
     assert set(res.reason) == {"unreachable"}
     assert np.all(res.error > 1.0)
-    # Just beyond the UR5's reach (but inside the crude reach bound): still unreachable, after trying.
+    # Beyond the UR5's reach but inside the crude reach bound: the closed form knows, no LM attempt.
     T_edge = make_transform(np.eye(3), [1.0, 0.0, 0.1])
-    res = ik.solve_ik(m, T_edge, restarts=2)
-    assert not res.success[0] and res.reason[0] == "unreachable" and res.attempts[0] >= 1
+    res = ik.solve_ik(m, T_edge)
+    assert not res.success[0] and res.reason[0] == "unreachable" and res.attempts[0] == 0
+    assert res.error[0] > 0.05
+    # Slightly beyond (1.6 mm, within REACH_SLACK): tried from every seed, then reported as a failure.
+    T_stretched = forward_kinematics(m, [0.0, -0.3, 0.0, -1.0, 1.2, 0.0])
+    T_stretched[0, :3, 3] *= 1.002
+    res = ik.solve_ik(m, T_stretched, restarts=2)
+    assert not res.success[0] and res.attempts[0] >= 3 and res.error[0] > 1e-3
+    assert res.reason[0] in ("singular", "max_iter")
     # Position mode: 3 m away.
     res = ik.solve_ik(get_robot("irb2600"), 3.0 * direction, mode="position")
     assert not res.success.any() and set(res.reason) == {"unreachable"}
@@ -333,3 +340,18 @@ def test_ur_seed_is_the_exact_branch_nearest_the_reference():
     seed = ik.ur_seed(m, T, q_near=other)
     assert np.linalg.norm(seed - q_true) > 0.5
     assert pose_errors(m, seed, T)[0][0] < 1e-9
+
+
+@pytest.mark.parametrize("name", UR_NAMES)
+def test_wrist_reach_test_never_rejects_reachable_poses(name):
+    m = get_robot(name)
+    real = m.with_errors({"a2": 3e-3, "a3": -3e-3, "beta2": 3e-3, "alpha5": 3e-3})
+    T = forward_kinematics(real, random_joints(real, 3000, seed=13))
+    assert not ik.ur_wrist_out_of_reach(m, T).any()
+    T_far = T[:100].copy()
+    T_far[:, :3, 3] *= 2.5 / np.linalg.norm(T_far[:, :3, 3], axis=1, keepdims=True)
+    assert ik.ur_wrist_out_of_reach(m, T_far).all()
+    T_axis = T[:100].copy()
+    T_axis[:, :2, 3] = 0.0  # wrist centre near the base axis: closer than d4 to it
+    T_axis[:, :3, 3] += m.d[5] * T_axis[:, :3, 2]
+    assert ik.ur_wrist_out_of_reach(m, T_axis).all()
