@@ -481,7 +481,7 @@ def solve_ik(
     tol_rotation: float = 1e-9,
     length_scale: float = 0.3,
     wbar: float = 1e-3,
-    restarts: int = 20,
+    restarts: int = 50,
     use_analytic: bool = True,
     rng: np.random.Generator | int | None = 0,
 ) -> IKResult:
