@@ -318,6 +318,27 @@ class _Problem:
         return ok
 
 
+def _limited_step(model: KinematicModel, q: np.ndarray, A: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """Solve A dq = g, then hold joints that would leave their limits (and cannot wrap by 2 pi) at the
+    limit and re-solve for the others with that motion accounted for (two active-set passes), so the
+    free joints still make the best move instead of a clipped, no longer descending one."""
+    lo, hi = model.joint_limits[:, 0], model.joint_limits[:, 1]
+    span_ok = (hi - lo) >= TWO_PI  # such a joint can always wrap back inside
+    dq = np.linalg.solve(A, g[..., None])[..., 0]
+    fixed = np.zeros(q.shape, bool)
+    for _ in range(2):
+        out = ~span_ok & ((q + dq < lo) | (q + dq > hi))
+        if not np.any(out & ~fixed):
+            break
+        fixed |= out
+        c = np.where(fixed, np.clip(q + dq, lo, hi) - q, 0.0)
+        free = ~fixed
+        M = A * (free[:, :, None] & free[:, None, :]) + fixed[:, :, None] * np.eye(q.shape[1])
+        h = np.where(fixed, c, g - np.einsum("kij,kj->ki", A, c))
+        dq = np.linalg.solve(M, h[..., None])[..., 0]
+    return dq
+
+
 def _levenberg_marquardt(
     prob: _Problem, q0: np.ndarray, rows: np.ndarray, max_iter: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -326,8 +347,8 @@ def _levenberg_marquardt(
     Step dq = (J^T W_E J + W_N)^-1 J^T W_E e with W_N = (E + lam * wbar) I, E = 1/2 e^T W_E e
     (Sugihara). Safeguard: a step that does not lower E is rejected and lam grows (LAM_UP); accepted
     steps shrink it (LAM_DOWN, floor LAM_MIN), so the bias fades near the solution for fast final
-    convergence. Steps are projected onto the joint limits (wrapped by 2 pi first where that lands
-    inside them). A target stops when converged, hopelessly stuck (lam > 1e12) or stalled (E not
+    convergence. Joints that would cross a limit are held there and the others re-solved
+    (`_limited_step`); the result is projected onto the limits (wrapped by 2 pi where that lands inside). A target stops when converged, hopelessly stuck (lam > 1e12) or stalled (E not
     reduced by STALL_FACTOR within STALL_WINDOW iterations). The Jacobian is
     re-evaluated only where a step was accepted.
     """
@@ -354,7 +375,7 @@ def _levenberg_marquardt(
         JtW = np.swapaxes(J[idx], 1, 2) * W
         A = JtW @ J[idx] + (E[idx] + lam[idx] * prob.wbar)[:, None, None] * eye
         g = np.einsum("knm,km->kn", JtW, e[idx])
-        dq = np.linalg.solve(A, g[..., None])[..., 0]
+        dq = _limited_step(prob.model, q[idx], A, g)
         q_new = project_to_limits(prob.model, q[idx] + dq)
         e_new = prob.residual(q_new, rows[idx])
         E_new = 0.5 * np.einsum("km,m,km->k", e_new, W, e_new)

@@ -355,3 +355,19 @@ def test_wrist_reach_test_never_rejects_reachable_poses(name):
     T_axis[:, :2, 3] = 0.0  # wrist centre near the base axis: closer than d4 to it
     T_axis[:, :3, 3] += m.d[5] * T_axis[:, :3, 2]
     assert ik.ur_wrist_out_of_reach(m, T_axis).all()
+
+
+def test_solutions_next_to_joint_limits_are_found():
+    """Joints 2 and 3 of the IRB2600 within 0.15 rad of their upper limits: steps that would cross a
+    limit hold that joint there and move the others (active set), instead of stalling on the clip."""
+    m = get_robot("irb2600")
+    rng = np.random.default_rng(3)
+    lo, hi = m.joint_limits[:, 0], m.joint_limits[:, 1]
+    q_true = rng.uniform(lo, hi, size=(300, 6))
+    q_true[:, 1:3] = hi[1:3] - rng.uniform(0, 0.15, (300, 2))
+    p_tool = np.array([0.0, 0.0, 0.1])
+    P = tool_points(m, q_true, p_tool)
+    res = ik.solve_ik(m, P, mode="position", p_flange_tool=p_tool, restarts=5)
+    assert_honest(res, np.linalg.norm(tool_points(m, res.q, p_tool) - P, axis=1))
+    assert res.success.mean() >= 0.85  # plain clipping of the step: about 0.45
+    assert np.all(m.within_limits(res.q))
