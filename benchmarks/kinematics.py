@@ -111,9 +111,8 @@ def main() -> None:
     args = ap.parse_args()
     rng = np.random.default_rng(0)
     nominal = get_robot(args.robot)
-    calibrated = nominal.with_errors(
-        {k: v for k, v in CALIBRATION_ERRORS.items() if k in nominal.param_names}
-    )
+    applied = {k: v for k, v in CALIBRATION_ERRORS.items() if k in nominal.param_names}
+    calibrated = nominal.with_errors(applied)
 
     table = Table()
     for n in (10**4, 10**5):
@@ -201,7 +200,7 @@ def main() -> None:
         f"Kinematics benchmark, robot {args.robot}; success = position error < {TOL_POSITION:g} m and "
         f"rotation error < {TOL_ROTATION:g} rad by hil FK (rtb tol E < {RTB_TOL:g}); best of {args.repeats}"
     )
-    print(f"calibrated model errors: {calibrated.name} + {CALIBRATION_ERRORS}")
+    print(f"calibrated model: {calibrated.name} + {applied}")
     table.print(("case", "N", "throughput", "us/item", "success", "median pos err m"))
     for line in notes:
         print(line)
