@@ -121,3 +121,13 @@ def test_gross_outlier_in_a_campaign_is_flagged_and_changes_nothing():
     assert report.effects_added == clean.effects_added
     shift = np.linalg.norm(report.model.predict(val) - clean.model.predict(val), axis=1)
     assert shift.max() < 5e-6
+
+
+def test_thermal_growth_is_found_from_time_when_no_temperature_is_recorded():
+    _, train, val = cell_datasets(seed=5, compliance=False, thermal=True)
+    train, val = train.drop(columns=["temperature_c"]), val.drop(columns=["temperature_c"])
+    report = run_diagnosis(train, "ur10", df_validate=val)
+    assert report.effects_added == [{"name": "thermal_expansion", "joint": None}]
+    assert report.model.effects[0].state["driver"] == "t_s"
+    assert _last(report) <= 1.2 * report.noise_floor_mm
+    assert _last(report, "validate") <= 1.2 * report.noise_floor_mm  # later in the warm-up: extrapolated
