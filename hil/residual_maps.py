@@ -104,30 +104,33 @@ class IDWGridMap(ResidualMap):
 
     def predict_raw(self, q, p_base):
         st = self.state
-        step, origin = st["step_m"], np.array(st["origin_m"])
-        table = {
-            tuple(k): np.array(v) for k, v in zip(st["vertex_index"], st["vertex_residual_m"], strict=True)
-        }
-        keys = np.array(st["vertex_index"])
+        step, origin, power = st["step_m"], np.array(st["origin_m"]), st["power"]
+        keys = np.array(st["vertex_index"], dtype=int)
         vals = np.array(st["vertex_residual_m"])
+        lo = keys.min(axis=0)
+        shape = keys.max(axis=0) - lo + 1
+        table = np.zeros((*shape, 3))
+        have = np.zeros(shape, bool)
+        table[tuple((keys - lo).T)] = vals
+        have[tuple((keys - lo).T)] = True
         u = (p_base - origin) / step
-        base = np.floor(u).astype(int)
         corners = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
-        out = np.zeros((len(p_base), 3))
-        for n in range(len(p_base)):  # at most 8 lookups per target
-            cand = base[n] + corners
-            have = [tuple(c) in table for c in cand]
-            if not any(have):  # no vertex of this cube was measured: use the nearest measured vertex
-                cand = keys[np.argmin(np.linalg.norm(keys - u[n], axis=1))][None]
-                have = [True]
-            cand = cand[np.array(have)]
-            d = np.linalg.norm(u[n] - cand, axis=1) * step
-            if np.min(d) < 1e-9:
-                out[n] = table[tuple(cand[np.argmin(d)])]
-                continue
-            w = (1.0 / d) ** st["power"]
-            out[n] = (w / w.sum()) @ np.array([table[tuple(c)] for c in cand])
-        del vals
+        idx = np.floor(u).astype(int)[:, None, :] + corners[None]  # (N, 8, 3) cube vertices
+        inside = np.all((idx >= lo) & (idx < lo + shape), axis=2)
+        cl = np.clip(idx - lo, 0, shape - 1)
+        present = inside & have[cl[..., 0], cl[..., 1], cl[..., 2]]
+        corner_vals = table[cl[..., 0], cl[..., 1], cl[..., 2]]  # (N, 8, 3)
+        d = np.linalg.norm(u[:, None, :] - idx, axis=2) * step
+        # (1/d)^m over the measured vertices; a target on a vertex takes that vertex's residual.
+        w = np.where(present, 1.0 / np.maximum(d, 1e-12) ** power, 0.0)
+        out = np.einsum("nk,nkc->nc", w, corner_vals) / np.maximum(w.sum(axis=1), 1e-300)[:, None]
+        on_vertex = present & (d < 1e-9)
+        hit = on_vertex.any(axis=1)
+        out[hit] = corner_vals[hit, np.argmax(on_vertex[hit], axis=1)]
+        lonely = ~present.any(axis=1)  # no vertex of this cube was measured: the nearest measured vertex
+        if np.any(lonely):
+            nearest = np.argmin(np.linalg.norm(u[lonely][:, None] - keys[None], axis=2), axis=1)
+            out[lonely] = vals[nearest]
         return out
 
 
