@@ -328,6 +328,7 @@ def run_diagnosis(
     max_effects: int = 15,
     repeatability_mm: float = 0.0,
     tool_guess_m: np.ndarray | None = None,
+    tracker_mpe_m: tuple[float, float] = (15e-6, 6e-6),
 ) -> DiagnosisReport:
     """The whole loop on a training dataset (and an optional validation dataset never used for fitting).
 
@@ -337,7 +338,17 @@ def run_diagnosis(
     """
     with threadpool_limits(1):  # small dense problems: threads only contend
         return _run_diagnosis(
-            df, robot, df_validate, folds, alpha, seed, families, max_effects, repeatability_mm, tool_guess_m
+            df,
+            robot,
+            df_validate,
+            folds,
+            alpha,
+            seed,
+            families,
+            max_effects,
+            repeatability_mm,
+            tool_guess_m,
+            tracker_mpe_m,
         )
 
 
@@ -352,8 +363,11 @@ def _run_diagnosis(
     max_effects: int,
     repeatability_mm: float,
     tool_guess_m: np.ndarray | None,
+    tracker_mpe_m: tuple[float, float],
 ) -> DiagnosisReport:
-    noise = estimate_noise_floor(df, repeatability_mm=repeatability_mm)
+    noise = estimate_noise_floor(
+        df, mpe_const_m=tracker_mpe_m[0], mpe_per_m=tracker_mpe_m[1], repeatability_mm=repeatability_mm
+    )
     sigma2 = float(np.mean(noise.sigma_axis_m**2))
     ridge = calibrate(df, robot, "ridge", tool_guess_m=tool_guess_m)
     lm = calibrate(df, robot, "lm", tool_guess_m=tool_guess_m)

@@ -9,7 +9,7 @@ import numpy as np
 
 from hil.calibration import calibrate
 from hil.dataset import DatasetError, load_dataset
-from hil.robots import ROBOT_NAMES
+from hil.robots import ROBOT_NAMES, get_robot
 
 
 def parse_mm_vector(text: str | None) -> np.ndarray | None:
@@ -37,6 +37,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--tool-mm", default=None, help="initial guess of the tool point in the flange, 'x,y,z' mm"
     )
+    p.add_argument("--no-beta", action="store_true", help="plain DH on every joint (no Hayati beta)")
     p.set_defaults(func=run)
 
 
@@ -47,7 +48,8 @@ def run(args: argparse.Namespace) -> int:
     except (DatasetError, ValueError, argparse.ArgumentTypeError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    results = {s: calibrate(df, args.robot, solver=s, tool_guess_m=tool) for s in ("ridge", "lm")}
+    nominal = get_robot(args.robot, use_beta=not args.no_beta)
+    results = {s: calibrate(df, nominal, solver=s, tool_guess_m=tool) for s in ("ridge", "lm")}
     print(results["ridge"].identifiability.summary())
     for res in results.values():
         flagged = np.flatnonzero(res.outliers)

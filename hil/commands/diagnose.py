@@ -9,7 +9,7 @@ from hil.commands.calibrate import parse_mm_vector
 from hil.dataset import DatasetError, load_dataset
 from hil.diagnosis import run_diagnosis
 from hil.effects import EFFECT_FAMILIES
-from hil.robots import ROBOT_NAMES
+from hil.robots import ROBOT_NAMES, get_robot
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -37,6 +37,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--repeatability-mm", type=float, default=0.0, help="robot repeatability added to the floor"
     )
     p.add_argument("--tool-mm", default=None, help="initial guess of the tool point, 'x,y,z' mm")
+    p.add_argument(
+        "--tracker-mpe-um",
+        default="15,6",
+        help="tracker MPE 'a,b' (a um + b um/m, taken as 2 sigma) for the noise floor (default 15,6: AT901/AT960)",
+    )
+    p.add_argument("--no-beta", action="store_true", help="plain DH on every joint (no Hayati beta)")
     p.set_defaults(func=run)
 
 
@@ -54,6 +60,9 @@ def run(args: argparse.Namespace) -> int:
                 f"unknown effect famil{'y' if len(unknown) == 1 else 'ies'} {unknown}; "
                 f"known: {', '.join(EFFECT_FAMILIES)}"
             )
+        mpe = tuple(float(v) * 1e-6 for v in args.tracker_mpe_um.split(","))
+        if len(mpe) != 2:
+            raise ValueError(f"--tracker-mpe-um needs 'a,b', got '{args.tracker_mpe_um}'")
         if args.folds < 2:
             raise ValueError("--folds must be at least 2")
     except (DatasetError, ValueError, argparse.ArgumentTypeError) as exc:
@@ -61,13 +70,14 @@ def run(args: argparse.Namespace) -> int:
         return 2
     report = run_diagnosis(
         df,
-        args.robot,
+        get_robot(args.robot, use_beta=not args.no_beta),
         df_validate=val,
         folds=args.folds,
         alpha=args.alpha,
         families=families,
         repeatability_mm=args.repeatability_mm,
         tool_guess_m=tool,
+        tracker_mpe_m=mpe,
     )
     print(report.table())
     print(report.conclusion)
