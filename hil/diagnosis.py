@@ -329,8 +329,12 @@ def run_diagnosis(
     repeatability_mm: float = 0.0,
     tool_guess_m: np.ndarray | None = None,
     tracker_mpe_m: tuple[float, float] = (15e-6, 6e-6),
+    compare_maps: bool = False,
 ) -> DiagnosisReport:
     """The whole loop on a training dataset (and an optional validation dataset never used for fitting).
+
+    `compare_maps` runs the k-fold residual-map comparison (IDW / SVR / GP) even when the residual is
+    at the noise floor (otherwise only when it is not).
 
     Held-out figures of every stage are computed at the end on the same rows: all points except those
     the final model rejects as outliers (a model that lacks an effect rejects the points that show it
@@ -349,6 +353,7 @@ def run_diagnosis(
             repeatability_mm,
             tool_guess_m,
             tracker_mpe_m,
+            compare_maps,
         )
 
 
@@ -364,6 +369,7 @@ def _run_diagnosis(
     repeatability_mm: float,
     tool_guess_m: np.ndarray | None,
     tracker_mpe_m: tuple[float, float],
+    compare_maps: bool,
 ) -> DiagnosisReport:
     noise = estimate_noise_floor(
         df, mpe_const_m=tracker_mpe_m[0], mpe_per_m=tracker_mpe_m[1], repeatability_mm=repeatability_mm
@@ -512,7 +518,7 @@ def _run_diagnosis(
     dof = max(r_fit.size - int(free.sum()), 1)
     ratio = float(np.sqrt(np.sum(r_fit**2) / dof / sigma2))
     p_excess = float(stats.chi2.sf(np.sum(r_fit**2) / sigma2, dof))
-    if p_excess < alpha and ratio > 1.1:
+    if (p_excess < alpha and ratio > 1.1) or compare_maps:
         map_report = _try_residual_maps(final_model, prob, cv_cur, fold_idx, noise, alpha)
     else:  # at the noise floor: nothing for a map to find
         map_report = {

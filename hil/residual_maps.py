@@ -4,9 +4,9 @@
   (grid paper, methods.md 2c; power 2; a target on a vertex takes that vertex's residual). The grid is
   found in the robot base frame from the measured points (step = median nearest-neighbour spacing).
 - ``svr``: one RBF-kernel support-vector regressor per axis on the six joint angles (SVR paper,
-  methods.md 3: C = 100, kernel width sigma = 2 rad -> gamma = 1/(2 sigma^2)); epsilon is set to half the
-  per-axis noise sigma of the data instead of the paper's 0.2 mm, since residuals after calibration are
-  far below 0.2 mm.
+  methods.md 3: kernel width sigma = 2 rad -> gamma = 1/(2 sigma^2)). Targets are in units of the noise
+  sigma, epsilon = 0.5 sigma, and C is chosen by 3-fold cross-validation from 0.1 ... 100: the paper's
+  C = 100 and epsilon = 0.2 mm suit errors of millimetres, not residuals near the noise floor.
 - ``gp``: a Gaussian process on the six joint angles (constant x RBF + white noise, hyper-parameters by
   marginal likelihood), all three axes together.
 
@@ -137,7 +137,7 @@ class IDWGridMap(ResidualMap):
 class SVRMap(ResidualMap):
     kind = "svr"
 
-    def __init__(self, state: dict | None = None, C: float = 100.0, sigma_rad: float = 2.0) -> None:
+    def __init__(self, state: dict | None = None, C: float | None = None, sigma_rad: float = 2.0) -> None:
         super().__init__(state)
         self.C, self.gamma = C, 1.0 / (2.0 * sigma_rad**2)
 
@@ -145,11 +145,12 @@ class SVRMap(ResidualMap):
         from sklearn.svm import SVR
 
         self._remember_volume(p_base)
+        scale = 1.0 / max(noise_sigma_m, 1e-12)  # targets in units of the noise sigma
+        y = residual * scale
+        C = self.C if self.C is not None else self._choose_C(q, y)
         axes = []
-        scale = 1000.0  # fit in mm
         for k in range(3):
-            svr = SVR(kernel="rbf", C=self.C, gamma=self.gamma, epsilon=0.5 * noise_sigma_m * scale)
-            svr.fit(q, residual[:, k] * scale)
+            svr = SVR(kernel="rbf", C=C, gamma=self.gamma, epsilon=0.5).fit(q, y[:, k])
             axes.append(
                 {
                     "support": svr.support_vectors_.tolist(),
@@ -157,8 +158,25 @@ class SVRMap(ResidualMap):
                     "intercept": float(svr.intercept_[0]),
                 }
             )
-        self.state.update({"gamma": self.gamma, "scale": scale, "axes": axes})
+        self.state.update({"gamma": self.gamma, "scale": scale, "C": C, "axes": axes})
         return self
+
+    def _choose_C(self, q: np.ndarray, y: np.ndarray) -> float:
+        """C by 3-fold cross-validation: the paper's C = 100 suits mm-sized errors, not residuals at noise."""
+        from sklearn.svm import SVR
+
+        folds = np.array_split(np.random.default_rng(0).permutation(len(q)), 3)
+        best, best_err = 100.0, np.inf
+        for C in (0.1, 1.0, 10.0, 100.0):
+            err = 0.0
+            for test in folds:
+                train = np.setdiff1d(np.arange(len(q)), test)
+                for k in range(3):
+                    svr = SVR(kernel="rbf", C=C, gamma=self.gamma, epsilon=0.5).fit(q[train], y[train, k])
+                    err += float(np.sum((svr.predict(q[test]) - y[test, k]) ** 2))
+            if err < best_err:
+                best, best_err = C, err
+        return best
 
     def predict_raw(self, q, p_base):
         out = np.zeros((len(q), 3))

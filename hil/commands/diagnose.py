@@ -43,6 +43,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="tracker MPE 'a,b' (a um + b um/m, taken as 2 sigma) for the noise floor (default 15,6: AT901/AT960)",
     )
     p.add_argument("--no-beta", action="store_true", help="plain DH on every joint (no Hayati beta)")
+    p.add_argument(
+        "--compare-maps",
+        action="store_true",
+        help="always compare the residual maps (IDW, SVR, GP) by k-fold, even at the noise floor",
+    )
     p.set_defaults(func=run)
 
 
@@ -78,6 +83,7 @@ def run(args: argparse.Namespace) -> int:
         repeatability_mm=args.repeatability_mm,
         tool_guess_m=tool,
         tracker_mpe_m=mpe,
+        compare_maps=args.compare_maps,
     )
     print(report.table())
     print(report.conclusion)
