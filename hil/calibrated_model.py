@@ -16,13 +16,16 @@ import pandas as pd
 
 from hil.dataset import joints_rad, points_m, smr_ids
 from hil.effects import Effect, EffectContext, effect_from_dict, growth_direction, tool_points_rows
+from hil.ik import solve_ik
 from hil.kinematics import (
     BASE_PARAM_NAMES,
     KinematicModel,
     identification_jacobian,
     perturb_base,
 )
+from hil.residual_maps import map_from_dict
 from hil.robots import get_robot
+from hil.se3 import fit_rigid, invert, transform_points
 
 FORMAT = "hil-calibrated-model/1"
 
@@ -127,8 +130,6 @@ class CalibratedModel:
         ctx, _ = self.context(df)
         p = self.predict_ctx(ctx)
         if with_map and self.residual_map is not None:
-            from hil.residual_maps import map_from_dict
-
             q_eff = ctx.q + self.joint_offsets(ctx)
             p_base = tool_points_rows(self.kinematic, q_eff, ctx.p_flange_tool)
             p = p + map_from_dict(self.residual_map).predict(ctx.q, p_base)
@@ -184,9 +185,6 @@ class CalibratedModel:
         targets = np.atleast_2d(np.asarray(targets_tracker, float))
         sid = sorted(self.tools)[0] if smr is None else int(smr)
         if q_seed is None:
-            from hil.ik import solve_ik
-            from hil.se3 import invert, transform_points
-
             p_base = transform_points(invert(self.T_tracker_base), targets)
             q_seed = solve_ik(self.kinematic, p_base, mode="position", p_flange_tool=self.tools[sid]).q
         q = np.atleast_2d(np.asarray(q_seed, float)).copy()
@@ -276,8 +274,6 @@ def initial_model(
     robot: str | KinematicModel, df: pd.DataFrame, tool_guess_m: np.ndarray | None = None
 ) -> CalibratedModel:
     """Nominal geometry, tool points at a guess, base frame from a rigid fit of nominal to measured points."""
-    from hil.se3 import fit_rigid
-
     nominal = get_robot(robot) if isinstance(robot, str) else robot
     ids = smr_ids(df)
     guess = np.zeros(3) if tool_guess_m is None else np.asarray(tool_guess_m, float)

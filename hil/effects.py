@@ -20,13 +20,13 @@ joints before the forward kinematics.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import ClassVar
 
 import numpy as np
 import pandas as pd
 
-from hil.kinematics import KinematicModel, link_frames, tool_points
+from hil.kinematics import KinematicModel, forward_kinematics, link_frames, tool_points
 
 # Names used in reports and model files (the documented vocabulary).
 EFFECT_FAMILIES: tuple[str, ...] = (
@@ -341,15 +341,11 @@ def growth_direction(model: KinematicModel, q: np.ndarray, p_flange_tool: np.nda
 
 
 def _scaled_lengths(model: KinematicModel, s: float) -> KinematicModel:
-    from dataclasses import replace
-
     return replace(model, a=np.asarray(model.a) * s, d=np.asarray(model.d) * s)
 
 
 def tool_points_rows(model: KinematicModel, q: np.ndarray, p_flange_tool_rows: np.ndarray) -> np.ndarray:
     """Tool points (N, 3) in the base frame with one tool point per row."""
-    from hil.kinematics import forward_kinematics
-
     if np.ndim(p_flange_tool_rows) == 1:
         return tool_points(model, q, p_flange_tool_rows)
     T = forward_kinematics(model, q)
