@@ -217,7 +217,9 @@ class CalibratedModel:
         }
 
     def save(self, path: str | Path) -> None:
-        Path(path).write_text(json.dumps(self.to_dict(), indent=1, default=_json_default))
+        Path(path).write_text(
+            json.dumps(finite_json(self.to_dict()), indent=1, default=_json_default, allow_nan=False)
+        )
 
     @classmethod
     def from_dict(cls, data: dict) -> CalibratedModel:
@@ -291,3 +293,20 @@ def _json_default(o: object) -> object:
     if isinstance(o, np.generic):
         return o.item()
     raise TypeError(f"cannot write {type(o).__name__} to JSON")
+
+
+def finite_json(value: object) -> object:
+    """A JSON-ready copy of nested data with NaN and infinities as None (strict JSON)."""
+    if isinstance(value, dict):
+        return {k: finite_json(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [finite_json(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return finite_json(value.tolist())
+    if isinstance(value, (float, np.floating)):
+        return float(value) if np.isfinite(value) else None
+    if isinstance(value, np.integer):
+        return int(value)
+    if isinstance(value, np.bool_):
+        return bool(value)
+    return value

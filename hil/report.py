@@ -10,12 +10,17 @@ from pathlib import Path
 
 import numpy as np
 
+from hil.calibrated_model import finite_json
 from hil.diagnosis import DiagnosisReport
 
 
 def write_json(report: DiagnosisReport, path: str | Path) -> None:
-    """The report's JSON: effects_added, stages, unexplained_structure, noise_floor_mm and the details."""
-    Path(path).write_text(json.dumps(report.to_dict(), indent=1, default=_default))
+    """The report's JSON: effects_added, stages, unexplained_structure, noise_floor_mm and the details.
+
+    Strict JSON: NaN and infinities (e.g. a candidate that was never cross-validated) become null.
+    """
+    text = json.dumps(finite_json(report.to_dict()), indent=1, default=_default, allow_nan=False)
+    Path(path).write_text(text)
 
 
 def _default(o: object) -> object:

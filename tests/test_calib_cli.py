@@ -46,7 +46,12 @@ def test_calibrate_diagnose_predict(campaign):
         cwd=d,
     )
     assert out.returncode == 0, out.stderr
-    report = json.loads((d / "report.json").read_text())
+
+    def strict(constant):  # NaN / Infinity are not JSON
+        raise AssertionError(f"report.json holds {constant}")
+
+    report = json.loads((d / "report.json").read_text(), parse_constant=strict)
+    json.loads((d / "model.json").read_text(), parse_constant=strict)
     assert {"effects_added", "stages", "unexplained_structure", "noise_floor_mm"} <= set(report)
     assert report["effects_added"] and report["effects_added"][0]["name"] == "gravity_compliance"
     for stage in report["stages"]:
