@@ -27,8 +27,11 @@ def campaign(tmp_path_factory):
 
 def test_calibrate_diagnose_predict(campaign):
     d = campaign
-    out = _hil("calibrate", "train.csv", "--robot", "ur10", "-o", "kin.json", cwd=d)
+    out = _hil("calibrate", "train.csv", "--robot", "ur10", "-o", "kin.json", "--residuals", "res.csv", cwd=d)
     assert out.returncode == 0, out.stderr
+    res = pd.read_csv(d / "res.csv")
+    assert list(res.columns) == ["row", "dx_mm", "dy_mm", "dz_mm", "norm_mm", "weight", "outlier"]
+    assert len(res) == len(pd.read_csv(d / "train.csv"))
     assert "ridge-igg3" in out.stdout and "lm-soft_l1" in out.stdout and "condition number" in out.stdout
     out = _hil(
         "diagnose",

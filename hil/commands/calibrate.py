@@ -6,6 +6,7 @@ import argparse
 import sys
 
 import numpy as np
+import pandas as pd
 
 from hil.calibration import calibrate
 from hil.dataset import DatasetError, load_dataset
@@ -38,6 +39,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--tool-mm", default=None, help="initial guess of the tool point in the flange, 'x,y,z' mm"
     )
     p.add_argument("--no-beta", action="store_true", help="plain DH on every joint (no Hayati beta)")
+    p.add_argument(
+        "--residuals",
+        default=None,
+        help="CSV to write per row: residual dx/dy/dz/norm (mm), IGG3 weight and outlier flag of the chosen solver",
+    )
     p.set_defaults(func=run)
 
 
@@ -66,6 +72,20 @@ def run(args: argparse.Namespace) -> int:
         print(f"{row['name']:<16}{row['delta']:14.3e}{row['std']:12.2e}  {row['unit']}")
     for smr, tool_m in sorted(chosen.model.tools.items()):
         print(f"tool point SMR {smr}: " + ", ".join(f"{v * 1000:.4f}" for v in tool_m) + " mm (flange frame)")
+    if args.residuals:
+        r_mm = chosen.residual_m * 1000.0
+        pd.DataFrame(
+            {
+                "row": np.arange(1, len(r_mm) + 1),
+                "dx_mm": r_mm[:, 0],
+                "dy_mm": r_mm[:, 1],
+                "dz_mm": r_mm[:, 2],
+                "norm_mm": np.linalg.norm(r_mm, axis=1),
+                "weight": chosen.weights,
+                "outlier": chosen.outliers,
+            }
+        ).to_csv(args.residuals, index=False, float_format="%.6g")
+        print(f"residuals written to {args.residuals}")
     chosen.model.save(args.output)
     print(f"model written to {args.output}")
     return 0
