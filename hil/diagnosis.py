@@ -217,6 +217,7 @@ class Step:
     correlations: list[dict]  # strongest correlation of each effect coefficient with a geometric parameter
     plot: dict = field(default_factory=dict)  # driver label/values, residual along the effect before/after
     action: str = "added"  # or "removed" (an earlier effect made redundant by a later one)
+    summary: dict = field(default_factory=dict)  # physical figures: deflection, amplitude, gap, ppm/K
 
     def to_dict(self) -> dict:
         d = dict(self.__dict__)
@@ -449,6 +450,7 @@ def _run_diagnosis(
                 "candidates": [c for c, _ in results],
                 "merged": [d for d in rep.dropped if d["name"] in eff.param_names],
                 "correlations": _correlations(current, prob, eff),
+                "summary": eff.summary(prob.ctx, current.model.nominal),
             }
         )
         # Backward check: does every earlier effect still earn its place beside the new one?
@@ -477,6 +479,7 @@ def _run_diagnosis(
                     "candidates": [cand],
                     "merged": [],
                     "correlations": [],
+                    "summary": {},
                 }
             )
 

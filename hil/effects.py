@@ -132,6 +132,10 @@ class Effect:
         """The physical quantity to plot residuals against: (label with unit, (N,) values)."""
         raise NotImplementedError
 
+    def summary(self, ctx: EffectContext, nominal: KinematicModel) -> dict[str, float]:
+        """Physically meaningful figures of the fitted effect (for reports)."""
+        return {}
+
     def to_dict(self) -> dict:
         return {
             "family": self.family,
@@ -184,6 +188,14 @@ class GravityCompliance(Effect):
             L = L[:, : mix.shape[0]] if L.shape[1] > mix.shape[0] else np.pad(L, ((0, 0), (0, 1)))
         return L @ mix
 
+    def summary(self, ctx: EffectContext, nominal: KinematicModel) -> dict[str, float]:
+        deflection = np.rad2deg(self.regressors(ctx, nominal) @ self.params) * 1e3
+        return {
+            "deflection_rms_mdeg": float(np.sqrt(np.mean(deflection**2))),
+            "deflection_min_mdeg": float(deflection.min()),
+            "deflection_max_mdeg": float(deflection.max()),
+        }
+
     def driver(self, ctx: EffectContext, nominal: KinematicModel) -> tuple[str, np.ndarray]:
         """The fitted deflection, i.e. the gravity torque over the stiffness, in millidegrees."""
         deflection = self.regressors(ctx, nominal) @ self.params
@@ -201,6 +213,15 @@ class Cyclic(Effect):
     def regressors(self, ctx: EffectContext, nominal: KinematicModel) -> np.ndarray:
         qj = ctx.q[:, self.joint - 1]
         return np.stack([np.sin(qj), np.cos(qj), np.sin(2 * qj), np.cos(2 * qj)], axis=1)
+
+    def summary(self, ctx: EffectContext, nominal: KinematicModel) -> dict[str, float]:
+        s1, c1, s2, c2 = self.params  # a sin x + b cos x = hypot(a, b) sin(x + atan2(b, a))
+        return {
+            "amplitude1_mdeg": float(np.rad2deg(np.hypot(s1, c1)) * 1e3),
+            "phase1_deg": float(np.rad2deg(np.arctan2(c1, s1))),
+            "amplitude2_mdeg": float(np.rad2deg(np.hypot(s2, c2)) * 1e3),
+            "phase2_deg": float(np.rad2deg(np.arctan2(c2, s2))),
+        }
 
     def driver(self, ctx: EffectContext, nominal: KinematicModel) -> tuple[str, np.ndarray]:
         return f"joint {self.joint} angle (deg)", np.rad2deg(ctx.q[:, self.joint - 1])
@@ -235,6 +256,9 @@ class Backlash(Effect):
     def regressors(self, ctx: EffectContext, nominal: KinematicModel) -> np.ndarray:
         signs = approach_signs(ctx.q) if ctx.approach is None else ctx.approach
         return signs[:, self.joint - 1 : self.joint]
+
+    def summary(self, ctx: EffectContext, nominal: KinematicModel) -> dict[str, float]:
+        return {"half_gap_mdeg": float(np.rad2deg(self.params[0]) * 1e3)}
 
     def driver(self, ctx: EffectContext, nominal: KinematicModel) -> tuple[str, np.ndarray]:
         return f"joint {self.joint} approach direction (sign)", self.regressors(ctx, nominal)[:, 0]
@@ -278,6 +302,10 @@ class ThermalExpansion(_Thermal):
     family = "thermal_expansion"
     kind = "growth"
 
+    def summary(self, ctx: EffectContext, nominal: KinematicModel) -> dict[str, float]:
+        unit = "K" if self.state["driver"] == "temperature_c" else "s"
+        return {f"expansion_ppm_per_{unit}": float(self.params[0] * 1e6)}
+
     def coefficient_names(self) -> list[str]:
         return ["per_unit"]
 
@@ -285,6 +313,10 @@ class ThermalExpansion(_Thermal):
 class ThermalDrift(_Thermal):
     family = "thermal_drift"
     kind = "offset"
+
+    def summary(self, ctx: EffectContext, nominal: KinematicModel) -> dict[str, float]:
+        unit = "K" if self.state["driver"] == "temperature_c" else "s"
+        return {f"drift_um_per_{unit}": float(np.linalg.norm(self.params) * 1e6)}
 
     def coefficient_names(self) -> list[str]:
         return ["vx", "vy", "vz"]

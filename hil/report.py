@@ -118,11 +118,16 @@ def render_html(report: DiagnosisReport) -> str:
         parts.append("<p>None: no candidate effect improved the held-out error significantly.</p>")
     for step in report.steps:
         j = step.effect["joint"]
-        parts.append(f"<h3>{html.escape(step.effect['name'])}{f' (joint {j})' if j else ''}</h3>")
+        verb = "removed: " if step.action == "removed" else ""
+        parts.append(f"<h3>{verb}{html.escape(step.effect['name'])}{f' (joint {j})' if j else ''}</h3>")
         parts.append(
             f"<p>held-out RMS {step.heldout_before['rms_mm']:.4f} &rarr; {step.heldout_after['rms_mm']:.4f} mm, "
             f"max {step.heldout_before['max_mm']:.4f} &rarr; {step.heldout_after['max_mm']:.4f} mm</p>"
         )
+        if step.summary:
+            parts.append(
+                "<p>" + html.escape(", ".join(f"{k} = {v:.4g}" for k, v in step.summary.items())) + "</p>"
+            )
         parts.append(_table(step.parameters, ["name", "value", "std", "free"]))
         if step.merged:
             parts.append(

@@ -89,7 +89,9 @@ def run(args: argparse.Namespace) -> int:
     print(report.conclusion)
     for step in report.steps:
         j = step.effect["joint"]
-        print(f"  {step.effect['name']}{f' joint {j}' if j else ''}:")
+        verb = "removed " if step.action == "removed" else ""
+        figures = ", ".join(f"{k} {v:.4g}" for k, v in step.summary.items())
+        print(f"  {verb}{step.effect['name']}{f' joint {j}' if j else ''}: {figures}")
         for p in step.parameters:
             std = "merged" if p["std"] is None else f"+- {p['std']:.2e}"
             print(f"    {p['name']:<34} {p['value']: .4e} {std}")
