@@ -70,6 +70,9 @@ def test_other_effect_families_are_named(config, family):
     if family in ("backlash", "cyclic"):
         true_joints = set(truth["config"][f"{family}_joints"])
         assert {e["joint"] for e in report.effects_added} <= true_joints
+    if family == "backlash":  # the half gaps themselves, found from the row order alone
+        for eff in report.model.effects:
+            assert eff.params[0] == pytest.approx(truth["backlash_half_gap_rad"][eff.joint - 1], rel=0.05)
     if family == "thermal_expansion":
         k = report.model.effects[0].params[0]
         assert k == pytest.approx(truth["config"]["expansion_per_k"], rel=0.1)
