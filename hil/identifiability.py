@@ -86,6 +86,7 @@ def analyse(
     basis: list[np.ndarray] = []
     kept_idx: list[int] = []
     dropped_idx: list[int] = []
+    distinct: dict[int, float] = {}  # part of a dropped column orthogonal to the kept ones
     for i in idx:
         c = Js[:, i]
         if raw_norm[i] == 0:
@@ -100,6 +101,7 @@ def analyse(
             kept_idx.append(i)
         else:
             dropped_idx.append(i)
+            distinct[i] = float(np.linalg.norm(r))
     kept_idx.sort()
     report = IdentifiabilityReport(
         names=list(names),
@@ -122,7 +124,9 @@ def analyse(
         report.dropped.append(
             {
                 "name": names[i],
-                "reason": "a linear combination of parameters kept before it (the data cannot separate them)",
+                "reason": f"only {distinct[i]:.1e} of its effect on the data is distinct from parameters kept "
+                f"before it (threshold {tol:g}): the data cannot separate them",
+                "distinct": distinct[i],
                 "merged_into": merged,
             }
         )
