@@ -10,6 +10,8 @@ Every family is written from its physics, independently of any simulator:
   coefficient per lever arm; the arms the data cannot tell apart are merged by an SVD at fit time.
 - ``cyclic`` (joint j): 1st and 2nd harmonic of the joint angle (gear eccentricity, encoder mounting).
 - ``backlash`` (joint j): half the gap times the sign of the joint's approach direction (row order).
+- ``joint_scale`` (joint j): the joint turns (1 + s) times what its encoder says (a transmission ratio
+  or encoder scale error), i.e. an offset ``s * q``.
 - ``thermal_expansion``: every link length (a, d) grows by ``k * dT``; the tool does not.
 - ``thermal_drift``: the tracker sees the base translate by ``v * dT`` (floor, stand or tracker drift).
 
@@ -33,6 +35,7 @@ EFFECT_FAMILIES: tuple[str, ...] = (
     "gravity_compliance",
     "cyclic",
     "backlash",
+    "joint_scale",
     "thermal_expansion",
     "thermal_drift",
 )
@@ -264,6 +267,22 @@ class Backlash(Effect):
         return f"joint {self.joint} approach direction (sign)", self.regressors(ctx, nominal)[:, 0]
 
 
+class JointScale(Effect):
+    family = "joint_scale"
+
+    def coefficient_names(self) -> list[str]:
+        return ["scale"]
+
+    def regressors(self, ctx: EffectContext, nominal: KinematicModel) -> np.ndarray:
+        return ctx.q[:, self.joint - 1 : self.joint]
+
+    def summary(self, ctx: EffectContext, nominal: KinematicModel) -> dict[str, float]:
+        return {"scale_ppm": float(self.params[0] * 1e6)}
+
+    def driver(self, ctx: EffectContext, nominal: KinematicModel) -> tuple[str, np.ndarray]:
+        return f"joint {self.joint} angle (deg)", np.rad2deg(ctx.q[:, self.joint - 1])
+
+
 def _thermal_driver(ctx: EffectContext) -> tuple[str, np.ndarray] | None:
     """Temperature when it varies, else time; None when the data has neither."""
     if ctx.temperature_c is not None and np.nanstd(ctx.temperature_c) > 0.02:
@@ -323,9 +342,9 @@ class ThermalDrift(_Thermal):
 
 
 _CLASSES: dict[str, type[Effect]] = {
-    c.family: c for c in (GravityCompliance, Cyclic, Backlash, ThermalExpansion, ThermalDrift)
+    c.family: c for c in (GravityCompliance, Cyclic, Backlash, JointScale, ThermalExpansion, ThermalDrift)
 }
-JOINT_FAMILIES = ("gravity_compliance", "cyclic", "backlash")
+JOINT_FAMILIES = ("gravity_compliance", "cyclic", "backlash", "joint_scale")
 
 
 def make_effect(family: str, joint: int | None = None) -> Effect:
