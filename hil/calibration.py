@@ -349,6 +349,14 @@ def _calibrate(
     pre_free = np.array([n.startswith(("base_", "tool")) for n in model.param_names])
     model = solve_ridge_igg3(model, problem, pre_free, robust=False, max_iter=10).model
     report = identify(model, problem, tol)
+    n_free = int(report.keep_mask.sum())
+    if 3 * len(df) < 2 * n_free + 10:
+        raise ValueError(
+            f"{len(df)} points give {3 * len(df)} equations for {n_free} identifiable parameters; measure at "
+            f"least {int(np.ceil((2 * n_free + 10) / 3))} well-spread poses (a 100-200 mm grid gives hundreds)"
+        )
+    if solver not in ("ridge", "lm"):
+        raise ValueError(f"unknown solver '{solver}'; choose 'ridge' or 'lm'")
     if solver == "ridge":
         result = solve_ridge_igg3(model, problem, report.keep_mask, ridge=ridge)
     elif solver == "lm":

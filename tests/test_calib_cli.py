@@ -81,3 +81,6 @@ def test_bad_input_gets_a_clear_error(campaign):
     assert out.returncode == 2 and "z_mm" in out.stderr
     out = _hil("diagnose", "train.csv", "--json", "r.json", "--families", "gravity,cyclic", cwd=d)
     assert out.returncode == 2 and "gravity" in out.stderr
+    pd.read_csv(d / "train.csv").head(12).to_csv(d / "tiny.csv", index=False)
+    out = _hil("calibrate", "tiny.csv", "-o", "x.json", cwd=d)
+    assert out.returncode == 2 and "well-spread poses" in out.stderr

@@ -55,7 +55,11 @@ def run(args: argparse.Namespace) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     nominal = get_robot(args.robot, use_beta=not args.no_beta)
-    results = {s: calibrate(df, nominal, solver=s, tool_guess_m=tool) for s in ("ridge", "lm")}
+    try:
+        results = {s: calibrate(df, nominal, solver=s, tool_guess_m=tool) for s in ("ridge", "lm")}
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     print(results["ridge"].identifiability.summary())
     for res in results.values():
         flagged = np.flatnonzero(res.outliers)

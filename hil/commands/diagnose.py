@@ -5,9 +5,12 @@ from __future__ import annotations
 import argparse
 import sys
 
+import numpy as np
+import pandas as pd
+
 from hil.commands.calibrate import parse_mm_vector
 from hil.dataset import DatasetError, load_dataset
-from hil.diagnosis import run_diagnosis
+from hil.diagnosis import DiagnosisReport, run_diagnosis
 from hil.effects import EFFECT_FAMILIES
 from hil.robots import ROBOT_NAMES, get_robot
 
@@ -52,8 +55,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from hil.report import write_html, write_json
-
     try:
         df = load_dataset(args.data)
         val = load_dataset(args.validate) if args.validate else None
@@ -73,7 +74,27 @@ def run(args: argparse.Namespace) -> int:
     except (DatasetError, ValueError, argparse.ArgumentTypeError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    report = run_diagnosis(
+    if len(df) < 8 * args.folds:
+        print(f"error: {len(df)} points are too few for {args.folds}-fold cross-validation", file=sys.stderr)
+        return 2
+    try:
+        report = _diagnose(args, df, val, tool, families, mpe)
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    _print_and_write(args, report)
+    return 0
+
+
+def _diagnose(
+    args: argparse.Namespace,
+    df: pd.DataFrame,
+    val: pd.DataFrame | None,
+    tool: np.ndarray | None,
+    families: tuple[str, ...],
+    mpe: tuple[float, ...],
+) -> DiagnosisReport:
+    return run_diagnosis(
         df,
         get_robot(args.robot, use_beta=not args.no_beta),
         df_validate=val,
@@ -85,6 +106,11 @@ def run(args: argparse.Namespace) -> int:
         tracker_mpe_m=mpe,
         compare_maps=args.compare_maps,
     )
+
+
+def _print_and_write(args: argparse.Namespace, report: DiagnosisReport) -> None:
+    from hil.report import write_html, write_json
+
     print(report.table())
     print(report.conclusion)
     for step in report.steps:
@@ -103,4 +129,3 @@ def run(args: argparse.Namespace) -> int:
     if args.output:
         report.model.save(args.output)
         print(f"model written to {args.output}")
-    return 0
