@@ -236,13 +236,10 @@ def approach_signs(q: np.ndarray, tol_rad: float = 2e-5) -> np.ndarray:
     A joint that did not move keeps its previous sign; before its first motion the sign is 0 (unknown).
     """
     step = np.diff(q, axis=0, prepend=q[:1])
-    signs = np.zeros_like(q)
-    last = np.zeros(q.shape[1])
-    for i in range(q.shape[0]):  # a running state: inherently sequential, cheap
-        moved = np.abs(step[i]) > tol_rad
-        last = np.where(moved, np.sign(step[i]), last)
-        signs[i] = last
-    return signs
+    rows = np.arange(q.shape[0])[:, None]
+    last_move = np.maximum.accumulate(np.where(np.abs(step) > tol_rad, rows, -1), axis=0)  # forward fill
+    signs = np.sign(np.take_along_axis(step, np.maximum(last_move, 0), axis=0))
+    return np.where(last_move >= 0, signs, 0.0)
 
 
 class Backlash(Effect):
