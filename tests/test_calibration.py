@@ -123,3 +123,11 @@ def test_residual_map_warns_outside_the_measured_volume():
     np.testing.assert_allclose(m.predict(np.zeros((1, 6)), g[5:6]), field(g[5:6]))  # on a vertex
     with pytest.warns(UserWarning, match="outside the measured volume"):
         m.predict(np.zeros((1, 6)), np.array([[0.9, 0.1, 0.1]]))
+
+
+def test_approach_signs_follow_the_row_order():
+    from hil.effects import approach_signs
+
+    q = np.array([[0, 0], [1, 0], [1, 0], [0.5, 1e-9], [0.5, 2], [0.7, 2]], float)
+    expected = [[0, 0], [1, 0], [1, 0], [-1, 0], [-1, 1], [1, 1]]  # a joint at rest keeps its side
+    np.testing.assert_array_equal(approach_signs(q), expected)
