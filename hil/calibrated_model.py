@@ -174,13 +174,18 @@ class CalibratedModel:
         q_seed: np.ndarray | None = None,
         smr: int | None = None,
         iterations: int = 20,
+        t_s: np.ndarray | None = None,
+        temperature_c: np.ndarray | None = None,
+        approach: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Joints to command so that the model puts the SMR at the targets (tracker frame, m).
 
         Gauss-Newton on the joints from a seed (N, n): the joints the controller would use for the target
         (e.g. its IK of a pose), or by default the calibrated geometry's position IK (`hil.ik.solve_ik`).
         Position only: 3 equations in 6 joints, so the minimum-norm joint step is taken and the seed's
-        orientation is kept to first order. Returns (q (N, n), remaining model error (N,) m).
+        orientation is kept to first order. Thermal effects need `t_s` / `temperature_c` (N,) at the
+        time of the move; backlash needs `approach` (N, n) signs of the final motion of each joint (0 =
+        unknown). Returns (q (N, n), remaining model error (N,) m).
         """
         targets = np.atleast_2d(np.asarray(targets_tracker, float))
         sid = sorted(self.tools)[0] if smr is None else int(smr)
@@ -190,7 +195,7 @@ class CalibratedModel:
         q = np.atleast_2d(np.asarray(q_seed, float)).copy()
         smr_rows = np.full(len(q), sid)
         for _ in range(iterations):
-            ctx = EffectContext(q=q, p_flange_tool=self._row_tools(smr_rows))
+            ctx = EffectContext(q, t_s, temperature_c, None, self._row_tools(smr_rows), approach)
             p, J = self.jacobian_ctx(ctx, smr_rows)
             theta_cols = [self.kinematic.param_names.index(f"theta{j + 1}") for j in range(q.shape[1])]
             Jq = J[:, :, theta_cols]
@@ -199,7 +204,7 @@ class CalibratedModel:
                 break
             JJt = Jq @ np.swapaxes(Jq, 1, 2) + 1e-12 * np.eye(3)
             q = q + np.einsum("nji,nj->ni", Jq, np.linalg.solve(JJt, err[..., None])[..., 0])
-        ctx = EffectContext(q=q, p_flange_tool=self._row_tools(smr_rows))
+        ctx = EffectContext(q, t_s, temperature_c, None, self._row_tools(smr_rows), approach)
         return q, np.linalg.norm(targets - self.predict_ctx(ctx), axis=1)
 
     # ----- persistence --------------------------------------------------------------------------
