@@ -16,6 +16,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from fakes.physics import chain_frames, gravity_torques
+from hil.jsonable import to_jsonable
 from hil.kinematics import KinematicModel
 from hil.robots import get_robot
 
@@ -418,7 +419,7 @@ class SimulatedCell:
         return {
             "robot": self.robot_name,
             "seed": self.config.seed,
-            "config": _jsonable(asdict(self.config)),
+            "config": to_jsonable(asdict(self.config)),
             "parameter_names": names,
             "parameter_errors": dict(
                 zip(names, (self._true_model.params - nominal.params).tolist(), strict=True)
@@ -434,16 +435,5 @@ class SimulatedCell:
             "backlash_half_gap_rad": self._backlash.tolist() if self.config.backlash else None,
             "time_s": self._time_s,
             "commanded_q": self._q_cmd.tolist(),
-            "smr_locations": {str(k): _jsonable(asdict(v)) for k, v in self._smr_locations.items()},
+            "smr_locations": {str(k): to_jsonable(asdict(v)) for k, v in self._smr_locations.items()},
         }
-
-
-def _jsonable(value: object) -> object:
-    """Convert tuples and numpy scalars inside dicts/lists into plain JSON types."""
-    if isinstance(value, dict):
-        return {str(k): _jsonable(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, np.generic):
-        return value.item()
-    return value

@@ -17,6 +17,7 @@ import pandas as pd
 from hil.dataset import joints_rad, points_m, smr_ids
 from hil.effects import Effect, EffectContext, effect_from_dict, growth_direction, tool_points_rows
 from hil.ik import solve_ik
+from hil.jsonable import to_jsonable
 from hil.kinematics import (
     BASE_PARAM_NAMES,
     KinematicModel,
@@ -222,9 +223,7 @@ class CalibratedModel:
         }
 
     def save(self, path: str | Path) -> None:
-        Path(path).write_text(
-            json.dumps(finite_json(self.to_dict()), indent=1, default=_json_default, allow_nan=False)
-        )
+        Path(path).write_text(json.dumps(to_jsonable(self.to_dict()), indent=1, allow_nan=False))
 
     @classmethod
     def from_dict(cls, data: dict) -> CalibratedModel:
@@ -290,28 +289,3 @@ def initial_model(
     p_base = model.predict_ctx(ctx)
     T, _ = fit_rigid(p_base, points_m(df))
     return replace(model, T_tracker_base=T)
-
-
-def _json_default(o: object) -> object:
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, np.generic):
-        return o.item()
-    raise TypeError(f"cannot write {type(o).__name__} to JSON")
-
-
-def finite_json(value: object) -> object:
-    """A JSON-ready copy of nested data with NaN and infinities as None (strict JSON)."""
-    if isinstance(value, dict):
-        return {k: finite_json(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [finite_json(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return finite_json(value.tolist())
-    if isinstance(value, (float, np.floating)):
-        return float(value) if np.isfinite(value) else None
-    if isinstance(value, np.integer):
-        return int(value)
-    if isinstance(value, np.bool_):
-        return bool(value)
-    return value

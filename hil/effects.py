@@ -28,6 +28,7 @@ from typing import ClassVar
 import numpy as np
 import pandas as pd
 
+from hil.jsonable import to_jsonable
 from hil.kinematics import KinematicModel, forward_kinematics, link_frames, tool_points
 
 # Names used in reports and model files (the documented vocabulary).
@@ -145,7 +146,7 @@ class Effect:
             "joint": self.joint,
             "params": [float(v) for v in self.params],
             "param_names": self.param_names,
-            "state": _jsonable(self.state),
+            "state": to_jsonable(self.state),
         }
 
 
@@ -398,15 +399,3 @@ def tool_points_rows(model: KinematicModel, q: np.ndarray, p_flange_tool_rows: n
         return tool_points(model, q, p_flange_tool_rows)
     T = forward_kinematics(model, q)
     return np.einsum("nij,nj->ni", T[:, :3, :3], p_flange_tool_rows) + T[:, :3, 3]
-
-
-def _jsonable(value: object) -> object:
-    if isinstance(value, dict):
-        return {k: _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, np.generic):
-        return value.item()
-    return value

@@ -10,8 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from hil.calibrated_model import finite_json
 from hil.diagnosis import DiagnosisReport
+from hil.jsonable import to_jsonable
 
 
 def write_json(report: DiagnosisReport, path: str | Path) -> None:
@@ -19,16 +19,8 @@ def write_json(report: DiagnosisReport, path: str | Path) -> None:
 
     Strict JSON: NaN and infinities (e.g. a candidate that was never cross-validated) become null.
     """
-    text = json.dumps(finite_json(report.to_dict()), indent=1, default=_default, allow_nan=False)
+    text = json.dumps(to_jsonable(report.to_dict()), indent=1, allow_nan=False)
     Path(path).write_text(text)
-
-
-def _default(o: object) -> object:
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, np.generic):
-        return o.item()
-    raise TypeError(f"cannot write {type(o).__name__} to JSON")
 
 
 def _png(fig) -> str:
