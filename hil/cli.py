@@ -7,7 +7,7 @@ import importlib
 import sys
 
 # Each module defines `register(subparsers)`, which adds its parser and sets `func(args) -> int`.
-COMMAND_MODULES: tuple[str, ...] = ("hil.commands.demo",)
+COMMAND_MODULES: tuple[str, ...] = ("hil.commands.demo", "hil.commands.sim")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -1,0 +1,969 @@
+"""Fake Universal Robots controller that the unmodified ur-rtde client drives over loopback.
+
+Servers: RTDE (30004), Dashboard (29999) and the script ports (30001-30003, which accept programs).
+It recognises ur-rtde's uploaded control program and re-implements its register handshake in Python
+(`ControlProgram` gives the register offset, realtime commands and injected paths). Motion uses the
+nominal model (the controller's beliefs); the joints it commands go to the simulated cell, and
+`actual_q` comes back from the cell's encoders. The caller's clock calls `tick(dt)` every cycle.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import collections
+import contextlib
+import logging
+import time
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from fakes import rtde_wire as w
+from fakes.fast_kinematics import ArmKinematics, pose_from_transform
+from fakes.ur_dashboard import serve_dashboard
+from fakes.ur_motion import JointMove, LinearMove, Motion, PathMove, SpeedMove, StopMove, track_pose
+from fakes.ur_rtde_server import RtdeConnection
+from fakes.ur_script import ControlProgram, UnknownProgramError, split_programs
+from hil.kinematics import forward_kinematics, geometric_jacobian
+from hil.se3 import invert, pose_error, pose_to_transform, transform_to_pose
+
+if TYPE_CHECKING:
+    from fakes.cell import SimulatedCell
+
+log = logging.getLogger(__name__)
+
+RTDE_PORT, DASHBOARD_PORT, PRIMARY_PORT, SECONDARY_PORT, REALTIME_PORT = 30004, 29999, 30001, 30002, 30003
+
+ROBOT_MODES = {
+    -1: "NO_CONTROLLER",
+    0: "DISCONNECTED",
+    1: "CONFIRM_SAFETY",
+    2: "BOOTING",
+    3: "POWER_OFF",
+    4: "POWER_ON",
+    5: "IDLE",
+    6: "BACKDRIVE",
+    7: "RUNNING",
+}
+POWER_OFF, IDLE, RUNNING = 3, 5, 7
+SAFETY_MODES = {
+    1: "NORMAL",
+    2: "REDUCED",
+    3: "PROTECTIVE_STOP",
+    4: "RECOVERY",
+    5: "SAFEGUARD_STOP",
+    6: "SYSTEM_EMERGENCY_STOP",
+    7: "ROBOT_EMERGENCY_STOP",
+    8: "VIOLATION",
+    9: "FAULT",
+}
+NORMAL, PROTECTIVE_STOP, ROBOT_EMERGENCY_STOP = 1, 3, 7
+STOPPING, STOPPED, PLAYING, PAUSING, PAUSED, RESUMING = 0, 1, 2, 3, 4, 5
+PROTECTIVE_STOP_UNLOCK_DELAY_S = 5.0  # simulated seconds before a protective stop may be unlocked
+
+
+@dataclass(frozen=True)
+class Personality:
+    """Controller generation: version replies, control frequency and remote-control gating."""
+
+    name: str
+    version: tuple[int, int, int, int]
+    frequency_hz: float
+    release_date: str
+
+    @property
+    def is_eseries(self) -> bool:
+        return self.version[0] >= 5
+
+    @property
+    def polyscope_reply(self) -> str:
+        return f"URSoftware {'.'.join(map(str, self.version))} ({self.release_date})"
+
+
+PERSONALITIES: dict[str, Personality] = {
+    "cb3": Personality("cb3", (3, 15, 7, 106331), 125.0, "Sep 29 2021"),
+    "eseries": Personality("eseries", (5, 11, 1, 108318), 500.0, "Mar 22 2021"),
+}
+
+
+def default_personality(robot: str) -> str:
+    """e-Series robots (ur5e, ur10e, ...) get the e-Series personality, the others CB3."""
+    return "eseries" if robot.lower().rstrip().endswith("e") else "cb3"
+
+
+@dataclass
+class PlannedFault:
+    """A fault armed to fire during a future move (or at once), see `UrController.inject_fault`."""
+
+    kind: str
+    at_move: int  # absolute move number (1-based) it fires in; 0 = at once
+    fraction: float  # of the move's duration
+    duration_s: float  # for stalls and latency spikes (wall seconds)
+
+
+FAULT_KINDS = ("protective_stop", "emergency_stop", "drop_rtde", "stop_script", "stall", "latency")
+
+
+class UrController:
+    """One fake UR controller bound to one loopback address and one simulated cell."""
+
+    def __init__(
+        self,
+        cell: SimulatedCell,
+        host: str = "127.0.0.1",
+        personality: str | None = None,
+        script_start_delay_s: float = 0.05,
+        remote_control: bool = True,
+        powered: bool = True,
+        ports: dict[str, int] | None = None,
+    ):
+        self.cell = cell
+        self.model = cell.nominal
+        self.host = host
+        name = personality or default_personality(cell.config.robot)
+        if name not in PERSONALITIES:
+            raise ValueError(f"unknown personality '{name}'; choose one of {', '.join(PERSONALITIES)}")
+        self.personality = PERSONALITIES[name]
+        self.period_s = 1.0 / self.personality.frequency_hz
+        self.ports = {
+            "rtde": RTDE_PORT,
+            "dashboard": DASHBOARD_PORT,
+            "primary": PRIMARY_PORT,
+            "secondary": SECONDARY_PORT,
+            "realtime": REALTIME_PORT,
+            **(ports or {}),
+        }
+        self.script_start_delay_s = script_start_delay_s
+        self.remote_control = remote_control
+        self.serial_number = "20235500" + f"{cell.config.seed % 1000:03d}"
+        self.robot_model_name = cell.config.robot.upper().rstrip("E")
+        self.loaded_program = ""
+        self._servers: list[asyncio.AbstractServer] = []
+        self._tasks: set[asyncio.Task] = set()
+        self._rtde: list[RtdeConnection] = []
+        self._input_owner: dict[str, RtdeConnection] = {}
+        self._output_recipe_counter = 0
+        # robot and safety state
+        self.robot_mode = RUNNING if powered else POWER_OFF
+        self.safety_mode = NORMAL
+        self.runtime_state = STOPPED
+        self._protective_stop_time = -1e9
+        # registers and IO
+        self.in_int = [0] * 48
+        self.in_double = [0.0] * 48
+        self.in_bits = 0
+        self.out_int = [0] * 48
+        self.out_double = [0.0] * 48
+        self.digital_out = 0
+        self.analog_out = [0.0, 0.0]
+        self.speed_slider = 1.0
+        self.payload = (0.0, (0.0, 0.0, 0.0))
+        self._last_ii0_write = time.monotonic()
+        # program and motion
+        self.program: ControlProgram | None = None
+        self.programs_received = 0
+        self.refused_programs: list[str] = []
+        self._start_at: float | None = None
+        self._executing = False
+        self._blocking: str | None = None  # the sync command waiting for its motion to end
+        self.motion: Motion | None = None
+        self._motion_is_async = False
+        self._async_op_id = 0
+        self._async_counter = 0
+        self._watchdog_period_s = 0.0
+        self.q_cmd = np.asarray(cell.commanded_q, float)
+        self.qd_cmd = np.zeros(6)
+        self.actual_q = np.asarray(cell.encoder_joints(), float)
+        self._q_history: collections.deque[np.ndarray] = collections.deque(maxlen=1000)
+        self.T_flange_tcp = np.eye(4)
+        self.moves_started = 0
+        self._move_started_at = 0.0
+        self._still_ticks = 0
+        # faults
+        self._planned: list[PlannedFault] = []
+        self._stall_until = 0.0
+        self._latency_until = 0.0
+        self._held: list[tuple[RtdeConnection, list]] = []
+        self.fault_log: list[dict] = []
+        self.tick_count = 0
+        self.kin = ArmKinematics(self.model)
+        self._outputs = self._output_getters()
+        self._target_pose_cache: tuple = (None, None)
+
+    # ---------------------------------------------------------------- servers
+    async def start(self) -> None:
+        """Listen on every port of this controller's address."""
+        specs = [
+            (self.ports["rtde"], self._serve_rtde),
+            (self.ports["dashboard"], self._serve_dashboard),
+            (self.ports["primary"], self._serve_script),
+            (self.ports["secondary"], self._serve_script),
+            (self.ports["realtime"], self._serve_script),
+        ]
+        try:
+            for port, handler in specs:
+                self._servers.append(await asyncio.start_server(handler, self.host, port, reuse_address=True))
+        except OSError:
+            await self.close()
+            raise
+
+    async def close(self) -> None:
+        """Stop listening and drop every client."""
+        for server in self._servers:
+            server.close()
+        for conn in list(self._rtde):
+            conn.abort()
+        for task in list(self._tasks):
+            task.cancel()
+        for server in self._servers:
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(server.wait_closed(), 1.0)
+        self._servers.clear()
+
+    def _track(self, coro) -> None:
+        task = asyncio.current_task()
+        if task is not None:
+            self._tasks.add(task)
+            task.add_done_callback(self._tasks.discard)
+
+    async def _serve_rtde(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        self._track(None)
+        _nodelay(writer)
+        conn = RtdeConnection(self, reader, writer)
+        self._rtde.append(conn)
+        await conn.serve()
+
+    async def _serve_dashboard(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        self._track(None)
+        _nodelay(writer)
+        await serve_dashboard(self, reader, writer)
+
+    async def _serve_script(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        """Accept programs; complete ones are started, the client never reads anything back."""
+        self._track(None)
+        buffer = ""
+        try:
+            while True:
+                chunk = await reader.read(65536)
+                if not chunk:
+                    break
+                buffer += chunk.decode("utf-8", errors="replace")
+                if len(buffer) > 4_000_000:
+                    log.error("script port: more than 4 MB without a complete program; dropping")
+                    break
+                programs, buffer = split_programs(buffer)
+                for text in programs:
+                    self.receive_program(text)
+        except ConnectionError:
+            pass
+        finally:
+            with contextlib.suppress(Exception):
+                writer.close()
+
+    # ---------------------------------------------------------------- RTDE bookkeeping
+    def next_output_recipe_id(self) -> int:
+        self._output_recipe_counter = self._output_recipe_counter % 255 + 1
+        return self._output_recipe_counter
+
+    def claim_inputs(self, conn: RtdeConnection, names: list[str]) -> set[str]:
+        """Reserve input variables for a connection; returns the names another connection holds."""
+        taken = {n for n in names if self._input_owner.get(n, conn) is not conn and not n.endswith("_mask")}
+        if not taken:
+            for n in names:
+                self._input_owner[n] = conn
+        return taken
+
+    def rtde_disconnected(self, conn: RtdeConnection) -> None:
+        if conn in self._rtde:
+            self._rtde.remove(conn)
+        for name in [n for n, c in self._input_owner.items() if c is conn]:
+            del self._input_owner[name]
+
+    def apply_inputs(self, values: dict[str, Any]) -> None:
+        """Apply one client data package to registers and IO."""
+        for name, value in values.items():
+            if name.startswith("input_int_register_"):
+                index = int(name.rsplit("_", 1)[1])
+                self.in_int[index] = int(value)
+                if self.program is not None and index == self.program.offset:
+                    self._last_ii0_write = time.monotonic()
+            elif name.startswith("input_double_register_"):
+                self.in_double[int(name.rsplit("_", 1)[1])] = float(value)
+            elif name.startswith("input_bit_register_"):
+                bit = int(name.rsplit("_", 1)[1])
+                self.in_bits = self.in_bits | (1 << bit) if value else self.in_bits & ~(1 << bit)
+        if "standard_digital_output_mask" in values:
+            self._set_bits(
+                0, values["standard_digital_output_mask"], values.get("standard_digital_output", 0)
+            )
+        if "configurable_digital_output_mask" in values:
+            self._set_bits(
+                8, values["configurable_digital_output_mask"], values.get("configurable_digital_output", 0)
+            )
+        if "tool_digital_output_mask" in values:
+            self._set_bits(16, values["tool_digital_output_mask"], values.get("tool_digital_output", 0))
+        if values.get("speed_slider_mask"):
+            self.speed_slider = min(1.0, max(0.0, float(values.get("speed_slider_fraction", 1.0))))
+        mask = values.get("standard_analog_output_mask", 0)
+        for i in range(2):
+            if mask & (1 << i) and f"standard_analog_output_{i}" in values:
+                self.analog_out[i] = float(values[f"standard_analog_output_{i}"])
+
+    def _set_bits(self, shift: int, mask: int, value: int) -> None:
+        mask, value = int(mask) << shift, int(value) << shift
+        self.digital_out = (self.digital_out & ~mask) | (value & mask)
+
+    # ---------------------------------------------------------------- state names
+    @property
+    def robot_mode_name(self) -> str:
+        return ROBOT_MODES.get(self.robot_mode, "UNKNOWN")
+
+    @property
+    def safety_mode_name(self) -> str:
+        return SAFETY_MODES.get(self.safety_mode, "UNDEFINED_SAFETY_MODE")
+
+    @property
+    def program_running(self) -> bool:
+        return self.runtime_state == PLAYING
+
+    @property
+    def program_state_name(self) -> str:
+        return {PLAYING: "PLAYING", PAUSED: "PAUSED"}.get(self.runtime_state, "STOPPED")
+
+    @property
+    def program_name(self) -> str:
+        return f"{self.program.name}.urp" if self.program else "<unnamed>"
+
+    def robot_status_bits(self) -> int:
+        powered = self.robot_mode in (4, 5, 6, RUNNING)
+        return int(powered) | (int(self.program_running) << 1) | (int(powered) << 3)
+
+    def safety_status_bits(self) -> int:
+        bits = {NORMAL: 1 << 0, PROTECTIVE_STOP: 1 << 2, ROBOT_EMERGENCY_STOP: (1 << 6) | (1 << 7)}
+        value = bits.get(self.safety_mode, 0)
+        if self.safety_mode != NORMAL:
+            value |= 1 << 10
+        return value
+
+    # ---------------------------------------------------------------- dashboard actions
+    def dashboard_power_on(self) -> str:
+        if self.safety_mode == ROBOT_EMERGENCY_STOP:
+            return "Failed to execute: power on"  # [A] wording
+        if self.robot_mode == POWER_OFF:
+            self.robot_mode = IDLE
+        return "Powering on"
+
+    def dashboard_power_off(self) -> None:
+        self._halt_program(STOPPED)
+        self.robot_mode = POWER_OFF
+
+    def dashboard_brake_release(self) -> str:
+        if self.robot_mode == IDLE and self.safety_mode == NORMAL:
+            self.robot_mode = RUNNING
+        return "Brake releasing"
+
+    def dashboard_unlock_protective_stop(self) -> str:
+        if self.safety_mode == PROTECTIVE_STOP:
+            if self.cell.time_s - self._protective_stop_time < PROTECTIVE_STOP_UNLOCK_DELAY_S:
+                return (
+                    "Cannot unlock protective stop until 5s after occurrence. "
+                    "Always inspect cause of protective stop before unlocking"
+                )
+            self.safety_mode = NORMAL
+        return "Protective stop releasing"
+
+    def dashboard_restart_safety(self) -> str:
+        if self.safety_mode in (PROTECTIVE_STOP, 9):
+            self.safety_mode = NORMAL
+            self.robot_mode = POWER_OFF
+            self._halt_program(STOPPED)
+        return "Restarting safety"
+
+    def dashboard_play(self) -> str:
+        if self.program is None or self.safety_mode != NORMAL or self.robot_mode != RUNNING:
+            return "Failed to execute: play"
+        if self.runtime_state == PAUSED:
+            self.runtime_state = PLAYING
+            self._script_reset_loop()
+        elif self.runtime_state == STOPPED:
+            self._start_program_now()
+        return "Starting program"
+
+    def dashboard_stop(self) -> None:
+        self._halt_program(STOPPED)
+
+    def dashboard_pause(self) -> str:
+        if self.runtime_state != PLAYING:
+            return "Failed to execute: pause"
+        self._halt_program(PAUSED)
+        return "Pausing program"
+
+    # ---------------------------------------------------------------- programs
+    def receive_program(self, text: str) -> None:
+        """A complete program arrived on a script port: start it if it is ur-rtde's control program."""
+        self.programs_received += 1
+        try:
+            program = ControlProgram.parse(text)
+        except UnknownProgramError as exc:
+            log.error("REFUSED an unknown program (%d bytes): %s", len(text), exc)
+            self.refused_programs.append(str(exc))
+            return
+        if self.personality.is_eseries and not self.remote_control:
+            log.error("refused a program: the robot is in local mode")
+            self.refused_programs.append("local mode")
+            return
+        if self.robot_mode != RUNNING or self.safety_mode != NORMAL:
+            log.warning(
+                "program not started: robot mode %s, safety mode %s",
+                self.robot_mode_name,
+                self.safety_mode_name,
+            )
+            self.refused_programs.append(f"robot {self.robot_mode_name} / safety {self.safety_mode_name}")
+            return
+        self._halt_program(STOPPED)
+        self.program = program
+        self._start_at = time.monotonic() + self.script_start_delay_s
+
+    def _start_program_now(self) -> None:
+        self._start_at = None
+        self.runtime_state = PLAYING
+        self._script_reset_loop()
+
+    def _script_reset_loop(self) -> None:
+        """What the control script does on (re)start: async progress finished, then ready."""
+        self._executing = False
+        self._blocking = None
+        self._async_register(-1)
+        self._oi(0, 1)
+
+    def _halt_program(self, new_state: int) -> None:
+        self._start_at = None
+        if self.runtime_state in (PLAYING, PAUSED):
+            self.runtime_state = new_state
+        if new_state == STOPPED:
+            self.runtime_state = STOPPED
+        self._blocking = None
+        if self.motion is not None and not isinstance(self.motion, StopMove):
+            self._stop_motion(decel=None)
+
+    # ---------------------------------------------------------------- registers
+    def _ii(self, k: int) -> int:
+        return self.in_int[self.program.offset + k]
+
+    def _id(self, k: int) -> float:
+        return self.in_double[self.program.offset + k]
+
+    def _ids(self, start: int, count: int = 6) -> np.ndarray:
+        base = self.program.offset + start
+        return np.array(self.in_double[base : base + count], float)
+
+    def _oi(self, k: int, value: int) -> None:
+        offset = self.program.offset if self.program else 0
+        self.out_int[offset + k] = int(value)
+
+    def _od(self, values) -> None:
+        offset = self.program.offset if self.program else 0
+        for i, v in enumerate(np.asarray(values, float).reshape(-1)):
+            self.out_double[offset + i] = float(v)
+
+    def _async_register(self, value: int) -> None:
+        """The script's write_async_progress_register: 0 starts an op, >= 0 progress, < 0 finished."""
+        self._async_counter = self._async_counter + 1 if self._async_counter < 127 else 0
+        if value == 0:
+            self._async_op_id = self._async_op_id + 1 if self._async_op_id < 127 else 0
+        reg = self._async_counter * 65536 + self._async_op_id * 16777216
+        if value >= 0:
+            reg += min(value, 32767) + 32768
+        self._oi(2, reg)
+
+    # ---------------------------------------------------------------- clock
+    def tick(self, dt: float) -> None:
+        """One controller cycle of dt simulated seconds: script, motion, cell, then data out."""
+        self.tick_count += 1
+        now = time.monotonic()
+        if self._start_at is not None and now >= self._start_at:
+            self._start_program_now()
+        if self.runtime_state == PLAYING and self.program is not None:
+            self._check_watchdog(now)
+            self._script_cycle()
+        self._advance_motion(dt)
+        self.cell.set_commanded_joints(self.q_cmd)
+        self.actual_q = np.asarray(self.cell.encoder_joints(), float)
+        self._q_history.appendleft(self.actual_q)
+        self._publish(now)
+
+    def _check_watchdog(self, now: float) -> None:
+        if self._watchdog_period_s > 0 and now - self._last_ii0_write > self._watchdog_period_s:
+            log.warning(
+                "RTDE watchdog: no command register write for %.3f s; stopping", now - self._last_ii0_write
+            )
+            self._watchdog_period_s = 0.0
+            self._halt_program(STOPPED)
+
+    def _advance_motion(self, dt: float) -> None:
+        motion = self.motion
+        if motion is None or self.safety_mode != NORMAL or self.robot_mode != RUNNING:
+            self.qd_cmd = np.zeros(6)
+            self._still_ticks += 1
+            return
+        self._still_ticks = 0
+        self._fire_planned_faults(motion)
+        if self.motion is not motion:  # a fault replaced or ended it
+            return
+        segment = getattr(motion, "i", None)
+        try:
+            q, qd = motion.advance(dt * self.speed_slider, self.q_cmd)
+        except ValueError as exc:
+            log.error("motion aborted: %s", exc)
+            q, qd = self.q_cmd, np.zeros(6)
+            motion.finished = True
+        self.q_cmd, self.qd_cmd = np.asarray(q, float), np.asarray(qd, float) * self.speed_slider
+        if isinstance(motion, PathMove) and motion.i != segment and not motion.finished:
+            self._async_register(motion.progress)  # signal_async_progress(waypoint index)
+        if motion.finished:
+            self.motion = None
+            self.qd_cmd = np.zeros(6)
+            if self._motion_is_async:
+                self._motion_is_async = False
+                self._async_register(-1)
+            if self._blocking:
+                self._blocking = None
+                self._oi(0, 2)
+                self._executing = True
+
+    # ---------------------------------------------------------------- script emulation
+    def _script_cycle(self) -> None:
+        if self._blocking:
+            return
+        cmd = self._ii(0)
+        program = self.program
+        if cmd in program.realtime_commands:
+            self._realtime(cmd)
+            self._oi(0, 1)
+        elif cmd == 0:
+            self._executing = False
+            self._oi(0, 1)
+        elif not self._executing:
+            if cmd == 255:
+                self._halt_program(STOPPED)
+                return
+            try:
+                blocking = self._command(cmd)
+            except ValueError as exc:
+                log.error("command %d rejected: %s", cmd, exc)
+                blocking = False
+            if self.runtime_state != PLAYING:
+                return
+            if blocking:
+                self._blocking = f"cmd {cmd}"
+            else:
+                self._oi(0, 2)
+                self._executing = True
+
+    def _command(self, cmd: int) -> bool:
+        """Execute a regular command; True if it blocks until its motion ends."""
+        if cmd in (1, 2, 3, 4):
+            return self._move(cmd)
+        if cmd == 45:
+            return self._path_move()
+        if cmd in (15, 16):  # speedStop, servoStop
+            return self._stop_motion(decel=self._id(0) or 10.0, blocking=True)
+        if cmd in (33, 34):  # stopL, stopJ
+            decel = self._id(0)
+            if cmd == 33:
+                decel = self._joint_decel_for_tool(decel)
+            return self._stop_motion(decel=decel or 2.0, blocking=not self._ii(1), is_async=bool(self._ii(1)))
+        if cmd == 29:
+            self.T_flange_tcp = pose_to_transform(self._ids(0))
+        elif cmd == 40:
+            self._od(transform_to_pose(self.T_flange_tcp))
+        elif cmd == 43:
+            self._od(self._tcp_pose(self.actual_q, self.T_flange_tcp))
+        elif cmd == 44:
+            self._od(self._tcp_pose(self._ids(0), pose_to_transform(self._ids(6))))
+        elif cmd in (30, 46, 60, 61):
+            self._inverse_kinematics(cmd)
+        elif cmd == 47:
+            self._oi(1, int(self.motion is None and self._still_ticks > 1))
+        elif cmd in (36, 37):
+            q = (
+                self._ids(0)
+                if cmd == 37
+                else self._ik(pose_to_transform(self._ids(0)) @ invert(self.T_flange_tcp))
+            )
+            self._oi(1, int(q is not None and bool(self.model.within_limits(q))))
+        elif cmd == 31:
+            self.trigger_protective_stop("triggerProtectiveStop")
+        elif cmd == 39:
+            self._od(transform_to_pose(pose_to_transform(self._ids(0)) @ pose_to_transform(self._ids(6))))
+        elif cmd == 28:
+            self._od(self._target_waypoint())
+        elif cmd in (17, 65):
+            self.payload = (self._id(0), tuple(self._ids(1, 3)))
+        elif cmd == 35:
+            frequency = self._id(0)
+            self._watchdog_period_s = 1.0 / frequency if frequency > 0 else 0.0
+            self._last_ii0_write = time.monotonic()
+        elif cmd in (54, 64):
+            self._oi(1, 0)
+        # every other command (payload, gravity, teach mode, freedrive, force settings, ...) is
+        # acknowledged without a modelled effect: it still signals done, never a silent stall
+        return False
+
+    def _realtime(self, cmd: int) -> None:
+        if cmd == 9:  # speedJ
+            self._speed(self._ids(0), self._id(6))
+        elif cmd == 10:  # speedL: tool speed mapped through the nominal Jacobian
+            J = geometric_jacobian(self.model, self.q_cmd[None])[0]
+            self._speed(np.linalg.lstsq(J, self._ids(0), rcond=None)[0], self._id(6))
+        elif cmd == 11:  # servoJ
+            self._servo(self._ids(0))
+        elif cmd == 24:  # servoL
+            target = pose_to_transform(self._ids(0)) @ invert(self.T_flange_tcp)
+            self._servo(track_pose(self.model, self.q_cmd, target, iterations=5))
+        elif cmd == 26:
+            self._od([self.period_s])
+        elif cmd == 27:
+            steps = max(0, min(self._ii(1), len(self._q_history) - 1))
+            self._od(self._q_history[steps] if self._q_history else self.actual_q)
+        elif cmd == 38:
+            self._od(np.zeros(6))
+        elif cmd == 58:
+            self._od(pose_from_transform(self.kin.fk(self.actual_q)))
+        elif cmd == 25:
+            self._oi(1, 0)
+
+    def _speed(self, qd: np.ndarray, accel: float) -> None:
+        accel = accel if accel > 0 else 1.4
+        if isinstance(self.motion, SpeedMove):
+            self.motion.retarget(qd, accel)
+        else:
+            self._start_motion(SpeedMove(self.qd_cmd, qd, accel), is_async=False, count=False)
+
+    def _servo(self, q: np.ndarray) -> None:
+        self.motion = None
+        self.qd_cmd = (q - self.q_cmd) / self.period_s
+        self.q_cmd = np.asarray(q, float)
+
+    def _move(self, cmd: int) -> bool:
+        target, v, a, is_async = self._ids(0), self._id(6), self._id(7), bool(self._ii(1))
+        if cmd == 1:
+            motion: Motion = JointMove(self.q_cmd, self._checked_joints(target), v, a)
+        elif cmd == 2:
+            q = self._ik(pose_to_transform(target) @ invert(self.T_flange_tcp))
+            if q is None:
+                raise ValueError(f"moveJ_IK: no inverse kinematics solution for {np.round(target, 4)}")
+            motion = JointMove(self.q_cmd, q, v, a)
+        elif cmd == 3:
+            motion = LinearMove(
+                self.model, self.q_cmd, pose_to_transform(target) @ invert(self.T_flange_tcp), v, a
+            )
+        else:
+            T_flange = forward_kinematics(self.model, self._checked_joints(target)[None])[0]
+            motion = LinearMove(self.model, self.q_cmd, T_flange, v, a)
+        self._start_motion(motion, is_async)
+        return not is_async
+
+    def _path_move(self) -> bool:
+        segments = self.program.path
+        if not segments:
+            return False
+        self._start_motion(PathMove(segments, self.q_cmd, self._path_segment), bool(self._ii(1)))
+        return not bool(self._ii(1))
+
+    def _path_segment(self, segment: tuple, q_start: np.ndarray) -> Motion:
+        kind, target, v, a, _r, _index = segment
+        target = np.asarray(target, float)
+        if kind.endswith("_joints"):
+            q = self._checked_joints(target)
+            T = forward_kinematics(self.model, q[None])[0]
+        else:
+            T = pose_to_transform(target) @ invert(self.T_flange_tcp)
+            q = self._ik(T, q_start)
+            if q is None and kind.startswith("movej"):
+                raise ValueError(f"path waypoint {np.round(target, 4)} has no inverse kinematics solution")
+        if kind.startswith("movej"):
+            return JointMove(q_start, q, v, a)
+        return LinearMove(self.model, q_start, T, v, a)
+
+    def _checked_joints(self, q: np.ndarray) -> np.ndarray:
+        q = np.asarray(q, float)
+        if not np.all(np.isfinite(q)) or not bool(self.model.within_limits(q)):
+            raise ValueError(f"joint target outside the limits: {np.round(q, 4)}")
+        return q
+
+    def _kill_async_move(self) -> None:
+        """stop_async_move: kill a running async move, keeping its velocity for a following stop."""
+        if self.motion is not None and self._motion_is_async:
+            self.motion = None
+            self._motion_is_async = False
+            self._async_register(-1)
+
+    def _start_motion(self, motion: Motion, is_async: bool, count: bool = True) -> None:
+        self._kill_async_move()
+        self.motion = motion
+        self._motion_is_async = is_async
+        if is_async:
+            self._async_register(0)
+        if count:
+            self.moves_started += 1
+            self._move_started_at = self.cell.time_s
+
+    def _stop_motion(self, decel: float | None, blocking: bool = False, is_async: bool = False) -> bool:
+        """Decelerate the current motion to rest (decel None: stop dead). True if the caller waits."""
+        self._kill_async_move()
+        if decel is None or not np.any(self.qd_cmd):
+            self.motion = None
+            self.qd_cmd = np.zeros(6)
+            return False
+        self.motion = StopMove(self.qd_cmd, decel)
+        if is_async:  # the script's stop thread reports through the async progress register
+            self._motion_is_async = True
+            self._async_register(0)
+        return blocking
+
+    def _joint_decel_for_tool(self, tool_decel: float) -> float:
+        """A joint deceleration that stops the tool at about tool_decel (m/s^2)."""
+        J = geometric_jacobian(self.model, self.q_cmd[None])[0]
+        tool_speed = float(np.linalg.norm(J[:3] @ self.qd_cmd))
+        joint_speed = float(np.max(np.abs(self.qd_cmd)))
+        if tool_speed < 1e-9 or tool_decel <= 0:
+            return tool_decel
+        return tool_decel * joint_speed / tool_speed
+
+    def _target_waypoint(self) -> np.ndarray:
+        motion = self.motion
+        if isinstance(motion, JointMove):
+            return self._tcp_pose(motion.q_end, self.T_flange_tcp)
+        if isinstance(motion, LinearMove):
+            return transform_to_pose(motion.T_end @ self.T_flange_tcp)
+        return self._tcp_pose(self.q_cmd, self.T_flange_tcp)
+
+    # ---------------------------------------------------------------- kinematics (nominal model)
+    def _tcp_pose(self, q: np.ndarray, T_flange_tcp: np.ndarray) -> list[float]:
+        return pose_from_transform(self.kin.fk(np.asarray(q, float)) @ T_flange_tcp)
+
+    def _ik(self, T_base_flange: np.ndarray, q_seed: np.ndarray | None = None) -> np.ndarray | None:
+        """Joints reaching the flange pose on the nominal model, nearest the seed; None if unreachable."""
+        seed = self.q_cmd if q_seed is None else np.asarray(q_seed, float)
+        try:
+            from hil.ik import solve_ik
+        except ImportError:  # the batch solver is not there yet: Newton from the seed
+            q = track_pose(self.model, seed, T_base_flange, iterations=60)
+            T = forward_kinematics(self.model, q[None])[0]
+            ok = float(np.max(np.abs(pose_error(T, T_base_flange)))) < 1e-9
+            return q if ok and bool(self.model.within_limits(q)) else None
+        result = solve_ik(self.model, T_base_flange[None], q_seed=seed[None])
+        return result.q[0] if bool(result.success[0]) else None
+
+    def _inverse_kinematics(self, cmd: int) -> None:
+        target = pose_to_transform(self._ids(0)) @ invert(self.T_flange_tcp)
+        seed = self._ids(6) if cmd in (30, 61) and np.any(self._ids(6)) else None
+        q = self._ik(target, seed)
+        if cmd in (60, 61):
+            self._oi(1, int(q is not None))
+        else:
+            self._od(q if q is not None else np.zeros(6))
+
+    # ---------------------------------------------------------------- faults
+    def inject_fault(
+        self, kind: str, at_move: int | None = None, fraction: float = 0.5, duration_s: float = 3.0
+    ) -> dict:
+        """Arm a fault: at once (at_move None) or `fraction` of the way through the at_move-th next move."""
+        if kind not in FAULT_KINDS:
+            raise ValueError(f"unknown fault '{kind}'; choose one of {', '.join(FAULT_KINDS)}")
+        if at_move is None:
+            self._fire(PlannedFault(kind, 0, 0.0, duration_s))
+            return {"fired": True}
+        if at_move < 1:
+            raise ValueError("at_move counts moves from now: 1 is the next move")
+        fault = PlannedFault(kind, self.moves_started + int(at_move), float(fraction), float(duration_s))
+        self._planned.append(fault)
+        return {"armed": True, "move": fault.at_move}
+
+    def _fire_planned_faults(self, motion: Motion) -> None:
+        if not self._planned:
+            return
+        elapsed = self.cell.time_s - self._move_started_at
+        duration = getattr(motion, "duration", 0.0)
+        for fault in list(self._planned):
+            if fault.at_move == self.moves_started and elapsed >= fault.fraction * duration:
+                self._planned.remove(fault)
+                self._fire(fault)
+
+    def _fire(self, fault: PlannedFault) -> None:
+        log.warning("fault injected: %s", fault.kind)
+        self.fault_log.append({"kind": fault.kind, "time_s": self.cell.time_s, "move": self.moves_started})
+        if fault.kind == "protective_stop":
+            self.trigger_protective_stop("injected")
+        elif fault.kind == "emergency_stop":
+            self.safety_mode = ROBOT_EMERGENCY_STOP
+            self.motion = None
+            self.qd_cmd = np.zeros(6)
+            self._halt_program(STOPPED)
+            self.robot_mode = POWER_OFF
+        elif fault.kind == "drop_rtde":
+            for conn in list(self._rtde):
+                conn.abort()
+        elif fault.kind == "stop_script":
+            self._halt_program(STOPPED)
+        elif fault.kind == "stall":
+            self._stall_until = time.monotonic() + fault.duration_s
+        elif fault.kind == "latency":
+            self._latency_until = time.monotonic() + fault.duration_s
+
+    def trigger_protective_stop(self, why: str) -> None:
+        log.warning("protective stop (%s)", why)
+        self.safety_mode = PROTECTIVE_STOP
+        self._protective_stop_time = self.cell.time_s
+        self.motion = None
+        self.qd_cmd = np.zeros(6)
+        if self.runtime_state == PLAYING:
+            self.runtime_state = PAUSED
+        self._blocking = None
+
+    def release_emergency_stop(self) -> None:
+        """The operator releases the e-stop button; the arm stays powered off until power on."""
+        if self.safety_mode == ROBOT_EMERGENCY_STOP:
+            self.safety_mode = NORMAL
+
+    def clear_faults(self) -> None:
+        self._planned.clear()
+        self._stall_until = self._latency_until = 0.0
+
+    # ---------------------------------------------------------------- data out
+    def _publish(self, now: float) -> None:
+        if not self._rtde:
+            return
+        if now < self._stall_until:
+            return
+        snapshot = _Snapshot(self)
+        holding = now < self._latency_until
+        if not holding and self._held:
+            for conn, values in self._held:
+                conn.send_data(values)
+            self._held.clear()
+        for conn in self._rtde:
+            if not conn.streaming or self.tick_count % conn.output_every_n_ticks:
+                continue
+            values = [snapshot[name] for name in conn.output_recipe.names]
+            if holding:
+                self._held.append((conn, values))
+            else:
+                conn.send_data(values)
+
+    def _output_getters(self) -> dict[str, Any]:
+        """Name -> zero-argument getter for every modelled output; the rest read as zeros."""
+        return {
+            "timestamp": lambda: self.cell.time_s,
+            "actual_q": lambda: self.actual_q,
+            "target_q": lambda: self.q_cmd,
+            "actual_qd": lambda: self.qd_cmd,
+            "target_qd": lambda: self.qd_cmd,
+            "actual_TCP_pose": lambda: self._tcp_pose(self.actual_q, self.T_flange_tcp),
+            "target_TCP_pose": self._target_tcp_pose,
+            "actual_TCP_speed": self._tcp_speed,
+            "target_TCP_speed": self._tcp_speed,
+            "robot_mode": lambda: self.robot_mode,
+            "safety_mode": lambda: self.safety_mode,
+            "safety_status": lambda: self.safety_mode,
+            "runtime_state": lambda: self.runtime_state,
+            "robot_status_bits": self.robot_status_bits,
+            "safety_status_bits": self.safety_status_bits,
+            "joint_mode": lambda: [253] * 6 if self.robot_mode == RUNNING else [236] * 6,
+            "joint_temperatures": lambda: [self.cell.config.ambient_c + 10.0] * 6,
+            "speed_scaling": lambda: self.speed_slider,
+            "target_speed_fraction": lambda: self.speed_slider,
+            "actual_main_voltage": lambda: 48.0,
+            "actual_robot_voltage": lambda: 48.0,
+            "actual_tool_accelerometer": lambda: (0.0, 0.0, 9.81),
+            "actual_digital_output_bits": lambda: self.digital_out,
+            "standard_analog_output0": lambda: self.analog_out[0],
+            "standard_analog_output1": lambda: self.analog_out[1],
+            "payload": lambda: self.payload[0],
+            "payload_cog": lambda: self.payload[1],
+            "actual_execution_time": lambda: 0.2,
+            "input_bit_registers0_to_31": lambda: self.in_bits & 0xFFFFFFFF,
+            "input_bit_registers32_to_63": lambda: (self.in_bits >> 32) & 0xFFFFFFFF,
+        }
+
+    def output_value(self, name: str) -> Any:
+        """Current value of one RTDE output variable."""
+        getter = self._outputs.get(name)
+        if getter is not None:
+            return getter()
+        if name.startswith("output_int_register_"):
+            return self.out_int[int(name.rsplit("_", 1)[1])]
+        if name.startswith("output_double_register_"):
+            return self.out_double[int(name.rsplit("_", 1)[1])]
+        if name.startswith("input_int_register_"):
+            return self.in_int[int(name.rsplit("_", 1)[1])]
+        if name.startswith("input_double_register_"):
+            return self.in_double[int(name.rsplit("_", 1)[1])]
+        if name.startswith("input_bit_register_"):
+            return bool(self.in_bits >> int(name.rsplit("_", 1)[1]) & 1)
+        return _zero(w.output_type(name) or "DOUBLE")
+
+    def _target_tcp_pose(self) -> list[float]:
+        key = (self.q_cmd.tobytes(), self.T_flange_tcp.tobytes())
+        if self._target_pose_cache[0] != key:
+            self._target_pose_cache = (key, self._tcp_pose(self.q_cmd, self.T_flange_tcp))
+        return self._target_pose_cache[1]
+
+    def _tcp_speed(self) -> Any:
+        if not np.any(self.qd_cmd):
+            return (0.0,) * 6
+        return self.kin.jacobian(self.q_cmd, self.T_flange_tcp[:3, 3]) @ self.qd_cmd
+
+    # ---------------------------------------------------------------- introspection
+    def state(self) -> dict:
+        """JSON-friendly snapshot for the control channel."""
+        return {
+            "personality": self.personality.name,
+            "version": ".".join(map(str, self.personality.version)),
+            "robot_mode": self.robot_mode_name,
+            "safety_mode": self.safety_mode_name,
+            "runtime_state": self.runtime_state,
+            "program": self.program.name if self.program else None,
+            "programs_received": self.programs_received,
+            "refused_programs": list(self.refused_programs),
+            "moves_started": self.moves_started,
+            "moving": self.motion is not None,
+            "commanded_q": self.q_cmd.tolist(),
+            "T_flange_tcp": self.T_flange_tcp.tolist(),
+            "rtde_clients": len(self._rtde),
+            "faults": list(self.fault_log),
+            "remote_control": self.remote_control,
+            "ticks": self.tick_count,
+        }
+
+
+class _Snapshot(dict):
+    """Output values of one tick, computed on first use and shared by every connection."""
+
+    def __init__(self, controller: UrController):
+        super().__init__()
+        self.controller = controller
+
+    def __missing__(self, name: str) -> Any:
+        value = self.controller.output_value(name)
+        self[name] = value
+        return value
+
+
+def _zero(type_name: str) -> Any:
+    width = w.TYPE_WIDTH[type_name]
+    scalar = 0.0 if "D" in type_name else 0
+    if type_name == "BOOL":
+        scalar = False
+    return scalar if width == 1 else [scalar] * width
+
+
+def _nodelay(writer: asyncio.StreamWriter) -> None:
+    import socket
+
+    sock = writer.get_extra_info("socket")
+    if sock is not None:
+        with contextlib.suppress(OSError):
+            sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
