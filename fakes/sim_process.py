@@ -13,6 +13,7 @@ import contextlib
 import errno
 import json
 import logging
+import os
 import signal
 import sys
 import time
@@ -212,6 +213,7 @@ def robot_handlers(robot: UrController) -> dict:
         "robot.clear_faults": lambda request: robot.clear_faults(),
         "robot.release_estop": lambda request: robot.release_emergency_stop(),
         "robot.set_remote_control": set_remote,
+        "robot.last_program": lambda request: robot.last_program_text,
     }
 
 
@@ -260,5 +262,8 @@ def cell_handlers(cell: SimulatedCell, clock: SimClock) -> dict:
 
 
 def main(options: SimOptions) -> int:
-    logging.basicConfig(level=logging.WARNING, format="hil sim %(levelname)s %(name)s: %(message)s")
+    logging.basicConfig(
+        level=logging.DEBUG if os.environ.get("HIL_SIM_DEBUG") else logging.WARNING,
+        format="hil sim %(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
     return asyncio.run(SimProcess(options).run())

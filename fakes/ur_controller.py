@@ -140,6 +140,7 @@ class UrController:
         self.robot_model_name = cell.config.robot.upper().rstrip("E")
         self.loaded_program = ""
         self._servers: list[asyncio.AbstractServer] = []
+        self._rtde_server: asyncio.AbstractServer | None = None
         self._tasks: set[asyncio.Task] = set()
         self._rtde: list[RtdeConnection] = []
         self._input_owner: dict[str, RtdeConnection] = {}
@@ -164,6 +165,7 @@ class UrController:
         self.program: ControlProgram | None = None
         self.programs_received = 0
         self.refused_programs: list[str] = []
+        self.last_program_text = ""
         self._start_at: float | None = None
         self._executing = False
         self._blocking: str | None = None  # the sync command waiting for its motion to end
@@ -204,6 +206,7 @@ class UrController:
         try:
             for port, handler in specs:
                 self._servers.append(await asyncio.start_server(handler, self.host, port, reuse_address=True))
+            self._rtde_server = self._servers[0]
         except OSError:
             await self.close()
             raise
@@ -403,6 +406,8 @@ class UrController:
     def receive_program(self, text: str) -> None:
         """A complete program arrived on a script port: start it if it is ur-rtde's control program."""
         self.programs_received += 1
+        self.last_program_text = text
+        log.debug("program received (%d bytes)", len(text))
         try:
             program = ControlProgram.parse(text)
         except UnknownProgramError as exc:
@@ -804,14 +809,37 @@ class UrController:
             self._halt_program(STOPPED)
             self.robot_mode = POWER_OFF
         elif fault.kind == "drop_rtde":
-            for conn in list(self._rtde):
-                conn.abort()
+            self._rtde_outage(fault.duration_s)
         elif fault.kind == "stop_script":
             self._halt_program(STOPPED)
         elif fault.kind == "stall":
             self._stall_until = time.monotonic() + fault.duration_s
         elif fault.kind == "latency":
             self._latency_until = time.monotonic() + fault.duration_s
+
+    def _rtde_outage(self, duration_s: float) -> None:
+        """Drop every RTDE client and refuse new ones for duration_s (a network outage)."""
+        for conn in list(self._rtde):
+            conn.abort()
+        server = self._rtde_server
+        if server is None:
+            return
+        server.close()
+        self._rtde_server = None
+
+        async def reopen() -> None:
+            await asyncio.sleep(duration_s)
+            try:
+                self._rtde_server = await asyncio.start_server(
+                    self._serve_rtde, self.host, self.ports["rtde"], reuse_address=True
+                )
+                self._servers.append(self._rtde_server)
+            except OSError as exc:
+                log.error("could not reopen the RTDE port after the outage: %s", exc)
+
+        task = asyncio.get_running_loop().create_task(reopen())
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
 
     def trigger_protective_stop(self, why: str) -> None:
         log.warning("protective stop (%s)", why)

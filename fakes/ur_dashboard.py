@@ -52,6 +52,7 @@ async def serve_dashboard(
             if not line:
                 continue
             reply = handle_command(controller, line)
+            log.debug("dashboard: %r -> %r", line, reply)
             writer.write((reply + "\n").encode())
             await writer.drain()
             if line.lower() == "quit":

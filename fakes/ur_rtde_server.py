@@ -68,6 +68,7 @@ class RtdeConnection:
 
     # ---- inbound --------------------------------------------------------------------------------
     async def serve(self) -> None:
+        log.info("RTDE client %s connected", self.peer)
         try:
             while not self.closed:
                 header = await self.reader.readexactly(w.HEADER.size)
@@ -81,6 +82,7 @@ class RtdeConnection:
         except (asyncio.IncompleteReadError, ConnectionError):
             pass
         finally:
+            log.info("RTDE client %s gone", self.peer)
             self.abort()
             self.controller.rtde_disconnected(self)
             with contextlib.suppress(Exception):
@@ -89,6 +91,8 @@ class RtdeConnection:
     def handle(self, message_type: int, payload: bytes) -> bool:
         """Process one request; False closes the connection (protocol violation)."""
         c = self.controller
+        if message_type != w.DATA_PACKAGE:
+            log.debug("RTDE %s: request %r (%d bytes)", self.peer, chr(message_type), len(payload))
         if message_type == w.REQUEST_PROTOCOL_VERSION:
             if len(payload) != 2:
                 return self._violation("protocol version request must carry a uint16")
@@ -142,6 +146,9 @@ class RtdeConnection:
             return
         in_use = self.controller.claim_inputs(self, names)
         if in_use:
+            log.warning(
+                "RTDE %s: input registers %s are in use by another connection", self.peer, sorted(in_use)
+            )
             types = ["IN_USE" if n in in_use else t for n, t in zip(names, types, strict=True)]
             self.send(w.CONTROL_PACKAGE_SETUP_INPUTS, bytes([0]) + ",".join(types).encode())
             return
@@ -182,5 +189,7 @@ class RtdeConnection:
                     recipe.packer.size,
                 )
                 return True
+        if log.isEnabledFor(logging.DEBUG) and len(values) < 3:
+            log.debug("RTDE %s: data recipe %d %s", self.peer, recipe.recipe_id, values)
         self.controller.apply_inputs(values)
         return True
