@@ -49,28 +49,43 @@ class ArmKinematics:
 
     def jacobian(self, q: np.ndarray, p_flange_tool: np.ndarray | None = None) -> np.ndarray:
         """Geometric Jacobian (6, n) at the tool point, rows [v; omega], base frame."""
+        return self.fk_and_jacobian(q, p_flange_tool)[1]
+
+    def fk_and_jacobian(
+        self, q: np.ndarray, p_flange_tool: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """T_base_flange and the Jacobian at the tool point from one pass over the joints."""
         frames = self.frames(q)
         T = frames[-1] @ self.T_last_flange
         p = T[:3, 3] if p_flange_tool is None else T[:3, 3] + T[:3, :3] @ p_flange_tool
-        z = np.array([F[:3, 2] for F in frames[:-1]])
-        o = np.array([F[:3, 3] for F in frames[:-1]])
-        return np.vstack([np.cross(z, p - o).T, z.T])
+        stack = np.array(frames[:-1])
+        z, o = stack[:, :3, 2], stack[:, :3, 3]
+        r = p - o
+        cross = np.column_stack(
+            [
+                z[:, 1] * r[:, 2] - z[:, 2] * r[:, 1],
+                z[:, 2] * r[:, 0] - z[:, 0] * r[:, 2],
+                z[:, 0] * r[:, 1] - z[:, 1] * r[:, 0],
+            ]
+        )
+        return T, np.vstack([cross.T, z.T])
 
 
 def rotvec_from_matrix(R: np.ndarray) -> np.ndarray:
-    """Rotation vector (axis * angle) of a 3x3 rotation matrix, stable near 0 and pi."""
-    cos_angle = max(-1.0, min(1.0, (R[0, 0] + R[1, 1] + R[2, 2] - 1.0) / 2.0))
-    angle = math.acos(cos_angle)
+    """Rotation vector (axis * angle) of a 3x3 rotation matrix, well conditioned up to and at pi."""
     w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    sin_angle = 0.5 * math.sqrt(float(w @ w))
+    cos_angle = 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1.0)
+    angle = math.atan2(sin_angle, cos_angle)
     if angle < 1e-6:
         return 0.5 * w
-    if math.pi - angle > 1e-4:
-        return w * (angle / (2.0 * math.sin(angle)))
-    # near pi: axis from the diagonal of (R + I) / 2 = n n^T
-    B = (R + np.eye(3)) / 2.0
-    k = int(np.argmax(np.diag(B)))
-    axis = B[:, k] / math.sqrt(max(B[k, k], 1e-300))
-    if np.dot(axis, w) < 0:
+    if angle < math.pi - 1e-3:
+        return w * (angle / (2.0 * sin_angle))
+    # near pi: n n^T = ((R + R^T)/2 - cos I) / (1 - cos); the sign of n follows w
+    S = (0.5 * (R + R.T) - cos_angle * np.eye(3)) / (1.0 - cos_angle)
+    k = int(np.argmax(np.diag(S)))
+    axis = S[:, k] / math.sqrt(max(S[k, k], 1e-300))
+    if float(axis @ w) < 0:
         axis = -axis
     return axis * angle
 

@@ -71,8 +71,10 @@ class SimClock:
             if delay > _WAKE_EARLY_S:
                 # the selector rounds timeouts up to whole milliseconds: wake a little early instead of late
                 await asyncio.sleep(delay - _WAKE_EARLY_S)
-            elif delay < -5 * self.period_s:  # hopelessly behind (suspended): resynchronise
-                deadline = loop.time()
+            else:
+                await asyncio.sleep(0)  # behind schedule: still let the servers read their sockets
+                if delay < -5 * self.period_s:  # hopelessly behind (suspended): resynchronise
+                    deadline = loop.time()
             now = loop.time()
             if now - deadline > 0.5 * self.period_s:
                 self.late_ticks += 1

@@ -527,6 +527,7 @@ class UrController:
         if isinstance(motion, PathMove) and motion.i != segment and not motion.finished:
             self._async_register(motion.progress)  # signal_async_progress(waypoint index)
         if motion.finished:
+            log.debug("motion %s finished", type(motion).__name__)
             self.motion = None
             self.qd_cmd = np.zeros(6)
             if self._motion_is_async:
@@ -553,6 +554,7 @@ class UrController:
             if cmd == 255:
                 self._halt_program(STOPPED)
                 return
+            log.debug("command %d", cmd)
             try:
                 blocking = self._command(cmd)
             except ValueError as exc:
@@ -723,6 +725,7 @@ class UrController:
             self.qd_cmd = np.zeros(6)
             return False
         self.motion = StopMove(self.qd_cmd, decel)
+        log.debug("stop: from %s over %.3f s", np.round(self.qd_cmd, 4), self.motion.duration)
         if is_async:  # the script's stop thread reports through the async progress register
             self._motion_is_async = True
             self._async_register(0)

@@ -11,10 +11,9 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
 
-from hil.kinematics import KinematicModel, forward_kinematics, geometric_jacobian
-from hil.se3 import pose_error
+from fakes.fast_kinematics import ArmKinematics, rotvec_from_matrix
+from hil.kinematics import KinematicModel
 
 
 @dataclass(frozen=True)
@@ -94,21 +93,21 @@ class LinearMove(Motion):
 
     def __init__(
         self,
-        model: KinematicModel,
+        model: KinematicModel | ArmKinematics,
         q_start: np.ndarray,
         T_base_flange_end: np.ndarray,
         speed: float,
         accel: float,
     ):
-        self.model = model
+        self.kin = model if isinstance(model, ArmKinematics) else ArmKinematics(model)
         self.q = np.asarray(q_start, float).copy()
-        T0 = forward_kinematics(model, self.q[None])[0]
-        self.p0, self.p1 = T0[:3, 3], T_base_flange_end[:3, 3]
-        rotations = Rotation.from_matrix(np.stack([T0[:3, :3], T_base_flange_end[:3, :3]]))
-        self.slerp = Slerp([0.0, 1.0], rotations)
+        T0 = self.kin.fk(self.q)
         self.T_end = np.asarray(T_base_flange_end, float)
+        self.p0, self.p1 = T0[:3, 3], self.T_end[:3, 3]
+        self.R0 = T0[:3, :3]
+        self.rotvec = rotvec_from_matrix(self.R0.T @ self.T_end[:3, :3])  # in the start frame
         length = float(np.linalg.norm(self.p1 - self.p0))
-        angle = float(np.linalg.norm((rotations[1] * rotations[0].inv()).as_rotvec()))
+        angle = float(np.linalg.norm(self.rotvec))
         speed, accel = _positive(speed, "speed"), _positive(accel, "acceleration")
         by_length, by_angle = Trapezoid(length, speed, accel), Trapezoid(angle, speed, accel)
         self.profile = by_length if by_length.duration >= by_angle.duration else by_angle
@@ -120,8 +119,8 @@ class LinearMove(Motion):
 
     def pose_at(self, fraction: float) -> np.ndarray:
         T = np.eye(4)
-        T[:3, :3] = self.slerp([fraction]).as_matrix()[0]
-        T[:3, 3] = self.p0 + fraction * (self.p1 - self.p0)
+        T[:3, :3] = self.T_end[:3, :3] if fraction >= 1.0 else self.R0 @ rodrigues(fraction * self.rotvec)
+        T[:3, 3] = self.p1 if fraction >= 1.0 else self.p0 + fraction * (self.p1 - self.p0)
         return T
 
     def advance(self, dt: float, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -130,7 +129,7 @@ class LinearMove(Motion):
         done = self.t >= self.profile.duration
         fraction = 1.0 if done or self.profile.distance == 0 else s / self.profile.distance
         q_prev = self.q
-        self.q = track_pose(self.model, self.q, self.pose_at(fraction), iterations=8 if done else 3)
+        self.q = track_pose(self.kin, self.q, self.pose_at(fraction), iterations=10 if done else 3)
         self.finished = done
         qd = np.zeros(6) if done or dt <= 0 else (self.q - q_prev) / dt
         return self.q.copy(), qd
@@ -207,18 +206,32 @@ class StopMove(Motion):
         return q_new, self.qd * f1
 
 
-def track_pose(model: KinematicModel, q: np.ndarray, T_target: np.ndarray, iterations: int = 3) -> np.ndarray:
+def track_pose(
+    model: KinematicModel | ArmKinematics, q: np.ndarray, T_target: np.ndarray, iterations: int = 3
+) -> np.ndarray:
     """A few damped Newton steps moving q so the nominal flange reaches T_target (tracking a nearby pose)."""
+    kin = model if isinstance(model, ArmKinematics) else ArmKinematics(model)
     q = np.asarray(q, float).copy()
     for _ in range(iterations):
-        T = forward_kinematics(model, q[None])[0]
-        err = pose_error(T, T_target)
-        if float(np.max(np.abs(err))) < 1e-12:
+        T, J = kin.fk_and_jacobian(q)
+        err = np.concatenate([T_target[:3, 3] - T[:3, 3], rotvec_from_matrix(T_target[:3, :3] @ T[:3, :3].T)])
+        if float(np.max(np.abs(err))) < 1e-13:
             break
-        J = geometric_jacobian(model, q[None])[0]
-        damping = 1e-8
-        q = q + J.T @ np.linalg.solve(J @ J.T + damping * np.eye(6), err)
+        q = q + J.T @ np.linalg.solve(J @ J.T + 1e-10 * _EYE6, err)
     return q
+
+
+_EYE6 = np.eye(6)
+
+
+def rodrigues(rotvec: np.ndarray) -> np.ndarray:
+    """Rotation matrix of a rotation vector."""
+    angle = math.sqrt(float(rotvec @ rotvec))
+    if angle < 1e-12:
+        return np.eye(3)
+    k = rotvec / angle
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + math.sin(angle) * K + (1 - math.cos(angle)) * (K @ K)
 
 
 def _positive(value: float, what: str) -> float:

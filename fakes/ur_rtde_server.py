@@ -189,7 +189,7 @@ class RtdeConnection:
                     recipe.packer.size,
                 )
                 return True
-        if log.isEnabledFor(logging.DEBUG) and len(values) < 3:
+        if log.isEnabledFor(logging.DEBUG) and (len(values) < 3 or recipe.recipe_id == 1):
             log.debug("RTDE %s: data recipe %d %s", self.peer, recipe.recipe_id, values)
         self.controller.apply_inputs(values)
         return True
