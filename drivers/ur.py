@@ -219,6 +219,20 @@ class URRobot:
                 )
             time.sleep(0.004)
 
+    def _sync_stream(self, packages: int = 2) -> None:
+        """Wait for a couple of fresh receive packages: the receive and control streams are separate
+        sockets, so right after the control side reports an event the receive side may lag a cycle."""
+        deadline = time.monotonic() + self.config.stale_after_s
+        stamp, seen = self._rx.getTimestamp(), 0
+        while seen < packages:
+            now_stamp = self._rx.getTimestamp()
+            if now_stamp != stamp:
+                stamp, seen = now_stamp, seen + 1
+            elif time.monotonic() > deadline:
+                self._check_stream()
+                return
+            time.sleep(0.0005)
+
     def _try_stop(self) -> None:
         try:
             if self._ctrl is not None and self._ctrl.isProgramRunning():
@@ -241,6 +255,7 @@ class URRobot:
             self._check()
             raise RobotError("the controller refused moveJ", "check the target and the controller log")
         self._supervise_async(op_before, _trapezoid_time(distance, speed, accel), "moveJ")
+        self._sync_stream()
         reached = float(np.max(np.abs(self._rx.getTargetQ() - q)))
         if reached > cfg.reach_tolerance_rad:
             raise RobotError(
@@ -269,6 +284,7 @@ class URRobot:
             self._check()
             raise RobotError("the controller refused moveL", "check that the pose is reachable")
         self._supervise_async(op_before, _trapezoid_time(distance, speed, accel), "moveL")
+        self._sync_stream()
 
     def stop(self) -> None:
         self._check()
