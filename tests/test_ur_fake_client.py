@@ -313,3 +313,25 @@ def test_controller_belief_differs_from_the_physical_arm(rig):
     np.testing.assert_allclose(belief[:3, 3], nominal[:3, 3], atol=1e-4)
     gap = np.linalg.norm(truth[:3, 3] - belief[:3, 3])
     assert 1e-5 < gap < 0.05  # hidden errors of the simulated cell
+
+
+@pytest.mark.timeout(30)
+def test_remote_control_gating_and_unknown_programs(rig):
+    import socket
+
+    if rig.personality == "eseries":
+        rig.cell.control.call("robot.set_remote_control", value=False)
+        try:
+            assert not rig.dash.isInRemoteControl()
+            with pytest.raises(RuntimeError, match="remote control"):
+                rtde_control.RTDEControlInterface(rig.host)
+        finally:
+            rig.cell.control.call("robot.set_remote_control", value=True)
+    before = len(rig.cell.control.call("robot.state")["refused_programs"])
+    with socket.create_connection((rig.host, 30002), timeout=2) as sock:
+        sock.sendall(b"def my_program():\n  movej([0, 0, 0, 0, 0, 0])\nend\n")
+    deadline = time.monotonic() + 2
+    while len(rig.cell.control.call("robot.state")["refused_programs"]) == before:
+        assert time.monotonic() < deadline
+        time.sleep(0.01)
+    assert rig.ctrl.isProgramRunning()  # the refused program did not replace the control program
