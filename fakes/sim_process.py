@@ -260,6 +260,7 @@ def cell_handlers(cell: SimulatedCell, clock: SimClock) -> dict:
         "time_scale": lambda request: clock.time_scale,
         "set_time_scale": set_time_scale,
         "clock.stats": clock_stats,
+        "clock.periods": lambda request: list(clock.periods),
     }
 
 
