@@ -1,0 +1,557 @@
+"""Inverse kinematics: batched Levenberg-Marquardt after Sugihara, and closed-form UR IK (8 branches).
+
+`solve_ik` is the entry point. It solves N targets at once (one 6x6 linear solve per iteration for the
+whole batch), never reports success unless the final error is below tolerance, and on UR-shaped models
+seeds the numeric solver from the analytic branch nearest a reference posture, so the answer is both
+exact for the given (possibly calibrated) model and in the expected configuration.
+
+Conventions: joints (N, 6) in rad; targets T_base_tool (N, 4, 4) or tool points (N, 3) in metres, base
+frame; errors are [dp (m), rotation vector (rad)] in the base frame, matching `geometric_jacobian`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from hil.kinematics import KinematicModel, forward_kinematics, geometric_jacobian
+from hil.se3 import invert, rot_x, rot_z
+
+# Failure vocabulary of IKResult.reason.
+REASON_OK = "ok"  # converged below tolerance, within joint limits
+REASON_UNREACHABLE = "unreachable"  # target outside the workspace (provably, or no analytic branch exists)
+REASON_JOINT_LIMITS = "joint_limits"  # a solution exists only outside the joint limits (solver stuck on one)
+REASON_SINGULAR = "singular"  # stuck at a configuration where the Jacobian loses rank
+REASON_MAX_ITER = "max_iter"  # did not converge within the iteration budget of every attempt
+REASONS: tuple[str, ...] = (
+    REASON_OK,
+    REASON_UNREACHABLE,
+    REASON_JOINT_LIMITS,
+    REASON_SINGULAR,
+    REASON_MAX_ITER,
+)
+
+UR_ALPHA = np.array([np.pi / 2, 0.0, 0.0, np.pi / 2, -np.pi / 2, 0.0])
+TWO_PI = 2.0 * np.pi
+REACH_SLACK = 0.1  # a UR pose counts as unreachable only if >10 % beyond the nominal reach (cos q3, shoulder)
+LAM_MIN = 1e-8  # floor of the adaptive bias multiplier (bias = LAM_MIN * wbar near convergence)
+LAM_DOWN, LAM_UP = 0.1, 10.0  # bias multiplier after an accepted / rejected step
+
+
+@dataclass(frozen=True)
+class IKResult:
+    """Outcome per target. `q` of a failed target is the best attempt found, never to be used blindly.
+
+    reason: one of REASONS ("ok", "unreachable", "joint_limits", "singular", "max_iter").
+    error: final tool-point position error (m); rotation_error: final orientation error (rad), NaN in
+    position mode (no orientation was asked for).
+    """
+
+    q: np.ndarray  # (N, n) rad
+    success: np.ndarray  # (N,) bool
+    iterations: np.ndarray  # (N,) int, LM iterations summed over all attempts
+    reason: np.ndarray  # (N,) str
+    error: np.ndarray  # (N,) m
+    rotation_error: np.ndarray  # (N,) rad
+    attempts: np.ndarray  # (N,) int, seeds tried
+
+    @property
+    def success_rate(self) -> float:
+        return float(np.mean(self.success)) if len(self.success) else 1.0
+
+
+# --------------------------------------------------------------------------------------------------
+# Closed-form UR inverse kinematics
+# --------------------------------------------------------------------------------------------------
+
+
+def is_ur_like(model: KinematicModel, tol: float = 0.02) -> bool:
+    """True if the model has the UR standard-DH shape (alphas, zero a1/d2/d3/a4/a5/a6) within `tol`."""
+    if model.n_joints != 6:
+        return False
+    a, d = np.asarray(model.a), np.asarray(model.d)
+    return bool(
+        np.all(np.abs(np.asarray(model.alpha) - UR_ALPHA) < tol)
+        and np.all(np.abs(a[[0, 3, 4, 5]]) < tol)
+        and np.all(np.abs(d[[1, 2]]) < tol)
+        and np.all(np.abs(np.asarray(model.theta)) < tol)
+        and np.all(np.abs(np.asarray(model.beta)) < tol)
+    )
+
+
+def _as_transforms(T: np.ndarray, what: str) -> np.ndarray:
+    T = np.asarray(T, dtype=float)
+    if T.ndim == 2:
+        T = T[None]
+    if T.ndim != 3 or T.shape[1:] != (4, 4):
+        raise ValueError(f"{what} must be (N, 4, 4) homogeneous transforms, got shape {T.shape}")
+    if not np.all(np.isfinite(T)):
+        raise ValueError(f"{what} contains NaN or inf")
+    R = T[:, :3, :3]
+    ortho = np.abs(np.swapaxes(R, 1, 2) @ R - np.eye(3)).max(axis=(1, 2))
+    bad = np.flatnonzero((ortho > 1e-6) | (np.linalg.det(R) < 0))
+    if bad.size:
+        raise ValueError(f"{what}[{bad[0]}] has a rotation part that is not a proper rotation matrix")
+    return T
+
+
+def ur_analytic_ik(
+    model: KinematicModel, T_base_flange: np.ndarray, slack: float = 1e-9
+) -> tuple[np.ndarray, np.ndarray]:
+    """All 8 closed-form IK branches of a UR-shaped arm: (q (N, 8, 6) rad in (-pi, pi], valid (N, 8)).
+
+    Uses d1, a2, a3, d4, d5, d6 and the theta offsets of `model` and ignores its small errors (beta,
+    alpha deviations): exact on a nominal UR, approximate (a seed) on a calibrated one.
+    Branch index = 4*shoulder + 2*wrist + elbow (each bit picks one of the two solutions).
+    Invalid branches (target out of reach of that branch) are NaN. `slack` (dimensionless, on cos q3 and
+    on the shoulder offset ratio) is how far beyond reach a target may be and still give the nearest
+    (stretched) posture. At a wrist singularity (q5 = 0 or pi) q6 is set to 0 and q4 takes up the rest.
+    """
+    q, overshoot = _ur_branches(model, T_base_flange)
+    valid = overshoot <= slack
+    q[~valid] = np.nan
+    return q, valid
+
+
+def _ur_branches(model: KinematicModel, T_base_flange: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Closed-form branches, stretched where out of reach: (q (N, 8, 6), overshoot (N, 8) >= 0, 0 = exact)."""
+    if not is_ur_like(model):
+        raise ValueError(f"{model.name} is not a UR-shaped arm (standard DH alphas pi/2,0,0,pi/2,-pi/2,0)")
+    T = _as_transforms(T_base_flange, "T_base_flange") @ invert(np.asarray(model.T_last_flange, float))
+    N = T.shape[0]
+    d1, d4, d5, d6 = model.d[0], model.d[3], model.d[4], model.d[5]
+    a2, a3 = model.a[1], model.a[2]
+    R, p = T[:, :3, :3], T[:, :3, 3]
+    z6 = R[:, :, 2]
+    p5 = p - d6 * z6  # origin of frame 5, which lies at offset d4 along the joint-2 axis z1
+
+    q = np.empty((N, 8, 6))
+    overshoot = np.empty((N, 8))
+    r2 = p5[:, 0] ** 2 + p5[:, 1] ** 2
+    # Shoulder: z1 = (sin q1, -cos q1, 0) and p5 . z1 = d4  =>  r sin(q1 - phi) = d4.
+    shoulder_over = np.maximum(1.0 - np.sqrt(r2) / abs(d4), 0.0)
+    ratio = np.clip(d4 / np.sqrt(np.maximum(r2, 1e-300)), -1.0, 1.0)
+    phi = np.arctan2(p5[:, 1], p5[:, 0])
+    for sh in range(2):
+        q1 = phi + (np.arcsin(ratio) if sh == 0 else np.pi - np.arcsin(ratio))
+        c1, s1 = np.cos(q1), np.sin(q1)
+        x1 = np.stack([c1, s1, np.zeros(N)], 1)
+        y1 = np.broadcast_to([0.0, 0.0, 1.0], (N, 3))
+        z1 = np.stack([s1, -c1, np.zeros(N)], 1)
+        # Wrist: z6 . z1 = cos q5.
+        c5 = np.clip(np.einsum("ni,ni->n", z6, z1), -1.0, 1.0)
+        for wr in range(2):
+            q5 = np.arccos(c5) * (1.0 if wr == 0 else -1.0)
+            s5 = np.sin(q5)
+            # x6 . z1 = cos q6 sin q5 and y6 . z1 = -sin q6 sin q5.
+            xz = np.einsum("ni,ni->n", R[:, :, 0], z1)
+            yz = np.einsum("ni,ni->n", R[:, :, 1], z1)
+            singular = np.abs(s5) < 1e-12
+            s5_safe = np.where(singular, 1.0, s5)
+            q6 = np.where(singular, 0.0, np.arctan2(-yz / s5_safe, xz / s5_safe))
+            # Rotation of frame 4: R04 = R06 (Rz(q5) Rx(-pi/2) Rz(q6))^T; R04 = R01 Rz(q234) Rx(pi/2).
+            R46 = rot_z(q5) @ rot_x(-np.pi / 2) @ rot_z(q6)
+            R04 = R @ np.swapaxes(R46, 1, 2)
+            R01 = np.stack([x1, y1, z1], axis=2)
+            M = np.swapaxes(R01, 1, 2) @ R04 @ rot_x(-np.pi / 2)
+            q234 = np.arctan2(M[:, 1, 0], M[:, 0, 0])
+            # Planar 2-link problem for joints 2, 3 in the arm plane (x1, y1).
+            p4 = p5 - d5 * R04[:, :, 2]
+            w = p4 - np.array([0.0, 0.0, d1]) - d4 * z1
+            u = np.einsum("ni,ni->n", w, x1)
+            v = w[:, 2]
+            c3 = (u**2 + v**2 - a2**2 - a3**2) / (2.0 * a2 * a3)
+            elbow_over = np.maximum(np.abs(c3) - 1.0, 0.0)
+            c3 = np.clip(c3, -1.0, 1.0)
+            for el in range(2):
+                q3 = np.arccos(c3) * (1.0 if el == 0 else -1.0)
+                q2 = np.arctan2(v, u) - np.arctan2(a3 * np.sin(q3), a2 + a3 * np.cos(q3))
+                q4 = q234 - q2 - q3
+                b = 4 * sh + 2 * wr + el
+                sol = np.stack([q1, q2, q3, q4, q5, q6], 1) - np.asarray(model.theta)
+                q[:, b] = _wrap_pi(sol)
+                overshoot[:, b] = np.maximum(shoulder_over, elbow_over)
+    return q, overshoot
+
+
+def _wrap_pi(q: np.ndarray) -> np.ndarray:
+    """Angles wrapped into (-pi, pi]."""
+    return np.pi - np.mod(np.pi - q, TWO_PI)
+
+
+def nearest_equivalent(
+    model: KinematicModel, q: np.ndarray, q_ref: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Shift each joint of q (..., n) by multiples of 2 pi to lie nearest q_ref while inside the limits.
+
+    Returns (q_shifted, ok) where ok (...) is False if some joint has no equivalent inside its limits.
+    """
+    q = np.asarray(q, dtype=float)
+    q_ref = np.broadcast_to(np.asarray(q_ref, dtype=float), q.shape)
+    lo, hi = model.joint_limits[:, 0], model.joint_limits[:, 1]
+    k0 = np.round((q_ref - q) / TWO_PI)
+    cands = q[..., None] + TWO_PI * (k0[..., None] + np.array([-1.0, 0.0, 1.0]))  # (..., n, 3)
+    inside = (cands >= lo[:, None] - 1e-12) & (cands <= hi[:, None] + 1e-12)
+    dist = np.where(inside, np.abs(cands - q_ref[..., None]), np.inf)
+    pick = np.argmin(np.nan_to_num(dist, nan=np.inf), axis=-1)
+    shifted = np.take_along_axis(cands, pick[..., None], axis=-1)[..., 0]
+    ok = np.all(np.any(inside, axis=-1), axis=-1) & np.all(np.isfinite(q), axis=-1)
+    return np.clip(shifted, lo, hi), ok
+
+
+def select_nearest_branch(
+    model: KinematicModel, q_branches: np.ndarray, valid: np.ndarray, q_ref: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Pick, per target, the valid branch (2 pi-shifted into the limits) nearest q_ref (Euclidean).
+
+    q_branches (N, B, n), valid (N, B), q_ref (n,) or (N, n).
+    Returns (q (N, n), branch index (N,), found (N,)); rows without any usable branch are NaN.
+    """
+    q_branches = np.asarray(q_branches, dtype=float)
+    N, B, n = q_branches.shape
+    ref = np.broadcast_to(np.asarray(q_ref, dtype=float), (N, n))[:, None, :]
+    shifted, in_limits = nearest_equivalent(model, q_branches, np.broadcast_to(ref, (N, B, n)))
+    usable = np.asarray(valid, bool) & in_limits
+    dist = np.where(usable, np.linalg.norm(np.nan_to_num(shifted - ref, nan=np.inf), axis=2), np.inf)
+    idx = np.argmin(dist, axis=1)
+    found = np.any(usable, axis=1)
+    q = shifted[np.arange(N), idx]
+    q[~found] = np.nan
+    return q, idx, found
+
+
+def project_to_limits(model: KinematicModel, q: np.ndarray) -> np.ndarray:
+    """Bring joints (N, n) inside the limits: a joint beyond a limit is first shifted by 2 pi (same
+    pose, revolute joint) if that lands inside, else clamped to the limit."""
+    lo, hi = model.joint_limits[:, 0], model.joint_limits[:, 1]
+    q = np.array(q, dtype=float)
+    down = q - TWO_PI
+    up = q + TWO_PI
+    q = np.where((q > hi) & (down >= lo), down, q)
+    q = np.where((q < lo) & (up <= hi), up, q)
+    return np.clip(q, lo, hi)
+
+
+def random_joints(model: KinematicModel, size: int, rng: np.random.Generator) -> np.ndarray:
+    """Uniform random joints (size, n) within the limits, each joint drawn from one turn at most
+    (a 2 pi window centred in its range), as wider draws only add equivalent postures."""
+    lo, hi = model.joint_limits[:, 0], model.joint_limits[:, 1]
+    mid = 0.5 * (lo + hi)
+    half = np.minimum(0.5 * (hi - lo), np.pi)
+    return rng.uniform(mid - half, mid + half, size=(size, model.n_joints))
+
+
+def default_home(model: KinematicModel) -> np.ndarray:
+    """A reasonable reference posture: UR working pose (elbow up, tool down); zeros (clipped) otherwise."""
+    if is_ur_like(model):
+        home = np.array([0.0, -np.pi / 2, np.pi / 2, -np.pi / 2, -np.pi / 2, 0.0])
+    else:
+        home = np.zeros(model.n_joints)
+    return np.clip(home, model.joint_limits[:, 0], model.joint_limits[:, 1])
+
+
+def reach_bound(model: KinematicModel, tool_offset_m: float = 0.0) -> float:
+    """Upper bound on the distance from the base origin to any tool point (triangle inequality)."""
+    links = np.hypot(np.asarray(model.a, float), np.asarray(model.d, float)).sum()
+    return float(links + np.linalg.norm(np.asarray(model.T_last_flange)[:3, 3]) + tool_offset_m)
+
+
+# --------------------------------------------------------------------------------------------------
+# Levenberg-Marquardt (Sugihara)
+# --------------------------------------------------------------------------------------------------
+
+
+def rotation_log(R: np.ndarray) -> np.ndarray:
+    """Rotation vectors (k, 3) of rotation matrices (k, 3, 3); same as se3.pose_error's rotation part
+    (exact near identity, ~1e-13 rad near pi) without scipy's per-call overhead in the LM loop."""
+    s = 0.5 * np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], axis=1)
+    c = 0.5 * (R[:, 0, 0] + R[:, 1, 1] + R[:, 2, 2] - 1.0)
+    sn = np.linalg.norm(s, axis=1)
+    angle = np.arctan2(sn, c)
+    rv = s * np.where(sn > 1e-12, angle / np.maximum(sn, 1e-300), 1.0)[:, None]
+    near_pi = (sn <= 1e-5) & (c < 0)
+    if np.any(near_pi):  # axis from the symmetric part, R + R^T + 2 I ~ 4 n n^T near pi
+        Rn = R[near_pi]
+        B = 0.25 * (Rn + np.swapaxes(Rn, 1, 2)) + 0.5 * np.eye(3)
+        col = np.argmax(np.einsum("kii->ki", B), axis=1)
+        axis = np.take_along_axis(B, col[:, None, None], axis=2)[:, :, 0]
+        axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+        axis *= np.where(np.einsum("ki,ki->k", axis, s[near_pi]) < 0, -1.0, 1.0)[:, None]
+        rv[near_pi] = angle[near_pi, None] * axis
+    return rv
+
+
+@dataclass
+class _Problem:
+    model: KinematicModel
+    mode: str
+    targets: np.ndarray  # (N,4,4) T_base_tool or (N,3)
+    T_flange_tool: np.ndarray  # (4,4)
+    weights: np.ndarray  # (m,) diagonal of W_E
+    wbar: float
+    tol_position: float
+    tol_rotation: float
+
+    def residual(self, q: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        """Error e (k, m) taking the current tool to the target, for targets `rows`."""
+        T = forward_kinematics(self.model, q) @ self.T_flange_tool
+        if self.mode == "pose":
+            target = self.targets[rows]
+            dp = target[:, :3, 3] - T[:, :3, 3]
+            return np.concatenate([dp, rotation_log(target[:, :3, :3] @ np.swapaxes(T[:, :3, :3], 1, 2))], 1)
+        return self.targets[rows] - T[:, :3, 3]
+
+    def jacobian(self, q: np.ndarray) -> np.ndarray:
+        J = geometric_jacobian(self.model, q, self.T_flange_tool[:3, 3])
+        return J if self.mode == "pose" else J[:, :3]
+
+    def converged(self, e: np.ndarray) -> np.ndarray:
+        ok = np.linalg.norm(e[:, :3], axis=1) < self.tol_position
+        if self.mode == "pose":
+            ok &= np.linalg.norm(e[:, 3:], axis=1) < self.tol_rotation
+        return ok
+
+
+def _levenberg_marquardt(
+    prob: _Problem, q0: np.ndarray, rows: np.ndarray, max_iter: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Run LM on targets `rows` from seeds q0 (k, n). Returns (q, e, iterations).
+
+    Step dq = (J^T W_E J + W_N)^-1 J^T W_E e with W_N = (E + lam * wbar) I, E = 1/2 e^T W_E e
+    (Sugihara). Safeguard: a step that does not lower E is rejected and lam grows (LAM_UP); accepted
+    steps shrink it (LAM_DOWN, floor LAM_MIN), so the bias fades near the solution for fast final
+    convergence. Steps are projected onto the joint limits (wrapped by 2 pi first where that lands
+    inside them). A target stops when converged or hopelessly stuck (lam > 1e12). The Jacobian is
+    re-evaluated only where a step was accepted.
+    """
+    q = project_to_limits(prob.model, q0)
+    k, n = q.shape
+    W = prob.weights
+    e = prob.residual(q, rows)
+    E = 0.5 * np.einsum("km,m,km->k", e, W, e)
+    lam = np.ones(k)
+    iters = np.zeros(k, int)
+    active = ~prob.converged(e)
+    eye = np.eye(n)
+    J = np.empty((k, len(W), n))
+    stale = np.ones(k, bool)  # Jacobian to (re)compute: q moved since it was evaluated
+    for _ in range(max_iter):
+        idx = np.flatnonzero(active)
+        if idx.size == 0:
+            break
+        upd = idx[stale[idx]]
+        if upd.size:
+            J[upd] = prob.jacobian(q[upd])
+            stale[upd] = False
+        JtW = np.swapaxes(J[idx], 1, 2) * W
+        A = JtW @ J[idx] + (E[idx] + lam[idx] * prob.wbar)[:, None, None] * eye
+        g = np.einsum("knm,km->kn", JtW, e[idx])
+        dq = np.linalg.solve(A, g[..., None])[..., 0]
+        q_new = project_to_limits(prob.model, q[idx] + dq)
+        e_new = prob.residual(q_new, rows[idx])
+        E_new = 0.5 * np.einsum("km,m,km->k", e_new, W, e_new)
+        accept = E_new < E[idx]
+        acc = idx[accept]
+        q[acc], e[acc], E[acc] = q_new[accept], e_new[accept], E_new[accept]
+        stale[acc] = True
+        lam[acc] = np.maximum(lam[acc] * LAM_DOWN, LAM_MIN)
+        rej = idx[~accept]
+        lam[rej] *= LAM_UP
+        iters[idx] += 1
+        done = prob.converged(e[idx]) | (lam[idx] > 1e12)
+        active[idx[done]] = False
+    return q, e, iters
+
+
+# --------------------------------------------------------------------------------------------------
+# Public solver
+# --------------------------------------------------------------------------------------------------
+
+
+def _check_targets(model: KinematicModel, targets: np.ndarray, mode: str) -> np.ndarray:
+    if mode == "pose":
+        return _as_transforms(targets, "targets (T_base_tool)")
+    if mode == "position":
+        t = np.asarray(targets, dtype=float)
+        if t.ndim == 1:
+            t = t[None]
+        if t.ndim != 2 or t.shape[1] != 3:
+            raise ValueError(f"position targets must be (N, 3) points in metres, got shape {t.shape}")
+        if not np.all(np.isfinite(t)):
+            raise ValueError("position targets contain NaN or inf")
+        return t
+    raise ValueError(f"mode must be 'pose' or 'position', got {mode!r}")
+
+
+def _tool_frame(mode: str, T_flange_tool: np.ndarray | None, p_flange_tool: np.ndarray | None) -> np.ndarray:
+    if T_flange_tool is not None and p_flange_tool is not None:
+        raise ValueError("give either T_flange_tool or p_flange_tool, not both")
+    T = np.eye(4)
+    if T_flange_tool is not None:
+        T = _as_transforms(T_flange_tool, "T_flange_tool")[0]
+        if np.asarray(T_flange_tool).ndim != 2:
+            raise ValueError("T_flange_tool must be a single (4, 4) transform")
+    elif p_flange_tool is not None:
+        p = np.asarray(p_flange_tool, dtype=float)
+        if p.shape != (3,) or not np.all(np.isfinite(p)):
+            raise ValueError(f"p_flange_tool must be a finite (3,) point in metres, got {p.shape}")
+        T[:3, 3] = p
+    return T
+
+
+def _analytic_flange_targets(model: KinematicModel, prob: _Problem, q_ref: np.ndarray) -> np.ndarray:
+    """T_base_flange per target for the closed form; in position mode with the reference tool orientation."""
+    if prob.mode == "pose":
+        return prob.targets @ invert(prob.T_flange_tool)
+    R_ref = (forward_kinematics(model, q_ref) @ prob.T_flange_tool)[:, :3, :3]
+    T_base_tool = np.zeros((len(prob.targets), 4, 4))
+    T_base_tool[:, :3, :3] = R_ref
+    T_base_tool[:, :3, 3] = prob.targets
+    T_base_tool[:, 3, 3] = 1.0
+    return T_base_tool @ invert(prob.T_flange_tool)
+
+
+def _analytic_seeds(
+    model: KinematicModel, T_base_flange: np.ndarray, q_ref: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """All 8 analytic branches as seeds, exact ones first, each group by distance to q_ref.
+
+    Returns (q (N, 8, n), usable (N, 8), no_branch (N,)). Out-of-reach branches are kept, stretched: on a
+    real arm, or near a wrist singularity where the closed form is ill-conditioned, the nearest stretched
+    posture is still a good seed. no_branch marks targets more than REACH_SLACK beyond nominal reach.
+    """
+    qb, overshoot = _ur_branches(model, T_base_flange)
+    N, B, n = qb.shape
+    ref = np.broadcast_to(np.asarray(q_ref, dtype=float), (N, n))[:, None, :]
+    shifted, usable = nearest_equivalent(model, qb, np.broadcast_to(ref, (N, B, n)))
+    dist = np.linalg.norm(shifted - ref, axis=2)
+    key = np.where(usable, dist + np.where(overshoot > 1e-9, 1e6, 0.0), np.inf)
+    order = np.argsort(key, axis=1, kind="stable")
+    no_branch = np.all(overshoot > REACH_SLACK, axis=1)
+    return np.take_along_axis(shifted, order[:, :, None], 1), np.take_along_axis(usable, order, 1), no_branch
+
+
+def solve_ik(
+    model: KinematicModel,
+    targets: np.ndarray,
+    q_seed: np.ndarray | None = None,
+    mode: str = "pose",
+    T_flange_tool: np.ndarray | None = None,
+    p_flange_tool: np.ndarray | None = None,
+    q_near: np.ndarray | None = None,
+    max_iter: int = 100,
+    tol_position: float = 1e-10,
+    tol_rotation: float = 1e-9,
+    length_scale: float = 0.3,
+    wbar: float = 1e-3,
+    restarts: int = 20,
+    use_analytic: bool = True,
+    rng: np.random.Generator | int | None = 0,
+) -> IKResult:
+    """Joints reaching N targets: T_base_tool (N,4,4) in "pose" mode, tool points (N,3) in "position" mode.
+
+    Seeds, tried in order on the targets still unsolved: `q_seed` (N,n) or (n,) if given; on a UR-shaped
+    model (and `use_analytic`) the analytic branches, nearest to `q_near` (default `default_home`) first;
+    `q_near` itself when no q_seed is given; then `restarts` random joint sets within limits (seed `rng`).
+    W_E weighs position (m) against rotation (rad) as 1 rad <-> `length_scale` m.
+    Success only if the final position error < tol_position (m) and, in pose mode, the rotation error
+    < tol_rotation (rad); the joints are always within the model's limits.
+    """
+    if max_iter < 1 or restarts < 0:
+        raise ValueError("max_iter must be >= 1 and restarts >= 0")
+    tgt = _check_targets(model, targets, mode)
+    N, n = tgt.shape[0], model.n_joints
+    T_ft = _tool_frame(mode, T_flange_tool, p_flange_tool)
+    weights = np.array([1.0, 1.0, 1.0] + ([length_scale**2] * 3 if mode == "pose" else []))
+    prob = _Problem(model, mode, tgt, T_ft, weights, wbar, tol_position, tol_rotation)
+    q_ref = default_home(model) if q_near is None else np.asarray(q_near, dtype=float)
+    if q_ref.shape != (n,) or not np.all(np.isfinite(q_ref)):
+        raise ValueError(f"q_near must be a finite ({n},) joint vector, got {q_ref.shape}")
+    generator = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
+
+    # Candidate seeds per target, in the order they are tried.
+    seeds: list[np.ndarray] = []
+    seed_ok: list[np.ndarray] = []
+    ur = use_analytic and is_ur_like(model)
+    no_branch = None
+    if q_seed is not None:
+        qs = np.asarray(q_seed, dtype=float)
+        qs = np.broadcast_to(qs, (N, n)) if qs.shape == (n,) else qs
+        if qs.shape != (N, n) or not np.all(np.isfinite(qs)):
+            raise ValueError(f"q_seed must be finite ({N}, {n}) or ({n},), got {np.shape(q_seed)}")
+        seeds.append(qs)
+        seed_ok.append(np.ones(N, bool))
+    if ur:
+        T_base_flange = _analytic_flange_targets(model, prob, q_ref)
+        ranked, usable, no_branch = _analytic_seeds(model, T_base_flange, q_ref)
+        if mode != "pose":
+            no_branch = None  # the orientation was made up: no verdict on reach
+        for b in range(ranked.shape[1]):
+            seeds.append(np.where(usable[:, b, None], ranked[:, b], q_ref))
+            seed_ok.append(usable[:, b])
+    if q_seed is None:
+        seeds.append(np.broadcast_to(q_ref, (N, n)))
+        seed_ok.append(np.ones(N, bool))
+    for _ in range(restarts):
+        seeds.append(random_joints(model, N, generator))
+        seed_ok.append(np.ones(N, bool))
+
+    q_best = project_to_limits(model, np.broadcast_to(seeds[0], (N, n)))
+    e_best = prob.residual(q_best, np.arange(N))
+    E_best = 0.5 * np.einsum("km,m,km->k", e_best, weights, e_best)
+    iterations = np.zeros(N, int)
+    attempts = np.zeros(N, int)
+    success = np.zeros(N, bool)
+    tool_len = float(np.linalg.norm(T_ft[:3, 3]))
+    point = tgt[:, :3, 3] if mode == "pose" else tgt
+    beyond = np.linalg.norm(point, axis=1) > reach_bound(model, tool_len)
+
+    for s, ok in zip(seeds, seed_ok, strict=True):
+        if np.all(success | beyond):
+            break
+        todo = np.flatnonzero(~success & ~beyond & ok)
+        if todo.size == 0:
+            continue
+        q, e, it = _levenberg_marquardt(prob, s[todo], todo, max_iter)
+        iterations[todo] += it
+        attempts[todo] += 1
+        cost = 0.5 * np.einsum("km,m,km->k", e, weights, e)
+        conv = prob.converged(e)
+        better = conv | (cost < E_best[todo])
+        upd = todo[better]
+        q_best[upd], e_best[upd], E_best[upd] = q[better], e[better], cost[better]
+        success[todo[conv]] = True
+
+    err_pos = np.linalg.norm(e_best[:, :3], axis=1)
+    err_rot = np.linalg.norm(e_best[:, 3:], axis=1) if mode == "pose" else np.full(N, np.nan)
+    success &= model.within_limits(q_best, tol=1e-12)
+    reason = _diagnose(prob, q_best, success, beyond, no_branch)
+    return IKResult(q_best, success, iterations, reason, err_pos, err_rot, attempts)
+
+
+def _diagnose(
+    prob: _Problem,
+    q: np.ndarray,
+    success: np.ndarray,
+    beyond: np.ndarray,
+    no_branch: np.ndarray | None,
+) -> np.ndarray:
+    """Reason string per target (see REASONS)."""
+    N = len(q)
+    reason = np.full(N, REASON_MAX_ITER, dtype=object)
+    reason[success] = REASON_OK
+    failed = np.flatnonzero(~success)
+    if failed.size == 0:
+        return reason.astype(str)
+    lo, hi = prob.model.joint_limits[:, 0], prob.model.joint_limits[:, 1]
+    qf = q[failed]
+    at_limit = np.any((qf <= lo + 1e-9) | (qf >= hi - 1e-9), axis=1)
+    sv = np.linalg.svd(prob.jacobian(qf), compute_uv=False)
+    singular = sv[:, -1] < 1e-6 * max(sv[:, 0].max(), 1e-12)
+    unreach = beyond[failed] | (no_branch[failed] if no_branch is not None else False)
+    r = np.where(singular, REASON_SINGULAR, REASON_MAX_ITER).astype(object)
+    r[at_limit] = REASON_JOINT_LIMITS
+    r[unreach] = REASON_UNREACHABLE
+    reason[failed] = r
+    return reason.astype(str)
