@@ -65,10 +65,29 @@ class URConfig:
     reach_tolerance_rad: float = 1e-3
     recover_timeout_s: float = 20.0
 
+    @classmethod
+    def from_mapping(cls, values: dict) -> URConfig:
+        """Build from a cell configuration section (e.g. parsed TOML/JSON); unknown keys are an error."""
+        known = set(cls.__dataclass_fields__)
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise RobotConfigError(f"unknown UR settings {unknown}; known: {sorted(known)}")
+        return cls(**values)
+
     def __post_init__(self) -> None:
         for name in ("joint_speed", "joint_accel", "linear_speed", "linear_accel", "stale_after_s"):
             if not getattr(self, name) > 0:
                 raise RobotConfigError(f"URConfig.{name} must be positive, got {getattr(self, name)}")
+        for name, limit in (
+            ("joint_speed", "max_joint_speed"),
+            ("joint_accel", "max_joint_accel"),
+            ("linear_speed", "max_linear_speed"),
+            ("linear_accel", "max_linear_accel"),
+        ):
+            if getattr(self, name) > getattr(self, limit):
+                raise RobotConfigError(
+                    f"URConfig.{name} {getattr(self, name)} exceeds {limit} {getattr(self, limit)}"
+                )
 
 
 def probe_controller(host: str, timeout_s: float, rtde_port: int = 30004, dashboard_port: int = 29999) -> str:

@@ -25,8 +25,9 @@ from fakes.ur_dashboard import serve_dashboard
 from fakes.ur_motion import JointMove, LinearMove, Motion, PathMove, SpeedMove, StopMove, track_pose
 from fakes.ur_rtde_server import RtdeConnection
 from fakes.ur_script import ControlProgram, UnknownProgramError, split_programs
+from hil.ik import solve_ik
 from hil.kinematics import forward_kinematics, geometric_jacobian
-from hil.se3 import invert, pose_error, pose_to_transform, transform_to_pose
+from hil.se3 import invert, pose_to_transform, transform_to_pose
 
 if TYPE_CHECKING:
     from fakes.cell import SimulatedCell
@@ -755,15 +756,8 @@ class UrController:
     def _ik(self, T_base_flange: np.ndarray, q_seed: np.ndarray | None = None) -> np.ndarray | None:
         """Joints reaching the flange pose on the nominal model, nearest the seed; None if unreachable."""
         seed = self.q_cmd if q_seed is None else np.asarray(q_seed, float)
-        try:
-            from hil.ik import solve_ik
-        except ImportError:  # the batch solver is not there yet: Newton from the seed
-            q = track_pose(self.model, seed, T_base_flange, iterations=60)
-            T = forward_kinematics(self.model, q[None])[0]
-            ok = float(np.max(np.abs(pose_error(T, T_base_flange)))) < 1e-9
-            return q if ok and bool(self.model.within_limits(q)) else None
-        result = solve_ik(self.model, T_base_flange[None], q_seed=seed[None])
-        return result.q[0] if bool(result.success[0]) else None
+        result = solve_ik(self.model, T_base_flange[None], q_seed=seed[None], q_near=seed, restarts=5)
+        return np.asarray(result.q[0], float) if bool(result.success[0]) else None
 
     def _inverse_kinematics(self, cmd: int) -> None:
         target = pose_to_transform(self._ids(0)) @ invert(self.T_flange_tcp)

@@ -122,3 +122,12 @@ def test_connect_to_nothing_fails_fast():
     with pytest.raises(RobotConnectionError, match="could not connect"):
         URRobot(URConfig(random_loopback_host(), connect_timeout_s=0.5, connect_attempts=2))
     assert time.monotonic() - started < 5.0
+
+
+def test_config_from_mapping_checks_keys_and_limits():
+    config = URConfig.from_mapping({"host": "127.0.0.9", "joint_speed": 0.5, "max_joint_speed": 1.0})
+    assert config.joint_speed == 0.5
+    with pytest.raises(RobotConfigError, match="unknown UR settings"):
+        URConfig.from_mapping({"host": "127.0.0.9", "joint_sped": 0.5})
+    with pytest.raises(RobotConfigError, match="exceeds"):
+        URConfig(host="127.0.0.9", linear_speed=2.0, max_linear_speed=1.0)
