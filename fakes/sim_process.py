@@ -119,6 +119,7 @@ class SimProcess:
         self.robot: UrController | None = None
         self.clock: SimClock | None = None
         self.announcement: dict = {}
+        self.announcers: list = []  # callables returning extra keys for the ready line (after start)
 
     def add_server(self, server) -> None:
         """Any object with `async start()` and `async close()` joins the cell."""
@@ -139,7 +140,11 @@ class SimProcess:
         self.clock.listeners.append(self.cell.advance_time)
         self.clock.listeners.append(self.robot.tick)
         self.control.add_handlers(cell_handlers(self.cell, self.clock))
-        # the tracker fake joins here: self.add_server(tracker); self.control.add_handlers(...)
+        # the tracker fake joins here, e.g.:
+        #   tracker = EmsconServer(self.cell, o.host, o.tracker_port)
+        #   self.add_server(tracker)
+        #   self.control.add_handlers(tracker.control_handlers())
+        #   self.announcers.append(lambda: {"tracker": {"url": f"socket://{o.host}:{tracker.port}"}})
 
     def announce(self) -> dict:
         robot = self.robot
@@ -158,6 +163,8 @@ class SimProcess:
             "seed": self.options.seed,
             "time_scale": self.clock.time_scale,
         }
+        for announcer in self.announcers:
+            info.update(announcer())
         self.announcement = info
         return info
 
