@@ -298,10 +298,15 @@ def test_protective_stop_pauses_then_unlock_and_fresh_control(rig):
         except RuntimeError:
             assert time.monotonic() < deadline
             time.sleep(0.1)
-    rig.new_control()
+    rig.dash.play()  # resumes the paused control program: the same interface works again
+    deadline = time.monotonic() + 5
+    while not rig.ctrl.isProgramRunning():
+        assert time.monotonic() < deadline
     assert rig.ctrl.moveJ(target)
+    rig.new_control()  # and so does a fresh one, which uploads the program again
+    assert rig.ctrl.moveJ(q0)
     rig.settle_stream()
-    np.testing.assert_allclose(rig.rx.getTargetQ(), target, atol=1e-12)
+    np.testing.assert_allclose(rig.rx.getTargetQ(), q0, atol=1e-12)
 
 
 @pytest.mark.timeout(30)
