@@ -433,6 +433,7 @@ class UrController:
 
     def _start_program_now(self) -> None:
         self._start_at = None
+        self._watchdog_period_s = 0.0  # a new program starts without an RTDE watchdog
         self.runtime_state = PLAYING
         self._script_reset_loop()
 

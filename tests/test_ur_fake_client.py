@@ -340,3 +340,21 @@ def test_remote_control_gating_and_unknown_programs(rig):
         assert time.monotonic() < deadline
         time.sleep(0.01)
     assert rig.ctrl.isProgramRunning()  # the refused program did not replace the control program
+
+
+@pytest.mark.timeout(30)
+def test_rtde_watchdog_stops_the_program_when_not_kicked(rig):
+    assert rig.ctrl.setWatchdog(20.0)  # the client must write the command register at >= 20 Hz
+    for _ in range(5):
+        assert rig.ctrl.kickWatchdog()
+        time.sleep(0.02)
+    assert rig.ctrl.isProgramRunning()
+    deadline = time.monotonic() + 3
+    while rig.ctrl.isProgramRunning():  # no more kicks: the controller stops the program
+        assert time.monotonic() < deadline
+        time.sleep(0.01)
+    assert rig.ctrl.reuploadScript()
+    while not rig.ctrl.isProgramRunning():
+        assert time.monotonic() < deadline + 3
+        time.sleep(0.01)
+    rig.home()
