@@ -306,8 +306,12 @@ class URRobot:
         self._sync_stream()
 
     def stop(self) -> None:
-        self._check()
-        self._ctrl.stopJ(self.config.max_joint_accel / 2)
+        """Decelerate to rest; a no-op when the program is not running (the controller already holds it)."""
+        ctrl = self._ctrl
+        if ctrl is None or not ctrl.isConnected():
+            raise RobotConnectionError(f"cannot stop: no control connection to {self.config.host}")
+        if ctrl.isProgramRunning():
+            ctrl.stopJ(self.config.max_joint_accel / 2)
 
     # ------------------------------------------------------------------ reading
     def joints(self) -> np.ndarray:
