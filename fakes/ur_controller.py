@@ -193,6 +193,7 @@ class UrController:
         self.kin = ArmKinematics(self.model)
         self._outputs = self._output_getters()
         self._target_pose_cache: tuple = (None, None)
+        self._actual_pose_cache: tuple = (-1, None)
 
     # ---------------------------------------------------------------- servers
     async def start(self) -> None:
@@ -864,7 +865,6 @@ class UrController:
             return
         if now < self._stall_until:
             return
-        snapshot = _Snapshot(self)
         holding = now < self._latency_until
         if not holding and self._held:
             for conn, values in self._held:
@@ -873,11 +873,37 @@ class UrController:
         for conn in self._rtde:
             if not conn.streaming or self.tick_count % conn.output_every_n_ticks:
                 continue
-            values = [snapshot[name] for name in conn.output_recipe.names]
+            if conn.getters is None:
+                conn.getters = [self.getter(name) for name in conn.output_recipe.names]
+            values = [getter() for getter in conn.getters]
             if holding:
                 self._held.append((conn, values))
             else:
                 conn.send_data(values)
+
+    def getter(self, name: str) -> Any:
+        """A zero-argument function returning the current value of one RTDE output variable."""
+        getter = self._outputs.get(name)
+        if getter is not None:
+            return getter
+        for prefix, table in (
+            ("output_int_register_", self.out_int),
+            ("output_double_register_", self.out_double),
+            ("input_int_register_", self.in_int),
+            ("input_double_register_", self.in_double),
+        ):
+            if name.startswith(prefix):
+                index = int(name[len(prefix) :])
+                return lambda table=table, index=index: table[index]
+        if name.startswith("input_bit_register_"):
+            bit = int(name.rsplit("_", 1)[1])
+            return lambda: bool(self.in_bits >> bit & 1)
+        zero = _zero(w.output_type(name) or "DOUBLE")
+        return lambda: zero
+
+    def output_value(self, name: str) -> Any:
+        """Current value of one RTDE output variable."""
+        return self.getter(name)()
 
     def _output_getters(self) -> dict[str, Any]:
         """Name -> zero-argument getter for every modelled output; the rest read as zeros."""
@@ -887,7 +913,7 @@ class UrController:
             "target_q": lambda: self.q_cmd,
             "actual_qd": lambda: self.qd_cmd,
             "target_qd": lambda: self.qd_cmd,
-            "actual_TCP_pose": lambda: self._tcp_pose(self.actual_q, self.T_flange_tcp),
+            "actual_TCP_pose": self._actual_tcp_pose,
             "target_TCP_pose": self._target_tcp_pose,
             "actual_TCP_speed": self._tcp_speed,
             "target_TCP_speed": self._tcp_speed,
@@ -914,22 +940,10 @@ class UrController:
             "input_bit_registers32_to_63": lambda: (self.in_bits >> 32) & 0xFFFFFFFF,
         }
 
-    def output_value(self, name: str) -> Any:
-        """Current value of one RTDE output variable."""
-        getter = self._outputs.get(name)
-        if getter is not None:
-            return getter()
-        if name.startswith("output_int_register_"):
-            return self.out_int[int(name.rsplit("_", 1)[1])]
-        if name.startswith("output_double_register_"):
-            return self.out_double[int(name.rsplit("_", 1)[1])]
-        if name.startswith("input_int_register_"):
-            return self.in_int[int(name.rsplit("_", 1)[1])]
-        if name.startswith("input_double_register_"):
-            return self.in_double[int(name.rsplit("_", 1)[1])]
-        if name.startswith("input_bit_register_"):
-            return bool(self.in_bits >> int(name.rsplit("_", 1)[1]) & 1)
-        return _zero(w.output_type(name) or "DOUBLE")
+    def _actual_tcp_pose(self) -> list[float]:
+        if self._actual_pose_cache[0] != self.tick_count:
+            self._actual_pose_cache = (self.tick_count, self._tcp_pose(self.actual_q, self.T_flange_tcp))
+        return self._actual_pose_cache[1]
 
     def _target_tcp_pose(self) -> list[float]:
         key = (self.q_cmd.tobytes(), self.T_flange_tcp.tobytes())
@@ -963,19 +977,6 @@ class UrController:
             "remote_control": self.remote_control,
             "ticks": self.tick_count,
         }
-
-
-class _Snapshot(dict):
-    """Output values of one tick, computed on first use and shared by every connection."""
-
-    def __init__(self, controller: UrController):
-        super().__init__()
-        self.controller = controller
-
-    def __missing__(self, name: str) -> Any:
-        value = self.controller.output_value(name)
-        self[name] = value
-        return value
 
 
 def _zero(type_name: str) -> Any:

@@ -31,6 +31,7 @@ class RtdeConnection:
         self.reader = reader
         self.writer = writer
         self.output_recipe: w.Recipe | None = None
+        self.getters: list | None = None  # value getters of the output recipe, built on first use
         self.output_every_n_ticks = 1
         self.input_recipes: dict[int, w.Recipe] = {}
         self.streaming = False
@@ -135,6 +136,7 @@ class RtdeConnection:
         recipe_id = self.controller.next_output_recipe_id() if ok else 0
         if ok:
             self.output_recipe = w.Recipe.build(recipe_id, names, types)
+            self.getters = None
             self.output_every_n_ticks = max(1, round(base / frequency))
         self.send(w.CONTROL_PACKAGE_SETUP_OUTPUTS, bytes([recipe_id]) + ",".join(types).encode())
 
