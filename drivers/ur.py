@@ -91,10 +91,11 @@ class URConfig:
 
 
 def probe_controller(host: str, timeout_s: float, rtde_port: int = 30004, dashboard_port: int = 29999) -> str:
-    """Check, with socket timeouts, that RTDE answers its version handshake and the dashboard greets.
+    """Check, with socket timeouts, that RTDE answers its handshake and streams, and the dashboard greets.
 
-    The ur-rtde constructors wait forever for these replies (and hold the GIL while they do), so the
-    driver only calls them once this probe passed. Returns the controller version 'major.minor.bugfix.build'.
+    The ur-rtde constructors wait forever for these replies and for the first data package (holding the
+    GIL while they do), so the driver only calls them once this probe passed. Returns the controller
+    version 'major.minor.bugfix.build'.
     """
     try:
         with socket.create_connection((host, rtde_port), timeout=timeout_s) as sock:
@@ -103,7 +104,17 @@ def probe_controller(host: str, timeout_s: float, rtde_port: int = 30004, dashbo
             _read_rtde_reply(sock, ord("V"))
             sock.sendall(struct.pack(">HB", 3, ord("v")))
             payload = _read_rtde_reply(sock, ord("v"))
-            version = ".".join(str(x) for x in struct.unpack(">IIII", payload[:16]))
+            numbers = struct.unpack(">IIII", payload[:16])
+            version = ".".join(str(x) for x in numbers)
+            # the control constructor waits, without a timeout, for a first data package: check one comes
+            frequency = 500.0 if numbers[0] >= 5 else 125.0
+            names = b"timestamp,"
+            sock.sendall(struct.pack(">HBd", 3 + 8 + len(names), ord("O"), frequency) + names)
+            _read_rtde_reply(sock, ord("O"))
+            sock.sendall(struct.pack(">HB", 3, ord("S")))
+            if _read_rtde_reply(sock, ord("S"))[:1] != b"\x01":
+                raise RobotConnectionError(f"RTDE at {host} refused to start synchronisation")
+            _read_rtde_reply(sock, ord("U"))
         with socket.create_connection((host, dashboard_port), timeout=timeout_s) as sock:
             sock.settimeout(timeout_s)
             greeting = sock.recv(256)
