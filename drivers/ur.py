@@ -203,9 +203,30 @@ class URRobot:
                 log.debug("disconnect failed: %s", exc)
 
     def _rebuild(self) -> None:
+        """Rebuild the control interface; everything if the receive stream is not healthy too."""
+        import rtde_control
+
         self._finalizer.detach()
-        self._disconnect()
-        self._connect()
+        try:
+            self._check_stream()
+            healthy = True
+        except RobotConnectionError:
+            healthy = False
+        if healthy:
+            URRobot._release([self._ctrl])  # disconnect before building the new one (never rebind a live one)
+            self._ctrl = None
+            try:
+                probe_controller(self.config.host, self.config.connect_timeout_s)
+                self._ctrl = rtde_control.RTDEControlInterface(
+                    self.config.host, -1.0, rtde_control.RTDEControlInterface.FLAG_UPLOAD_SCRIPT
+                )
+                self._ctrl.setTcp([0.0] * 6)
+            except (RuntimeError, RobotConnectionError) as exc:
+                log.warning("rebuilding the control interface failed (%s); reconnecting everything", exc)
+                healthy = False
+        if not healthy:
+            self._disconnect()
+            self._connect()
         self._finalizer = weakref.finalize(self, URRobot._release, [self._ctrl, self._rx, self._dash])
 
     # ------------------------------------------------------------------ supervision
