@@ -12,6 +12,7 @@ Run: PYTHONPATH=. python benchmarks/ur_fake.py [--personality eseries|cb3] [--se
 from __future__ import annotations
 
 import argparse
+import os
 import socket
 import struct
 import sys
@@ -62,6 +63,16 @@ def _exact(sock: socket.socket, n: int) -> bytes:
     return data
 
 
+def _cpu_seconds(pid: int) -> float:
+    """User + system CPU seconds of a process (Linux /proc)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _load() -> str:
+    return " ".join(f"{x:.1f}" for x in os.getloadavg())
+
+
 def period_row(name: str, periods_ms: np.ndarray, nominal_ms: float) -> str:
     late = int(np.sum(periods_ms > 1.5 * nominal_ms))
     return (
@@ -88,12 +99,14 @@ def main() -> int:
         try:
             # 1. periods while both clients are connected and streaming
             cell.control.call("clock.stats", reset=True)
+            cpu_before, wall_before = _cpu_seconds(cell.process.pid), time.perf_counter()
             arrivals: list[float] = []
             observer = threading.Thread(
                 target=observe_rtde, args=(cell.host, frequency, args.seconds, arrivals)
             )
             observer.start()
             observer.join()
+            sim_cpu = (_cpu_seconds(cell.process.pid) - cpu_before) / (time.perf_counter() - wall_before)
             server = cell.control.call("clock.stats")
             server_periods = np.array(cell.control.call("clock.periods")) * 1000.0
             client_periods = np.diff(np.array(arrivals)) * 1000.0
@@ -123,8 +136,9 @@ def main() -> int:
     print(period_row("controller ticks (server clock)", server_periods, nominal_ms))
     print(period_row("data packages at an observer client", client_periods, nominal_ms))
     print(
-        f"\nserver clock: {server['late_ticks']} ticks started > half a period late out of {server['ticks']}\n"
+        f"\nserver clock: {server['late_ticks']} ticks started > half a period late out of {server['ticks']}"
     )
+    print(f"hil sim process CPU while streaming: {100 * sim_cpu:.0f} % of one core; load average {_load()}\n")
     print("| blocking command | calls | p50 ms | p90 ms | p99 ms | max ms | cycles (p50) |")
     print("|---|---|---|---|---|---|---|")
     for name, samples in latencies.items():
