@@ -133,3 +133,15 @@ def test_config_from_mapping_checks_keys_and_limits():
         URConfig.from_mapping({"host": "127.0.0.9", "joint_sped": 0.5})
     with pytest.raises(RobotConfigError, match="exceeds"):
         URConfig(host="127.0.0.9", linear_speed=2.0, max_linear_speed=1.0)
+
+
+@pytest.mark.timeout(30)
+def test_short_latency_spike_is_ridden_through(cell):
+    robot = URRobot(URConfig(cell.host, stale_after_s=0.5))
+    try:
+        robot.move_joints(HOME)
+        cell.control.call("robot.fault", kind="latency", at_move=1, fraction=0.3, duration_s=0.2)
+        robot.move_joints(HOME + [0.5, 0, 0, 0, 0, 0], speed=0.5)
+        assert cell.control.call("robot.state")["faults"][-1]["kind"] == "latency"
+    finally:
+        robot.close()
