@@ -358,3 +358,23 @@ def test_rtde_watchdog_stops_the_program_when_not_kicked(rig):
         assert time.monotonic() < deadline + 3
         time.sleep(0.01)
     rig.home()
+
+
+@pytest.mark.timeout(30)
+def test_pose_trans_waypoint_and_flange_queries(rig):
+    q0 = rig.home()
+    a, b = [0.1, 0.2, 0.3, 0.1, -0.2, 0.3], [0.05, 0.0, 0.1, 0.0, 0.4, 0.0]
+    expected = pose_to_transform(np.array(a)) @ pose_to_transform(np.array(b))
+    assert_pose_close(rig.ctrl.poseTrans(a, b), transform_to_pose(expected), atol=1e-12)
+    flange = forward_kinematics(rig.model, np.array([q0]))[0]
+    np.testing.assert_allclose(
+        pose_to_transform(np.array(rig.ctrl.getForwardKinematics())), flange, atol=1e-4
+    )
+    target = list(q0)
+    target[0] += 1.0
+    assert rig.ctrl.moveJ(target, 0.3, 1.0, True)
+    waypoint = rig.ctrl.getTargetWaypoint()
+    rig.ctrl.stopJ(3.0)
+    goal = forward_kinematics(rig.model, np.array([target]))[0]
+    np.testing.assert_allclose(pose_to_transform(np.array(waypoint)), goal, atol=1e-9)
+    rig.home()
