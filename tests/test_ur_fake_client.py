@@ -378,3 +378,11 @@ def test_pose_trans_waypoint_and_flange_queries(rig):
     goal = forward_kinematics(rig.model, np.array([target]))[0]
     np.testing.assert_allclose(pose_to_transform(np.array(waypoint)), goal, atol=1e-9)
     rig.home()
+
+
+@pytest.mark.timeout(30)
+def test_second_control_interface_is_refused_while_registers_are_in_use(rig):
+    with pytest.raises(RuntimeError, match="already in use"):
+        rtde_control.RTDEControlInterface(rig.host)
+    assert rig.ctrl.isConnected() and rig.ctrl.isProgramRunning()
+    rig.home()
