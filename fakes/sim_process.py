@@ -1,8 +1,8 @@
 """`hil sim`: the whole simulated cell in one process on one asyncio event loop.
 
-One `SimulatedCell`, the fake UR controller on its fixed ports, the control channel, and one clock task
-that owns simulated time (dt = wall dt x time scale). Adding a server is two lines in `build()`:
-`self.add_server(server)` and `self.control.add_handlers(server.control_handlers())`.
+One `SimulatedCell`, the fake UR controller on its fixed ports, the fake emScon tracker, the control
+channel, and one clock task that owns simulated time (dt = wall dt x time scale). Adding a server is
+two lines in `build()`: `self.add_server(server)` and `self.control.add_handlers(server.control_handlers())`.
 Prints one JSON line on stdout once every server listens, then runs until SIGINT/SIGTERM.
 """
 
@@ -24,6 +24,7 @@ import numpy as np
 
 from fakes.cell import CellConfig, SimulatedCell, SmrLocation
 from fakes.control_channel import ControlChannel
+from fakes.emscon_server import EmsconServer
 from fakes.ur_controller import UrController
 
 log = logging.getLogger(__name__)
@@ -140,11 +141,10 @@ class SimProcess:
         self.clock.listeners.append(self.cell.advance_time)
         self.clock.listeners.append(self.robot.tick)
         self.control.add_handlers(cell_handlers(self.cell, self.clock))
-        # the tracker fake joins here, e.g.:
-        #   tracker = EmsconServer(self.cell, o.host, o.tracker_port)
-        #   self.add_server(tracker)
-        #   self.control.add_handlers(tracker.control_handlers())
-        #   self.announcers.append(lambda: {"tracker": {"url": f"socket://{o.host}:{tracker.port}"}})
+        tracker = EmsconServer(self.cell, o.host, o.tracker_port)
+        self.add_server(tracker)
+        self.control.add_handlers(tracker.control_handlers())
+        self.announcers.append(lambda: {"tracker": {"url": tracker.url, "port": tracker.port}})
 
     def announce(self) -> dict:
         robot = self.robot

@@ -7,7 +7,11 @@ import importlib
 import sys
 
 # Each module defines `register(subparsers)`, which adds its parser and sets `func(args) -> int`.
-COMMAND_MODULES: tuple[str, ...] = ("hil.commands.demo", "hil.commands.sim")
+COMMAND_MODULES: tuple[str, ...] = (
+    "hil.commands.demo",
+    "hil.commands.sim",
+    "hil.commands.tracker",
+)
 
 
 def build_parser() -> argparse.ArgumentParser:

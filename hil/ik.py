@@ -34,8 +34,11 @@ REASONS: tuple[str, ...] = (
 
 UR_ALPHA = np.array([np.pi / 2, 0.0, 0.0, np.pi / 2, -np.pi / 2, 0.0])
 TWO_PI = 2.0 * np.pi
-REACH_SLACK = 0.1  # a UR pose counts as unreachable only if >10 % beyond the nominal reach (cos q3, shoulder)
+REACH_SLACK = (
+    0.02  # UR pose unreachable if cos q3 or the shoulder ratio overshoot by > 2 % (>> mm model errors)
+)
 LAM_MIN = 1e-8  # floor of the adaptive bias multiplier (bias = LAM_MIN * wbar near convergence)
+STALL_WINDOW, STALL_FACTOR = 25, 0.9  # give up an attempt whose E fell less than 10 % in 25 iterations
 LAM_DOWN, LAM_UP = 0.1, 10.0  # bias multiplier after an accepted / rejected step
 
 
@@ -88,6 +91,8 @@ def _as_transforms(T: np.ndarray, what: str) -> np.ndarray:
         raise ValueError(f"{what} must be (N, 4, 4) homogeneous transforms, got shape {T.shape}")
     if not np.all(np.isfinite(T)):
         raise ValueError(f"{what} contains NaN or inf")
+    if np.any(np.abs(T[:, 3] - [0.0, 0.0, 0.0, 1.0]) > 1e-9):
+        raise ValueError(f"{what}: the last row of a homogeneous transform must be [0, 0, 0, 1]")
     R = T[:, :3, :3]
     ortho = np.abs(np.swapaxes(R, 1, 2) @ R - np.eye(3)).max(axis=(1, 2))
     bad = np.flatnonzero((ortho > 1e-6) | (np.linalg.det(R) < 0))
@@ -313,6 +318,27 @@ class _Problem:
         return ok
 
 
+def _limited_step(model: KinematicModel, q: np.ndarray, A: np.ndarray, g: np.ndarray) -> np.ndarray:
+    """Solve A dq = g, then hold joints that would leave their limits (and cannot wrap by 2 pi) at the
+    limit and re-solve for the others with that motion accounted for (two active-set passes), so the
+    free joints still make the best move instead of a clipped, no longer descending one."""
+    lo, hi = model.joint_limits[:, 0], model.joint_limits[:, 1]
+    span_ok = (hi - lo) >= TWO_PI  # such a joint can always wrap back inside
+    dq = np.linalg.solve(A, g[..., None])[..., 0]
+    fixed = np.zeros(q.shape, bool)
+    for _ in range(2):
+        out = ~span_ok & ((q + dq < lo) | (q + dq > hi))
+        if not np.any(out & ~fixed):
+            break
+        fixed |= out
+        c = np.where(fixed, np.clip(q + dq, lo, hi) - q, 0.0)
+        free = ~fixed
+        M = A * (free[:, :, None] & free[:, None, :]) + fixed[:, :, None] * np.eye(q.shape[1])
+        h = np.where(fixed, c, g - np.einsum("kij,kj->ki", A, c))
+        dq = np.linalg.solve(M, h[..., None])[..., 0]
+    return dq
+
+
 def _levenberg_marquardt(
     prob: _Problem, q0: np.ndarray, rows: np.ndarray, max_iter: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -321,8 +347,9 @@ def _levenberg_marquardt(
     Step dq = (J^T W_E J + W_N)^-1 J^T W_E e with W_N = (E + lam * wbar) I, E = 1/2 e^T W_E e
     (Sugihara). Safeguard: a step that does not lower E is rejected and lam grows (LAM_UP); accepted
     steps shrink it (LAM_DOWN, floor LAM_MIN), so the bias fades near the solution for fast final
-    convergence. Steps are projected onto the joint limits (wrapped by 2 pi first where that lands
-    inside them). A target stops when converged or hopelessly stuck (lam > 1e12). The Jacobian is
+    convergence. Joints that would cross a limit are held there and the others re-solved
+    (`_limited_step`); the result is projected onto the limits (wrapped by 2 pi where that lands inside). A target stops when converged, hopelessly stuck (lam > 1e12) or stalled (E not
+    reduced by STALL_FACTOR within STALL_WINDOW iterations). The Jacobian is
     re-evaluated only where a step was accepted.
     """
     q = project_to_limits(prob.model, q0)
@@ -334,9 +361,10 @@ def _levenberg_marquardt(
     iters = np.zeros(k, int)
     active = ~prob.converged(e)
     eye = np.eye(n)
+    E_check = E.copy()  # stall test: E must fall by STALL_FACTOR every STALL_WINDOW iterations
     J = np.empty((k, len(W), n))
     stale = np.ones(k, bool)  # Jacobian to (re)compute: q moved since it was evaluated
-    for _ in range(max_iter):
+    for it in range(1, max_iter + 1):
         idx = np.flatnonzero(active)
         if idx.size == 0:
             break
@@ -347,7 +375,7 @@ def _levenberg_marquardt(
         JtW = np.swapaxes(J[idx], 1, 2) * W
         A = JtW @ J[idx] + (E[idx] + lam[idx] * prob.wbar)[:, None, None] * eye
         g = np.einsum("knm,km->kn", JtW, e[idx])
-        dq = np.linalg.solve(A, g[..., None])[..., 0]
+        dq = _limited_step(prob.model, q[idx], A, g)
         q_new = project_to_limits(prob.model, q[idx] + dq)
         e_new = prob.residual(q_new, rows[idx])
         E_new = 0.5 * np.einsum("km,m,km->k", e_new, W, e_new)
@@ -360,6 +388,9 @@ def _levenberg_marquardt(
         lam[rej] *= LAM_UP
         iters[idx] += 1
         done = prob.converged(e[idx]) | (lam[idx] > 1e12)
+        if it % STALL_WINDOW == 0:
+            done |= E[idx] > STALL_FACTOR * E_check[idx]
+            E_check[idx] = E[idx]
         active[idx[done]] = False
     return q, e, iters
 
@@ -384,7 +415,7 @@ def _check_targets(model: KinematicModel, targets: np.ndarray, mode: str) -> np.
     raise ValueError(f"mode must be 'pose' or 'position', got {mode!r}")
 
 
-def _tool_frame(mode: str, T_flange_tool: np.ndarray | None, p_flange_tool: np.ndarray | None) -> np.ndarray:
+def _tool_frame(T_flange_tool: np.ndarray | None, p_flange_tool: np.ndarray | None) -> np.ndarray:
     if T_flange_tool is not None and p_flange_tool is not None:
         raise ValueError("give either T_flange_tool or p_flange_tool, not both")
     T = np.eye(4)
@@ -417,9 +448,9 @@ def _analytic_seeds(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """All 8 analytic branches as seeds, exact ones first, each group by distance to q_ref.
 
-    Returns (q (N, 8, n), usable (N, 8), no_branch (N,)). Out-of-reach branches are kept, stretched: on a
-    real arm, or near a wrist singularity where the closed form is ill-conditioned, the nearest stretched
-    posture is still a good seed. no_branch marks targets more than REACH_SLACK beyond nominal reach.
+    Returns (q (N, 8, n), usable (N, 8), out_of_reach (N,)). Out-of-reach branches are kept, stretched:
+    on a real arm, or near a wrist singularity where the closed form is ill-conditioned, the nearest
+    stretched posture is still a good seed. out_of_reach: see `ur_wrist_out_of_reach`.
     """
     qb, overshoot = _ur_branches(model, T_base_flange)
     N, B, n = qb.shape
@@ -428,8 +459,34 @@ def _analytic_seeds(
     dist = np.linalg.norm(shifted - ref, axis=2)
     key = np.where(usable, dist + np.where(overshoot > 1e-9, 1e6, 0.0), np.inf)
     order = np.argsort(key, axis=1, kind="stable")
-    no_branch = np.all(overshoot > REACH_SLACK, axis=1)
-    return np.take_along_axis(shifted, order[:, :, None], 1), np.take_along_axis(usable, order, 1), no_branch
+    ranked, usable = np.take_along_axis(shifted, order[:, :, None], 1), np.take_along_axis(usable, order, 1)
+    return ranked, usable, ur_wrist_out_of_reach(model, T_base_flange)
+
+
+def ur_wrist_out_of_reach(
+    model: KinematicModel, T_base_flange: np.ndarray, slack: float = REACH_SLACK
+) -> np.ndarray:
+    """(N,) True where the wrist centre (frame-5 origin) is provably out of reach of a UR-shaped arm.
+
+    The wrist centre sits at offset d4 along the joint-2 axis, so it needs r_xy >= |d4|, and within
+    |a2| + |a3| + |d5| of the shoulder in the arm plane. Both tests only use p - d6 z6, which is
+    well-conditioned even at wrist singularities; `slack` (relative) absorbs calibration errors.
+    """
+    T = T_base_flange @ invert(np.asarray(model.T_last_flange, float))
+    p5 = T[:, :3, 3] - model.d[5] * T[:, :3, 2]
+    r_xy = np.hypot(p5[:, 0], p5[:, 1])
+    d4 = abs(model.d[3])
+    planar = abs(model.a[1]) + abs(model.a[2]) + abs(model.d[4])
+    dist = np.linalg.norm(p5 - np.array([0.0, 0.0, model.d[0]]), axis=1)
+    return (r_xy < d4 * (1.0 - slack)) | (dist > np.hypot(planar, d4) * (1.0 + slack))
+
+
+def ur_seed(model: KinematicModel, T_base_flange: np.ndarray, q_near: np.ndarray | None = None) -> np.ndarray:
+    """The first seed `solve_ik` uses on a UR-shaped model: the exact closed-form branch nearest q_near
+    (default `default_home`), else the nearest stretched one; (N, 6) within the joint limits."""
+    q_ref = default_home(model) if q_near is None else np.asarray(q_near, dtype=float)
+    ranked, usable, _ = _analytic_seeds(model, _as_transforms(T_base_flange, "T_base_flange"), q_ref)
+    return np.where(usable[:, 0, None], ranked[:, 0], q_ref)
 
 
 def solve_ik(
@@ -445,7 +502,7 @@ def solve_ik(
     tol_rotation: float = 1e-9,
     length_scale: float = 0.3,
     wbar: float = 1e-3,
-    restarts: int = 20,
+    restarts: int = 50,
     use_analytic: bool = True,
     rng: np.random.Generator | int | None = 0,
 ) -> IKResult:
@@ -460,9 +517,11 @@ def solve_ik(
     """
     if max_iter < 1 or restarts < 0:
         raise ValueError("max_iter must be >= 1 and restarts >= 0")
+    if min(tol_position, tol_rotation, length_scale, wbar) <= 0:
+        raise ValueError("tol_position, tol_rotation, length_scale and wbar must be positive")
     tgt = _check_targets(model, targets, mode)
     N, n = tgt.shape[0], model.n_joints
-    T_ft = _tool_frame(mode, T_flange_tool, p_flange_tool)
+    T_ft = _tool_frame(T_flange_tool, p_flange_tool)
     weights = np.array([1.0, 1.0, 1.0] + ([length_scale**2] * 3 if mode == "pose" else []))
     prob = _Problem(model, mode, tgt, T_ft, weights, wbar, tol_position, tol_rotation)
     q_ref = default_home(model) if q_near is None else np.asarray(q_near, dtype=float)
@@ -470,8 +529,8 @@ def solve_ik(
         raise ValueError(f"q_near must be a finite ({n},) joint vector, got {q_ref.shape}")
     generator = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
 
-    # Candidate seeds per target, in the order they are tried.
-    seeds: list[np.ndarray] = []
+    # Candidate seeds per target, in the order they are tried (None: random joints, drawn when needed).
+    seeds: list[np.ndarray | None] = []
     seed_ok: list[np.ndarray] = []
     ur = use_analytic and is_ur_like(model)
     no_branch = None
@@ -493,9 +552,8 @@ def solve_ik(
     if q_seed is None:
         seeds.append(np.broadcast_to(q_ref, (N, n)))
         seed_ok.append(np.ones(N, bool))
-    for _ in range(restarts):
-        seeds.append(random_joints(model, N, generator))
-        seed_ok.append(np.ones(N, bool))
+    seeds.extend([None] * restarts)
+    seed_ok.extend([np.ones(N, bool)] * restarts)
 
     q_best = project_to_limits(model, np.broadcast_to(seeds[0], (N, n)))
     e_best = prob.residual(q_best, np.arange(N))
@@ -506,6 +564,8 @@ def solve_ik(
     tool_len = float(np.linalg.norm(T_ft[:3, 3]))
     point = tgt[:, :3, 3] if mode == "pose" else tgt
     beyond = np.linalg.norm(point, axis=1) > reach_bound(model, tool_len)
+    if no_branch is not None:
+        beyond |= no_branch  # well beyond the nominal reach: no small model error makes it reachable
 
     for s, ok in zip(seeds, seed_ok, strict=True):
         if np.all(success | beyond):
@@ -513,7 +573,8 @@ def solve_ik(
         todo = np.flatnonzero(~success & ~beyond & ok)
         if todo.size == 0:
             continue
-        q, e, it = _levenberg_marquardt(prob, s[todo], todo, max_iter)
+        q0 = random_joints(model, todo.size, generator) if s is None else s[todo]
+        q, e, it = _levenberg_marquardt(prob, q0, todo, max_iter)
         iterations[todo] += it
         attempts[todo] += 1
         cost = 0.5 * np.einsum("km,m,km->k", e, weights, e)

@@ -132,7 +132,7 @@ def joint_transforms(model: KinematicModel, q: np.ndarray) -> np.ndarray:
     A[..., 2, 2] = ca
     A[..., 2, 3] = model.d
     A[..., 3, 3] = 1.0
-    if np.any(model.uses_beta):
+    if np.any(model.beta != 0):  # skip the extra product on a nominal model (beta all 0)
         Ry = rot_y(np.asarray(model.beta, dtype=float))  # (n,3,3)
         A[..., :3, :3] = A[..., :3, :3] @ Ry
     return A

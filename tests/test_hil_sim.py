@@ -27,7 +27,8 @@ def test_ready_line_names_every_server(cell):
     assert robot["personality"] == "eseries" and robot["frequency_hz"] == 500.0
     host, port = cell.info["control"].rsplit(":", 1)
     assert host == cell.host and int(port) > 0
-    for port in (30004, 29999, 30001, 30002, 30003):
+    assert cell.info["tracker"]["url"] == f"socket://{cell.host}:7000"
+    for port in (30004, 29999, 30001, 30002, 30003, 7000):
         socket.create_connection((cell.host, port), timeout=2).close()
 
 

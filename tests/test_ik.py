@@ -230,10 +230,17 @@ def test_unreachable_targets_are_failures_not_wrong_joints():
     assert not res.success.any()
     assert set(res.reason) == {"unreachable"}
     assert np.all(res.error > 1.0)
-    # Just beyond the UR5's reach (but inside the crude reach bound): still unreachable, after trying.
+    # Beyond the UR5's reach but inside the crude reach bound: the closed form knows, no LM attempt.
     T_edge = make_transform(np.eye(3), [1.0, 0.0, 0.1])
-    res = ik.solve_ik(m, T_edge, restarts=2)
-    assert not res.success[0] and res.reason[0] == "unreachable" and res.attempts[0] >= 1
+    res = ik.solve_ik(m, T_edge)
+    assert not res.success[0] and res.reason[0] == "unreachable" and res.attempts[0] == 0
+    assert res.error[0] > 0.05
+    # Slightly beyond (1.6 mm, within REACH_SLACK): tried from every seed, then reported as a failure.
+    T_stretched = forward_kinematics(m, [0.0, -0.3, 0.0, -1.0, 1.2, 0.0])
+    T_stretched[0, :3, 3] *= 1.002
+    res = ik.solve_ik(m, T_stretched, restarts=2)
+    assert not res.success[0] and res.attempts[0] >= 3 and res.error[0] > 1e-3
+    assert res.reason[0] in ("singular", "max_iter")
     # Position mode: 3 m away.
     res = ik.solve_ik(get_robot("irb2600"), 3.0 * direction, mode="position")
     assert not res.success.any() and set(res.reason) == {"unreachable"}
@@ -276,6 +283,12 @@ def test_bad_inputs_raise_clear_errors():
     skewed[0, :3, :3] *= 1.1
     with pytest.raises(ValueError, match="rotation"):
         ik.solve_ik(m, skewed)
+    last_row = T.copy()
+    last_row[0, 3, 0] = 0.5
+    with pytest.raises(ValueError, match="last row"):
+        ik.solve_ik(m, last_row)
+    with pytest.raises(ValueError, match="positive"):
+        ik.solve_ik(m, T, tol_position=0.0)
     with pytest.raises(ValueError, match=r"\(N, 3\)"):
         ik.solve_ik(m, np.zeros((2, 4)), mode="position")
     with pytest.raises(ValueError, match="NaN"):
@@ -300,3 +313,61 @@ def test_single_target_and_empty_batch():
     np.testing.assert_allclose(res.q[0], q, atol=1e-8)  # default home picks the same elbow-up branch
     empty = ik.solve_ik(m, np.zeros((0, 4, 4)))
     assert empty.q.shape == (0, 6) and empty.success.shape == (0,)
+
+
+def test_project_to_limits_wraps_before_clamping():
+    m = get_robot("ur10")  # +-2 pi on every joint
+    q = np.array([[6.5, -6.5, 7.0, 0.1, -7.0, 14.0]])
+    out = ik.project_to_limits(m, q)
+    np.testing.assert_allclose(
+        out[0, :5], [6.5 - 2 * np.pi, -6.5 + 2 * np.pi, 7.0 - 2 * np.pi, 0.1, -7.0 + 2 * np.pi]
+    )
+    assert out[0, 5] == pytest.approx(2 * np.pi)  # 14 - 2 pi is still outside: clamped
+    np.testing.assert_allclose(
+        forward_kinematics(m, np.r_[out[0, :5], 0.0]),
+        forward_kinematics(m, np.r_[q[0, :5], 0.0]),
+        atol=1e-12,
+    )
+
+
+def test_ur_seed_is_the_exact_branch_nearest_the_reference():
+    m = get_robot("ur5")
+    q_true = np.array([[0.4, -1.0, 1.2, -1.7, -1.5, 0.3]])
+    T = forward_kinematics(m, q_true)
+    np.testing.assert_allclose(ik.ur_seed(m, T, q_near=q_true[0] + 0.2), q_true, atol=1e-9)
+    qb, valid = ik.ur_analytic_ik(m, T)
+    other = qb[0, np.argmax(np.where(valid[0], np.linalg.norm(qb[0] - q_true, axis=1), -np.inf))]
+    seed = ik.ur_seed(m, T, q_near=other)
+    assert np.linalg.norm(seed - q_true) > 0.5
+    assert pose_errors(m, seed, T)[0][0] < 1e-9
+
+
+@pytest.mark.parametrize("name", UR_NAMES)
+def test_wrist_reach_test_never_rejects_reachable_poses(name):
+    m = get_robot(name)
+    real = m.with_errors({"a2": 3e-3, "a3": -3e-3, "beta2": 3e-3, "alpha5": 3e-3})
+    T = forward_kinematics(real, random_joints(real, 3000, seed=13))
+    assert not ik.ur_wrist_out_of_reach(m, T).any()
+    T_far = T[:100].copy()
+    T_far[:, :3, 3] *= 2.5 / np.linalg.norm(T_far[:, :3, 3], axis=1, keepdims=True)
+    assert ik.ur_wrist_out_of_reach(m, T_far).all()
+    T_axis = T[:100].copy()
+    T_axis[:, :2, 3] = 0.0  # wrist centre near the base axis: closer than d4 to it
+    T_axis[:, :3, 3] += m.d[5] * T_axis[:, :3, 2]
+    assert ik.ur_wrist_out_of_reach(m, T_axis).all()
+
+
+def test_solutions_next_to_joint_limits_are_found():
+    """Joints 2 and 3 of the IRB2600 within 0.15 rad of their upper limits: steps that would cross a
+    limit hold that joint there and move the others (active set), instead of stalling on the clip."""
+    m = get_robot("irb2600")
+    rng = np.random.default_rng(3)
+    lo, hi = m.joint_limits[:, 0], m.joint_limits[:, 1]
+    q_true = rng.uniform(lo, hi, size=(300, 6))
+    q_true[:, 1:3] = hi[1:3] - rng.uniform(0, 0.15, (300, 2))
+    p_tool = np.array([0.0, 0.0, 0.1])
+    P = tool_points(m, q_true, p_tool)
+    res = ik.solve_ik(m, P, mode="position", p_flange_tool=p_tool, restarts=5)
+    assert_honest(res, np.linalg.norm(tool_points(m, res.q, p_tool) - P, axis=1))
+    assert res.success.mean() >= 0.85  # plain clipping of the step: about 0.45
+    assert np.all(m.within_limits(res.q))
