@@ -171,6 +171,7 @@ class UrController:
         self._executing = False
         self._blocking: str | None = None  # the sync command waiting for its motion to end
         self.motion: Motion | None = None
+        self._motion_fresh = False
         self._motion_is_async = False
         self._async_op_id = 0
         self._async_counter = 0
@@ -181,6 +182,7 @@ class UrController:
         self._q_history: collections.deque[np.ndarray] = collections.deque(maxlen=1000)
         self.T_flange_tcp = np.eye(4)
         self.moves_started = 0
+        self.last_move: dict = {}
         self._move_started_at = 0.0
         self._still_ticks = 0
         # faults
@@ -516,6 +518,9 @@ class UrController:
             self._still_ticks += 1
             return
         self._still_ticks = 0
+        if self._motion_fresh:
+            self._motion_fresh = False
+            return
         self._fire_planned_faults(motion)
         if self.motion is not motion:  # a fault replaced or ended it
             return
@@ -531,6 +536,8 @@ class UrController:
             self._async_register(motion.progress)  # signal_async_progress(waypoint index)
         if motion.finished:
             log.debug("motion %s finished", type(motion).__name__)
+            if self.last_move and self.last_move["finished_s"] is None:
+                self.last_move["finished_s"] = self.cell.time_s
             self.motion = None
             self.qd_cmd = np.zeros(6)
             if self._motion_is_async:
@@ -713,12 +720,19 @@ class UrController:
     def _start_motion(self, motion: Motion, is_async: bool, count: bool = True) -> None:
         self._kill_async_move()
         self.motion = motion
+        self._motion_fresh = True  # its first setpoint comes on the next cycle
         self._motion_is_async = is_async
         if is_async:
             self._async_register(0)
         if count:
             self.moves_started += 1
             self._move_started_at = self.cell.time_s
+            self.last_move = {
+                "kind": type(motion).__name__,
+                "planned_duration_s": getattr(motion, "duration", None),
+                "started_s": self.cell.time_s,
+                "finished_s": None,
+            }
 
     def _stop_motion(self, decel: float | None, blocking: bool = False, is_async: bool = False) -> bool:
         """Decelerate the current motion to rest (decel None: stop dead). True if the caller waits."""
@@ -728,6 +742,7 @@ class UrController:
             self.qd_cmd = np.zeros(6)
             return False
         self.motion = StopMove(self.qd_cmd, decel)
+        self._motion_fresh = True
         log.debug("stop: from %s over %.3f s", np.round(self.qd_cmd, 4), self.motion.duration)
         if is_async:  # the script's stop thread reports through the async progress register
             self._motion_is_async = True
@@ -969,6 +984,7 @@ class UrController:
             "programs_received": self.programs_received,
             "refused_programs": list(self.refused_programs),
             "moves_started": self.moves_started,
+            "last_move": dict(self.last_move),
             "moving": self.motion is not None,
             "commanded_q": self.q_cmd.tolist(),
             "T_flange_tcp": self.T_flange_tcp.tolist(),
