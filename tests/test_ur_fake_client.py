@@ -47,7 +47,18 @@ class Rig:
         while self.rx.getTimestamp() < t0 + 2.5 * TIME_SCALE / self.cell.info["robot"]["frequency_hz"]:
             time.sleep(0.001)
 
+    def ensure_running(self) -> None:
+        """Start the control program again if an earlier test left it stopped (keeps failures local)."""
+        if self.ctrl.isProgramRunning():
+            return
+        self.ctrl.reuploadScript()
+        deadline = time.monotonic() + 5
+        while not self.ctrl.isProgramRunning():
+            assert time.monotonic() < deadline, "the control program did not start again"
+            time.sleep(0.01)
+
     def home(self) -> list[float]:
+        self.ensure_running()
         q = [0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0]
         assert self.ctrl.moveJ(q, 3.0, 10.0)
         self.settle_stream()
@@ -232,6 +243,7 @@ def test_joint_and_linear_paths(rig):
 
 @pytest.mark.timeout(30)
 def test_uploaded_program_is_parsed_from_its_text(rig):
+    rig.ensure_running()
     text = rig.cell.control.call("robot.last_program")
     program = ControlProgram.parse(text)
     assert program.offset == 0
@@ -247,6 +259,7 @@ def test_uploaded_program_is_parsed_from_its_text(rig):
 
 @pytest.mark.timeout(30)
 def test_unmodelled_commands_still_signal_done(rig):
+    rig.ensure_running()
     started = time.monotonic()
     assert rig.ctrl.setPayload(1.0, [0, 0, 0.05])
     assert rig.ctrl.zeroFtSensor()
@@ -271,8 +284,10 @@ def test_io_interface_sets_outputs(rig):
 
 @pytest.mark.timeout(40)
 def test_stop_script_and_reupload(rig):
+    rig.ensure_running()
     rig.ctrl.stopScript()
     assert not rig.ctrl.isProgramRunning()
+    rig.settle_stream()  # the receive stream is a separate socket and may lag a cycle
     assert rig.rx.getRuntimeState() == 1
     assert rig.ctrl.reuploadScript()
     deadline = time.monotonic() + 5
@@ -326,6 +341,7 @@ def test_controller_belief_differs_from_the_physical_arm(rig):
 def test_remote_control_gating_and_unknown_programs(rig):
     import socket
 
+    rig.ensure_running()
     if rig.personality == "eseries":
         rig.cell.control.call("robot.set_remote_control", value=False)
         try:
@@ -346,6 +362,7 @@ def test_remote_control_gating_and_unknown_programs(rig):
 
 @pytest.mark.timeout(30)
 def test_rtde_watchdog_stops_the_program_when_not_kicked(rig):
+    rig.ensure_running()
     assert rig.ctrl.setWatchdog(20.0)  # the client must write the command register at >= 20 Hz
     for _ in range(5):
         assert rig.ctrl.kickWatchdog()
@@ -384,6 +401,7 @@ def test_pose_trans_waypoint_and_flange_queries(rig):
 
 @pytest.mark.timeout(30)
 def test_second_control_interface_is_refused_while_registers_are_in_use(rig):
+    rig.ensure_running()
     with pytest.raises(RuntimeError, match="already in use"):
         rtde_control.RTDEControlInterface(rig.host)
     assert rig.ctrl.isConnected() and rig.ctrl.isProgramRunning()
