@@ -427,7 +427,16 @@ class URRobot:
                     raise RobotError("the arm did not reach RUNNING after power on and brake release")
                 time.sleep(0.05)
         self._rebuild()
-        self._check()
+        self._sync_stream()  # the receive stream may report the restarted program a cycle late
+        deadline = time.monotonic() + 1.0
+        while True:
+            try:
+                self._check()
+                return
+            except ProgramNotRunningError:
+                if time.monotonic() > deadline:
+                    raise
+                time.sleep(0.005)
 
     def _ensure_dashboard(self) -> None:
         if self._dash is not None and self._dash.isConnected():
