@@ -36,6 +36,10 @@ class ProgramNotRunningError(RobotError):
     remedy = "call robot.recover() to upload and start the control program again"
 
 
+class RobotNotReadyError(RobotError):
+    remedy = "power on the arm and release its brakes, then retry"
+
+
 class RobotTimeoutError(RobotError):
     remedy = "check that the target is reachable and the speed sensible; robot.stop(), then retry"
 

@@ -26,6 +26,7 @@ from drivers.robot import (
     RobotConfigError,
     RobotConnectionError,
     RobotError,
+    RobotNotReadyError,
     RobotState,
     RobotTimeoutError,
     StaleDataError,
@@ -64,6 +65,7 @@ class URConfig:
     move_timeout_margin_s: float = 10.0
     reach_tolerance_rad: float = 1e-3
     recover_timeout_s: float = 20.0
+    power_on_at_connect: bool = False  # power on and release the brakes if the arm is off at connect
 
     @classmethod
     def from_mapping(cls, values: dict) -> URConfig:
@@ -174,18 +176,54 @@ class URRobot:
                 self._dash = dashboard_client.DashboardClient(cfg.host)
                 self._dash.connect(int(cfg.connect_timeout_s * 1000))
                 self._rx = rtde_receive.RTDEReceiveInterface(cfg.host)
+                self._require_arm_ready()  # the control program would not start otherwise (a 5 s stall)
                 self._ctrl = rtde_control.RTDEControlInterface(
                     cfg.host, -1.0, rtde_control.RTDEControlInterface.FLAG_UPLOAD_SCRIPT
                 )
                 self._ctrl.setTcp([0.0] * 6)  # TCP pose = flange pose
                 self._last_stamp, self._last_stamp_wall = self._rx.getTimestamp(), time.monotonic()
                 return
+            except (EmergencyStopError, ProtectiveStopError, RobotNotReadyError):
+                self._disconnect()
+                raise
             except (RuntimeError, RobotConnectionError) as exc:
                 last = exc
                 log.warning("connect to %s, attempt %d failed: %s", cfg.host, attempt + 1, exc)
                 self._disconnect()
                 time.sleep(min(2.0, 0.2 * 2**attempt))
         raise RobotConnectionError(f"could not connect to the UR controller at {cfg.host}: {last}")
+
+    def _require_arm_ready(self) -> None:
+        """Before the control program is uploaded: the arm must be powered, brakes released, no stop."""
+        rx = self._rx
+        deadline = time.monotonic() + 2.0
+        while rx.getTimestamp() <= 0 and time.monotonic() < deadline:
+            time.sleep(0.002)
+        bits = rx.getSafetyStatusBits()
+        if bits & (_ANY_ESTOP_BIT | _ROBOT_ESTOP_BIT):
+            raise EmergencyStopError(
+                "the robot is emergency stopped", "release the e-stop, power on, then connect"
+            )
+        if bits & _PROTECTIVE_BIT:
+            raise ProtectiveStopError(
+                "the robot is protective stopped",
+                "inspect the cell, unlock the protective stop, then connect",
+            )
+        mode = ROBOT_MODES.get(rx.getRobotMode(), "UNKNOWN")
+        if mode == "RUNNING":
+            return
+        if not self.config.power_on_at_connect:
+            raise RobotNotReadyError(
+                f"the arm is {mode}, not RUNNING",
+                "power on and release the brakes on the pendant, or use URConfig(power_on_at_connect=True)",
+            )
+        self._dash.powerOn()
+        self._dash.brakeRelease()
+        deadline = time.monotonic() + self.config.recover_timeout_s
+        while ROBOT_MODES.get(rx.getRobotMode()) != "RUNNING":
+            if time.monotonic() > deadline:
+                raise RobotNotReadyError("the arm did not reach RUNNING after power on and brake release")
+            time.sleep(0.02)
 
     def _disconnect(self) -> None:
         URRobot._release([self._ctrl, self._rx, self._dash])

@@ -15,6 +15,7 @@ from drivers.robot import (
     Robot,
     RobotConfigError,
     RobotConnectionError,
+    RobotNotReadyError,
     StaleDataError,
 )
 from drivers.ur import URConfig, URRobot
@@ -145,3 +146,18 @@ def test_short_latency_spike_is_ridden_through(cell):
         assert cell.control.call("robot.state")["faults"][-1]["kind"] == "latency"
     finally:
         robot.close()
+
+
+@pytest.mark.timeout(60)
+def test_powered_off_arm_is_reported_or_powered_on_when_allowed():
+    with sim_cell(robot="ur10", time_scale=10.0, extra_args=("--powered-off",)) as off:
+        started = time.monotonic()
+        with pytest.raises(RobotNotReadyError, match="POWER_OFF"):
+            URRobot(URConfig(off.host))
+        assert time.monotonic() - started < 5.0
+        robot = URRobot(URConfig(off.host, power_on_at_connect=True))
+        try:
+            robot.move_joints(HOME + [0.2, 0, 0, 0, 0, 0])
+            assert robot.state().robot_mode == "RUNNING"
+        finally:
+            robot.close()
