@@ -69,7 +69,9 @@ def start_cell(
         env = dict(os.environ)
         env["PYTHONPATH"] = _ROOT + os.pathsep + env.get("PYTHONPATH", "")
         with tempfile.NamedTemporaryFile(prefix="hil-sim-", suffix=".log", delete=False) as log:
-            process = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=log, env=env, cwd=_ROOT)
+            process = subprocess.Popen(
+                args, stdout=subprocess.PIPE, stderr=log, env=env, cwd=_ROOT, preexec_fn=_die_with_parent
+            )
         line = _read_line(process, ready_timeout_s)
         if line:
             info = json.loads(line)
@@ -98,6 +100,19 @@ def sim_cell(**kwargs) -> Iterator[RunningCell]:
         yield cell
     finally:
         stop_cell(cell)
+
+
+def _die_with_parent() -> None:
+    """In the child: ask Linux to SIGTERM it when the parent dies (a crashed or killed test run must
+    not leave cells running). Elsewhere a no-op; the context manager still stops the cell normally."""
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
 
 
 def _read_line(process: subprocess.Popen, timeout_s: float) -> str | None:
