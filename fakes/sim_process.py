@@ -70,8 +70,15 @@ class SimClock:
             deadline += self.period_s
             delay = deadline - loop.time()
             if delay > _WAKE_EARLY_S:
-                # the selector rounds timeouts up to whole milliseconds: wake a little early instead of late
+                # the selector rounds timeouts up to whole milliseconds: wake a little early, then sleep
+                # the sub-millisecond rest precisely (the loop has nothing else due before the tick)
                 await asyncio.sleep(delay - _WAKE_EARLY_S)
+                rest = deadline - loop.time()
+                if 0 < rest <= _WAKE_EARLY_S:
+                    time.sleep(rest)
+                # let the servers read what arrived meanwhile, so this tick sees the latest commands
+                await asyncio.sleep(0)
+                await asyncio.sleep(0)
             else:
                 await asyncio.sleep(0)  # behind schedule: still let the servers read their sockets
                 if delay < -5 * self.period_s:  # hopelessly behind (suspended): resynchronise
