@@ -214,27 +214,28 @@ class UrController(ScriptRuntime):
                 await asyncio.wait_for(server.wait_closed(), 1.0)
         self._servers.clear()
 
-    def _track(self, coro) -> None:
+    def _track_current_task(self) -> None:
+        """Remember a client's handler task so `close()` can cancel it."""
         task = asyncio.current_task()
         if task is not None:
             self._tasks.add(task)
             task.add_done_callback(self._tasks.discard)
 
     async def _serve_rtde(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        self._track(None)
+        self._track_current_task()
         _nodelay(writer)
         conn = RtdeConnection(self, reader, writer)
         self._rtde.append(conn)
         await conn.serve()
 
     async def _serve_dashboard(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        self._track(None)
+        self._track_current_task()
         _nodelay(writer)
         await serve_dashboard(self, reader, writer)
 
     async def _serve_script(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         """Accept programs; complete ones are started, the client never reads anything back."""
-        self._track(None)
+        self._track_current_task()
         buffer = ""
         try:
             while True:
