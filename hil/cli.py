@@ -12,6 +12,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "hil.commands.calibrate",
     "hil.commands.diagnose",
     "hil.commands.predict",
+    "hil.commands.sim",
     "hil.commands.tracker",
 )
 

@@ -1,0 +1,122 @@
+"""The `Robot` protocol procedures use, its state record and its typed errors (no vendor imports here).
+
+Every error says what happened and what to do next (`remedy`), so a procedure can stop cleanly and an
+operator knows how to continue.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+
+class RobotError(RuntimeError):
+    """Base of every robot driver error; `remedy` tells the operator or procedure what to do next."""
+
+    remedy = "check the robot and its connection, then retry"
+
+    def __init__(self, message: str, remedy: str | None = None):
+        if remedy is not None:
+            self.remedy = remedy
+        super().__init__(f"{message} -- next: {self.remedy}")
+        self.message = message
+
+
+class ProtectiveStopError(RobotError):
+    remedy = "inspect the cell for the cause, then call robot.recover() (unlocks the stop after 5 s)"
+
+
+class EmergencyStopError(RobotError):
+    remedy = "make the cell safe, release the emergency stop button, then call robot.recover()"
+
+
+class ProgramNotRunningError(RobotError):
+    remedy = "call robot.recover() to upload and start the control program again"
+
+
+class RobotNotReadyError(RobotError):
+    remedy = "power on the arm and release its brakes, then retry"
+
+
+class RobotTimeoutError(RobotError):
+    remedy = "check that the target is reachable and the speed sensible; robot.stop(), then retry"
+
+
+class RobotConnectionError(RobotError):
+    remedy = "check the network and the controller, then call robot.recover() to rebuild the connection"
+
+
+class StaleDataError(RobotConnectionError):
+    remedy = "the controller's data stream froze; call robot.recover() to rebuild the connection"
+
+
+class RobotConfigError(RobotError, ValueError):
+    remedy = "fix the requested value (see the message); nothing moved"
+
+
+@dataclass(frozen=True)
+class RobotState:
+    """What the controller reports now."""
+
+    connected: bool
+    robot_mode: str
+    safety_mode: str
+    program_running: bool
+    protective_stop: bool
+    emergency_stop: bool
+    timestamp_s: float
+
+    @property
+    def ready(self) -> bool:
+        return (
+            self.connected
+            and self.robot_mode == "RUNNING"
+            and self.program_running
+            and not self.protective_stop
+            and not self.emergency_stop
+        )
+
+
+@runtime_checkable
+class Robot(Protocol):
+    """A six-axis arm as procedures see it. SI units: radians, metres, seconds."""
+
+    def move_joints(self, q: np.ndarray, speed: float | None = None, accel: float | None = None) -> None:
+        """Move in joint space to q (6,) and return once the motion has ended."""
+        ...
+
+    def move_linear(
+        self, T_base_flange: np.ndarray, speed: float | None = None, accel: float | None = None
+    ) -> None:
+        """Move the flange in a straight line to a pose (4x4, or UR pose vector) and return at the end."""
+        ...
+
+    def joints(self) -> np.ndarray:
+        """Current joint positions (6,) as the controller reports them."""
+        ...
+
+    def flange_pose(self) -> np.ndarray:
+        """T_base_flange (4, 4) the controller believes (nominal model)."""
+        ...
+
+    def wait_settled(self, dwell_s: float | None = None, timeout_s: float | None = None) -> None:
+        """Block until the arm is steady, then dwell (vibration dies out before a measurement)."""
+        ...
+
+    def stop(self) -> None:
+        """Decelerate any motion to rest."""
+        ...
+
+    def state(self) -> RobotState:
+        """Connection, modes and stop flags."""
+        ...
+
+    def recover(self) -> None:
+        """Bring the robot back to ready after a stop or lost connection (see each error's remedy)."""
+        ...
+
+    def close(self) -> None:
+        """Leave the robot stopped and release every connection."""
+        ...

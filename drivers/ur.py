@@ -1,0 +1,524 @@
+"""Universal Robots driver on ur-rtde (the only module that imports it).
+
+Moves are sent asynchronously and supervised from Python, so every failure surfaces as a typed error
+within a bounded time: protective / emergency stop from the safety bits, program stopped from the
+runtime state, frozen data from RTDE timestamps that stop advancing, timeouts from the trapezoid time.
+Connections are probed with plain sockets before the ur-rtde constructors run (those block without a
+timeout and hold Python's global lock), rebuilt on `recover()`, and torn down control-first.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import socket
+import struct
+import time
+import weakref
+from dataclasses import dataclass
+
+import numpy as np
+
+from drivers.robot import (
+    EmergencyStopError,
+    ProgramNotRunningError,
+    ProtectiveStopError,
+    RobotConfigError,
+    RobotConnectionError,
+    RobotError,
+    RobotNotReadyError,
+    RobotState,
+    RobotTimeoutError,
+    StaleDataError,
+)
+from hil.se3 import pose_to_transform, transform_to_pose
+
+log = logging.getLogger(__name__)
+
+ROBOT_MODES = {-1: "NO_CONTROLLER", 0: "DISCONNECTED", 1: "CONFIRM_SAFETY", 2: "BOOTING", 3: "POWER_OFF"}
+ROBOT_MODES |= {4: "POWER_ON", 5: "IDLE", 6: "BACKDRIVE", 7: "RUNNING", 8: "UPDATING_FIRMWARE"}
+SAFETY_MODES = {1: "NORMAL", 2: "REDUCED", 3: "PROTECTIVE_STOP", 4: "RECOVERY", 5: "SAFEGUARD_STOP"}
+SAFETY_MODES |= {6: "SYSTEM_EMERGENCY_STOP", 7: "ROBOT_EMERGENCY_STOP", 8: "VIOLATION", 9: "FAULT"}
+_PROTECTIVE_BIT, _ROBOT_ESTOP_BIT, _ANY_ESTOP_BIT = 1 << 2, 1 << 6, 1 << 7
+_PLAYING = 2
+
+
+@dataclass(frozen=True)
+class URConfig:
+    """Connection, speed limits and supervision settings of one UR robot (from the cell config)."""
+
+    host: str
+    joint_speed: float = 1.05  # rad/s, default for move_joints
+    joint_accel: float = 1.4  # rad/s^2
+    linear_speed: float = 0.25  # m/s, default for move_linear
+    linear_accel: float = 1.2  # m/s^2
+    max_joint_speed: float = math.pi  # rad/s, hard limit for any request
+    max_joint_accel: float = 10.0
+    max_linear_speed: float = 1.0  # m/s
+    max_linear_accel: float = 5.0
+    joint_limit_rad: float = 2 * math.pi
+    connect_timeout_s: float = 5.0
+    connect_attempts: int = 3
+    settle_dwell_s: float = 0.2
+    settle_timeout_s: float = 30.0
+    stale_after_s: float = 0.5  # data timestamps must advance within this wall time
+    move_timeout_margin_s: float = 10.0
+    reach_tolerance_rad: float = 1e-3
+    recover_timeout_s: float = 20.0
+    power_on_at_connect: bool = False  # power on and release the brakes if the arm is off at connect
+
+    @classmethod
+    def from_mapping(cls, values: dict) -> URConfig:
+        """Build from a cell configuration section (e.g. parsed TOML/JSON); unknown keys are an error."""
+        known = set(cls.__dataclass_fields__)
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise RobotConfigError(f"unknown UR settings {unknown}; known: {sorted(known)}")
+        return cls(**values)
+
+    def __post_init__(self) -> None:
+        for name in ("joint_speed", "joint_accel", "linear_speed", "linear_accel", "stale_after_s"):
+            if not getattr(self, name) > 0:
+                raise RobotConfigError(f"URConfig.{name} must be positive, got {getattr(self, name)}")
+        for name, limit in (
+            ("joint_speed", "max_joint_speed"),
+            ("joint_accel", "max_joint_accel"),
+            ("linear_speed", "max_linear_speed"),
+            ("linear_accel", "max_linear_accel"),
+        ):
+            if getattr(self, name) > getattr(self, limit):
+                raise RobotConfigError(
+                    f"URConfig.{name} {getattr(self, name)} exceeds {limit} {getattr(self, limit)}"
+                )
+
+
+def probe_controller(host: str, timeout_s: float, rtde_port: int = 30004, dashboard_port: int = 29999) -> str:
+    """Check, with socket timeouts, that RTDE answers its handshake and streams, and the dashboard greets.
+
+    The ur-rtde constructors wait forever for these replies and for the first data package (holding the
+    GIL while they do), so the driver only calls them once this probe passed. Returns the controller
+    version 'major.minor.bugfix.build'.
+    """
+    try:
+        with socket.create_connection((host, rtde_port), timeout=timeout_s) as sock:
+            sock.settimeout(timeout_s)
+            sock.sendall(struct.pack(">HBH", 5, ord("V"), 2))
+            _read_rtde_reply(sock, ord("V"))
+            sock.sendall(struct.pack(">HB", 3, ord("v")))
+            payload = _read_rtde_reply(sock, ord("v"))
+            numbers = struct.unpack(">IIII", payload[:16])
+            version = ".".join(str(x) for x in numbers)
+            # the control constructor waits, without a timeout, for a first data package: check one comes
+            frequency = 500.0 if numbers[0] >= 5 else 125.0
+            names = b"timestamp,"
+            sock.sendall(struct.pack(">HBd", 3 + 8 + len(names), ord("O"), frequency) + names)
+            _read_rtde_reply(sock, ord("O"))
+            sock.sendall(struct.pack(">HB", 3, ord("S")))
+            if _read_rtde_reply(sock, ord("S"))[:1] != b"\x01":
+                raise RobotConnectionError(f"RTDE at {host} refused to start synchronisation")
+            _read_rtde_reply(sock, ord("U"))
+        with socket.create_connection((host, dashboard_port), timeout=timeout_s) as sock:
+            sock.settimeout(timeout_s)
+            greeting = sock.recv(256)
+            if not greeting:
+                raise RobotConnectionError(f"dashboard of {host} closed without a greeting")
+    except (OSError, struct.error) as exc:
+        raise RobotConnectionError(f"controller at {host} does not answer: {exc}") from exc
+    return version
+
+
+def _read_rtde_reply(sock: socket.socket, expected_type: int) -> bytes:
+    header = _recv_exact(sock, 3)
+    size, kind = struct.unpack(">HB", header)
+    payload = _recv_exact(sock, size - 3)
+    if kind != expected_type:
+        raise RobotConnectionError(f"RTDE replied with message type {kind}, expected {expected_type}")
+    return payload
+
+
+def _recv_exact(sock: socket.socket, n: int) -> bytes:
+    data = b""
+    while len(data) < n:
+        chunk = sock.recv(n - len(data))
+        if not chunk:
+            raise RobotConnectionError("RTDE connection closed during the handshake")
+        data += chunk
+    return data
+
+
+class URRobot:
+    """`Robot` on a UR controller through ur-rtde (receive + control + dashboard)."""
+
+    def __init__(self, config: URConfig):
+        self.config = config
+        self._rx = None
+        self._ctrl = None
+        self._dash = None
+        self.version = ""
+        self._last_stamp = -1.0
+        self._last_stamp_wall = 0.0
+        self._connect()
+        # make sure the clients are disconnected before the interpreter (or the fake) goes away
+        self._finalizer = weakref.finalize(self, URRobot._release, [self._ctrl, self._rx, self._dash])
+
+    # ------------------------------------------------------------------ connection
+    def _connect(self) -> None:
+        """Probe, then build dashboard, receive and control interfaces, with bounded retries."""
+        import dashboard_client
+        import rtde_control
+        import rtde_receive
+
+        cfg = self.config
+        last: Exception | None = None
+        for attempt in range(cfg.connect_attempts):
+            try:
+                self.version = probe_controller(cfg.host, cfg.connect_timeout_s)
+                self._dash = dashboard_client.DashboardClient(cfg.host)
+                self._dash.connect(int(cfg.connect_timeout_s * 1000))
+                self._rx = rtde_receive.RTDEReceiveInterface(cfg.host)
+                self._require_arm_ready()  # the control program would not start otherwise (a 5 s stall)
+                self._ctrl = rtde_control.RTDEControlInterface(
+                    cfg.host, -1.0, rtde_control.RTDEControlInterface.FLAG_UPLOAD_SCRIPT
+                )
+                self._ctrl.setTcp([0.0] * 6)  # TCP pose = flange pose
+                self._last_stamp, self._last_stamp_wall = self._rx.getTimestamp(), time.monotonic()
+                return
+            except (EmergencyStopError, ProtectiveStopError, RobotNotReadyError):
+                self._disconnect()
+                raise
+            except (RuntimeError, RobotConnectionError) as exc:
+                last = exc
+                log.warning("connect to %s, attempt %d failed: %s", cfg.host, attempt + 1, exc)
+                self._disconnect()
+                time.sleep(min(2.0, 0.2 * 2**attempt))
+        raise RobotConnectionError(f"could not connect to the UR controller at {cfg.host}: {last}")
+
+    def _require_arm_ready(self) -> None:
+        """Before the control program is uploaded: the arm must be powered, brakes released, no stop."""
+        rx = self._rx
+        deadline = time.monotonic() + 2.0
+        while rx.getTimestamp() <= 0 and time.monotonic() < deadline:
+            time.sleep(0.002)
+        bits = rx.getSafetyStatusBits()
+        if bits & (_ANY_ESTOP_BIT | _ROBOT_ESTOP_BIT):
+            raise EmergencyStopError(
+                "the robot is emergency stopped", "release the e-stop, power on, then connect"
+            )
+        if bits & _PROTECTIVE_BIT:
+            raise ProtectiveStopError(
+                "the robot is protective stopped",
+                "inspect the cell, unlock the protective stop, then connect",
+            )
+        mode = ROBOT_MODES.get(rx.getRobotMode(), "UNKNOWN")
+        if mode == "RUNNING":
+            return
+        if not self.config.power_on_at_connect:
+            raise RobotNotReadyError(
+                f"the arm is {mode}, not RUNNING",
+                "power on and release the brakes on the pendant, or use URConfig(power_on_at_connect=True)",
+            )
+        self._dash.powerOn()
+        self._dash.brakeRelease()
+        deadline = time.monotonic() + self.config.recover_timeout_s
+        while ROBOT_MODES.get(rx.getRobotMode()) != "RUNNING":
+            if time.monotonic() > deadline:
+                raise RobotNotReadyError("the arm did not reach RUNNING after power on and brake release")
+            time.sleep(0.02)
+
+    def _disconnect(self) -> None:
+        URRobot._release([self._ctrl, self._rx, self._dash])
+        self._ctrl = self._rx = self._dash = None
+
+    @staticmethod
+    def _release(clients: list) -> None:
+        """Disconnect control first, then receive, then dashboard; each may already be gone."""
+        for client in clients:
+            if client is None:
+                continue
+            try:
+                client.disconnect()
+            except Exception as exc:  # a dead peer must not stop the rest of the teardown
+                log.debug("disconnect failed: %s", exc)
+
+    def _rebuild(self) -> None:
+        """Rebuild the control interface; everything if the receive stream is not healthy too."""
+        import rtde_control
+
+        self._finalizer.detach()
+        try:
+            self._check_stream()
+            healthy = True
+        except RobotConnectionError:
+            healthy = False
+        if healthy:
+            URRobot._release([self._ctrl])  # disconnect before building the new one (never rebind a live one)
+            self._ctrl = None
+            try:
+                probe_controller(self.config.host, self.config.connect_timeout_s)
+                self._ctrl = rtde_control.RTDEControlInterface(
+                    self.config.host, -1.0, rtde_control.RTDEControlInterface.FLAG_UPLOAD_SCRIPT
+                )
+                self._ctrl.setTcp([0.0] * 6)
+            except (RuntimeError, RobotConnectionError) as exc:
+                log.warning("rebuilding the control interface failed (%s); reconnecting everything", exc)
+                healthy = False
+        if not healthy:
+            self._disconnect()
+            self._connect()
+        self._finalizer = weakref.finalize(self, URRobot._release, [self._ctrl, self._rx, self._dash])
+
+    # ------------------------------------------------------------------ supervision
+    def _check(self) -> None:
+        """Raise the typed error for the controller's current condition, if any."""
+        rx, ctrl = self._rx, self._ctrl
+        if rx is None or ctrl is None:
+            raise RobotConnectionError(f"not connected to {self.config.host}")
+        if not rx.isConnected():
+            raise RobotConnectionError(f"RTDE receive connection to {self.config.host} lost")
+        stamp, now = rx.getTimestamp(), time.monotonic()
+        if stamp != self._last_stamp:
+            self._last_stamp, self._last_stamp_wall = stamp, now
+        elif now - self._last_stamp_wall > self.config.stale_after_s:
+            raise StaleDataError(
+                f"RTDE data from {self.config.host} frozen for {now - self._last_stamp_wall:.2f} s "
+                f"(timestamp {stamp:.3f} s)"
+            )
+        bits = rx.getSafetyStatusBits()
+        if bits & (_ANY_ESTOP_BIT | _ROBOT_ESTOP_BIT):
+            raise EmergencyStopError("the robot is emergency stopped")
+        if bits & _PROTECTIVE_BIT:
+            raise ProtectiveStopError("the robot is protective stopped")
+        if not ctrl.isConnected():
+            raise RobotConnectionError(f"RTDE control connection to {self.config.host} lost")
+        if rx.getRuntimeState() != _PLAYING:
+            raise ProgramNotRunningError("the control program is not running on the controller")
+
+    def _supervise_async(self, op_before: int, expected_s: float, what: str) -> None:
+        """Wait for the async operation started after `op_before` to finish, checking faults meanwhile."""
+        deadline = time.monotonic() + expected_s * 3 + self.config.move_timeout_margin_s
+        while True:
+            self._check()
+            status = self._ctrl.getAsyncOperationProgressEx()
+            if status.operationId() != op_before and not status.isAsyncOperationRunning():
+                return
+            if time.monotonic() > deadline:
+                self._try_stop()
+                raise RobotTimeoutError(
+                    f"{what} did not finish within {deadline - time.monotonic() + 0:.0f} s"
+                )
+            time.sleep(0.004)
+
+    def _sync_stream(self, packages: int = 2) -> None:
+        """Wait for a couple of fresh receive packages: the receive and control streams are separate
+        sockets, so right after the control side reports an event the receive side may lag a cycle."""
+        deadline = time.monotonic() + self.config.stale_after_s
+        stamp, seen = self._rx.getTimestamp(), 0
+        while seen < packages:
+            now_stamp = self._rx.getTimestamp()
+            if now_stamp != stamp:
+                stamp, seen = now_stamp, seen + 1
+            elif time.monotonic() > deadline:
+                self._check_stream()
+                return
+            time.sleep(0.0005)
+
+    def _try_stop(self) -> None:
+        try:
+            if self._ctrl is not None and self._ctrl.isProgramRunning():
+                self._ctrl.stopJ(2.0)
+        except RuntimeError as exc:
+            log.warning("stop failed: %s", exc)
+
+    # ------------------------------------------------------------------ motion
+    def move_joints(self, q: np.ndarray, speed: float | None = None, accel: float | None = None) -> None:
+        cfg = self.config
+        q = _vector(q, 6, "joint target")
+        if np.any(np.abs(q) > cfg.joint_limit_rad):
+            raise RobotConfigError(f"joint target {np.round(q, 4)} outside +-{cfg.joint_limit_rad:.3f} rad")
+        speed = _limited(speed, cfg.joint_speed, cfg.max_joint_speed, "joint speed (rad/s)")
+        accel = _limited(accel, cfg.joint_accel, cfg.max_joint_accel, "joint acceleration (rad/s^2)")
+        self._check()
+        distance = float(np.max(np.abs(q - self.joints())))
+        op_before = self._ctrl.getAsyncOperationProgressEx().operationId()
+        if not self._ctrl.moveJ(q.tolist(), speed, accel, True):
+            self._check()
+            raise RobotError("the controller refused moveJ", "check the target and the controller log")
+        self._supervise_async(op_before, _trapezoid_time(distance, speed, accel), "moveJ")
+        self._sync_stream()
+        reached = float(np.max(np.abs(self._rx.getTargetQ() - q)))
+        if reached > cfg.reach_tolerance_rad:
+            raise RobotError(
+                f"moveJ ended {reached:.4f} rad from its target", "the move was interrupted; retry"
+            )
+
+    def move_linear(
+        self, T_base_flange: np.ndarray, speed: float | None = None, accel: float | None = None
+    ) -> None:
+        cfg = self.config
+        T = np.asarray(T_base_flange, float)
+        pose = transform_to_pose(T) if T.shape == (4, 4) else _vector(T, 6, "pose")
+        if not np.all(np.isfinite(pose)):
+            raise RobotConfigError(f"linear target {pose} is not finite")
+        speed = _limited(speed, cfg.linear_speed, cfg.max_linear_speed, "linear speed (m/s)")
+        accel = _limited(accel, cfg.linear_accel, cfg.max_linear_accel, "linear acceleration (m/s^2)")
+        self._check()
+        current = self.flange_pose()
+        target = pose_to_transform(pose)
+        distance = max(
+            float(np.linalg.norm(target[:3, 3] - current[:3, 3])),
+            _rotation_angle(current[:3, :3].T @ target[:3, :3]),
+        )
+        op_before = self._ctrl.getAsyncOperationProgressEx().operationId()
+        if not self._ctrl.moveL(pose.tolist(), speed, accel, True):
+            self._check()
+            raise RobotError("the controller refused moveL", "check that the pose is reachable")
+        self._supervise_async(op_before, _trapezoid_time(distance, speed, accel), "moveL")
+        self._sync_stream()
+
+    def stop(self) -> None:
+        """Decelerate to rest; a no-op when the program is not running (the controller already holds it)."""
+        ctrl = self._ctrl
+        if ctrl is None or not ctrl.isConnected():
+            raise RobotConnectionError(f"cannot stop: no control connection to {self.config.host}")
+        if ctrl.isProgramRunning():
+            ctrl.stopJ(self.config.max_joint_accel / 2)
+
+    # ------------------------------------------------------------------ reading
+    def joints(self) -> np.ndarray:
+        self._check_stream()
+        return np.array(self._rx.getActualQ(), float)
+
+    def flange_pose(self) -> np.ndarray:
+        self._check_stream()
+        return pose_to_transform(np.array(self._rx.getActualTCPPose(), float))
+
+    def _check_stream(self) -> None:
+        """Readings need only a live, advancing data stream (not a running program)."""
+        rx = self._rx
+        if rx is None or not rx.isConnected():
+            raise RobotConnectionError(f"RTDE receive connection to {self.config.host} lost")
+        stamp, now = rx.getTimestamp(), time.monotonic()
+        if stamp != self._last_stamp:
+            self._last_stamp, self._last_stamp_wall = stamp, now
+        elif now - self._last_stamp_wall > self.config.stale_after_s:
+            raise StaleDataError(
+                f"RTDE data from {self.config.host} frozen for {now - self._last_stamp_wall:.2f} s"
+            )
+
+    def wait_settled(self, dwell_s: float | None = None, timeout_s: float | None = None) -> None:
+        dwell_s = self.config.settle_dwell_s if dwell_s is None else dwell_s
+        deadline = time.monotonic() + (self.config.settle_timeout_s if timeout_s is None else timeout_s)
+        while True:
+            self._check()
+            if float(np.max(np.abs(self._rx.getActualQd()))) < 1e-6 and self._ctrl.isSteady():
+                break
+            if time.monotonic() > deadline:
+                raise RobotTimeoutError("the robot did not settle")
+            time.sleep(0.005)
+        end = time.monotonic() + dwell_s
+        while time.monotonic() < end:  # keep supervising during the dwell
+            self._check()
+            time.sleep(min(0.01, max(0.0, end - time.monotonic())))
+
+    def state(self) -> RobotState:
+        rx = self._rx
+        if rx is None or not rx.isConnected():
+            return RobotState(False, "DISCONNECTED", "UNKNOWN", False, False, False, float("nan"))
+        bits = rx.getSafetyStatusBits()
+        return RobotState(
+            connected=bool(self._ctrl is not None and self._ctrl.isConnected()),
+            robot_mode=ROBOT_MODES.get(rx.getRobotMode(), "UNKNOWN"),
+            safety_mode=SAFETY_MODES.get(rx.getSafetyMode(), "UNKNOWN"),
+            program_running=rx.getRuntimeState() == _PLAYING,
+            protective_stop=bool(bits & _PROTECTIVE_BIT),
+            emergency_stop=bool(bits & (_ANY_ESTOP_BIT | _ROBOT_ESTOP_BIT)),
+            timestamp_s=rx.getTimestamp(),
+        )
+
+    # ------------------------------------------------------------------ recovery and teardown
+    def recover(self) -> None:
+        """Unlock a protective stop, power the arm if needed, and rebuild the connections."""
+        cfg = self.config
+        deadline = time.monotonic() + cfg.recover_timeout_s
+        self._ensure_dashboard()
+        dash = self._dash
+        mode = dash.safetystatus() if self.version.startswith("5") else dash.safetymode()
+        if "EMERGENCY" in mode:
+            raise EmergencyStopError(f"cannot recover: {mode.strip()}")
+        if "PROTECTIVE_STOP" in mode:
+            while True:
+                try:
+                    dash.unlockProtectiveStop()
+                    break
+                except Exception as exc:  # refused within 5 s of the stop: wait and retry
+                    if time.monotonic() > deadline:
+                        raise ProtectiveStopError(
+                            f"the protective stop could not be unlocked: {exc}"
+                        ) from exc
+                    time.sleep(0.2)
+            dash.closeSafetyPopup()
+        if "RUNNING" not in dash.robotmode():
+            dash.powerOn()
+            dash.brakeRelease()
+            while "RUNNING" not in dash.robotmode():
+                if time.monotonic() > deadline:
+                    raise RobotError("the arm did not reach RUNNING after power on and brake release")
+                time.sleep(0.05)
+        self._rebuild()
+        self._sync_stream()  # the receive stream may report the restarted program a cycle late
+        deadline = time.monotonic() + 1.0
+        while True:
+            try:
+                self._check()
+                return
+            except ProgramNotRunningError:
+                if time.monotonic() > deadline:
+                    raise
+                time.sleep(0.005)
+
+    def _ensure_dashboard(self) -> None:
+        if self._dash is not None and self._dash.isConnected():
+            return
+        import dashboard_client
+
+        probe_controller(self.config.host, self.config.connect_timeout_s)
+        self._dash = dashboard_client.DashboardClient(self.config.host)
+        self._dash.connect(int(self.config.connect_timeout_s * 1000))
+
+    def close(self) -> None:
+        """Stop any motion, then disconnect control, receive and dashboard (in that order)."""
+        if self._ctrl is not None:
+            self._try_stop()
+        self._finalizer.detach()
+        self._disconnect()
+
+    def __enter__(self) -> URRobot:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def _vector(value, n: int, what: str) -> np.ndarray:
+    v = np.asarray(value, float).reshape(-1)
+    if v.shape != (n,) or not np.all(np.isfinite(v)):
+        raise RobotConfigError(f"{what} must be {n} finite numbers, got {value!r}")
+    return v
+
+
+def _limited(value: float | None, default: float, limit: float, what: str) -> float:
+    value = default if value is None else float(value)
+    if not (0 < value <= limit):
+        raise RobotConfigError(f"{what} {value} outside (0, {limit}]")
+    return value
+
+
+def _trapezoid_time(distance: float, speed: float, accel: float) -> float:
+    if distance <= 0:
+        return 0.0
+    v = min(speed, math.sqrt(distance * accel))
+    return distance / v + v / accel
+
+
+def _rotation_angle(R: np.ndarray) -> float:
+    return math.acos(max(-1.0, min(1.0, (np.trace(R) - 1.0) / 2.0)))

@@ -1,0 +1,146 @@
+"""Start `hil sim` as a subprocess for tests and `hil demo`: pick a loopback address, read the ready
+line with a timeout, hand back the announced addresses and a control client, and always stop it."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import random
+import select
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+
+from fakes.control_client import ControlClient
+
+EXIT_ADDRESS_IN_USE = 3
+_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+@dataclass
+class RunningCell:
+    """A live `hil sim` process: its announcement, control client and process handle."""
+
+    info: dict
+    process: subprocess.Popen
+    control: ControlClient
+    log_path: str
+    args: list[str] = field(default_factory=list)
+
+    @property
+    def host(self) -> str:
+        return self.info["robot"]["host"]
+
+    def log_tail(self, n: int = 40) -> str:
+        with contextlib.suppress(OSError), open(self.log_path, errors="replace") as f:
+            return "".join(f.readlines()[-n:])
+        return ""
+
+
+def random_loopback_host(rng: random.Random | None = None) -> str:
+    """A random address in 127.0.0.0/8 other than 127.0.0.1 (UR's ports are fixed, so one cell per host)."""
+    rng = rng or random.Random()
+    return f"127.{rng.randint(1, 254)}.{rng.randint(0, 255)}.{rng.randint(2, 254)}"
+
+
+def start_cell(
+    robot: str = "ur10",
+    personality: str | None = None,
+    seed: int = 0,
+    time_scale: float = 1.0,
+    host: str | None = None,
+    extra_args: tuple[str, ...] = (),
+    ready_timeout_s: float = 30.0,
+    attempts: int = 5,
+) -> RunningCell:
+    """Spawn `python -m hil sim ...` and wait for its JSON line; retries other hosts if the address is taken."""
+    last_error = ""
+    for _ in range(attempts):
+        chosen = host or random_loopback_host()
+        args = [sys.executable, "-m", "hil", "sim", "--host", chosen, "--robot", robot, "--seed", str(seed)]
+        args += ["--time-scale", str(time_scale), *extra_args]
+        if personality:
+            args += ["--personality", personality]
+        env = dict(os.environ)
+        env["PYTHONPATH"] = _ROOT + os.pathsep + env.get("PYTHONPATH", "")
+        with tempfile.NamedTemporaryFile(prefix="hil-sim-", suffix=".log", delete=False) as log:
+            process = subprocess.Popen(
+                args, stdout=subprocess.PIPE, stderr=log, env=env, cwd=_ROOT, preexec_fn=_die_with_parent
+            )
+        line = _read_line(process, ready_timeout_s)
+        if line:
+            info = json.loads(line)
+            return RunningCell(info, process, ControlClient(info["control"]), log.name, args)
+        code = process.poll()
+        _stop(process)
+        with open(log.name, errors="replace") as f:
+            last_error = f.read()[-2000:]
+        if code == EXIT_ADDRESS_IN_USE and host is None:
+            continue
+        break
+    raise RuntimeError(f"hil sim did not become ready:\n{last_error}")
+
+
+def stop_cell(cell: RunningCell) -> None:
+    """SIGTERM, wait, SIGKILL if needed. Disconnect robot clients before calling this."""
+    cell.control.close()
+    _stop(cell.process)
+
+
+@contextlib.contextmanager
+def sim_cell(**kwargs) -> Iterator[RunningCell]:
+    """`with sim_cell(robot="ur10e", time_scale=10) as cell:` ... the process is always stopped."""
+    cell = start_cell(**kwargs)
+    try:
+        yield cell
+    finally:
+        stop_cell(cell)
+
+
+def _die_with_parent() -> None:
+    """In the child: ask Linux to SIGTERM it when the parent dies (a crashed or killed test run must
+    not leave cells running). Elsewhere a no-op; the context manager still stops the cell normally."""
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+
+
+def _read_line(process: subprocess.Popen, timeout_s: float) -> str | None:
+    deadline = time.monotonic() + timeout_s
+    fd = process.stdout.fileno()
+    data = b""
+    while b"\n" not in data:
+        remaining = deadline - time.monotonic()
+        if remaining <= 0:
+            return None
+        ready, _, _ = select.select([fd], [], [], min(remaining, 0.2))
+        if ready:
+            chunk = os.read(fd, 65536)
+            if not chunk:
+                return None
+            data += chunk
+        elif process.poll() is not None:
+            return None
+    return data.split(b"\n", 1)[0].decode()
+
+
+def _stop(process: subprocess.Popen) -> None:
+    if process.poll() is None:
+        process.send_signal(signal.SIGTERM)
+        try:
+            process.wait(5)
+        except subprocess.TimeoutExpired:
+            process.kill()
+            process.wait(5)
+    if process.stdout:
+        process.stdout.close()

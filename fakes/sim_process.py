@@ -1,0 +1,286 @@
+"""`hil sim`: the whole simulated cell in one process on one asyncio event loop.
+
+One `SimulatedCell`, the fake UR controller on its fixed ports, the fake emScon tracker, the control
+channel, and one clock task that owns simulated time (dt = wall dt x time scale). Adding a server is
+two lines in `build()`: `self.add_server(server)` and `self.control.add_handlers(server.control_handlers())`.
+Prints one JSON line on stdout once every server listens, then runs until SIGINT/SIGTERM.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import errno
+import json
+import logging
+import os
+import signal
+import sys
+import time
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from fakes.cell import CellConfig, SimulatedCell, SmrLocation
+from fakes.control_channel import ControlChannel
+from fakes.emscon_server import EmsconServer
+from fakes.ur_controller import UrController
+
+log = logging.getLogger(__name__)
+
+EXIT_ADDRESS_IN_USE = 3
+_WAKE_EARLY_S = 0.0006
+
+
+@dataclass
+class SimOptions:
+    host: str = "127.0.0.2"
+    robot: str = "ur10"
+    seed: int = 0
+    personality: str | None = None
+    time_scale: float = 1.0
+    control_port: int = 0
+    tracker_port: int = 7000
+    script_start_delay_s: float = 0.05
+    powered: bool = True
+
+
+class SimClock:
+    """Fixed-rate wall-clock ticker advancing simulated time; keeps period statistics for benchmarks."""
+
+    def __init__(self, period_s: float, time_scale: float = 1.0):
+        self.period_s = period_s
+        self.time_scale = time_scale
+        self.listeners: list = []  # callables f(dt_sim) run in order every tick
+        self.late_ticks = 0
+        self.ticks = 0
+        self.periods: deque[float] = deque(maxlen=20000)
+
+    def set_time_scale(self, value: float) -> None:
+        value = float(value)
+        if not 0 < value <= 1000:
+            raise ValueError(f"time scale must be in (0, 1000], got {value}")
+        self.time_scale = value
+
+    async def run(self) -> None:
+        loop = asyncio.get_running_loop()
+        deadline = last = loop.time()
+        while True:
+            deadline += self.period_s
+            delay = deadline - loop.time()
+            if delay > _WAKE_EARLY_S:
+                # the selector rounds timeouts up to whole milliseconds: wake a little early, then sleep
+                # the sub-millisecond rest precisely (the loop has nothing else due before the tick)
+                await asyncio.sleep(delay - _WAKE_EARLY_S)
+                rest = deadline - loop.time()
+                if 0 < rest <= _WAKE_EARLY_S:
+                    time.sleep(rest)
+                # let the servers read what arrived meanwhile, so this tick sees the latest commands
+                await asyncio.sleep(0)
+                await asyncio.sleep(0)
+            else:
+                await asyncio.sleep(0)  # behind schedule: still let the servers read their sockets
+                if delay < -5 * self.period_s:  # hopelessly behind (suspended): resynchronise
+                    deadline = loop.time()
+            now = loop.time()
+            if now - deadline > 0.5 * self.period_s:
+                self.late_ticks += 1
+            wall_dt = now - last
+            last = now
+            self.ticks += 1
+            self.periods.append(wall_dt)
+            dt_sim = min(wall_dt, 10 * self.period_s) * self.time_scale
+            for listener in self.listeners:
+                try:
+                    listener(dt_sim)
+                except Exception:  # one failing tick must not stop the simulated world
+                    log.exception("clock listener failed")
+
+    def stats(self) -> dict:
+        periods_ms = np.array(self.periods) * 1000.0
+        if len(periods_ms) == 0:
+            return {"ticks": self.ticks}
+        return {
+            "ticks": self.ticks,
+            "late_ticks": self.late_ticks,
+            "period_ms": self.period_s * 1000.0,
+            "p50_ms": float(np.percentile(periods_ms, 50)),
+            "p99_ms": float(np.percentile(periods_ms, 99)),
+            "max_ms": float(periods_ms.max()),
+            "samples": len(periods_ms),
+        }
+
+    def reset_stats(self) -> None:
+        self.periods.clear()
+        self.late_ticks = 0
+
+
+class SimProcess:
+    """Everything of one simulated cell: build, start, announce, run, close."""
+
+    def __init__(self, options: SimOptions):
+        self.options = options
+        self.servers: list = []
+        self.cell = SimulatedCell(CellConfig(robot=options.robot, seed=options.seed))
+        self.control = ControlChannel(options.host, options.control_port)
+        self.robot: UrController | None = None
+        self.clock: SimClock | None = None
+        self.announcement: dict = {}
+        self.announcers: list = []  # callables returning extra keys for the ready line (after start)
+
+    def add_server(self, server) -> None:
+        """Any object with `async start()` and `async close()` joins the cell."""
+        self.servers.append(server)
+
+    def build(self) -> None:
+        o = self.options
+        self.robot = UrController(
+            self.cell,
+            host=o.host,
+            personality=o.personality,
+            script_start_delay_s=o.script_start_delay_s,
+            powered=o.powered,
+        )
+        self.add_server(self.robot)
+        self.control.add_handlers(robot_handlers(self.robot))
+        self.clock = SimClock(self.robot.period_s, o.time_scale)
+        self.clock.listeners.append(self.cell.advance_time)
+        self.clock.listeners.append(self.robot.tick)
+        self.control.add_handlers(cell_handlers(self.cell, self.clock))
+        tracker = EmsconServer(self.cell, o.host, o.tracker_port)
+        self.add_server(tracker)
+        self.control.add_handlers(tracker.control_handlers())
+        self.announcers.append(lambda: {"tracker": {"url": tracker.url, "port": tracker.port}})
+
+    def announce(self) -> dict:
+        robot = self.robot
+        info = {
+            "robot": {
+                "host": self.options.host,
+                "model": self.options.robot,
+                "rtde_port": robot.ports["rtde"],
+                "dashboard_port": robot.ports["dashboard"],
+                "script_ports": [robot.ports[k] for k in ("primary", "secondary", "realtime")],
+                "personality": robot.personality.name,
+                "version": ".".join(map(str, robot.personality.version)),
+                "frequency_hz": robot.personality.frequency_hz,
+            },
+            "control": self.control.address,
+            "seed": self.options.seed,
+            "time_scale": self.clock.time_scale,
+        }
+        for announcer in self.announcers:
+            info.update(announcer())
+        self.announcement = info
+        return info
+
+    async def run(self, ready_out=sys.stdout) -> int:
+        self.build()
+        started: list = []
+        try:
+            for server in [*self.servers, self.control]:
+                await server.start()
+                started.append(server)
+        except OSError as exc:
+            for server in reversed(started):
+                await server.close()
+            if exc.errno == errno.EADDRINUSE:
+                print(f"hil sim: address in use on {self.options.host}: {exc}", file=sys.stderr)
+                return EXIT_ADDRESS_IN_USE
+            raise
+        stop = asyncio.Event()
+        loop = asyncio.get_running_loop()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            with contextlib.suppress(NotImplementedError):
+                loop.add_signal_handler(sig, stop.set)
+        clock_task = asyncio.create_task(self.clock.run())
+        print(json.dumps(self.announce()), file=ready_out, flush=True)
+        try:
+            await stop.wait()
+        finally:
+            clock_task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await clock_task
+            for server in reversed(started):
+                await server.close()
+        return 0
+
+
+def robot_handlers(robot: UrController) -> dict:
+    """Control commands that reach into the fake robot controller."""
+
+    def fault(request: dict) -> dict:
+        at_move = request.get("at_move")
+        return robot.inject_fault(
+            str(request["kind"]),
+            at_move=None if at_move is None else int(at_move),
+            fraction=float(request.get("fraction", 0.5)),
+            duration_s=float(request.get("duration_s", 3.0)),
+        )
+
+    def set_remote(request: dict) -> bool:
+        robot.remote_control = bool(request["value"])
+        return robot.remote_control
+
+    return {
+        "robot.state": lambda request: robot.state(),
+        "robot.fault": fault,
+        "robot.clear_faults": lambda request: robot.clear_faults(),
+        "robot.release_estop": lambda request: robot.release_emergency_stop(),
+        "robot.set_remote_control": set_remote,
+        "robot.last_program": lambda request: robot.last_program_text,
+    }
+
+
+def cell_handlers(cell: SimulatedCell, clock: SimClock) -> dict:
+    """Control commands for the simulated world: truth, the operator's hands, the clock."""
+
+    def place_smr(request: dict) -> dict:
+        point = request.get("point_m")
+        location = SmrLocation(
+            kind=request["kind"],
+            index=request.get("index"),
+            point_m=tuple(float(x) for x in point) if point is not None else None,
+        )
+        cell.place_smr(int(request["smr_id"]), location)
+        return {
+            "smr_id": int(request["smr_id"]),
+            "center_tracker_m": cell.smr_center_tracker(int(request["smr_id"])),
+        }
+
+    def set_time_scale(request: dict) -> float:
+        clock.set_time_scale(request["value"])
+        return clock.time_scale
+
+    def clock_stats(request: dict) -> dict:
+        stats = clock.stats()
+        if request.get("reset"):
+            clock.reset_stats()
+        return stats
+
+    return {
+        "ping": lambda request: {"pong": True, "time_s": cell.time_s, "wall": time.time()},
+        "ground_truth": lambda request: cell.ground_truth(),
+        "place_smr": place_smr,
+        "smr_location": lambda request: cell.smr_location(int(request["smr_id"])),
+        "cell.state": lambda request: {
+            "time_s": cell.time_s,
+            "commanded_q": cell.commanded_q,
+            "true_joints": cell.true_joints(),
+            "T_base_flange_true": cell.T_base_flange_true(),
+            "smr_ids": cell.smr_ids,
+        },
+        "time_scale": lambda request: clock.time_scale,
+        "set_time_scale": set_time_scale,
+        "clock.stats": clock_stats,
+        "clock.periods": lambda request: list(clock.periods),
+    }
+
+
+def main(options: SimOptions) -> int:
+    logging.basicConfig(
+        level=logging.DEBUG if os.environ.get("HIL_SIM_DEBUG") else logging.WARNING,
+        format="hil sim %(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
+    return asyncio.run(SimProcess(options).run())

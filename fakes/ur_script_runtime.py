@@ -1,0 +1,332 @@
+"""The control program of ur-rtde 1.6.5, re-implemented: registers, the main loop's handshake, commands.
+
+`ScriptRuntime` is mixed into `UrController`; it reads the command register and its arguments every
+controller cycle, runs regular commands once (signalling done), realtime ones every cycle, starts and
+supervises motions, and answers queries with the nominal model (the controller's beliefs). The
+controller supplies the state it uses: `program`, the register arrays, `q_cmd`/`qd_cmd`, `motion`,
+`model`/`kin`, `T_flange_tcp`, `cell` and the fault hooks.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+
+from fakes.fast_kinematics import pose_from_transform
+from fakes.ur_modes import NORMAL, PLAYING, RUNNING, STOPPED
+from fakes.ur_motion import JointMove, LinearMove, Motion, PathMove, SpeedMove, StopMove, track_pose
+from hil.ik import solve_ik
+from hil.kinematics import forward_kinematics, geometric_jacobian
+from hil.se3 import invert, pose_to_transform, transform_to_pose
+
+log = logging.getLogger("fakes.ur_controller")
+
+
+class ScriptRuntime:
+    """Register handshake and commands of the uploaded control program (see the module docstring)."""
+
+    # ---------------------------------------------------------------- registers
+    def _ii(self, k: int) -> int:
+        return self.in_int[self.program.offset + k]
+
+    def _id(self, k: int) -> float:
+        return self.in_double[self.program.offset + k]
+
+    def _ids(self, start: int, count: int = 6) -> np.ndarray:
+        base = self.program.offset + start
+        return np.array(self.in_double[base : base + count], float)
+
+    def _oi(self, k: int, value: int) -> None:
+        offset = self.program.offset if self.program else 0
+        self.out_int[offset + k] = int(value)
+
+    def _od(self, values) -> None:
+        offset = self.program.offset if self.program else 0
+        for i, v in enumerate(np.asarray(values, float).reshape(-1)):
+            self.out_double[offset + i] = float(v)
+
+    def _async_register(self, value: int) -> None:
+        """The script's write_async_progress_register: 0 starts an op, >= 0 progress, < 0 finished."""
+        self._async_counter = self._async_counter + 1 if self._async_counter < 127 else 0
+        if value == 0:
+            self._async_op_id = self._async_op_id + 1 if self._async_op_id < 127 else 0
+        reg = self._async_counter * 65536 + self._async_op_id * 16777216
+        if value >= 0:
+            reg += min(value, 32767) + 32768
+        self._oi(2, reg)
+
+    def _advance_motion(self, dt: float) -> None:
+        motion = self.motion
+        if motion is None or self.safety_mode != NORMAL or self.robot_mode != RUNNING:
+            self.qd_cmd = np.zeros(6)
+            self._still_ticks += 1
+            return
+        self._still_ticks = 0
+        if self._motion_fresh:
+            self._motion_fresh = False
+            return
+        self._fire_planned_faults(motion)
+        if self.motion is not motion:  # a fault replaced or ended it
+            return
+        segment = getattr(motion, "i", None)
+        try:
+            q, qd = motion.advance(dt * self.speed_slider, self.q_cmd)
+        except ValueError as exc:
+            log.error("motion aborted: %s", exc)
+            q, qd = self.q_cmd, np.zeros(6)
+            motion.finished = True
+        self.q_cmd, self.qd_cmd = np.asarray(q, float), np.asarray(qd, float) * self.speed_slider
+        if isinstance(motion, PathMove) and motion.i != segment and not motion.finished:
+            self._async_register(motion.progress)  # signal_async_progress(waypoint index)
+        if motion.finished:
+            log.debug("motion %s finished", type(motion).__name__)
+            if self.last_move and self.last_move["finished_s"] is None:
+                self.last_move["finished_s"] = self.cell.time_s
+            self.motion = None
+            self.qd_cmd = np.zeros(6)
+            if self._motion_is_async:
+                self._motion_is_async = False
+                self._async_register(-1)
+            if self._blocking:
+                self._blocking = None
+                self._oi(0, 2)
+                self._executing = True
+
+    # ---------------------------------------------------------------- script emulation
+    def _script_cycle(self) -> None:
+        if self._blocking:
+            return
+        cmd = self._ii(0)
+        program = self.program
+        if cmd in program.realtime_commands:
+            self._realtime(cmd)
+            self._oi(0, 1)
+        elif cmd == 0:
+            self._executing = False
+            self._oi(0, 1)
+        elif not self._executing:
+            if cmd == 255:
+                self._halt_program(STOPPED)
+                return
+            log.debug("command %d", cmd)
+            try:
+                blocking = self._command(cmd)
+            except ValueError as exc:
+                log.error("command %d rejected: %s", cmd, exc)
+                blocking = False
+            if self.runtime_state != PLAYING:
+                return
+            if blocking:
+                self._blocking = f"cmd {cmd}"
+            else:
+                self._oi(0, 2)
+                self._executing = True
+
+    def _command(self, cmd: int) -> bool:
+        """Execute a regular command; True if it blocks until its motion ends."""
+        if cmd in (1, 2, 3, 4):
+            return self._move(cmd)
+        if cmd == 45:
+            return self._path_move()
+        if cmd in (15, 16):  # speedStop, servoStop
+            return self._stop_motion(decel=self._id(0) or 10.0, blocking=True)
+        if cmd in (33, 34):  # stopL, stopJ
+            decel = self._id(0)
+            if cmd == 33:
+                decel = self._joint_decel_for_tool(decel)
+            return self._stop_motion(decel=decel or 2.0, blocking=not self._ii(1), is_async=bool(self._ii(1)))
+        if cmd == 29:
+            self.T_flange_tcp = pose_to_transform(self._ids(0))
+        elif cmd == 40:
+            self._od(transform_to_pose(self.T_flange_tcp))
+        elif cmd == 43:
+            self._od(self._tcp_pose(self.actual_q, self.T_flange_tcp))
+        elif cmd == 44:
+            self._od(self._tcp_pose(self._ids(0), pose_to_transform(self._ids(6))))
+        elif cmd in (30, 46, 60, 61):
+            self._inverse_kinematics(cmd)
+        elif cmd == 47:
+            self._oi(1, int(self.motion is None and self._still_ticks > 1))
+        elif cmd in (36, 37):
+            q = (
+                self._ids(0)
+                if cmd == 37
+                else self._ik(pose_to_transform(self._ids(0)) @ invert(self.T_flange_tcp))
+            )
+            self._oi(1, int(q is not None and bool(self.model.within_limits(q))))
+        elif cmd == 31:
+            self.trigger_protective_stop("triggerProtectiveStop")
+        elif cmd == 39:
+            self._od(transform_to_pose(pose_to_transform(self._ids(0)) @ pose_to_transform(self._ids(6))))
+        elif cmd == 28:
+            self._od(self._target_waypoint())
+        elif cmd in (17, 65):
+            self.payload = (self._id(0), tuple(self._ids(1, 3)))
+        elif cmd == 35:
+            frequency = self._id(0)
+            self._watchdog_period_s = 1.0 / frequency if frequency > 0 else 0.0
+            self._last_ii0_write = time.monotonic()
+        elif cmd in (54, 64):
+            self._oi(1, 0)
+        # every other command (payload, gravity, teach mode, freedrive, force settings, ...) is
+        # acknowledged without a modelled effect: it still signals done, never a silent stall
+        return False
+
+    def _realtime(self, cmd: int) -> None:
+        if cmd == 9:  # speedJ
+            self._speed(self._ids(0), self._id(6))
+        elif cmd == 10:  # speedL: tool speed mapped through the nominal Jacobian
+            J = geometric_jacobian(self.model, self.q_cmd[None])[0]
+            self._speed(np.linalg.lstsq(J, self._ids(0), rcond=None)[0], self._id(6))
+        elif cmd == 11:  # servoJ
+            self._servo(self._ids(0))
+        elif cmd == 24:  # servoL
+            target = pose_to_transform(self._ids(0)) @ invert(self.T_flange_tcp)
+            self._servo(track_pose(self.model, self.q_cmd, target, iterations=5))
+        elif cmd == 26:
+            self._od([self.period_s])
+        elif cmd == 27:
+            steps = max(0, min(self._ii(1), len(self._q_history) - 1))
+            self._od(self._q_history[steps] if self._q_history else self.actual_q)
+        elif cmd == 38:
+            self._od(np.zeros(6))
+        elif cmd == 58:
+            self._od(pose_from_transform(self.kin.fk(self.actual_q)))
+        elif cmd == 25:
+            self._oi(1, 0)
+
+    def _speed(self, qd: np.ndarray, accel: float) -> None:
+        accel = accel if accel > 0 else 1.4
+        if isinstance(self.motion, SpeedMove):
+            self.motion.retarget(qd, accel)
+        else:
+            self._start_motion(SpeedMove(self.qd_cmd, qd, accel), is_async=False, count=False)
+
+    def _servo(self, q: np.ndarray) -> None:
+        self.motion = None
+        self.qd_cmd = (q - self.q_cmd) / self.period_s
+        self.q_cmd = np.asarray(q, float)
+
+    def _move(self, cmd: int) -> bool:
+        target, v, a, is_async = self._ids(0), self._id(6), self._id(7), bool(self._ii(1))
+        if cmd == 1:
+            motion: Motion = JointMove(self.q_cmd, self._checked_joints(target), v, a)
+        elif cmd == 2:
+            q = self._ik(pose_to_transform(target) @ invert(self.T_flange_tcp))
+            if q is None:
+                raise ValueError(f"moveJ_IK: no inverse kinematics solution for {np.round(target, 4)}")
+            motion = JointMove(self.q_cmd, q, v, a)
+        elif cmd == 3:
+            motion = LinearMove(
+                self.model, self.q_cmd, pose_to_transform(target) @ invert(self.T_flange_tcp), v, a
+            )
+        else:
+            T_flange = forward_kinematics(self.model, self._checked_joints(target)[None])[0]
+            motion = LinearMove(self.model, self.q_cmd, T_flange, v, a)
+        self._start_motion(motion, is_async)
+        return not is_async
+
+    def _path_move(self) -> bool:
+        segments = self.program.path
+        if not segments:
+            return False
+        self._start_motion(PathMove(segments, self.q_cmd, self._path_segment), bool(self._ii(1)))
+        return not bool(self._ii(1))
+
+    def _path_segment(self, segment: tuple, q_start: np.ndarray) -> Motion:
+        kind, target, v, a, _r, _index = segment
+        target = np.asarray(target, float)
+        if kind.endswith("_joints"):
+            q = self._checked_joints(target)
+            T = forward_kinematics(self.model, q[None])[0]
+        else:
+            T = pose_to_transform(target) @ invert(self.T_flange_tcp)
+            q = self._ik(T, q_start)
+            if q is None and kind.startswith("movej"):
+                raise ValueError(f"path waypoint {np.round(target, 4)} has no inverse kinematics solution")
+        if kind.startswith("movej"):
+            return JointMove(q_start, q, v, a)
+        return LinearMove(self.model, q_start, T, v, a)
+
+    def _checked_joints(self, q: np.ndarray) -> np.ndarray:
+        q = np.asarray(q, float)
+        if not np.all(np.isfinite(q)) or not bool(self.model.within_limits(q)):
+            raise ValueError(f"joint target outside the limits: {np.round(q, 4)}")
+        return q
+
+    def _kill_async_move(self) -> None:
+        """stop_async_move: kill a running async move, keeping its velocity for a following stop."""
+        if self.motion is not None and self._motion_is_async:
+            self.motion = None
+            self._motion_is_async = False
+            self._async_register(-1)
+
+    def _start_motion(self, motion: Motion, is_async: bool, count: bool = True) -> None:
+        self._kill_async_move()
+        self.motion = motion
+        self._motion_fresh = True  # its first setpoint comes on the next cycle
+        self._motion_is_async = is_async
+        if is_async:
+            self._async_register(0)
+        if count:
+            self.moves_started += 1
+            self._move_started_at = self.cell.time_s
+            self.last_move = {
+                "kind": type(motion).__name__,
+                "planned_duration_s": getattr(motion, "duration", None),
+                "started_s": self.cell.time_s,
+                "finished_s": None,
+            }
+
+    def _stop_motion(self, decel: float | None, blocking: bool = False, is_async: bool = False) -> bool:
+        """Decelerate the current motion to rest (decel None: stop dead). True if the caller waits."""
+        self._kill_async_move()
+        if decel is None or not np.any(self.qd_cmd):
+            self.motion = None
+            self.qd_cmd = np.zeros(6)
+            return False
+        self.motion = StopMove(self.qd_cmd, decel)
+        self._motion_fresh = True
+        log.debug("stop: from %s over %.3f s", np.round(self.qd_cmd, 4), self.motion.duration)
+        if is_async:  # the script's stop thread reports through the async progress register
+            self._motion_is_async = True
+            self._async_register(0)
+        return blocking
+
+    def _joint_decel_for_tool(self, tool_decel: float) -> float:
+        """A joint deceleration that stops the tool at about tool_decel (m/s^2)."""
+        J = geometric_jacobian(self.model, self.q_cmd[None])[0]
+        tool_speed = float(np.linalg.norm(J[:3] @ self.qd_cmd))
+        joint_speed = float(np.max(np.abs(self.qd_cmd)))
+        if tool_speed < 1e-9 or tool_decel <= 0:
+            return tool_decel
+        return tool_decel * joint_speed / tool_speed
+
+    def _target_waypoint(self) -> np.ndarray:
+        motion = self.motion
+        if isinstance(motion, JointMove):
+            return self._tcp_pose(motion.q_end, self.T_flange_tcp)
+        if isinstance(motion, LinearMove):
+            return transform_to_pose(motion.T_end @ self.T_flange_tcp)
+        return self._tcp_pose(self.q_cmd, self.T_flange_tcp)
+
+    # ---------------------------------------------------------------- kinematics (nominal model)
+    def _tcp_pose(self, q: np.ndarray, T_flange_tcp: np.ndarray) -> list[float]:
+        return pose_from_transform(self.kin.fk(np.asarray(q, float)) @ T_flange_tcp)
+
+    def _ik(self, T_base_flange: np.ndarray, q_seed: np.ndarray | None = None) -> np.ndarray | None:
+        """Joints reaching the flange pose on the nominal model, nearest the seed; None if unreachable."""
+        seed = self.q_cmd if q_seed is None else np.asarray(q_seed, float)
+        result = solve_ik(self.model, T_base_flange[None], q_seed=seed[None], q_near=seed, restarts=5)
+        return np.asarray(result.q[0], float) if bool(result.success[0]) else None
+
+    def _inverse_kinematics(self, cmd: int) -> None:
+        target = pose_to_transform(self._ids(0)) @ invert(self.T_flange_tcp)
+        seed = self._ids(6) if cmd in (30, 61) and np.any(self._ids(6)) else None
+        q = self._ik(target, seed)
+        if cmd in (60, 61):
+            self._oi(1, int(q is not None))
+        else:
+            self._od(q if q is not None else np.zeros(6))

@@ -1,0 +1,81 @@
+"""`hil sim` as a process: its ready line, its control channel, and a clean exit on SIGINT/SIGTERM."""
+
+from __future__ import annotations
+
+import json
+import signal
+import socket
+import time
+
+import numpy as np
+import pytest
+
+from fakes.control_client import ControlClient, ControlError
+from fakes.launch import sim_cell, start_cell, stop_cell
+
+
+@pytest.fixture(scope="module")
+def cell():
+    with sim_cell(robot="ur5e", seed=7, time_scale=2.0) as running:
+        yield running
+
+
+@pytest.mark.timeout(20)
+def test_ready_line_names_every_server(cell):
+    robot = cell.info["robot"]
+    assert robot["host"] == cell.host and robot["model"] == "ur5e"
+    assert (robot["rtde_port"], robot["dashboard_port"]) == (30004, 29999)
+    assert robot["personality"] == "eseries" and robot["frequency_hz"] == 500.0
+    host, port = cell.info["control"].rsplit(":", 1)
+    assert host == cell.host and int(port) > 0
+    assert cell.info["tracker"]["url"] == f"socket://{cell.host}:7000"
+    for port in (30004, 29999, 30001, 30002, 30003, 7000):
+        socket.create_connection((cell.host, port), timeout=2).close()
+
+
+@pytest.mark.timeout(20)
+def test_control_channel_commands(cell):
+    control = cell.control
+    assert "robot.fault" in control.call("help")
+    truth = control.call("ground_truth")
+    assert isinstance(truth, dict) and truth
+    t0 = control.call("ping")["time_s"]
+    assert control.call("set_time_scale", value=4.0) == 4.0
+    assert control.call("time_scale") == 4.0
+    deadline = time.monotonic() + 5
+    while control.call("ping")["time_s"] <= t0:  # the clock ticks between requests
+        assert time.monotonic() < deadline
+    placed = control.call("place_smr", smr_id=1, kind="nest", index=2)
+    assert len(placed["center_tracker_m"]) == 3
+    assert control.call("smr_location", smr_id=1)["kind"] == "nest"
+    state = control.call("cell.state")
+    assert np.shape(state["T_base_flange_true"]) == (4, 4)
+    with pytest.raises(ControlError, match="unknown command"):
+        control.call("no.such.command")
+    with pytest.raises(ControlError, match="unknown fault"):
+        control.call("robot.fault", kind="meteor")
+    with pytest.raises(ControlError, match="time scale"):
+        control.call("set_time_scale", value=-1)
+    # a malformed line gets an error reply and the channel keeps working
+    host, port = cell.info["control"].rsplit(":", 1)
+    with socket.create_connection((host, int(port)), timeout=2) as sock:
+        sock.sendall(b"this is not json\n")
+        assert json.loads(sock.makefile().readline())["ok"] is False
+    assert ControlClient(cell.info["control"]).call("time_scale") == 4.0
+
+
+@pytest.mark.timeout(30)
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_exits_cleanly_on_signals(sig):
+    cell = start_cell(robot="ur10", time_scale=1.0)
+    try:
+        cell.process.send_signal(sig)
+        assert cell.process.wait(10) == 0
+    finally:
+        stop_cell(cell)
+
+
+@pytest.mark.timeout(30)
+def test_second_cell_on_a_taken_address_fails_clearly(cell):
+    with pytest.raises(RuntimeError, match="address in use"):
+        start_cell(host=cell.host, ready_timeout_s=15)

@@ -1,0 +1,163 @@
+"""The UR driver against `hil sim`: moves, readings, bad input, and a typed error for every injected fault."""
+
+from __future__ import annotations
+
+import gc
+import time
+
+import numpy as np
+import pytest
+
+from drivers.robot import (
+    EmergencyStopError,
+    ProgramNotRunningError,
+    ProtectiveStopError,
+    Robot,
+    RobotConfigError,
+    RobotConnectionError,
+    RobotNotReadyError,
+    StaleDataError,
+)
+from drivers.ur import URConfig, URRobot
+from fakes.launch import random_loopback_host, sim_cell
+from hil.kinematics import forward_kinematics
+from hil.robots import get_robot
+
+pytest.importorskip("rtde_control")
+
+HOME = np.array([0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0])
+
+
+@pytest.fixture(scope="module")
+def cell():
+    with sim_cell(robot="ur10e", time_scale=10.0) as running:
+        yield running
+
+
+@pytest.fixture(scope="module")
+def robot(cell):
+    robot = URRobot(URConfig(cell.host))
+    try:
+        yield robot
+    finally:
+        robot.close()  # before the fake goes away
+
+
+@pytest.mark.timeout(30)
+def test_moves_and_readings(robot, cell):
+    assert isinstance(robot, Robot)
+    target = HOME + [0.3, -0.2, 0.25, 0.1, 0.0, 0.2]
+    robot.move_joints(target)
+    robot.wait_settled(dwell_s=0.05)
+    np.testing.assert_allclose(robot.joints(), target, atol=2e-5)
+    T = robot.flange_pose()
+    np.testing.assert_allclose(T, forward_kinematics(get_robot("ur10e"), target[None])[0], atol=1e-4)
+    T_goal = T.copy()
+    T_goal[:3, 3] += [0.05, 0.02, -0.1]
+    robot.move_linear(T_goal)
+    robot.wait_settled(dwell_s=0.0)
+    np.testing.assert_allclose(robot.flange_pose()[:3, 3], T_goal[:3, 3], atol=1e-4)
+    state = robot.state()
+    assert state.ready and state.robot_mode == "RUNNING" and state.safety_mode == "NORMAL"
+
+
+@pytest.mark.timeout(20)
+def test_bad_input_fails_before_any_motion(robot, cell):
+    before = cell.control.call("robot.state")["moves_started"]
+    with pytest.raises(RobotConfigError, match="6 finite"):
+        robot.move_joints([0.0, 1.0, float("nan"), 0, 0, 0])
+    with pytest.raises(RobotConfigError, match="joint speed"):
+        robot.move_joints(HOME, speed=50.0)
+    with pytest.raises(RobotConfigError, match="outside"):
+        robot.move_joints(HOME + [7.0, 0, 0, 0, 0, 0])
+    with pytest.raises(RobotConfigError, match="linear acceleration"):
+        robot.move_linear(robot.flange_pose(), accel=-1.0)
+    assert cell.control.call("robot.state")["moves_started"] == before
+
+
+FAULTS = [
+    ("protective_stop", {}, ProtectiveStopError),
+    ("emergency_stop", {}, EmergencyStopError),
+    ("stop_script", {}, ProgramNotRunningError),
+    ("drop_rtde", {"duration_s": 1.0}, RobotConnectionError),
+    ("stall", {"duration_s": 1.0}, StaleDataError),
+    ("latency", {"duration_s": 1.0}, StaleDataError),
+]
+
+
+@pytest.mark.timeout(40)
+@pytest.mark.parametrize(("kind", "options", "error"), FAULTS, ids=[f[0] for f in FAULTS])
+def test_fault_gives_typed_error_then_recovers(robot, cell, kind, options, error):
+    robot.move_joints(HOME)
+    far = HOME + [1.2, 0, 0, 0, 0, 0]
+    cell.control.call("robot.fault", kind=kind, at_move=1, fraction=0.3, **options)
+    started = time.monotonic()
+    with pytest.raises(error) as info:
+        robot.move_joints(far, speed=0.5)
+    assert time.monotonic() - started < 3.0
+    assert "next:" in str(info.value)
+    if kind == "emergency_stop":
+        with pytest.raises(EmergencyStopError):
+            robot.recover()  # the button is still pressed
+        cell.control.call("robot.release_estop")
+    robot.recover()
+    assert robot.state().ready
+    robot.move_joints(far)
+    np.testing.assert_allclose(robot.joints(), far, atol=2e-5)
+
+
+@pytest.mark.timeout(30)
+def test_close_leaves_the_robot_stopped_and_disconnected(robot, cell):
+    robot.move_joints(HOME)
+    robot.close()
+    state = cell.control.call("robot.state")
+    assert not state["moving"]
+    assert state["rtde_clients"] == 0
+    with pytest.raises(RobotConnectionError):
+        robot.joints()
+    robot.close()  # closing twice is harmless
+
+
+@pytest.mark.timeout(20)
+def test_connect_to_nothing_fails_fast():
+    gc.collect()  # leftover ur-rtde objects sleep 500 ms in their destructors; not part of this timing
+    started = time.monotonic()
+    with pytest.raises(RobotConnectionError, match="could not connect"):
+        URRobot(URConfig(random_loopback_host(), connect_timeout_s=0.5, connect_attempts=2))
+    assert time.monotonic() - started < 5.0
+
+
+def test_config_from_mapping_checks_keys_and_limits():
+    config = URConfig.from_mapping({"host": "127.0.0.9", "joint_speed": 0.5, "max_joint_speed": 1.0})
+    assert config.joint_speed == 0.5
+    with pytest.raises(RobotConfigError, match="unknown UR settings"):
+        URConfig.from_mapping({"host": "127.0.0.9", "joint_sped": 0.5})
+    with pytest.raises(RobotConfigError, match="exceeds"):
+        URConfig(host="127.0.0.9", linear_speed=2.0, max_linear_speed=1.0)
+
+
+@pytest.mark.timeout(30)
+def test_short_latency_spike_is_ridden_through(cell):
+    robot = URRobot(URConfig(cell.host, stale_after_s=0.5))
+    try:
+        robot.move_joints(HOME)
+        cell.control.call("robot.fault", kind="latency", at_move=1, fraction=0.3, duration_s=0.2)
+        robot.move_joints(HOME + [0.5, 0, 0, 0, 0, 0], speed=0.5)
+        assert cell.control.call("robot.state")["faults"][-1]["kind"] == "latency"
+    finally:
+        robot.close()
+
+
+@pytest.mark.timeout(60)
+def test_powered_off_arm_is_reported_or_powered_on_when_allowed():
+    with sim_cell(robot="ur10", time_scale=10.0, extra_args=("--powered-off",)) as off:
+        started = time.monotonic()
+        with pytest.raises(RobotNotReadyError, match="POWER_OFF"):
+            URRobot(URConfig(off.host))
+        assert time.monotonic() - started < 5.0
+        robot = URRobot(URConfig(off.host, power_on_at_connect=True))
+        try:
+            robot.move_joints(HOME + [0.2, 0, 0, 0, 0, 0])
+            assert robot.state().robot_mode == "RUNNING"
+        finally:
+            robot.close()
