@@ -31,7 +31,7 @@ def workspace_box(cell: SimulatedCell) -> tuple[np.ndarray, np.ndarray]:
 def _facing_targets(
     cell: SimulatedCell, points_base: np.ndarray, rng: np.random.Generator, tilt_deg: float
 ) -> np.ndarray:
-    """Tool-point poses (N, 4, 4) whose z axis looks at the tracker, tilted randomly for diversity."""
+    """Tool-point poses (N, 4, 4) whose z axis looks at the tracker within `tilt_deg`, rolled randomly."""
     p_base_tracker = np.linalg.inv(cell.T_tracker_base)[:3, 3]
     z = p_base_tracker - points_base
     z /= np.linalg.norm(z, axis=1, keepdims=True)
@@ -40,9 +40,15 @@ def _facing_targets(
     x /= np.linalg.norm(x, axis=1, keepdims=True)
     y = np.cross(z, x)
     R = np.stack([x, y, z], axis=2)
-    tilt = Rotation.from_rotvec(
-        rng.normal(0, np.deg2rad(tilt_deg) / 2, (len(points_base), 3)) * np.array([1, 1, 2])
-    ).as_matrix()
+    # Tilt the facing direction by at most `tilt_deg` (so the SMR stays inside its acceptance cone)
+    # and roll freely about it: diverse orientations for identification, all visible to the tracker.
+    count = len(points_base)
+    tilt_axis = rng.normal(0, 1, (count, 2))
+    tilt_axis /= np.linalg.norm(tilt_axis, axis=1, keepdims=True)
+    tilt_angle = np.deg2rad(tilt_deg) * np.sqrt(rng.uniform(0, 1, count))
+    tilt_vec = np.column_stack([tilt_axis * tilt_angle[:, None], np.zeros(count)])
+    roll_vec = np.column_stack([np.zeros((count, 2)), rng.uniform(-np.pi / 2, np.pi / 2, count)])
+    tilt = Rotation.from_rotvec(tilt_vec).as_matrix() @ Rotation.from_rotvec(roll_vec).as_matrix()
     T = np.zeros((len(points_base), 4, 4))
     T[:, :3, :3] = R @ tilt
     T[:, :3, 3] = points_base

@@ -41,6 +41,21 @@ JOINT_STIFFNESS: dict[str, tuple[float, ...]] = {
 }
 
 
+# Physical effects a cell can switch on beside its hidden geometric errors (CellConfig flags).
+CELL_EFFECTS: tuple[str, ...] = ("compliance", "cyclic", "backlash", "thermal")
+
+
+def parse_effect_flags(text: str) -> dict[str, bool]:
+    """'compliance,thermal' (or 'none') -> CellConfig flags for every effect in CELL_EFFECTS."""
+    chosen = set() if text.strip().lower() == "none" else {e.strip() for e in text.split(",") if e.strip()}
+    unknown = chosen - set(CELL_EFFECTS)
+    if unknown:
+        raise ValueError(
+            f"unknown effect(s) {sorted(unknown)}: choose from {', '.join(CELL_EFFECTS)} or none"
+        )
+    return {name: name in chosen for name in CELL_EFFECTS}
+
+
 @dataclass(frozen=True)
 class Meteo:
     """Air temperature, pressure and humidity at the tracker."""

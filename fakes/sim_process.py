@@ -18,7 +18,7 @@ import signal
 import sys
 import time
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -44,6 +44,7 @@ class SimOptions:
     tracker_port: int = 7000
     script_start_delay_s: float = 0.05
     powered: bool = True
+    effects: dict[str, bool] = field(default_factory=dict)  # CellConfig flags, e.g. {'thermal': True}
 
 
 class SimClock:
@@ -122,7 +123,7 @@ class SimProcess:
     def __init__(self, options: SimOptions):
         self.options = options
         self.servers: list = []
-        self.cell = SimulatedCell(CellConfig(robot=options.robot, seed=options.seed))
+        self.cell = SimulatedCell(CellConfig(robot=options.robot, seed=options.seed, **options.effects))
         self.control = ControlChannel(options.host, options.control_port)
         self.robot: UrController | None = None
         self.clock: SimClock | None = None

@@ -43,6 +43,9 @@ def test_held_out_poses_are_distinct_from_the_grid(cell):
     q_grid = grid_joints(cell, step_m=0.2)
     q_held = random_joints(cell, 40, seed=3)
     assert q_held.shape == (40, 6)
+    for qq in q_held:
+        cell.set_commanded_joints(qq)
+        assert cell.smr_facing_angle_rad(1) < np.deg2rad(30)
     nearest = np.min(np.linalg.norm(q_held[:, None] - q_grid[None], axis=2), axis=1)
     assert np.all(nearest > 1e-6)
 

@@ -5,6 +5,9 @@
 2. Calibrate and diagnose: find what the geometric model misses, add it, and print the error
    before and after on held-out and validation data.
 3. Write the JSON report, the HTML report and the final model.
+4. Close the loop on live instruments: start the same cell as a `hil sim` process, drive the robot
+   through ur-rtde and the tracker through emScon, aim the tracker where the calibrated model
+   predicts the SMR, measure, and report predicted vs measured.
 """
 
 from __future__ import annotations
@@ -12,13 +15,15 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+import numpy as np
+import pandas as pd
+
 from fakes.campaign import grid_joints, random_joints, simulate_campaign
-from fakes.cell import CellConfig, SimulatedCell
+from fakes.cell import CELL_EFFECTS, CellConfig, SimulatedCell, parse_effect_flags
+from hil.calibrated_model import CalibratedModel
 from hil.dataset import write_dataset
 from hil.diagnosis import run_diagnosis
 from hil.report import write_html, write_json
-
-CELL_EFFECTS: tuple[str, ...] = ("compliance", "cyclic", "backlash", "thermal")
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -39,22 +44,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "or 'none' (default: compliance, the PT paper's undeclared effect)",
     )
     parser.add_argument("--out", default="demo-out", help="output folder (default ./demo-out)")
+    parser.add_argument("--live", type=int, default=6, help="poses measured live through hil sim (0: skip)")
+    parser.add_argument(
+        "--time-scale", type=float, default=10.0, help="simulated seconds per wall second of the live cell"
+    )
     parser.set_defaults(func=run)
 
 
-def parse_effects(text: str) -> dict[str, bool]:
-    """'compliance,thermal' -> CellConfig flags; refuses unknown names with the list of known ones."""
-    chosen = set() if text.strip().lower() == "none" else {e.strip() for e in text.split(",") if e.strip()}
-    unknown = chosen - set(CELL_EFFECTS)
-    if unknown:
-        raise SystemExit(
-            f"unknown effect(s) {sorted(unknown)}: choose from {', '.join(CELL_EFFECTS)} or none"
-        )
-    return {name: name in chosen for name in CELL_EFFECTS}
-
-
 def run(args: argparse.Namespace) -> int:
-    flags = parse_effects(args.effects)
+    try:
+        flags = parse_effect_flags(args.effects)
+    except ValueError as exc:
+        raise SystemExit(str(exc)) from exc
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     cell = SimulatedCell(CellConfig(robot=args.robot, seed=args.seed, **flags))
@@ -81,4 +82,52 @@ def run(args: argparse.Namespace) -> int:
     write_html(report, out / "report.html")
     report.model.save(out / "model.json")
     print(f"\nwrote {out}/grid.csv, validate.csv, report.json, report.html, model.json")
+    if args.live > 0:
+        q_live = validate[[f"q{i}_rad" for i in range(1, 7)]].to_numpy()[: args.live]
+        live_loop(args, report.model, q_live, out / "live.csv")
     return 0
+
+
+def live_loop(args: argparse.Namespace, model: CalibratedModel, q_poses, csv_path: Path) -> None:
+    """Move the live robot to each pose, aim the tracker at the model's prediction, measure, compare."""
+    from drivers.emscon import EmsconTracker
+    from drivers.ur import URConfig, URRobot
+    from fakes.launch import sim_cell
+
+    print(f"\nlive: the same cell as a hil sim process, {len(q_poses)} poses through ur-rtde and emScon")
+    with sim_cell(
+        robot=args.robot, seed=args.seed, time_scale=args.time_scale, extra_args=("--effects", args.effects)
+    ) as cell:
+        robot = URRobot(URConfig(cell.host))
+        rows = []
+        try:
+            with EmsconTracker(url=cell.info["tracker"]["url"], meas_time_s=0.5) as tracker:
+                print(
+                    f"{'pose':>4} {'predicted x,y,z (mm)':>32}  {'measured - predicted (mm)':>28}  {'|d| mm':>7}"
+                )
+                for k, q in enumerate(q_poses, start=1):
+                    robot.move_joints(q)
+                    robot.wait_settled()
+                    q_now = robot.joints()
+                    row = {f"q{i + 1}_rad": float(v) for i, v in enumerate(q_now)}
+                    p_pred = model.predict(pd.DataFrame([row]))[0]
+                    tracker.point_at(p_pred)
+                    m = tracker.measure(shots=3)
+                    d_mm = (m.p_tracker_m - p_pred) * 1e3
+                    row |= {f"{ax}_mm": float(v * 1e3) for ax, v in zip("xyz", m.p_tracker_m, strict=True)}
+                    rows.append(row)
+                    pd.DataFrame(rows).to_csv(csv_path, index=False)  # nothing measured is lost
+                    print(
+                        f"{k:>4} {p_pred[0] * 1e3:10.3f} {p_pred[1] * 1e3:10.3f} {p_pred[2] * 1e3:10.3f}  "
+                        f"{d_mm[0]:+8.4f} {d_mm[1]:+8.4f} {d_mm[2]:+8.4f}  {np.linalg.norm(d_mm):7.4f}"
+                    )
+        finally:
+            robot.close()
+    errors = (
+        np.linalg.norm(
+            pd.DataFrame(rows)[["x_mm", "y_mm", "z_mm"]].to_numpy() / 1e3 - model.predict(pd.DataFrame(rows)),
+            axis=1,
+        )
+        * 1e3
+    )
+    print(f"live prediction error: mean {errors.mean():.4f} mm, max {errors.max():.4f} mm; wrote {csv_path}")
