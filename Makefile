@@ -20,6 +20,9 @@ test: $(VENV)/.installed
 
 bench: $(VENV)/.installed
 	$(PY) benchmarks/kinematics.py
+	$(PY) benchmarks/calibration.py
+	$(PY) benchmarks/tracker.py
+	$(PY) benchmarks/ur_fake.py
 
 clean:
 	rm -rf $(VENV)
