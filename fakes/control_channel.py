@@ -13,7 +13,7 @@ import json
 import logging
 from collections.abc import Callable
 
-import numpy as np
+from hil.jsonable import to_jsonable
 
 log = logging.getLogger(__name__)
 
@@ -81,18 +81,3 @@ class ControlChannel:
         finally:
             with contextlib.suppress(Exception):
                 writer.close()
-
-
-def to_jsonable(value: object) -> object:
-    """numpy arrays and scalars, dataclass-like objects and tuples to plain JSON types."""
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, dict):
-        return {str(k): to_jsonable(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [to_jsonable(v) for v in value]
-    if hasattr(value, "__dataclass_fields__"):
-        return {k: to_jsonable(getattr(value, k)) for k in value.__dataclass_fields__}
-    return value

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+from dataclasses import fields, is_dataclass
+
 import numpy as np
 
 
 def to_jsonable(value: object) -> object:
-    """A JSON-ready copy of nested dicts/lists/tuples/arrays/numpy scalars; non-finite floats -> None."""
+    """A JSON-ready copy of nested dicts/lists/tuples/arrays/numpy scalars/dataclass instances;
+    non-finite floats -> None."""
     if isinstance(value, dict):
         return {str(k): to_jsonable(v) for k, v in value.items()}
     if isinstance(value, list | tuple):
@@ -19,4 +22,6 @@ def to_jsonable(value: object) -> object:
         return int(value)
     if isinstance(value, float | np.floating):
         return float(value) if np.isfinite(value) else None
+    if is_dataclass(value) and not isinstance(value, type):
+        return {f.name: to_jsonable(getattr(value, f.name)) for f in fields(value)}
     return value
