@@ -270,19 +270,10 @@ class URRobot:
     # ------------------------------------------------------------------ supervision
     def _check(self) -> None:
         """Raise the typed error for the controller's current condition, if any."""
-        rx, ctrl = self._rx, self._ctrl
-        if rx is None or ctrl is None:
+        if self._rx is None or self._ctrl is None:
             raise RobotConnectionError(f"not connected to {self.config.host}")
-        if not rx.isConnected():
-            raise RobotConnectionError(f"RTDE receive connection to {self.config.host} lost")
-        stamp, now = rx.getTimestamp(), time.monotonic()
-        if stamp != self._last_stamp:
-            self._last_stamp, self._last_stamp_wall = stamp, now
-        elif now - self._last_stamp_wall > self.config.stale_after_s:
-            raise StaleDataError(
-                f"RTDE data from {self.config.host} frozen for {now - self._last_stamp_wall:.2f} s "
-                f"(timestamp {stamp:.3f} s)"
-            )
+        self._check_stream()
+        rx, ctrl = self._rx, self._ctrl
         bits = rx.getSafetyStatusBits()
         if bits & (_ANY_ESTOP_BIT | _ROBOT_ESTOP_BIT):
             raise EmergencyStopError("the robot is emergency stopped")
@@ -402,7 +393,8 @@ class URRobot:
             self._last_stamp, self._last_stamp_wall = stamp, now
         elif now - self._last_stamp_wall > self.config.stale_after_s:
             raise StaleDataError(
-                f"RTDE data from {self.config.host} frozen for {now - self._last_stamp_wall:.2f} s"
+                f"RTDE data from {self.config.host} frozen for {now - self._last_stamp_wall:.2f} s "
+                f"(timestamp {stamp:.3f} s)"
             )
 
     def wait_settled(self, dwell_s: float | None = None, timeout_s: float | None = None) -> None:
