@@ -12,6 +12,7 @@ import pandas as pd
 from scipy.spatial.transform import Rotation
 
 from fakes.cell import SimulatedCell
+from hil.dataset import make_dataset
 from hil.ik import solve_ik
 
 
@@ -101,9 +102,10 @@ def simulate_campaign(
     """Visit q_cmd (N, 6) in order on the cell and return the rows of the dataset contract."""
     r = cell.run_sequence(q_cmd, smr_id=smr_id, seconds_per_point=seconds_per_point)
     loc = cell.smr_location(smr_id)
-    columns = {f"q{i + 1}_rad": r["q_encoder"][:, i] for i in range(r["q_encoder"].shape[1])}
-    columns |= {f"{ax}_mm": r["p_tracker_measured"][:, k] * 1e3 for k, ax in enumerate("xyz")}
-    columns["t_s"] = r["t_s"]
-    columns["temperature_c"] = r["temperature_c"]
-    columns["smr"] = loc.index if loc.kind == "nest" else 0
-    return pd.DataFrame(columns)
+    return make_dataset(
+        r["q_encoder"],
+        r["p_tracker_measured"],
+        t_s=r["t_s"],
+        temperature_c=r["temperature_c"],
+        smr=loc.index if loc.kind == "nest" else 0,
+    )
