@@ -21,7 +21,7 @@ import pandas as pd
 from fakes.campaign import grid_joints, random_joints, simulate_campaign
 from fakes.cell import CELL_EFFECTS, CellConfig, SimulatedCell, parse_effect_flags
 from hil.calibrated_model import CalibratedModel
-from hil.dataset import write_dataset
+from hil.dataset import POSITION_COLUMNS, joint_columns, joints_rad, points_m, write_dataset
 from hil.diagnosis import run_diagnosis
 from hil.report import write_html, write_json
 
@@ -83,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
     report.model.save(out / "model.json")
     print(f"\nwrote {out}/grid.csv, validate.csv, report.json, report.html, model.json")
     if args.live > 0:
-        q_live = validate[[f"q{i}_rad" for i in range(1, 7)]].to_numpy()[: args.live]
+        q_live = joints_rad(validate)[: args.live]
         live_loop(args, report.model, q_live, out / "live.csv")
     return 0
 
@@ -109,12 +109,12 @@ def live_loop(args: argparse.Namespace, model: CalibratedModel, q_poses, csv_pat
                     robot.move_joints(q)
                     robot.wait_settled()
                     q_now = robot.joints()
-                    row = {f"q{i + 1}_rad": float(v) for i, v in enumerate(q_now)}
+                    row = {c: float(v) for c, v in zip(joint_columns(), q_now, strict=True)}
                     p_pred = model.predict(pd.DataFrame([row]))[0]
                     tracker.point_at(p_pred)
                     m = tracker.measure(shots=3)
                     d_mm = (m.p_tracker_m - p_pred) * 1e3
-                    row |= {f"{ax}_mm": float(v * 1e3) for ax, v in zip("xyz", m.p_tracker_m, strict=True)}
+                    row |= {c: float(v * 1e3) for c, v in zip(POSITION_COLUMNS, m.p_tracker_m, strict=True)}
                     rows.append(row)
                     pd.DataFrame(rows).to_csv(csv_path, index=False)  # nothing measured is lost
                     print(
@@ -123,11 +123,6 @@ def live_loop(args: argparse.Namespace, model: CalibratedModel, q_poses, csv_pat
                     )
         finally:
             robot.close()
-    errors = (
-        np.linalg.norm(
-            pd.DataFrame(rows)[["x_mm", "y_mm", "z_mm"]].to_numpy() / 1e3 - model.predict(pd.DataFrame(rows)),
-            axis=1,
-        )
-        * 1e3
-    )
+    live = pd.DataFrame(rows)
+    errors = np.linalg.norm(points_m(live) - model.predict(live), axis=1) * 1e3
     print(f"live prediction error: mean {errors.mean():.4f} mm, max {errors.max():.4f} mm; wrote {csv_path}")
