@@ -139,14 +139,15 @@ def full_values(model: CalibratedModel) -> np.ndarray:
     return np.asarray(vals, float)
 
 
-def _flat(J: np.ndarray) -> np.ndarray:
+def flatten_jacobian(J: np.ndarray) -> np.ndarray:
+    """(N, 3, P) point Jacobian -> (3N, P) rows in the order of the flattened (N, 3) residual."""
     return J.reshape(-1, J.shape[-1])
 
 
 def identify(model: CalibratedModel, problem: Problem, tol: float = 1e-3) -> IdentifiabilityReport:
     """Identifiability analysis of all parameters of `model` on `problem`."""
     _, J = problem.evaluate(model)
-    return analyse(_flat(J), model.param_names, tol=tol)
+    return analyse(flatten_jacobian(J), model.param_names, tol=tol)
 
 
 def _redundancy(Js: np.ndarray, w_rows: np.ndarray, Ninv: np.ndarray) -> np.ndarray:
@@ -187,7 +188,7 @@ def solve_ridge_igg3(
     sigma_robust: float | None = None
     for it in range(1, max_iter + 1):  # noqa: B007
         r, J = problem.evaluate(model)
-        Jf = _flat(J)[:, free]
+        Jf = flatten_jacobian(J)[:, free]
         Js, norms = scale_columns(Jf)
         rv = r.reshape(-1)
         w_rows = np.repeat(w_pts, 3)
@@ -235,7 +236,7 @@ def solve_ridge_igg3(
         if small and not changed:
             break
     r, J = problem.evaluate(model)
-    Jf = _flat(J)[:, free]
+    Jf = flatten_jacobian(J)[:, free]
     Js, norms = scale_columns(Jf)
     w_rows = np.repeat(w_pts, 3)
     Nm = (Js * w_rows[:, None]).T @ Js
@@ -276,7 +277,7 @@ def solve_lm(
 
     def jac(x: np.ndarray) -> np.ndarray:
         _, J = problem.evaluate(at(x))
-        return _flat(J)[:, free]
+        return flatten_jacobian(J)[:, free]
 
     x0 = np.zeros(int(free.sum()))
     first = least_squares(fun, x0, jac=jac, x_scale="jac", method="trf", max_nfev=30, xtol=1e-12, ftol=1e-12)
@@ -295,7 +296,7 @@ def solve_lm(
     )
     fitted = at(sol.x)
     r, J = problem.evaluate(fitted)
-    Jf = _flat(J)[:, free]
+    Jf = flatten_jacobian(J)[:, free]
     t_pts = np.sqrt(np.mean((r / sigma) ** 2, axis=1))
     outliers = t_pts > k1
     w_rows = np.repeat((~outliers).astype(float), 3)

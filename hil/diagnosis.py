@@ -26,7 +26,14 @@ from scipy import stats
 from threadpoolctl import threadpool_limits
 
 from hil.calibrated_model import CalibratedModel, initial_model
-from hil.calibration import CalibrationResult, Problem, calibrate, identify, solve_ridge_igg3
+from hil.calibration import (
+    CalibrationResult,
+    Problem,
+    calibrate,
+    flatten_jacobian,
+    identify,
+    solve_ridge_igg3,
+)
 from hil.effects import Effect, candidate_effects, make_effect, tool_points_rows
 from hil.identifiability import analyse, scale_columns
 from hil.kinematics import KinematicModel
@@ -63,11 +70,7 @@ def cv_residuals(
     candidate screening uses, so every stage and candidate is judged alike.
     """
     r, J = problem.evaluate(model)
-    return linear_fit_cv(_flat(J)[:, free], r, folds)[1]
-
-
-def _flat(J: np.ndarray) -> np.ndarray:
-    return J.reshape(-1, J.shape[-1])
+    return linear_fit_cv(flatten_jacobian(J)[:, free], r, folds)[1]
 
 
 def linear_fit_cv(
@@ -111,14 +114,14 @@ class _Screen:
         self.base, self.prob, self.folds, self.sigma2 = base, prob, folds, sigma2
         self.alpha_cv, self.alpha_chi2 = alpha, alpha / max(n, 1)
         r, J = prob.evaluate(base)
-        fit0, cv0 = linear_fit_cv(_flat(J)[:, free], r, folds)
+        fit0, cv0 = linear_fit_cv(flatten_jacobian(J)[:, free], r, folds)
         self.sse0 = float(np.sum(fit0**2))
         self.e0 = np.sum(cv0**2, axis=1)
 
     def test(self, eff: Effect) -> tuple[Candidate, CalibratedModel | None]:
         trial = self.base.with_effect(eff)
         r_t, J_t = self.prob.evaluate(trial)
-        Jt = _flat(J_t)
+        Jt = flatten_jacobian(J_t)
         tfree = analyse(Jt, trial.param_names).keep_mask
         n_new = int(np.sum(tfree[len(trial.param_names) - len(eff.params) :]))
         if n_new == 0:
@@ -149,7 +152,7 @@ def _weakest_effect(
 ) -> tuple[int, Candidate] | None:
     """The earlier effect (not the last added) that no longer improves the model significantly, if any."""
     r, J = prob.evaluate(model)
-    Jf = _flat(J)
+    Jf = flatten_jacobian(J)
     keep = analyse(Jf, model.param_names).keep_mask
     fit, cv = linear_fit_cv(Jf[:, keep], r, folds)
     sse, e = float(np.sum(fit**2)), np.sum(cv**2, axis=1)
@@ -158,7 +161,7 @@ def _weakest_effect(
     for i, eff in enumerate(model.effects[:-1]):
         reduced = replace(model, effects=[x for k, x in enumerate(model.effects) if k != i])
         rr, Jr = prob.evaluate(reduced)
-        Jrf = _flat(Jr)
+        Jrf = flatten_jacobian(Jr)
         kr = analyse(Jrf, reduced.param_names).keep_mask
         fit_r, cv_r = linear_fit_cv(Jrf[:, kr], rr, folds)
         k = max(int(keep.sum() - kr.sum()), 1)
@@ -295,7 +298,7 @@ def _correlations(result: CalibrationResult, problem: Problem, eff: Effect) -> l
     _, J = problem.evaluate(result.model)
     names = result.model.param_names
     free = [names.index(n) for n in result.free]
-    Jf = J.reshape(-1, J.shape[-1])[:, free]
+    Jf = flatten_jacobian(J)[:, free]
     cov = np.linalg.pinv(Jf.T @ Jf)
     sd = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
     corr = cov / np.outer(sd, sd)
