@@ -150,7 +150,7 @@ def identify(model: CalibratedModel, problem: Problem, tol: float = 1e-3) -> Ide
     return analyse(flatten_jacobian(J), model.param_names, tol=tol)
 
 
-def _redundancy(Js: np.ndarray, w_rows: np.ndarray, Ninv: np.ndarray) -> np.ndarray:
+def _redundancy(Js: np.ndarray, Ninv: np.ndarray) -> np.ndarray:
     """Unit-weight redundancy numbers 1 - a_i N^-1 a_i^T of each row (clipped below at 0.05)."""
     h = np.einsum("ij,jk,ik->i", Js, Ninv, Js)
     return np.clip(1.0 - h, 0.05, None)
@@ -212,8 +212,6 @@ def solve_ridge_igg3(
         model = trial
         dev += step
         small = np.max(np.abs(step_s)) < 1e-8 or cost >= cost0 * (1 - 1e-10)  # converged
-        dof = max(np.count_nonzero(w_rows) - len(step), 1)
-        sigma0 = float(np.sqrt(np.sum(w_rows * r_new**2) / dof))
         if not robust:
             if small:
                 break
@@ -222,7 +220,7 @@ def solve_ridge_igg3(
         if warm < 15 and not small and np.all(w_pts == 1):
             continue  # plain Gauss-Newton to convergence before judging points (IGG3 is not convex)
         Minv = np.linalg.pinv(M)
-        red = _redundancy(Js, w_rows, Minv)
+        red = _redundancy(Js, Minv)
         # Robust scale, fixed once from the least-squares solution (1.4826 x median absolute residual of
         # all coordinates): a weighted sigma0 re-estimated each step shrinks as points are rejected and
         # lets the re-weighting reject ever more points.
