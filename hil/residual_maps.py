@@ -19,6 +19,7 @@ from __future__ import annotations
 import warnings
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 MAP_KINDS: tuple[str, ...] = ("idw", "svr", "gp")
 
@@ -49,9 +50,7 @@ class ResidualMap:
         return self.predict_raw(q, p_base)
 
     def _remember_volume(self, p_base: np.ndarray) -> None:
-        d = np.linalg.norm(p_base[:, None] - p_base[None], axis=2)
-        np.fill_diagonal(d, np.inf)
-        spacing = float(np.median(d.min(axis=1)))
+        spacing = float(np.median(cKDTree(p_base).query(p_base, k=2)[0][:, 1]))  # nearest other point
         self.state["volume"] = {
             "lo": p_base.min(axis=0).tolist(),
             "hi": p_base.max(axis=0).tolist(),
@@ -66,7 +65,7 @@ class ResidualMap:
         pts = np.asarray(vol["points"])
         margin = 0.5 * spacing
         box = np.any((p_base < lo - margin) | (p_base > hi + margin), axis=1)
-        nearest = np.min(np.linalg.norm(p_base[:, None] - pts[None], axis=2), axis=1)
+        nearest = cKDTree(pts).query(p_base)[0]
         return box | (nearest > 2.0 * spacing)
 
     def to_dict(self) -> dict:
