@@ -69,7 +69,5 @@ def run(args: argparse.Namespace) -> int:
                 out["measurement"] = tracker.measure(args.shots).as_dict()
     except TrackerError as exc:
         out["error"] = {"type": type(exc).__name__, "message": str(exc)}
-        print(json.dumps(out, indent=2))
-        return 1
     print(json.dumps(out, indent=2))
-    return 0
+    return 1 if "error" in out else 0
