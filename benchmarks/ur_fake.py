@@ -25,6 +25,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from fakes.launch import sim_cell  # noqa: E402
+from fakes.rtde_wire import frame  # noqa: E402
 
 
 def observe_rtde(host: str, frequency: float, seconds: float, out: list[float]) -> None:
@@ -32,7 +33,7 @@ def observe_rtde(host: str, frequency: float, seconds: float, out: list[float]) 
     with socket.create_connection((host, 30004), timeout=5) as sock:
 
         def request(kind: str, payload: bytes = b"") -> None:
-            sock.sendall(struct.pack(">HB", 3 + len(payload), ord(kind)) + payload)
+            sock.sendall(frame(ord(kind), payload))
 
         def message() -> tuple[int, bytes]:
             header = _exact(sock, 3)
