@@ -24,6 +24,7 @@ from hil.calibrated_model import CalibratedModel
 from hil.dataset import POSITION_COLUMNS, joint_columns, joints_rad, points_m, write_dataset
 from hil.diagnosis import run_diagnosis
 from hil.report import write_html, write_json
+from hil.robots import ROBOT_NAMES
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -33,7 +34,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("--robot", default="ur10", help="robot model (default ur10)")
+    parser.add_argument("--robot", default="ur10", choices=ROBOT_NAMES, help="robot model (default ur10)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the simulated cell (default 0)")
     parser.add_argument("--step-mm", type=float, default=100.0, help="grid step in mm (default 100)")
     parser.add_argument("--validate", type=int, default=100, help="random validation poses (default 100)")
@@ -56,6 +57,12 @@ def run(args: argparse.Namespace) -> int:
         flags = parse_effect_flags(args.effects)
     except ValueError as exc:
         raise SystemExit(str(exc)) from exc
+    if args.step_mm <= 0:
+        raise SystemExit("--step-mm must be positive")
+    if args.live > 0 and not args.robot.startswith("ur"):
+        raise SystemExit(
+            f"the live loop drives a UR arm through ur-rtde: use a ur* robot or --live 0 for {args.robot}"
+        )
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     cell = SimulatedCell(CellConfig(robot=args.robot, seed=args.seed, **flags))
