@@ -80,6 +80,7 @@ def start_cell(
         _stop(process)
         with open(log.name, errors="replace") as f:
             last_error = f.read()[-2000:]
+        os.remove(log.name)
         if code == EXIT_ADDRESS_IN_USE and host is None:
             continue
         break
@@ -87,9 +88,11 @@ def start_cell(
 
 
 def stop_cell(cell: RunningCell) -> None:
-    """SIGTERM, wait, SIGKILL if needed. Disconnect robot clients before calling this."""
+    """SIGTERM, wait, SIGKILL if needed, then remove its log. Disconnect robot clients before calling this."""
     cell.control.close()
     _stop(cell.process)
+    with contextlib.suppress(OSError):
+        os.remove(cell.log_path)
 
 
 @contextlib.contextmanager
