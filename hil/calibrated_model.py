@@ -195,17 +195,18 @@ class CalibratedModel:
             q_seed = solve_ik(self.kinematic, p_base, mode="position", p_flange_tool=self.tools[sid]).q
         q = np.atleast_2d(np.asarray(q_seed, float)).copy()
         smr_rows = np.full(len(q), sid)
+        tools = self._row_tools(smr_rows)
+        theta_cols = [self.kinematic.param_names.index(f"theta{j + 1}") for j in range(q.shape[1])]
         for _ in range(iterations):
-            ctx = EffectContext(q, t_s, temperature_c, None, self._row_tools(smr_rows), approach)
+            ctx = EffectContext(q, t_s, temperature_c, None, tools, approach)
             p, J = self.jacobian_ctx(ctx, smr_rows)
-            theta_cols = [self.kinematic.param_names.index(f"theta{j + 1}") for j in range(q.shape[1])]
             Jq = J[:, :, theta_cols]
             err = targets - p
             if np.max(np.linalg.norm(err, axis=1)) < 1e-9:
                 break
             JJt = Jq @ np.swapaxes(Jq, 1, 2) + 1e-12 * np.eye(3)
             q = q + np.einsum("nji,nj->ni", Jq, np.linalg.solve(JJt, err[..., None])[..., 0])
-        ctx = EffectContext(q, t_s, temperature_c, None, self._row_tools(smr_rows), approach)
+        ctx = EffectContext(q, t_s, temperature_c, None, tools, approach)
         return q, np.linalg.norm(targets - self.predict_ctx(ctx), axis=1)
 
     # ----- persistence --------------------------------------------------------------------------
