@@ -76,8 +76,10 @@ class ControlChannel:
                     reply = self.dispatch(request)
                 writer.write((json.dumps(reply) + "\n").encode())
                 await writer.drain()
-        except (ConnectionError, asyncio.LimitOverrunError, ValueError):
+        except ConnectionError:
             pass
+        except (asyncio.LimitOverrunError, ValueError) as exc:  # line beyond MAX_REQUEST_BYTES, bad UTF-8
+            log.warning("control channel: dropping a client that broke the JSON-lines protocol: %s", exc)
         finally:
             with contextlib.suppress(Exception):
                 writer.close()
