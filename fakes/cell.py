@@ -399,12 +399,11 @@ class SimulatedCell:
         N, n = q_cmd.shape
         previous = np.vstack([self._q_cmd, q_cmd[:-1]])
         step = q_cmd - previous
-        approach = np.empty_like(q_cmd)
-        last = self._approach.copy()
-        for k in range(N):  # direction memory: a joint that does not move keeps its last side
-            moved = np.abs(step[k]) > 1e-12
-            last = np.where(moved, np.sign(step[k]), last)
-            approach[k] = last
+        # Direction memory: a joint that does not move keeps the side of its last move (forward fill).
+        signs = np.vstack([self._approach, np.sign(step)])
+        moved = np.vstack([np.ones(n, bool), np.abs(step) > 1e-12])
+        last_move_row = np.maximum.accumulate(np.where(moved, np.arange(N + 1)[:, None], 0), axis=0)
+        approach = np.take_along_axis(signs, last_move_row, axis=0)[1:]
         t_s = self._time_s + seconds_per_point * np.arange(1, N + 1)
         jitter = self._noise_rng.normal(0, self.config.repeatability_sigma_rad, q_cmd.shape)
         offsets, frames = self.true_joint_offsets(q_cmd + jitter, approach, t_s)

@@ -1029,7 +1029,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--pty", action="store_true", help="also serve on a pseudo-terminal")
     parser.add_argument("--lock", type=int, default=None, help="SMR id locked at start")
     args = parser.parse_args(argv)
-    if not args.host.startswith("127."):
+    from fakes.launch import is_loopback_host
+
+    if not is_loopback_host(args.host):
         parser.error("--host must be a loopback address (127.0.0.0/8)")
 
     async def serve() -> None:

@@ -4,6 +4,7 @@ line with a timeout, hand back the announced addresses and a control client, and
 from __future__ import annotations
 
 import contextlib
+import ipaddress
 import json
 import os
 import random
@@ -40,6 +41,15 @@ class RunningCell:
         with contextlib.suppress(OSError), open(self.log_path, errors="replace") as f:
             return "".join(f.readlines()[-n:])
         return ""
+
+
+def is_loopback_host(host: str) -> bool:
+    """True for an IPv4 address in 127.0.0.0/8 (the only place fakes may listen); names are refused."""
+    try:
+        address = ipaddress.ip_address(host)
+    except ValueError:
+        return False
+    return address.version == 4 and address.is_loopback
 
 
 def random_loopback_host(rng: random.Random | None = None) -> str:

@@ -49,7 +49,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    if not args.host.startswith("127."):
+    from fakes.launch import is_loopback_host
+
+    if not is_loopback_host(args.host):
         raise SystemExit("hil sim binds loopback only: --host must be in 127.0.0.0/8")
     if args.time_scale <= 0:
         raise SystemExit("--time-scale must be positive")
