@@ -484,10 +484,12 @@ class EmsconTracker:
             raise ValueError(f"shots must be a positive integer, got {shots!r}")
         cfg = self.config
         timeout = cfg.meas_time_s + cfg.measurement_margin_s
-        packets = [
-            self._call(Command.START_MEASUREMENT, timeout=timeout, result=True)[1] for _ in range(shots)
-        ]
-        self.last_results = packets  # as received, raw bytes included (for records and debugging)
+        # Kept as received, raw bytes included, shot by shot: if the line drops at shot k, the shots
+        # already taken stay readable in `last_results` (for records and debugging).
+        packets: list = []
+        self.last_results = packets
+        for _ in range(shots):
+            packets.append(self._call(Command.START_MEASUREMENT, timeout=timeout, result=True)[1])
         timestamp = time.time()
         cs = cfg.coordinate_system
         values = np.array([p.values for p in packets])
