@@ -87,7 +87,7 @@ def start_cell(
             info = json.loads(line)
             return RunningCell(info, process, ControlClient(info["control"]), log.name, args)
         code = process.poll()
-        _stop(process)
+        stop_process(process)
         with open(log.name, errors="replace") as f:
             last_error = f.read()[-2000:]
         os.remove(log.name)
@@ -100,7 +100,7 @@ def start_cell(
 def stop_cell(cell: RunningCell) -> None:
     """SIGTERM, wait, SIGKILL if needed, then remove its log. Disconnect robot clients before calling this."""
     cell.control.close()
-    _stop(cell.process)
+    stop_process(cell.process)
     with contextlib.suppress(OSError):
         os.remove(cell.log_path)
 
@@ -147,9 +147,10 @@ def _read_line(process: subprocess.Popen, timeout_s: float) -> str | None:
     return data.split(b"\n", 1)[0].decode()
 
 
-def _stop(process: subprocess.Popen) -> None:
+def stop_process(process: subprocess.Popen, sig: int = signal.SIGTERM) -> None:
+    """Signal a child process, wait up to 5 s, kill it if it lingers, and close its stdout pipe."""
     if process.poll() is None:
-        process.send_signal(signal.SIGTERM)
+        process.send_signal(sig)
         try:
             process.wait(5)
         except subprocess.TimeoutExpired:

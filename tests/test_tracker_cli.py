@@ -14,6 +14,7 @@ import pytest
 from drivers.emscon import EmsconTracker
 from fakes.cell import CellConfig, SimulatedCell
 from fakes.emscon_server import EmsconServer, EmsconServerConfig, ServerThread
+from fakes.launch import stop_process
 from hil.commands import tracker as tracker_command
 
 pytestmark = pytest.mark.timeout(60)
@@ -57,10 +58,4 @@ def test_standalone_fake_tracker_process():
                 assert tracker.state().target_locked
                 assert np.all(np.isfinite(tracker.measure(shots=2).p_tracker_m))
     finally:
-        process.send_signal(signal.SIGINT)
-        try:
-            process.wait(5)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait(5)
-        process.stdout.close()
+        stop_process(process, signal.SIGINT)
