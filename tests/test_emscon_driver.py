@@ -6,6 +6,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import pytest
+from rfc2217_bridge import Rfc2217Bridge
 
 from drivers import emscon_codec as codec
 from drivers.emscon import EmsconTracker
@@ -40,11 +41,17 @@ def server_thread(cell):
         yield thread
 
 
-@pytest.fixture(params=["tcp", "pty"])
+@pytest.fixture(params=["tcp", "pty", "rfc2217"])
 def url(request, server_thread):
+    """The same fake over TCP, over a serial line (pty), and over that line behind an RFC 2217 server."""
     if request.param == "tcp":
         return server_thread.server.url
-    return server_thread.run(server_thread.server.open_pty())
+    device = server_thread.run(server_thread.server.open_pty())
+    if request.param == "pty":
+        return device
+    bridge = Rfc2217Bridge(device)
+    request.addfinalizer(bridge.close)
+    return bridge.url
 
 
 def _tracker(url, **options) -> EmsconTracker:
@@ -282,11 +289,11 @@ def test_garbage_bytes_give_a_protocol_error_with_the_bytes_then_recover(url, se
 
 @pytest.mark.parametrize("when", ["next", "now"])
 def test_dropped_connection_recovers_on_the_next_call(url, server_thread, cell, when):
-    """TCP: the connection closes (typed error, the next call reconnects). Serial line: it goes silent
-    (timeout); once it is back the next call resyncs. No reconnecting by hand either way."""
+    """TCP: the connection closes (typed error, the next call reconnects). Serial line (direct or behind
+    RFC 2217): it goes silent (timeout); once it is back the next call resyncs. No reconnecting by hand."""
     tracker = _locked(url, cell, measurement_margin_s=0.3)
     _fault(server_thread, kind="drop", when=when)
-    serial_line = url.startswith("/dev/")
+    serial_line = not url.startswith("socket://")  # a pty, or a pty behind an RFC 2217 server
     start = time.monotonic()
     with pytest.raises(TrackerTimeoutError if serial_line else TrackerConnectionError):
         tracker.measure()
