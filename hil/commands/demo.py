@@ -19,8 +19,9 @@ import numpy as np
 import pandas as pd
 
 from fakes.campaign import grid_joints, random_joints, simulate_campaign
-from fakes.cell import CELL_EFFECTS, CellConfig, SimulatedCell, parse_effect_flags
+from fakes.cell import CellConfig, SimulatedCell
 from hil.calibrated_model import CalibratedModel
+from hil.commands.cell_options import add_effects_argument, effect_flags
 from hil.dataset import POSITION_COLUMNS, joint_columns, joints_rad, points_m, write_dataset
 from hil.diagnosis import run_diagnosis
 from hil.report import write_html, write_json
@@ -38,12 +39,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--seed", type=int, default=0, help="seed of the simulated cell (default 0)")
     parser.add_argument("--step-mm", type=float, default=100.0, help="grid step in mm (default 100)")
     parser.add_argument("--validate", type=int, default=100, help="random validation poses (default 100)")
-    parser.add_argument(
-        "--effects",
-        default="compliance",
-        help=f"physical effects switched on in the cell, comma-separated from {', '.join(CELL_EFFECTS)}, "
-        "or 'none' (default: compliance, the PT paper's undeclared effect)",
-    )
+    add_effects_argument(parser)
     parser.add_argument("--out", default="demo-out", help="output folder (default ./demo-out)")
     parser.add_argument("--live", type=int, default=6, help="poses measured live through hil sim (0: skip)")
     parser.add_argument(
@@ -53,10 +49,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    try:
-        flags = parse_effect_flags(args.effects)
-    except ValueError as exc:
-        raise SystemExit(str(exc)) from exc
+    flags = effect_flags(args)
     if args.step_mm <= 0:
         raise SystemExit("--step-mm must be positive")
     if args.live > 0 and not args.robot.startswith("ur"):

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from fakes.cell import CELL_EFFECTS, parse_effect_flags
+from hil.commands.cell_options import add_effects_argument, effect_flags
 from hil.robots import ROBOT_NAMES
 
 
@@ -38,12 +38,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default=0.05,
         help="seconds the controller takes to start an uploaded program (default 0.05)",
     )
-    parser.add_argument(
-        "--effects",
-        default="compliance",
-        help=f"physical effects of the cell, comma-separated from {', '.join(CELL_EFFECTS)}, or 'none' "
-        "(default: compliance)",
-    )
+    add_effects_argument(parser)
     parser.add_argument("--powered-off", action="store_true", help="start with the arm powered off")
     parser.set_defaults(func=run)
 
@@ -55,10 +50,7 @@ def run(args: argparse.Namespace) -> int:
         raise SystemExit("hil sim binds loopback only: --host must be in 127.0.0.0/8")
     if args.time_scale <= 0:
         raise SystemExit("--time-scale must be positive")
-    try:
-        effects = parse_effect_flags(args.effects)
-    except ValueError as exc:
-        raise SystemExit(str(exc)) from exc
+    effects = effect_flags(args)
     from fakes.sim_process import SimOptions, main
 
     return main(
