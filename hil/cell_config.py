@@ -1,0 +1,294 @@
+"""The cell configuration (`cell.toml`): robot, tracker, tool, safety envelope and motion settings.
+
+Lengths in the file are millimetres and angles degrees, named in the keys (`_mm`, `_deg`); everything is
+converted to SI here. `load_cell_config` checks the whole file and reports every problem with its key and
+what to fix, before anything connects or moves.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from hil.envelope import Envelope
+from hil.kinematics import KinematicModel
+from hil.robots import ROBOT_NAMES, get_robot
+
+SMR_RADIUS_MM = 19.05  # 1.5" sphere
+
+# Settings of the robot section that belong to the robot driver (drivers.ur.URConfig), passed through.
+ROBOT_DRIVER_KEYS: tuple[str, ...] = (
+    "joint_speed", "joint_accel", "linear_speed", "linear_accel", "max_joint_speed", "max_joint_accel",
+    "max_linear_speed", "max_linear_accel", "connect_timeout_s", "connect_attempts", "settle_dwell_s",
+    "settle_timeout_s", "stale_after_s", "move_timeout_margin_s", "reach_tolerance_rad",
+    "recover_timeout_s", "power_on_at_connect",
+)  # fmt: skip
+
+
+class CellConfigError(ValueError):
+    """A cell configuration with problems; `problems` lists each as 'key: what is wrong; what to do'."""
+
+    def __init__(self, source: str, problems: list[str]):
+        self.source = source
+        self.problems = problems
+        super().__init__(f"{source}: {len(problems)} problem(s):\n" + "\n".join(f"  - {p}" for p in problems))
+
+
+@dataclass(frozen=True)
+class CellConfig:
+    """One robot cell as the runner sees it (SI units)."""
+
+    robot_model: str
+    robot_host: str
+    robot_driver: dict[str, Any]  # drivers.ur.URConfig settings besides the host
+    tracker_url: str
+    tracker_reflector: str | None
+    meas_time_s: float
+    shots_per_point: int
+    p_base_tracker_m: np.ndarray  # approximate tracker position in the robot base frame (plans facing poses)
+    nests_flange_m: np.ndarray  # (K, 3) SMR nest centres on the tool, flange frame, from the drawing
+    smr_radius_m: float
+    hole_circle_radius_m: float
+    hole7_radius_m: float
+    hole_diameter_m: float
+    envelope: Envelope
+    settle_s: float
+    q_home_rad: np.ndarray
+    source: str = "cell.toml"
+    raw: dict = field(default_factory=dict)
+
+    @property
+    def nominal(self) -> KinematicModel:
+        """The nominal model of the configured robot."""
+        return get_robot(self.robot_model)
+
+    def robot_mapping(self) -> dict[str, Any]:
+        """Settings for drivers.ur.URConfig.from_mapping: the host and the driver keys."""
+        return {"host": self.robot_host, **self.robot_driver}
+
+    def snapshot(self) -> dict:
+        """The configuration as read, for the campaign's station snapshot."""
+        return {"source": self.source, "cell": self.raw}
+
+
+class _Reader:
+    """Reads typed values from nested TOML tables and collects every problem instead of stopping at one."""
+
+    def __init__(self, data: dict):
+        self.data = data
+        self.problems: list[str] = []
+        self.used: dict[str, set[str]] = {}
+
+    def table(self, name: str) -> dict:
+        value = self.data.get(name, {})
+        if not isinstance(value, dict):
+            self.problems.append(f"[{name}]: must be a table; write it as a [{name}] section")
+            return {}
+        return value
+
+    def get(self, section: str, key: str, kind: str, default: Any = None, required: bool = False) -> Any:
+        self.used.setdefault(section, set()).add(key)
+        table = self.table(section)
+        full = f"{section}.{key}"
+        if key not in table:
+            if required:
+                self.problems.append(f"{full}: missing; add it to the [{section}] section")
+            return default
+        value = table[key]
+        if kind == "str" and not isinstance(value, str):
+            self.problems.append(f"{full}: must be a string in quotes, got {value!r}")
+            return default
+        if kind in ("float", "positive", "nonneg"):
+            if isinstance(value, bool) or not isinstance(value, int | float) or not np.isfinite(value):
+                self.problems.append(f"{full}: must be a number, got {value!r}")
+                return default
+            if kind == "positive" and value <= 0:
+                self.problems.append(f"{full}: must be positive, got {value!r}")
+                return default
+            if kind == "nonneg" and value < 0:
+                self.problems.append(f"{full}: must be zero or positive, got {value!r}")
+                return default
+            return float(value)
+        if kind == "int" and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
+            self.problems.append(f"{full}: must be a whole number >= 1, got {value!r}")
+            return default
+        return value
+
+    def vector(self, section: str, key: str, length: int, default: Any = None, required: bool = False):
+        value = self.get(section, key, "any", default=None, required=required)
+        if value is None:
+            return None if default is None else np.asarray(default, float)
+        arr = _numbers(value)
+        if arr is None or arr.shape != (length,):
+            self.problems.append(f"{section}.{key}: must be a list of {length} numbers, got {value!r}")
+            return None if default is None else np.asarray(default, float)
+        return arr
+
+    def unknown_keys(self, known_extra: dict[str, tuple[str, ...]]) -> None:
+        for section, table in self.data.items():
+            if section not in SECTIONS:
+                self.problems.append(f"[{section}]: unknown section; known: {', '.join(SECTIONS)}")
+                continue
+            if not isinstance(table, dict):
+                continue
+            allowed = self.used.get(section, set()) | set(known_extra.get(section, ()))
+            for key in sorted(set(table) - allowed):
+                self.problems.append(
+                    f"{section}.{key}: unknown setting (a typo?); known: {', '.join(sorted(allowed))}"
+                )
+
+
+SECTIONS = ("robot", "tracker", "tool", "envelope", "motion")
+
+
+def _numbers(value: Any) -> np.ndarray | None:
+    if not isinstance(value, list) or not all(
+        isinstance(v, int | float) and not isinstance(v, bool) for v in value
+    ):
+        return None
+    arr = np.asarray(value, float)
+    return arr if np.all(np.isfinite(arr)) else None
+
+
+def parse_cell_config(data: dict, source: str = "cell.toml") -> CellConfig:
+    """Build and check a CellConfig from parsed TOML; raises CellConfigError listing every problem."""
+    r = _Reader(data)
+    model = r.get("robot", "model", "str", required=True)
+    if model is not None and model.lower() not in ROBOT_NAMES:
+        r.problems.append(f"robot.model: unknown robot {model!r}; choose one of {', '.join(ROBOT_NAMES)}")
+        model = None
+    host = r.get("robot", "host", "str", required=True)
+    driver = {k: v for k, v in r.table("robot").items() if k in ROBOT_DRIVER_KEYS}
+    for key, value in driver.items():
+        if key != "power_on_at_connect" and (isinstance(value, bool) or not isinstance(value, int | float)):
+            r.problems.append(f"robot.{key}: must be a number, got {value!r}")
+        elif key != "power_on_at_connect" and value <= 0:
+            r.problems.append(f"robot.{key}: must be positive, got {value!r}")
+    nominal = get_robot(model.lower()) if model else None
+    n = nominal.n_joints if nominal else 6
+
+    url = r.get("tracker", "url", "str", required=True)
+    if url is not None and "://" not in url and not url.startswith("/dev/"):
+        r.problems.append(
+            f"tracker.url: {url!r} is not a pyserial URL; use socket://HOST:PORT, rfc2217://HOST:PORT or /dev/tty..."
+        )
+    reflector = r.get("tracker", "reflector", "str")
+    meas_time_s = r.get("tracker", "meas_time_s", "positive", default=1.0)
+    shots = r.get("tracker", "shots_per_point", "int", default=3)
+    p_tracker_mm = r.vector("tracker", "position_base_mm", 3, required=True)
+    if p_tracker_mm is not None and np.linalg.norm(p_tracker_mm[:2]) < 300:
+        r.problems.append(
+            "tracker.position_base_mm: the tracker must stand at least 300 mm from the robot's base axis; "
+            "give its approximate position in the robot base frame (a tape measure is enough)"
+        )
+
+    nests = r.get("tool", "nests_flange_mm", "any", required=True)
+    nests_arr = None
+    if nests is not None:
+        rows = [_numbers(v) for v in nests] if isinstance(nests, list) else [None]
+        if not rows or any(v is None or v.shape != (3,) for v in rows):
+            r.problems.append("tool.nests_flange_mm: must be a list of [x, y, z] nest centres in mm, e.g. [[30, -20, 110]]")
+        else:
+            nests_arr = np.array(rows) / 1e3
+            if np.any(np.linalg.norm(nests_arr, axis=1) > 0.5):
+                r.problems.append("tool.nests_flange_mm: a nest lies over 500 mm from the flange: are these mm?")
+    smr_radius_mm = r.get("tool", "smr_radius_mm", "positive", default=SMR_RADIUS_MM)
+    circle_mm = r.get("tool", "hole_circle_radius_mm", "positive", default=31.5)
+    hole7_mm = r.get("tool", "hole7_radius_mm", "positive", default=45.0)
+    hole_d_mm = r.get("tool", "hole_diameter_mm", "positive", default=6.6)
+    if hole_d_mm is not None and smr_radius_mm is not None and hole_d_mm >= 2 * smr_radius_mm:
+        r.problems.append("tool.hole_diameter_mm: must be smaller than the SMR's diameter, or the SMR falls through")
+
+    box_min = r.vector("envelope", "box_min_mm", 3, required=True)
+    box_max = r.vector("envelope", "box_max_mm", 3, required=True)
+    if box_min is not None and box_max is not None and np.any(box_max <= box_min):
+        r.problems.append("envelope.box_max_mm: every coordinate must exceed envelope.box_min_mm's")
+    limits = nominal.joint_limits if nominal else np.tile([-2 * np.pi, 2 * np.pi], (n, 1))
+    jmin = r.vector("envelope", "joint_min_deg", n, default=np.rad2deg(limits[:, 0]))
+    jmax = r.vector("envelope", "joint_max_deg", n, default=np.rad2deg(limits[:, 1]))
+    if jmin is not None and jmax is not None:
+        if np.any(jmax <= jmin):
+            r.problems.append("envelope.joint_max_deg: every limit must exceed envelope.joint_min_deg's")
+        outside = np.flatnonzero((np.deg2rad(jmin) < limits[:, 0] - 1e-9) | (np.deg2rad(jmax) > limits[:, 1] + 1e-9))
+        if outside.size:
+            r.problems.append(
+                f"envelope.joint_min_deg/joint_max_deg: joint(s) {', '.join(str(j + 1) for j in outside)} "
+                "reach beyond the robot's own limits; stay inside them"
+            )
+    settle_s = r.get("motion", "settle_s", "nonneg", default=0.5)
+    home_deg = r.vector("motion", "home_deg", n, default=np.rad2deg(_default_home(nominal, n)))
+    r.unknown_keys({"robot": ROBOT_DRIVER_KEYS})
+    if r.problems:
+        raise CellConfigError(source, r.problems)
+    envelope = Envelope(box_min / 1e3, box_max / 1e3, np.deg2rad(jmin), np.deg2rad(jmax))
+    home = np.deg2rad(home_deg)
+    if envelope.joint_violations(home)[0]:
+        raise CellConfigError(source, ["motion.home_deg: the home pose breaks the envelope's joint limits"])
+    return CellConfig(
+        robot_model=model.lower(),
+        robot_host=host,
+        robot_driver=driver,
+        tracker_url=url,
+        tracker_reflector=reflector,
+        meas_time_s=meas_time_s,
+        shots_per_point=shots,
+        p_base_tracker_m=p_tracker_mm / 1e3,
+        nests_flange_m=nests_arr,
+        smr_radius_m=smr_radius_mm / 1e3,
+        hole_circle_radius_m=circle_mm / 1e3,
+        hole7_radius_m=hole7_mm / 1e3,
+        hole_diameter_m=hole_d_mm / 1e3,
+        envelope=envelope,
+        settle_s=settle_s,
+        q_home_rad=home,
+        source=source,
+        raw=data,
+    )
+
+
+def _default_home(nominal: KinematicModel | None, n: int) -> np.ndarray:
+    from hil.ik import default_home
+
+    return default_home(nominal) if nominal is not None else np.zeros(n)
+
+
+def load_cell_config(path: str | Path) -> CellConfig:
+    """Read and check a cell.toml; raises CellConfigError (every problem, with its key) or names the file."""
+    path = Path(path)
+    if not path.is_file():
+        raise CellConfigError(str(path), ["file not found; give the path of the cell's TOML configuration"])
+    try:
+        data = tomllib.loads(path.read_text())
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise CellConfigError(str(path), [f"not valid TOML ({exc}); fix the syntax at that line"]) from exc
+    return parse_cell_config(data, source=str(path))
+
+
+def format_cell_toml(values: dict[str, dict[str, Any]]) -> str:
+    """Write a cell configuration as TOML (flat tables of strings, numbers, booleans and number lists)."""
+    lines: list[str] = []
+    for section in SECTIONS:
+        table = values.get(section)
+        if not table:
+            continue
+        lines.append(f"[{section}]")
+        for key, value in table.items():
+            lines.append(f"{key} = {_toml_value(value)}")
+        lines.append("")
+    return "\n".join(lines)
+
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, str):
+        return '"' + value.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(value, int | float):
+        return repr(float(value)) if isinstance(value, float) else str(value)
+    if isinstance(value, list | tuple | np.ndarray):
+        return "[" + ", ".join(_toml_value(v.item() if isinstance(v, np.generic) else v) for v in value) + "]"
+    raise TypeError(f"cannot write {value!r} as TOML")
