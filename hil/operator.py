@@ -13,7 +13,7 @@ from dataclasses import dataclass
 from typing import Protocol, TextIO
 
 
-class OperatorAbort(RuntimeError):
+class OperatorAbortError(RuntimeError):
     """The operator declined a manual step; the procedure stops (what was recorded stays recorded)."""
 
 
@@ -35,7 +35,7 @@ class OperatorStep:
 
 class Operator(Protocol):
     def perform(self, step: OperatorStep) -> None:
-        """Carry out the step, returning once it is done; raise OperatorAbort to stop the procedure."""
+        """Carry out the step, returning once it is done; raise OperatorAbortError to stop the procedure."""
         ...
 
 
@@ -51,7 +51,7 @@ class ConsoleOperator:
         self.stdout.flush()
         answer = self.stdin.readline()
         if answer == "" or answer.strip().lower() in ("q", "quit", "stop"):
-            raise OperatorAbort(f"the operator stopped at: {step.text}")
+            raise OperatorAbortError(f"the operator stopped at: {step.text}")
 
 
 class ScriptedOperator:
@@ -66,6 +66,6 @@ class ScriptedOperator:
         self.transcript.append(step)
         action = self.actions.get(step.action)
         if action is None and step.action != "confirm":
-            raise OperatorAbort(f"the scripted operator cannot do {step.action!r}: {step.text}")
+            raise OperatorAbortError(f"the scripted operator cannot do {step.action!r}: {step.text}")
         if action is not None:
             action(step)
