@@ -312,6 +312,35 @@ class EmsconTracker:
                 raise self._lost(exc) from exc
             self._splitter.extend(data)
 
+    def _drain_pending(self, what: str) -> None:
+        """Take in what the tracker sent before this command (events, a lost-lock error from the last move):
+        noted as unsolicited, so an old error packet is never read as the answer to the new command."""
+        while True:
+            try:
+                waiting = self._port.in_waiting
+            except (OSError, serial.SerialException) as exc:
+                raise self._lost(exc) from exc
+            if not waiting:
+                break
+            try:
+                self._splitter.extend(self._port.read(waiting))
+            except (OSError, serial.SerialException) as exc:
+                raise self._lost(exc) from exc
+        while True:
+            try:
+                packet = self._splitter.pop()
+            except codec.CodecError as exc:
+                self._needs_resync = True
+                self._splitter.reset()
+                raise TrackerProtocolError(f"framing error before {what}: {exc}", exc.data) from exc
+            if packet is None:
+                return
+            decoded = self._decode(packet, what)
+            if isinstance(decoded, codec.ErrorPacket | codec.StatusChangePacket):
+                self._note_unsolicited(decoded)
+            else:
+                log.debug("dropping a stale %s received before %s", type(decoded).__name__, what)
+
     def _decode(self, packet: bytes, what: str) -> codec.ServerPacket:
         try:
             return codec.decode_server_packet(packet)
@@ -401,6 +430,7 @@ class EmsconTracker:
         deadline = self._deadline(self.config.command_timeout_s if timeout is None else timeout)
         what = f"the answer to {_command_name(command)}"
         data = codec.pack_command(command, *params)
+        self._drain_pending(what)
         self._write(data)
         answers: list[codec.AnswerPacket] = []
         expected = 1

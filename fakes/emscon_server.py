@@ -872,8 +872,9 @@ class EmsconServer:
 
     # ---- control channel (fault injection) ---------------------------------------------------------------
     def control_handlers(self) -> dict[str, Callable[[dict], dict]]:
-        """Commands for the control channel: tracker.fault, tracker.clear, tracker.state."""
+        """Commands for the control channel: tracker.fault, tracker.clear, tracker.state, tracker.guide_beam."""
         return {
+            "tracker.guide_beam": self._ctl_guide_beam,
             "tracker.fault": self._ctl_fault,
             "tracker.clear": self._ctl_clear,
             "tracker.state": self._ctl_state,
@@ -927,6 +928,16 @@ class EmsconServer:
                 f"unknown tracker fault {kind!r}; use beam_break, no_target, slow, drop, garbage, inject, outlier, framing, clear"
             )
         return {"ok": True, "faults": f.as_dict()}
+
+    def _ctl_guide_beam(self, request: dict) -> dict:
+        """The operator's hand: catch the beam on SMR `smr_id` and let the tracker lock onto it."""
+        smr_id = int(request.get("smr_id", 1))
+        if smr_id not in self.cell.smr_ids:
+            raise ValueError(f"no SMR {smr_id}; the cell has SMRs {self.cell.smr_ids}")
+        if not self._visible(smr_id):
+            raise ValueError(f"SMR {smr_id} faces away from the tracker: the beam cannot be caught on it")
+        self._call_in_loop(lambda: self._acquire(np.asarray(self.cell.smr_center_tracker(smr_id), dtype=float)))
+        return {"smr_id": smr_id}
 
     def _ctl_clear(self, request: dict) -> dict:
         was_blocked = self.faults.no_target

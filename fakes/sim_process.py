@@ -18,13 +18,14 @@ import signal
 import sys
 import time
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from fakes.cell import CellConfig, SimulatedCell, SmrLocation
 from fakes.control_channel import ControlChannel
-from fakes.emscon_server import EmsconServer
+from fakes.emscon_server import EmsconServer, EmsconServerConfig
 from fakes.ur_controller import UrController
 
 log = logging.getLogger(__name__)
@@ -45,6 +46,9 @@ class SimOptions:
     script_start_delay_s: float = 0.05
     powered: bool = True
     effects: dict[str, bool] = field(default_factory=dict)  # CellConfig flags, e.g. {'thermal': True}
+    # Called with (ready line, ground truth) once every server listens, before the ready line is printed
+    # (e.g. `hil sim --write-cell` writes the cell configuration for this cell).
+    on_ready: Callable[[dict, dict], None] | None = None
 
 
 class SimClock:
@@ -149,7 +153,9 @@ class SimProcess:
         self.clock.listeners.append(self.cell.advance_time)
         self.clock.listeners.append(self.robot.tick)
         self.control.add_handlers(cell_handlers(self.cell, self.clock))
-        tracker = EmsconServer(self.cell, o.host, o.tracker_port)
+        # The cell's clock task moves simulated time on: a measurement waits for it (scaled by --time-scale)
+        # instead of sleeping the unscaled measurement time and advancing the clock a second time.
+        tracker = EmsconServer(self.cell, o.host, o.tracker_port, EmsconServerConfig(advance_clock=False))
         self.add_server(tracker)
         self.control.add_handlers(tracker.control_handlers())
         self.announcers.append(lambda: {"tracker": {"url": tracker.url, "port": tracker.port}})
@@ -196,7 +202,10 @@ class SimProcess:
             with contextlib.suppress(NotImplementedError):
                 loop.add_signal_handler(sig, stop.set)
         clock_task = asyncio.create_task(self.clock.run())
-        print(json.dumps(self.announce()), file=ready_out, flush=True)
+        info = self.announce()
+        if self.options.on_ready is not None:
+            self.options.on_ready(info, self.cell.ground_truth())
+        print(json.dumps(info), file=ready_out, flush=True)
         try:
             await stop.wait()
         finally:

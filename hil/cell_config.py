@@ -58,6 +58,7 @@ class CellConfig:
     envelope: Envelope
     settle_s: float
     q_home_rad: np.ndarray
+    simulator_control: str | None = None  # control channel of a simulated cell (scripted operator)
     source: str = "cell.toml"
     raw: dict = field(default_factory=dict)
 
@@ -142,7 +143,7 @@ class _Reader:
                 )
 
 
-SECTIONS = ("robot", "tracker", "tool", "envelope", "motion")
+SECTIONS = ("robot", "tracker", "tool", "envelope", "motion", "simulator")
 
 
 def _numbers(value: Any) -> np.ndarray | None:
@@ -221,6 +222,7 @@ def parse_cell_config(data: dict, source: str = "cell.toml") -> CellConfig:
             )
     settle_s = r.get("motion", "settle_s", "nonneg", default=0.5)
     home_deg = r.vector("motion", "home_deg", n, default=np.rad2deg(_default_home(nominal, n)))
+    simulator_control = r.get("simulator", "control", "str")
     r.unknown_keys({"robot": ROBOT_DRIVER_KEYS})
     if r.problems:
         raise CellConfigError(source, r.problems)
@@ -245,6 +247,7 @@ def parse_cell_config(data: dict, source: str = "cell.toml") -> CellConfig:
         envelope=envelope,
         settle_s=settle_s,
         q_home_rad=home,
+        simulator_control=simulator_control,
         source=source,
         raw=data,
     )

@@ -14,6 +14,8 @@ COMMAND_MODULES: tuple[str, ...] = (
     "hil.commands.predict",
     "hil.commands.sim",
     "hil.commands.tracker",
+    "hil.commands.cell",
+    "hil.commands.run",
 )
 
 

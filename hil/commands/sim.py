@@ -40,6 +40,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     add_effects_argument(parser)
     parser.add_argument("--powered-off", action="store_true", help="start with the arm powered off")
+    parser.add_argument(
+        "--write-cell",
+        metavar="FILE",
+        default=None,
+        help="write the cell.toml for this cell (robot, tracker, tool drawing, envelope) once it listens",
+    )
     parser.set_defaults(func=run)
 
 
@@ -53,6 +59,18 @@ def run(args: argparse.Namespace) -> int:
     effects = effect_flags(args)
     from fakes.sim_process import SimOptions, main
 
+    on_ready = None
+    if args.write_cell:
+        from pathlib import Path
+
+        from hil.commands.sim_cell import write_sim_cell
+
+        if not Path(args.write_cell).resolve().parent.is_dir():
+            raise SystemExit(f"--write-cell: folder of {args.write_cell} does not exist; create it first")
+
+        def on_ready(info: dict, truth: dict) -> None:
+            write_sim_cell(args.write_cell, info, truth, args.time_scale)
+
     return main(
         SimOptions(
             host=args.host,
@@ -65,5 +83,6 @@ def run(args: argparse.Namespace) -> int:
             script_start_delay_s=args.script_start_delay,
             powered=not args.powered_off,
             effects=effects,
+            on_ready=on_ready,
         )
     )

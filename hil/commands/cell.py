@@ -1,0 +1,79 @@
+"""`hil cell check cell.toml [--connect]`: check a cell configuration before anything moves.
+
+Reports every problem with its key and what to fix. With --connect it then opens the robot (ur-rtde) and
+the tracker (emScon) and reports their state; nothing moves.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+import numpy as np
+
+from hil.cell_config import CellConfig, CellConfigError, load_cell_config
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser("cell", help="check a cell configuration (and optionally its instruments)", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    actions = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
+    check = actions.add_parser("check", help="report every problem of a cell.toml, with its key")
+    check.add_argument("config", help="cell configuration (TOML)")
+    check.add_argument("--connect", action="store_true", help="also connect to the robot and the tracker and report their state")
+    check.set_defaults(func=run_check)
+
+
+def describe(config: CellConfig) -> str:
+    env = config.envelope
+    nests = ", ".join(f"({', '.join(f'{v * 1e3:.1f}' for v in p)})" for p in config.nests_flange_m)
+    return "\n".join(
+        [
+            f"{config.source}: OK",
+            f"  robot   {config.robot_model} at {config.robot_host}",
+            f"  tracker {config.tracker_url}, {config.shots_per_point} shot(s) of {config.meas_time_s:g} s per point, "
+            f"about ({', '.join(f'{v * 1e3:.0f}' for v in config.p_base_tracker_m)}) mm from the robot base",
+            f"  tool    {len(config.nests_flange_m)} nest(s) at {nests} mm (flange frame)",
+            f"  envelope box ({', '.join(f'{v * 1e3:.0f}' for v in env.box_min_m)}) .. "
+            f"({', '.join(f'{v * 1e3:.0f}' for v in env.box_max_m)}) mm; joints "
+            + " ".join(f"[{a:.0f},{b:.0f}]" for a, b in zip(np.rad2deg(env.joint_min_rad), np.rad2deg(env.joint_max_rad), strict=True))
+            + " deg",
+            f"  settle {config.settle_s:g} s",
+        ]
+    )
+
+
+def run_check(args: argparse.Namespace) -> int:
+    try:
+        config = load_cell_config(args.config)
+    except CellConfigError as exc:
+        print(f"hil cell check: {exc}\n  what to do: fix each key listed, then check again", file=sys.stderr)
+        return 2
+    print(describe(config))
+    if not args.connect:
+        return 0
+    from drivers.emscon import EmsconConfig, EmsconTracker
+    from drivers.robot import RobotError
+    from drivers.tracker import TrackerError
+    from drivers.ur import URConfig, URRobot
+
+    failures = 0
+    try:
+        with URRobot(URConfig.from_mapping(config.robot_mapping())) as robot:
+            state = robot.state()
+            print(f"  robot connected: controller {robot.version}, mode {state.robot_mode}, safety {state.safety_mode}, ready {state.ready}")
+            if not config.envelope.joint_violations(robot.joints())[0]:
+                print("  robot joints inside the envelope's limits")
+            else:
+                print("  robot joints OUTSIDE the envelope's limits: jog it inside before running a procedure")
+                failures += 1
+    except RobotError as exc:
+        print(f"  robot: {exc}", file=sys.stderr)
+        failures += 1
+    try:
+        with EmsconTracker(EmsconConfig(url=config.tracker_url, meas_time_s=config.meas_time_s, reflector=config.tracker_reflector)) as tracker:
+            state = tracker.state()
+            print(f"  tracker connected: initialized {state.initialized}, target locked {state.target_locked}, reflector {state.reflector_id}")
+    except (TrackerError, OSError, ValueError) as exc:
+        print(f"  tracker: {exc}", file=sys.stderr)
+        failures += 1
+    return 2 if failures else 0

@@ -1,0 +1,71 @@
+"""Wiring real or simulated instruments into a Session: the one place that knows which drivers exist.
+
+Procedures see only the Robot and Tracker protocols; this module builds the UR driver (ur-rtde) and the
+emScon driver from the cell configuration, opens the campaign store and picks the operator: a person at
+the console, or, on a simulated cell, a script that moves the simulated SMR through its control channel.
+"""
+
+from __future__ import annotations
+
+import sys
+from contextlib import ExitStack
+from pathlib import Path
+
+from hil.cell_config import CellConfig
+from hil.operator import ConsoleOperator, Operator, OperatorStep, ScriptedOperator
+from hil.progress import Progress
+from hil.session import Session
+from hil.store import CampaignStore
+
+
+def simulated_operator(control_address: str) -> ScriptedOperator:
+    """An operator whose hands are the simulated cell's control channel (place_smr, tracker.guide_beam)."""
+    from fakes.control_client import ControlClient
+
+    control = ControlClient(control_address)
+
+    def place_smr(step: OperatorStep) -> None:
+        location = step.location or ""
+        if location == "face":
+            control.call("place_smr", smr_id=step.smr or 1, kind="face", point_m=list(step.face_point_m or (0.0, 0.0)))
+            return
+        kind = location.rstrip("0123456789")
+        index = int(location[len(kind):])
+        control.call("place_smr", smr_id=step.smr or 1, kind=kind, index=index)
+
+    def lock_beam(step: OperatorStep) -> None:
+        control.call("tracker.guide_beam", smr_id=step.smr or 1)
+
+    return ScriptedOperator({"place_smr": place_smr, "lock_beam": lock_beam})
+
+
+def choose_operator(config: CellConfig, kind: str) -> Operator:
+    """'console' (a person), 'sim' (the simulated cell's scripted hands) or 'auto' (sim when the cell
+    config names a simulator, else the console)."""
+    if kind == "auto":
+        kind = "sim" if config.simulator_control else "console"
+    if kind == "sim":
+        if not config.simulator_control:
+            raise ValueError("--operator sim needs [simulator] control in the cell config (hil sim --write-cell writes it)")
+        return simulated_operator(config.simulator_control)
+    if not sys.stdin.isatty():
+        raise ValueError("the console operator needs a terminal: run interactively, or use --operator sim on a simulated cell")
+    return ConsoleOperator()
+
+
+def open_session(config: CellConfig, campaign: str | Path, operator: Operator, stack: ExitStack, progress: bool | None = None) -> Session:
+    """Connect the robot (ur-rtde) and the tracker (emScon), open the campaign store, and build the Session.
+
+    Everything opened is registered on `stack`, so a failure half-way leaves nothing connected."""
+    from drivers.emscon import EmsconConfig, EmsconTracker
+    from drivers.ur import URConfig, URRobot
+
+    store = CampaignStore(campaign)
+    stack.callback(store.close)
+    robot = URRobot(URConfig.from_mapping(config.robot_mapping()))
+    stack.callback(robot.close)
+    tracker = EmsconTracker(EmsconConfig(url=config.tracker_url, meas_time_s=config.meas_time_s, reflector=config.tracker_reflector))
+    stack.callback(tracker.close)
+    tracker.connect()
+    station = {"robot_controller_version": getattr(robot, "version", None), "tracker": getattr(tracker, "tracker_info", {})}
+    return Session(config, robot, tracker, store, operator, Progress(enabled=progress), station=station)

@@ -1,0 +1,76 @@
+"""A procedure's motion plan: the poses it will visit, in order, for `--dry-run` and for the envelope check.
+
+`describe()` gives what an engineer checks before pressing start: how many poses, in which order, how long
+it should take, and the bounding box the tool points sweep (nominal kinematics).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from hil.cell_config import CellConfig
+from hil.kinematics import forward_kinematics
+from hil.planners import sequence_duration_s
+
+
+@dataclass(frozen=True)
+class PlannedPose:
+    """One pose of a plan: its point id, procedure step, commanded joints and where the SMR sits."""
+
+    point_id: str
+    procedure: str
+    step: str
+    q_rad: np.ndarray
+    location: str
+
+
+@dataclass
+class Plan:
+    procedure: str
+    poses: list[PlannedPose]
+    config: CellConfig
+    operator_steps: int = 0
+    dropped: dict[str, int] = field(default_factory=dict)  # reason -> poses left out (unreachable, ...)
+    per_point_s: float | None = None  # settle + measurement time per pose (default from the config)
+
+    def joints(self) -> np.ndarray:
+        return np.array([p.q_rad for p in self.poses]).reshape(-1, 6)
+
+    def estimated_duration_s(self) -> float:
+        cfg = self.config
+        per_point = self.per_point_s
+        if per_point is None:
+            per_point = cfg.settle_s + cfg.shots_per_point * cfg.meas_time_s + 0.5
+        return sequence_duration_s(
+            self.joints(),
+            cfg.q_home_rad,
+            float(cfg.robot_driver.get("joint_speed", 1.05)),
+            float(cfg.robot_driver.get("joint_accel", 1.4)),
+            per_point,
+        )
+
+    def describe(self, max_rows: int = 20) -> str:
+        """A readable summary: counts, duration, bounding box, and the first poses in order."""
+        cfg = self.config
+        q = self.joints()
+        lines = [f"plan of {self.procedure}: {len(self.poses)} poses, {self.operator_steps} operator step(s)"]
+        if self.dropped:
+            lines.append("  left out: " + ", ".join(f"{n} {reason}" for reason, n in sorted(self.dropped.items())))
+        minutes = self.estimated_duration_s() / 60.0
+        lines.append(f"  estimated duration: {minutes:.1f} min (moves + settle + measurement)")
+        if len(q):
+            T = forward_kinematics(cfg.nominal, q)
+            points = np.einsum("nij,kj->nki", T[:, :3, :3], cfg.nests_flange_m) + T[:, None, :3, 3]
+            lo, hi = points.reshape(-1, 3).min(axis=0) * 1e3, points.reshape(-1, 3).max(axis=0) * 1e3
+            lines.append(
+                f"  tool points sweep x {lo[0]:.0f}..{hi[0]:.0f}, y {lo[1]:.0f}..{hi[1]:.0f}, z {lo[2]:.0f}..{hi[2]:.0f} mm (robot base frame)"
+            )
+            lines.append(f"  {'#':>4} {'point':>10} {'step':>12} {'smr at':>8}  joints (deg)")
+            for k, pose in enumerate(self.poses[:max_rows], start=1):
+                deg = " ".join(f"{v:8.2f}" for v in np.rad2deg(pose.q_rad))
+                lines.append(f"  {k:>4} {pose.point_id:>10} {pose.step:>12} {pose.location:>8}  {deg}")
+            if len(self.poses) > max_rows:
+                lines.append(f"  ... and {len(self.poses) - max_rows} more")
+        return "\n".join(lines)

@@ -1,0 +1,370 @@
+"""The Session: everything a procedure needs, and the rules it keeps while a campaign runs.
+
+A procedure receives a Session and nothing else: robot and tracker (as their Protocols), the campaign
+store, the operator, the safety envelope, progress and the log. The Session keeps the runner's promises:
+every commanded move is checked against the envelope along its whole path before the robot moves;
+every measurement is committed to the store before the next motion; a point already recorded is never
+measured again (re-running resumes); every fault and retry is an event in the store; on leaving, the robot
+is stopped and the store closed, whatever happened.
+"""
+
+from __future__ import annotations
+
+import logging
+import platform
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from drivers.robot import ProtectiveStopError, Robot, RobotConnectionError, RobotError, RobotTimeoutError
+from drivers.tracker import (
+    NoTargetError,
+    OutlierError,
+    Tracker,
+    TrackerConnectionError,
+    TrackerError,
+    TrackerTimeoutError,
+)
+from hil.cell_config import CellConfig
+from hil.envelope import Envelope
+from hil.kinematics import KinematicModel, forward_kinematics
+from hil.operator import Operator, OperatorStep
+from hil.plan import Plan
+from hil.progress import Progress
+from hil.se3 import transform_points
+from hil.store import CampaignStore, MeasurementRecord, StoreLogHandler
+
+log = logging.getLogger("hil")
+
+MEASURE_ATTEMPTS = 4  # a point is given up after this many failed tries (beam breaks, dropped links)
+MOVE_ATTEMPTS = 3
+
+
+class CampaignStopped(RuntimeError):  # noqa: N818 - reads as what happened, like KeyboardInterrupt
+    """The campaign cannot go on by itself; `remedy` says what to do. Everything recorded stays recorded
+    and re-running the same command resumes where it stopped."""
+
+    def __init__(self, message: str, remedy: str):
+        self.message = message
+        self.remedy = remedy
+        super().__init__(f"{message} -- next: {remedy}")
+
+
+@dataclass(frozen=True)
+class RecordedPoints:
+    """Recorded measurements as arrays (rows in measurement order)."""
+
+    point_id: list[str]
+    step: list[str]
+    location: list[str]
+    q_rad: np.ndarray  # (N, 6)
+    T_base_flange: np.ndarray  # (N, 4, 4)
+    p_tracker_m: np.ndarray  # (N, 3)
+
+    @classmethod
+    def from_frame(cls, df) -> RecordedPoints:
+        n = len(df)
+        return cls(
+            point_id=df["point_id"].tolist() if n else [],
+            step=df["step"].tolist() if n else [],
+            location=df["location"].tolist() if n else [],
+            q_rad=_stack(df, "q_rad", (6,)),
+            T_base_flange=_stack(df, "T_base_flange", (4, 4)),
+            p_tracker_m=_stack(df, "p_tracker_m", (3,)),
+        )
+
+
+def _stack(df, column: str, shape: tuple[int, ...]) -> np.ndarray:
+    if len(df) == 0:
+        return np.zeros((0, *shape))
+    return np.stack([np.asarray(v, float).reshape(shape) for v in df[column]])
+
+
+@dataclass
+class Registration:
+    """Tracker <-> robot base: T_tracker_base and how well the points fitted (from the registration step)."""
+
+    T_tracker_base: np.ndarray
+    rms_m: float
+
+
+class Session:
+    """Robot + tracker + campaign store + operator + envelope + progress + log, for one campaign."""
+
+    def __init__(
+        self,
+        config: CellConfig,
+        robot: Robot,
+        tracker: Tracker,
+        store: CampaignStore,
+        operator: Operator,
+        progress: Progress | None = None,
+        station: dict | None = None,
+    ):
+        self.config = config
+        self.robot = robot
+        self.tracker = tracker
+        self.store = store
+        self.operator = operator
+        self.progress = progress or Progress(enabled=False)
+        self.envelope: Envelope = config.envelope
+        self.nominal: KinematicModel = config.nominal
+        self.log = log
+        self._station = station or {}
+        self._log_handler = StoreLogHandler(store)
+        self._closed = False
+
+    # ------------------------------------------------------------------ lifecycle
+    def __enter__(self) -> Session:
+        log.addHandler(self._log_handler)
+        if log.level == logging.NOTSET or log.level > logging.INFO:
+            log.setLevel(logging.INFO)
+        self.store.add_snapshot(
+            {
+                **self.config.snapshot(),
+                "software": _software_versions(),
+                "station": self._station,
+                "started_s": time.time(),
+            }
+        )
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        self.close(interrupted=exc_type is not None and issubclass(exc_type, KeyboardInterrupt))
+
+    def close(self, interrupted: bool = False) -> None:
+        """Stop the robot, release the instruments and close the store; never hangs (each step bounded)."""
+        if self._closed:
+            return
+        self._closed = True
+        if interrupted:
+            self.event("interrupted", "stopped by the operator (Ctrl-C); re-run the command to resume")
+        _bounded(self.robot.stop, 1.0 if interrupted else 5.0, "robot stop")
+        _bounded(self.robot.close, 1.0 if interrupted else 10.0, "robot close")
+        _bounded(self.tracker.close, 1.0 if interrupted else 5.0, "tracker close")
+        log.removeHandler(self._log_handler)
+        self.store.close()
+
+    # ------------------------------------------------------------------ store shortcuts
+    def event(self, kind: str, message: str, **where) -> None:
+        """Record a fault, retry or other happening in the campaign (and the log)."""
+        log.info("%s: %s", kind, message)
+        self.store.record_event(kind, message, **where)
+
+    def recorded(self, procedure: str, step: str, point_id: str) -> bool:
+        return self.store.has_measurement(procedure, step, point_id)
+
+    # ------------------------------------------------------------------ cell knowledge from earlier steps
+    @property
+    def registration(self) -> Registration | None:
+        """The latest tracker <-> base registration recorded in this campaign, if any."""
+        result = self.store.step_result("registration", "fit")
+        if result is None:
+            return None
+        return Registration(np.array(result["T_tracker_base"], float), float(result["rms_mm"]) / 1e3)
+
+    def require_registration(self) -> Registration:
+        reg = self.registration
+        if reg is None:
+            raise CampaignStopped(
+                "this campaign has no tracker-to-robot registration yet",
+                "run `hil run registration` on the same campaign first",
+            )
+        return reg
+
+    def nest_flange_m(self, nest: int) -> np.ndarray:
+        """SMR nest centre in the flange frame: the tool fit's value when this campaign has one, else the drawing."""
+        fit = self.store.step_result("tool_fit", "fit")
+        if fit is not None and str(nest) in fit.get("nests_flange_mm", {}):
+            return np.array(fit["nests_flange_mm"][str(nest)], float) / 1e3
+        return np.asarray(self.config.nests_flange_m[nest - 1], float)
+
+    def predict_tracker_point(self, q: np.ndarray, p_flange_m: np.ndarray) -> np.ndarray | None:
+        """Where the SMR at p_flange_m should be, tracker frame, for joints q (nominal model + registration)."""
+        reg = self.registration
+        if reg is None:
+            return None
+        T = forward_kinematics(self.nominal, np.atleast_2d(q))[0]
+        p_base = T[:3, :3] @ np.asarray(p_flange_m, float) + T[:3, 3]
+        return transform_points(reg.T_tracker_base, p_base[None])[0]
+
+    def recorded_points(self, procedure: str, step: str | None = None) -> RecordedPoints:
+        """The measurements recorded so far for a procedure (optionally one step), as arrays in order."""
+        return RecordedPoints.from_frame(self.store.measurements(procedure, step))
+
+    def pin_plan(self, plan: Plan) -> None:
+        """Record the plan on first run; on a resume refuse a plan that differs (other options or config),
+        since its point ids would no longer name the same poses."""
+        q = plan.joints()
+        ids = [p.point_id for p in plan.poses]
+        pinned = self.store.step_result(plan.procedure, "plan")
+        if pinned is None:
+            self.store.finish_step(plan.procedure, "plan", {"point_ids": ids, "q_rad": q.round(9).tolist()})
+            return
+        same = pinned["point_ids"] == ids and np.allclose(np.asarray(pinned["q_rad"]).reshape(-1, 6), q, atol=1e-6)
+        if not same:
+            raise CampaignStopped(
+                f"this campaign already holds a different {plan.procedure} plan",
+                "re-run with the same options and cell config to resume it, or use a new --campaign file",
+            )
+
+    # ------------------------------------------------------------------ operator
+    def ask(self, step: OperatorStep) -> None:
+        """Have the operator carry out a manual step (recorded as an event)."""
+        self.store.record_event("operator", step.text)
+        self.operator.perform(step)
+
+    # ------------------------------------------------------------------ motion
+    def check_poses(self, q: np.ndarray, labels: list[str] | None = None) -> None:
+        """Refuse joint sets (N, 6) whose tool points or wrist leave the envelope (raises EnvelopeError)."""
+        self.envelope.check_poses(self.nominal, q, self.config.nests_flange_m, labels)
+
+    def move_joints(self, q_target: np.ndarray, label: str = "") -> None:
+        """Check the whole move against the envelope, then move, riding through recoverable faults."""
+        q_target = np.asarray(q_target, float)
+        self.envelope.check_joint_move(self.nominal, self.robot.joints(), q_target, self.config.nests_flange_m)
+        for attempt in range(1, MOVE_ATTEMPTS + 1):
+            try:
+                self.robot.move_joints(q_target)
+                return
+            except (ProtectiveStopError, RobotConnectionError, RobotTimeoutError) as exc:
+                self._robot_fault(exc, label, attempt)
+            except RobotError as exc:  # e.g. an interrupted move: recover and try again
+                self._robot_fault(exc, label, attempt)
+            # after recovery the arm may stand anywhere along the old path: re-check from where it is
+            self.envelope.check_joint_move(
+                self.nominal, self.robot.joints(), q_target, self.config.nests_flange_m
+            )
+
+    def _robot_fault(self, exc: RobotError, label: str, attempt: int) -> None:
+        self.event("robot_fault", f"{type(exc).__name__} at {label or 'a move'}: {exc.message}", point_id=label or None)
+        if attempt >= MOVE_ATTEMPTS:
+            raise CampaignStopped(f"the robot failed {attempt} times at {label}: {exc.message}", exc.remedy) from exc
+        try:
+            self.robot.recover()
+            self.event("retry", f"robot recovered; retrying {label or 'the move'}", point_id=label or None)
+        except RobotError as again:
+            raise CampaignStopped(f"the robot could not recover: {again.message}", again.remedy) from again
+
+    def settle(self) -> None:
+        self.robot.wait_settled(dwell_s=self.config.settle_s)
+
+    # ------------------------------------------------------------------ measurement
+    def measure_point(
+        self,
+        procedure: str,
+        step: str,
+        point_id: str,
+        q_target: np.ndarray,
+        *,
+        smr: int,
+        location: str,
+        p_flange_m: np.ndarray | None = None,
+        shots: int | None = None,
+        reaim: Callable[[], None] | None = None,
+        extra: dict | None = None,
+    ) -> MeasurementRecord | None:
+        """Move to q_target, settle, aim, measure, and commit the record before anything else moves.
+
+        Returns None when the point is already recorded (a resumed campaign skips it). The tracker is aimed
+        at the point predicted from the robot's reported pose when the campaign has a registration and
+        `p_flange_m` is given; otherwise it keeps the lock it has (tracking), and `reaim` (e.g. asking the
+        operator) recovers a lost beam. Beam breaks and dropped links are retried, each an event.
+        """
+        if self.recorded(procedure, step, point_id):
+            return None
+        where = {"procedure": procedure, "step": step, "point_id": point_id}
+        self.move_joints(q_target, label=point_id)
+        self.settle()
+        shots = shots or self.config.shots_per_point
+        last_error: Exception | None = None
+        for attempt in range(1, MEASURE_ATTEMPTS + 1):
+            try:
+                q_rad = np.asarray(self.robot.joints(), float)
+                predicted = self.predict_tracker_point(q_rad, p_flange_m) if p_flange_m is not None else None
+                if predicted is not None:
+                    self.tracker.point_at(predicted)
+                elif attempt > 1 and reaim is not None:
+                    reaim()
+                m = self.tracker.measure(shots)
+                record = MeasurementRecord(
+                    procedure=procedure,
+                    step=step,
+                    point_id=point_id,
+                    q_target_rad=np.asarray(q_target, float),
+                    q_rad=q_rad,
+                    T_base_flange=np.asarray(self.robot.flange_pose(), float),
+                    p_tracker_m=m.p_tracker_m,
+                    spread_m=m.spread_m,
+                    std_m=m.std_m,
+                    shots=len(m.shots_m),
+                    rejected_shots=tuple(m.rejected_shots),
+                    smr=smr if location.startswith("nest") else 0,
+                    location=location,
+                    temperature_c=m.temperature_c,
+                    pressure_hpa=m.pressure_hpa,
+                    humidity_pct=m.humidity_pct,
+                    timestamp_s=m.timestamp_s,
+                    extra={
+                        "attempts": attempt,
+                        **({"predicted_mm": (predicted * 1e3).tolist()} if predicted is not None else {}),
+                        **(extra or {}),
+                    },
+                )
+                self.store.record_measurement(record)
+                return record
+            except NoTargetError as exc:
+                last_error = exc
+                self.event("beam_break", f"no target at {point_id} (attempt {attempt}): {exc}", **where)
+            except (TrackerConnectionError, TrackerTimeoutError) as exc:
+                last_error = exc
+                self.event("tracker_link", f"{type(exc).__name__} at {point_id} (attempt {attempt}): {exc}", **where)
+                time.sleep(0.2 * attempt)  # the driver reconnects on the next call
+            except OutlierError as exc:
+                last_error = exc
+                self.event("outliers", f"too few consistent shots at {point_id} (attempt {attempt}): {exc}", **where)
+            except TrackerError as exc:
+                raise CampaignStopped(
+                    f"the tracker failed at {point_id}: {exc}",
+                    "check the tracker (initialized, meteo, reflector), then re-run to resume",
+                ) from exc
+        raise CampaignStopped(
+            f"no measurement at {point_id} after {MEASURE_ATTEMPTS} attempts ({type(last_error).__name__}: {last_error})",
+            "clear the line of sight between tracker and SMR and check the tracker's connection, "
+            "then re-run the same command: recorded points are kept and skipped",
+        )
+
+
+def _software_versions() -> dict:
+    versions = {"python": platform.python_version(), "platform": platform.platform()}
+    from importlib import metadata
+
+    for package in ("hil", "ur-rtde", "pyserial", "numpy", "scipy", "pandas"):
+        try:
+            versions[package] = metadata.version(package)
+        except metadata.PackageNotFoundError:
+            versions[package] = None
+    return versions
+
+
+def _bounded(action: Callable[[], None], timeout_s: float, what: str) -> None:
+    """Run a clean-up action in a helper thread and give up waiting after timeout_s (a dead controller
+    must not keep a stopping process hanging); failures are logged, never raised."""
+    error: list[BaseException] = []
+
+    def target() -> None:
+        try:
+            action()
+        except BaseException as exc:  # noqa: BLE001 - clean-up must go on
+            error.append(exc)
+
+    thread = threading.Thread(target=target, name=f"hil-{what}", daemon=True)
+    thread.start()
+    thread.join(timeout_s)
+    if thread.is_alive():
+        log.warning("%s did not finish within %.1f s; going on", what, timeout_s)
+    elif error:
+        log.warning("%s failed: %s", what, error[0])
