@@ -14,6 +14,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "hil.commands.predict",
     "hil.commands.sim",
     "hil.commands.tracker",
+    "hil.commands.campaign",
 )
 
 
