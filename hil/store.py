@@ -37,6 +37,16 @@ P_COLUMNS = tuple(f"{a}_m" for a in _AXES)
 SPREAD_COLUMNS = tuple(f"spread_{a}_m" for a in _AXES)
 STD_COLUMNS = tuple(f"std_{a}_m" for a in _AXES)
 _REAL_COLUMNS = Q_TARGET_COLUMNS + Q_COLUMNS + T_COLUMNS + P_COLUMNS + SPREAD_COLUMNS + STD_COLUMNS
+_FLOAT_COLUMNS = frozenset(_REAL_COLUMNS + ("temperature_c", "pressure_hpa", "humidity_pct", "timestamp_s"))
+# MeasurementRecord array fields -> their flat REAL columns and shape
+ARRAY_FIELDS: dict[str, tuple[tuple[str, ...], tuple[int, ...]]] = {
+    "q_target_rad": (Q_TARGET_COLUMNS, (6,)),
+    "q_rad": (Q_COLUMNS, (6,)),
+    "T_base_flange": (T_COLUMNS, (4, 4)),
+    "p_tracker_m": (P_COLUMNS, (3,)),
+    "spread_m": (SPREAD_COLUMNS, (3,)),
+    "std_m": (STD_COLUMNS, (3,)),
+}
 MEASUREMENT_COLUMNS: tuple[str, ...] = (
     ("procedure", "step", "point_id")
     + _REAL_COLUMNS
@@ -348,15 +358,42 @@ class CampaignStore:
             )
         return row is not None
 
-    def measurements(self, procedure: str | None = None, step: str | None = None) -> pd.DataFrame:
-        """Measurements in recording order, one flat row each (SI units; columns MEASUREMENT_COLUMNS + id)."""
+    def measurements(
+        self, procedure: str | None = None, step: str | Sequence[str] | None = None
+    ) -> pd.DataFrame:
+        """Measurements in recording order, one row each (SI units): id, the MEASUREMENT_COLUMNS (arrays
+        flattened: q1_rad.., x_m.., T_base_flange_00..) and the record's arrays as object columns
+        (q_target_rad, q_rad, T_base_flange (4, 4), p_tracker_m, spread_m, std_m)."""
+        df = self.measurement_columns(MEASUREMENT_COLUMNS, procedure, step)
+        df["rejected_shots"] = pd.Series(
+            [() if s == "[]" else tuple(json.loads(s)) for s in df["rejected_shots"]],
+            index=df.index,
+            dtype=object,
+        )
+        df["extra"] = pd.Series(
+            [{} if s == "{}" else json.loads(s) for s in df["extra"]], index=df.index, dtype=object
+        )
+        for name, (columns, shape) in ARRAY_FIELDS.items():  # the record's arrays, one per row
+            values = df[list(columns)].to_numpy(float).reshape(len(df), *shape)
+            df[name] = pd.Series(list(values), index=df.index, dtype=object)
+        return df
+
+    def measurement_columns(
+        self, columns: Sequence[str], procedure: str | None = None, step: str | Sequence[str] | None = None
+    ) -> pd.DataFrame:
+        """Only the given stored columns (plus id) of the measurements, in recording order, JSON left as text:
+        the fast read for analysis (`campaign_dataset`)."""
+        unknown = [c for c in columns if c not in MEASUREMENT_COLUMNS]
+        if unknown:
+            raise ValueError(
+                f"unknown measurement column(s) {unknown}; known: {', '.join(MEASUREMENT_COLUMNS)}"
+            )
         where, params = _where(procedure=procedure, step=step)
-        columns = ", ".join(f'"{c}"' for c in ("id",) + MEASUREMENT_COLUMNS)
-        df = self._frame(f"SELECT {columns} FROM measurements{where} ORDER BY id", params)
-        for col in _REAL_COLUMNS + ("temperature_c", "pressure_hpa", "humidity_pct"):
-            df[col] = df[col].astype(float)  # NULL (a NaN when recorded) -> NaN
-        df["rejected_shots"] = [tuple(json.loads(s)) for s in df["rejected_shots"]]
-        df["extra"] = [json.loads(s) for s in df["extra"]]
+        names = ", ".join(f'"{c}"' for c in ("id", *columns))
+        df = self._frame(f"SELECT {names} FROM measurements{where} ORDER BY id", params)
+        for col in columns:
+            if col in _FLOAT_COLUMNS:
+                df[col] = df[col].astype(float)  # NULL (a NaN when recorded) -> NaN
         return df
 
     def records(self, procedure: str | None = None, step: str | None = None) -> list[MeasurementRecord]:
@@ -486,19 +523,11 @@ def _where(**conditions: str | Sequence[str] | None) -> tuple[str, list[object]]
 def record_from_row(row: dict) -> MeasurementRecord:
     """A MeasurementRecord back from one row of `CampaignStore.measurements()`."""
 
-    def arr(cols: Sequence[str]) -> np.ndarray:
-        return np.array([row[c] for c in cols], float)
-
     return MeasurementRecord(
         procedure=row["procedure"],
         step=row["step"],
         point_id=row["point_id"],
-        q_target_rad=arr(Q_TARGET_COLUMNS),
-        q_rad=arr(Q_COLUMNS),
-        T_base_flange=arr(T_COLUMNS).reshape(4, 4),
-        p_tracker_m=arr(P_COLUMNS),
-        spread_m=arr(SPREAD_COLUMNS),
-        std_m=arr(STD_COLUMNS),
+        **{name: np.array(row[name], float) for name in ARRAY_FIELDS},
         shots=int(row["shots"]),
         rejected_shots=tuple(row["rejected_shots"]),
         smr=int(row["smr"]),
@@ -532,7 +561,7 @@ def load_campaign(
 ) -> pd.DataFrame:
     """The measurements of a campaign file as a DataFrame (see CampaignStore.measurements)."""
     with CampaignStore(path, create=False) as store:
-        return store.measurements(procedure, step)  # type: ignore[arg-type]
+        return store.measurements(procedure, step)
 
 
 def campaign_dataset(
@@ -546,7 +575,18 @@ def campaign_dataset(
     else:
         store, own = CampaignStore(path_or_store, create=False), True
     try:
-        m = store.measurements(procedure, step)  # type: ignore[arg-type]
+        needed = Q_COLUMNS + P_COLUMNS + SPREAD_COLUMNS + STD_COLUMNS
+        needed += (
+            "timestamp_s",
+            "temperature_c",
+            "smr",
+            "pressure_hpa",
+            "humidity_pct",
+            "shots",
+            "point_id",
+            "step",
+        )
+        m = store.measurement_columns(needed, procedure, step)
         started_s = store.started_s
         if m.empty:
             counts = store.point_counts()

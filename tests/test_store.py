@@ -102,6 +102,11 @@ def test_round_trip_is_bit_exact_and_survives_reopen(tmp_path):
         assert store.measurements("registration").empty
         assert store.started_s == recs[0].timestamp_s
     df = load_campaign(path, "grid_sampling", "grid")
+    # the record's arrays as columns too (flat REAL columns stay alongside: q1_rad.., x_m..)
+    np.testing.assert_array_equal(np.stack(df["T_base_flange"]), [r.T_base_flange for r in recs[:30]])
+    np.testing.assert_array_equal(np.stack(df["q_rad"]), df[[f"q{j}_rad" for j in range(1, 7)]].to_numpy())
+    np.testing.assert_array_equal(np.stack(df["p_tracker_m"])[:, 2], df["z_m"])
+    assert load_campaign(path, "tool_fit")["q_rad"].tolist() == []
     assert list(df["point_id"]) == [r.point_id for r in recs[:30]]
     assert np.isnan(df["humidity_pct"].iloc[3])
 
