@@ -220,9 +220,28 @@ def _create(path: Path) -> None:
         os.link(tmp, path)  # fails if another process created the campaign meanwhile: keep theirs
     except FileExistsError:
         pass
+    except OSError:  # a file system without hard links
+        if not path.exists():
+            os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
     _fsync_dir(path.parent)
+    _remove_stale_temporaries(path)
+
+
+def _remove_stale_temporaries(path: Path) -> None:
+    """Remove half-built campaigns a killed process left beside `path` (its pid is in the name)."""
+    for leftover in path.parent.glob(f".{path.name}.*.creating*"):
+        try:
+            pid = int(leftover.name[len(path.name) + 2 :].split(".")[0])
+        except ValueError:
+            continue
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            leftover.unlink(missing_ok=True)
+        except OSError:
+            pass
 
 
 class CampaignStore:

@@ -276,6 +276,7 @@ WRITER = textwrap.dedent(
     import numpy as np
     from hil.store import CampaignStore, MeasurementRecord
 
+    print("open", flush=True)
     store = CampaignStore(sys.argv[1])
     store.record_event("resume", "writer started")
     for i in range(100000):
@@ -304,6 +305,7 @@ def test_sigkill_at_random_moments_loses_no_committed_record(tmp_path):
             [sys.executable, str(script), str(path)], stdout=subprocess.PIPE, text=True, cwd=REPO_ROOT
         )
         try:
+            assert child.stdout.readline() == "open\n"
             wanted = rng.randint(1, 40)
             for _ in range(wanted):  # wait for progress, not for a clock
                 line = child.stdout.readline()
@@ -330,3 +332,31 @@ def test_sigkill_at_random_moments_loses_no_committed_record(tmp_path):
         assert len(stored) - len(committed) in (0, 1)
         assert [r["i"] for r in df["extra"]] == stored
         committed = set(stored)  # what survived this kill must survive the next ones too
+
+
+def test_sigkill_while_creating_leaves_no_or_a_whole_campaign(tmp_path):
+    script = tmp_path / "writer.py"
+    script.write_text(WRITER)
+    rng = random.Random(99)
+    for trial in range(3):
+        path = tmp_path / f"new{trial}.hilc"
+        child = subprocess.Popen(
+            [sys.executable, str(script), str(path)], stdout=subprocess.PIPE, text=True, cwd=REPO_ROOT
+        )
+        try:
+            assert child.stdout.readline() == "open\n"  # about to create the file
+            time.sleep(rng.uniform(0.0, 0.02))
+            child.send_signal(signal.SIGKILL)
+            reported = [int(line) for line in child.stdout.read().split()]
+        finally:
+            child.kill()
+            child.wait(timeout=30)
+            child.stdout.close()
+        assert path.exists() or not reported
+        if path.exists():
+            assert is_campaign_file(path)
+        with CampaignStore(path) as store:  # absent: created now; present: whole and readable
+            assert store.integrity_ok()
+            stored = [int(p[1:]) for p in store.measurements()["point_id"]]
+        assert set(reported) <= set(stored) and stored == list(range(len(stored)))
+        assert not list(tmp_path.glob(f".{path.name}.*")), "a half-built campaign was left behind"
