@@ -163,7 +163,7 @@ class MeasurementRecord:
 
 def _json(value: object, what: str) -> str:
     try:
-        return json.dumps(to_jsonable(value), allow_nan=False, sort_keys=True)
+        return json.dumps(to_jsonable(value), allow_nan=False)
     except (TypeError, ValueError) as exc:
         raise ValueError(f"{what} is not JSON-able ({exc}); pass numbers, strings, lists and dicts") from exc
 

@@ -49,7 +49,19 @@ def files(tmp_path_factory):
     )
     train.to_csv(d / "train.csv", index=False)
     with CampaignStore(d / "c.hilc") as store:
-        store.add_snapshot({"cell": {"name": "bench"}, "robot": {"model": "ur10", "serial": "2019301234"}})
+        store.add_snapshot({"robot": {"model": "ur5"}})  # an earlier session start
+        store.add_snapshot(  # the shape hil.session writes: cell.toml as read + what the instruments said
+            {
+                "source": "cell.toml",
+                "cell": {
+                    "robot": {"model": "ur10", "host": "10.0.0.2"},
+                    "tracker": {"url": "socket://10.0.0.3:700"},
+                    "tool": {"nests_flange_mm": [[0, 0, 100]]},
+                },
+                "software": {"python": "3.11.7", "hil": "0.1.0"},
+                "station": {"robot_controller_version": "5.11.1", "tracker": {"serial": "AT960-123"}},
+            }
+        )
         store_dataset(store, train.head(3), "nest_check", 1.7e9 - 60, procedure="registration")
         store_dataset(store, train, "grid", 1.7e9)
         store_dataset(store, val, "validation", 1.7e9 + 1000)
@@ -69,7 +81,10 @@ def test_show_summarises_the_campaign(files, capsys):
     assert main(["campaign", "show", str(d / "c.hilc")]) == 0
     out = capsys.readouterr().out
     assert f"{len(train) + len(val) + 3} measurements" in out
-    assert "serial=2019301234" in out and "tracker   (not recorded)" in out
+    assert "station snapshots: 2" in out
+    assert "robot     model=ur10 host=10.0.0.2 controller_version=5.11.1" in out
+    assert "tracker   url=socket://10.0.0.3:700 serial=AT960-123" in out
+    assert "cell      source=cell.toml (+tool)" in out and "hil=0.1.0" in out
     rows = {tuple(line.split()[:4]) for line in out.splitlines()}
     assert ("grid_sampling", "grid", str(len(train)), "finished") in rows
     assert ("grid_sampling", "validation", str(len(val)), "open") in rows

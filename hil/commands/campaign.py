@@ -55,7 +55,7 @@ def _check_campaign(path: str) -> str | None:
     if not p.exists():
         return f"campaign file not found: {p}; give the path of a campaign a session wrote"
     if not is_campaign_file(p):
-        return f"{p} is not a hil campaign file; give the .hilc file a session wrote (a CSV is already a dataset)"
+        return f"{p} is not a hil campaign file; give the campaign file a session wrote (hil run --campaign FILE); a CSV is already a dataset"
     return None
 
 
@@ -71,6 +71,27 @@ def _summary(section: object) -> str:
     parts = [f"{k}={v}" for k, v in section.items() if not isinstance(v, dict | list)]
     nested = [k for k, v in section.items() if isinstance(v, dict | list)]
     return " ".join(parts + ([f"(+{', '.join(nested)})"] if nested else [])) or "(empty)"
+
+
+def _snapshot_section(snapshot: dict, key: str) -> dict | None:
+    """One part of a station snapshot, wherever the session put it: top level, inside the cell
+    configuration ([robot], [tracker] tables) or among the station facts read from the instruments."""
+    cell = snapshot.get("cell") if isinstance(snapshot.get("cell"), dict) else {}
+    station = snapshot.get("station") if isinstance(snapshot.get("station"), dict) else {}
+    if key == "cell":
+        if not cell and "source" not in snapshot:
+            return None
+        out = {"source": snapshot["source"]} if "source" in snapshot else {}
+        return {**out, **{k: v for k, v in cell.items() if k not in ("robot", "tracker")}}
+    found: dict = {}
+    for part in (snapshot.get(key), cell.get(key), station.get(key)):
+        if isinstance(part, dict):
+            found.update(part)
+        elif part is not None:
+            found[key] = part
+    prefix = f"{key}_"
+    found.update({k[len(prefix) :]: v for k, v in station.items() if k.startswith(prefix)})
+    return found or None
 
 
 def run_show(args: argparse.Namespace) -> int:
@@ -95,8 +116,9 @@ def run_show(args: argparse.Namespace) -> int:
     if snapshots:
         last = snapshots[-1]
         for key in SNAPSHOT_SECTIONS:
-            print(f"  {key:<9} {_summary(last[key]) if key in last else '(not recorded)'}")
-        others = [k for k in last if k not in SNAPSHOT_SECTIONS]
+            section = _snapshot_section(last, key)
+            print(f"  {key:<9} {_summary(section) if section else '(not recorded)'}")
+        others = [k for k in last if k not in SNAPSHOT_SECTIONS + ("station", "source")]
         if others:
             print(f"  also: {', '.join(others)}")
 
