@@ -159,6 +159,8 @@ def test_campaign_files_as_analysis_input(files):
     assert list(fit["step_id"].unique()) == ["grid"] and list(check["step_id"].unique()) == ["validation"]
     fit, check = read_training_and_validation(d / "c.hilc", d / "train.csv")
     assert len(fit) == len(train) and len(check) == len(train)
+    fit, check = read_training_and_validation(d / "train.csv", d / "c.hilc")  # never the grid as validation
+    assert len(fit) == len(train) and list(check["step_id"].unique()) == ["validation"]
     csv, none = read_training_and_validation(d / "train.csv")
     assert none is None and len(csv) == len(train)
 

@@ -24,19 +24,23 @@ def read_measurements(
     return load_dataset(path, require_positions=require_positions)
 
 
+def _campaign_steps(path: str | Path) -> set[str]:
+    if not is_campaign_file(path):
+        return set()
+    with CampaignStore(path, create=False) as store:
+        counts = store.point_counts()
+    return set(counts.loc[counts["procedure"] == CAMPAIGN_PROCEDURE, "step"])
+
+
 def read_training_and_validation(
     path: str | Path, validate: str | Path | None = None
 ) -> tuple[pd.DataFrame, pd.DataFrame | None]:
     """Training and validation frames. A campaign with both a 'grid' and a 'validation' step trains on
-    'grid' only and validates on 'validation' unless a separate validation file is given."""
-    training_step = None
-    validation_step = None
-    if is_campaign_file(path):
-        with CampaignStore(path, create=False) as store:
-            steps = set(store.measurements(CAMPAIGN_PROCEDURE)["step"])
-        if {TRAINING_STEP, VALIDATION_STEP} <= steps:
-            training_step, validation_step = TRAINING_STEP, VALIDATION_STEP
-    df = read_measurements(path, training_step)
+    'grid' only and validates on 'validation', unless a separate validation file is given; a campaign
+    given as the validation file gives its 'validation' step when it has one (else all its points)."""
+    both = {TRAINING_STEP, VALIDATION_STEP} <= _campaign_steps(path)
+    df = read_measurements(path, TRAINING_STEP if both else None)
     if validate is not None:
-        return df, read_measurements(validate)
-    return df, (read_measurements(path, validation_step) if validation_step else None)
+        has_validation = VALIDATION_STEP in _campaign_steps(validate)
+        return df, read_measurements(validate, VALIDATION_STEP if has_validation else None)
+    return df, (read_measurements(path, VALIDATION_STEP) if both else None)
