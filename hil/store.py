@@ -15,6 +15,7 @@ import os
 import sqlite3
 import threading
 import time
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -624,8 +625,15 @@ def campaign_dataset(
         data[f"{a}_mm"] = m[f"{a}_m"].to_numpy(float) * 1000.0
     data["t_s"] = m["timestamp_s"].to_numpy(float) - started_s
     temperature = m["temperature_c"].to_numpy(float)
-    if np.all(np.isfinite(temperature)):
+    missing = int(np.sum(~np.isfinite(temperature)))
+    if missing == 0:
         data["temperature_c"] = temperature
+    elif missing < len(temperature):  # all missing: no sensor, nothing to say
+        warnings.warn(
+            f"{store.path}: temperature_c missing in {missing} of {len(temperature)} measurements of "
+            f"{procedure}; the dataset leaves the column out",
+            stacklevel=2,
+        )
     data["smr"] = m["smr"].to_numpy(int)
     for kind in ("spread", "std"):
         for a in _AXES:

@@ -266,6 +266,13 @@ def test_dataset_export_csv_and_parquet(tmp_path):
     assert export_parquet(path, pq) == 16
     pd.testing.assert_frame_equal(pd.read_parquet(pq), df)
 
+    with CampaignStore(path) as store:
+        store.record_measurement(make_record(0, step="warm", temperature_c=float("nan")))
+        store.record_measurement(make_record(1, step="warm"))
+        store.record_measurement(make_record(0, step="cold", temperature_c=float("nan")))
+        with pytest.warns(UserWarning, match="temperature_c missing in 1 of 2"):
+            assert "temperature_c" not in campaign_dataset(store, step="warm")
+        assert "temperature_c" not in campaign_dataset(store, step="cold")  # no sensor: no column
     with pytest.raises(ValueError, match="no measurements of tool_fit.*grid_sampling/grid \\(12\\)"):
         campaign_dataset(path, "tool_fit")
 
