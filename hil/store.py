@@ -252,7 +252,8 @@ class CampaignStore:
         self.path = Path(path)
         if not self.path.exists() or self.path.stat().st_size == 0:
             if not create:
-                raise CampaignError(f"campaign file not found: {self.path}")
+                what = "is empty" if self.path.exists() else "not found"
+                raise CampaignError(f"campaign file {what}: {self.path}; give the file a session wrote")
             if not self.path.parent.is_dir():
                 raise CampaignError(
                     f"cannot create campaign {self.path}: folder {self.path.parent} does not exist"
