@@ -16,6 +16,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "hil.commands.tracker",
     "hil.commands.cell",
     "hil.commands.run",
+    "hil.commands.campaign",
 )
 
 
