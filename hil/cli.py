@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 
 # Each module defines `register(subparsers)`, which adds its parser and sets `func(args) -> int`.
@@ -43,7 +44,19 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
-        return 130
+        return _exit_after_interrupt()
+
+
+def _exit_after_interrupt() -> int:
+    """130; but if a driver's clean-up is still stuck (its controller is gone), leave at once instead of
+    letting the interpreter wait for it at exit: the campaign is already closed."""
+    from hil.session import abandoned_cleanups
+
+    if abandoned_cleanups():
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(130)
+    return 130
 
 
 if __name__ == "__main__":

@@ -132,7 +132,7 @@ class Session:
 
     def close(self, interrupted: bool = False) -> None:
         """Stop the robot, release the instruments and close the store; never hangs: robot and tracker are
-        released side by side and given a bounded time (1.5 s after Ctrl-C, 10 s otherwise)."""
+        released side by side and given a bounded time (1 s after Ctrl-C, 10 s otherwise)."""
         if self._closed:
             return
         self._closed = True
@@ -145,7 +145,7 @@ class Session:
             finally:
                 self.robot.close()
 
-        _bounded([("robot", release_robot), ("tracker", self.tracker.close)], 1.5 if interrupted else 10.0)
+        _bounded([("robot", release_robot), ("tracker", self.tracker.close)], 1.0 if interrupted else 10.0)
         log.removeHandler(self._log_handler)
         self.store.close()
 
@@ -349,6 +349,11 @@ def _software_versions() -> dict:
         except metadata.PackageNotFoundError:
             versions[package] = None
     return versions
+
+
+def abandoned_cleanups() -> list[str]:
+    """Names of clean-up threads still running after their time ran out (a dead controller's driver)."""
+    return [t.name for t in threading.enumerate() if t.name.startswith("hil-close-") and t.is_alive()]
 
 
 def _bounded(actions: list[tuple[str, Callable[[], None]]], timeout_s: float) -> None:
