@@ -1,11 +1,14 @@
-"""Benchmark of the measurement runner, part one: the campaign store.
+"""Benchmark of the measurement runner.
 
-Times, on a campaign file in /tmp (WAL, synchronous=FULL, one commit per point as a session does):
+Part one, the campaign store, on a file in /tmp (WAL, synchronous=FULL, one commit per point as a session does):
   1. record_measurement per call (durable on return);
   2. has_measurement per call (the resume check before every point), for recorded and unknown points;
   3. reading everything back: measurements() and campaign_dataset().
+Part two, a grid campaign on `hil sim` through ur-rtde and emScon (registration first): points per minute,
+and the runner's own time per point beyond the driver calls (store commit, envelope check of the whole
+path, resume check, progress, planning), measured by timing every robot and tracker call.
 
-Run: PYTHONPATH=. python benchmarks/runner.py [--points 2000]
+Run: PYTHONPATH=. python benchmarks/runner.py [--points 2000] [--step-mm 150] [--time-scale 20] [--no-sim]
 """
 
 from __future__ import annotations
@@ -66,9 +69,71 @@ def timed(calls) -> np.ndarray:
     return out
 
 
+def timed_proxy(target, totals: dict, name: str):
+    """The driver, with the time spent in its calls added up in totals[name]."""
+
+    class Proxy:
+        def __getattr__(self, attr):
+            value = getattr(target, attr)
+            if not callable(value):
+                return value
+
+            def call(*args, **kwargs):
+                t0 = time.perf_counter()
+                try:
+                    return value(*args, **kwargs)
+                finally:
+                    totals[name] += time.perf_counter() - t0
+
+            return call
+
+    return Proxy()
+
+
+def grid_on_sim(step_mm: float, validation: int, time_scale: float) -> dict:
+    """Registration, then a grid campaign on hil sim: points per minute and per-point times."""
+    from contextlib import ExitStack
+
+    from hil.commands.instruments import open_session, simulated_operator
+    from procedures import grid_sampling, registration
+    from tests.sim_session import running_cell
+
+    with (
+        tempfile.TemporaryDirectory() as folder,
+        running_cell(Path(folder), time_scale=time_scale, seed=0) as (_, config),
+        ExitStack() as stack,
+    ):
+        operator = simulated_operator(config.simulator_control)
+        session = open_session(config, Path(folder) / "campaign.sqlite", operator, stack, progress=False)
+        with session:
+            registration.run(session)
+            totals = {"robot": 0.0, "tracker": 0.0, "store": 0.0}
+            session.robot = timed_proxy(session.robot, totals, "robot")
+            session.tracker = timed_proxy(session.tracker, totals, "tracker")
+            session.store = timed_proxy(session.store, totals, "store")
+            t0 = time.perf_counter()
+            result = grid_sampling.run(session, step_mm=step_mm, validation=validation)
+            wall = time.perf_counter() - t0
+            totals = dict(totals)  # closing the session below calls the drivers again
+    points = result.recorded + result.validation_recorded
+    return {
+        "points": points,
+        "wall_s": wall,
+        "points_per_min": 60 * points / wall,
+        "runner_ms": 1e3 * (wall - totals["robot"] - totals["tracker"]) / points,
+        "store_ms": 1e3 * totals["store"] / points,
+        "robot_ms": 1e3 * totals["robot"] / points,
+        "tracker_ms": 1e3 * totals["tracker"] / points,
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--points", type=int, default=2000)
+    parser.add_argument("--step-mm", type=float, default=150.0)
+    parser.add_argument("--validation", type=int, default=20)
+    parser.add_argument("--time-scale", type=float, default=20.0)
+    parser.add_argument("--no-sim", action="store_true", help="skip part two (the campaign on hil sim)")
     args = parser.parse_args()
     records = make_records(args.points)
     folder = Path(tempfile.mkdtemp(prefix="hil-bench-store-", dir="/tmp"))
@@ -100,6 +165,17 @@ def main() -> None:
     for name, t in {**rows, **reads}.items():
         ms = t * 1000
         print(f"{name:<34}{len(ms):>7}{np.median(ms):>11.3f}{np.percentile(ms, 99):>9.3f}{ms.max():>9.3f}")
+    if args.no_sim:
+        return
+    r = grid_on_sim(args.step_mm, args.validation, args.time_scale)
+    print(f"\ngrid campaign on hil sim ({args.step_mm:g} mm, {args.validation} validation, --time-scale {args.time_scale:g})")
+    print(f"{'points':>7}{'wall s':>9}{'points/min':>12}{'runner ms/pt':>14}{'of it store':>13}{'robot ms/pt':>13}{'tracker ms/pt':>15}")
+    print(
+        f"{r['points']:>7}{r['wall_s']:>9.1f}{r['points_per_min']:>12.1f}{r['runner_ms']:>14.2f}{r['store_ms']:>13.2f}"
+        f"{r['robot_ms']:>13.1f}{r['tracker_ms']:>15.1f}"
+    )
+    print("runner ms/pt: time per point outside the robot and tracker drivers; 'of it store': the campaign")
+    print("store's calls (the resume check and the durable commit, fsync included) within it")
 
 
 if __name__ == "__main__":

@@ -40,6 +40,18 @@ class Envelope:
         q = np.atleast_2d(q)
         return np.any((q < self.joint_min_rad) | (q > self.joint_max_rad), axis=1)
 
+    def outside(self, nominal: KinematicModel, q: np.ndarray, p_flange_tools_m: np.ndarray) -> np.ndarray:
+        """(N,) bool: which joint sets put a tool point or a wrist point outside, or break a joint limit."""
+        q = np.atleast_2d(np.asarray(q, float))
+        tools = np.atleast_2d(np.asarray(p_flange_tools_m, float))
+        T = forward_kinematics(nominal, q)
+        tool_points = np.einsum("nij,kj->nki", T[:, :3, :3], tools) + T[:, None, :3, 3]
+        return (
+            self.joint_violations(q)
+            | self.point_violations(tool_points).any(axis=1)
+            | self.point_violations(wrist_points(nominal, q)).any(axis=1)
+        )
+
     def pose_problems(
         self, nominal: KinematicModel, q: np.ndarray, p_flange_tools_m: np.ndarray
     ) -> list[str | None]:
@@ -72,10 +84,12 @@ class Envelope:
         self, nominal: KinematicModel, q: np.ndarray, p_flange_tools_m: np.ndarray, labels: list[str] | None = None
     ) -> None:
         """Raise EnvelopeError naming every joint set (N, 6) that leaves the envelope."""
-        problems = self.pose_problems(nominal, q, p_flange_tools_m)
-        bad = [(i, p) for i, p in enumerate(problems) if p]
-        if bad:
-            names = labels or [f"pose {i + 1}" for i in range(len(problems))]
+        q = np.atleast_2d(np.asarray(q, float))
+        flagged = np.flatnonzero(self.outside(nominal, q, p_flange_tools_m))
+        if flagged.size:
+            problems = self.pose_problems(nominal, q[flagged], p_flange_tools_m)
+            bad = list(zip(flagged, problems, strict=True))
+            names = labels or [f"pose {i + 1}" for i in range(len(q))]
             lines = [f"{names[i]}: {p}" for i, p in bad[:5]]
             more = f" (and {len(bad) - 5} more)" if len(bad) > 5 else ""
             raise EnvelopeError(
@@ -92,13 +106,13 @@ class Envelope:
         samples = max(_MIN_SAMPLES, int(np.ceil(travel / _PATH_STEP_RAD)) + 1)
         s = np.linspace(0.0, 1.0, samples)[:, None]
         path = q_from + s * (q_to - q_from)
-        problems = self.pose_problems(nominal, path, p_flange_tools_m)
-        bad = [i for i, p in enumerate(problems) if p]
-        if bad:
-            i = bad[0]
+        bad = np.flatnonzero(self.outside(nominal, path, p_flange_tools_m))
+        if bad.size:
+            i = int(bad[0])
             where = "at the target" if i == samples - 1 else f"{100 * s[i, 0]:.0f} % along the move"
+            problem = self.pose_problems(nominal, path[i][None], p_flange_tools_m)[0]
             raise EnvelopeError(
-                f"the joint move leaves the safety envelope {where}: {problems[i]}; nothing moved: "
+                f"the joint move leaves the safety envelope {where}: {problem}; nothing moved: "
                 "plan another path (e.g. through a safe intermediate pose) or widen [envelope]"
             )
 

@@ -111,6 +111,7 @@ class Session:
         self._station = station or {}
         self._log_handler = StoreLogHandler(store)
         self._closed = False
+        self._step_cache: dict[tuple[str, str], dict | None] = {}
 
     # ------------------------------------------------------------------ lifecycle
     def __enter__(self) -> Session:
@@ -159,10 +160,22 @@ class Session:
         return self.store.has_measurement(procedure, step, point_id)
 
     # ------------------------------------------------------------------ cell knowledge from earlier steps
+    def finish_step(self, procedure: str, step: str, result: dict) -> None:
+        """Record a step's result (the registration, a tool fit, ...) for this and later sessions."""
+        self.store.finish_step(procedure, step, result)
+        self._step_cache.pop((procedure, step), None)
+
+    def step_result(self, procedure: str, step: str) -> dict | None:
+        """A step's latest result in this campaign (read once, then kept until the step is redone)."""
+        key = (procedure, step)
+        if key not in self._step_cache:
+            self._step_cache[key] = self.store.step_result(procedure, step)
+        return self._step_cache[key]
+
     @property
     def registration(self) -> Registration | None:
         """The latest tracker <-> base registration recorded in this campaign, if any."""
-        result = self.store.step_result("registration", "fit")
+        result = self.step_result("registration", "fit")
         if result is None:
             return None
         return Registration(np.array(result["T_tracker_base"], float), float(result["rms_mm"]) / 1e3)
@@ -178,7 +191,7 @@ class Session:
 
     def nest_flange_m(self, nest: int) -> np.ndarray:
         """SMR nest centre in the flange frame: the tool fit's value when this campaign has one, else the drawing."""
-        fit = self.store.step_result("tool_fit", "fit")
+        fit = self.step_result("tool_fit", "fit")
         if fit is not None and str(nest) in fit.get("nests_flange_mm", {}):
             return np.array(fit["nests_flange_mm"][str(nest)], float) / 1e3
         return np.asarray(self.config.nests_flange_m[nest - 1], float)
@@ -201,9 +214,9 @@ class Session:
         since its point ids would no longer name the same poses."""
         q = plan.joints()
         ids = [p.point_id for p in plan.poses]
-        pinned = self.store.step_result(plan.procedure, "plan")
+        pinned = self.step_result(plan.procedure, "plan")
         if pinned is None:
-            self.store.finish_step(plan.procedure, "plan", {"point_ids": ids, "q_rad": q.round(9).tolist()})
+            self.finish_step(plan.procedure, "plan", {"point_ids": ids, "q_rad": q.round(9).tolist()})
             return
         same = pinned["point_ids"] == ids and np.allclose(np.asarray(pinned["q_rad"]).reshape(-1, 6), q, atol=1e-6)
         if not same:

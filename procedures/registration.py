@@ -91,7 +91,7 @@ def run(session: Session, *, poses: int = 12, nest: int = 1, seed: int = 0, inli
         raise CampaignStopped(f"only {len(records.point_id)} registration points recorded", "re-run registration to measure the rest")
     p_base = tool_points(session.nominal, records.q_rad, p_nest)
     fit = ransac_rigid(p_base, records.p_tracker_m, inlier_m=inlier_mm / 1e3, seed=seed)
-    session.store.finish_step(PROCEDURE, "fit", fit.as_result(records.point_id))
+    session.finish_step(PROCEDURE, "fit", fit.as_result(records.point_id))
     session.log.info(
         "registration: %d of %d points fit, RMS %.3f mm, max %.3f mm",
         int(fit.inliers.sum()), len(fit.inliers), fit.rms_m * 1e3, fit.max_m * 1e3,

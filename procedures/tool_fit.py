@@ -208,7 +208,7 @@ def _fit(
     if problems:
         session.event("tool_fit_rejected", "; ".join(problems), procedure=PROCEDURE)
         raise ToolFitRejected("the tool fit failed its quality gate: " + "; ".join(problems), "fix the cause named, then run tool_fit on a new campaign")
-    session.store.finish_step(PROCEDURE, "fit", result)
+    session.finish_step(PROCEDURE, "fit", result)
     worst = max(p["circle_residual_mm"] for p in per_pose) / 1e3
     radius = float(np.mean([p["circle_radius_mm"] for p in per_pose])) / 1e3
     return ToolFitResult(nests_m, sigma_m, worst, radius, disagreement, result)
