@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from fakes.cell import CELL_EFFECTS, parse_effect_flags
+from hil.commands.errors import CliError
 
 
 def add_effects_argument(parser: argparse.ArgumentParser) -> None:
@@ -22,4 +23,4 @@ def effect_flags(args: argparse.Namespace) -> dict[str, bool]:
     try:
         return parse_effect_flags(args.effects)
     except ValueError as exc:
-        raise SystemExit(str(exc)) from exc
+        raise CliError(str(exc), f"name effects from {', '.join(CELL_EFFECTS)}, comma-separated, or none") from exc

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from hil.commands.cell_options import add_effects_argument, effect_flags
+from hil.commands.errors import CliError
 from hil.robots import ROBOT_NAMES
 
 
@@ -53,9 +54,9 @@ def run(args: argparse.Namespace) -> int:
     from fakes.launch import is_loopback_host
 
     if not is_loopback_host(args.host):
-        raise SystemExit("hil sim binds loopback only: --host must be in 127.0.0.0/8")
+        raise CliError(f"--host {args.host} is not a loopback address", "give an IPv4 address in 127.0.0.0/8")
     if args.time_scale <= 0:
-        raise SystemExit("--time-scale must be positive")
+        raise CliError(f"--time-scale {args.time_scale:g} is not positive", "give simulated seconds per wall second, e.g. 10")
     effects = effect_flags(args)
     from fakes.sim_process import SimOptions, main
 
@@ -66,7 +67,7 @@ def run(args: argparse.Namespace) -> int:
         from hil.commands.sim_cell import write_sim_cell
 
         if not Path(args.write_cell).resolve().parent.is_dir():
-            raise SystemExit(f"--write-cell: folder of {args.write_cell} does not exist; create it first")
+            raise CliError(f"--write-cell: the folder of {args.write_cell} does not exist", "create it first")
 
         def on_ready(info: dict, truth: dict) -> None:
             write_sim_cell(args.write_cell, info, truth, args.time_scale)
