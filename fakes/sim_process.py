@@ -1,4 +1,4 @@
-"""`hil sim`: the whole simulated cell in one process on one asyncio event loop.
+"""The whole simulated cell in one process on one asyncio event loop (`python -m fakes.sim`, `hil sim`).
 
 One `SimulatedCell`, the fake UR controller on its fixed ports, the fake emScon tracker, the control
 channel, and one clock task that owns simulated time (dt = wall dt x time scale). Adding a server is
@@ -193,7 +193,7 @@ class SimProcess:
             for server in reversed(started):
                 await server.close()
             if exc.errno == errno.EADDRINUSE:
-                print(f"hil sim: address in use on {self.options.host}: {exc}", file=sys.stderr)
+                print(f"sim cell: address in use on {self.options.host}: {exc}", file=sys.stderr)
                 return EXIT_ADDRESS_IN_USE
             raise
         stop = asyncio.Event()
@@ -288,9 +288,10 @@ def cell_handlers(cell: SimulatedCell, clock: SimClock) -> dict:
     }
 
 
-def main(options: SimOptions) -> int:
+def run_cell(options: SimOptions) -> int:
+    """Run the cell until SIGINT/SIGTERM; the exit status (0, or EXIT_ADDRESS_IN_USE)."""
     logging.basicConfig(
         level=logging.DEBUG if os.environ.get("HIL_SIM_DEBUG") else logging.WARNING,
-        format="hil sim %(asctime)s %(levelname)s %(name)s: %(message)s",
+        format="sim cell %(asctime)s %(levelname)s %(name)s: %(message)s",
     )
     return asyncio.run(SimProcess(options).run())
