@@ -198,13 +198,13 @@ def grid_paper(seed: int) -> None:
 def diagnosis_timing(seed: int) -> None:
     """The whole diagnosis loop on the simulated UR10 cell (compliance + backlash) at three grid steps."""
     from fakes.campaign import grid_joints, simulate_campaign
-    from fakes.cell import CellConfig, SimulatedCell
+    from fakes.cell import SimCellConfig, SimulatedCell
     from hil.diagnosis import run_diagnosis
 
     print("\nDiagnosis loop on the simulated UR10 (gravity compliance + backlash), grid campaigns")
     print(f"{'grid mm':>8} {'points':>7} {'time s':>7}  effects found")
     for step in (0.15, 0.10, 0.07):
-        cell = SimulatedCell(CellConfig(robot="ur10", seed=seed, backlash=True))
+        cell = SimulatedCell(SimCellConfig(robot="ur10", seed=seed, backlash=True))
         df = simulate_campaign(cell, grid_joints(cell, step_m=step, seed=seed))
         t0 = time.perf_counter()
         report = run_diagnosis(df, "ur10")

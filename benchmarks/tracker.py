@@ -20,11 +20,11 @@ from drivers.emscon import EmsconTracker
 
 
 def _serve(conn, seed: int) -> None:
-    from fakes.cell import CellConfig, SimulatedCell
+    from fakes.cell import SimCellConfig, SimulatedCell
     from fakes.emscon_server import EmsconServer, EmsconServerConfig
 
     async def main() -> None:
-        cell = SimulatedCell(CellConfig(seed=seed))
+        cell = SimulatedCell(SimCellConfig(seed=seed))
         server = EmsconServer(cell, config=EmsconServerConfig(initialized=True, initial_lock_smr=2))
         await server.start()
         pty = await server.open_pty()

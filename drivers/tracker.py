@@ -36,7 +36,7 @@ class TrackerMeasurement:
     def shots_used(self) -> int:
         return len(self.shots_m) - len(self.rejected_shots)
 
-    def as_dict(self) -> dict:
+    def to_dict(self) -> dict:
         """JSON-able record with units in the keys."""
         return {
             "x_m": float(self.p_tracker_m[0]),

@@ -41,12 +41,12 @@ JOINT_STIFFNESS: dict[str, tuple[float, ...]] = {
 }
 
 
-# Physical effects a cell can switch on beside its hidden geometric errors (CellConfig flags).
+# Physical effects a cell can switch on beside its hidden geometric errors (SimCellConfig flags).
 CELL_EFFECTS: tuple[str, ...] = ("compliance", "cyclic", "backlash", "thermal")
 
 
 def parse_effect_flags(text: str) -> dict[str, bool]:
-    """'compliance,thermal' (or 'none') -> CellConfig flags for every effect in CELL_EFFECTS."""
+    """'compliance,thermal' (or 'none') -> SimCellConfig flags for every effect in CELL_EFFECTS."""
     chosen = set() if text.strip().lower() == "none" else {e.strip() for e in text.split(",") if e.strip()}
     unknown = chosen - set(CELL_EFFECTS)
     if unknown:
@@ -85,7 +85,7 @@ class SmrLocation:
 
 
 @dataclass
-class CellConfig:
+class SimCellConfig:
     """Everything that defines a simulated cell. Defaults: a UR10 with realistic hidden errors and
     gravity compliance, an AT960-class tracker 2.5 m away, a three-nest tool and three SMRs."""
 
@@ -147,11 +147,16 @@ class CellConfig:
             raise ValueError("smr_count must be at least 1")
 
 
+# The old name, kept only while hil/commands/demo.py (being rewritten) still imports it; the runner's
+# cell.toml is hil.cell_config.CellConfig, a different thing.
+CellConfig = SimCellConfig
+
+
 class SimulatedCell:
     """One robot, one tracker, a flange with calibration holes, a tool with SMR nests, and SMRs."""
 
-    def __init__(self, config: CellConfig | None = None) -> None:
-        self.config = config or CellConfig()
+    def __init__(self, config: SimCellConfig | None = None) -> None:
+        self.config = config or SimCellConfig()
         cfg = self.config
         self.robot_name = cfg.robot.lower()
         self.nominal: KinematicModel = get_robot(self.robot_name)

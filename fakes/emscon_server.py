@@ -92,7 +92,7 @@ class _Faults:
     outlier_offset_m: float = 0.0
     framing: str = "normal"  # "normal" | "bytewise" | "merged"
 
-    def as_dict(self) -> dict:
+    def to_dict(self) -> dict:
         """JSON-able view (bytes as hex)."""
         return {k: v.hex() if isinstance(v, bytes) else v for k, v in self.__dict__.items()}
 
@@ -927,7 +927,7 @@ class EmsconServer:
             raise ValueError(
                 f"unknown tracker fault {kind!r}; use beam_break, no_target, slow, drop, garbage, inject, outlier, framing, clear"
             )
-        return {"ok": True, "faults": f.as_dict()}
+        return {"ok": True, "faults": f.to_dict()}
 
     def _ctl_guide_beam(self, request: dict) -> dict:
         """The operator's hand: catch the beam on SMR `smr_id` and let the tracker lock onto it."""
@@ -944,7 +944,7 @@ class EmsconServer:
         self.faults = _Faults()
         if was_blocked:
             self._call_in_loop(self._unblock_beam)
-        return {"ok": True, "faults": self.faults.as_dict()}
+        return {"ok": True, "faults": self.faults.to_dict()}
 
     def _block_beam(self) -> None:
         self.faults.no_target = True
@@ -984,7 +984,7 @@ class EmsconServer:
             "exit_requests": st.exit_requests,
             "commands": dict(st.command_counts),
             "busy_replies": st.busy_replies,
-            "faults": self.faults.as_dict(),
+            "faults": self.faults.to_dict(),
         }
 
 
@@ -1031,7 +1031,7 @@ def main(argv: list[str] | None = None) -> int:
     import argparse
     import json
 
-    from fakes.cell import CellConfig, SimulatedCell
+    from fakes.cell import SimCellConfig, SimulatedCell
 
     parser = argparse.ArgumentParser(description="Fake Leica emScon tracker on a simulated cell.")
     parser.add_argument("--host", default="127.0.0.1", help="loopback address to bind")
@@ -1046,7 +1046,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--host must be a loopback address (127.0.0.0/8)")
 
     async def serve() -> None:
-        cell = SimulatedCell(CellConfig(seed=args.seed))
+        cell = SimulatedCell(SimCellConfig(seed=args.seed))
         server = EmsconServer(cell, args.host, args.port, EmsconServerConfig(initial_lock_smr=args.lock))
         await server.start()
         pty = await server.open_pty() if args.pty else None

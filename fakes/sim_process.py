@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from fakes.cell import CellConfig, SimulatedCell, SmrLocation
+from fakes.cell import SimCellConfig, SimulatedCell, SmrLocation
 from fakes.control_channel import ControlChannel
 from fakes.emscon_server import EmsconServer, EmsconServerConfig
 from fakes.ur_controller import UrController
@@ -45,7 +45,7 @@ class SimOptions:
     tracker_port: int = 7000
     script_start_delay_s: float = 0.05
     powered: bool = True
-    effects: dict[str, bool] = field(default_factory=dict)  # CellConfig flags, e.g. {'thermal': True}
+    effects: dict[str, bool] = field(default_factory=dict)  # SimCellConfig flags, e.g. {'thermal': True}
     # Called with (ready line, ground truth) once every server listens, before the ready line is printed
     # (e.g. `hil sim --write-cell` writes the cell configuration for this cell).
     on_ready: Callable[[dict, dict], None] | None = None
@@ -127,7 +127,7 @@ class SimProcess:
     def __init__(self, options: SimOptions):
         self.options = options
         self.servers: list = []
-        self.cell = SimulatedCell(CellConfig(robot=options.robot, seed=options.seed, **options.effects))
+        self.cell = SimulatedCell(SimCellConfig(robot=options.robot, seed=options.seed, **options.effects))
         self.control = ControlChannel(options.host, options.control_port)
         self.robot: UrController | None = None
         self.clock: SimClock | None = None

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from fakes.campaign import grid_joints, random_joints, simulate_campaign, workspace_box
-from fakes.cell import CellConfig, SimulatedCell
+from fakes.cell import SimCellConfig, SimulatedCell
 from hil.kinematics import forward_kinematics
 
 CONTRACT_COLUMNS = [f"q{i}_rad" for i in range(1, 7)] + [
@@ -19,7 +19,7 @@ CONTRACT_COLUMNS = [f"q{i}_rad" for i in range(1, 7)] + [
 
 @pytest.fixture(scope="module")
 def cell() -> SimulatedCell:
-    return SimulatedCell(CellConfig(seed=11))
+    return SimulatedCell(SimCellConfig(seed=11))
 
 
 def test_grid_vertices_are_reached_with_the_smr_facing_the_tracker(cell):

@@ -19,7 +19,7 @@ from drivers.tracker import (
     TrackerProtocolError,
     TrackerTimeoutError,
 )
-from fakes.cell import CellConfig, SimulatedCell, SmrLocation
+from fakes.cell import SimCellConfig, SimulatedCell, SmrLocation
 from fakes.emscon_server import EmsconServer, EmsconServerConfig, ServerThread
 
 pytestmark = pytest.mark.timeout(60)
@@ -30,7 +30,7 @@ SMR = 2  # a floor-nest SMR of the default cell (always faces the tracker)
 
 @pytest.fixture
 def cell():
-    return SimulatedCell(CellConfig(seed=1))
+    return SimulatedCell(SimCellConfig(seed=1))
 
 
 @pytest.fixture

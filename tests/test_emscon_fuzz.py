@@ -17,7 +17,7 @@ from drivers.tracker import (
     TrackerProtocolError,
     TrackerTimeoutError,
 )
-from fakes.cell import CellConfig, SimulatedCell
+from fakes.cell import SimCellConfig, SimulatedCell
 from fakes.emscon_server import EmsconServer, EmsconServerConfig, ServerThread
 
 MARGIN_S = 0.15  # measurement timeout beyond the measurement time
@@ -27,7 +27,7 @@ SLACK_S = 0.25  # read granularity and scheduling on a loaded 2-core machine
 
 @pytest.fixture(scope="module")
 def fuzz_server():
-    cell = SimulatedCell(CellConfig(seed=5))
+    cell = SimulatedCell(SimCellConfig(seed=5))
     server = EmsconServer(cell, config=EmsconServerConfig(initialized=True, initial_lock_smr=2))
     with ServerThread(server) as _, EmsconTracker(url=server.url, meas_time_s=0.005) as tracker:
         yield server, tracker

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from drivers.emscon import EmsconTracker
-from fakes.cell import CellConfig, SimulatedCell
+from fakes.cell import SimCellConfig, SimulatedCell
 from fakes.emscon_server import EmsconServer, EmsconServerConfig, ServerThread
 from fakes.launch import stop_process
 from hil.commands import tracker as tracker_command
@@ -29,7 +29,7 @@ def _run(argv: list[str]) -> int:
 
 
 def test_hil_tracker_aims_measures_and_prints_si_json(capsys):
-    cell = SimulatedCell(CellConfig(seed=3))
+    cell = SimulatedCell(SimCellConfig(seed=3))
     server = EmsconServer(cell, config=EmsconServerConfig(init_delay_s=0.01))
     with ServerThread(server):
         p = cell.smr_center_tracker(3)

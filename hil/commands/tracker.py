@@ -68,7 +68,7 @@ def run(args: argparse.Namespace) -> int:
                 **state.details,
             }
             if args.shots:
-                out["measurement"] = tracker.measure(args.shots).as_dict()
+                out["measurement"] = tracker.measure(args.shots).to_dict()
     except TrackerError as exc:
         out["error"] = {"type": type(exc).__name__, "message": str(exc)}
     print(json.dumps(out, indent=2))
