@@ -9,7 +9,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from drivers import emscon_codec as codec
-from drivers.emscon import EmsconTracker
+from drivers.emscon import EmsconConfig, EmsconTracker
 from drivers.tracker import (
     TrackerConnectionError,
     TrackerError,
@@ -29,7 +29,7 @@ SLACK_S = 0.25  # read granularity and scheduling on a loaded 2-core machine
 def fuzz_server():
     cell = SimulatedCell(SimCellConfig(seed=5))
     server = EmsconServer(cell, config=EmsconServerConfig(initialized=True, initial_lock_smr=2))
-    with ServerThread(server) as _, EmsconTracker(url=server.url, meas_time_s=0.005) as tracker:
+    with ServerThread(server) as _, EmsconTracker(EmsconConfig(url=server.url, meas_time_s=0.005)) as tracker:
         yield server, tracker
 
 

@@ -11,7 +11,7 @@ import sys
 import numpy as np
 import pytest
 
-from drivers.emscon import EmsconTracker
+from drivers.emscon import EmsconConfig, EmsconTracker
 from fakes.cell import SimCellConfig, SimulatedCell
 from fakes.emscon_server import EmsconServer, EmsconServerConfig, ServerThread
 from fakes.launch import stop_process
@@ -54,7 +54,7 @@ def test_standalone_fake_tracker_process():
         assert ready, "the fake tracker did not announce itself"
         info = json.loads(process.stdout.readline())["tracker"]
         for url in (info["url"], info["pty"]):
-            with EmsconTracker(url=url, meas_time_s=0.01) as tracker:
+            with EmsconTracker(EmsconConfig(url=url, meas_time_s=0.01)) as tracker:
                 assert tracker.state().target_locked
                 assert np.all(np.isfinite(tracker.measure(shots=2).p_tracker_m))
     finally:

@@ -37,7 +37,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from drivers.emscon import EmsconTracker
+    from drivers.emscon import EmsconConfig, EmsconTracker
     from drivers.tracker import TrackerError
 
     if args.shots < 0:
@@ -45,13 +45,15 @@ def run(args: argparse.Namespace) -> int:
     if not 0 < args.meas_time <= 3600:
         raise CliError(f"--meas-time {args.meas_time:g} s is outside (0, 3600] s", "give a time in seconds, e.g. 1")
     tracker = EmsconTracker(
-        url=args.url,
-        meas_time_s=args.meas_time,
-        reflector=args.reflector,
-        length_unit=args.wire_units,
-        angle_unit=args.wire_angles,
-        coordinate_system=args.coordinates,
-        command_timeout_s=args.timeout,
+        EmsconConfig(
+            url=args.url,
+            meas_time_s=args.meas_time,
+            reflector=args.reflector,
+            length_unit=args.wire_units,
+            angle_unit=args.wire_angles,
+            coordinate_system=args.coordinates,
+            command_timeout_s=args.timeout,
+        )
     )
     out: dict = {}
     try:
