@@ -1,8 +1,7 @@
-"""Datasets straight from the simulated cell, in the project's CSV dataset contract.
+"""Visit planned joints on the simulated cell and return what the tracker measured, in the dataset contract.
 
-Used until (and beside) the measured procedures: a Cartesian grid of 100-200 mm in front of the
-tracker plus random held-out poses, each turned into joints by the nominal model's IK (what a
-controller would command), then visited in order on the cell.
+Planning the joints is the planners' job (hil.planners, as the procedures do); visiting them on the
+simulated cell, as a real cell would, is the fake's.
 """
 
 from __future__ import annotations
@@ -15,6 +14,24 @@ from fakes.cell import SimulatedCell
 from hil.dataset import make_dataset
 from hil.ik import solve_ik
 
+
+def simulate_campaign(
+    cell: SimulatedCell, q_cmd: np.ndarray, smr_id: int = 1, seconds_per_point: float = 4.0
+) -> pd.DataFrame:
+    """Visit q_cmd (N, 6) in order on the cell and return the rows of the dataset contract."""
+    r = cell.run_sequence(q_cmd, smr_id=smr_id, seconds_per_point=seconds_per_point)
+    loc = cell.smr_location(smr_id)
+    return make_dataset(
+        r["q_encoder"],
+        r["p_tracker_measured"],
+        t_s=r["t_s"],
+        temperature_c=r["temperature_c"],
+        smr=loc.index if loc.kind == "nest" else 0,
+    )
+
+
+# ---- Only for hil/commands/demo.py, which imports grid_joints and random_joints until its rewrite on the
+# ---- runner lands; then delete everything below (the planners in hil.planners replace it).
 
 def workspace_box(cell: SimulatedCell) -> tuple[np.ndarray, np.ndarray]:
     """Centre (3,) and axes (3, 3, columns scaled to half-extents) of a reachable box facing the tracker."""
@@ -94,18 +111,3 @@ def random_joints(cell: SimulatedCell, count: int, smr_nest: int = 1, seed: int 
         q = _joints_for_points(cell, centre + u @ axes.T, rng, smr_nest, tilt_deg=20.0)
         out = np.vstack([out, q])
     return out[:count]
-
-
-def simulate_campaign(
-    cell: SimulatedCell, q_cmd: np.ndarray, smr_id: int = 1, seconds_per_point: float = 4.0
-) -> pd.DataFrame:
-    """Visit q_cmd (N, 6) in order on the cell and return the rows of the dataset contract."""
-    r = cell.run_sequence(q_cmd, smr_id=smr_id, seconds_per_point=seconds_per_point)
-    loc = cell.smr_location(smr_id)
-    return make_dataset(
-        r["q_encoder"],
-        r["p_tracker_measured"],
-        t_s=r["t_s"],
-        temperature_c=r["temperature_c"],
-        smr=loc.index if loc.kind == "nest" else 0,
-    )
