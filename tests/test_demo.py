@@ -8,6 +8,7 @@ import pandas as pd
 import pytest
 
 
+@pytest.mark.sim  # the live loop starts a simulated cell
 @pytest.mark.timeout(180)
 def test_demo_finds_compliance_and_predicts_live_measurements(tmp_path):
     args = [sys.executable, "-m", "hil", "demo", "--step-mm", "150", "--validate", "40", "--live", "2"]

@@ -23,6 +23,8 @@ from drivers.tracker import (
 from fakes.cell import SimCellConfig, SimulatedCell, SmrLocation
 from fakes.emscon_server import EmsconServer, EmsconServerConfig, ServerThread
 
+pytestmark = pytest.mark.sim  # starts a simulated cell or a fake server over sockets
+
 pytestmark = pytest.mark.timeout(60)
 
 MEAS_S = 0.01  # stationary measurement time used by the tests (fast; the fake waits it in wall time)

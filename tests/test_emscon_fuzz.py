@@ -20,6 +20,8 @@ from drivers.tracker import (
 from fakes.cell import SimCellConfig, SimulatedCell
 from fakes.emscon_server import EmsconServer, EmsconServerConfig, ServerThread
 
+pytestmark = pytest.mark.sim  # starts a simulated cell or a fake server over sockets
+
 MARGIN_S = 0.15  # measurement timeout beyond the measurement time
 COMMAND_S = 0.3  # command (and resync) timeout
 SLACK_S = 0.25  # read granularity and scheduling on a loaded 2-core machine

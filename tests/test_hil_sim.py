@@ -16,6 +16,8 @@ import pytest
 from fakes.control_client import ControlClient, ControlError
 from fakes.launch import random_loopback_host, sim_cell, start_cell, stop_cell, stop_process
 
+pytestmark = pytest.mark.sim  # starts a simulated cell or a fake server over sockets
+
 ROOT = Path(__file__).resolve().parents[1]
 
 

@@ -17,6 +17,8 @@ from fakes.emscon_server import EmsconServer, EmsconServerConfig, ServerThread
 from fakes.launch import stop_process
 from hil.commands import tracker as tracker_command
 
+pytestmark = pytest.mark.sim  # starts a simulated cell or a fake server over sockets
+
 pytestmark = pytest.mark.timeout(60)
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 

@@ -10,6 +10,8 @@ import pytest
 from drivers.emscon import EmsconConfig, EmsconTracker
 from drivers.tracker import NoTargetError
 
+pytestmark = pytest.mark.sim  # starts a simulated cell or a fake server over sockets
+
 launch = pytest.importorskip("fakes.launch", reason="hil sim is not on this branch yet")
 
 
