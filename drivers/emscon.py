@@ -295,6 +295,13 @@ class EmsconTracker:
         self.initialized = bool(info & codec.MSI_INITIALIZED)
 
     # ---- byte stream -------------------------------------------------------------------------------------
+    @property
+    def _open_port(self) -> serial.SerialBase:
+        """The byte stream; every exchange runs after the connect-time setup has opened it."""
+        if self._port is None:
+            raise TrackerConnectionError(f"{self.config.url} is not open")
+        return self._port
+
     def _lost(self, exc: Exception) -> TrackerConnectionError:
         url = self.config.url
         self.close()
@@ -302,7 +309,7 @@ class EmsconTracker:
 
     def _write(self, data: bytes) -> None:
         try:
-            self._port.write(data)
+            self._open_port.write(data)
         except (OSError, serial.SerialException) as exc:
             raise self._lost(exc) from exc
 
@@ -323,7 +330,7 @@ class EmsconTracker:
             if packet is not None:
                 return self._decode(packet, what)
             try:
-                data = self._port.read(self._splitter.bytes_needed())
+                data = self._open_port.read(self._splitter.bytes_needed())
             except (OSError, serial.SerialException) as exc:
                 raise self._lost(exc) from exc
             self._splitter.extend(data)
@@ -333,13 +340,13 @@ class EmsconTracker:
         noted as unsolicited, so an old error packet is never read as the answer to the new command."""
         while True:
             try:
-                waiting = self._port.in_waiting
+                waiting = self._open_port.in_waiting
             except (OSError, serial.SerialException) as exc:
                 raise self._lost(exc) from exc
             if not waiting:
                 break
             try:
-                self._splitter.extend(self._port.read(waiting))
+                self._splitter.extend(self._open_port.read(waiting))
             except (OSError, serial.SerialException) as exc:
                 raise self._lost(exc) from exc
         while True:
@@ -419,13 +426,13 @@ class EmsconTracker:
         self._splitter.reset()
         while time.monotonic() < deadline:
             try:
-                data = self._port.read(4096) if self._port.in_waiting else b""
+                data = self._open_port.read(4096) if self._open_port.in_waiting else b""
             except (OSError, serial.SerialException) as exc:
                 raise self._lost(exc) from exc
             if not data:
                 time.sleep(self.config.poll_s)
                 try:
-                    if not self._port.in_waiting:
+                    if not self._open_port.in_waiting:
                         return
                 except (OSError, serial.SerialException) as exc:
                     raise self._lost(exc) from exc
@@ -472,6 +479,8 @@ class EmsconTracker:
                             (_WATCHED_EVENTS[command], time.monotonic() + _OWN_EVENT_WINDOW_S)
                         )
                     if command == Command.GET_REFLECTORS:
+                        if packet.values is None:
+                            raise TrackerProtocolError("GetReflectors answered without a reflector count", packet.raw)
                         expected = max(1, packet.values[0])
                 elif isinstance(packet, codec.MeasResultPacket):
                     if not result:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import io
 import json
 import socket
 import threading
@@ -20,7 +21,7 @@ class ControlClient:
         self.host, self.port = host, int(port)
         self.timeout_s = timeout_s
         self._sock: socket.socket | None = None
-        self._file = None
+        self._file: io.BufferedIOBase | None = None
         self._lock = threading.Lock()
 
     def _connect(self) -> None:
@@ -29,8 +30,9 @@ class ControlClient:
 
     def call(self, cmd: str, **arguments) -> object:
         with self._lock:
-            if self._sock is None:
+            if self._sock is None or self._file is None:
                 self._connect()
+            assert self._file is not None  # _connect opened it or raised
             try:
                 self._file.write((json.dumps({"cmd": cmd, **arguments}) + "\n").encode())
                 self._file.flush()

@@ -295,8 +295,8 @@ class EmsconServer:
             self._server = None
         if self._pty_fds is not None:
             master, slave = self._pty_fds
-            self._loop.remove_reader(master)
-            self._loop.remove_writer(master)
+            self.loop.remove_reader(master)
+            self.loop.remove_writer(master)
             os.close(master)
             os.close(slave)
             self._pty_fds = None
@@ -316,6 +316,8 @@ class EmsconServer:
         return self.pty_path
 
     def _pty_readable(self, session: _Session) -> None:
+        if self._pty_fds is None:
+            return
         try:
             data = os.read(self._pty_fds[0], 65536)
         except (BlockingIOError, InterruptedError):
@@ -338,11 +340,11 @@ class EmsconServer:
                 n = os.write(master, self._pty_out)
                 del self._pty_out[:n]
         except BlockingIOError:
-            self._loop.add_writer(master, self._pty_flush)
+            self.loop.add_writer(master, self._pty_flush)
             return
         except OSError:
             self._pty_out.clear()
-        self._loop.remove_writer(master)
+        self.loop.remove_writer(master)
 
     async def _on_client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         sock = writer.get_extra_info("socket")
@@ -367,7 +369,14 @@ class EmsconServer:
         for session in list(self._sessions):
             session.send(*packets)
 
-    def _call_in_loop(self, fn: Callable[[], None]) -> None:
+    @property
+    def loop(self) -> asyncio.AbstractEventLoop:
+        """The event loop the server runs on (set by start() or open_pty())."""
+        if self._loop is None:
+            raise RuntimeError("the fake tracker is not started: await start() or open_pty() first")
+        return self._loop
+
+    def _call_in_loop(self, fn: Callable[[], object]) -> None:
         """Run fn on the server's loop (control handlers may be called from another thread)."""
         loop = self._loop
         if loop is None:
@@ -412,7 +421,7 @@ class EmsconServer:
         if st.locked_smr is None:
             return
         p = np.asarray(self.cell.smr_center_tracker(st.locked_smr), dtype=float)
-        wall = self._loop.time()
+        wall = self.loop.time()
         dt = max(self.cell.time_s - st.lock_sim_s, wall - st.lock_wall_s, 0.0)
         allowed = self.config.capture_m + self.config.max_tracking_speed_m_s * dt
         if np.linalg.norm(p - st.lock_p_m) > allowed or not self._visible(st.locked_smr):

@@ -131,6 +131,8 @@ def _die_with_parent() -> None:
 
 def _read_line(process: subprocess.Popen, timeout_s: float) -> str | None:
     deadline = time.monotonic() + timeout_s
+    if process.stdout is None:
+        raise ValueError("the process was started without stdout=PIPE")
     fd = process.stdout.fileno()
     data = b""
     while b"\n" not in data:

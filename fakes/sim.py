@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from fakes.cell import CELL_EFFECTS, parse_effect_flags
+from fakes.cell import CELL_EFFECTS, EffectFlags, parse_effect_flags
 from fakes.launch import is_loopback_host
 from fakes.sim_process import SimOptions, run_cell
 from hil.robots import ROBOT_NAMES
@@ -40,7 +40,7 @@ def add_effects_argument(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def effects_from_args(args: argparse.Namespace) -> dict[str, bool]:
+def effects_from_args(args: argparse.Namespace) -> EffectFlags:
     """SimCellConfig flags from `--effects`; an unknown name is a SimOptionError listing the known ones."""
     try:
         return parse_effect_flags(args.effects)

@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from fakes.cell import SimCellConfig, SimulatedCell, SmrLocation
+from fakes.cell import EffectFlags, SimCellConfig, SimulatedCell, SmrLocation
 from fakes.control_channel import ControlChannel
 from fakes.emscon_server import EmsconServer, EmsconServerConfig
 from fakes.ur_controller import UrController
@@ -45,7 +45,7 @@ class SimOptions:
     tracker_port: int = 7000
     script_start_delay_s: float = 0.05
     powered: bool = True
-    effects: dict[str, bool] = field(default_factory=dict)  # SimCellConfig flags, e.g. {'thermal': True}
+    effects: EffectFlags = field(default_factory=lambda: EffectFlags())  # e.g. {'thermal': True}; unset: defaults
     # Called with (ready line, ground truth) once every server listens, before the ready line is printed
     # (e.g. `hil sim --write-cell` writes the cell configuration for this cell).
     on_ready: Callable[[dict, dict], None] | None = None
@@ -160,8 +160,14 @@ class SimProcess:
         self.control.add_handlers(tracker.control_handlers())
         self.announcers.append(lambda: {"tracker": {"url": tracker.url, "port": tracker.port}})
 
+    def built(self) -> tuple[UrController, SimClock]:
+        """The controller and the clock that build() made."""
+        if self.robot is None or self.clock is None:
+            raise RuntimeError("SimProcess.build() has not run")
+        return self.robot, self.clock
+
     def announce(self) -> dict:
-        robot = self.robot
+        robot, clock = self.built()
         info = {
             "robot": {
                 "host": self.options.host,
@@ -175,7 +181,7 @@ class SimProcess:
             },
             "control": self.control.address,
             "seed": self.options.seed,
-            "time_scale": self.clock.time_scale,
+            "time_scale": clock.time_scale,
         }
         for announcer in self.announcers:
             info.update(announcer())
@@ -201,7 +207,7 @@ class SimProcess:
         for sig in (signal.SIGINT, signal.SIGTERM):
             with contextlib.suppress(NotImplementedError):
                 loop.add_signal_handler(sig, stop.set)
-        clock_task = asyncio.create_task(self.clock.run())
+        clock_task = asyncio.create_task(self.built()[1].run())
         info = self.announce()
         if self.options.on_ready is not None:
             self.options.on_ready(info, self.cell.ground_truth())

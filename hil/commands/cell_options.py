@@ -7,13 +7,14 @@ from __future__ import annotations
 
 import argparse
 
+from fakes.cell import EffectFlags
 from fakes.sim import SimOptionError, add_effects_argument, effects_from_args
 from hil.commands.errors import CliError
 
 __all__ = ["add_effects_argument", "effect_flags"]
 
 
-def effect_flags(args: argparse.Namespace) -> dict[str, bool]:
+def effect_flags(args: argparse.Namespace) -> EffectFlags:
     """SimCellConfig flags from `--effects`; an unknown name ends the command with the list of known ones."""
     try:
         return effects_from_args(args)
