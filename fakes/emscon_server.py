@@ -82,6 +82,7 @@ class EmsconServerConfig:
 @dataclass
 class _Faults:
     beam_break_count: int = 0
+    beam_break_rate: float = 0.0  # chance that any shot breaks the beam (people walking through the cell)
     no_target: bool = False
     slow_delay_s: float = 0.0
     drop_next_command: bool = False
@@ -252,6 +253,7 @@ class EmsconServer:
         self.requested_port = port
         self.config = config or EmsconServerConfig()
         self.faults = _Faults()
+        self._fault_rng = np.random.default_rng([getattr(cell.config, "seed", 0), 3])  # random beam breaks
         self.state = _TrackerState(
             initialized=self.config.initialized,
             search_radius_m=self.config.search_radius_m,
@@ -725,8 +727,9 @@ class EmsconServer:
         meas_s = st.meas_time_ms / 1000.0
         st.measuring += 1
         try:
-            if self.faults.beam_break_count > 0:
-                self.faults.beam_break_count -= 1
+            random_break = self.faults.beam_break_rate > 0 and self._fault_rng.random() < self.faults.beam_break_rate
+            if self.faults.beam_break_count > 0 or random_break:
+                self.faults.beam_break_count = max(0, self.faults.beam_break_count - 1)
                 await self._pass_time(meas_s / 2)
                 st.last_result_status = self.config.no_target_status
                 session.send(codec.pack_error(Command.START_MEASUREMENT, self.config.no_target_status))
@@ -890,17 +893,18 @@ class EmsconServer:
         }
 
     def _ctl_fault(self, request: dict) -> dict:
-        """Inject a fault. kind: beam_break (count), no_target, slow (delay_s), drop (when: next|now; TCP is
+        """Inject a fault. kind: beam_break (count: the next N shots; rate: each shot with that chance), no_target, slow (delay_s), drop (when: next|now; TCP is
         closed, the serial line goes silent until cleared), garbage (n_bytes), inject (hex: raw bytes that
         replace the next answer), outlier (count, offset_m), framing (mode: normal|bytewise|merged), clear.
         """
         kind = request.get("kind")
         f = self.faults
         if kind == "beam_break":
-            count = int(request.get("count", 1))
-            if count < 0:
-                raise ValueError("beam_break count must be >= 0")
-            f.beam_break_count = count
+            count = int(request.get("count", 1 if "rate" not in request else 0))
+            rate = float(request.get("rate", 0.0))
+            if count < 0 or not 0.0 <= rate < 1.0:
+                raise ValueError("beam_break needs count >= 0 and rate in [0, 1)")
+            f.beam_break_count, f.beam_break_rate = count, rate
         elif kind == "no_target":
             self._call_in_loop(self._block_beam)
         elif kind == "slow":

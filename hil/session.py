@@ -136,15 +136,21 @@ class Session:
         self.close(interrupted=exc_type is not None and issubclass(exc_type, KeyboardInterrupt))
 
     def close(self, interrupted: bool = False) -> None:
-        """Stop the robot, release the instruments and close the store; never hangs (each step bounded)."""
+        """Stop the robot, release the instruments and close the store; never hangs: robot and tracker are
+        released side by side and given a bounded time (1.5 s after Ctrl-C, 10 s otherwise)."""
         if self._closed:
             return
         self._closed = True
         if interrupted:
             self.event("interrupted", "stopped by the operator (Ctrl-C); re-run the command to resume")
-        _bounded(self.robot.stop, 1.0 if interrupted else 5.0, "robot stop")
-        _bounded(self.robot.close, 1.0 if interrupted else 10.0, "robot close")
-        _bounded(self.tracker.close, 1.0 if interrupted else 5.0, "tracker close")
+
+        def release_robot() -> None:
+            try:
+                self.robot.stop()
+            finally:
+                self.robot.close()
+
+        _bounded([("robot", release_robot), ("tracker", self.tracker.close)], 1.5 if interrupted else 10.0)
         log.removeHandler(self._log_handler)
         self.store.close()
 
@@ -350,21 +356,27 @@ def _software_versions() -> dict:
     return versions
 
 
-def _bounded(action: Callable[[], None], timeout_s: float, what: str) -> None:
-    """Run a clean-up action in a helper thread and give up waiting after timeout_s (a dead controller
-    must not keep a stopping process hanging); failures are logged, never raised."""
-    error: list[BaseException] = []
+def _bounded(actions: list[tuple[str, Callable[[], None]]], timeout_s: float) -> None:
+    """Run clean-up actions side by side in helper threads and stop waiting after timeout_s in all (a dead
+    controller must not keep a stopping process hanging); failures are logged, never raised."""
+    errors: dict[str, BaseException] = {}
 
-    def target() -> None:
-        try:
-            action()
-        except BaseException as exc:  # noqa: BLE001 - clean-up must go on
-            error.append(exc)
+    def guarded(name: str, action: Callable[[], None]) -> Callable[[], None]:
+        def target() -> None:
+            try:
+                action()
+            except BaseException as exc:  # noqa: BLE001 - clean-up must go on
+                errors[name] = exc
 
-    thread = threading.Thread(target=target, name=f"hil-{what}", daemon=True)
-    thread.start()
-    thread.join(timeout_s)
-    if thread.is_alive():
-        log.warning("%s did not finish within %.1f s; going on", what, timeout_s)
-    elif error:
-        log.warning("%s failed: %s", what, error[0])
+        return target
+
+    threads = [threading.Thread(target=guarded(n, a), name=f"hil-close-{n}", daemon=True) for n, a in actions]
+    for thread in threads:
+        thread.start()
+    deadline = time.monotonic() + timeout_s
+    for (name, _), thread in zip(actions, threads, strict=True):
+        thread.join(max(0.0, deadline - time.monotonic()))
+        if thread.is_alive():
+            log.warning("releasing the %s did not finish within %.1f s; going on", name, timeout_s)
+        elif name in errors:
+            log.warning("releasing the %s failed: %s", name, errors[name])

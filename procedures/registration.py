@@ -19,6 +19,7 @@ from hil.operator import OperatorStep
 from hil.plan import Plan, PlannedPose
 from hil.planners import Box, facing_poses, plan_joints, workspace_box
 from hil.registration import RigidFit, ransac_rigid
+from hil.se3 import fit_rigid, transform_points
 from hil.session import CampaignStopped, Session
 
 PROCEDURE = "registration"
@@ -69,12 +70,21 @@ def run(session: Session, *, poses: int = 12, nest: int = 1, seed: int = 0, inli
         def lock_beam() -> None:
             session.ask(OperatorStep("Guide the tracker's beam onto SMR 1 on the tool until it locks.", "lock_beam", smr=1))
 
+        def reaim() -> None:
+            """Aim where an interim fit of the points so far puts the SMR; ask the operator before there are 4."""
+            so_far = session.recorded_points(PROCEDURE, "poses")
+            if len(so_far.point_id) < 4:
+                lock_beam()
+                return
+            T, _ = fit_rigid(tool_points(session.nominal, so_far.q_rad, p_nest), so_far.p_tracker_m)
+            q_now = session.robot.joints()
+            session.tracker.point_at(transform_points(T, tool_points(session.nominal, q_now[None], p_nest))[0])
+
         lock_beam()
-        with session.progress.task("registration", total=len(the_plan.poses), done=len(the_plan.poses) - len(pending)) as advance:
+        total, done = len(the_plan.poses), len(the_plan.poses) - len(pending)
+        with session.progress.task("registration", total=total, done=done) as advance:
             for pose in pending:
-                session.measure_point(
-                    PROCEDURE, "poses", pose.point_id, pose.q_rad, smr=1, location=f"nest{nest}", reaim=lock_beam
-                )
+                session.measure_point(PROCEDURE, "poses", pose.point_id, pose.q_rad, smr=1, location=f"nest{nest}", reaim=reaim)
                 advance()
     records = session.recorded_points(PROCEDURE, "poses")
     if len(records.point_id) < 6:

@@ -1,25 +1,33 @@
-"""`hil demo` end to end on a small campaign: offline diagnosis, then the live loop through hil sim."""
+"""`hil demo` end to end: the procedures through the drivers on hil sim, then diagnosis and reports;
+a second run resumes the campaign and measures nothing again."""
 
 import json
+import sqlite3
 import subprocess
 import sys
 
-import pandas as pd
 import pytest
 
 
-@pytest.mark.sim  # the live loop starts a simulated cell
-@pytest.mark.timeout(180)
-def test_demo_finds_compliance_and_predicts_live_measurements(tmp_path):
-    args = [sys.executable, "-m", "hil", "demo", "--step-mm", "150", "--validate", "40", "--live", "2"]
-    out = subprocess.run([*args, "--out", str(tmp_path)], capture_output=True, text=True, timeout=170)
-    assert out.returncode == 0, out.stderr[-3000:]
+@pytest.mark.sim
+@pytest.mark.timeout(400)
+def test_demo_runs_the_procedures_through_the_drivers_and_finds_compliance(tmp_path):
+    args = [sys.executable, "-m", "hil", "demo", "--step-mm", "150", "--validate", "40", "--out", str(tmp_path)]
+    out = subprocess.run(args, capture_output=True, text=True, timeout=380)
+    assert out.returncode == 0, out.stderr[-3000:] + out.stdout[-3000:]
     report = json.loads((tmp_path / "report.json").read_text())
     assert {e["name"] for e in report["effects_added"]} == {"gravity_compliance"}
-    live = pd.read_csv(tmp_path / "live.csv")
-    assert len(live) == 2 and "live prediction error" in out.stdout
-    for name in ("grid.csv", "validate.csv", "report.html", "model.json"):
+    for name in ("cell.toml", "campaign.sqlite", "grid.csv", "validate.csv", "report.html", "model.json"):
         assert (tmp_path / name).stat().st_size > 0
+    for step in ("registration", "tool fit", "grid sampling"):
+        assert step in out.stdout
+    with sqlite3.connect(tmp_path / "campaign.sqlite") as db:
+        (count,) = db.execute("select count(*) from measurements").fetchone()
+    again = subprocess.run(args, capture_output=True, text=True, timeout=380)
+    assert again.returncode == 0, again.stderr[-3000:]
+    assert "resuming" in again.stdout
+    with sqlite3.connect(tmp_path / "campaign.sqlite") as db:
+        assert db.execute("select count(*) from measurements").fetchone() == (count,)
 
 
 def test_demo_refuses_an_unknown_effect(tmp_path):

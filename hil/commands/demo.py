@@ -1,75 +1,129 @@
-"""`hil demo`: the main job on a simulated cell, end to end.
+"""`hil demo`: the main job on a simulated cell, through the real drivers, end to end.
 
-1. Sample a Cartesian grid (default 100 mm) and random held-out poses on the simulated cell, as a
-   tracker would measure them, and write both campaigns in the dataset contract.
-2. Calibrate and diagnose: find what the geometric model misses, add it, and print the error
-   before and after on held-out and validation data.
-3. Write the JSON report, the HTML report and the final model.
-4. Close the loop on live instruments: start the same cell as a `hil sim` process, drive the robot
-   through ur-rtde and the tracker through emScon, aim the tracker where the calibrated model
-   predicts the SMR, measure, and report predicted vs measured.
+1. Start the simulated cell (`hil sim`: a fake UR controller and a fake emScon tracker) and write its
+   cell.toml, as an engineer would for a real cell.
+2. Run the shop-floor procedures through ur-rtde and emScon, into one campaign file: registration
+   (tracker <-> robot base), tool fit (flange holes; the scripted operator moves the simulated SMR), grid
+   sampling at 100 mm plus random held-out validation poses.
+3. Export the grid and the validation set from the campaign, calibrate and diagnose: find what the
+   geometric model misses, add it, and print the error before and after on held-out and validation data.
+4. Write the JSON report, the HTML report and the final model.
+
+Interrupted (Ctrl-C, a crash), the same command resumes the campaign: recorded points are not measured again.
 """
 
 from __future__ import annotations
 
 import argparse
+import sys
+import time
+from contextlib import ExitStack
 from pathlib import Path
 
-import numpy as np
-import pandas as pd
-
-from fakes.campaign import grid_joints, random_joints, simulate_campaign
-from fakes.cell import CellConfig, SimulatedCell
-from hil.calibrated_model import CalibratedModel
 from hil.commands.cell_options import add_effects_argument, effect_flags
-from hil.dataset import POSITION_COLUMNS, joint_columns, joints_rad, points_m, write_dataset
-from hil.diagnosis import run_diagnosis
-from hil.report import write_html, write_json
 from hil.robots import ROBOT_NAMES
+
+UR_ROBOTS = [name for name in ROBOT_NAMES if name.startswith("ur")]
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "demo",
-        help="run the main job on a simulated cell: grid campaign, calibration, diagnosis, report",
+        help="run the main job on a simulated cell: procedures through the drivers, diagnosis, report",
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("--robot", default="ur10", choices=ROBOT_NAMES, help="robot model (default ur10)")
+    parser.add_argument("--robot", default="ur10", choices=UR_ROBOTS, help="robot model (default ur10)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the simulated cell (default 0)")
     parser.add_argument("--step-mm", type=float, default=100.0, help="grid step in mm (default 100)")
     parser.add_argument("--validate", type=int, default=100, help="random validation poses (default 100)")
     add_effects_argument(parser)
     parser.add_argument("--out", default="demo-out", help="output folder (default ./demo-out)")
-    parser.add_argument("--live", type=int, default=6, help="poses measured live through hil sim (0: skip)")
     parser.add_argument(
-        "--time-scale", type=float, default=10.0, help="simulated seconds per wall second of the live cell"
+        "--time-scale", type=float, default=20.0, help="simulated seconds per wall second (default 20)"
     )
     parser.set_defaults(func=run)
 
 
+def _fail(message: str, remedy: str) -> int:
+    print(f"hil demo: {message}\n  what to do: {remedy}", file=sys.stderr)
+    return 2
+
+
 def run(args: argparse.Namespace) -> int:
     flags = effect_flags(args)
-    if args.step_mm <= 0:
-        raise SystemExit("--step-mm must be positive")
-    if args.live > 0 and not args.robot.startswith("ur"):
-        raise SystemExit(
-            f"the live loop drives a UR arm through ur-rtde: use a ur* robot or --live 0 for {args.robot}"
-        )
+    if not 20.0 <= args.step_mm <= 500.0:
+        return _fail(f"--step-mm {args.step_mm:g} is outside 20..500", "use a grid step of 100-200 mm")
+    if args.validate < 10:
+        return _fail("--validate must be at least 10", "give more validation poses")
+    if not 0.5 <= args.time_scale <= 50.0:
+        return _fail(f"--time-scale {args.time_scale:g} is outside 0.5..50", "use e.g. 20")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    cell = SimulatedCell(CellConfig(robot=args.robot, seed=args.seed, **flags))
+    campaign = out / "campaign.sqlite"
     on = [k for k, v in flags.items() if v] or ["none"]
-    print(f"simulated cell: {cell.robot_name}, seed {args.seed}, hidden geometric errors + {', '.join(on)}")
+    resumed = campaign.exists()
+    print(
+        f"simulated cell: {args.robot}, seed {args.seed}, hidden geometric errors + {', '.join(on)}; "
+        f"campaign {campaign}{' (resuming)' if resumed else ''}"
+    )
+    from hil.commands.run import interrupt_guard
+    from hil.session import CampaignStopped
 
-    q_grid = grid_joints(cell, step_m=args.step_mm / 1000.0, seed=args.seed)
-    train = simulate_campaign(cell, q_grid)
-    validate = simulate_campaign(cell, random_joints(cell, args.validate, seed=args.seed + 1))
+    started = time.monotonic()
+    with interrupt_guard():
+        try:
+            measure(args, out, campaign)
+        except CampaignStopped as exc:
+            return _fail(exc.message, exc.remedy + " (run hil demo again to resume)")
+    print(f"measured through the drivers in {time.monotonic() - started:.0f} s")
+    return analyse(args, out, campaign)
+
+
+def measure(args: argparse.Namespace, out: Path, campaign: Path) -> None:
+    """Start the simulated cell, write its cell.toml and run the procedures into the campaign."""
+    from fakes.launch import sim_cell
+    from hil.cell_config import load_cell_config
+    from hil.commands.instruments import open_session, simulated_operator
+    from hil.commands.run import summarise
+    from hil.commands.sim_cell import write_sim_cell
+    from procedures import grid_sampling, registration, tool_fit
+
+    cell_path = out / "cell.toml"
+    with sim_cell(
+        robot=args.robot, seed=args.seed, time_scale=args.time_scale, extra_args=("--effects", args.effects)
+    ) as cell:
+        write_sim_cell(cell_path, cell.info, cell.control.call("ground_truth"), args.time_scale)
+        config = load_cell_config(cell_path)
+        print(f"cell: {cell.info['robot']['personality']} controller at {cell.host}, tracker {config.tracker_url}; wrote {cell_path}")
+        with ExitStack() as stack:
+            session = open_session(config, campaign, simulated_operator(config.simulator_control), stack)
+            with session:
+                print(summarise("registration", registration.run(session)))
+                print(summarise("tool_fit", tool_fit.run(session)))
+                result = grid_sampling.run(session, step_mm=args.step_mm, validation=args.validate, seed=args.seed)
+                print(summarise("grid_sampling", result))
+
+
+def analyse(args: argparse.Namespace, out: Path, campaign: Path) -> int:
+    """Diagnose the grid against the validation set and write the reports and the model."""
+    import numpy as np
+
+    from hil.dataset import write_dataset
+    from hil.diagnosis import run_diagnosis
+    from hil.report import write_html, write_json
+    from hil.robots import get_robot
+    from hil.store import CampaignStore, campaign_dataset
+
+    with CampaignStore(campaign) as store:
+        train = campaign_dataset(store, "grid_sampling", step="grid")
+        validate = campaign_dataset(store, "grid_sampling", step="validation")
+        fit = store.step_result("tool_fit", "fit")
     write_dataset(train, out / "grid.csv")
     write_dataset(validate, out / "validate.csv")
-    print(f"measured {len(train)} grid poses at {args.step_mm:g} mm and {len(validate)} validation poses")
-
-    report = run_diagnosis(train, cell.nominal, df_validate=validate, seed=args.seed)
+    print(f"exported {len(train)} grid and {len(validate)} validation points from the campaign")
+    tool_guess = np.array(fit["nests_flange_mm"]["1"]) / 1e3 if fit else None
+    report = run_diagnosis(train, get_robot(args.robot), df_validate=validate, seed=args.seed, tool_guess_m=tool_guess)
     print()
     print(report.table())
     added = ", ".join(
@@ -77,52 +131,8 @@ def run(args: argparse.Namespace) -> int:
     )
     print(f"effects added: {added or 'none'}")
     print(report.conclusion)
-
     write_json(report, out / "report.json")
     write_html(report, out / "report.html")
     report.model.save(out / "model.json")
-    print(f"\nwrote {out}/grid.csv, validate.csv, report.json, report.html, model.json")
-    if args.live > 0:
-        q_live = joints_rad(validate)[: args.live]
-        live_loop(args, report.model, q_live, out / "live.csv")
+    print(f"\nwrote {out}/campaign.sqlite, cell.toml, grid.csv, validate.csv, report.json, report.html, model.json")
     return 0
-
-
-def live_loop(args: argparse.Namespace, model: CalibratedModel, q_poses, csv_path: Path) -> None:
-    """Move the live robot to each pose, aim the tracker at the model's prediction, measure, compare."""
-    from drivers.emscon import EmsconTracker
-    from drivers.ur import URConfig, URRobot
-    from fakes.launch import sim_cell
-
-    print(f"\nlive: the same cell as a hil sim process, {len(q_poses)} poses through ur-rtde and emScon")
-    with sim_cell(
-        robot=args.robot, seed=args.seed, time_scale=args.time_scale, extra_args=("--effects", args.effects)
-    ) as cell:
-        robot = URRobot(URConfig(cell.host))
-        rows = []
-        try:
-            with EmsconTracker(url=cell.info["tracker"]["url"], meas_time_s=0.5) as tracker:
-                print(
-                    f"{'pose':>4} {'predicted x,y,z (mm)':>32}  {'measured - predicted (mm)':>28}  {'|d| mm':>7}"
-                )
-                for k, q in enumerate(q_poses, start=1):
-                    robot.move_joints(q)
-                    robot.wait_settled()
-                    q_now = robot.joints()
-                    row = {c: float(v) for c, v in zip(joint_columns(), q_now, strict=True)}
-                    p_pred = model.predict(pd.DataFrame([row]))[0]
-                    tracker.point_at(p_pred)
-                    m = tracker.measure(shots=3)
-                    d_mm = (m.p_tracker_m - p_pred) * 1e3
-                    row |= {c: float(v * 1e3) for c, v in zip(POSITION_COLUMNS, m.p_tracker_m, strict=True)}
-                    rows.append(row)
-                    pd.DataFrame(rows).to_csv(csv_path, index=False)  # nothing measured is lost
-                    print(
-                        f"{k:>4} {p_pred[0] * 1e3:10.3f} {p_pred[1] * 1e3:10.3f} {p_pred[2] * 1e3:10.3f}  "
-                        f"{d_mm[0]:+8.4f} {d_mm[1]:+8.4f} {d_mm[2]:+8.4f}  {np.linalg.norm(d_mm):7.4f}"
-                    )
-        finally:
-            robot.close()
-    live = pd.DataFrame(rows)
-    errors = np.linalg.norm(points_m(live) - model.predict(live), axis=1) * 1e3
-    print(f"live prediction error: mean {errors.mean():.4f} mm, max {errors.max():.4f} mm; wrote {csv_path}")

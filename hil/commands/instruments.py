@@ -56,16 +56,20 @@ def choose_operator(config: CellConfig, kind: str) -> Operator:
 def open_session(config: CellConfig, campaign: str | Path, operator: Operator, stack: ExitStack, progress: bool | None = None) -> Session:
     """Connect the robot (ur-rtde) and the tracker (emScon), open the campaign store, and build the Session.
 
-    Everything opened is registered on `stack`, so a failure half-way leaves nothing connected."""
+    The Session's close is registered on `stack`; a failure half-way leaves nothing connected."""
     from drivers.emscon import EmsconConfig, EmsconTracker
     from drivers.ur import URConfig, URRobot
 
-    store = CampaignStore(campaign)
-    stack.callback(store.close)
-    robot = URRobot(URConfig.from_mapping(config.robot_mapping()))
-    stack.callback(robot.close)
-    tracker = EmsconTracker(EmsconConfig(url=config.tracker_url, meas_time_s=config.meas_time_s, reflector=config.tracker_reflector))
-    stack.callback(tracker.close)
-    tracker.connect()
-    station = {"robot_controller_version": getattr(robot, "version", None), "tracker": getattr(tracker, "tracker_info", {})}
-    return Session(config, robot, tracker, store, operator, Progress(enabled=progress), station=station)
+    with ExitStack() as opening:  # a failure half-way closes what was opened so far
+        store = CampaignStore(campaign)
+        opening.callback(store.close)
+        robot = URRobot(URConfig.from_mapping(config.robot_mapping()))
+        opening.callback(robot.close)
+        tracker = EmsconTracker(EmsconConfig(url=config.tracker_url, meas_time_s=config.meas_time_s, reflector=config.tracker_reflector))
+        opening.callback(tracker.close)
+        tracker.connect()
+        station = {"robot_controller_version": getattr(robot, "version", None), "tracker": getattr(tracker, "tracker_info", {})}
+        session = Session(config, robot, tracker, store, operator, Progress(enabled=progress), station=station)
+        opening.pop_all()  # from here on the Session owns and releases them
+    stack.callback(session.close)
+    return session

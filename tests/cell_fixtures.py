@@ -1,0 +1,24 @@
+"""Cell configurations for tests: the one `hil sim --write-cell` would write for a seeded cell, as text."""
+
+from __future__ import annotations
+
+from fakes.cell import SimulatedCell
+from hil.cell_config import format_cell_toml
+from hil.commands.sim_cell import sim_cell_values
+
+ANNOUNCEMENT = {
+    "robot": {"model": "ur10", "host": "127.0.0.9"},
+    "tracker": {"url": "socket://127.0.0.9:7000"},
+    "control": "127.0.0.9:4000",
+}
+
+
+def sim_cell_toml(seed: int = 0, time_scale: float = 10.0) -> str:
+    """cell.toml text of a UR10 simulated cell with `seed` (no instruments are started)."""
+    return format_cell_toml(sim_cell_values(ANNOUNCEMENT, SimulatedCell().ground_truth() if seed == 0 else _truth(seed), time_scale))
+
+
+def _truth(seed: int) -> dict:
+    from fakes.cell import CellConfig
+
+    return SimulatedCell(CellConfig(seed=seed)).ground_truth()

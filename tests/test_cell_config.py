@@ -1,0 +1,78 @@
+"""cell.toml: a good file loads in SI units; a broken one is refused with every problem and its key."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import tomllib
+
+import numpy as np
+import pytest
+
+from hil.cell_config import CellConfigError, format_cell_toml, load_cell_config, parse_cell_config
+from tests.cell_fixtures import sim_cell_toml
+
+
+def test_simulated_cell_config_loads_in_si_units(tmp_path):
+    path = tmp_path / "cell.toml"
+    path.write_text(sim_cell_toml())
+    config = load_cell_config(path)
+    assert config.robot_model == "ur10" and config.robot_host == "127.0.0.9"
+    assert config.nests_flange_m.shape == (3, 3) and np.allclose(config.nests_flange_m[0], [0.03, -0.02, 0.11])
+    assert np.all(config.envelope.box_max_m > config.envelope.box_min_m)
+    assert 1.0 < np.linalg.norm(config.p_base_tracker_m) < 4.0
+    assert config.simulator_control == "127.0.0.9:4000"
+    assert config.robot_mapping()["host"] == "127.0.0.9"
+    # what is written is what is read
+    again = parse_cell_config(tomllib.loads(format_cell_toml(tomllib.loads(sim_cell_toml()))))
+    assert np.allclose(again.p_base_tracker_m, config.p_base_tracker_m)
+
+
+def test_every_problem_is_reported_with_its_key():
+    data = tomllib.loads(sim_cell_toml())
+    del data["robot"]["host"]
+    data["robot"]["model"] = "ur99"
+    data["robot"]["joint_sped"] = 1.0  # a typo
+    data["tracker"]["meas_time_s"] = -1
+    data["tracker"]["position_base_mm"] = [10, 0]
+    data["tool"]["nests_flange_mm"] = [[30, -20]]
+    data["envelope"]["box_min_mm"] = [0, 0, 2000]
+    data["envelope"]["joint_max_deg"] = [400] * 6
+    data["rig"] = {"x": 1}
+    with pytest.raises(CellConfigError) as info:
+        parse_cell_config(data)
+    text = str(info.value)
+    for key in (
+        "robot.host: missing", "robot.model: unknown robot 'ur99'", "robot.joint_sped: unknown setting",
+        "tracker.meas_time_s: must be positive", "tracker.position_base_mm: must be a list of 3",
+        "tool.nests_flange_mm", "envelope.box_max_mm", "[rig]: unknown section",
+    ):  # fmt: skip
+        assert key in text, key
+    assert len(info.value.problems) >= 8
+
+
+def test_joint_limits_beyond_the_robot_and_a_tracker_on_the_base_axis_are_refused():
+    data = tomllib.loads(sim_cell_toml())
+    data["envelope"]["joint_max_deg"] = [400] * 6
+    data["tracker"]["position_base_mm"] = [0, 100, 0]
+    with pytest.raises(CellConfigError) as info:
+        parse_cell_config(data)
+    assert "beyond the robot's own limits" in str(info.value)
+    assert "at least 300 mm from the robot's base axis" in str(info.value)
+
+
+def test_cell_check_command(tmp_path):
+    good = tmp_path / "cell.toml"
+    good.write_text(sim_cell_toml())
+    ok = subprocess.run([sys.executable, "-m", "hil", "cell", "check", str(good)], capture_output=True, text=True)
+    assert ok.returncode == 0 and "OK" in ok.stdout and "ur10" in ok.stdout
+    bad = tmp_path / "bad.toml"
+    text = sim_cell_toml().replace("settle_s = ", "settle_s = -").replace("socket://127.0.0.9:7000", "tracker-host")
+    bad.write_text(text)
+    out = subprocess.run([sys.executable, "-m", "hil", "cell", "check", str(bad)], capture_output=True, text=True)
+    assert out.returncode == 2
+    assert "motion.settle_s" in out.stderr and "tracker.url" in out.stderr and "what to do" in out.stderr
+    broken = tmp_path / "broken.toml"
+    broken.write_text("[robot\nmodel = ")
+    out = subprocess.run([sys.executable, "-m", "hil", "cell", "check", str(broken)], capture_output=True, text=True)
+    assert out.returncode == 2 and "not valid TOML" in out.stderr and "broken.toml" in out.stderr
