@@ -20,7 +20,6 @@ import threading
 import time
 from collections import deque
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 import serial
@@ -153,14 +152,7 @@ class EmsconConfig:
 class EmsconTracker:
     """Leica emScon tracker driver implementing drivers.tracker.Tracker."""
 
-    def __init__(self, config: EmsconConfig | None = None, **settings: Any):
-        """`EmsconTracker(EmsconConfig(...))`, like `URRobot(URConfig(...))`. Keyword settings alone
-        (`EmsconTracker(url=...)`) are read by EmsconConfig.from_mapping; kept while hil demo uses them."""
-        if settings:
-            if config is not None:
-                raise TypeError("give an EmsconConfig or keyword settings, not both")
-            config = EmsconConfig.from_mapping(settings)
-        config = config or EmsconConfig()
+    def __init__(self, config: EmsconConfig):
         self.config = config
         self.units = codec.Units(length=config.length_unit, angle=config.angle_unit)
         self._lock = threading.RLock()

@@ -170,11 +170,6 @@ class SimCellConfig:
             raise ValueError("smr_count must be at least 1")
 
 
-# The old name, kept only while hil/commands/demo.py (being rewritten) still imports it; the runner's
-# cell.toml is hil.cell_config.CellConfig, a different thing.
-CellConfig = SimCellConfig
-
-
 class SimulatedCell:
     """One robot, one tracker, a flange with calibration holes, a tool with SMR nests, and SMRs."""
 

@@ -7,6 +7,7 @@ import io
 import json
 import socket
 import threading
+from typing import Any
 
 
 class ControlError(RuntimeError):
@@ -28,7 +29,8 @@ class ControlClient:
         self._sock = socket.create_connection((self.host, self.port), timeout=self.timeout_s)
         self._file = self._sock.makefile("rwb")
 
-    def call(self, cmd: str, **arguments) -> object:
+    def call(self, cmd: str, **arguments: Any) -> Any:
+        """Send one command; its JSON result, whose shape the command defines (see `help`)."""
         with self._lock:
             if self._sock is None or self._file is None:
                 self._connect()

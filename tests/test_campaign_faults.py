@@ -26,26 +26,25 @@ def _hil_run(procedure: str, cell_toml, campaign, *extra: str) -> list[str]:
 @pytest.mark.timeout(400)
 def test_beam_breaks_protective_stop_dropped_tracker_and_latency_spike_are_ridden_through(tmp_path):
     campaign = tmp_path / "campaign.sqlite"
-    with running_cell(tmp_path, seed=5) as (cell, config):
-        with session_on(config, campaign) as session:
-            registration.run(session)
-            control = cell.control
-            control.call("tracker.fault", kind="beam_break", rate=0.05)
-            control.call("robot.fault", kind="protective_stop", at_move=4, fraction=0.5)
-            control.call("robot.fault", kind="latency", at_move=9, fraction=0.3, duration_s=0.2)
-            result = None
-            for _ in range(10):  # a dropped tracker link or a stubborn fault may stop the run: resume it
-                if _ == 1:
-                    control.call("tracker.fault", kind="drop", when="now")
-                try:
-                    result = grid_sampling.run(session, step_mm=200, validation=6)
-                    break
-                except Exception as exc:  # noqa: BLE001 - CampaignStopped names what to do; resume
-                    assert "next:" in str(exc), exc
-                    control.call("tracker.fault", kind="beam_break", rate=0.05)
-            assert result is not None
-            assert result.recorded == result.planned and result.validation_recorded == 6
-            events = session.store.events()
+    with running_cell(tmp_path, seed=5) as (cell, config), session_on(config, campaign) as session:
+        registration.run(session)
+        control = cell.control
+        control.call("tracker.fault", kind="beam_break", rate=0.05)
+        control.call("robot.fault", kind="protective_stop", at_move=4, fraction=0.5)
+        control.call("robot.fault", kind="latency", at_move=9, fraction=0.3, duration_s=0.2)
+        result = None
+        for _ in range(10):  # a dropped tracker link or a stubborn fault may stop the run: resume it
+            if _ == 1:
+                control.call("tracker.fault", kind="drop", when="now")
+            try:
+                result = grid_sampling.run(session, step_mm=200, validation=6)
+                break
+            except Exception as exc:  # noqa: BLE001 - CampaignStopped names what to do; resume
+                assert "next:" in str(exc), exc
+                control.call("tracker.fault", kind="beam_break", rate=0.05)
+        assert result is not None
+        assert result.recorded == result.planned and result.validation_recorded == 6
+        events = session.store.events()
     kinds = set(events["kind"])
     assert {"beam_break", "robot_fault", "retry"} <= kinds, kinds
     assert any("ProtectiveStop" in m for m in events["message"])
