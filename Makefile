@@ -25,6 +25,7 @@ bench: $(VENV)/.installed
 	$(PY) benchmarks/calibration.py
 	$(PY) benchmarks/tracker.py
 	$(PY) benchmarks/ur_fake.py
+	$(PY) benchmarks/runner.py
 
 clean:
 	rm -rf $(VENV)

@@ -18,6 +18,7 @@ COMMAND_MODULES: tuple[str, ...] = (
     "hil.commands.tracker",
     "hil.commands.cell",
     "hil.commands.run",
+    "hil.commands.campaign",
 )
 
 

@@ -18,6 +18,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+import pandas as pd
 
 from drivers.robot import ProtectiveStopError, Robot, RobotConnectionError, RobotError, RobotTimeoutError
 from drivers.tracker import (
@@ -35,7 +36,7 @@ from hil.operator import Operator, OperatorStep
 from hil.plan import Plan
 from hil.progress import Progress
 from hil.se3 import transform_points
-from hil.store import CampaignStore, MeasurementRecord, StoreLogHandler
+from hil.store import P_COLUMNS, Q_COLUMNS, T_COLUMNS, CampaignStore, MeasurementRecord, StoreLogHandler
 
 log = logging.getLogger("hil")
 
@@ -65,22 +66,16 @@ class RecordedPoints:
     p_tracker_m: np.ndarray  # (N, 3)
 
     @classmethod
-    def from_frame(cls, df) -> RecordedPoints:
-        n = len(df)
+    def from_frame(cls, df: pd.DataFrame) -> RecordedPoints:
+        """From CampaignStore.measurements (flat columns)."""
         return cls(
-            point_id=df["point_id"].tolist() if n else [],
-            step=df["step"].tolist() if n else [],
-            location=df["location"].tolist() if n else [],
-            q_rad=_stack(df, "q_rad", (6,)),
-            T_base_flange=_stack(df, "T_base_flange", (4, 4)),
-            p_tracker_m=_stack(df, "p_tracker_m", (3,)),
+            point_id=df["point_id"].tolist(),
+            step=df["step"].tolist(),
+            location=df["location"].tolist(),
+            q_rad=df[list(Q_COLUMNS)].to_numpy(float).reshape(-1, 6),
+            T_base_flange=df[list(T_COLUMNS)].to_numpy(float).reshape(-1, 4, 4),
+            p_tracker_m=df[list(P_COLUMNS)].to_numpy(float).reshape(-1, 3),
         )
-
-
-def _stack(df, column: str, shape: tuple[int, ...]) -> np.ndarray:
-    if len(df) == 0:
-        return np.zeros((0, *shape))
-    return np.stack([np.asarray(v, float).reshape(shape) for v in df[column]])
 
 
 @dataclass

@@ -15,6 +15,7 @@ import os
 import sqlite3
 import threading
 import time
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -37,6 +38,16 @@ P_COLUMNS = tuple(f"{a}_m" for a in _AXES)
 SPREAD_COLUMNS = tuple(f"spread_{a}_m" for a in _AXES)
 STD_COLUMNS = tuple(f"std_{a}_m" for a in _AXES)
 _REAL_COLUMNS = Q_TARGET_COLUMNS + Q_COLUMNS + T_COLUMNS + P_COLUMNS + SPREAD_COLUMNS + STD_COLUMNS
+_FLOAT_COLUMNS = frozenset(_REAL_COLUMNS + ("temperature_c", "pressure_hpa", "humidity_pct", "timestamp_s"))
+# MeasurementRecord array fields -> their flat REAL columns and shape
+ARRAY_FIELDS: dict[str, tuple[tuple[str, ...], tuple[int, ...]]] = {
+    "q_target_rad": (Q_TARGET_COLUMNS, (6,)),
+    "q_rad": (Q_COLUMNS, (6,)),
+    "T_base_flange": (T_COLUMNS, (4, 4)),
+    "p_tracker_m": (P_COLUMNS, (3,)),
+    "spread_m": (SPREAD_COLUMNS, (3,)),
+    "std_m": (STD_COLUMNS, (3,)),
+}
 MEASUREMENT_COLUMNS: tuple[str, ...] = (
     ("procedure", "step", "point_id")
     + _REAL_COLUMNS
@@ -153,7 +164,7 @@ class MeasurementRecord:
 
 def _json(value: object, what: str) -> str:
     try:
-        return json.dumps(to_jsonable(value), allow_nan=False, sort_keys=True)
+        return json.dumps(to_jsonable(value), allow_nan=False)
     except (TypeError, ValueError) as exc:
         raise ValueError(f"{what} is not JSON-able ({exc}); pass numbers, strings, lists and dicts") from exc
 
@@ -210,9 +221,28 @@ def _create(path: Path) -> None:
         os.link(tmp, path)  # fails if another process created the campaign meanwhile: keep theirs
     except FileExistsError:
         pass
+    except OSError:  # a file system without hard links
+        if not path.exists():
+            os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
     _fsync_dir(path.parent)
+    _remove_stale_temporaries(path)
+
+
+def _remove_stale_temporaries(path: Path) -> None:
+    """Remove half-built campaigns a killed process left beside `path` (its pid is in the name)."""
+    for leftover in path.parent.glob(f".{path.name}.*.creating*"):
+        try:
+            pid = int(leftover.name[len(path.name) + 2 :].split(".")[0])
+        except ValueError:
+            continue
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            leftover.unlink(missing_ok=True)
+        except OSError:
+            pass
 
 
 class CampaignStore:
@@ -222,7 +252,8 @@ class CampaignStore:
         self.path = Path(path)
         if not self.path.exists() or self.path.stat().st_size == 0:
             if not create:
-                raise CampaignError(f"campaign file not found: {self.path}")
+                what = "is empty" if self.path.exists() else "not found"
+                raise CampaignError(f"campaign file {what}: {self.path}; give the file a session wrote")
             if not self.path.parent.is_dir():
                 raise CampaignError(
                     f"cannot create campaign {self.path}: folder {self.path.parent} does not exist"
@@ -350,15 +381,42 @@ class CampaignStore:
             )
         return row is not None
 
-    def measurements(self, procedure: str | None = None, step: str | None = None) -> pd.DataFrame:
-        """Measurements in recording order, one flat row each (SI units; columns MEASUREMENT_COLUMNS + id)."""
+    def measurements(
+        self, procedure: str | None = None, step: str | Sequence[str] | None = None
+    ) -> pd.DataFrame:
+        """Measurements in recording order, one row each (SI units): id, the MEASUREMENT_COLUMNS (arrays
+        flattened: q1_rad.., x_m.., T_base_flange_00..) and the record's arrays as object columns
+        (q_target_rad, q_rad, T_base_flange (4, 4), p_tracker_m, spread_m, std_m)."""
+        df = self.measurement_columns(MEASUREMENT_COLUMNS, procedure, step)
+        df["rejected_shots"] = pd.Series(
+            [() if s == "[]" else tuple(json.loads(s)) for s in df["rejected_shots"]],
+            index=df.index,
+            dtype=object,
+        )
+        df["extra"] = pd.Series(
+            [{} if s == "{}" else json.loads(s) for s in df["extra"]], index=df.index, dtype=object
+        )
+        for name, (columns, shape) in ARRAY_FIELDS.items():  # the record's arrays, one per row
+            values = df[list(columns)].to_numpy(float).reshape(len(df), *shape)
+            df[name] = pd.Series(list(values), index=df.index, dtype=object)
+        return df
+
+    def measurement_columns(
+        self, columns: Sequence[str], procedure: str | None = None, step: str | Sequence[str] | None = None
+    ) -> pd.DataFrame:
+        """Only the given stored columns (plus id) of the measurements, in recording order, JSON left as text:
+        the fast read for analysis (`campaign_dataset`)."""
+        unknown = [c for c in columns if c not in MEASUREMENT_COLUMNS]
+        if unknown:
+            raise ValueError(
+                f"unknown measurement column(s) {unknown}; known: {', '.join(MEASUREMENT_COLUMNS)}"
+            )
         where, params = _where(procedure=procedure, step=step)
-        columns = ", ".join(f'"{c}"' for c in ("id",) + MEASUREMENT_COLUMNS)
-        df = self._frame(f"SELECT {columns} FROM measurements{where} ORDER BY id", params)
-        for col in _REAL_COLUMNS + ("temperature_c", "pressure_hpa", "humidity_pct"):
-            df[col] = df[col].astype(float)  # NULL (a NaN when recorded) -> NaN
-        df["rejected_shots"] = [tuple(json.loads(s)) for s in df["rejected_shots"]]
-        df["extra"] = [json.loads(s) for s in df["extra"]]
+        names = ", ".join(f'"{c}"' for c in ("id", *columns))
+        df = self._frame(f"SELECT {names} FROM measurements{where} ORDER BY id", params)
+        for col in columns:
+            if col in _FLOAT_COLUMNS:
+                df[col] = df[col].astype(float)  # NULL (a NaN when recorded) -> NaN
         return df
 
     def records(self, procedure: str | None = None, step: str | None = None) -> list[MeasurementRecord]:
@@ -488,19 +546,11 @@ def _where(**conditions: str | Sequence[str] | None) -> tuple[str, list[object]]
 def record_from_row(row: dict) -> MeasurementRecord:
     """A MeasurementRecord back from one row of `CampaignStore.measurements()`."""
 
-    def arr(cols: Sequence[str]) -> np.ndarray:
-        return np.array([row[c] for c in cols], float)
-
     return MeasurementRecord(
         procedure=row["procedure"],
         step=row["step"],
         point_id=row["point_id"],
-        q_target_rad=arr(Q_TARGET_COLUMNS),
-        q_rad=arr(Q_COLUMNS),
-        T_base_flange=arr(T_COLUMNS).reshape(4, 4),
-        p_tracker_m=arr(P_COLUMNS),
-        spread_m=arr(SPREAD_COLUMNS),
-        std_m=arr(STD_COLUMNS),
+        **{name: np.array(row[name], float) for name in ARRAY_FIELDS},
         shots=int(row["shots"]),
         rejected_shots=tuple(row["rejected_shots"]),
         smr=int(row["smr"]),
@@ -534,7 +584,7 @@ def load_campaign(
 ) -> pd.DataFrame:
     """The measurements of a campaign file as a DataFrame (see CampaignStore.measurements)."""
     with CampaignStore(path, create=False) as store:
-        return store.measurements(procedure, step)  # type: ignore[arg-type]
+        return store.measurements(procedure, step)
 
 
 def campaign_dataset(
@@ -548,7 +598,18 @@ def campaign_dataset(
     else:
         store, own = CampaignStore(path_or_store, create=False), True
     try:
-        m = store.measurements(procedure, step)  # type: ignore[arg-type]
+        needed = Q_COLUMNS + P_COLUMNS + SPREAD_COLUMNS + STD_COLUMNS
+        needed += (
+            "timestamp_s",
+            "temperature_c",
+            "smr",
+            "pressure_hpa",
+            "humidity_pct",
+            "shots",
+            "point_id",
+            "step",
+        )
+        m = store.measurement_columns(needed, procedure, step)
         started_s = store.started_s
         if m.empty:
             counts = store.point_counts()
@@ -567,8 +628,15 @@ def campaign_dataset(
         data[f"{a}_mm"] = m[f"{a}_m"].to_numpy(float) * 1000.0
     data["t_s"] = m["timestamp_s"].to_numpy(float) - started_s
     temperature = m["temperature_c"].to_numpy(float)
-    if np.all(np.isfinite(temperature)):
+    missing = int(np.sum(~np.isfinite(temperature)))
+    if missing == 0:
         data["temperature_c"] = temperature
+    elif missing < len(temperature):  # all missing: no sensor, nothing to say
+        warnings.warn(
+            f"{store.path}: temperature_c missing in {missing} of {len(temperature)} measurements of "
+            f"{procedure}; the dataset leaves the column out",
+            stacklevel=2,
+        )
     data["smr"] = m["smr"].to_numpy(int)
     for kind in ("spread", "std"):
         for a in _AXES:

@@ -102,6 +102,11 @@ def test_round_trip_is_bit_exact_and_survives_reopen(tmp_path):
         assert store.measurements("registration").empty
         assert store.started_s == recs[0].timestamp_s
     df = load_campaign(path, "grid_sampling", "grid")
+    # the record's arrays as columns too (flat REAL columns stay alongside: q1_rad.., x_m..)
+    np.testing.assert_array_equal(np.stack(df["T_base_flange"]), [r.T_base_flange for r in recs[:30]])
+    np.testing.assert_array_equal(np.stack(df["q_rad"]), df[[f"q{j}_rad" for j in range(1, 7)]].to_numpy())
+    np.testing.assert_array_equal(np.stack(df["p_tracker_m"])[:, 2], df["z_m"])
+    assert load_campaign(path, "tool_fit")["q_rad"].tolist() == []
     assert list(df["point_id"]) == [r.point_id for r in recs[:30]]
     assert np.isnan(df["humidity_pct"].iloc[3])
 
@@ -261,6 +266,13 @@ def test_dataset_export_csv_and_parquet(tmp_path):
     assert export_parquet(path, pq) == 16
     pd.testing.assert_frame_equal(pd.read_parquet(pq), df)
 
+    with CampaignStore(path) as store:
+        store.record_measurement(make_record(0, step="warm", temperature_c=float("nan")))
+        store.record_measurement(make_record(1, step="warm"))
+        store.record_measurement(make_record(0, step="cold", temperature_c=float("nan")))
+        with pytest.warns(UserWarning, match="temperature_c missing in 1 of 2"):
+            assert "temperature_c" not in campaign_dataset(store, step="warm")
+        assert "temperature_c" not in campaign_dataset(store, step="cold")  # no sensor: no column
     with pytest.raises(ValueError, match="no measurements of tool_fit.*grid_sampling/grid \\(12\\)"):
         campaign_dataset(path, "tool_fit")
 
@@ -271,6 +283,7 @@ WRITER = textwrap.dedent(
     import numpy as np
     from hil.store import CampaignStore, MeasurementRecord
 
+    print("open", flush=True)
     store = CampaignStore(sys.argv[1])
     store.record_event("resume", "writer started")
     for i in range(100000):
@@ -299,6 +312,7 @@ def test_sigkill_at_random_moments_loses_no_committed_record(tmp_path):
             [sys.executable, str(script), str(path)], stdout=subprocess.PIPE, text=True, cwd=REPO_ROOT
         )
         try:
+            assert child.stdout.readline() == "open\n"
             wanted = rng.randint(1, 40)
             for _ in range(wanted):  # wait for progress, not for a clock
                 line = child.stdout.readline()
@@ -325,3 +339,31 @@ def test_sigkill_at_random_moments_loses_no_committed_record(tmp_path):
         assert len(stored) - len(committed) in (0, 1)
         assert [r["i"] for r in df["extra"]] == stored
         committed = set(stored)  # what survived this kill must survive the next ones too
+
+
+def test_sigkill_while_creating_leaves_no_or_a_whole_campaign(tmp_path):
+    script = tmp_path / "writer.py"
+    script.write_text(WRITER)
+    rng = random.Random(99)
+    for trial in range(3):
+        path = tmp_path / f"new{trial}.hilc"
+        child = subprocess.Popen(
+            [sys.executable, str(script), str(path)], stdout=subprocess.PIPE, text=True, cwd=REPO_ROOT
+        )
+        try:
+            assert child.stdout.readline() == "open\n"  # about to create the file
+            time.sleep(rng.uniform(0.0, 0.02))
+            child.send_signal(signal.SIGKILL)
+            reported = [int(line) for line in child.stdout.read().split()]
+        finally:
+            child.kill()
+            child.wait(timeout=30)
+            child.stdout.close()
+        assert path.exists() or not reported
+        if path.exists():
+            assert is_campaign_file(path)
+        with CampaignStore(path) as store:  # absent: created now; present: whole and readable
+            assert store.integrity_ok()
+            stored = [int(p[1:]) for p in store.measurements()["point_id"]]
+        assert set(reported) <= set(stored) and stored == list(range(len(stored)))
+        assert not list(tmp_path.glob(f".{path.name}.*")), "a half-built campaign was left behind"

@@ -9,7 +9,8 @@ import numpy as np
 import pandas as pd
 
 from hil.calibration import calibrate
-from hil.dataset import DatasetError, load_dataset
+from hil.commands.inputs import read_measurements
+from hil.dataset import DatasetError
 from hil.robots import ROBOT_NAMES, get_robot
 
 
@@ -49,7 +50,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     try:
-        df = load_dataset(args.data)
+        df = read_measurements(args.data)
         tool = parse_mm_vector(args.tool_mm)
     except (DatasetError, ValueError, argparse.ArgumentTypeError) as exc:
         print(f"error: {exc}", file=sys.stderr)

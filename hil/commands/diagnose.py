@@ -9,7 +9,8 @@ import numpy as np
 import pandas as pd
 
 from hil.commands.calibrate import parse_mm_vector
-from hil.dataset import DatasetError, load_dataset
+from hil.commands.inputs import read_training_and_validation
+from hil.dataset import DatasetError
 from hil.diagnosis import DiagnosisReport, run_diagnosis
 from hil.effects import EFFECT_FAMILIES
 from hil.robots import ROBOT_NAMES, get_robot
@@ -56,8 +57,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     try:
-        df = load_dataset(args.data)
-        val = load_dataset(args.validate) if args.validate else None
+        df, val = read_training_and_validation(args.data, args.validate)
         tool = parse_mm_vector(args.tool_mm)
         families = tuple(f.strip() for f in args.families.split(",") if f.strip())
         unknown = [f for f in families if f not in EFFECT_FAMILIES]

@@ -7,7 +7,8 @@ import sys
 import warnings
 
 from hil.calibrated_model import CalibratedModel
-from hil.dataset import POSITION_COLUMNS, DatasetError, load_dataset
+from hil.commands.inputs import read_measurements
+from hil.dataset import POSITION_COLUMNS, DatasetError
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -26,7 +27,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     try:
         model = CalibratedModel.load(args.model)
-        df = load_dataset(args.data, require_positions=False)
+        df = read_measurements(args.data, require_positions=False)
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             p = model.predict(df)

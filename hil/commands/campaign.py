@@ -1,0 +1,170 @@
+"""`hil campaign show FILE` and `hil campaign export FILE --csv OUT | --parquet OUT`: read a campaign file."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from datetime import UTC, datetime
+from pathlib import Path
+
+import pandas as pd
+
+from hil.dataset import DatasetError
+from hil.store import CampaignError, CampaignStore, export_csv, export_parquet, is_campaign_file
+
+SNAPSHOT_SECTIONS = ("cell", "robot", "tracker", "software")
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    parser = subparsers.add_parser(
+        "campaign",
+        help="inspect or export a campaign file (the SQLite store a measurement session writes)",
+        description="Show what a campaign file holds, or export one procedure's measurements in the dataset "
+        "contract (CSV for hil calibrate/diagnose, or Parquet).",
+    )
+    sub = parser.add_subparsers(dest="campaign_command", metavar="ACTION")
+    show = sub.add_parser("show", help="station snapshot, steps, points, events and the last log lines")
+    show.add_argument("file", help="campaign file")
+    show.add_argument("--log-lines", type=int, default=10, help="last log lines to print (default 10)")
+    show.set_defaults(func=run_show)
+    export = sub.add_parser("export", help="write one procedure's measurements as a dataset CSV or Parquet")
+    export.add_argument("file", help="campaign file")
+    export.add_argument("--csv", default=None, help="CSV file to write (dataset contract)")
+    export.add_argument("--parquet", default=None, help="Parquet file to write (same columns)")
+    export.add_argument(
+        "--procedure", default="grid_sampling", help="procedure to export (default grid_sampling)"
+    )
+    export.add_argument("--step", default=None, help="export only this step (default: all of them)")
+    export.set_defaults(func=run_export)
+    parser.set_defaults(func=lambda args: _usage(parser))
+
+
+def _usage(parser: argparse.ArgumentParser) -> int:
+    parser.print_help(sys.stderr)
+    return 2
+
+
+def _fail(message: str) -> int:
+    print(f"error: {message}", file=sys.stderr)
+    return 2
+
+
+def _check_campaign(path: str) -> str | None:
+    """Why `path` cannot be read as a campaign (one line with what to do), or None."""
+    p = Path(path)
+    if not p.exists():
+        return f"campaign file not found: {p}; give the path of a campaign a session wrote"
+    if not is_campaign_file(p):
+        return f"{p} is not a hil campaign file; give the campaign file a session wrote (hil run --campaign FILE); a CSV is already a dataset"
+    return None
+
+
+def _utc(t_s: float) -> str:
+    if pd.isna(t_s):
+        return "?"
+    return datetime.fromtimestamp(float(t_s), UTC).strftime("%Y-%m-%d %H:%M:%S UTC")
+
+
+def _summary(section: object) -> str:
+    if not isinstance(section, dict):
+        return str(section)
+    parts = [f"{k}={v}" for k, v in section.items() if not isinstance(v, dict | list)]
+    nested = [k for k, v in section.items() if isinstance(v, dict | list)]
+    return " ".join(parts + ([f"(+{', '.join(nested)})"] if nested else [])) or "(empty)"
+
+
+def _snapshot_section(snapshot: dict, key: str) -> dict | None:
+    """One part of a station snapshot, wherever the session put it: top level, inside the cell
+    configuration ([robot], [tracker] tables) or among the station facts read from the instruments."""
+    cell = snapshot.get("cell") if isinstance(snapshot.get("cell"), dict) else {}
+    station = snapshot.get("station") if isinstance(snapshot.get("station"), dict) else {}
+    if key == "cell":
+        if not cell and "source" not in snapshot:
+            return None
+        out = {"source": snapshot["source"]} if "source" in snapshot else {}
+        return {**out, **{k: v for k, v in cell.items() if k not in ("robot", "tracker")}}
+    found: dict = {}
+    for part in (snapshot.get(key), cell.get(key), station.get(key)):
+        if isinstance(part, dict):
+            found.update(part)
+        elif part is not None:
+            found[key] = part
+    prefix = f"{key}_"
+    found.update({k[len(prefix) :]: v for k, v in station.items() if k.startswith(prefix)})
+    return found or None
+
+
+def run_show(args: argparse.Namespace) -> int:
+    problem = _check_campaign(args.file)
+    if problem:
+        return _fail(problem)
+    try:
+        with CampaignStore(args.file, create=False) as store:
+            snapshots = store.snapshots()
+            counts = store.point_counts()
+            steps = store.steps()
+            events = store.events()
+            log = store.log_lines(last=max(args.log_lines, 0))
+            created_s = store.created_s
+    except CampaignError as exc:
+        return _fail(str(exc))
+
+    print(f"campaign {args.file}: created {_utc(created_s)}, {int(counts['points'].sum())} measurements")
+    if counts.size:
+        print(f"  measured from {_utc(counts['first_s'].min())} to {_utc(counts['last_s'].max())}")
+    print(f"station snapshots: {len(snapshots)} (one per session start)")
+    if snapshots:
+        last = snapshots[-1]
+        for key in SNAPSHOT_SECTIONS:
+            section = _snapshot_section(last, key)
+            print(f"  {key:<9} {_summary(section) if section else '(not recorded)'}")
+        others = [k for k in last if k not in SNAPSHOT_SECTIONS + ("station", "source")]
+        if others:
+            print(f"  also: {', '.join(others)}")
+
+    finished = steps.drop_duplicates(["procedure", "step"], keep="last").set_index(["procedure", "step"])
+    keys = list(
+        dict.fromkeys(list(zip(counts["procedure"], counts["step"], strict=True)) + list(finished.index))
+    )
+    points = dict(zip(zip(counts["procedure"], counts["step"], strict=True), counts["points"], strict=True))
+    print("steps:" if keys else "steps: none")
+    if keys:
+        print(f"  {'procedure':<18}{'step':<22}{'points':>7}  status")
+        for key in keys:
+            status = f"finished {_utc(finished.loc[key, 'recorded_s'])}" if key in finished.index else "open"
+            print(f"  {key[0]:<18}{key[1]:<22}{points.get(key, 0):>7}  {status}")
+
+    if events.empty:
+        print("events: none")
+    else:
+        by_kind = events.groupby("kind", sort=False).size()
+        print("events: " + ", ".join(f"{kind} {n}" for kind, n in by_kind.items()))
+        for row in events.tail(5).itertuples():
+            where = "/".join(str(v) for v in (row.procedure, row.step, row.point_id) if v is not None)
+            print(f"  {_utc(row.recorded_s)} {row.kind}: {row.message}" + (f" [{where}]" if where else ""))
+    if not log.empty:
+        print(f"last {len(log)} log line(s):")
+        for row in log.itertuples():
+            print(f"  {_utc(row.recorded_s)} {row.level:<7} {row.logger}: {row.message}")
+    return 0
+
+
+def run_export(args: argparse.Namespace) -> int:
+    problem = _check_campaign(args.file)
+    if problem:
+        return _fail(problem)
+    if (args.csv is None) == (args.parquet is None):
+        return _fail("give exactly one of --csv OUT or --parquet OUT")
+    out = Path(args.csv or args.parquet)
+    if not out.parent.is_dir():
+        return _fail(f"output folder {out.parent} does not exist; create it or choose another path")
+    if out.exists() and out.resolve() == Path(args.file).resolve():
+        return _fail("the output would overwrite the campaign file itself; choose another output path")
+    write = export_csv if args.csv else export_parquet
+    try:
+        rows = write(args.file, out, args.procedure, args.step)
+    except (DatasetError, CampaignError, ValueError) as exc:
+        return _fail(str(exc))
+    what = args.procedure + (f"/{args.step}" if args.step else "")
+    print(f"{rows} measurements of {what} written to {out}")
+    return 0

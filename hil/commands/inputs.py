@@ -1,0 +1,46 @@
+"""Measurement input of the analysis commands: a dataset CSV or a campaign file, read the same way."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pandas as pd
+
+from hil.dataset import load_dataset
+from hil.store import CampaignStore, campaign_dataset, is_campaign_file
+
+CAMPAIGN_PROCEDURE = "grid_sampling"  # the procedure whose measurements the analysis commands read
+TRAINING_STEP = "grid"
+VALIDATION_STEP = "validation"
+
+
+def read_measurements(
+    path: str | Path, step: str | None = None, *, require_positions: bool = True
+) -> pd.DataFrame:
+    """The dataset-contract frame of `path`: a campaign file (its grid_sampling measurements, one step or
+    all of them) or a dataset CSV (hil.dataset.load_dataset). Raises DatasetError/ValueError on bad input."""
+    if is_campaign_file(path):
+        return campaign_dataset(path, CAMPAIGN_PROCEDURE, step)
+    return load_dataset(path, require_positions=require_positions)
+
+
+def _campaign_steps(path: str | Path) -> set[str]:
+    if not is_campaign_file(path):
+        return set()
+    with CampaignStore(path, create=False) as store:
+        counts = store.point_counts()
+    return set(counts.loc[counts["procedure"] == CAMPAIGN_PROCEDURE, "step"])
+
+
+def read_training_and_validation(
+    path: str | Path, validate: str | Path | None = None
+) -> tuple[pd.DataFrame, pd.DataFrame | None]:
+    """Training and validation frames. A campaign with both a 'grid' and a 'validation' step trains on
+    'grid' only and validates on 'validation', unless a separate validation file is given; a campaign
+    given as the validation file gives its 'validation' step when it has one (else all its points)."""
+    both = {TRAINING_STEP, VALIDATION_STEP} <= _campaign_steps(path)
+    df = read_measurements(path, TRAINING_STEP if both else None)
+    if validate is not None:
+        has_validation = VALIDATION_STEP in _campaign_steps(validate)
+        return df, read_measurements(validate, VALIDATION_STEP if has_validation else None)
+    return df, (read_measurements(path, VALIDATION_STEP) if both else None)
