@@ -1,4 +1,4 @@
-# Two entry points: `make demo` (main job on the simulated cell) and `make test` (ruff + pytest).
+# Two entry points: `make demo` (main job on the simulated cell) and `make test` (ruff + import layers + mypy + pytest).
 PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
@@ -16,6 +16,8 @@ demo: $(VENV)/.installed
 
 test: $(VENV)/.installed
 	$(VENV)/bin/ruff check .
+	$(VENV)/bin/lint-imports
+	$(VENV)/bin/mypy
 	$(PY) -m pytest -q
 
 bench: $(VENV)/.installed

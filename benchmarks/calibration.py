@@ -197,15 +197,21 @@ def grid_paper(seed: int) -> None:
 
 def diagnosis_timing(seed: int) -> None:
     """The whole diagnosis loop on the simulated UR10 cell (compliance + backlash) at three grid steps."""
-    from fakes.campaign import grid_joints, simulate_campaign
-    from fakes.cell import CellConfig, SimulatedCell
+    from fakes.campaign import simulate_campaign
+    from fakes.cell import SimCellConfig, SimulatedCell
     from hil.diagnosis import run_diagnosis
+    from hil.planners import facing_poses, grid_points, plan_joints, workspace_box
 
     print("\nDiagnosis loop on the simulated UR10 (gravity compliance + backlash), grid campaigns")
     print(f"{'grid mm':>8} {'points':>7} {'time s':>7}  effects found")
     for step in (0.15, 0.10, 0.07):
-        cell = SimulatedCell(CellConfig(robot="ur10", seed=seed, backlash=True))
-        df = simulate_campaign(cell, grid_joints(cell, step_m=step, seed=seed))
+        cell = SimulatedCell(SimCellConfig(robot="ur10", seed=seed, backlash=True))
+        # planned as grid sampling plans it: the tracker's position, the tool drawing, the nominal model
+        p_base_tracker = np.linalg.inv(cell.T_tracker_base)[:3, 3]
+        points = grid_points(workspace_box(cell.nominal, p_base_tracker), step)
+        poses = facing_poses(points, p_base_tracker, np.random.default_rng(seed))
+        plan = plan_joints(cell.nominal, poses, np.asarray(cell.config.tool_nests_flange_m[0]), cell.config.q_home_rad)
+        df = simulate_campaign(cell, plan.q[plan.usable])
         t0 = time.perf_counter()
         report = run_diagnosis(df, "ur10")
         dt = time.perf_counter() - t0

@@ -16,15 +16,15 @@ import statistics
 import time
 
 from drivers import emscon_codec as codec
-from drivers.emscon import EmsconTracker
+from drivers.emscon import EmsconConfig, EmsconTracker
 
 
 def _serve(conn, seed: int) -> None:
-    from fakes.cell import CellConfig, SimulatedCell
+    from fakes.cell import SimCellConfig, SimulatedCell
     from fakes.emscon_server import EmsconServer, EmsconServerConfig
 
     async def main() -> None:
-        cell = SimulatedCell(CellConfig(seed=seed))
+        cell = SimulatedCell(SimCellConfig(seed=seed))
         server = EmsconServer(cell, config=EmsconServerConfig(initialized=True, initial_lock_smr=2))
         await server.start()
         pty = await server.open_pty()
@@ -39,7 +39,7 @@ def _serve(conn, seed: int) -> None:
 def _bench_raw(url: str, meas_time_s: float, shots: int) -> dict:
     """Baseline: a bare socket client (no driver) measuring the same way; what remains is fake + TCP."""
     host, port = url.removeprefix("socket://").rsplit(":", 1)
-    with EmsconTracker(url=url, meas_time_s=meas_time_s):
+    with EmsconTracker(EmsconConfig(url=url, meas_time_s=meas_time_s)):
         pass  # leaves the server in our units and measurement time
     sock = socket.create_connection((host, int(port)))
     sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
@@ -70,7 +70,7 @@ def _summary(per_shot: list[float], meas_time_s: float) -> dict:
 
 
 def _bench(url: str, meas_time_s: float, shots: int) -> dict:
-    with EmsconTracker(url=url, meas_time_s=meas_time_s) as tracker:
+    with EmsconTracker(EmsconConfig(url=url, meas_time_s=meas_time_s)) as tracker:
         tracker.measure()  # warm-up
         per_shot = []
         for _ in range(shots):

@@ -32,6 +32,7 @@ from drivers.tracker import (
     NotInitializedError,
     OutlierError,
     TrackerCommandError,
+    TrackerConfigError,
     TrackerConnectionError,
     TrackerError,
     TrackerMeasurement,
@@ -77,7 +78,7 @@ def _choice(value, names: dict, option: str):
     """An enum value given as itself or by name; a clear error naming the choices otherwise."""
     if isinstance(value, str):
         if value not in names:
-            raise ValueError(f"{option} must be one of {sorted(names)}, got {value!r}")
+            raise TrackerConfigError(f"{option} must be one of {sorted(names)}, got {value!r}")
         return names[value]
     return value
 
@@ -98,11 +99,11 @@ def status_error(command: int, status: int, context: str = "") -> TrackerError:
     name = _STATUS_NAMES.get(status, "?")
     what = f"{_command_name(command)} failed with status {status} ({name}){': ' + context if context else ''}"
     if status in codec.NO_TARGET_STATUSES:
-        return NoTargetError(f"{what}; no target locked or beam broken: re-aim at the SMR and clear the beam")
+        return NoTargetError(f"{what}; no target locked or beam broken")
     if status == Status.TRACKER_NOT_INITIALIZED:
-        return NotInitializedError(f"{what}; initialize the tracker first")
+        return NotInitializedError(f"{what}; the tracker is not initialized")
     if status == Status.METEO_DATA_OUT_OF_RANGE:
-        return MeteoOutOfRangeError(f"{what}; temperature/pressure/humidity out of range (check units)")
+        return MeteoOutOfRangeError(f"{what}; temperature/pressure/humidity out of range")
     return TrackerCommandError(what, command, status)
 
 
@@ -129,22 +130,29 @@ class EmsconConfig:
     outlier_floor_m: float = 50e-6  # ...but never closer than this
     busy_retry_s: float = 0.02
 
+    @classmethod
+    def from_mapping(cls, values: dict) -> EmsconConfig:
+        """Build from a cell configuration section (e.g. parsed TOML/JSON); unknown keys are an error."""
+        known = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise TrackerConfigError(f"unknown emScon settings {unknown}; known: {sorted(known)}")
+        return cls(**values)
+
+    def __post_init__(self) -> None:
+        self.length_unit = _choice(self.length_unit, LENGTH_UNITS, "length_unit")
+        self.angle_unit = _choice(self.angle_unit, ANGLE_UNITS, "angle_unit")
+        self.coordinate_system = _choice(self.coordinate_system, COORDINATE_SYSTEMS, "coordinate_system")
+        if not 0 < self.meas_time_s <= 3600:
+            raise TrackerConfigError(f"meas_time_s must be in (0, 3600] s, got {self.meas_time_s}")
+        if self.coordinate_system not in codec.SUPPORTED_SYSTEMS:
+            raise TrackerConfigError(f"coordinate_system must be RHR, SCC or SCW, got {self.coordinate_system!r}")
+
 
 class EmsconTracker:
     """Leica emScon tracker driver implementing drivers.tracker.Tracker."""
 
-    def __init__(self, config: EmsconConfig | None = None, **overrides):
-        unknown = set(overrides) - {f.name for f in dataclasses.fields(EmsconConfig)}
-        if unknown:
-            raise TypeError(f"unknown EmsconConfig option(s) {sorted(unknown)}")
-        config = dataclasses.replace(config or EmsconConfig(), **overrides)
-        config.length_unit = _choice(config.length_unit, LENGTH_UNITS, "length_unit")
-        config.angle_unit = _choice(config.angle_unit, ANGLE_UNITS, "angle_unit")
-        config.coordinate_system = _choice(config.coordinate_system, COORDINATE_SYSTEMS, "coordinate_system")
-        if config.meas_time_s <= 0 or config.meas_time_s > 3600:
-            raise ValueError(f"meas_time_s must be in (0, 3600] s, got {config.meas_time_s}")
-        if config.coordinate_system not in codec.SUPPORTED_SYSTEMS:
-            raise ValueError(f"coordinate_system must be RHR, SCC or SCW, got {config.coordinate_system!r}")
+    def __init__(self, config: EmsconConfig):
         self.config = config
         self.units = codec.Units(length=config.length_unit, angle=config.angle_unit)
         self._lock = threading.RLock()
@@ -279,14 +287,21 @@ class EmsconTracker:
         self.initialized = bool(info & codec.MSI_INITIALIZED)
 
     # ---- byte stream -------------------------------------------------------------------------------------
+    @property
+    def _open_port(self) -> serial.SerialBase:
+        """The byte stream; every exchange runs after the connect-time setup has opened it."""
+        if self._port is None:
+            raise TrackerConnectionError(f"{self.config.url} is not open")
+        return self._port
+
     def _lost(self, exc: Exception) -> TrackerConnectionError:
         url = self.config.url
         self.close()
-        return TrackerConnectionError(f"connection to {url} lost: {exc}; the next call reconnects")
+        return TrackerConnectionError(f"connection to {url} lost: {exc}")
 
     def _write(self, data: bytes) -> None:
         try:
-            self._port.write(data)
+            self._open_port.write(data)
         except (OSError, serial.SerialException) as exc:
             raise self._lost(exc) from exc
 
@@ -307,7 +322,7 @@ class EmsconTracker:
             if packet is not None:
                 return self._decode(packet, what)
             try:
-                data = self._port.read(self._splitter.bytes_needed())
+                data = self._open_port.read(self._splitter.bytes_needed())
             except (OSError, serial.SerialException) as exc:
                 raise self._lost(exc) from exc
             self._splitter.extend(data)
@@ -317,13 +332,13 @@ class EmsconTracker:
         noted as unsolicited, so an old error packet is never read as the answer to the new command."""
         while True:
             try:
-                waiting = self._port.in_waiting
+                waiting = self._open_port.in_waiting
             except (OSError, serial.SerialException) as exc:
                 raise self._lost(exc) from exc
             if not waiting:
                 break
             try:
-                self._splitter.extend(self._port.read(waiting))
+                self._splitter.extend(self._open_port.read(waiting))
             except (OSError, serial.SerialException) as exc:
                 raise self._lost(exc) from exc
         while True:
@@ -403,13 +418,13 @@ class EmsconTracker:
         self._splitter.reset()
         while time.monotonic() < deadline:
             try:
-                data = self._port.read(4096) if self._port.in_waiting else b""
+                data = self._open_port.read(4096) if self._open_port.in_waiting else b""
             except (OSError, serial.SerialException) as exc:
                 raise self._lost(exc) from exc
             if not data:
                 time.sleep(self.config.poll_s)
                 try:
-                    if not self._port.in_waiting:
+                    if not self._open_port.in_waiting:
                         return
                 except (OSError, serial.SerialException) as exc:
                     raise self._lost(exc) from exc
@@ -456,6 +471,8 @@ class EmsconTracker:
                             (_WATCHED_EVENTS[command], time.monotonic() + _OWN_EVENT_WINDOW_S)
                         )
                     if command == Command.GET_REFLECTORS:
+                        if packet.values is None:
+                            raise TrackerProtocolError("GetReflectors answered without a reflector count", packet.raw)
                         expected = max(1, packet.values[0])
                 elif isinstance(packet, codec.MeasResultPacket):
                     if not result:
@@ -504,7 +521,9 @@ class EmsconTracker:
                 self._deadline_cap = call_deadline  # setup and repeat must fit in the command's own timeout
         finally:
             self._deadline_cap = None
-        raise TrackerError("another client keeps changing the tracker's units/settings; stop it, then retry")
+        raise TrackerError(
+            "another client keeps changing the tracker's units/settings", "stop the other client, then retry"
+        )
 
     # ---- Tracker API -------------------------------------------------------------------------------------
     @_serialised

@@ -393,7 +393,8 @@ def cartesian_std_to_wire(
 # ---- layouts ---------------------------------------------------------------------------------------------
 # Parameters after the 12-byte command head (CT) and values after the 16-byte answer head (RT).
 _EMPTY = struct.Struct("<")
-COMMAND_PARAMS: dict[Command, struct.Struct] = {
+# Keyed by Command; looked up by the raw int of a packet (an IntEnum member hashes and compares as its int).
+COMMAND_PARAMS: dict[int, struct.Struct] = {
     Command.SET_TEMPERATURE_RANGE: struct.Struct("<i"),
     Command.SWITCH_LASER: struct.Struct("<i"),
     Command.SET_STATION_ORIENTATION_PARAMS: struct.Struct("<6d"),
@@ -420,7 +421,7 @@ COMMAND_PARAMS: dict[Command, struct.Struct] = {
     Command.FIND_REFLECTOR: struct.Struct("<d"),
     Command.SET_STATISTIC_MODE: struct.Struct("<2i"),
 }
-ANSWER_VALUES: dict[Command, struct.Struct] = {
+ANSWER_VALUES: dict[int, struct.Struct] = {
     Command.GET_TEMPERATURE_RANGE: struct.Struct("<i"),
     Command.GET_STATION_ORIENTATION_PARAMS: struct.Struct("<6d"),
     Command.GET_TRANSFORMATION_PARAMS: struct.Struct("<7d"),

@@ -36,7 +36,7 @@ class TrackerMeasurement:
     def shots_used(self) -> int:
         return len(self.shots_m) - len(self.rejected_shots)
 
-    def as_dict(self) -> dict:
+    def to_dict(self) -> dict:
         """JSON-able record with units in the keys."""
         return {
             "x_m": float(self.p_tracker_m[0]),
@@ -89,31 +89,51 @@ class Tracker(Protocol):
 
 
 class TrackerError(Exception):
-    """Base of every tracker failure."""
+    """Base of every tracker failure; `remedy` tells the operator or procedure what to do next."""
+
+    remedy = "check the tracker and its connection, then retry"
+
+    def __init__(self, message: str, remedy: str | None = None):
+        if remedy is not None:
+            self.remedy = remedy
+        super().__init__(f"{message} -- next: {self.remedy}")
+        self.message = message
 
 
 class NoTargetError(TrackerError):
-    """No target locked or the beam was broken: re-aim (point_at / find_target) and clear the line of sight."""
+    """No target locked or the beam was broken."""
+
+    remedy = "re-aim at the SMR (point_at / find_target) and clear the line of sight"
 
 
 class NotInitializedError(TrackerError):
-    """The tracker is not initialized: run its initialization (the head moves) before measuring."""
+    """The tracker is not initialized."""
+
+    remedy = "initialize the tracker (its head moves), then retry"
 
 
 class MeteoOutOfRangeError(TrackerError):
-    """Temperature, pressure or humidity out of the tracker's range: check the values and their units."""
+    """Temperature, pressure or humidity out of the tracker's range."""
+
+    remedy = "check the temperature, pressure and humidity values and their units"
 
 
 class TrackerTimeoutError(TrackerError):
     """No answer within the command's timeout."""
 
+    remedy = "check that the tracker is on and not busy; the next call resynchronises"
+
 
 class TrackerConnectionError(TrackerError):
-    """The byte stream could not be opened or was closed; the next call reconnects."""
+    """The byte stream could not be opened or was closed."""
+
+    remedy = "check the cable or network and the URL; the next call reconnects"
 
 
 class TrackerProtocolError(TrackerError):
     """Bytes that are not a valid packet of the protocol; `data` holds the bytes seen."""
+
+    remedy = "check that the URL reaches an emScon server; the next call resynchronises the stream"
 
     def __init__(self, message: str, data: bytes = b""):
         super().__init__(message)
@@ -123,6 +143,8 @@ class TrackerProtocolError(TrackerError):
 class TrackerCommandError(TrackerError):
     """The tracker refused a command with a status that has no dedicated error class."""
 
+    remedy = "look the status up in the emScon manual, check the tracker's state, then retry"
+
     def __init__(self, message: str, command: int, status: int):
         super().__init__(message)
         self.command = command
@@ -131,3 +153,11 @@ class TrackerCommandError(TrackerError):
 
 class OutlierError(TrackerError):
     """Too few shots survived outlier rejection to give a measurement."""
+
+    remedy = "keep the SMR and the robot still (vibration, air flow), then measure again"
+
+
+class TrackerConfigError(TrackerError, ValueError):
+    """A driver setting that cannot work (unknown key, unit or coordinate system, bad time)."""
+
+    remedy = "fix the setting named in the message; nothing was sent to the tracker"

@@ -10,7 +10,7 @@ calls give the same cell and the same readings.
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass
-from typing import Literal
+from typing import Literal, TypedDict, cast
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -41,19 +41,28 @@ JOINT_STIFFNESS: dict[str, tuple[float, ...]] = {
 }
 
 
-# Physical effects a cell can switch on beside its hidden geometric errors (CellConfig flags).
-CELL_EFFECTS: tuple[str, ...] = ("compliance", "cyclic", "backlash", "thermal")
+
+class EffectFlags(TypedDict, total=False):
+    """Physical effects a cell can switch on beside its hidden geometric errors (SimCellConfig flags)."""
+
+    compliance: bool
+    cyclic: bool
+    backlash: bool
+    thermal: bool
 
 
-def parse_effect_flags(text: str) -> dict[str, bool]:
-    """'compliance,thermal' (or 'none') -> CellConfig flags for every effect in CELL_EFFECTS."""
+CELL_EFFECTS: tuple[str, ...] = tuple(EffectFlags.__annotations__)
+
+
+def parse_effect_flags(text: str) -> EffectFlags:
+    """'compliance,thermal' (or 'none') -> SimCellConfig flags for every effect in CELL_EFFECTS."""
     chosen = set() if text.strip().lower() == "none" else {e.strip() for e in text.split(",") if e.strip()}
     unknown = chosen - set(CELL_EFFECTS)
     if unknown:
         raise ValueError(
             f"unknown effect(s) {sorted(unknown)}: choose from {', '.join(CELL_EFFECTS)} or none"
         )
-    return {name: name in chosen for name in CELL_EFFECTS}
+    return cast(EffectFlags, {name: name in chosen for name in CELL_EFFECTS})  # exactly EffectFlags' keys
 
 
 @dataclass(frozen=True)
@@ -83,9 +92,23 @@ class SmrLocation:
         if self.kind not in ("hole", "face", "nest", "fixed"):
             raise ValueError(f"unknown SmrLocation kind '{self.kind}': use hole, face, nest or fixed")
 
+    @property
+    def number(self) -> int:
+        """The hole or nest number (a hole or nest location always has one)."""
+        if self.index is None:
+            raise ValueError(f"SmrLocation kind '{self.kind}' has no hole or nest number")
+        return self.index
+
+    @property
+    def point(self) -> tuple[float, ...]:
+        """The face point (x, y) or the fixed point (x, y, z), metres (those kinds always have one)."""
+        if self.point_m is None:
+            raise ValueError(f"SmrLocation kind '{self.kind}' has no point_m")
+        return self.point_m
+
 
 @dataclass
-class CellConfig:
+class SimCellConfig:
     """Everything that defines a simulated cell. Defaults: a UR10 with realistic hidden errors and
     gravity compliance, an AT960-class tracker 2.5 m away, a three-nest tool and three SMRs."""
 
@@ -150,8 +173,8 @@ class CellConfig:
 class SimulatedCell:
     """One robot, one tracker, a flange with calibration holes, a tool with SMR nests, and SMRs."""
 
-    def __init__(self, config: CellConfig | None = None) -> None:
-        self.config = config or CellConfig()
+    def __init__(self, config: SimCellConfig | None = None) -> None:
+        self.config = config or SimCellConfig()
         cfg = self.config
         self.robot_name = cfg.robot.lower()
         self.nominal: KinematicModel = get_robot(self.robot_name)
@@ -279,7 +302,7 @@ class SimulatedCell:
         return self._q_cmd + self._noise_rng.normal(0, self.config.encoder_sigma_rad, self._q_cmd.shape)
 
     def true_joint_offsets(
-        self, q_cmd: np.ndarray, approach: np.ndarray, time_s: np.ndarray
+        self, q_cmd: np.ndarray, approach: np.ndarray, time_s: np.ndarray | float
     ) -> tuple[np.ndarray, np.ndarray]:
         """Output-side joint deviations (N, n) and the true frames (N, n+1, 4, 4) at those joints.
 
@@ -305,7 +328,7 @@ class SimulatedCell:
 
     def _true_geometry(self, time_s: np.ndarray) -> tuple[np.ndarray, ...]:
         m = self._true_model
-        growth = 1.0
+        growth: np.ndarray | float = 1.0
         if self.config.thermal:
             dT = np.asarray(self.structure_temperature_c(time_s)) - self.config.ambient_c
             growth = (1.0 + self.config.expansion_per_k * dT)[:, None]
@@ -326,9 +349,9 @@ class SimulatedCell:
         """The operator's hands: put SMR `smr_id` at `location`."""
         if smr_id not in self.smr_ids:
             raise ValueError(f"no SMR {smr_id}; the cell has SMRs {self.smr_ids}")
-        if location.kind == "hole" and not 1 <= location.index <= 7:
+        if location.kind == "hole" and not 1 <= location.number <= 7:
             raise ValueError(f"flange holes are numbered 1..7, got {location.index}")
-        if location.kind == "nest" and not 1 <= location.index <= len(self._nests_flange):
+        if location.kind == "nest" and not 1 <= location.number <= len(self._nests_flange):
             raise ValueError(f"tool nests are numbered 1..{len(self._nests_flange)}, got {location.index}")
         self._smr_locations[smr_id] = location
 
@@ -339,11 +362,12 @@ class SimulatedCell:
     def smr_point_flange(self, location: SmrLocation) -> np.ndarray | None:
         """True SMR centre in the flange frame for an on-robot location, None for a fixed one."""
         if location.kind == "hole":
-            return self._holes_flange[location.index - 1].copy()
+            return self._holes_flange[location.number - 1].copy()
         if location.kind == "nest":
-            return self._nests_flange[location.index - 1].copy()
+            return self._nests_flange[location.number - 1].copy()
         if location.kind == "face":
-            return np.array([location.point_m[0], location.point_m[1], SMR_RADIUS_M])
+            x, y = location.point
+            return np.array([x, y, SMR_RADIUS_M])
         return None
 
     def smr_center_tracker(self, smr_id: int) -> np.ndarray:
@@ -365,7 +389,7 @@ class SimulatedCell:
         to_tracker = -p / np.linalg.norm(p)
         return float(np.arccos(np.clip(T[:3, 2] @ to_tracker, -1.0, 1.0)))
 
-    def tracker_sigma_m(self, distance_m: np.ndarray | float) -> np.ndarray | float:
+    def tracker_sigma_m(self, distance_m: np.ndarray | float) -> np.ndarray:
         """Per-axis 1-sigma tracker noise at a distance: the MPE divided by `tracker_mpe_sigmas`."""
         cfg = self.config
         return (

@@ -11,7 +11,7 @@ import asyncio
 import contextlib
 import json
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 
 from hil.jsonable import to_jsonable
 
@@ -30,7 +30,7 @@ class ControlChannel:
         self.handlers: dict[str, Handler] = {"help": lambda request: sorted(self.handlers)}
         self._server: asyncio.AbstractServer | None = None
 
-    def add_handlers(self, handlers: dict[str, Handler]) -> None:
+    def add_handlers(self, handlers: Mapping[str, Handler]) -> None:
         clash = set(handlers) & set(self.handlers)
         if clash:
             raise ValueError(f"control commands registered twice: {sorted(clash)}")

@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import contextlib
+import io
 import json
 import socket
 import threading
+from typing import Any
 
 
 class ControlError(RuntimeError):
@@ -20,17 +22,19 @@ class ControlClient:
         self.host, self.port = host, int(port)
         self.timeout_s = timeout_s
         self._sock: socket.socket | None = None
-        self._file = None
+        self._file: io.BufferedIOBase | None = None
         self._lock = threading.Lock()
 
     def _connect(self) -> None:
         self._sock = socket.create_connection((self.host, self.port), timeout=self.timeout_s)
         self._file = self._sock.makefile("rwb")
 
-    def call(self, cmd: str, **arguments) -> object:
+    def call(self, cmd: str, **arguments: Any) -> Any:
+        """Send one command; its JSON result, whose shape the command defines (see `help`)."""
         with self._lock:
-            if self._sock is None:
+            if self._sock is None or self._file is None:
                 self._connect()
+            assert self._file is not None  # _connect opened it or raised
             try:
                 self._file.write((json.dumps({"cmd": cmd, **arguments}) + "\n").encode())
                 self._file.flush()

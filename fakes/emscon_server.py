@@ -93,7 +93,7 @@ class _Faults:
     outlier_offset_m: float = 0.0
     framing: str = "normal"  # "normal" | "bytewise" | "merged"
 
-    def as_dict(self) -> dict:
+    def to_dict(self) -> dict:
         """JSON-able view (bytes as hex)."""
         return {k: v.hex() if isinstance(v, bytes) else v for k, v in self.__dict__.items()}
 
@@ -297,8 +297,8 @@ class EmsconServer:
             self._server = None
         if self._pty_fds is not None:
             master, slave = self._pty_fds
-            self._loop.remove_reader(master)
-            self._loop.remove_writer(master)
+            self.loop.remove_reader(master)
+            self.loop.remove_writer(master)
             os.close(master)
             os.close(slave)
             self._pty_fds = None
@@ -318,6 +318,8 @@ class EmsconServer:
         return self.pty_path
 
     def _pty_readable(self, session: _Session) -> None:
+        if self._pty_fds is None:
+            return
         try:
             data = os.read(self._pty_fds[0], 65536)
         except (BlockingIOError, InterruptedError):
@@ -340,11 +342,11 @@ class EmsconServer:
                 n = os.write(master, self._pty_out)
                 del self._pty_out[:n]
         except BlockingIOError:
-            self._loop.add_writer(master, self._pty_flush)
+            self.loop.add_writer(master, self._pty_flush)
             return
         except OSError:
             self._pty_out.clear()
-        self._loop.remove_writer(master)
+        self.loop.remove_writer(master)
 
     async def _on_client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         sock = writer.get_extra_info("socket")
@@ -369,7 +371,14 @@ class EmsconServer:
         for session in list(self._sessions):
             session.send(*packets)
 
-    def _call_in_loop(self, fn: Callable[[], None]) -> None:
+    @property
+    def loop(self) -> asyncio.AbstractEventLoop:
+        """The event loop the server runs on (set by start() or open_pty())."""
+        if self._loop is None:
+            raise RuntimeError("the fake tracker is not started: await start() or open_pty() first")
+        return self._loop
+
+    def _call_in_loop(self, fn: Callable[[], object]) -> None:
         """Run fn on the server's loop (control handlers may be called from another thread)."""
         loop = self._loop
         if loop is None:
@@ -414,7 +423,7 @@ class EmsconServer:
         if st.locked_smr is None:
             return
         p = np.asarray(self.cell.smr_center_tracker(st.locked_smr), dtype=float)
-        wall = self._loop.time()
+        wall = self.loop.time()
         dt = max(self.cell.time_s - st.lock_sim_s, wall - st.lock_wall_s, 0.0)
         allowed = self.config.capture_m + self.config.max_tracking_speed_m_s * dt
         if np.linalg.norm(p - st.lock_p_m) > allowed or not self._visible(st.locked_smr):
@@ -931,7 +940,7 @@ class EmsconServer:
             raise ValueError(
                 f"unknown tracker fault {kind!r}; use beam_break, no_target, slow, drop, garbage, inject, outlier, framing, clear"
             )
-        return {"ok": True, "faults": f.as_dict()}
+        return {"ok": True, "faults": f.to_dict()}
 
     def _ctl_guide_beam(self, request: dict) -> dict:
         """The operator's hand: catch the beam on SMR `smr_id` and let the tracker lock onto it."""
@@ -948,7 +957,7 @@ class EmsconServer:
         self.faults = _Faults()
         if was_blocked:
             self._call_in_loop(self._unblock_beam)
-        return {"ok": True, "faults": self.faults.as_dict()}
+        return {"ok": True, "faults": self.faults.to_dict()}
 
     def _block_beam(self) -> None:
         self.faults.no_target = True
@@ -988,7 +997,7 @@ class EmsconServer:
             "exit_requests": st.exit_requests,
             "commands": dict(st.command_counts),
             "busy_replies": st.busy_replies,
-            "faults": self.faults.as_dict(),
+            "faults": self.faults.to_dict(),
         }
 
 
@@ -1035,7 +1044,7 @@ def main(argv: list[str] | None = None) -> int:
     import argparse
     import json
 
-    from fakes.cell import CellConfig, SimulatedCell
+    from fakes.cell import SimCellConfig, SimulatedCell
 
     parser = argparse.ArgumentParser(description="Fake Leica emScon tracker on a simulated cell.")
     parser.add_argument("--host", default="127.0.0.1", help="loopback address to bind")
@@ -1050,7 +1059,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--host must be a loopback address (127.0.0.0/8)")
 
     async def serve() -> None:
-        cell = SimulatedCell(CellConfig(seed=args.seed))
+        cell = SimulatedCell(SimCellConfig(seed=args.seed))
         server = EmsconServer(cell, args.host, args.port, EmsconServerConfig(initial_lock_smr=args.lock))
         await server.start()
         pty = await server.open_pty() if args.pty else None

@@ -1,5 +1,6 @@
-"""Start `hil sim` as a subprocess for tests and `hil demo`: pick a loopback address, read the ready
-line with a timeout, hand back the announced addresses and a control client, and always stop it."""
+"""Start the simulated cell (`python -m fakes.sim`) as a subprocess for tests and `hil demo`: pick a loopback
+address, read the ready line with a timeout, hand back the announced addresses and a control client, and
+always stop it."""
 
 from __future__ import annotations
 
@@ -25,7 +26,7 @@ _ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 @dataclass
 class RunningCell:
-    """A live `hil sim` process: its announcement, control client and process handle."""
+    """A live simulated cell process: its announcement, control client and process handle."""
 
     info: dict
     process: subprocess.Popen
@@ -68,11 +69,11 @@ def start_cell(
     ready_timeout_s: float = 30.0,
     attempts: int = 5,
 ) -> RunningCell:
-    """Spawn `python -m hil sim ...` and wait for its JSON line; retries other hosts if the address is taken."""
+    """Spawn `python -m fakes.sim ...` and wait for its JSON line; retries other hosts if the address is taken."""
     last_error = ""
     for _ in range(attempts):
         chosen = host or random_loopback_host()
-        args = [sys.executable, "-m", "hil", "sim", "--host", chosen, "--robot", robot, "--seed", str(seed)]
+        args = [sys.executable, "-m", "fakes.sim", "--host", chosen, "--robot", robot, "--seed", str(seed)]
         args += ["--time-scale", str(time_scale), *extra_args]
         if personality:
             args += ["--personality", personality]
@@ -94,7 +95,7 @@ def start_cell(
         if code == EXIT_ADDRESS_IN_USE and host is None:
             continue
         break
-    raise RuntimeError(f"hil sim did not become ready:\n{last_error}")
+    raise RuntimeError(f"the simulated cell did not become ready:\n{last_error}")
 
 
 def stop_cell(cell: RunningCell) -> None:
@@ -130,6 +131,8 @@ def _die_with_parent() -> None:
 
 def _read_line(process: subprocess.Popen, timeout_s: float) -> str | None:
     deadline = time.monotonic() + timeout_s
+    if process.stdout is None:
+        raise ValueError("the process was started without stdout=PIPE")
     fd = process.stdout.fileno()
     data = b""
     while b"\n" not in data:

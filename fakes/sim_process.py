@@ -1,4 +1,4 @@
-"""`hil sim`: the whole simulated cell in one process on one asyncio event loop.
+"""The whole simulated cell in one process on one asyncio event loop (`python -m fakes.sim`, `hil sim`).
 
 One `SimulatedCell`, the fake UR controller on its fixed ports, the fake emScon tracker, the control
 channel, and one clock task that owns simulated time (dt = wall dt x time scale). Adding a server is
@@ -23,7 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from fakes.cell import CellConfig, SimulatedCell, SmrLocation
+from fakes.cell import EffectFlags, SimCellConfig, SimulatedCell, SmrLocation
 from fakes.control_channel import ControlChannel
 from fakes.emscon_server import EmsconServer, EmsconServerConfig
 from fakes.ur_controller import UrController
@@ -45,7 +45,7 @@ class SimOptions:
     tracker_port: int = 7000
     script_start_delay_s: float = 0.05
     powered: bool = True
-    effects: dict[str, bool] = field(default_factory=dict)  # CellConfig flags, e.g. {'thermal': True}
+    effects: EffectFlags = field(default_factory=lambda: EffectFlags())  # e.g. {'thermal': True}; unset: defaults
     # Called with (ready line, ground truth) once every server listens, before the ready line is printed
     # (e.g. `hil sim --write-cell` writes the cell configuration for this cell).
     on_ready: Callable[[dict, dict], None] | None = None
@@ -127,7 +127,7 @@ class SimProcess:
     def __init__(self, options: SimOptions):
         self.options = options
         self.servers: list = []
-        self.cell = SimulatedCell(CellConfig(robot=options.robot, seed=options.seed, **options.effects))
+        self.cell = SimulatedCell(SimCellConfig(robot=options.robot, seed=options.seed, **options.effects))
         self.control = ControlChannel(options.host, options.control_port)
         self.robot: UrController | None = None
         self.clock: SimClock | None = None
@@ -160,8 +160,14 @@ class SimProcess:
         self.control.add_handlers(tracker.control_handlers())
         self.announcers.append(lambda: {"tracker": {"url": tracker.url, "port": tracker.port}})
 
+    def built(self) -> tuple[UrController, SimClock]:
+        """The controller and the clock that build() made."""
+        if self.robot is None or self.clock is None:
+            raise RuntimeError("SimProcess.build() has not run")
+        return self.robot, self.clock
+
     def announce(self) -> dict:
-        robot = self.robot
+        robot, clock = self.built()
         info = {
             "robot": {
                 "host": self.options.host,
@@ -175,7 +181,7 @@ class SimProcess:
             },
             "control": self.control.address,
             "seed": self.options.seed,
-            "time_scale": self.clock.time_scale,
+            "time_scale": clock.time_scale,
         }
         for announcer in self.announcers:
             info.update(announcer())
@@ -193,7 +199,7 @@ class SimProcess:
             for server in reversed(started):
                 await server.close()
             if exc.errno == errno.EADDRINUSE:
-                print(f"hil sim: address in use on {self.options.host}: {exc}", file=sys.stderr)
+                print(f"sim cell: address in use on {self.options.host}: {exc}", file=sys.stderr)
                 return EXIT_ADDRESS_IN_USE
             raise
         stop = asyncio.Event()
@@ -201,7 +207,7 @@ class SimProcess:
         for sig in (signal.SIGINT, signal.SIGTERM):
             with contextlib.suppress(NotImplementedError):
                 loop.add_signal_handler(sig, stop.set)
-        clock_task = asyncio.create_task(self.clock.run())
+        clock_task = asyncio.create_task(self.built()[1].run())
         info = self.announce()
         if self.options.on_ready is not None:
             self.options.on_ready(info, self.cell.ground_truth())
@@ -288,9 +294,10 @@ def cell_handlers(cell: SimulatedCell, clock: SimClock) -> dict:
     }
 
 
-def main(options: SimOptions) -> int:
+def run_cell(options: SimOptions) -> int:
+    """Run the cell until SIGINT/SIGTERM; the exit status (0, or EXIT_ADDRESS_IN_USE)."""
     logging.basicConfig(
         level=logging.DEBUG if os.environ.get("HIL_SIM_DEBUG") else logging.WARNING,
-        format="hil sim %(asctime)s %(levelname)s %(name)s: %(message)s",
+        format="sim cell %(asctime)s %(levelname)s %(name)s: %(message)s",
     )
     return asyncio.run(SimProcess(options).run())

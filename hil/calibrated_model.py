@@ -88,8 +88,9 @@ class CalibratedModel:
         """Effect context and per-row tool points (N, 3) for a dataset frame."""
         q = joints_rad(df, self.kinematic.n_joints)
         ctx = EffectContext.from_frame(df, q)
-        ctx.p_flange_tool = self._row_tools(smr_ids(df))
-        return ctx, ctx.p_flange_tool
+        p_flange_tool = self._row_tools(smr_ids(df))
+        ctx.p_flange_tool = p_flange_tool
+        return ctx, p_flange_tool
 
     def _row_tools(self, smr: np.ndarray) -> np.ndarray:
         missing = sorted(set(np.unique(smr).tolist()) - set(self.tools))
@@ -105,18 +106,18 @@ class CalibratedModel:
         dq = np.zeros_like(ctx.q)
         for eff in self.effects:
             if eff.kind == "joint":
-                dq[:, eff.joint - 1] += eff.cached_regressors(ctx, self.nominal) @ eff.params
+                dq[:, _joint_column(eff)] += eff.cached_regressors(ctx, self.nominal) @ eff.params
         return dq
 
     def predict_ctx(self, ctx: EffectContext) -> np.ndarray:
         """Predicted SMR centres (N, 3) in the tracker frame, metres."""
         q_eff = ctx.q + self.joint_offsets(ctx)
-        p_base = tool_points_rows(self.kinematic, q_eff, ctx.p_flange_tool)
+        p_base = tool_points_rows(self.kinematic, q_eff, _context_tools(ctx))
         offset = np.zeros_like(p_base)
         for eff in self.effects:
             if eff.kind == "growth":
                 g = eff.cached_regressors(ctx, self.nominal) @ eff.params
-                p_base = p_base + g[:, None] * growth_direction(self.kinematic, q_eff, ctx.p_flange_tool)
+                p_base = p_base + g[:, None] * growth_direction(self.kinematic, q_eff, _context_tools(ctx))
             elif eff.kind == "offset":
                 offset += eff.cached_regressors(ctx, self.nominal)[:, :1] * eff.params[None, :]
         R, t = self.T_tracker_base[:3, :3], self.T_tracker_base[:3, 3]
@@ -132,7 +133,7 @@ class CalibratedModel:
         p = self.predict_ctx(ctx)
         if with_map and self.residual_map is not None:
             q_eff = ctx.q + self.joint_offsets(ctx)
-            p_base = tool_points_rows(self.kinematic, q_eff, ctx.p_flange_tool)
+            p_base = tool_points_rows(self.kinematic, q_eff, _context_tools(ctx))
             p = p + map_from_dict(self.residual_map).predict(ctx.q, p_base)
         return p
 
@@ -150,7 +151,7 @@ class CalibratedModel:
                 continue
             _, Jg = identification_jacobian(self.kinematic, q_eff[rows], self.T_tracker_base, self.tools[sid])
             J[rows, :, : nk + 6] = Jg[:, :, : nk + 6]
-            J[np.ix_(rows, range(3), range(nk + 6 + 3 * k, nk + 9 + 3 * k))] = Jg[:, :, nk + 6 :]
+            J[np.ix_(rows, np.arange(3), np.arange(nk + 6 + 3 * k, nk + 9 + 3 * k))] = Jg[:, :, nk + 6 :]
         # A joint offset moves the point like the joint itself: the theta column of that joint.
         theta_cols = [
             self.kinematic.param_names.index(f"theta{j + 1}") for j in range(self.kinematic.n_joints)
@@ -159,10 +160,10 @@ class CalibratedModel:
         for eff, sl in zip(self.effects, self.effect_slices(), strict=True):
             reg = eff.cached_regressors(ctx, self.nominal)
             if eff.kind == "joint":
-                col = J[:, :, theta_cols[eff.joint - 1]]
+                col = J[:, :, theta_cols[_joint_column(eff)]]
                 J[:, :, sl] = col[:, :, None] * reg[:, None, :]
             elif eff.kind == "growth":
-                G = growth_direction(self.kinematic, q_eff, ctx.p_flange_tool) @ R.T
+                G = growth_direction(self.kinematic, q_eff, _context_tools(ctx)) @ R.T
                 J[:, :, sl] = G[:, :, None] * reg[:, None, :]
             else:
                 J[:, :, sl] = reg[:, :1, None] * np.eye(3)[None]
@@ -246,6 +247,20 @@ class CalibratedModel:
     @classmethod
     def load(cls, path: str | Path) -> CalibratedModel:
         return cls.from_dict(json.loads(Path(path).read_text()))
+
+
+def _context_tools(ctx: EffectContext) -> np.ndarray:
+    """The tool point of every row (N, 3), which CalibratedModel.context always sets."""
+    if ctx.p_flange_tool is None:
+        raise ValueError("the effect context has no tool points: build it with CalibratedModel.context(df)")
+    return ctx.p_flange_tool
+
+
+def _joint_column(effect: Effect) -> int:
+    """Column (0-based) of the joint a joint effect acts on."""
+    if effect.joint is None:
+        raise ValueError(f"the joint effect {effect.label} names no joint")
+    return effect.joint - 1
 
 
 def model_to_dict(m: KinematicModel) -> dict:

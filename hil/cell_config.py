@@ -226,6 +226,7 @@ def parse_cell_config(data: dict, source: str = "cell.toml") -> CellConfig:
     r.unknown_keys({"robot": ROBOT_DRIVER_KEYS})
     if r.problems:
         raise CellConfigError(source, r.problems)
+    assert nests_arr is not None  # a missing or malformed tool.nests_flange_mm is one of r.problems
     envelope = Envelope(box_min / 1e3, box_max / 1e3, np.deg2rad(jmin), np.deg2rad(jmax))
     home = np.deg2rad(home_deg)
     if envelope.joint_violations(home)[0]:

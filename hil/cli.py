@@ -7,6 +7,8 @@ import importlib
 import os
 import sys
 
+from hil.commands.errors import EXIT_USAGE, CliError
+
 # Each module defines `register(subparsers)`, which adds its parser and sets `func(args) -> int`.
 COMMAND_MODULES: tuple[str, ...] = (
     "hil.commands.demo",
@@ -39,9 +41,12 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
         parser.print_help()
-        return 2
+        return EXIT_USAGE
     try:
         return int(args.func(args) or 0)
+    except CliError as exc:
+        print(exc.render(args.command), file=sys.stderr)
+        return EXIT_USAGE
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return _exit_after_interrupt()

@@ -555,7 +555,9 @@ def solve_ik(
     seeds.extend([None] * restarts)
     seed_ok.extend([np.ones(N, bool)] * restarts)
 
-    q_best = project_to_limits(model, np.broadcast_to(seeds[0], (N, n)))
+    first = seeds[0]
+    assert first is not None  # q_seed, an analytic branch or q_near: never a random draw
+    q_best = project_to_limits(model, np.broadcast_to(first, (N, n)))
     e_best = prob.residual(q_best, np.arange(N))
     E_best = 0.5 * np.einsum("km,m,km->k", e_best, weights, e_best)
     iterations = np.zeros(N, int)

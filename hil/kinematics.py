@@ -55,7 +55,7 @@ class KinematicModel:
     @property
     def param_names(self) -> list[str]:
         """Names of the identifiable kinematic parameters, e.g. ['theta1', 'd1', 'a1', 'alpha1', ...]."""
-        names = []
+        names: list[str] = []
         for i in range(self.n_joints):
             kinds = PARAM_KINDS_MDH if self.uses_beta[i] else PARAM_KINDS_DH
             names.extend(f"{k}{i + 1}" for k in kinds)
@@ -74,7 +74,9 @@ class KinematicModel:
         arrays = {k: np.array(getattr(self, k), dtype=float) for k in ("theta", "d", "a", "alpha", "beta")}
         for nm, v in zip(self.param_names, values, strict=True):
             arrays[_kind(nm)][_joint(nm)] = v
-        return replace(self, **arrays)
+        return replace(
+            self, theta=arrays["theta"], d=arrays["d"], a=arrays["a"], alpha=arrays["alpha"], beta=arrays["beta"]
+        )
 
     def with_errors(self, errors: dict[str, float]) -> KinematicModel:
         """A copy with named parameter errors added, e.g. {'a2': 2e-4, 'beta2': 1e-4}."""

@@ -62,7 +62,7 @@ def _plots(report: DiagnosisReport) -> list[tuple[str, str]]:
         first, last = held[1] if len(held) > 2 else held[0], held[-1]
         bins = np.linspace(0, max(np.percentile(first[1], 99), np.percentile(last[1], 99)), 40)
         for label, values in (first, last):
-            ax.hist(values, bins=bins, alpha=0.55, label=label)
+            ax.hist(values, bins=bins.tolist(), alpha=0.55, label=label)
         ax.axvline(report.noise_floor_mm, color="k", ls="--", lw=1, label="noise floor (RMS)")
         ax.set_xlabel("held-out 3-D error (mm)")
         ax.set_ylabel("points")

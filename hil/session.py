@@ -353,7 +353,7 @@ class Session:
 
 
 def _software_versions() -> dict:
-    versions = {"python": platform.python_version(), "platform": platform.platform()}
+    versions: dict[str, str | None] = {"python": platform.python_version(), "platform": platform.platform()}
     from importlib import metadata
 
     for package in ("hil", "ur-rtde", "pyserial", "numpy", "scipy", "pandas"):

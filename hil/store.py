@@ -306,7 +306,9 @@ class CampaignStore:
     def _insert(self, sql: str, values: Sequence[object]) -> int:
         with self._lock:
             cur = self._db().execute(sql, values)  # autocommit: durable when execute returns
-            return int(cur.lastrowid)
+            if cur.lastrowid is None:
+                raise CampaignError(f"campaign store {self.path}: the insert added no row")
+            return cur.lastrowid
 
     def _frame(self, sql: str, params: Sequence[object] = ()) -> pd.DataFrame:
         with self._lock:

@@ -17,6 +17,7 @@ radius; a seated SMR's centre sits sqrt(R^2 - (d/2)^2) above the face.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -145,7 +146,8 @@ def _fit(
     by_id = {pid: k for k, pid in enumerate(data.point_id)}
     steps = sorted({p.step for p in the_plan.poses if p.step.startswith("pose")})
     n_nests = len(config.nests_flange_m)
-    per_pose, nest_values = [], {j: [] for j in range(1, n_nests + 1)}
+    per_pose: list[dict[str, Any]] = []
+    nest_values: dict[int, list[np.ndarray]] = {j: [] for j in range(1, n_nests + 1)}
     problems: list[str] = []
     for step in steps:
         k = step.removeprefix("pose")

@@ -45,10 +45,12 @@ def synthetic(n: int = 200, seed: int = 0, noise_m: float = 15e-6):
 
 def cell_datasets(step_m: float = 0.1, n_val: int = 100, seed: int = 0, **config):
     """A grid campaign (training) and random held-out poses (validation) on the simulated UR10 cell."""
-    from fakes.campaign import grid_joints, random_joints, simulate_campaign
-    from fakes.cell import CellConfig, SimulatedCell
+    from sim_campaigns import grid_joints, held_out_joints
 
-    cell = SimulatedCell(CellConfig(robot="ur10", seed=seed, **config))
+    from fakes.campaign import simulate_campaign
+    from fakes.cell import SimCellConfig, SimulatedCell
+
+    cell = SimulatedCell(SimCellConfig(robot="ur10", seed=seed, **config))
     train = simulate_campaign(cell, grid_joints(cell, step_m=step_m, seed=seed))
-    val = simulate_campaign(cell, random_joints(cell, n_val, seed=seed + 1))
+    val = simulate_campaign(cell, held_out_joints(cell, n_val, seed=seed + 1))
     return cell, train, val

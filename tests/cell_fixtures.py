@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from fakes.cell import SimulatedCell
+from fakes.cell import SimCellConfig, SimulatedCell
 from hil.cell_config import format_cell_toml
 from hil.commands.sim_cell import sim_cell_values
 
@@ -19,6 +19,4 @@ def sim_cell_toml(seed: int = 0, time_scale: float = 10.0) -> str:
 
 
 def _truth(seed: int) -> dict:
-    from fakes.cell import CellConfig
-
-    return SimulatedCell(CellConfig(seed=seed)).ground_truth()
+    return SimulatedCell(SimCellConfig(seed=seed)).ground_truth()

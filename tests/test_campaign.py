@@ -1,10 +1,12 @@
-"""Datasets straight from the simulated cell: grid and held-out joints, and the CSV dataset contract."""
+"""Campaigns on the simulated cell: joints planned by hil.planners, visited by fakes.campaign, in the CSV
+dataset contract."""
 
 import numpy as np
 import pytest
+from sim_campaigns import grid_joints, held_out_joints, sampling_box
 
-from fakes.campaign import grid_joints, random_joints, simulate_campaign, workspace_box
-from fakes.cell import CellConfig, SimulatedCell
+from fakes.campaign import simulate_campaign
+from fakes.cell import SimCellConfig, SimulatedCell
 from hil.kinematics import forward_kinematics
 
 CONTRACT_COLUMNS = [f"q{i}_rad" for i in range(1, 7)] + [
@@ -19,7 +21,7 @@ CONTRACT_COLUMNS = [f"q{i}_rad" for i in range(1, 7)] + [
 
 @pytest.fixture(scope="module")
 def cell() -> SimulatedCell:
-    return SimulatedCell(CellConfig(seed=11))
+    return SimulatedCell(SimCellConfig(seed=11))
 
 
 def test_grid_vertices_are_reached_with_the_smr_facing_the_tracker(cell):
@@ -29,8 +31,8 @@ def test_grid_vertices_are_reached_with_the_smr_facing_the_tracker(cell):
     p_nest = np.array(cell.config.tool_nests_flange_m[0])
     T = forward_kinematics(cell.nominal, q)
     p_base = T[:, :3, :3] @ p_nest + T[:, :3, 3]
-    centre, axes = workspace_box(cell)
-    local = (p_base - centre) @ (axes / np.linalg.norm(axes, axis=0) ** 2)
+    box = sampling_box(cell)
+    local = (p_base - box.centre_m) @ (box.axes_m / box.half_extents_m**2)
     assert np.all(np.abs(local) <= 1 + 1e-9)  # inside the box
     spacing = np.sort(np.linalg.norm(p_base[:, None] - p_base[None], axis=2), axis=1)[:, 1]
     np.testing.assert_allclose(np.median(spacing), 0.2, atol=1e-6)  # grid step honoured
@@ -41,7 +43,7 @@ def test_grid_vertices_are_reached_with_the_smr_facing_the_tracker(cell):
 
 def test_held_out_poses_are_distinct_from_the_grid(cell):
     q_grid = grid_joints(cell, step_m=0.2)
-    q_held = random_joints(cell, 40, seed=3)
+    q_held = held_out_joints(cell, 40, seed=3)
     assert q_held.shape == (40, 6)
     for qq in q_held:
         cell.set_commanded_joints(qq)
@@ -51,7 +53,7 @@ def test_held_out_poses_are_distinct_from_the_grid(cell):
 
 
 def test_campaign_rows_follow_the_dataset_contract(cell):
-    q = random_joints(cell, 25, seed=4)
+    q = held_out_joints(cell, 25, seed=4)
     df = simulate_campaign(cell, q, seconds_per_point=5.0)
     assert list(df.columns) == CONTRACT_COLUMNS
     assert len(df) == 25

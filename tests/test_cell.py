@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pytest
 
-from fakes.cell import SMR_RADIUS_M, CellConfig, SimulatedCell, SmrLocation
+from fakes.cell import SMR_RADIUS_M, SimCellConfig, SimulatedCell, SmrLocation
 from fakes.physics import chain_frames
 from hil.kinematics import forward_kinematics
 
@@ -13,17 +13,17 @@ RNG = np.random.default_rng(7)
 Q_RANDOM = RNG.uniform(-2.5, 2.5, (300, 6))
 
 
-def _perfect_config(**flags) -> CellConfig:
+def _perfect_config(**flags) -> SimCellConfig:
     """A cell with no geometric errors and every effect off, unless switched on by `flags`."""
-    return CellConfig(**{"geometric_errors": False, "compliance": False, **flags})
+    return SimCellConfig(**{"geometric_errors": False, "compliance": False, **flags})
 
 
 def test_same_seed_same_cell_and_noise():
-    a, b = SimulatedCell(CellConfig(seed=3)), SimulatedCell(CellConfig(seed=3))
+    a, b = SimulatedCell(SimCellConfig(seed=3)), SimulatedCell(SimCellConfig(seed=3))
     assert json.dumps(a.ground_truth()) == json.dumps(b.ground_truth())
     ra, rb = a.run_sequence(Q_RANDOM[:20]), b.run_sequence(Q_RANDOM[:20])
     np.testing.assert_array_equal(ra["p_tracker_measured"], rb["p_tracker_measured"])
-    c = SimulatedCell(CellConfig(seed=4))
+    c = SimulatedCell(SimCellConfig(seed=4))
     assert not np.allclose(a.T_tracker_base, c.T_tracker_base)
 
 
@@ -35,7 +35,7 @@ def test_true_chain_matches_hil_kinematics_when_effects_are_off():
 
 
 def test_geometric_errors_give_mm_level_absolute_error():
-    cell = SimulatedCell(CellConfig(compliance=False))
+    cell = SimulatedCell(SimCellConfig(compliance=False))
     r = cell.run_sequence(Q_RANDOM)
     T = cell.T_tracker_base @ forward_kinematics(cell.nominal, r["q_encoder"])
     p_nest = np.array(cell.ground_truth()["tool_nests_flange_m"][0])
@@ -96,7 +96,7 @@ def test_thermal_growth_follows_the_warming_clock():
 
 
 def test_tracker_noise_matches_configured_sigma():
-    cell = SimulatedCell(CellConfig(seed=1))
+    cell = SimulatedCell(SimCellConfig(seed=1))
     smr = 2  # fixed floor nest: only tracker noise moves its readings
     truth = cell.smr_center_tracker(smr)
     readings = cell.tracker_reading(smr, np.tile(truth, (4000, 1)))
@@ -108,7 +108,7 @@ def test_tracker_noise_matches_configured_sigma():
 
 
 def test_encoder_and_repeatability_noise():
-    cell = SimulatedCell(CellConfig(seed=2, compliance=False))
+    cell = SimulatedCell(SimCellConfig(seed=2, compliance=False))
     q = np.array([0.1, -1.2, 1.3, -1.6, -1.5, 0.3])
     cell.set_commanded_joints(q)
     enc = np.array([cell.encoder_joints() for _ in range(2000)])
@@ -122,7 +122,7 @@ def test_encoder_and_repeatability_noise():
 
 
 def test_flange_holes_follow_the_tool_paper_layout():
-    cell = SimulatedCell(CellConfig(hole_position_sigma_m=0.0))
+    cell = SimulatedCell(SimCellConfig(hole_position_sigma_m=0.0))
     holes = np.array(cell.ground_truth()["holes_flange_m"])
     radii = np.linalg.norm(holes[:6, :2], axis=1)
     np.testing.assert_allclose(radii, cell.config.hole_circle_radius_m, atol=1e-12)
@@ -153,6 +153,6 @@ def test_smr_placement_and_errors():
 
 def test_bad_config_is_refused():
     with pytest.raises(ValueError, match="unknown robot"):
-        CellConfig(robot="kuka")
+        SimCellConfig(robot="kuka")
     with pytest.raises(ValueError, match="finite"):
         SimulatedCell().set_commanded_joints(np.array([0, 0, np.nan, 0, 0, 0]))

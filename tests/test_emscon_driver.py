@@ -9,18 +9,21 @@ import pytest
 from rfc2217_bridge import Rfc2217Bridge
 
 from drivers import emscon_codec as codec
-from drivers.emscon import EmsconTracker
+from drivers.emscon import EmsconConfig, EmsconTracker
 from drivers.tracker import (
     MeteoOutOfRangeError,
     NoTargetError,
     NotInitializedError,
     Tracker,
+    TrackerConfigError,
     TrackerConnectionError,
     TrackerProtocolError,
     TrackerTimeoutError,
 )
-from fakes.cell import CellConfig, SimulatedCell, SmrLocation
+from fakes.cell import SimCellConfig, SimulatedCell, SmrLocation
 from fakes.emscon_server import EmsconServer, EmsconServerConfig, ServerThread
+
+pytestmark = pytest.mark.sim  # starts a simulated cell or a fake server over sockets
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -30,7 +33,7 @@ SMR = 2  # a floor-nest SMR of the default cell (always faces the tracker)
 
 @pytest.fixture
 def cell():
-    return SimulatedCell(CellConfig(seed=1))
+    return SimulatedCell(SimCellConfig(seed=1))
 
 
 @pytest.fixture
@@ -56,7 +59,7 @@ def url(request, server_thread):
 
 def _tracker(url, **options) -> EmsconTracker:
     options = {"meas_time_s": MEAS_S, "measurement_margin_s": 1.0, "command_timeout_s": 2.0, **options}
-    return EmsconTracker(url=url, **options)
+    return EmsconTracker(EmsconConfig(url=url, **options))
 
 
 def _fault(thread: ServerThread, **request) -> dict:
@@ -193,7 +196,7 @@ def test_not_initialized_and_meteo_out_of_range_are_typed(server_thread):
             tracker.measure()
         tracker.initialize()
         assert tracker.state().initialized
-        with pytest.raises(MeteoOutOfRangeError, match="check units"):
+        with pytest.raises(MeteoOutOfRangeError, match="and their units"):
             tracker.set_environment(20.0, 101.3, 45.0)  # kPa passed as hPa
         t, p, h = tracker.environment()
         assert (t, p, h) == pytest.approx((20.0, 1013.25, 45.0), abs=0.1)
@@ -221,12 +224,15 @@ def test_bad_arguments_are_refused_before_anything_is_sent(server_thread):
     assert not tracker.connected
     with pytest.raises(ValueError, match="ExitApplication"):
         tracker._exchange(codec.Command.EXIT_APPLICATION)
-    with pytest.raises(ValueError, match="coordinate_system"):
-        EmsconTracker(url="socket://127.0.0.1:1", coordinate_system=codec.CoordinateSystem.CCW)
-    with pytest.raises(ValueError, match=r"length_unit must be one of \['ft', 'in', 'm', 'mm', 'um'\]"):
-        EmsconTracker(url="socket://127.0.0.1:1", length_unit="cm")
-    with pytest.raises(TrackerConnectionError, match="cannot open"):
-        EmsconTracker(url="socket://127.0.0.1:1").connect()
+    with pytest.raises(TrackerConfigError, match="coordinate_system"):
+        EmsconConfig(url="socket://127.0.0.1:1", coordinate_system=codec.CoordinateSystem.CCW)
+    with pytest.raises(TrackerConfigError, match=r"length_unit must be one of \['ft', 'in', 'm', 'mm', 'um'\]"):
+        EmsconConfig(url="socket://127.0.0.1:1", length_unit="cm")
+    with pytest.raises(TrackerConfigError, match=r"unknown emScon settings \['meas_time'\]"):
+        EmsconConfig.from_mapping({"url": "socket://127.0.0.1:1", "meas_time": 1.0})
+    with pytest.raises(TrackerConnectionError, match="cannot open") as refused:
+        EmsconTracker(EmsconConfig(url="socket://127.0.0.1:1")).connect()
+    assert refused.value.remedy in str(refused.value)  # what to do next is part of the message
 
 
 # ---- faults ----------------------------------------------------------------------------------------------

@@ -9,7 +9,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from drivers import emscon_codec as codec
-from drivers.emscon import EmsconTracker
+from drivers.emscon import EmsconConfig, EmsconTracker
 from drivers.tracker import (
     TrackerConnectionError,
     TrackerError,
@@ -17,8 +17,10 @@ from drivers.tracker import (
     TrackerProtocolError,
     TrackerTimeoutError,
 )
-from fakes.cell import CellConfig, SimulatedCell
+from fakes.cell import SimCellConfig, SimulatedCell
 from fakes.emscon_server import EmsconServer, EmsconServerConfig, ServerThread
+
+pytestmark = pytest.mark.sim  # starts a simulated cell or a fake server over sockets
 
 MARGIN_S = 0.15  # measurement timeout beyond the measurement time
 COMMAND_S = 0.3  # command (and resync) timeout
@@ -27,9 +29,9 @@ SLACK_S = 0.25  # read granularity and scheduling on a loaded 2-core machine
 
 @pytest.fixture(scope="module")
 def fuzz_server():
-    cell = SimulatedCell(CellConfig(seed=5))
+    cell = SimulatedCell(SimCellConfig(seed=5))
     server = EmsconServer(cell, config=EmsconServerConfig(initialized=True, initial_lock_smr=2))
-    with ServerThread(server) as _, EmsconTracker(url=server.url, meas_time_s=0.005) as tracker:
+    with ServerThread(server) as _, EmsconTracker(EmsconConfig(url=server.url, meas_time_s=0.005)) as tracker:
         yield server, tracker
 
 

@@ -9,8 +9,10 @@ import pytest
 
 from drivers import emscon_codec as codec
 from drivers.emscon_codec import Command, Status, StatusChange
-from fakes.cell import CellConfig, SimulatedCell
+from fakes.cell import SimCellConfig, SimulatedCell
 from fakes.emscon_server import EmsconServer, EmsconServerConfig, ServerThread
+
+pytestmark = pytest.mark.sim  # starts a simulated cell or a fake server over sockets
 
 pytestmark = pytest.mark.timeout(30)
 
@@ -52,7 +54,7 @@ class RawClient:
 
 @pytest.fixture
 def setup():
-    cell = SimulatedCell(CellConfig(seed=2))
+    cell = SimulatedCell(SimCellConfig(seed=2))
     server = EmsconServer(cell, config=EmsconServerConfig(initialized=True, initial_lock_smr=2))
     with ServerThread(server):
         client = RawClient(server.port)

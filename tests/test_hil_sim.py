@@ -1,17 +1,24 @@
-"""`hil sim` as a process: its ready line, its control channel, and a clean exit on SIGINT/SIGTERM."""
+"""The simulated cell as a process (`python -m fakes.sim`, `hil sim`): its ready line, its control channel, and a clean exit on SIGINT/SIGTERM."""
 
 from __future__ import annotations
 
 import json
 import signal
 import socket
+import subprocess
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
 
 from fakes.control_client import ControlClient, ControlError
-from fakes.launch import sim_cell, start_cell, stop_cell
+from fakes.launch import random_loopback_host, sim_cell, start_cell, stop_cell, stop_process
+
+pytestmark = pytest.mark.sim  # starts a simulated cell or a fake server over sockets
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
@@ -79,3 +86,21 @@ def test_exits_cleanly_on_signals(sig):
 def test_second_cell_on_a_taken_address_fails_clearly(cell):
     with pytest.raises(RuntimeError, match="address in use"):
         start_cell(host=cell.host, ready_timeout_s=15)
+
+
+@pytest.mark.timeout(40)
+def test_hil_sim_is_the_same_cell_and_writes_its_cell_config(tmp_path):
+    """`hil sim` takes the options of `python -m fakes.sim` and adds --write-cell (the runner's cell.toml)."""
+    cell_toml = tmp_path / "cell.toml"
+    host = random_loopback_host()
+    args = [sys.executable, "-m", "hil", "sim", "--host", host, "--robot", "ur10e", "--seed", "3"]
+    args += ["--time-scale", "5", "--effects", "none", "--write-cell", str(cell_toml)]
+    process = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, cwd=ROOT)
+    try:
+        info = json.loads(process.stdout.readline())
+        assert info["robot"]["host"] == host and info["robot"]["model"] == "ur10e" and info["seed"] == 3
+        text = cell_toml.read_text()
+        assert 'model = "ur10e"' in text and info["tracker"]["url"] in text
+    finally:
+        stop_process(process)
+    assert process.returncode == 0

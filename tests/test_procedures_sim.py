@@ -9,7 +9,7 @@ import sys
 import numpy as np
 import pytest
 
-from fakes.cell import CellConfig, SimulatedCell
+from fakes.cell import SimCellConfig, SimulatedCell
 from hil.kinematics import tool_points
 from hil.se3 import fit_rigid, transform_points
 from hil.store import CampaignStore
@@ -46,7 +46,7 @@ def test_registration_is_within_the_noise_of_the_best_possible_fit(campaign):
     readings of the same poses would give (the simulated cell's truth, same seed): they agree to tens of um."""
     reg = campaign["registration"]
     assert reg.fit.inliers.all() and 0.1e-3 < reg.fit.rms_m < 3e-3
-    cell = SimulatedCell(CellConfig(seed=3))
+    cell = SimulatedCell(SimCellConfig(seed=3))
     truth = campaign["truth"]
     with CampaignStore(campaign["path"]) as store:
         rows = store.measurements("registration", "poses")

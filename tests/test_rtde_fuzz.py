@@ -12,6 +12,8 @@ from hypothesis import strategies as st
 
 from fakes.launch import sim_cell
 
+pytestmark = pytest.mark.sim  # starts a simulated cell or a fake server over sockets
+
 RTDE_TYPES = [ord(c) for c in "VvOISPUM"] + [0, 1, 255]
 
 

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from fakes.cell import CellConfig, SimulatedCell, SmrLocation
+from fakes.cell import SimCellConfig, SimulatedCell, SmrLocation
 from hil.kinematics import forward_kinematics
 from hil.toolfit import fit_flange_frame, tool_point_by_distances, tool_point_in_flange
 
@@ -12,7 +12,7 @@ Q_FACING = np.array([0.0, -1.3, 1.6, -1.9, -1.57, 0.0])
 
 def _cell_facing_tracker(**overrides) -> SimulatedCell:
     """A cell whose flange looks roughly at the tracker at Q_FACING (rotate joint 1 towards it)."""
-    cell = SimulatedCell(CellConfig(seed=5, **overrides))
+    cell = SimulatedCell(SimCellConfig(seed=5, **overrides))
     p_base_tracker = np.linalg.inv(cell.T_tracker_base)[:3, 3]
     q = Q_FACING.copy()
     best = min(
@@ -70,7 +70,7 @@ def test_flange_fit_refuses_bad_input():
 
 
 def test_distance_constraint_finds_the_tool_point():
-    cell = SimulatedCell(CellConfig(seed=6, geometric_errors=False, compliance=False))
+    cell = SimulatedCell(SimCellConfig(seed=6, geometric_errors=False, compliance=False))
     rng = np.random.default_rng(0)
     q = np.array(cell.config.q_home_rad) + rng.uniform(-0.6, 0.6, (25, 6))
     r = cell.run_sequence(q)

@@ -11,11 +11,13 @@ import sys
 import numpy as np
 import pytest
 
-from drivers.emscon import EmsconTracker
-from fakes.cell import CellConfig, SimulatedCell
+from drivers.emscon import EmsconConfig, EmsconTracker
+from fakes.cell import SimCellConfig, SimulatedCell
 from fakes.emscon_server import EmsconServer, EmsconServerConfig, ServerThread
 from fakes.launch import stop_process
 from hil.commands import tracker as tracker_command
+
+pytestmark = pytest.mark.sim  # starts a simulated cell or a fake server over sockets
 
 pytestmark = pytest.mark.timeout(60)
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -29,7 +31,7 @@ def _run(argv: list[str]) -> int:
 
 
 def test_hil_tracker_aims_measures_and_prints_si_json(capsys):
-    cell = SimulatedCell(CellConfig(seed=3))
+    cell = SimulatedCell(SimCellConfig(seed=3))
     server = EmsconServer(cell, config=EmsconServerConfig(init_delay_s=0.01))
     with ServerThread(server):
         p = cell.smr_center_tracker(3)
@@ -54,7 +56,7 @@ def test_standalone_fake_tracker_process():
         assert ready, "the fake tracker did not announce itself"
         info = json.loads(process.stdout.readline())["tracker"]
         for url in (info["url"], info["pty"]):
-            with EmsconTracker(url=url, meas_time_s=0.01) as tracker:
+            with EmsconTracker(EmsconConfig(url=url, meas_time_s=0.01)) as tracker:
                 assert tracker.state().target_locked
                 assert np.all(np.isfinite(tracker.measure(shots=2).p_tracker_m))
     finally:

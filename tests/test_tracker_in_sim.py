@@ -7,8 +7,10 @@ tracker is announced as {"tracker": {"url": ...}} and reachable with its control
 import numpy as np
 import pytest
 
-from drivers.emscon import EmsconTracker
+from drivers.emscon import EmsconConfig, EmsconTracker
 from drivers.tracker import NoTargetError
+
+pytestmark = pytest.mark.sim  # starts a simulated cell or a fake server over sockets
 
 launch = pytest.importorskip("fakes.launch", reason="hil sim is not on this branch yet")
 
@@ -21,7 +23,7 @@ def test_tracker_served_by_hil_sim():
         p_smr = np.array([2.0, 0.5, -0.2])
         placed = cell.control.call("place_smr", smr_id=2, kind="fixed", point_m=p_smr.tolist())
         np.testing.assert_allclose(placed["center_tracker_m"], p_smr)
-        with EmsconTracker(url=url, meas_time_s=0.5) as tracker:
+        with EmsconTracker(EmsconConfig(url=url, meas_time_s=0.5)) as tracker:
             tracker.point_at(p_smr + 0.01)
             m = tracker.measure(shots=3)
             assert np.linalg.norm(m.p_tracker_m - p_smr) < 1e-4

@@ -23,6 +23,8 @@ from fakes.launch import random_loopback_host, sim_cell
 from hil.kinematics import forward_kinematics
 from hil.robots import get_robot
 
+pytestmark = pytest.mark.sim  # starts a simulated cell or a fake server over sockets
+
 pytest.importorskip("rtde_control")
 
 HOME = np.array([0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0])

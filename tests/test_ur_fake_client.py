@@ -13,6 +13,8 @@ from hil.kinematics import forward_kinematics
 from hil.robots import get_robot
 from hil.se3 import pose_to_transform, transform_to_pose
 
+pytestmark = pytest.mark.sim  # starts a simulated cell or a fake server over sockets
+
 rtde_control = pytest.importorskip("rtde_control")
 rtde_receive = pytest.importorskip("rtde_receive")
 rtde_io = pytest.importorskip("rtde_io")

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from fakes import rtde_wire as w
-from fakes.cell import CellConfig, SimulatedCell
+from fakes.cell import SimCellConfig, SimulatedCell
 from fakes.fast_kinematics import ArmKinematics, pose_from_transform, rotvec_from_matrix
 from fakes.ur_controller import UrController
 from fakes.ur_dashboard import NOT_REMOTE, handle_command
@@ -120,7 +120,7 @@ def test_unknown_programs_are_refused():
 
 @pytest.fixture
 def controller():
-    return UrController(SimulatedCell(CellConfig(robot="ur10e", seed=3)))
+    return UrController(SimulatedCell(SimCellConfig(robot="ur10e", seed=3)))
 
 
 def test_dashboard_state_machine(controller):

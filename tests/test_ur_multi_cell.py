@@ -10,6 +10,8 @@ import pytest
 from drivers.ur import URConfig, URRobot
 from fakes.launch import sim_cell
 
+pytestmark = pytest.mark.sim  # starts a simulated cell or a fake server over sockets
+
 pytest.importorskip("rtde_control")
 
 HOME = np.array([0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0])

@@ -76,8 +76,8 @@ def _summary(section: object) -> str:
 def _snapshot_section(snapshot: dict, key: str) -> dict | None:
     """One part of a station snapshot, wherever the session put it: top level, inside the cell
     configuration ([robot], [tracker] tables) or among the station facts read from the instruments."""
-    cell = snapshot.get("cell") if isinstance(snapshot.get("cell"), dict) else {}
-    station = snapshot.get("station") if isinstance(snapshot.get("station"), dict) else {}
+    cell: dict = snapshot["cell"] if isinstance(snapshot.get("cell"), dict) else {}
+    station: dict = snapshot["station"] if isinstance(snapshot.get("station"), dict) else {}
     if key == "cell":
         if not cell and "source" not in snapshot:
             return None

@@ -12,6 +12,7 @@ import sys
 import numpy as np
 
 from hil.cell_config import CellConfig, CellConfigError, load_cell_config
+from hil.commands.errors import CliError
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -46,8 +47,7 @@ def run_check(args: argparse.Namespace) -> int:
     try:
         config = load_cell_config(args.config)
     except CellConfigError as exc:
-        print(f"hil cell check: {exc}\n  what to do: fix each key listed, then check again", file=sys.stderr)
-        return 2
+        raise CliError(str(exc), "fix each key listed, then check again") from exc
     print(describe(config))
     if not args.connect:
         return 0

@@ -1,25 +1,22 @@
-"""The `--effects` option shared by the commands that build a simulated cell (`hil sim`, `hil demo`)."""
+"""The `--effects` option of the commands that build a simulated cell (`hil sim`, `hil demo`), as CLI errors.
+
+The option itself belongs to the simulated cell (`fakes.sim`); here its bad values become a CliError.
+"""
 
 from __future__ import annotations
 
 import argparse
 
-from fakes.cell import CELL_EFFECTS, parse_effect_flags
+from fakes.cell import EffectFlags
+from fakes.sim import SimOptionError, add_effects_argument, effects_from_args
+from hil.commands.errors import CliError
+
+__all__ = ["add_effects_argument", "effect_flags"]
 
 
-def add_effects_argument(parser: argparse.ArgumentParser) -> None:
-    """Add `--effects` (comma-separated physical effects of the simulated cell, default compliance)."""
-    parser.add_argument(
-        "--effects",
-        default="compliance",
-        help=f"physical effects of the simulated cell, comma-separated from {', '.join(CELL_EFFECTS)}, "
-        "or 'none' (default: compliance, the PT paper's undeclared effect)",
-    )
-
-
-def effect_flags(args: argparse.Namespace) -> dict[str, bool]:
-    """CellConfig flags from `--effects`; an unknown name ends the command with the list of known ones."""
+def effect_flags(args: argparse.Namespace) -> EffectFlags:
+    """SimCellConfig flags from `--effects`; an unknown name ends the command with the list of known ones."""
     try:
-        return parse_effect_flags(args.effects)
-    except ValueError as exc:
-        raise SystemExit(str(exc)) from exc
+        return effects_from_args(args)
+    except SimOptionError as exc:
+        raise CliError(exc.message, exc.remedy) from exc

@@ -18,9 +18,13 @@ from hil.session import Session
 from hil.store import CampaignStore
 
 
-def simulated_operator(control_address: str) -> ScriptedOperator:
-    """An operator whose hands are the simulated cell's control channel (place_smr, tracker.guide_beam)."""
+def simulated_operator(control_address: str | None) -> ScriptedOperator:
+    """An operator whose hands are the simulated cell's control channel (place_smr, tracker.guide_beam),
+    at the cell config's [simulator] control address."""
     from fakes.control_client import ControlClient
+
+    if not control_address:
+        raise ValueError("the simulated operator needs [simulator] control in the cell config (hil sim --write-cell writes it)")
 
     control = ControlClient(control_address)
 
@@ -45,8 +49,6 @@ def choose_operator(config: CellConfig, kind: str) -> Operator:
     if kind == "auto":
         kind = "sim" if config.simulator_control else "console"
     if kind == "sim":
-        if not config.simulator_control:
-            raise ValueError("--operator sim needs [simulator] control in the cell config (hil sim --write-cell writes it)")
         return simulated_operator(config.simulator_control)
     if not sys.stdin.isatty():
         raise ValueError("the console operator needs a terminal: run interactively, or use --operator sim on a simulated cell")

@@ -10,13 +10,13 @@ from __future__ import annotations
 import argparse
 import os
 import signal
-import sys
 from collections.abc import Iterator
 from contextlib import ExitStack, contextmanager
 from pathlib import Path
 from typing import Any
 
 from hil.cell_config import CellConfigError, load_cell_config
+from hil.commands.errors import CliError
 from hil.envelope import EnvelopeError
 from hil.operator import OperatorAbortError
 from hil.session import CampaignStopped
@@ -88,17 +88,17 @@ def run(args: argparse.Namespace) -> int:
     try:
         config = load_cell_config(args.cell)
     except CellConfigError as exc:
-        return _fail(str(exc), "fix the keys named above (hil cell check shows the same list)")
+        raise CliError(str(exc), "fix the keys named above (hil cell check shows the same list)") from exc
     campaign = Path(args.campaign)
     if not campaign.parent.exists():
-        return _fail(f"campaign folder {campaign.parent} does not exist", "create it or choose another --campaign path")
+        raise CliError(f"campaign folder {campaign.parent} does not exist", "create it or choose another --campaign path")
     module = _procedure_module(args.procedure)
     kwargs = procedure_kwargs(args)
     try:
         the_plan = module.plan(config, **plan_kwargs(args.procedure, kwargs))
         config.envelope.check_poses(config.nominal, the_plan.joints(), config.nests_flange_m, [p.point_id for p in the_plan.poses])
     except (ValueError, EnvelopeError) as exc:
-        return _fail(str(exc), "change the options or the cell config; nothing moved")
+        raise CliError(str(exc), "change the options or the cell config; nothing moved") from exc
     if args.dry_run:
         print(the_plan.describe())
         return 0
@@ -107,18 +107,18 @@ def run(args: argparse.Namespace) -> int:
     try:
         operator = choose_operator(config, args.operator)
     except ValueError as exc:
-        return _fail(str(exc), "pick another --operator")
+        raise CliError(str(exc), "pick another --operator") from exc
     with interrupt_guard(), ExitStack() as stack:
         try:
             session = open_session(config, campaign, operator, stack)
             with session:
                 result = module.run(session, **kwargs)
         except CampaignStopped as exc:
-            return _fail(exc.message, exc.remedy)
+            raise CliError(exc.message, exc.remedy) from exc
         except OperatorAbortError as exc:
-            return _fail(str(exc), "re-run the same command to resume; recorded points are kept")
+            raise CliError(str(exc), "re-run the same command to resume; recorded points are kept") from exc
         except EnvelopeError as exc:
-            return _fail(str(exc), "nothing moved")
+            raise CliError(str(exc), "nothing moved") from exc
     print(summarise(args.procedure, result))
     return 0
 
@@ -144,11 +144,6 @@ def summarise(name: str, result: Any) -> str:
             f"{result.validation_planned} validation points recorded; left out when planning: {dropped}"
         )
     return str(result)
-
-
-def _fail(message: str, remedy: str) -> int:
-    print(f"hil run: {message}\n  what to do: {remedy}", file=sys.stderr)
-    return 2
 
 
 @contextmanager

@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import json
 
+from hil.commands.errors import CliError
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
@@ -35,21 +37,23 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from drivers.emscon import EmsconTracker
+    from drivers.emscon import EmsconConfig, EmsconTracker
     from drivers.tracker import TrackerError
 
     if args.shots < 0:
-        raise SystemExit("--shots must be >= 0")
+        raise CliError(f"--shots {args.shots} is negative", "give 0 (no measurement) or more shots")
     if not 0 < args.meas_time <= 3600:
-        raise SystemExit("--meas-time must be in (0, 3600] s")
+        raise CliError(f"--meas-time {args.meas_time:g} s is outside (0, 3600] s", "give a time in seconds, e.g. 1")
     tracker = EmsconTracker(
-        url=args.url,
-        meas_time_s=args.meas_time,
-        reflector=args.reflector,
-        length_unit=args.wire_units,
-        angle_unit=args.wire_angles,
-        coordinate_system=args.coordinates,
-        command_timeout_s=args.timeout,
+        EmsconConfig(
+            url=args.url,
+            meas_time_s=args.meas_time,
+            reflector=args.reflector,
+            length_unit=args.wire_units,
+            angle_unit=args.wire_angles,
+            coordinate_system=args.coordinates,
+            command_timeout_s=args.timeout,
+        )
     )
     out: dict = {}
     try:
@@ -66,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
                 **state.details,
             }
             if args.shots:
-                out["measurement"] = tracker.measure(args.shots).as_dict()
+                out["measurement"] = tracker.measure(args.shots).to_dict()
     except TrackerError as exc:
         out["error"] = {"type": type(exc).__name__, "message": str(exc)}
     print(json.dumps(out, indent=2))

@@ -1,0 +1,21 @@
+"""The one error a command raises for bad input or a failed step: what went wrong and what to do next.
+
+`hil.cli.main` prints it as `hil <command>: <message>` and `  what to do: <remedy>` on stderr and exits 2.
+"""
+
+from __future__ import annotations
+
+EXIT_USAGE = 2
+
+
+class CliError(Exception):
+    """A command's failure for the operator: `message` (one line, what went wrong) and `remedy` (what to do)."""
+
+    def __init__(self, message: str, remedy: str):
+        super().__init__(message)
+        self.message = message
+        self.remedy = remedy
+
+    def render(self, command: str) -> str:
+        """The two stderr lines for `hil <command>`."""
+        return f"hil {command}: {self.message}\n  what to do: {self.remedy}"

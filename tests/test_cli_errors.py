@@ -1,0 +1,28 @@
+"""The one CLI error convention: `hil <command>: <message>`, `  what to do: <remedy>` on stderr, exit 2."""
+
+from hil.cli import main
+
+
+def stderr_lines(capsys) -> list[str]:
+    return capsys.readouterr().err.rstrip("\n").split("\n")
+
+
+def test_bad_option_prints_message_and_remedy_and_exits_2(capsys):
+    # rejected before any connection is attempted
+    assert main(["tracker", "--url", "socket://127.0.0.1:9", "--shots", "-1"]) == 2
+    first, second = stderr_lines(capsys)
+    assert first == "hil tracker: --shots -1 is negative"
+    assert second.startswith("  what to do: ") and len(second) > len("  what to do: ")
+
+
+def test_sim_refuses_a_non_loopback_host_before_starting(capsys):
+    assert main(["sim", "--host", "10.0.0.1"]) == 2
+    first, second = stderr_lines(capsys)
+    assert first.startswith("hil sim: --host 10.0.0.1") and "127.0.0.0/8" in second
+
+
+def test_unknown_effect_names_the_known_ones(capsys):
+    assert main(["sim", "--host", "127.0.0.9", "--effects", "gravity,thermal"]) == 2
+    first, second = stderr_lines(capsys)
+    assert first.startswith("hil sim: unknown effect(s) ['gravity']")
+    assert "compliance" in second and "thermal" in second
