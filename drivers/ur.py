@@ -80,7 +80,8 @@ class URConfig:
     stale_after_s: float = 0.5  # data timestamps must advance within this wall time
     stream_sync_timeout_s: float = 2.0  # how long the receive stream may lag what the control stream saw
     move_timeout_margin_s: float = 10.0
-    reach_tolerance_rad: float = 1e-3
+    reach_tolerance_rad: float = 1e-3  # a joint move ends this close to its target
+    reach_tolerance_m: float = 1e-4  # a linear move ends this close (and within reach_tolerance_rad)
     recover_timeout_s: float = 20.0
     power_on_at_connect: bool = False  # power on and release the brakes if the arm is off at connect
 
@@ -416,22 +417,30 @@ class URRobot:
             self._check()
             raise RobotError("the controller refused moveJ", "check the target and the controller log")
         self._supervise_async(op_before, _trapezoid_time(distance, speed, accel), "moveJ")
-        self._wait_target_reached(q)
 
-    def _wait_target_reached(self, q: np.ndarray) -> None:
-        """After the control stream reported the end of a joint move, wait until the receive stream
-        (a separate socket that may lag) shows the arm at rest on the target; a short move fails."""
+        def left_of(q_now: np.ndarray, T_now: np.ndarray) -> tuple[float, bool]:
+            radians = float(np.max(np.abs(q_now - q)))
+            return radians, radians <= cfg.reach_tolerance_rad
+
+        self._wait_arrived("moveJ", left_of, "rad")
+
+    def _wait_arrived(self, what: str, left_of, unit: str) -> None:
+        """After the control stream reported the end of a move, wait until the receive stream (a separate
+        socket that may lag) shows the arm at rest on the target; a move that really ended short fails.
+        `left_of(target_q, T_base_flange_target)` gives the distance left and whether it is arrived."""
         deadline = time.monotonic() + self.config.stream_sync_timeout_s
+        rx = self._rx
         while True:
             self._check()
-            target_q, target_qd = self._read_consistent(self._rx.getTargetQ, self._rx.getTargetQd)
-            reached = float(np.max(np.abs(np.asarray(target_q) - q)))
-            at_rest = float(np.max(np.abs(target_qd))) < _AT_REST_RAD_S
-            if reached <= self.config.reach_tolerance_rad and at_rest:
+            target_q, target_qd, target_pose = self._read_consistent(
+                rx.getTargetQ, rx.getTargetQd, rx.getTargetTCPPose
+            )
+            left, arrived = left_of(np.asarray(target_q), pose_to_transform(np.asarray(target_pose)))
+            if arrived and float(np.max(np.abs(target_qd))) < _AT_REST_RAD_S:
                 return
             if time.monotonic() > deadline:
                 raise RobotError(
-                    f"moveJ ended {reached:.4f} rad from its target", "the move was interrupted; retry"
+                    f"{what} ended {left:.4f} {unit} from its target", "the move was interrupted; retry"
                 )
             time.sleep(0.002)
 
@@ -457,7 +466,13 @@ class URRobot:
             self._check()
             raise RobotError("the controller refused moveL", "check that the pose is reachable")
         self._supervise_async(op_before, _trapezoid_time(distance, speed, accel), "moveL")
-        self._sync_stream()
+
+        def left_of(q_now: np.ndarray, T_now: np.ndarray) -> tuple[float, bool]:
+            metres = float(np.linalg.norm(T_now[:3, 3] - target[:3, 3]))
+            turned = _rotation_angle(T_now[:3, :3].T @ target[:3, :3])
+            return metres, metres <= cfg.reach_tolerance_m and turned <= cfg.reach_tolerance_rad
+
+        self._wait_arrived("moveL", left_of, "m")
 
     def stop(self) -> None:
         """Decelerate to rest; a no-op when the program is not running (the controller already holds it)."""
