@@ -3,6 +3,9 @@
 Moves are sent asynchronously and supervised from Python, so every failure surfaces as a typed error
 within a bounded time: protective / emergency stop from the safety bits, program stopped from the
 runtime state, frozen data from RTDE timestamps that stop advancing, timeouts from the trapezoid time.
+State checks read one consistent snapshot of the receive stream. The control stream (async progress)
+is a separate socket that may run packages ahead of it, so when the control stream reports a move's end
+the driver waits for the receive stream to catch up before it judges the outcome.
 Connections are probed with plain sockets before the ur-rtde constructors run (those block without a
 timeout and hold Python's global lock), rebuilt on `recover()`, and torn down control-first.
 """
@@ -41,6 +44,19 @@ SAFETY_MODES = {1: "NORMAL", 2: "REDUCED", 3: "PROTECTIVE_STOP", 4: "RECOVERY", 
 SAFETY_MODES |= {6: "SYSTEM_EMERGENCY_STOP", 7: "ROBOT_EMERGENCY_STOP", 8: "VIOLATION", 9: "FAULT"}
 _PROTECTIVE_BIT, _ROBOT_ESTOP_BIT, _ANY_ESTOP_BIT = 1 << 2, 1 << 6, 1 << 7
 _PLAYING = 2
+_SNAPSHOT_TRIES = 50
+_AT_REST_RAD_S = 1e-6  # target joint speed below which a move has ended
+
+
+@dataclass(frozen=True)
+class _Snapshot:
+    """Controller state read from one and the same receive package."""
+
+    stamp: float
+    safety_bits: int
+    safety_mode: int
+    robot_mode: int
+    runtime_state: int
 
 
 @dataclass(frozen=True)
@@ -62,8 +78,10 @@ class URConfig:
     settle_dwell_s: float = 0.2
     settle_timeout_s: float = 30.0
     stale_after_s: float = 0.5  # data timestamps must advance within this wall time
+    stream_sync_timeout_s: float = 2.0  # how long the receive stream may lag what the control stream saw
     move_timeout_margin_s: float = 10.0
-    reach_tolerance_rad: float = 1e-3
+    reach_tolerance_rad: float = 1e-3  # a joint move ends this close to its target
+    reach_tolerance_m: float = 1e-4  # a linear move ends this close (and within reach_tolerance_rad)
     recover_timeout_s: float = 20.0
     power_on_at_connect: bool = False  # power on and release the brakes if the arm is off at connect
 
@@ -77,7 +95,14 @@ class URConfig:
         return cls(**values)
 
     def __post_init__(self) -> None:
-        for name in ("joint_speed", "joint_accel", "linear_speed", "linear_accel", "stale_after_s"):
+        for name in (
+            "joint_speed",
+            "joint_accel",
+            "linear_speed",
+            "linear_accel",
+            "stale_after_s",
+            "stream_sync_timeout_s",
+        ):
             if not getattr(self, name) > 0:
                 raise RobotConfigError(f"URConfig.{name} must be positive, got {getattr(self, name)}")
         for name, limit in (
@@ -99,6 +124,13 @@ def probe_controller(host: str, timeout_s: float, rtde_port: int = 30004, dashbo
     GIL while they do), so the driver only calls them once this probe passed. Returns the controller
     version 'major.minor.bugfix.build'.
     """
+    return _probe(host, timeout_s, rtde_port, dashboard_port)[0]
+
+
+def _probe(
+    host: str, timeout_s: float, rtde_port: int = 30004, dashboard_port: int = 29999
+) -> tuple[str, float]:
+    """`probe_controller`, also returning the controller timestamp (s) of the data package it received."""
     try:
         with socket.create_connection((host, rtde_port), timeout=timeout_s) as sock:
             sock.settimeout(timeout_s)
@@ -116,7 +148,7 @@ def probe_controller(host: str, timeout_s: float, rtde_port: int = 30004, dashbo
             sock.sendall(struct.pack(">HB", 3, ord("S")))
             if _read_rtde_reply(sock, ord("S"))[:1] != b"\x01":
                 raise RobotConnectionError(f"RTDE at {host} refused to start synchronisation")
-            _read_rtde_reply(sock, ord("U"))
+            (stamp,) = struct.unpack(">d", _read_rtde_reply(sock, ord("U"))[1:9])  # after the recipe id
         with socket.create_connection((host, dashboard_port), timeout=timeout_s) as sock:
             sock.settimeout(timeout_s)
             greeting = sock.recv(256)
@@ -124,7 +156,7 @@ def probe_controller(host: str, timeout_s: float, rtde_port: int = 30004, dashbo
                 raise RobotConnectionError(f"dashboard of {host} closed without a greeting")
     except (OSError, struct.error) as exc:
         raise RobotConnectionError(f"controller at {host} does not answer: {exc}") from exc
-    return version
+    return version, stamp
 
 
 def _read_rtde_reply(sock: socket.socket, expected_type: int) -> bytes:
@@ -241,20 +273,20 @@ class URRobot:
                 log.debug("disconnect failed: %s", exc)
 
     def _rebuild(self) -> None:
-        """Rebuild the control interface; everything if the receive stream is not healthy too."""
+        """Rebuild the control interface; everything if the receive stream is not provably alive too."""
         import rtde_control
 
         self._finalizer.detach()
+        # disconnect before building anew (never rebind a live one): it frees the input registers
+        URRobot._release([self._ctrl])
+        self._ctrl = None
         try:
-            self._check_stream()
-            healthy = True
+            _, controller_time_s = _probe(self.config.host, self.config.connect_timeout_s)
+            healthy = self._receive_reaches(controller_time_s)
         except RobotConnectionError:
             healthy = False
         if healthy:
-            URRobot._release([self._ctrl])  # disconnect before building the new one (never rebind a live one)
-            self._ctrl = None
             try:
-                probe_controller(self.config.host, self.config.connect_timeout_s)
                 self._ctrl = rtde_control.RTDEControlInterface(
                     self.config.host, -1.0, rtde_control.RTDEControlInterface.FLAG_UPLOAD_SCRIPT
                 )
@@ -267,22 +299,60 @@ class URRobot:
             self._connect()
         self._finalizer = weakref.finalize(self, URRobot._release, [self._ctrl, self._rx, self._dash])
 
+    def _receive_reaches(self, controller_time_s: float) -> bool:
+        """Whether the receive stream delivers a package at least as new as `controller_time_s` (read
+        from a fresh connection just now). A recent timestamp is no proof: after a dropped connection
+        ur-rtde's receive thread keeps reporting "connected" until its next read fails."""
+        rx = self._rx
+        deadline = time.monotonic() + self.config.stream_sync_timeout_s
+        while rx is not None and rx.isConnected():
+            if rx.getTimestamp() >= controller_time_s:
+                return True
+            if time.monotonic() > deadline:
+                break
+            time.sleep(0.002)
+        return False
+
     # ------------------------------------------------------------------ supervision
-    def _check(self) -> None:
-        """Raise the typed error for the controller's current condition, if any."""
+    def _read_consistent(self, *getters) -> list:
+        """Call receive getters so that all values come from one package: the receive thread replaces a
+        whole package under one lock, so an unchanged timestamp around the reads means one package."""
+        rx = self._rx
+        for _ in range(_SNAPSHOT_TRIES):
+            stamp = rx.getTimestamp()
+            values = [stamp, *(getter() for getter in getters)]
+            if rx.getTimestamp() == stamp:
+                break
+        return values[1:]  # after that many tries a package from the last moments is good enough
+
+    def _snapshot(self) -> _Snapshot:
+        """Timestamp, safety and program state from one receive package."""
+        rx = self._rx
+        return _Snapshot(
+            *self._read_consistent(
+                rx.getTimestamp, rx.getSafetyStatusBits, rx.getSafetyMode, rx.getRobotMode, rx.getRuntimeState
+            )
+        )
+
+    def _check(self) -> _Snapshot:
+        """Raise the typed error for the controller's current condition, if any; else return the state.
+
+        All fields come from one receive package, so a stop that also ended the program is reported as
+        the stop, never as "program not running" read from a newer package than the safety bits."""
         if self._rx is None or self._ctrl is None:
             raise RobotConnectionError(f"not connected to {self.config.host}")
         self._check_stream()
-        rx, ctrl = self._rx, self._ctrl
-        bits = rx.getSafetyStatusBits()
+        snapshot = self._snapshot()
+        bits = snapshot.safety_bits
         if bits & (_ANY_ESTOP_BIT | _ROBOT_ESTOP_BIT):
             raise EmergencyStopError("the robot is emergency stopped")
         if bits & _PROTECTIVE_BIT:
             raise ProtectiveStopError("the robot is protective stopped")
-        if not ctrl.isConnected():
+        if not self._ctrl.isConnected():
             raise RobotConnectionError(f"RTDE control connection to {self.config.host} lost")
-        if rx.getRuntimeState() != _PLAYING:
+        if snapshot.runtime_state != _PLAYING:
             raise ProgramNotRunningError("the control program is not running on the controller")
+        return snapshot
 
     def _supervise_async(self, op_before: int, expected_s: float, what: str) -> None:
         """Wait for the async operation started after `op_before` to finish, checking faults meanwhile."""
@@ -291,6 +361,9 @@ class URRobot:
             self._check()
             status = self._ctrl.getAsyncOperationProgressEx()
             if status.operationId() != op_before and not status.isAsyncOperationRunning():
+                # read after the status on the same (control) stream, so never from an older package
+                if not self._ctrl.isProgramRunning():
+                    self._raise_program_end(what)
                 return
             if time.monotonic() > deadline:
                 self._try_stop()
@@ -298,6 +371,15 @@ class URRobot:
                     f"{what} did not finish within {deadline - time.monotonic() + 0:.0f} s"
                 )
             time.sleep(0.004)
+
+    def _raise_program_end(self, what: str) -> None:
+        """The control stream saw the program end with the move: wait for the receive stream (which may
+        lag) to show why, so the error names the cause (stop, e-stop, program stopped)."""
+        deadline = time.monotonic() + self.config.stream_sync_timeout_s
+        while time.monotonic() < deadline:
+            self._check()
+            time.sleep(0.002)
+        raise ProgramNotRunningError(f"the control program ended during {what}")
 
     def _sync_stream(self, packages: int = 2) -> None:
         """Wait for a couple of fresh receive packages: the receive and control streams are separate
@@ -335,12 +417,32 @@ class URRobot:
             self._check()
             raise RobotError("the controller refused moveJ", "check the target and the controller log")
         self._supervise_async(op_before, _trapezoid_time(distance, speed, accel), "moveJ")
-        self._sync_stream()
-        reached = float(np.max(np.abs(self._rx.getTargetQ() - q)))
-        if reached > cfg.reach_tolerance_rad:
-            raise RobotError(
-                f"moveJ ended {reached:.4f} rad from its target", "the move was interrupted; retry"
+
+        def left_of(q_now: np.ndarray, T_now: np.ndarray) -> tuple[float, bool]:
+            radians = float(np.max(np.abs(q_now - q)))
+            return radians, radians <= cfg.reach_tolerance_rad
+
+        self._wait_arrived("moveJ", left_of, "rad")
+
+    def _wait_arrived(self, what: str, left_of, unit: str) -> None:
+        """After the control stream reported the end of a move, wait until the receive stream (a separate
+        socket that may lag) shows the arm at rest on the target; a move that really ended short fails.
+        `left_of(target_q, T_base_flange_target)` gives the distance left and whether it is arrived."""
+        deadline = time.monotonic() + self.config.stream_sync_timeout_s
+        rx = self._rx
+        while True:
+            self._check()
+            target_q, target_qd, target_pose = self._read_consistent(
+                rx.getTargetQ, rx.getTargetQd, rx.getTargetTCPPose
             )
+            left, arrived = left_of(np.asarray(target_q), pose_to_transform(np.asarray(target_pose)))
+            if arrived and float(np.max(np.abs(target_qd))) < _AT_REST_RAD_S:
+                return
+            if time.monotonic() > deadline:
+                raise RobotError(
+                    f"{what} ended {left:.4f} {unit} from its target", "the move was interrupted; retry"
+                )
+            time.sleep(0.002)
 
     def move_linear(
         self, T_base_flange: np.ndarray, speed: float | None = None, accel: float | None = None
@@ -364,7 +466,13 @@ class URRobot:
             self._check()
             raise RobotError("the controller refused moveL", "check that the pose is reachable")
         self._supervise_async(op_before, _trapezoid_time(distance, speed, accel), "moveL")
-        self._sync_stream()
+
+        def left_of(q_now: np.ndarray, T_now: np.ndarray) -> tuple[float, bool]:
+            metres = float(np.linalg.norm(T_now[:3, 3] - target[:3, 3]))
+            turned = _rotation_angle(T_now[:3, :3].T @ target[:3, :3])
+            return metres, metres <= cfg.reach_tolerance_m and turned <= cfg.reach_tolerance_rad
+
+        self._wait_arrived("moveL", left_of, "m")
 
     def stop(self) -> None:
         """Decelerate to rest; a no-op when the program is not running (the controller already holds it)."""
@@ -416,15 +524,16 @@ class URRobot:
         rx = self._rx
         if rx is None or not rx.isConnected():
             return RobotState(False, "DISCONNECTED", "UNKNOWN", False, False, False, float("nan"))
-        bits = rx.getSafetyStatusBits()
+        snapshot = self._snapshot()
+        bits = snapshot.safety_bits
         return RobotState(
             connected=bool(self._ctrl is not None and self._ctrl.isConnected()),
-            robot_mode=ROBOT_MODES.get(rx.getRobotMode(), "UNKNOWN"),
-            safety_mode=SAFETY_MODES.get(rx.getSafetyMode(), "UNKNOWN"),
-            program_running=rx.getRuntimeState() == _PLAYING,
+            robot_mode=ROBOT_MODES.get(snapshot.robot_mode, "UNKNOWN"),
+            safety_mode=SAFETY_MODES.get(snapshot.safety_mode, "UNKNOWN"),
+            program_running=snapshot.runtime_state == _PLAYING,
             protective_stop=bool(bits & _PROTECTIVE_BIT),
             emergency_stop=bool(bits & (_ANY_ESTOP_BIT | _ROBOT_ESTOP_BIT)),
-            timestamp_s=rx.getTimestamp(),
+            timestamp_s=snapshot.stamp,
         )
 
     # ------------------------------------------------------------------ recovery and teardown
@@ -458,7 +567,7 @@ class URRobot:
                 time.sleep(0.05)
         self._rebuild()
         self._sync_stream()  # the receive stream may report the restarted program a cycle late
-        deadline = time.monotonic() + 1.0
+        deadline = time.monotonic() + self.config.stream_sync_timeout_s
         while True:
             try:
                 self._check()

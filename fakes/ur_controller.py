@@ -435,12 +435,15 @@ class UrController(ScriptRuntime):
         self._oi(0, 1)
 
     def _halt_program(self, new_state: int) -> None:
+        """Stop or pause the program. The script no longer runs, so it writes no register: an async
+        move cut short stays "running" in the progress register [A], as on a stopped real program."""
         self._start_at = None
         if self.runtime_state in (PLAYING, PAUSED):
             self.runtime_state = new_state
         if new_state == STOPPED:
             self.runtime_state = STOPPED
         self._blocking = None
+        self._motion_is_async = False
         if self.motion is not None and not isinstance(self.motion, StopMove):
             self._stop_motion(decel=None)
 

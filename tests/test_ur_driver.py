@@ -45,6 +45,32 @@ def robot(cell):
         robot.close()  # before the fake goes away
 
 
+@pytest.fixture
+def ready_robot(robot, cell):
+    """The shared robot, ready: a test that failed half-way must not leave its fault to the next one."""
+    cell.control.call("robot.clear_faults")
+    if not robot.state().ready:
+        cell.control.call("robot.release_estop")
+        robot.recover()
+    return robot
+
+
+@pytest.fixture
+def sole_cell(robot, cell):
+    """The cell with the shared robot closed: one control interface per controller owns the registers."""
+    robot.close()  # closing twice is harmless
+    wait_for(lambda: cell.control.call("robot.state")["rtde_clients"] == 0, "the fake saw the clients go")
+    return cell
+
+
+def wait_for(condition, what: str, timeout_s: float = 10.0) -> None:
+    """Poll a condition on another process's state (it sees our socket events a little later)."""
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline, f"timed out waiting until {what}"
+        time.sleep(0.01)
+
+
 @pytest.mark.timeout(30)
 def test_moves_and_readings(robot, cell):
     assert isinstance(robot, Robot)
@@ -89,7 +115,8 @@ FAULTS = [
 
 @pytest.mark.timeout(40)
 @pytest.mark.parametrize(("kind", "options", "error"), FAULTS, ids=[f[0] for f in FAULTS])
-def test_fault_gives_typed_error_then_recovers(robot, cell, kind, options, error):
+def test_fault_gives_typed_error_then_recovers(ready_robot, cell, kind, options, error):
+    robot = ready_robot
     robot.move_joints(HOME)
     far = HOME + [1.2, 0, 0, 0, 0, 0]
     cell.control.call("robot.fault", kind=kind, at_move=1, fraction=0.3, **options)
@@ -112,9 +139,8 @@ def test_fault_gives_typed_error_then_recovers(robot, cell, kind, options, error
 def test_close_leaves_the_robot_stopped_and_disconnected(robot, cell):
     robot.move_joints(HOME)
     robot.close()
-    state = cell.control.call("robot.state")
-    assert not state["moving"]
-    assert state["rtde_clients"] == 0
+    assert not cell.control.call("robot.state")["moving"]
+    wait_for(lambda: cell.control.call("robot.state")["rtde_clients"] == 0, "the fake saw the clients go")
     with pytest.raises(RobotConnectionError):
         robot.joints()
     robot.close()  # closing twice is harmless
@@ -139,7 +165,8 @@ def test_config_from_mapping_checks_keys_and_limits():
 
 
 @pytest.mark.timeout(30)
-def test_short_latency_spike_is_ridden_through(cell):
+def test_short_latency_spike_is_ridden_through(sole_cell):
+    cell = sole_cell
     robot = URRobot(URConfig(cell.host, stale_after_s=0.5))
     try:
         robot.move_joints(HOME)
