@@ -229,8 +229,11 @@ def parse_cell_config(data: dict, source: str = "cell.toml") -> CellConfig:
     assert nests_arr is not None  # a missing or malformed tool.nests_flange_mm is one of r.problems
     envelope = Envelope(box_min / 1e3, box_max / 1e3, np.deg2rad(jmin), np.deg2rad(jmax))
     home = np.deg2rad(home_deg)
-    if envelope.joint_violations(home)[0]:
-        raise CellConfigError(source, ["motion.home_deg: the home pose breaks the envelope's joint limits"])
+    problem = envelope.pose_problems(get_robot(model.lower()), home[None], nests_arr)[0]
+    if problem:
+        raise CellConfigError(
+            source, [f"motion.home_deg: the home pose leaves the envelope ({problem}); it is the safe detour of moves"]
+        )
     return CellConfig(
         robot_model=model.lower(),
         robot_host=host,

@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from hil.cell_config import CellConfig
+from hil.envelope import EnvelopeError
 from hil.kinematics import forward_kinematics
 from hil.planners import sequence_duration_s
 
@@ -51,6 +52,27 @@ class Plan:
             per_point,
         )
 
+    def path_check(self) -> tuple[int, list[str]]:
+        """Check every move of the plan in order (from home): how many need the detour through home, and
+        which poses cannot be reached inside the envelope at all."""
+        cfg = self.config
+        env, tools, home = cfg.envelope, cfg.nests_flange_m, cfg.q_home_rad
+        detours, impossible = 0, []
+        previous = home
+        for pose in self.poses:
+            try:
+                env.check_joint_move(cfg.nominal, previous, pose.q_rad, tools)
+            except EnvelopeError:
+                try:
+                    env.check_joint_move(cfg.nominal, previous, home, tools)
+                    env.check_joint_move(cfg.nominal, home, pose.q_rad, tools)
+                    detours += 1
+                except EnvelopeError:
+                    impossible.append(pose.point_id)
+                    continue
+            previous = pose.q_rad
+        return detours, impossible
+
     def describe(self, max_rows: int = 20) -> str:
         """A readable summary: counts, duration, bounding box, and the first poses in order."""
         cfg = self.config
@@ -58,6 +80,11 @@ class Plan:
         lines = [f"plan of {self.procedure}: {len(self.poses)} poses, {self.operator_steps} operator step(s)"]
         if self.dropped:
             lines.append("  left out: " + ", ".join(f"{n} {reason}" for reason, n in sorted(self.dropped.items())))
+        detours, impossible = self.path_check()
+        if detours:
+            lines.append(f"  {detours} move(s) go through the home pose: the direct path would leave the envelope")
+        if impossible:
+            lines.append(f"  NOT REACHABLE inside the envelope: {', '.join(impossible[:10])}")
         minutes = self.estimated_duration_s() / 60.0
         lines.append(f"  estimated duration: {minutes:.1f} min (moves + settle + measurement)")
         if len(q):

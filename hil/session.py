@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from drivers.robot import ProtectiveStopError, Robot, RobotConnectionError, RobotError, RobotTimeoutError
+from drivers.robot import Robot, RobotError
 from drivers.tracker import (
     NoTargetError,
     OutlierError,
@@ -30,7 +30,7 @@ from drivers.tracker import (
     TrackerTimeoutError,
 )
 from hil.cell_config import CellConfig
-from hil.envelope import Envelope
+from hil.envelope import Envelope, EnvelopeError
 from hil.kinematics import KinematicModel, forward_kinematics
 from hil.operator import Operator, OperatorStep
 from hil.plan import Plan
@@ -237,21 +237,39 @@ class Session:
         self.envelope.check_poses(self.nominal, q, self.config.nests_flange_m, labels)
 
     def move_joints(self, q_target: np.ndarray, label: str = "") -> None:
-        """Check the whole move against the envelope, then move, riding through recoverable faults."""
+        """Move to q_target along a path checked against the envelope before any motion: straight in joint
+        space when that stays inside, else through the configured home pose (a detour, recorded as an
+        event); recoverable faults are ridden through and the rest of the path is checked again."""
         q_target = np.asarray(q_target, float)
-        self.envelope.check_joint_move(self.nominal, self.robot.joints(), q_target, self.config.nests_flange_m)
+        for leg in self._legs(q_target, label):
+            self._move_leg(leg, label)
+
+    def _legs(self, q_target: np.ndarray, label: str) -> list[np.ndarray]:
+        """The joint targets to move through: [q_target], or [home, q_target] when only the detour is safe."""
+        tools = self.config.nests_flange_m
+        q_now = np.asarray(self.robot.joints(), float)
+        try:
+            self.envelope.check_joint_move(self.nominal, q_now, q_target, tools)
+            return [q_target]
+        except EnvelopeError as direct:
+            home = self.config.q_home_rad
+            try:
+                self.envelope.check_joint_move(self.nominal, q_now, home, tools)
+                self.envelope.check_joint_move(self.nominal, home, q_target, tools)
+            except EnvelopeError:
+                raise direct from None
+            self.event("detour", f"the direct move to {label or 'the target'} would leave the envelope; going through home", point_id=label or None)
+            return [home, q_target]
+
+    def _move_leg(self, q_target: np.ndarray, label: str) -> None:
         for attempt in range(1, MOVE_ATTEMPTS + 1):
             try:
                 self.robot.move_joints(q_target)
                 return
-            except (ProtectiveStopError, RobotConnectionError, RobotTimeoutError) as exc:
-                self._robot_fault(exc, label, attempt)
-            except RobotError as exc:  # e.g. an interrupted move: recover and try again
+            except RobotError as exc:  # protective stop, lost connection, interrupted move: recover, retry
                 self._robot_fault(exc, label, attempt)
             # after recovery the arm may stand anywhere along the old path: re-check from where it is
-            self.envelope.check_joint_move(
-                self.nominal, self.robot.joints(), q_target, self.config.nests_flange_m
-            )
+            self.envelope.check_joint_move(self.nominal, self.robot.joints(), q_target, self.config.nests_flange_m)
 
     def _robot_fault(self, exc: RobotError, label: str, attempt: int) -> None:
         self.event("robot_fault", f"{type(exc).__name__} at {label or 'a move'}: {exc.message}", point_id=label or None)
