@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hil.kinematics import KinematicModel, forward_kinematics, geometric_jacobian
+from hil.kinematics import KinematicModel, forward_kinematics, geometric_jacobian, pose_and_jacobian
 from hil.se3 import invert, rot_x, rot_z
 
 # Failure vocabulary of IKResult.reason.
@@ -616,3 +616,152 @@ def _diagnose(
     r[unreach] = REASON_UNREACHABLE
     reason[failed] = r
     return reason.astype(str)
+
+
+# --------------------------------------------------------------------------------------------------
+# Fast path for many nearby targets: closed-form seed + batched Newton
+# --------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class NewtonResult:
+    """Outcome of `newton_ik` per target: joints, final errors, convergence and steps taken."""
+
+    q: np.ndarray  # (N, n) rad
+    error: np.ndarray  # (N,) position error, m (flange in pose mode, tool point in position mode)
+    rotation_error: np.ndarray  # (N,) rad, NaN in position mode
+    converged: np.ndarray  # (N,) bool
+    steps: np.ndarray  # (N,) int
+
+
+def newton_ik(
+    model: KinematicModel,
+    targets: np.ndarray,
+    q_seed: np.ndarray,
+    mode: str = "pose",
+    p_flange_tool: np.ndarray | None = None,
+    max_steps: int = 8,
+    tol_position: float = 1e-11,
+    tol_rotation: float = 1e-10,
+    damping: float = 1e-12,
+    validate: bool = True,
+) -> NewtonResult:
+    """Finish IK from nearby seeds (N, n) with batched Gauss-Newton steps and the analytic Jacobian.
+
+    targets: flange poses T_base_flange (N, 4, 4) in "pose" mode; tool points (N, 3) in "position" mode
+    (tool point `p_flange_tool` in the flange), where the step is the minimum-norm one, so the seed's
+    orientation is kept to first order. For seeds already close to the answer (a closed-form branch of
+    a slightly different model, the previous solution of a nearby target) convergence is quadratic,
+    typically 2-3 steps; targets leave the batch as they converge. No globalisation: a target that
+    does not converge is reported, for the caller to fall back to `solve_ik`. Joints stay within the
+    limits (wrapped by 2 pi or clamped). `validate=False` skips the input checks (hot loops).
+    """
+    pose = mode == "pose"
+    if validate:
+        targets = _check_targets(model, targets, mode)
+        q_seed = model.check_joints(q_seed)
+        if len(q_seed) != len(targets):
+            raise ValueError(f"{len(q_seed)} seeds for {len(targets)} targets")
+    q = project_to_limits(model, q_seed)
+    N, n = q.shape
+    tool = np.zeros(3) if p_flange_tool is None else np.asarray(p_flange_tool, dtype=float)
+    target = np.asarray(targets, float)
+    m = 6 if pose else 3
+    err = np.zeros((N, m))
+    steps = np.zeros(N, int)
+    active = np.arange(N)
+    eye = np.eye(m if not pose else n)
+    for step in range(max_steps + 1):
+        end, J = pose_and_jacobian(model, q[active], None if pose else tool)
+        if pose:
+            e = _frame_error(target[active], end)
+            done = (np.linalg.norm(e[:, :3], axis=1) < tol_position) & (
+                np.linalg.norm(e[:, 3:], axis=1) < tol_rotation
+            )
+        else:
+            e = target[active] - (end[:, :3, :3] @ tool + end[:, :3, 3])
+            done = np.linalg.norm(e, axis=1) < tol_position
+        err[active] = e
+        keep = ~done
+        if step == max_steps or not np.any(keep):
+            break
+        active, J, e = active[keep], J[keep], e[keep]
+        if pose:
+            Jt = np.swapaxes(J, 1, 2)
+            dq = np.linalg.solve(Jt @ J + damping * eye, np.einsum("kim,km->ki", Jt, e)[..., None])[..., 0]
+        else:  # minimum norm: dq = J^T (J J^T)^-1 e
+            Jv = J[:, :3]
+            A = Jv @ np.swapaxes(Jv, 1, 2) + damping * eye
+            dq = np.einsum("kmi,km->ki", Jv, np.linalg.solve(A, e[..., None])[..., 0])
+        q[active] = project_to_limits(model, q[active] + dq)
+        steps[active] += 1
+    pos = np.linalg.norm(err[:, :3], axis=1)
+    rot = np.linalg.norm(err[:, 3:], axis=1) if pose else np.full(N, np.nan)
+    conv = (pos < tol_position) & ((rot < tol_rotation) if pose else True)
+    return NewtonResult(q, pos, rot, conv, steps)
+
+
+def _frame_error(target: np.ndarray, current: np.ndarray) -> np.ndarray:
+    """[dp; rotation vector] (k, 6) taking `current` (k, 4, 4) to `target`, base frame."""
+    dp = target[:, :3, 3] - current[:, :3, 3]
+    return np.concatenate([dp, rotation_log(target[:, :3, :3] @ np.swapaxes(current[:, :3, :3], 1, 2))], 1)
+
+
+def nearest_branch_seed(
+    model: KinematicModel, T_base_flange: np.ndarray, q_ref: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per target, the closed-form branch (within the limits, 2 pi-shifted) nearest q_ref (N, n) or (n,).
+
+    Exact branches are preferred; a stretched one is taken only if no exact one exists. Returns
+    (q (N, n), reachable (N,)): reachable is False where no branch is exact within REACH_SLACK.
+    """
+    qb, overshoot = _ur_branches(model, _as_transforms(T_base_flange, "T_base_flange"))
+    N, B, n = qb.shape
+    ref = np.broadcast_to(np.asarray(q_ref, dtype=float), (N, n))
+    # Rank by the 2 pi-wrapped distance first (cheap), then shift only the pick into the limits.
+    dist = np.linalg.norm(np.nan_to_num(_wrap_pi(qb - ref[:, None, :]), nan=1e9), axis=2)
+    key = dist + np.where(overshoot > 1e-9, 1e6, 0.0)
+    pick = np.argmin(key, axis=1)
+    q, ok = nearest_equivalent(model, qb[np.arange(N), pick], ref)
+    slow = np.flatnonzero(~ok)
+    if slow.size:  # the nearest branch has no equivalent inside the limits: rank the shifted ones
+        shifted, usable = nearest_equivalent(
+            model, qb[slow], np.broadcast_to(ref[slow, None], qb[slow].shape)
+        )
+        d = np.linalg.norm(np.nan_to_num(shifted - ref[slow, None], nan=1e9), axis=2)
+        k = np.where(usable, d + np.where(overshoot[slow] > 1e-9, 1e6, 0.0), np.inf)
+        best = np.argmin(k, axis=1)
+        found = np.isfinite(k[np.arange(slow.size), best])
+        q[slow] = np.where(found[:, None], shifted[np.arange(slow.size), best], ref[slow])
+    reachable = np.any(overshoot <= REACH_SLACK, axis=1)
+    return q, reachable
+
+
+def ur_branch_index(model: KinematicModel, q: np.ndarray) -> np.ndarray:
+    """(N,) closed-form branch (4*shoulder + 2*wrist + elbow) a UR-shaped arm's joints q (N, 6) lie on."""
+    q = model.check_joints(q)
+    qb, _ = _ur_branches(model, forward_kinematics(model, q))
+    d = np.abs(_wrap_pi(qb - q[:, None, :]))
+    return np.argmin(np.nan_to_num(d, nan=np.inf).max(axis=2), axis=1)
+
+
+def branches_along_path(model: KinematicModel, T_base_flange: np.ndarray, q_start: np.ndarray) -> np.ndarray:
+    """Closed-form seeds (N, 6) for an ordered path of flange poses, each the branch (2 pi-shifted into the
+    limits) nearest the previous one's, the first nearest q_start: continuity instead of a fixed posture.
+
+    Exact branches are preferred over stretched ones; a target without any usable branch repeats the
+    previous seed. One small step per target (8 candidates), so the Python loop stays cheap.
+    """
+    qb, overshoot = _ur_branches(model, _as_transforms(T_base_flange, "T_base_flange"))
+    seeds = np.empty((len(qb), model.n_joints))
+    prev = np.asarray(q_start, dtype=float)
+    penalty = np.where(overshoot > 1e-9, 1e6, 0.0)
+    for k in range(len(qb)):
+        shifted, usable = nearest_equivalent(model, qb[k], np.broadcast_to(prev, qb[k].shape))
+        d = np.where(
+            usable, np.linalg.norm(np.nan_to_num(shifted - prev, nan=1e9), axis=1) + penalty[k], np.inf
+        )
+        pick = int(np.argmin(d))
+        seeds[k] = shifted[pick] if np.isfinite(d[pick]) else prev
+        prev = seeds[k]
+    return seeds
