@@ -10,6 +10,7 @@ import sys
 COMMAND_MODULES: tuple[str, ...] = (
     "hil.commands.demo",
     "hil.commands.calibrate",
+    "hil.commands.compensate",
     "hil.commands.diagnose",
     "hil.commands.predict",
     "hil.commands.sim",

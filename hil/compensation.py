@@ -18,6 +18,7 @@ import numpy as np
 from hil.calibrated_model import CalibratedModel
 from hil.effects import EffectContext
 from hil.ik import (
+    REASON_MAX_ITER,
     REASON_OK,
     REASON_UNREACHABLE,
     branches_along_path,
@@ -43,8 +44,10 @@ from hil.se3 import invert
 STATUS_OK = "ok"  # predicted error below the threshold
 STATUS_MAX_ITER = "max_iter"  # iteration cap reached above the threshold (best joints kept)
 STATUS_STALLED = "stalled"  # no improvement for `patience` iterations (best joints kept)
-# The IK reasons of hil.ik (unreachable, singular, joint_limits, max_iter) mark targets whose first IK
-# failed: their joints are NaN. A later IK failure keeps the best joints found and that reason.
+STATUS_NO_IK = "no_ik_solution"  # the IK found no joints for the (pseudo) target, cause not proven
+# The IK reasons of hil.ik (unreachable, singular, joint_limits; its max_iter becomes no_ik_solution)
+# mark targets whose first IK failed: their joints are NaN. A later IK failure keeps the best joints
+# found and that reason.
 STATUSES: tuple[str, ...] = (
     STATUS_OK,
     STATUS_MAX_ITER,
@@ -52,6 +55,7 @@ STATUSES: tuple[str, ...] = (
     "unreachable",
     "singular",
     "joint_limits",
+    STATUS_NO_IK,
 )
 ENSEMBLE = "ensemble"
 POINT_GENERATOR = "point"  # point targets: P_p <- P_p + P_d - P_a, orientation free
@@ -144,7 +148,7 @@ class CompensationResult:
         return {
             "targets": len(self.q),
             "ok": int(self.ok.sum()),
-            "statuses": {s: int(np.sum(self.status == s)) for s in np.unique(self.status)},
+            "statuses": {str(s): int(np.sum(self.status == s)) for s in np.unique(self.status)},
             "mean_error_mm_before": float(np.mean(self.initial_error_m[ok]) * 1e3) if ok.any() else np.nan,
             "mean_error_mm": float(np.mean(self.error_m[ok]) * 1e3) if ok.any() else np.nan,
             "max_error_mm": float(np.max(self.error_m[ok]) * 1e3) if ok.any() else np.nan,
@@ -345,7 +349,7 @@ class _Setup:
                 self.kin, target[bad], q_seed=q_prev[bad], q_near=q_prev[bad[0]], restarts=5, **kw
             )
             q[bad] = slow.q
-            reason[bad] = slow.reason
+            reason[bad] = np.where(slow.reason == REASON_MAX_ITER, STATUS_NO_IK, slow.reason)
         return q, reason.astype(str)
 
     def _first_ik(self, q_seed, q_ref) -> tuple[np.ndarray, np.ndarray]:
@@ -361,7 +365,7 @@ class _Setup:
             kw = {"mode": "pose"} if self.full_pose else {"mode": "position", "p_flange_tool": self.tool}
             target = T_f if self.full_pose else T_f[:, :3, :3] @ self.tool + T_f[:, :3, 3]
             res = solve_ik(self.kin, target, q_near=q_ref, **kw)
-            q, reason = res.q, res.reason
+            q, reason = res.q, np.where(res.reason == REASON_MAX_ITER, STATUS_NO_IK, res.reason)
         q = np.array(q, dtype=float)
         q[reason != REASON_OK] = np.nan
         return q, np.asarray(reason).astype(str)
