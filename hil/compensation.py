@@ -11,6 +11,7 @@ SMR centre and the flange's orientation in the tracker frame, metres.
 from __future__ import annotations
 
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -24,8 +25,8 @@ from hil.ik import (
     branches_along_path,
     default_home,
     is_ur_like,
-    nearest_branch_seed,
     newton_ik,
+    same_branch_seed,
     solve_ik,
     ur_branch_index,
 )
@@ -58,6 +59,9 @@ STATUSES: tuple[str, ...] = (
     STATUS_NO_IK,
 )
 ENSEMBLE = "ensemble"
+IK_TOL_FRACTION = 1e-3  # pseudo targets are solved to this fraction of the threshold (m; rad: / length scale)
+# An IK to plug into the loop: (targets, seeds (k, n)) -> (joints (k, n), converged (k,)).
+IKSolver = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
 POINT_GENERATOR = "point"  # point targets: P_p <- P_p + P_d - P_a, orientation free
 
 
@@ -85,6 +89,7 @@ class PosePredictor:
         self.tool = np.asarray(model.tools[self.smr], float)
         self.t_s, self.temperature_c, self.approach = t_s, temperature_c, approach
         self.map = map_from_dict(model.residual_map) if use_map and model.residual_map is not None else None
+        self.joint_effects_only = all(e.kind == "joint" for e in model.effects)
 
     def __call__(self, q: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
         m = self.model
@@ -95,10 +100,13 @@ class PosePredictor:
 
         tools = np.broadcast_to(self.tool, (len(q), 3))
         ctx = EffectContext(q, take(self.t_s), take(self.temperature_c), None, tools, take(self.approach))
-        p = m.predict_ctx(ctx)
         T_flange = forward_kinematics(m.kinematic, q + m.joint_offsets(ctx))
+        p_base = T_flange[:, :3, :3] @ self.tool + T_flange[:, :3, 3]
+        if self.joint_effects_only:  # what predict_ctx computes, without a second chain
+            p = p_base @ m.T_tracker_base[:3, :3].T + m.T_tracker_base[:3, 3]
+        else:
+            p = m.predict_ctx(ctx)
         if self.map is not None:
-            p_base = T_flange[:, :3, :3] @ self.tool + T_flange[:, :3, 3]
             p = p + self.map.predict_raw(q, p_base)
         T = np.zeros((len(q), 4, 4))
         T[:, :3, :3] = m.T_tracker_base[:3, :3] @ T_flange[:, :3, :3]
@@ -187,6 +195,7 @@ def compensate(
     temperature_c: np.ndarray | None = None,
     approach: np.ndarray | None = None,
     use_map: bool = True,
+    ik_solver: IKSolver | None = None,
 ) -> CompensationResult:
     """Joints that make the model put the SMR on the targets (tracker frame, m): points (N, 3) or poses.
 
@@ -198,7 +207,9 @@ def compensate(
     tool orientation. Stops per target below `threshold_m` of the error measure (position, or the
     mm-equivalent pose error with `length_scale_m` per radian), after `max_iter` updates, or after
     `patience` updates without improvement. `ik_model`: "kinematic" (the calibrated geometry) or
-    "nominal": the model the pseudo targets are solved with.
+    "nominal": the model the pseudo targets are solved with. `ik_solver` replaces hil's IK (closed-form
+    seed, Newton, `solve_ik` fallback) after the seed: f(targets, q_seed) -> (q, ok) with targets the
+    flange poses T_base_flange (k, 4, 4), or tool points (k, 3) in the base frame for point targets.
     """
     if max_iter < 0 or patience < 1 or threshold_m <= 0 or length_scale_m <= 0:
         raise ValueError("max_iter must be >= 0, patience >= 1, threshold_m and length_scale_m > 0")
@@ -208,7 +219,19 @@ def compensate(
     if not full_pose:  # the generators differ only in the orientation, which points leave free
         names = [POINT_GENERATOR]
     predictor = PosePredictor(model, smr, t_s, temperature_c, approach, use_map)
-    ctx = _Setup(model, predictor, ik_model, full_pose, T_d_in, q_seed, q_near)
+    tol_m = IK_TOL_FRACTION * threshold_m
+    ctx = _Setup(
+        model,
+        predictor,
+        ik_model,
+        full_pose,
+        T_d_in,
+        q_seed,
+        q_near,
+        ik_solver,
+        tol_m,
+        tol_m / length_scale_m,
+    )
     outside = predictor.outside_volume(ctx.T_d[:, :3, 3])
     if outside.any():
         warnings.warn(
@@ -292,7 +315,21 @@ class _Setup:
     tool point with minimum-norm steps from the previous joints (the orientation drifts only as needed).
     """
 
-    def __init__(self, model, predictor, ik_model, full_pose, targets, q_seed, q_near) -> None:
+    def __init__(
+        self,
+        model,
+        predictor,
+        ik_model,
+        full_pose,
+        targets,
+        q_seed,
+        q_near,
+        ik_solver=None,
+        tol_m=1e-11,
+        tol_rad=1e-10,
+    ) -> None:
+        self.ik_solver = ik_solver
+        self.tol_m, self.tol_rad = tol_m, tol_rad
         if ik_model not in ("kinematic", "nominal"):
             raise ValueError(f"ik_model must be 'kinematic' or 'nominal', got {ik_model!r}")
         self.predictor = predictor
@@ -336,10 +373,19 @@ class _Setup:
         Returns (q, reason (N,) str: 'ok' or hil.ik's failure reason)."""
         if self.full_pose:
             target = self.to_flange(ik_pose(T_pseudo) if project else T_pseudo)
-            res = newton_ik(self.kin, target, q_prev, validate=False)
         else:
             target = T_pseudo[:, :3, 3] @ self.T_bt[:3, :3].T + self.T_bt[:3, 3]
-            res = newton_ik(self.kin, target, q_prev, "position", self.tool, validate=False)
+        if self.ik_solver is not None:
+            q, ok = self.ik_solver(target, q_prev)
+            return np.array(q, float), np.where(ok, REASON_OK, STATUS_NO_IK).astype(str)
+        if self.full_pose:
+            res = newton_ik(
+                self.kin, target, q_prev, tol_position=self.tol_m, tol_rotation=self.tol_rad, validate=False
+            )
+        else:
+            res = newton_ik(
+                self.kin, target, q_prev, "position", self.tool, tol_position=self.tol_m, validate=False
+            )
         q = res.q
         reason = np.full(len(q), REASON_OK, dtype=object)
         bad = np.flatnonzero(~res.converged)
@@ -357,7 +403,7 @@ class _Setup:
         if q_seed is not None:
             q, reason = self.ik(self.T_d, q_seed)
         elif is_ur_like(self.kin):
-            seed, reachable = nearest_branch_seed(self.kin, T_f, q_ref)
+            seed, reachable = same_branch_seed(self.kin, T_f, q_ref)
             q, reason = self.ik(self.T_d, seed)
             if self.full_pose:
                 reason = np.where(~reachable & (reason != REASON_OK), REASON_UNREACHABLE, reason)

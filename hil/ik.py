@@ -121,63 +121,65 @@ def ur_analytic_ik(
 
 def _ur_branches(model: KinematicModel, T_base_flange: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Closed-form branches, stretched where out of reach: (q (N, 8, 6), overshoot (N, 8) >= 0, 0 = exact)."""
+    T = _ur_wrist_frames(model, T_base_flange)
+    N = T.shape[0]
+    q, overshoot = _ur_branch(model, np.repeat(T, 8, axis=0), np.tile(np.arange(8), N))  # one pass, 8N rows
+    return q.reshape(N, 8, 6), overshoot.reshape(N, 8)
+
+
+def _ur_wrist_frames(model: KinematicModel, T_base_flange: np.ndarray) -> np.ndarray:
     if not is_ur_like(model):
         raise ValueError(f"{model.name} is not a UR-shaped arm (standard DH alphas pi/2,0,0,pi/2,-pi/2,0)")
-    T = _as_transforms(T_base_flange, "T_base_flange") @ invert(np.asarray(model.T_last_flange, float))
+    return _as_transforms(T_base_flange, "T_base_flange") @ invert(np.asarray(model.T_last_flange, float))
+
+
+def _ur_branch(model: KinematicModel, T: np.ndarray, branch: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """One closed-form branch per target (index 4*shoulder + 2*wrist + elbow, (N,)) of last-link poses T:
+    (q (N, 6) in (-pi, pi], overshoot (N,) >= 0, 0 = exact; stretched where out of reach)."""
     N = T.shape[0]
     d1, d4, d5, d6 = model.d[0], model.d[3], model.d[4], model.d[5]
     a2, a3 = model.a[1], model.a[2]
+    sh, wr, el = branch // 4, (branch // 2) % 2, branch % 2
     R, p = T[:, :3, :3], T[:, :3, 3]
     z6 = R[:, :, 2]
     p5 = p - d6 * z6  # origin of frame 5, which lies at offset d4 along the joint-2 axis z1
-
-    q = np.empty((N, 8, 6))
-    overshoot = np.empty((N, 8))
     r2 = p5[:, 0] ** 2 + p5[:, 1] ** 2
     # Shoulder: z1 = (sin q1, -cos q1, 0) and p5 . z1 = d4  =>  r sin(q1 - phi) = d4.
     shoulder_over = np.maximum(1.0 - np.sqrt(r2) / abs(d4), 0.0)
-    ratio = np.clip(d4 / np.sqrt(np.maximum(r2, 1e-300)), -1.0, 1.0)
-    phi = np.arctan2(p5[:, 1], p5[:, 0])
-    for sh in range(2):
-        q1 = phi + (np.arcsin(ratio) if sh == 0 else np.pi - np.arcsin(ratio))
-        c1, s1 = np.cos(q1), np.sin(q1)
-        x1 = np.stack([c1, s1, np.zeros(N)], 1)
-        y1 = np.broadcast_to([0.0, 0.0, 1.0], (N, 3))
-        z1 = np.stack([s1, -c1, np.zeros(N)], 1)
-        # Wrist: z6 . z1 = cos q5.
-        c5 = np.clip(np.einsum("ni,ni->n", z6, z1), -1.0, 1.0)
-        for wr in range(2):
-            q5 = np.arccos(c5) * (1.0 if wr == 0 else -1.0)
-            s5 = np.sin(q5)
-            # x6 . z1 = cos q6 sin q5 and y6 . z1 = -sin q6 sin q5.
-            xz = np.einsum("ni,ni->n", R[:, :, 0], z1)
-            yz = np.einsum("ni,ni->n", R[:, :, 1], z1)
-            singular = np.abs(s5) < 1e-12
-            s5_safe = np.where(singular, 1.0, s5)
-            q6 = np.where(singular, 0.0, np.arctan2(-yz / s5_safe, xz / s5_safe))
-            # Rotation of frame 4: R04 = R06 (Rz(q5) Rx(-pi/2) Rz(q6))^T; R04 = R01 Rz(q234) Rx(pi/2).
-            R46 = rot_z(q5) @ rot_x(-np.pi / 2) @ rot_z(q6)
-            R04 = R @ np.swapaxes(R46, 1, 2)
-            R01 = np.stack([x1, y1, z1], axis=2)
-            M = np.swapaxes(R01, 1, 2) @ R04 @ rot_x(-np.pi / 2)
-            q234 = np.arctan2(M[:, 1, 0], M[:, 0, 0])
-            # Planar 2-link problem for joints 2, 3 in the arm plane (x1, y1).
-            p4 = p5 - d5 * R04[:, :, 2]
-            w = p4 - np.array([0.0, 0.0, d1]) - d4 * z1
-            u = np.einsum("ni,ni->n", w, x1)
-            v = w[:, 2]
-            c3 = (u**2 + v**2 - a2**2 - a3**2) / (2.0 * a2 * a3)
-            elbow_over = np.maximum(np.abs(c3) - 1.0, 0.0)
-            c3 = np.clip(c3, -1.0, 1.0)
-            for el in range(2):
-                q3 = np.arccos(c3) * (1.0 if el == 0 else -1.0)
-                q2 = np.arctan2(v, u) - np.arctan2(a3 * np.sin(q3), a2 + a3 * np.cos(q3))
-                q4 = q234 - q2 - q3
-                b = 4 * sh + 2 * wr + el
-                sol = np.stack([q1, q2, q3, q4, q5, q6], 1) - np.asarray(model.theta)
-                q[:, b] = _wrap_pi(sol)
-                overshoot[:, b] = np.maximum(shoulder_over, elbow_over)
-    return q, overshoot
+    asin = np.arcsin(np.clip(d4 / np.sqrt(np.maximum(r2, 1e-300)), -1.0, 1.0))
+    q1 = np.arctan2(p5[:, 1], p5[:, 0]) + np.where(sh == 0, asin, np.pi - asin)
+    c1, s1 = np.cos(q1), np.sin(q1)
+    zero = np.zeros(N)
+    x1 = np.stack([c1, s1, zero], 1)
+    y1 = np.broadcast_to([0.0, 0.0, 1.0], (N, 3))
+    z1 = np.stack([s1, -c1, zero], 1)
+    # Wrist: z6 . z1 = cos q5.
+    q5 = np.arccos(np.clip(np.einsum("ni,ni->n", z6, z1), -1.0, 1.0)) * np.where(wr == 0, 1.0, -1.0)
+    s5 = np.sin(q5)
+    # x6 . z1 = cos q6 sin q5 and y6 . z1 = -sin q6 sin q5.
+    xz = np.einsum("ni,ni->n", R[:, :, 0], z1)
+    yz = np.einsum("ni,ni->n", R[:, :, 1], z1)
+    singular = np.abs(s5) < 1e-12
+    s5_safe = np.where(singular, 1.0, s5)
+    q6 = np.where(singular, 0.0, np.arctan2(-yz / s5_safe, xz / s5_safe))
+    # Rotation of frame 4: R04 = R06 (Rz(q5) Rx(-pi/2) Rz(q6))^T; R04 = R01 Rz(q234) Rx(pi/2).
+    R46 = rot_z(q5) @ rot_x(-np.pi / 2) @ rot_z(q6)
+    R04 = R @ np.swapaxes(R46, 1, 2)
+    R01 = np.stack([x1, y1, z1], axis=2)
+    M = np.swapaxes(R01, 1, 2) @ R04 @ rot_x(-np.pi / 2)
+    q234 = np.arctan2(M[:, 1, 0], M[:, 0, 0])
+    # Planar 2-link problem for joints 2, 3 in the arm plane (x1, y1).
+    p4 = p5 - d5 * R04[:, :, 2]
+    w = p4 - np.array([0.0, 0.0, d1]) - d4 * z1
+    u = np.einsum("ni,ni->n", w, x1)
+    v = w[:, 2]
+    c3 = (u**2 + v**2 - a2**2 - a3**2) / (2.0 * a2 * a3)
+    elbow_over = np.maximum(np.abs(c3) - 1.0, 0.0)
+    q3 = np.arccos(np.clip(c3, -1.0, 1.0)) * np.where(el == 0, 1.0, -1.0)
+    q2 = np.arctan2(v, u) - np.arctan2(a3 * np.sin(q3), a2 + a3 * np.cos(q3))
+    q4 = q234 - q2 - q3
+    sol = np.stack([q1, q2, q3, q4, q5, q6], 1) - np.asarray(model.theta)
+    return _wrap_pi(sol), np.maximum(shoulder_over, elbow_over)
 
 
 def _wrap_pi(q: np.ndarray) -> np.ndarray:
@@ -734,6 +736,26 @@ def nearest_branch_seed(
         found = np.isfinite(k[np.arange(slow.size), best])
         q[slow] = np.where(found[:, None], shifted[np.arange(slow.size), best], ref[slow])
     reachable = np.any(overshoot <= REACH_SLACK, axis=1)
+    return q, reachable
+
+
+def same_branch_seed(
+    model: KinematicModel, T_base_flange: np.ndarray, q_ref: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per target, the closed-form solution on the branch (shoulder, wrist, elbow) of the reference
+    posture q_ref ((n,) or (N, n)), 2 pi-shifted nearest it: one branch instead of eight. Targets where
+    that branch is out of reach or outside the limits get `nearest_branch_seed`. Same returns as it."""
+    T = _ur_wrist_frames(model, T_base_flange)
+    N, n = T.shape[0], model.n_joints
+    q_ref = np.asarray(q_ref, dtype=float)
+    branch = ur_branch_index(model, q_ref[None] if q_ref.ndim == 1 else q_ref)
+    ref = np.broadcast_to(q_ref, (N, n))
+    q, over = _ur_branch(model, T, np.broadcast_to(branch, (N,)))
+    q, ok = nearest_equivalent(model, q, ref)
+    reachable = np.ones(N, bool)
+    other = np.flatnonzero(~ok | (over > 1e-9))
+    if other.size:
+        q[other], reachable[other] = nearest_branch_seed(model, T_base_flange[other], ref[other])
     return q, reachable
 
 
