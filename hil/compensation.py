@@ -60,6 +60,7 @@ STATUSES: tuple[str, ...] = (
 )
 ENSEMBLE = "ensemble"
 IK_TOL_FRACTION = 1e-3  # pseudo targets are solved to this fraction of the threshold (m; rad: / length scale)
+NEWTON_STEPS = 16  # Newton steps before a target goes to solve_ik (slow seeds converge linearly at first)
 # An IK to plug into the loop: (targets, seeds (k, n)) -> (joints (k, n), converged (k,)).
 IKSolver = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
 POINT_GENERATOR = "point"  # point targets: P_p <- P_p + P_d - P_a, orientation free
@@ -308,39 +309,102 @@ def _check_targets(targets: np.ndarray) -> tuple[bool, np.ndarray]:
     raise ValueError(f"targets must be points (N, 3) or poses (N, 4, 4) in metres, got shape {t.shape}")
 
 
-class _Setup:
-    """What every generator's run shares: the IK model, frames, the targets as poses and the first joints.
+class PseudoTargetIK:
+    """The IK side of the loop: joints for pseudo targets (tracker frame), seeded with the previous joints.
 
     Pose targets: the IK solves flange poses. Point targets: the orientation is free, the IK solves the
     tool point with minimum-norm steps from the previous joints (the orientation drifts only as needed).
+    The measured loop uses it with `hil.pseudo_targets.update_pseudo_target` on measured poses:
+    T_p = update_pseudo_target(gen, T_d, T_measured, T_p); q, reason = ik.solve(T_p, q).
     """
 
     def __init__(
         self,
-        model,
-        predictor,
-        ik_model,
-        full_pose,
-        targets,
-        q_seed,
-        q_near,
-        ik_solver=None,
-        tol_m=1e-11,
-        tol_rad=1e-10,
+        model: CalibratedModel,
+        ik_model: str = "kinematic",
+        smr: int | None = None,
+        full_pose: bool = True,
+        ik_solver: IKSolver | None = None,
+        tol_m: float = 1e-8,
+        tol_rad: float = 1e-7,
     ) -> None:
-        self.ik_solver = ik_solver
-        self.tol_m, self.tol_rad = tol_m, tol_rad
         if ik_model not in ("kinematic", "nominal"):
             raise ValueError(f"ik_model must be 'kinematic' or 'nominal', got {ik_model!r}")
-        self.predictor = predictor
+        sid = sorted(model.tools)[0] if smr is None else int(smr)
+        if sid not in model.tools:
+            raise ValueError(f"the model has tool points for SMR nests {sorted(model.tools)}, not {sid}")
+        self.ik_solver = ik_solver
+        self.tol_m, self.tol_rad = tol_m, tol_rad
         self.full_pose = full_pose
         self.kin: KinematicModel = model.kinematic if ik_model == "kinematic" else model.nominal
         self.T_tb = np.asarray(model.T_tracker_base, float)
         self.T_bt = invert(self.T_tb)
-        self.tool = predictor.tool
+        self.tool = np.asarray(model.tools[sid], float)
         self.T_ft = np.eye(4)
         self.T_ft[:3, 3] = self.tool
         self.T_tf = invert(self.T_ft)
+
+    def to_flange(self, T_tracker_tool: np.ndarray) -> np.ndarray:
+        return self.T_bt @ T_tracker_tool @ self.T_tf
+
+    def from_flange(self, T_base_flange: np.ndarray) -> np.ndarray:
+        return self.T_tb @ T_base_flange @ self.T_ft
+
+    def solve(
+        self, T_pseudo: np.ndarray, q_prev: np.ndarray, project: bool = False
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """IK of pseudo targets T_tracker_tool (N, 4, 4) seeded with q_prev (N, n): Newton, then `solve_ik`
+        on what Newton left (or `ik_solver`). `project`: rotation blocks are not rotations ("add").
+        Returns (q, reason (N,) str: 'ok', hil.ik's failure reason, or no_ik_solution)."""
+        if self.full_pose:
+            target = self.to_flange(ik_pose(T_pseudo) if project else T_pseudo)
+        else:
+            target = T_pseudo[:, :3, 3] @ self.T_bt[:3, :3].T + self.T_bt[:3, 3]
+        if self.ik_solver is not None:
+            q, ok = self.ik_solver(target, q_prev)
+            return np.array(q, float), np.where(ok, REASON_OK, STATUS_NO_IK).astype(str)
+        if self.full_pose:
+            res = newton_ik(
+                self.kin,
+                target,
+                q_prev,
+                tol_position=self.tol_m,
+                tol_rotation=self.tol_rad,
+                max_steps=NEWTON_STEPS,
+                validate=False,
+            )
+        else:
+            res = newton_ik(
+                self.kin,
+                target,
+                q_prev,
+                "position",
+                self.tool,
+                tol_position=self.tol_m,
+                max_steps=NEWTON_STEPS,
+                validate=False,
+            )
+        q = res.q
+        reason = np.full(len(q), REASON_OK, dtype=object)
+        bad = np.flatnonzero(~res.converged)
+        if bad.size:
+            kw = {"mode": "pose"} if self.full_pose else {"mode": "position", "p_flange_tool": self.tool}
+            slow = solve_ik(
+                self.kin, target[bad], q_seed=q_prev[bad], q_near=q_prev[bad[0]], restarts=5, **kw
+            )
+            q[bad] = slow.q
+            reason[bad] = np.where(slow.reason == REASON_MAX_ITER, STATUS_NO_IK, slow.reason)
+        return q, reason.astype(str)
+
+
+class _Setup(PseudoTargetIK):
+    """What every generator's run shares: the IK, the predictor, the targets as poses and the first joints."""
+
+    def __init__(
+        self, model, predictor, ik_model, full_pose, targets, q_seed, q_near, ik_solver, tol_m, tol_rad
+    ):
+        super().__init__(model, ik_model, predictor.smr, full_pose, ik_solver, tol_m, tol_rad)
+        self.predictor = predictor
         n = self.kin.n_joints
         N = len(targets)
         q_ref = default_home(self.kin) if q_near is None else np.asarray(q_near, float)
@@ -359,52 +423,13 @@ class _Setup:
             self.T_d[:, :3, 3] = targets
         self.q0, self.reason0 = self._first_ik(q_seed, q_ref)
 
-    def to_flange(self, T_tracker_tool: np.ndarray) -> np.ndarray:
-        return self.T_bt @ T_tracker_tool @ self.T_tf
-
-    def from_flange(self, T_base_flange: np.ndarray) -> np.ndarray:
-        return self.T_tb @ T_base_flange @ self.T_ft
-
-    def ik(
-        self, T_pseudo: np.ndarray, q_prev: np.ndarray, project: bool = False
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """IK of pseudo targets seeded with q_prev: Newton, then `solve_ik` on what Newton left.
-
-        Returns (q, reason (N,) str: 'ok' or hil.ik's failure reason)."""
-        if self.full_pose:
-            target = self.to_flange(ik_pose(T_pseudo) if project else T_pseudo)
-        else:
-            target = T_pseudo[:, :3, 3] @ self.T_bt[:3, :3].T + self.T_bt[:3, 3]
-        if self.ik_solver is not None:
-            q, ok = self.ik_solver(target, q_prev)
-            return np.array(q, float), np.where(ok, REASON_OK, STATUS_NO_IK).astype(str)
-        if self.full_pose:
-            res = newton_ik(
-                self.kin, target, q_prev, tol_position=self.tol_m, tol_rotation=self.tol_rad, validate=False
-            )
-        else:
-            res = newton_ik(
-                self.kin, target, q_prev, "position", self.tool, tol_position=self.tol_m, validate=False
-            )
-        q = res.q
-        reason = np.full(len(q), REASON_OK, dtype=object)
-        bad = np.flatnonzero(~res.converged)
-        if bad.size:
-            kw = {"mode": "pose"} if self.full_pose else {"mode": "position", "p_flange_tool": self.tool}
-            slow = solve_ik(
-                self.kin, target[bad], q_seed=q_prev[bad], q_near=q_prev[bad[0]], restarts=5, **kw
-            )
-            q[bad] = slow.q
-            reason[bad] = np.where(slow.reason == REASON_MAX_ITER, STATUS_NO_IK, slow.reason)
-        return q, reason.astype(str)
-
     def _first_ik(self, q_seed, q_ref) -> tuple[np.ndarray, np.ndarray]:
         T_f = self.to_flange(self.T_d)
         if q_seed is not None:
-            q, reason = self.ik(self.T_d, q_seed)
+            q, reason = self.solve(self.T_d, q_seed)
         elif is_ur_like(self.kin):
             seed, reachable = same_branch_seed(self.kin, T_f, q_ref)
-            q, reason = self.ik(self.T_d, seed)
+            q, reason = self.solve(self.T_d, seed)
             if self.full_pose:
                 reason = np.where(~reachable & (reason != REASON_OK), REASON_UNREACHABLE, reason)
         else:
@@ -465,7 +490,7 @@ def _run(
             T_p[active, :3, 3] = update_pseudo_position(
                 s.T_d[active, :3, 3], T_a[:, :3, 3], T_p[active, :3, 3]
             )
-        q_new, reason = s.ik(T_p[active], q[active], project=generator == "add")
+        q_new, reason = s.solve(T_p[active], q[active], project=generator == "add")
         iters[active] += 1
         failed = reason != REASON_OK
         status[active[failed]] = reason[failed]  # best joints so far stay

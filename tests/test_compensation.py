@@ -13,10 +13,10 @@ from calib_data import ur10_joints
 from scipy.spatial.transform import Rotation
 
 from hil.calibrated_model import CalibratedModel
-from hil.compensation import ENSEMBLE, STATUSES, PosePredictor, compensate, compensate_path
+from hil.compensation import ENSEMBLE, STATUSES, PosePredictor, PseudoTargetIK, compensate, compensate_path
 from hil.dataset import make_dataset
 from hil.effects import EffectContext, make_effect
-from hil.ik import ur_branch_index
+from hil.ik import default_home, same_branch_seed, ur_branch_index
 from hil.kinematics import forward_kinematics
 from hil.pseudo_targets import GENERATORS, pose_errors, update_pseudo_target
 from hil.residual_maps import make_map
@@ -271,3 +271,24 @@ def test_cli(model, tmp_path, capsys):
     assert out[0] == 2 and "rx_deg, ry_deg, rz_deg" in out[2]
     out = _hil("compensate", "model.json", "missing.csv", "-o", "j3.csv", cwd=tmp_path, capsys=capsys)
     assert out[0] == 2 and "error:" in out[2]
+
+
+def test_the_update_and_ik_steps_work_on_poses_from_elsewhere(model):
+    # The measured loop's building blocks: reached poses come from outside (here a second model with
+    # other effects plays the measured cell), the update and the seeded IK do the rest.
+    cell = ur10_model(seed=11)
+    cell = replace(cell, T_tracker_base=model.T_tracker_base, tools=model.tools)
+    T_target = reachable_targets(model, 50, seed=12)
+    ik = PseudoTargetIK(model)
+    seed, _ = same_branch_seed(model.kinematic, ik.to_flange(T_target), default_home(model.kinematic))
+    q, reason = ik.solve(T_target, seed)
+    assert np.all(reason == "ok")
+    T_p = T_target.copy()
+    errors = []
+    for _ in range(6):
+        T_reached = actual_poses(cell, q)
+        errors.append(pose_errors(T_reached, T_target)[0].max())
+        T_p = update_pseudo_target("quaternion", T_target, T_reached, T_p)
+        q, reason = ik.solve(T_p, q)
+        assert np.all(reason == "ok")
+    assert errors[0] > 1e-3 and errors[-1] < 1e-7
