@@ -203,9 +203,9 @@ def compensate(
     Full-pose targets are T_tracker_tool (N, 4, 4): SMR centre and flange orientation; `generator` is
     one of `hil.pseudo_targets.GENERATORS` (default "yin") or "ensemble" (all of them, best joints per
     target). Point targets (N, 3) leave the orientation free: the pseudo target is a point
-    (P_p <- P_p + P_d - P_a, the part all generators share), the first IK starts from the closed-form
-    branch nearest `q_seed` (per target) or `q_near` (default `hil.ik.default_home`) in that posture's
-    tool orientation. Stops per target below `threshold_m` of the error measure (position, or the
+    (P_p <- P_p + P_d - P_a, the part all generators share). The first IK starts from `q_seed` (per
+    target) if given, else from the closed-form solution on the branch of `q_near` (default
+    `hil.ik.default_home`), for points in that posture's tool orientation. Stops per target below `threshold_m` of the error measure (position, or the
     mm-equivalent pose error with `length_scale_m` per radian), after `max_iter` updates, or after
     `patience` updates without improvement. `ik_model`: "kinematic" (the calibrated geometry) or
     "nominal": the model the pseudo targets are solved with. `ik_solver` replaces hil's IK (closed-form
@@ -266,16 +266,13 @@ def compensate_path(
     if not is_ur_like(kin):
         raise ValueError(f"compensate_path needs a UR-shaped arm, {kin.name} is not")
     q0 = default_home(kin) if q_start is None else np.asarray(q_start, float)
-    T_tb = np.asarray(model.T_tracker_base, float)
-    smr = kwargs.get("smr")
-    T_ft = np.eye(4)
-    T_ft[:3, 3] = model.tools[sorted(model.tools)[0] if smr is None else int(smr)]
+    frames = PseudoTargetIK(model, kwargs.get("ik_model", "kinematic"), kwargs.get("smr"))
     if full_pose:
         T_d = T_d_in
-    else:
-        T_d = np.broadcast_to(T_tb @ forward_kinematics(kin, q0[None])[0] @ T_ft, (len(T_d_in), 4, 4)).copy()
+    else:  # points: the start posture's orientation, only to pick the branches
+        T_d = np.repeat(frames.from_flange(forward_kinematics(kin, q0[None])), len(T_d_in), axis=0)
         T_d[:, :3, 3] = T_d_in
-    seeds = branches_along_path(kin, invert(T_tb) @ T_d @ invert(T_ft), q0)
+    seeds = branches_along_path(kin, frames.to_flange(T_d), q0)
     kwargs.pop("q_near", None)
     res = compensate(model, targets, q_seed=seeds, q_near=q0, **kwargs)
     q = res.q

@@ -40,6 +40,7 @@ REACH_SLACK = (
 LAM_MIN = 1e-8  # floor of the adaptive bias multiplier (bias = LAM_MIN * wbar near convergence)
 STALL_WINDOW, STALL_FACTOR = 25, 0.9  # give up an attempt whose E fell less than 10 % in 25 iterations
 LAM_DOWN, LAM_UP = 0.1, 10.0  # bias multiplier after an accepted / rejected step
+NEWTON_STEPS = 8  # Newton steps from the first seed before solve_ik falls back to LM
 
 
 @dataclass(frozen=True)
@@ -511,7 +512,8 @@ def solve_ik(
     """Joints reaching N targets: T_base_tool (N,4,4) in "pose" mode, tool points (N,3) in "position" mode.
 
     Seeds, tried in order on the targets still unsolved: `q_seed` (N,n) or (n,) if given; on a UR-shaped
-    model (and `use_analytic`) the analytic branches, nearest to `q_near` (default `default_home`) first;
+    model (and `use_analytic`) the analytic branches, nearest to `q_near` (default `default_home`) first
+    (the first seed of all is tried with a few Newton steps before LM: most targets end there);
     `q_near` itself when no q_seed is given; then `restarts` random joint sets within limits (seed `rng`).
     W_E weighs position (m) against rotation (rad) as 1 rad <-> `length_scale` m.
     Success only if the final position error < tol_position (m) and, in pose mode, the rotation error
@@ -568,6 +570,27 @@ def solve_ik(
     beyond = np.linalg.norm(point, axis=1) > reach_bound(model, tool_len)
     if no_branch is not None:
         beyond |= no_branch  # well beyond the nominal reach: no small model error makes it reachable
+
+    if q_seed is not None or ur:
+        # The first seed (the caller's, or the nearest closed-form branch) is usually close: a few Newton
+        # steps finish most targets far cheaper than LM; the rest go through the LM attempts below.
+        todo = np.flatnonzero(seed_ok[0] & ~beyond)
+        if todo.size:
+            if mode == "pose":
+                T_f = tgt[todo] @ invert(T_ft)
+                tol = {"tol_position": 0.5 * tol_position, "tol_rotation": 0.5 * tol_rotation}
+                nr = newton_ik(model, T_f, seeds[0][todo], max_steps=NEWTON_STEPS, validate=False, **tol)
+            else:
+                tol = {"tol_position": 0.5 * tol_position}
+                nr = newton_ik(model, tgt[todo], seeds[0][todo], "position", T_ft[:3, 3], NEWTON_STEPS, **tol)
+            e = prob.residual(nr.q, todo)
+            conv = prob.converged(e) & model.within_limits(nr.q, tol=1e-12)
+            done = todo[conv]
+            q_best[done], e_best[done] = nr.q[conv], e[conv]
+            E_best[done] = 0.5 * np.einsum("km,m,km->k", e[conv], weights, e[conv])
+            iterations[todo] += nr.steps
+            attempts[done] += 1
+            success[done] = True
 
     for s, ok in zip(seeds, seed_ok, strict=True):
         if np.all(success | beyond):
