@@ -183,12 +183,17 @@ def main() -> None:
             fk = fk @ make_transform(np.eye(3), TOOL)
         diff = max(np.abs(np.asarray(ets.fkine(qq).A) - T).max() for qq, T in zip(q_chk, fk, strict=True))
         notes.append(f"FK agreement hil vs roboticstoolbox ETS ({kind}): max |dT| = {diff:.1e}")
-        t, res = best_time(
-            lambda x=targets, g=gen, s=solve: compensate(
-                model, x, generator=g, threshold_m=THRESHOLD_M, max_iter=MAX_ITER, ik_solver=s
-            ),
-            max(1, args.repeats - 1),
-        )
+        # hil and rtb timed alternately, best of each: the machine's load shifts during a run.
+        t_hil, t = np.inf, np.inf
+        for _ in range(args.repeats):
+            t_hil = min(t_hil, best_time(lambda x=targets, g=gen: compensate(model, x, generator=g), 1)[0])
+            dt, res = best_time(
+                lambda x=targets, g=gen, s=solve: compensate(
+                    model, x, generator=g, threshold_m=THRESHOLD_M, max_iter=MAX_ITER, ik_solver=s
+                ),
+                1,
+            )
+            t = min(t, dt)
         j = judged(model, res.q, T_target, full_pose)
         per_target[("rtb", kind, n)] = t / n
         table.add(
@@ -202,11 +207,10 @@ def main() -> None:
             f"{j['rot_mdeg']:.3f}",
             f"{np.mean(res.iterations):.2f}",
         )
-        hil_n = min(sizes, key=lambda s: abs(s - n))
-        ratio = per_target[("rtb", kind, n)] / per_target[("hil", kind, hil_n)]
+        ratio = t / t_hil
         notes.append(
-            f"rtb/hil time per target ({kind}, rtb on {n} targets vs hil on {hil_n}): {ratio:.2f}x "
-            f"(goal >= 3x: {'met' if ratio >= 3 else 'NOT met'})"
+            f"rtb/hil time per target ({kind}, {n} targets, timed alternately): {ratio:.2f}x "
+            f"(hil {t_hil / n * 1e6:.1f} us, rtb {t / n * 1e6:.1f} us; goal >= 3x: {'met' if ratio >= 3 else 'NOT met'})"
         )
 
     print(

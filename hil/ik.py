@@ -785,9 +785,15 @@ def same_branch_seed(
 def ur_branch_index(model: KinematicModel, q: np.ndarray) -> np.ndarray:
     """(N,) closed-form branch (4*shoulder + 2*wrist + elbow) a UR-shaped arm's joints q (N, 6) lie on."""
     q = model.check_joints(q)
-    qb, _ = _ur_branches(model, forward_kinematics(model, q))
-    d = np.abs(_wrap_pi(qb - q[:, None, :]))
-    return np.argmin(np.nan_to_num(d, nan=np.inf).max(axis=2), axis=1)
+    if not is_ur_like(model):
+        raise ValueError(f"{model.name} is not a UR-shaped arm (standard DH alphas pi/2,0,0,pi/2,-pi/2,0)")
+    # The bits of `_ur_branch`: shoulder 1 where cos(q1 - phi) < 0 (wrist centre behind the arm plane's
+    # x axis), wrist 1 where sin q5 < 0, elbow 1 where sin q3 < 0.
+    th = q + np.asarray(model.theta)
+    T = forward_kinematics(model, q) @ invert(np.asarray(model.T_last_flange, float))
+    p5 = T[:, :3, 3] - model.d[5] * T[:, :3, 2]
+    shoulder = p5[:, 0] * np.cos(th[:, 0]) + p5[:, 1] * np.sin(th[:, 0]) < 0
+    return 4 * shoulder + 2 * (np.sin(th[:, 4]) < 0) + (np.sin(th[:, 2]) < 0)
 
 
 def branches_along_path(model: KinematicModel, T_base_flange: np.ndarray, q_start: np.ndarray) -> np.ndarray:
