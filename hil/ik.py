@@ -700,20 +700,24 @@ def newton_ik(
         end, J = pose_and_jacobian(model, q[active], None if pose else tool)
         if pose:
             e = _frame_error(target[active], end)
-            done = (np.linalg.norm(e[:, :3], axis=1) < tol_position) & (
-                np.linalg.norm(e[:, 3:], axis=1) < tol_rotation
-            )
+            e2 = e * e
+            done = (e2[:, :3].sum(1) < tol_position**2) & (e2[:, 3:].sum(1) < tol_rotation**2)
         else:
             e = target[active] - (end[:, :3, :3] @ tool + end[:, :3, 3])
-            done = np.linalg.norm(e, axis=1) < tol_position
+            done = np.einsum("ki,ki->k", e, e) < tol_position**2
         err[active] = e
         keep = ~done
         if step == max_steps or not np.any(keep):
             break
         active, J, e = active[keep], J[keep], e[keep]
-        if pose:
-            Jt = np.swapaxes(J, 1, 2)
-            dq = np.linalg.solve(Jt @ J + damping * eye, np.einsum("kim,km->ki", Jt, e)[..., None])[..., 0]
+        if pose:  # square: solve J dq = e; damped normal equations only if a J is exactly singular
+            try:
+                dq = np.linalg.solve(J, e[..., None])[..., 0]
+            except np.linalg.LinAlgError:
+                Jt = np.swapaxes(J, 1, 2)
+                dq = np.linalg.solve(Jt @ J + damping * eye, np.einsum("kim,km->ki", Jt, e)[..., None])[
+                    ..., 0
+                ]
         else:  # minimum norm: dq = J^T (J J^T)^-1 e
             Jv = J[:, :3]
             A = Jv @ np.swapaxes(Jv, 1, 2) + damping * eye

@@ -240,14 +240,17 @@ def pose_and_jacobian(
         if p_flange_tool is None
         else T[:, :3, :3] @ np.asarray(p_flange_tool, float) + T[:, :3, 3]
     )
-    tx, ty, tz = tip.T
-    J = np.empty((q.shape[0], 6, q.shape[1]))
-    for i, (z, o) in enumerate(axes):  # v_i = z_i x (tip - o_i), omega_i = z_i
-        rx, ry, rz = tx - o[0], ty - o[1], tz - o[2]
-        J[:, 0, i] = z[1] * rz - z[2] * ry
-        J[:, 1, i] = z[2] * rx - z[0] * rz
-        J[:, 2, i] = z[0] * ry - z[1] * rx
-        J[:, 3:, i] = z.T
+    Z = np.stack([z for z, _ in axes])  # (n, 3, N): joint axes
+    r = tip.T[None] - np.stack([o for _, o in axes])  # (n, 3, N): from a point on each axis to the tip
+    v = np.stack(
+        [
+            Z[:, 1] * r[:, 2] - Z[:, 2] * r[:, 1],
+            Z[:, 2] * r[:, 0] - Z[:, 0] * r[:, 2],
+            Z[:, 0] * r[:, 1] - Z[:, 1] * r[:, 0],
+        ],
+        axis=1,
+    )  # v_i = z_i x (tip - o_i), omega_i = z_i
+    J = np.concatenate([v, Z], axis=1).transpose(2, 1, 0)  # (N, 6, n)
     return T, J
 
 
