@@ -22,6 +22,7 @@ test: $(VENV)/.installed
 
 bench: $(VENV)/.installed
 	$(PY) benchmarks/kinematics.py
+	$(PY) benchmarks/compensation.py
 	$(PY) benchmarks/calibration.py
 	$(PY) benchmarks/tracker.py
 	$(PY) benchmarks/ur_fake.py

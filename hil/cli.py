@@ -13,6 +13,7 @@ from hil.commands.errors import EXIT_USAGE, CliError
 COMMAND_MODULES: tuple[str, ...] = (
     "hil.commands.demo",
     "hil.commands.calibrate",
+    "hil.commands.compensate",
     "hil.commands.diagnose",
     "hil.commands.predict",
     "hil.commands.sim",

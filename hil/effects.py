@@ -160,7 +160,10 @@ class GravityCompliance(Effect):
     def _levers(self, ctx: EffectContext, nominal: KinematicModel) -> np.ndarray:
         """Lever arms (N, K) in metres about joint `joint`'s axis of gravity on each downstream point."""
         j = self.joint - 1
-        frames = link_frames(nominal, ctx.q)
+        key = ("link_frames", id(nominal))  # shared by every gravity effect of the model
+        frames = ctx.cache.get(key)
+        if frames is None:
+            frames = ctx.cache[key] = link_frames(nominal, ctx.q)
         z = frames[:, j, :3, 2]
         o = frames[:, j, :3, 3]
         points = [frames[:, k, :3, 3] for k in range(j + 1, nominal.n_joints + 1)]

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hil.kinematics import KinematicModel, forward_kinematics, geometric_jacobian
+from hil.kinematics import KinematicModel, forward_kinematics, geometric_jacobian, pose_and_jacobian
 from hil.se3 import invert, rot_x, rot_z
 
 # Failure vocabulary of IKResult.reason.
@@ -40,6 +40,7 @@ REACH_SLACK = (
 LAM_MIN = 1e-8  # floor of the adaptive bias multiplier (bias = LAM_MIN * wbar near convergence)
 STALL_WINDOW, STALL_FACTOR = 25, 0.9  # give up an attempt whose E fell less than 10 % in 25 iterations
 LAM_DOWN, LAM_UP = 0.1, 10.0  # bias multiplier after an accepted / rejected step
+NEWTON_STEPS = 8  # Newton steps from the first seed before solve_ik falls back to LM
 
 
 @dataclass(frozen=True)
@@ -121,63 +122,65 @@ def ur_analytic_ik(
 
 def _ur_branches(model: KinematicModel, T_base_flange: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Closed-form branches, stretched where out of reach: (q (N, 8, 6), overshoot (N, 8) >= 0, 0 = exact)."""
+    T = _ur_wrist_frames(model, T_base_flange)
+    N = T.shape[0]
+    q, overshoot = _ur_branch(model, np.repeat(T, 8, axis=0), np.tile(np.arange(8), N))  # one pass, 8N rows
+    return q.reshape(N, 8, 6), overshoot.reshape(N, 8)
+
+
+def _ur_wrist_frames(model: KinematicModel, T_base_flange: np.ndarray) -> np.ndarray:
     if not is_ur_like(model):
         raise ValueError(f"{model.name} is not a UR-shaped arm (standard DH alphas pi/2,0,0,pi/2,-pi/2,0)")
-    T = _as_transforms(T_base_flange, "T_base_flange") @ invert(np.asarray(model.T_last_flange, float))
+    return _as_transforms(T_base_flange, "T_base_flange") @ invert(np.asarray(model.T_last_flange, float))
+
+
+def _ur_branch(model: KinematicModel, T: np.ndarray, branch: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """One closed-form branch per target (index 4*shoulder + 2*wrist + elbow, (N,)) of last-link poses T:
+    (q (N, 6) in (-pi, pi], overshoot (N,) >= 0, 0 = exact; stretched where out of reach)."""
     N = T.shape[0]
     d1, d4, d5, d6 = model.d[0], model.d[3], model.d[4], model.d[5]
     a2, a3 = model.a[1], model.a[2]
+    sh, wr, el = branch // 4, (branch // 2) % 2, branch % 2
     R, p = T[:, :3, :3], T[:, :3, 3]
     z6 = R[:, :, 2]
     p5 = p - d6 * z6  # origin of frame 5, which lies at offset d4 along the joint-2 axis z1
-
-    q = np.empty((N, 8, 6))
-    overshoot = np.empty((N, 8))
     r2 = p5[:, 0] ** 2 + p5[:, 1] ** 2
     # Shoulder: z1 = (sin q1, -cos q1, 0) and p5 . z1 = d4  =>  r sin(q1 - phi) = d4.
     shoulder_over = np.maximum(1.0 - np.sqrt(r2) / abs(d4), 0.0)
-    ratio = np.clip(d4 / np.sqrt(np.maximum(r2, 1e-300)), -1.0, 1.0)
-    phi = np.arctan2(p5[:, 1], p5[:, 0])
-    for sh in range(2):
-        q1 = phi + (np.arcsin(ratio) if sh == 0 else np.pi - np.arcsin(ratio))
-        c1, s1 = np.cos(q1), np.sin(q1)
-        x1 = np.stack([c1, s1, np.zeros(N)], 1)
-        y1 = np.broadcast_to([0.0, 0.0, 1.0], (N, 3))
-        z1 = np.stack([s1, -c1, np.zeros(N)], 1)
-        # Wrist: z6 . z1 = cos q5.
-        c5 = np.clip(np.einsum("ni,ni->n", z6, z1), -1.0, 1.0)
-        for wr in range(2):
-            q5 = np.arccos(c5) * (1.0 if wr == 0 else -1.0)
-            s5 = np.sin(q5)
-            # x6 . z1 = cos q6 sin q5 and y6 . z1 = -sin q6 sin q5.
-            xz = np.einsum("ni,ni->n", R[:, :, 0], z1)
-            yz = np.einsum("ni,ni->n", R[:, :, 1], z1)
-            singular = np.abs(s5) < 1e-12
-            s5_safe = np.where(singular, 1.0, s5)
-            q6 = np.where(singular, 0.0, np.arctan2(-yz / s5_safe, xz / s5_safe))
-            # Rotation of frame 4: R04 = R06 (Rz(q5) Rx(-pi/2) Rz(q6))^T; R04 = R01 Rz(q234) Rx(pi/2).
-            R46 = rot_z(q5) @ rot_x(-np.pi / 2) @ rot_z(q6)
-            R04 = R @ np.swapaxes(R46, 1, 2)
-            R01 = np.stack([x1, y1, z1], axis=2)
-            M = np.swapaxes(R01, 1, 2) @ R04 @ rot_x(-np.pi / 2)
-            q234 = np.arctan2(M[:, 1, 0], M[:, 0, 0])
-            # Planar 2-link problem for joints 2, 3 in the arm plane (x1, y1).
-            p4 = p5 - d5 * R04[:, :, 2]
-            w = p4 - np.array([0.0, 0.0, d1]) - d4 * z1
-            u = np.einsum("ni,ni->n", w, x1)
-            v = w[:, 2]
-            c3 = (u**2 + v**2 - a2**2 - a3**2) / (2.0 * a2 * a3)
-            elbow_over = np.maximum(np.abs(c3) - 1.0, 0.0)
-            c3 = np.clip(c3, -1.0, 1.0)
-            for el in range(2):
-                q3 = np.arccos(c3) * (1.0 if el == 0 else -1.0)
-                q2 = np.arctan2(v, u) - np.arctan2(a3 * np.sin(q3), a2 + a3 * np.cos(q3))
-                q4 = q234 - q2 - q3
-                b = 4 * sh + 2 * wr + el
-                sol = np.stack([q1, q2, q3, q4, q5, q6], 1) - np.asarray(model.theta)
-                q[:, b] = _wrap_pi(sol)
-                overshoot[:, b] = np.maximum(shoulder_over, elbow_over)
-    return q, overshoot
+    asin = np.arcsin(np.clip(d4 / np.sqrt(np.maximum(r2, 1e-300)), -1.0, 1.0))
+    q1 = np.arctan2(p5[:, 1], p5[:, 0]) + np.where(sh == 0, asin, np.pi - asin)
+    c1, s1 = np.cos(q1), np.sin(q1)
+    zero = np.zeros(N)
+    x1 = np.stack([c1, s1, zero], 1)
+    y1 = np.broadcast_to([0.0, 0.0, 1.0], (N, 3))
+    z1 = np.stack([s1, -c1, zero], 1)
+    # Wrist: z6 . z1 = cos q5.
+    q5 = np.arccos(np.clip(np.einsum("ni,ni->n", z6, z1), -1.0, 1.0)) * np.where(wr == 0, 1.0, -1.0)
+    s5 = np.sin(q5)
+    # x6 . z1 = cos q6 sin q5 and y6 . z1 = -sin q6 sin q5.
+    xz = np.einsum("ni,ni->n", R[:, :, 0], z1)
+    yz = np.einsum("ni,ni->n", R[:, :, 1], z1)
+    singular = np.abs(s5) < 1e-12
+    s5_safe = np.where(singular, 1.0, s5)
+    q6 = np.where(singular, 0.0, np.arctan2(-yz / s5_safe, xz / s5_safe))
+    # Rotation of frame 4: R04 = R06 (Rz(q5) Rx(-pi/2) Rz(q6))^T; R04 = R01 Rz(q234) Rx(pi/2).
+    R46 = rot_z(q5) @ rot_x(-np.pi / 2) @ rot_z(q6)
+    R04 = R @ np.swapaxes(R46, 1, 2)
+    R01 = np.stack([x1, y1, z1], axis=2)
+    M = np.swapaxes(R01, 1, 2) @ R04 @ rot_x(-np.pi / 2)
+    q234 = np.arctan2(M[:, 1, 0], M[:, 0, 0])
+    # Planar 2-link problem for joints 2, 3 in the arm plane (x1, y1).
+    p4 = p5 - d5 * R04[:, :, 2]
+    w = p4 - np.array([0.0, 0.0, d1]) - d4 * z1
+    u = np.einsum("ni,ni->n", w, x1)
+    v = w[:, 2]
+    c3 = (u**2 + v**2 - a2**2 - a3**2) / (2.0 * a2 * a3)
+    elbow_over = np.maximum(np.abs(c3) - 1.0, 0.0)
+    q3 = np.arccos(np.clip(c3, -1.0, 1.0)) * np.where(el == 0, 1.0, -1.0)
+    q2 = np.arctan2(v, u) - np.arctan2(a3 * np.sin(q3), a2 + a3 * np.cos(q3))
+    q4 = q234 - q2 - q3
+    sol = np.stack([q1, q2, q3, q4, q5, q6], 1) - np.asarray(model.theta)
+    return _wrap_pi(sol), np.maximum(shoulder_over, elbow_over)
 
 
 def _wrap_pi(q: np.ndarray) -> np.ndarray:
@@ -509,7 +512,8 @@ def solve_ik(
     """Joints reaching N targets: T_base_tool (N,4,4) in "pose" mode, tool points (N,3) in "position" mode.
 
     Seeds, tried in order on the targets still unsolved: `q_seed` (N,n) or (n,) if given; on a UR-shaped
-    model (and `use_analytic`) the analytic branches, nearest to `q_near` (default `default_home`) first;
+    model (and `use_analytic`) the analytic branches, nearest to `q_near` (default `default_home`) first
+    (the first seed of all is tried with a few Newton steps before LM: most targets end there);
     `q_near` itself when no q_seed is given; then `restarts` random joint sets within limits (seed `rng`).
     W_E weighs position (m) against rotation (rad) as 1 rad <-> `length_scale` m.
     Success only if the final position error < tol_position (m) and, in pose mode, the rotation error
@@ -569,6 +573,27 @@ def solve_ik(
     if no_branch is not None:
         beyond |= no_branch  # well beyond the nominal reach: no small model error makes it reachable
 
+    if q_seed is not None or ur:
+        # The first seed (the caller's, or the nearest closed-form branch) is usually close: a few Newton
+        # steps finish most targets far cheaper than LM; the rest go through the LM attempts below.
+        todo = np.flatnonzero(seed_ok[0] & ~beyond)
+        if todo.size:
+            if mode == "pose":
+                T_f = tgt[todo] @ invert(T_ft)
+                tol = {"tol_position": 0.5 * tol_position, "tol_rotation": 0.5 * tol_rotation}
+                nr = newton_ik(model, T_f, seeds[0][todo], max_steps=NEWTON_STEPS, validate=False, **tol)
+            else:
+                tol = {"tol_position": 0.5 * tol_position}
+                nr = newton_ik(model, tgt[todo], seeds[0][todo], "position", T_ft[:3, 3], NEWTON_STEPS, **tol)
+            e = prob.residual(nr.q, todo)
+            conv = prob.converged(e) & model.within_limits(nr.q, tol=1e-12)
+            done = todo[conv]
+            q_best[done], e_best[done] = nr.q[conv], e[conv]
+            E_best[done] = 0.5 * np.einsum("km,m,km->k", e[conv], weights, e[conv])
+            iterations[todo] += nr.steps
+            attempts[done] += 1
+            success[done] = True
+
     for s, ok in zip(seeds, seed_ok, strict=True):
         if np.all(success | beyond):
             break
@@ -618,3 +643,182 @@ def _diagnose(
     r[unreach] = REASON_UNREACHABLE
     reason[failed] = r
     return reason.astype(str)
+
+
+# --------------------------------------------------------------------------------------------------
+# Fast path for many nearby targets: closed-form seed + batched Newton
+# --------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class NewtonResult:
+    """Outcome of `newton_ik` per target: joints, final errors, convergence and steps taken."""
+
+    q: np.ndarray  # (N, n) rad
+    error: np.ndarray  # (N,) position error, m (flange in pose mode, tool point in position mode)
+    rotation_error: np.ndarray  # (N,) rad, NaN in position mode
+    converged: np.ndarray  # (N,) bool
+    steps: np.ndarray  # (N,) int
+
+
+def newton_ik(
+    model: KinematicModel,
+    targets: np.ndarray,
+    q_seed: np.ndarray,
+    mode: str = "pose",
+    p_flange_tool: np.ndarray | None = None,
+    max_steps: int = 8,
+    tol_position: float = 1e-11,
+    tol_rotation: float = 1e-10,
+    damping: float = 1e-12,
+    validate: bool = True,
+) -> NewtonResult:
+    """Finish IK from nearby seeds (N, n) with batched Gauss-Newton steps and the analytic Jacobian.
+
+    targets: flange poses T_base_flange (N, 4, 4) in "pose" mode; tool points (N, 3) in "position" mode
+    (tool point `p_flange_tool` in the flange), where the step is the minimum-norm one, so the seed's
+    orientation is kept to first order. For seeds already close to the answer (a closed-form branch of
+    a slightly different model, the previous solution of a nearby target) convergence is quadratic,
+    typically 2-3 steps; targets leave the batch as they converge. No globalisation: a target that
+    does not converge is reported, for the caller to fall back to `solve_ik`. Joints stay within the
+    limits (wrapped by 2 pi or clamped). `validate=False` skips the input checks (hot loops).
+    """
+    pose = mode == "pose"
+    if validate:
+        targets = _check_targets(model, targets, mode)
+        q_seed = model.check_joints(q_seed)
+        if len(q_seed) != len(targets):
+            raise ValueError(f"{len(q_seed)} seeds for {len(targets)} targets")
+    q = project_to_limits(model, q_seed)
+    N, n = q.shape
+    tool = np.zeros(3) if p_flange_tool is None else np.asarray(p_flange_tool, dtype=float)
+    target = np.asarray(targets, float)
+    m = 6 if pose else 3
+    err = np.zeros((N, m))
+    steps = np.zeros(N, int)
+    active = np.arange(N)
+    eye = np.eye(m if not pose else n)
+    for step in range(max_steps + 1):
+        end, J = pose_and_jacobian(model, q[active], None if pose else tool)
+        if pose:
+            e = _frame_error(target[active], end)
+            e2 = e * e
+            done = (e2[:, :3].sum(1) < tol_position**2) & (e2[:, 3:].sum(1) < tol_rotation**2)
+        else:
+            e = target[active] - (end[:, :3, :3] @ tool + end[:, :3, 3])
+            done = np.einsum("ki,ki->k", e, e) < tol_position**2
+        err[active] = e
+        keep = ~done
+        if step == max_steps or not np.any(keep):
+            break
+        active, J, e = active[keep], J[keep], e[keep]
+        if pose:  # square: solve J dq = e; damped normal equations only if a J is exactly singular
+            try:
+                dq = np.linalg.solve(J, e[..., None])[..., 0]
+            except np.linalg.LinAlgError:
+                Jt = np.swapaxes(J, 1, 2)
+                dq = np.linalg.solve(Jt @ J + damping * eye, np.einsum("kim,km->ki", Jt, e)[..., None])[
+                    ..., 0
+                ]
+        else:  # minimum norm: dq = J^T (J J^T)^-1 e
+            Jv = J[:, :3]
+            A = Jv @ np.swapaxes(Jv, 1, 2) + damping * eye
+            dq = np.einsum("kmi,km->ki", Jv, np.linalg.solve(A, e[..., None])[..., 0])
+        q[active] = project_to_limits(model, q[active] + dq)
+        steps[active] += 1
+    pos = np.linalg.norm(err[:, :3], axis=1)
+    rot = np.linalg.norm(err[:, 3:], axis=1) if pose else np.full(N, np.nan)
+    conv = (pos < tol_position) & ((rot < tol_rotation) if pose else True)
+    return NewtonResult(q, pos, rot, conv, steps)
+
+
+def _frame_error(target: np.ndarray, current: np.ndarray) -> np.ndarray:
+    """[dp; rotation vector] (k, 6) taking `current` (k, 4, 4) to `target`, base frame."""
+    dp = target[:, :3, 3] - current[:, :3, 3]
+    return np.concatenate([dp, rotation_log(target[:, :3, :3] @ np.swapaxes(current[:, :3, :3], 1, 2))], 1)
+
+
+def nearest_branch_seed(
+    model: KinematicModel, T_base_flange: np.ndarray, q_ref: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per target, the closed-form branch (within the limits, 2 pi-shifted) nearest q_ref (N, n) or (n,).
+
+    Exact branches are preferred; a stretched one is taken only if no exact one exists. Returns
+    (q (N, n), reachable (N,)): reachable is False where no branch is exact within REACH_SLACK.
+    """
+    qb, overshoot = _ur_branches(model, _as_transforms(T_base_flange, "T_base_flange"))
+    N, B, n = qb.shape
+    ref = np.broadcast_to(np.asarray(q_ref, dtype=float), (N, n))
+    # Rank by the 2 pi-wrapped distance first (cheap), then shift only the pick into the limits.
+    dist = np.linalg.norm(np.nan_to_num(_wrap_pi(qb - ref[:, None, :]), nan=1e9), axis=2)
+    key = dist + np.where(overshoot > 1e-9, 1e6, 0.0)
+    pick = np.argmin(key, axis=1)
+    q, ok = nearest_equivalent(model, qb[np.arange(N), pick], ref)
+    slow = np.flatnonzero(~ok)
+    if slow.size:  # the nearest branch has no equivalent inside the limits: rank the shifted ones
+        shifted, usable = nearest_equivalent(
+            model, qb[slow], np.broadcast_to(ref[slow, None], qb[slow].shape)
+        )
+        d = np.linalg.norm(np.nan_to_num(shifted - ref[slow, None], nan=1e9), axis=2)
+        k = np.where(usable, d + np.where(overshoot[slow] > 1e-9, 1e6, 0.0), np.inf)
+        best = np.argmin(k, axis=1)
+        found = np.isfinite(k[np.arange(slow.size), best])
+        q[slow] = np.where(found[:, None], shifted[np.arange(slow.size), best], ref[slow])
+    reachable = np.any(overshoot <= REACH_SLACK, axis=1)
+    return q, reachable
+
+
+def same_branch_seed(
+    model: KinematicModel, T_base_flange: np.ndarray, q_ref: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per target, the closed-form solution on the branch (shoulder, wrist, elbow) of the reference
+    posture q_ref ((n,) or (N, n)), 2 pi-shifted nearest it: one branch instead of eight. Targets where
+    that branch is out of reach or outside the limits get `nearest_branch_seed`. Same returns as it."""
+    T = _ur_wrist_frames(model, T_base_flange)
+    N, n = T.shape[0], model.n_joints
+    q_ref = np.asarray(q_ref, dtype=float)
+    branch = ur_branch_index(model, q_ref[None] if q_ref.ndim == 1 else q_ref)
+    ref = np.broadcast_to(q_ref, (N, n))
+    q, over = _ur_branch(model, T, np.broadcast_to(branch, (N,)))
+    q, ok = nearest_equivalent(model, q, ref)
+    reachable = np.ones(N, bool)
+    other = np.flatnonzero(~ok | (over > 1e-9))
+    if other.size:
+        q[other], reachable[other] = nearest_branch_seed(model, T_base_flange[other], ref[other])
+    return q, reachable
+
+
+def ur_branch_index(model: KinematicModel, q: np.ndarray) -> np.ndarray:
+    """(N,) closed-form branch (4*shoulder + 2*wrist + elbow) a UR-shaped arm's joints q (N, 6) lie on."""
+    q = model.check_joints(q)
+    if not is_ur_like(model):
+        raise ValueError(f"{model.name} is not a UR-shaped arm (standard DH alphas pi/2,0,0,pi/2,-pi/2,0)")
+    # The bits of `_ur_branch`: shoulder 1 where cos(q1 - phi) < 0 (wrist centre behind the arm plane's
+    # x axis), wrist 1 where sin q5 < 0, elbow 1 where sin q3 < 0.
+    th = q + np.asarray(model.theta)
+    T = forward_kinematics(model, q) @ invert(np.asarray(model.T_last_flange, float))
+    p5 = T[:, :3, 3] - model.d[5] * T[:, :3, 2]
+    shoulder = p5[:, 0] * np.cos(th[:, 0]) + p5[:, 1] * np.sin(th[:, 0]) < 0
+    return 4 * shoulder + 2 * (np.sin(th[:, 4]) < 0) + (np.sin(th[:, 2]) < 0)
+
+
+def branches_along_path(model: KinematicModel, T_base_flange: np.ndarray, q_start: np.ndarray) -> np.ndarray:
+    """Closed-form seeds (N, 6) for an ordered path of flange poses, each the branch (2 pi-shifted into the
+    limits) nearest the previous one's, the first nearest q_start: continuity instead of a fixed posture.
+
+    Exact branches are preferred over stretched ones; a target without any usable branch repeats the
+    previous seed. One small step per target (8 candidates), so the Python loop stays cheap.
+    """
+    qb, overshoot = _ur_branches(model, _as_transforms(T_base_flange, "T_base_flange"))
+    seeds = np.empty((len(qb), model.n_joints))
+    prev = np.asarray(q_start, dtype=float)
+    penalty = np.where(overshoot > 1e-9, 1e6, 0.0)
+    for k in range(len(qb)):
+        shifted, usable = nearest_equivalent(model, qb[k], np.broadcast_to(prev, qb[k].shape))
+        d = np.where(
+            usable, np.linalg.norm(np.nan_to_num(shifted - prev, nan=1e9), axis=1) + penalty[k], np.inf
+        )
+        pick = int(np.argmin(d))
+        seeds[k] = shifted[pick] if np.isfinite(d[pick]) else prev
+        prev = seeds[k]
+    return seeds

@@ -142,22 +142,66 @@ def joint_transforms(model: KinematicModel, q: np.ndarray) -> np.ndarray:
 
 def link_frames(model: KinematicModel, q: np.ndarray) -> np.ndarray:
     """Frames of every link in the base frame, (N, n+1, 4, 4): index 0 is the base, n the last link."""
-    A = joint_transforms(model, q)
-    N, n = A.shape[:2]
-    frames = np.empty((N, n + 1, 4, 4))
-    frames[:, 0] = np.eye(4)
-    for i in range(n):
-        frames[:, i + 1] = frames[:, i] @ A[:, i]
+    q = model.check_joints(q)
+    N, n = q.shape
+    frames = np.zeros((N, n + 1, 4, 4))
+    frames[:, :, 3, 3] = 1.0
+    frames[:, 0, :3, :3] = np.eye(3)
+    _chain(model, q, frames)
     return frames
 
 
 def forward_kinematics(model: KinematicModel, q: np.ndarray) -> np.ndarray:
     """Flange poses T_base_flange (N, 4, 4) for joints q (N, n)."""
-    A = joint_transforms(model, q)
-    T = A[:, 0]
-    for i in range(1, A.shape[1]):
-        T = T @ A[:, i]
-    return T @ model.T_last_flange
+    q = model.check_joints(q)
+    R, p = _chain(model, q, None)
+    T = np.zeros((q.shape[0], 4, 4))
+    T[:, :3, :3] = R
+    T[:, :3, 3] = p
+    T[:, 3, 3] = 1.0
+    L = np.asarray(model.T_last_flange, dtype=float)
+    if np.array_equal(L, np.eye(4)):
+        return T
+    return T @ L
+
+
+def _chain(
+    model: KinematicModel, q: np.ndarray, frames: np.ndarray | None, axes: list | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Last-link rotation (N, 3, 3) and origin (N, 3), optionally filling every link frame into `frames`
+    and appending each joint's axis and a point on it, ((3, N), (3, N)), to `axes`.
+
+    Same product as `joint_transforms` chained, written column by column on (N, 3) axis arrays: a
+    batched 4x4 matmul per joint costs an order of magnitude more for small matrices.
+    Rz(th) turns x, y about z; Tz(d) Tx(a) moves the origin by d z + a x'; Rx(alpha), Ry(beta) turn again.
+    """
+    N, n = q.shape
+    th = (q + model.theta).T  # (n, N): every axis array below is (3, N), contiguous per component
+    ct, st = np.cos(th), np.sin(th)
+    x, y, z = np.zeros((3, N)), np.zeros((3, N)), np.zeros((3, N))
+    x[0] = y[1] = z[2] = 1.0
+    p = np.zeros((3, N))
+    for i in range(n):
+        if axes is not None:
+            axes.append((z, p))
+        c, s = ct[i], st[i]
+        x1 = c * x + s * y
+        y1 = c * y - s * x
+        p = p + model.d[i] * z + model.a[i] * x1
+        ca, sa = np.cos(model.alpha[i]), np.sin(model.alpha[i])
+        y = ca * y1 + sa * z
+        z2 = ca * z - sa * y1
+        if model.beta[i] != 0:
+            cb, sb = np.cos(model.beta[i]), np.sin(model.beta[i])
+            x, z = cb * x1 - sb * z2, sb * x1 + cb * z2
+        else:
+            x, z = x1, z2
+        if frames is not None:
+            frames[:, i + 1, :3, 0] = x.T
+            frames[:, i + 1, :3, 1] = y.T
+            frames[:, i + 1, :3, 2] = z.T
+            frames[:, i + 1, :3, 3] = p.T
+    return np.stack([x, y, z], axis=1).transpose(2, 0, 1), p.T
 
 
 def tool_points(model: KinematicModel, q: np.ndarray, p_flange_tool: np.ndarray) -> np.ndarray:
@@ -175,15 +219,41 @@ def geometric_jacobian(
     model: KinematicModel, q: np.ndarray, p_flange_tool: np.ndarray | None = None
 ) -> np.ndarray:
     """Geometric Jacobian (N, 6, n) in the base frame at the tool point: rows [v; omega]."""
-    frames = link_frames(model, q)
-    T_flange = frames[:, -1] @ model.T_last_flange
-    p = T_flange[:, :3, 3]
-    if p_flange_tool is not None:
-        p = p + T_flange[:, :3, :3] @ np.asarray(p_flange_tool, dtype=float)
-    z = frames[:, :-1, :3, 2]  # (N, n, 3) axis of joint i is z of frame i-1
-    o = frames[:, :-1, :3, 3]
-    Jv = np.cross(z, p[:, None, :] - o)
-    return np.concatenate([np.swapaxes(Jv, 1, 2), np.swapaxes(z, 1, 2)], axis=1)
+    return pose_and_jacobian(model, q, p_flange_tool)[1]
+
+
+def pose_and_jacobian(
+    model: KinematicModel, q: np.ndarray, p_flange_tool: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Flange poses T_base_flange (N, 4, 4) and the geometric Jacobian (N, 6, n) at the tool point, in one
+    pass over the chain (the Newton step of the IK needs both)."""
+    q = model.check_joints(q)
+    axes: list = []
+    R, p = _chain(model, q, None, axes)
+    T = np.zeros((q.shape[0], 4, 4))
+    T[:, :3, :3] = R
+    T[:, :3, 3] = p
+    T[:, 3, 3] = 1.0
+    L = np.asarray(model.T_last_flange, dtype=float)
+    if not np.array_equal(L, np.eye(4)):
+        T = T @ L
+    tip = (
+        T[:, :3, 3]
+        if p_flange_tool is None
+        else T[:, :3, :3] @ np.asarray(p_flange_tool, float) + T[:, :3, 3]
+    )
+    Z = np.stack([z for z, _ in axes])  # (n, 3, N): joint axes
+    r = tip.T[None] - np.stack([o for _, o in axes])  # (n, 3, N): from a point on each axis to the tip
+    v = np.stack(
+        [
+            Z[:, 1] * r[:, 2] - Z[:, 2] * r[:, 1],
+            Z[:, 2] * r[:, 0] - Z[:, 0] * r[:, 2],
+            Z[:, 0] * r[:, 1] - Z[:, 1] * r[:, 0],
+        ],
+        axis=1,
+    )  # v_i = z_i x (tip - o_i), omega_i = z_i
+    J = np.concatenate([v, Z], axis=1).transpose(2, 1, 0)  # (N, 6, n)
+    return T, J
 
 
 def kinematic_point_jacobian(

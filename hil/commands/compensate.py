@@ -1,0 +1,156 @@
+"""`hil compensate model.json TARGETS.csv -o JOINTS.csv`: joints that put the SMR on the targets, by the model."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import warnings
+
+import numpy as np
+import pandas as pd
+from scipy.spatial.transform import Rotation
+
+from hil.calibrated_model import CalibratedModel
+from hil.compensation import ENSEMBLE, compensate, compensate_path
+from hil.dataset import POSITION_COLUMNS, joint_columns
+from hil.pseudo_targets import GENERATORS
+
+ORIENTATION_COLUMNS: tuple[str, ...] = ("rx_deg", "ry_deg", "rz_deg")
+DRIVER_COLUMNS: tuple[str, ...] = ("t_s", "temperature_c")
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "compensate",
+        help="joints that make a calibrated model put the SMR on target points or poses (pseudo-target loop)",
+        description="Model-based pseudo-target compensation. Targets: x_mm, y_mm, z_mm of the SMR in the "
+        "tracker frame, optionally rx_deg, ry_deg, rz_deg (flange orientation in the tracker frame as a "
+        "rotation vector in degrees, like a UR pose) for full-pose targets, and t_s / temperature_c when "
+        "the model has thermal effects. Writes one row per target: q1_rad..q6_rad, the predicted remaining "
+        "error, the iterations used and a status; targets that cannot be compensated are kept and marked.",
+    )
+    p.add_argument("model", help="model JSON written by 'hil calibrate' or 'hil diagnose -o'")
+    p.add_argument("targets", help="CSV of targets (see above)")
+    p.add_argument("-o", "--output", required=True, help="CSV to write, one row per target")
+    p.add_argument(
+        "--generator",
+        default=None,
+        choices=(*GENERATORS, ENSEMBLE),
+        help="pseudo-target generator for full-pose targets (default yin); point targets leave the "
+        "orientation free and use the position update every generator shares",
+    )
+    p.add_argument("--threshold-mm", type=float, default=0.01, help="stop below this predicted error (mm)")
+    p.add_argument("--max-iter", type=int, default=10, help="at most this many pseudo-target updates")
+    p.add_argument(
+        "--length-scale-mm",
+        type=float,
+        default=100.0,
+        help="full-pose error measure: 1 rad of orientation error counts as this many mm (default 100)",
+    )
+    p.add_argument(
+        "--smr", type=int, default=None, help="SMR nest to put on the targets (default: lowest id)"
+    )
+    p.add_argument(
+        "--ik-model",
+        default="kinematic",
+        choices=("kinematic", "nominal"),
+        help="geometry the pseudo targets are solved with (default: the calibrated one)",
+    )
+    p.add_argument(
+        "--path",
+        action="store_true",
+        help="targets are an ordered path: keep one IK branch, flag branch jumps (UR arms)",
+    )
+    p.set_defaults(func=run)
+
+
+def read_targets(path: str) -> tuple[np.ndarray, pd.DataFrame]:
+    """Targets (N, 3) points or (N, 4, 4) poses in metres from a CSV; ValueError says what to fix."""
+    try:
+        df = pd.read_csv(path)
+    except (OSError, pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
+        raise ValueError(f"cannot read targets '{path}': {exc}") from exc
+    missing = [c for c in POSITION_COLUMNS if c not in df.columns]
+    if missing:
+        raise ValueError(
+            f"{path}: missing column(s) {', '.join(missing)}; targets need x_mm, y_mm, z_mm "
+            "(SMR in the tracker frame), optionally rx_deg, ry_deg, rz_deg"
+        )
+    if len(df) == 0:
+        raise ValueError(f"{path}: no targets")
+    have_rot = [c for c in ORIENTATION_COLUMNS if c in df.columns]
+    if have_rot and len(have_rot) != 3:
+        raise ValueError(f"{path}: give all of rx_deg, ry_deg, rz_deg for full-pose targets, or none")
+    cols = list(POSITION_COLUMNS) + have_rot
+    values = df[cols].apply(pd.to_numeric, errors="coerce").to_numpy(float)
+    bad = np.flatnonzero(~np.all(np.isfinite(values), axis=1))
+    if bad.size:
+        raise ValueError(f"{path}: row {bad[0] + 1} has a missing or non-numeric value in {', '.join(cols)}")
+    p = values[:, :3] / 1000.0
+    if not have_rot:
+        return p, df
+    T = np.zeros((len(df), 4, 4))
+    T[:, :3, :3] = Rotation.from_rotvec(np.deg2rad(values[:, 3:])).as_matrix()
+    T[:, :3, 3] = p
+    T[:, 3, 3] = 1.0
+    return T, df
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.threshold_mm <= 0 or args.max_iter < 0 or args.length_scale_mm <= 0:
+        print("error: --threshold-mm and --length-scale-mm must be > 0, --max-iter >= 0", file=sys.stderr)
+        return 2
+    try:
+        model = CalibratedModel.load(args.model)
+        targets, df = read_targets(args.targets)
+        drivers = {c: df[c].to_numpy(float) for c in DRIVER_COLUMNS if c in df.columns}
+        kwargs = dict(
+            generator=args.generator,
+            threshold_m=args.threshold_mm / 1000.0,
+            max_iter=args.max_iter,
+            length_scale_m=args.length_scale_mm / 1000.0,
+            smr=args.smr,
+            ik_model=args.ik_model,
+            **drivers,
+        )
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            res = (
+                compensate_path(model, targets, **kwargs)
+                if args.path
+                else compensate(model, targets, **kwargs)
+            )
+    except (ValueError, OSError, KeyError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    for w in caught:
+        print(f"warning: {w.message}", file=sys.stderr)
+    out = df.copy()
+    for i, col in enumerate(joint_columns(res.q.shape[1])):
+        out[col] = res.q[:, i]
+    out["error_mm"] = res.error_m * 1000.0
+    if res.full_pose:
+        out["rotation_error_deg"] = np.rad2deg(res.rotation_error_rad)
+    out["initial_error_mm"] = res.initial_error_m * 1000.0
+    out["iterations"] = res.iterations
+    out["status"] = res.status
+    out["generator"] = res.generator
+    out["outside_volume"] = res.outside_volume
+    if args.path:
+        out["branch_jump"] = res.branch_jump
+    out.to_csv(args.output, index=False, float_format="%.10g")
+    s = res.summary()
+    statuses = ", ".join(f"{k} {v}" for k, v in sorted(s["statuses"].items()))
+    print(
+        f"{s['targets']} targets ({statuses}); predicted error mean {s['mean_error_mm_before']:.4f} -> "
+        f"{s['mean_error_mm']:.4f} mm, max {s['max_error_mm']:.4f} mm; written to {args.output}"
+    )
+    if s["ok"] < s["targets"]:
+        print(
+            f"{s['targets'] - s['ok']} target(s) not below {args.threshold_mm} mm: see the status column "
+            "(joints of unreachable targets are empty)",
+            file=sys.stderr,
+        )
+    if args.path and res.branch_jump.any():
+        print(f"warning: {int(res.branch_jump.sum())} branch jump(s) along the path", file=sys.stderr)
+    return 0

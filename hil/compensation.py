@@ -1,0 +1,527 @@
+"""Model-based pseudo-target compensation (methods.md section 4): joints that put the SMR where asked.
+
+The calibrated model (geometry, base, tool, effects, residual map) predicts the pose actually reached
+for commanded joints; the loop asks the IK of the controller-side model (the calibrated geometry
+without effects, or the nominal one) for a pseudo target that it moves by what the prediction missed,
+until the predicted error is below a threshold. Batched over all targets: one closed-form seed, then
+a few Newton steps per iteration, each seeded with the previous joints. Poses are T_tracker_tool: the
+SMR centre and the flange's orientation in the tracker frame, metres.
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from hil.calibrated_model import CalibratedModel
+from hil.effects import EffectContext
+from hil.ik import (
+    REASON_MAX_ITER,
+    REASON_OK,
+    REASON_UNREACHABLE,
+    branches_along_path,
+    default_home,
+    is_ur_like,
+    newton_ik,
+    same_branch_seed,
+    solve_ik,
+    ur_branch_index,
+)
+from hil.kinematics import KinematicModel, forward_kinematics
+from hil.pseudo_targets import (
+    GENERATORS,
+    check_generator,
+    ik_pose,
+    pose_errors,
+    update_pseudo_position,
+    update_pseudo_target,
+)
+from hil.residual_maps import map_from_dict
+from hil.se3 import invert
+
+STATUS_OK = "ok"  # predicted error below the threshold
+STATUS_MAX_ITER = "max_iter"  # iteration cap reached above the threshold (best joints kept)
+STATUS_STALLED = "stalled"  # no improvement for `patience` iterations (best joints kept)
+STATUS_NO_IK = "no_ik_solution"  # the IK found no joints for the (pseudo) target, cause not proven
+# The IK reasons of hil.ik (unreachable, singular, joint_limits; its max_iter becomes no_ik_solution)
+# mark targets whose first IK failed: their joints are NaN. A later IK failure keeps the best joints
+# found and that reason.
+STATUSES: tuple[str, ...] = (
+    STATUS_OK,
+    STATUS_MAX_ITER,
+    STATUS_STALLED,
+    "unreachable",
+    "singular",
+    "joint_limits",
+    STATUS_NO_IK,
+)
+ENSEMBLE = "ensemble"
+IK_TOL_FRACTION = 1e-3  # pseudo targets are solved to this fraction of the threshold (m; rad: / length scale)
+NEWTON_STEPS = 16  # Newton steps before a target goes to solve_ik (slow seeds converge linearly at first)
+# An IK to plug into the loop: (targets, seeds (k, n)) -> (joints (k, n), converged (k,)).
+IKSolver = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
+POINT_GENERATOR = "point"  # point targets: P_p <- P_p + P_d - P_a, orientation free
+
+
+class PosePredictor:
+    """Actual pose T_tracker_tool (N, 4, 4) the calibrated model predicts for commanded joints.
+
+    Position: `CalibratedModel.predict_ctx` (geometry, base, tool, every effect) plus the residual map
+    when the model has one; orientation: the flange's, through the joint effects, in the tracker frame.
+    Drivers the effects need (time, temperature, approach signs) are per target and follow `rows`.
+    """
+
+    def __init__(
+        self,
+        model: CalibratedModel,
+        smr: int | None = None,
+        t_s: np.ndarray | None = None,
+        temperature_c: np.ndarray | None = None,
+        approach: np.ndarray | None = None,
+        use_map: bool = True,
+    ) -> None:
+        self.model = model
+        self.smr = sorted(model.tools)[0] if smr is None else int(smr)
+        if self.smr not in model.tools:
+            raise ValueError(f"the model has tool points for SMR nests {sorted(model.tools)}, not {self.smr}")
+        self.tool = np.asarray(model.tools[self.smr], float)
+        self.t_s, self.temperature_c, self.approach = t_s, temperature_c, approach
+        self.map = map_from_dict(model.residual_map) if use_map and model.residual_map is not None else None
+        self.joint_effects_only = all(e.kind == "joint" for e in model.effects)
+
+    def __call__(self, q: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:
+        m = self.model
+        rows = np.arange(len(q)) if rows is None else rows
+
+        def take(x: np.ndarray | None) -> np.ndarray | None:
+            return None if x is None else np.asarray(x)[rows]
+
+        tools = np.broadcast_to(self.tool, (len(q), 3))
+        ctx = EffectContext(q, take(self.t_s), take(self.temperature_c), None, tools, take(self.approach))
+        T_flange = forward_kinematics(m.kinematic, q + m.joint_offsets(ctx))
+        p_base = T_flange[:, :3, :3] @ self.tool + T_flange[:, :3, 3]
+        if self.joint_effects_only:  # what predict_ctx computes, without a second chain
+            p = p_base @ m.T_tracker_base[:3, :3].T + m.T_tracker_base[:3, 3]
+        else:
+            p = m.predict_ctx(ctx)
+        if self.map is not None:
+            p = p + self.map.predict_raw(q, p_base)
+        T = np.zeros((len(q), 4, 4))
+        T[:, :3, :3] = m.T_tracker_base[:3, :3] @ T_flange[:, :3, :3]
+        T[:, :3, 3] = p
+        T[:, 3, 3] = 1.0
+        return T
+
+    def outside_volume(self, p_tracker: np.ndarray) -> np.ndarray:
+        """(N,) True where a target lies outside the calibrated volume (residual map's, or info['volume'])."""
+        p_base = (p_tracker - self.model.T_tracker_base[:3, 3]) @ self.model.T_tracker_base[:3, :3]
+        if self.map is not None and "volume" in self.map.state:
+            return self.map.outside(p_base)
+        vol = self.model.info.get("volume")
+        if vol and "lo" in vol and "hi" in vol:
+            return np.any((p_base < np.asarray(vol["lo"])) | (p_base > np.asarray(vol["hi"])), axis=1)
+        return np.zeros(len(p_tracker), bool)
+
+
+@dataclass
+class CompensationResult:
+    """Per target: joints to command and what the model predicts they leave. Errors in m / rad.
+
+    q of a target whose first IK failed is NaN (status says why); otherwise the best joints found.
+    history: (iterations + 1, N) error measure at each iteration, NaN once a target stopped.
+    """
+
+    q: np.ndarray
+    error_m: np.ndarray  # predicted remaining position error
+    rotation_error_rad: np.ndarray  # predicted remaining orientation error
+    cost_m: np.ndarray  # the error measure the loop minimised (position, or mm-equivalent pose error)
+    iterations: np.ndarray  # pseudo-target updates made
+    status: np.ndarray  # see STATUSES
+    generator: np.ndarray  # generator that produced the joints (differs per target in an ensemble)
+    initial_error_m: np.ndarray  # position error of the plain IK of the target (iteration 0)
+    initial_rotation_error_rad: np.ndarray
+    outside_volume: np.ndarray  # bool: the target lies outside the calibrated volume
+    history: np.ndarray
+    full_pose: bool
+    branch_jump: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))  # paths only
+
+    @property
+    def ok(self) -> np.ndarray:
+        return self.status == STATUS_OK
+
+    def summary(self) -> dict:
+        ok = np.isfinite(self.error_m)
+        return {
+            "targets": len(self.q),
+            "ok": int(self.ok.sum()),
+            "statuses": {str(s): int(np.sum(self.status == s)) for s in np.unique(self.status)},
+            "mean_error_mm_before": float(np.mean(self.initial_error_m[ok]) * 1e3) if ok.any() else np.nan,
+            "mean_error_mm": float(np.mean(self.error_m[ok]) * 1e3) if ok.any() else np.nan,
+            "max_error_mm": float(np.max(self.error_m[ok]) * 1e3) if ok.any() else np.nan,
+            "mean_rotation_deg": float(np.rad2deg(np.mean(self.rotation_error_rad[ok])))
+            if ok.any()
+            else np.nan,
+            "outside_volume": int(self.outside_volume.sum()),
+        }
+
+
+def pose_cost(
+    T_reached: np.ndarray, T_target: np.ndarray, full_pose: bool, length_scale_m: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(cost, position error, rotation error): cost = position error (rotation NaN: points leave it
+    free), or in full-pose mode the mm-equivalent sqrt(dp^2 + (length_scale * angle)^2)."""
+    if not full_pose:
+        dp = np.linalg.norm(T_reached[:, :3, 3] - T_target[:, :3, 3], axis=1)
+        return dp, dp, np.full_like(dp, np.nan)
+    dp, dr = pose_errors(T_reached, T_target)
+    return np.hypot(dp, length_scale_m * dr), dp, dr
+
+
+def compensate(
+    model: CalibratedModel,
+    targets: np.ndarray,
+    generator: str | None = None,
+    threshold_m: float = 1e-5,
+    max_iter: int = 10,
+    patience: int = 2,
+    length_scale_m: float = 0.1,
+    q_seed: np.ndarray | None = None,
+    q_near: np.ndarray | None = None,
+    smr: int | None = None,
+    ik_model: str = "kinematic",
+    t_s: np.ndarray | None = None,
+    temperature_c: np.ndarray | None = None,
+    approach: np.ndarray | None = None,
+    use_map: bool = True,
+    ik_solver: IKSolver | None = None,
+) -> CompensationResult:
+    """Joints that make the model put the SMR on the targets (tracker frame, m): points (N, 3) or poses.
+
+    Full-pose targets are T_tracker_tool (N, 4, 4): SMR centre and flange orientation; `generator` is
+    one of `hil.pseudo_targets.GENERATORS` (default "yin") or "ensemble" (all of them, best joints per
+    target). Point targets (N, 3) leave the orientation free: the pseudo target is a point
+    (P_p <- P_p + P_d - P_a, the part all generators share). The first IK starts from `q_seed` (per
+    target) if given, else from the closed-form solution on the branch of `q_near` (default
+    `hil.ik.default_home`), for points in that posture's tool orientation. Stops per target below `threshold_m` of the error measure (position, or the
+    mm-equivalent pose error with `length_scale_m` per radian), after `max_iter` updates, or after
+    `patience` updates without improvement. `ik_model`: "kinematic" (the calibrated geometry) or
+    "nominal": the model the pseudo targets are solved with. `ik_solver` replaces hil's IK (closed-form
+    seed, Newton, `solve_ik` fallback) after the seed: f(targets, q_seed) -> (q, ok) with targets the
+    flange poses T_base_flange (k, 4, 4), or tool points (k, 3) in the base frame for point targets.
+    """
+    if max_iter < 0 or patience < 1 or threshold_m <= 0 or length_scale_m <= 0:
+        raise ValueError("max_iter must be >= 0, patience >= 1, threshold_m and length_scale_m > 0")
+    full_pose, T_d_in = _check_targets(targets)
+    gen = generator or ("yin" if full_pose else "fixed")
+    names = list(GENERATORS) if gen == ENSEMBLE else [check_generator(gen)]
+    if not full_pose:  # the generators differ only in the orientation, which points leave free
+        names = [POINT_GENERATOR]
+    predictor = PosePredictor(model, smr, t_s, temperature_c, approach, use_map)
+    tol_m = IK_TOL_FRACTION * threshold_m
+    ctx = _Setup(
+        model,
+        predictor,
+        ik_model,
+        full_pose,
+        T_d_in,
+        q_seed,
+        q_near,
+        ik_solver,
+        tol_m,
+        tol_m / length_scale_m,
+    )
+    outside = predictor.outside_volume(ctx.T_d[:, :3, 3])
+    if outside.any():
+        warnings.warn(
+            f"{int(outside.sum())} target(s) lie outside the calibrated volume: the model extrapolates there",
+            stacklevel=2,
+        )
+    best = None
+    for name in names:
+        res = _run(ctx, name, threshold_m, max_iter, patience, length_scale_m)
+        res.outside_volume = outside
+        best = res if best is None else _pick_better(best, res)
+    return best
+
+
+def compensate_path(
+    model: CalibratedModel,
+    targets: np.ndarray,
+    q_start: np.ndarray | None = None,
+    jump_rad: float = 0.2,
+    **kwargs,
+) -> CompensationResult:
+    """`compensate` for an ordered path of targets, with continuity.
+
+    Each target's seed is the closed-form branch nearest the seed of its neighbour before it (the first
+    one nearest `q_start`, default `default_home`), so the path stays on one branch where it can;
+    `branch_jump` flags targets whose joints leave the previous target's branch or move a joint by more
+    than `jump_rad`. Needs a UR-shaped model for the branch bookkeeping.
+    """
+    full_pose, T_d_in = _check_targets(targets)
+    kin = model.kinematic if kwargs.get("ik_model", "kinematic") == "kinematic" else model.nominal
+    if not is_ur_like(kin):
+        raise ValueError(f"compensate_path needs a UR-shaped arm, {kin.name} is not")
+    q0 = default_home(kin) if q_start is None else np.asarray(q_start, float)
+    frames = PseudoTargetIK(model, kwargs.get("ik_model", "kinematic"), kwargs.get("smr"))
+    if full_pose:
+        T_d = T_d_in
+    else:  # points: the start posture's orientation, only to pick the branches
+        T_d = np.repeat(frames.from_flange(forward_kinematics(kin, q0[None])), len(T_d_in), axis=0)
+        T_d[:, :3, 3] = T_d_in
+    seeds = branches_along_path(kin, frames.to_flange(T_d), q0)
+    kwargs.pop("q_near", None)
+    res = compensate(model, targets, q_seed=seeds, q_near=q0, **kwargs)
+    q = res.q
+    good = np.all(np.isfinite(q), axis=1)
+    jump = np.zeros(len(q), bool)
+    if good.sum() > 1:
+        idx = np.flatnonzero(good)
+        branch = ur_branch_index(kin, q[idx])
+        step = np.abs(np.diff(q[idx], axis=0)).max(axis=1)
+        jump[idx[1:]] = (branch[1:] != branch[:-1]) | (step > jump_rad)
+    res.branch_jump = jump
+    return res
+
+
+# --------------------------------------------------------------------------------------------------
+
+
+def _check_targets(targets: np.ndarray) -> tuple[bool, np.ndarray]:
+    t = np.asarray(targets, dtype=float)
+    if t.ndim == 1:
+        t = t[None]
+    if not np.all(np.isfinite(t)):
+        raise ValueError("targets contain NaN or inf")
+    if t.ndim == 2 and t.shape[1] == 3:
+        return False, t
+    if t.ndim == 3 and t.shape[1:] == (4, 4):
+        R = t[:, :3, :3]
+        if np.abs(np.swapaxes(R, 1, 2) @ R - np.eye(3)).max(initial=0) > 1e-6 or np.any(np.linalg.det(R) < 0):
+            raise ValueError("target poses must have proper rotation matrices")
+        return True, t
+    raise ValueError(f"targets must be points (N, 3) or poses (N, 4, 4) in metres, got shape {t.shape}")
+
+
+class PseudoTargetIK:
+    """The IK side of the loop: joints for pseudo targets (tracker frame), seeded with the previous joints.
+
+    Pose targets: the IK solves flange poses. Point targets: the orientation is free, the IK solves the
+    tool point with minimum-norm steps from the previous joints (the orientation drifts only as needed).
+    The measured loop uses it with `hil.pseudo_targets.update_pseudo_target` on measured poses:
+    T_p = update_pseudo_target(gen, T_d, T_measured, T_p); q, reason = ik.solve(T_p, q).
+    """
+
+    def __init__(
+        self,
+        model: CalibratedModel,
+        ik_model: str = "kinematic",
+        smr: int | None = None,
+        full_pose: bool = True,
+        ik_solver: IKSolver | None = None,
+        tol_m: float = 1e-8,
+        tol_rad: float = 1e-7,
+    ) -> None:
+        if ik_model not in ("kinematic", "nominal"):
+            raise ValueError(f"ik_model must be 'kinematic' or 'nominal', got {ik_model!r}")
+        sid = sorted(model.tools)[0] if smr is None else int(smr)
+        if sid not in model.tools:
+            raise ValueError(f"the model has tool points for SMR nests {sorted(model.tools)}, not {sid}")
+        self.ik_solver = ik_solver
+        self.tol_m, self.tol_rad = tol_m, tol_rad
+        self.full_pose = full_pose
+        self.kin: KinematicModel = model.kinematic if ik_model == "kinematic" else model.nominal
+        self.T_tb = np.asarray(model.T_tracker_base, float)
+        self.T_bt = invert(self.T_tb)
+        self.tool = np.asarray(model.tools[sid], float)
+        self.T_ft = np.eye(4)
+        self.T_ft[:3, 3] = self.tool
+        self.T_tf = invert(self.T_ft)
+
+    def to_flange(self, T_tracker_tool: np.ndarray) -> np.ndarray:
+        return self.T_bt @ T_tracker_tool @ self.T_tf
+
+    def from_flange(self, T_base_flange: np.ndarray) -> np.ndarray:
+        return self.T_tb @ T_base_flange @ self.T_ft
+
+    def solve(
+        self, T_pseudo: np.ndarray, q_prev: np.ndarray, project: bool = False
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """IK of pseudo targets T_tracker_tool (N, 4, 4) seeded with q_prev (N, n): Newton, then `solve_ik`
+        on what Newton left (or `ik_solver`). `project`: rotation blocks are not rotations ("add").
+        Returns (q, reason (N,) str: 'ok', hil.ik's failure reason, or no_ik_solution)."""
+        if self.full_pose:
+            target = self.to_flange(ik_pose(T_pseudo) if project else T_pseudo)
+        else:
+            target = T_pseudo[:, :3, 3] @ self.T_bt[:3, :3].T + self.T_bt[:3, 3]
+        if self.ik_solver is not None:
+            q, ok = self.ik_solver(target, q_prev)
+            return np.array(q, float), np.where(ok, REASON_OK, STATUS_NO_IK).astype(str)
+        if self.full_pose:
+            res = newton_ik(
+                self.kin,
+                target,
+                q_prev,
+                tol_position=self.tol_m,
+                tol_rotation=self.tol_rad,
+                max_steps=NEWTON_STEPS,
+                validate=False,
+            )
+        else:
+            res = newton_ik(
+                self.kin,
+                target,
+                q_prev,
+                "position",
+                self.tool,
+                tol_position=self.tol_m,
+                max_steps=NEWTON_STEPS,
+                validate=False,
+            )
+        q = res.q
+        reason = np.full(len(q), REASON_OK, dtype=object)
+        bad = np.flatnonzero(~res.converged)
+        if bad.size:
+            kw = {"mode": "pose"} if self.full_pose else {"mode": "position", "p_flange_tool": self.tool}
+            slow = solve_ik(
+                self.kin, target[bad], q_seed=q_prev[bad], q_near=q_prev[bad[0]], restarts=5, **kw
+            )
+            q[bad] = slow.q
+            reason[bad] = np.where(slow.reason == REASON_MAX_ITER, STATUS_NO_IK, slow.reason)
+        return q, reason.astype(str)
+
+
+class _Setup(PseudoTargetIK):
+    """What every generator's run shares: the IK, the predictor, the targets as poses and the first joints."""
+
+    def __init__(
+        self, model, predictor, ik_model, full_pose, targets, q_seed, q_near, ik_solver, tol_m, tol_rad
+    ):
+        super().__init__(model, ik_model, predictor.smr, full_pose, ik_solver, tol_m, tol_rad)
+        self.predictor = predictor
+        n = self.kin.n_joints
+        N = len(targets)
+        q_ref = default_home(self.kin) if q_near is None else np.asarray(q_near, float)
+        if q_ref.shape != (n,) or not np.all(np.isfinite(q_ref)):
+            raise ValueError(f"q_near must be finite ({n},) joints, got {q_ref.shape}")
+        if q_seed is not None:
+            q_seed = np.asarray(q_seed, float)
+            if q_seed.shape not in ((n,), (N, n)) or not np.all(np.isfinite(q_seed)):
+                raise ValueError(f"q_seed must be finite ({N}, {n}) or ({n},) joints, got {q_seed.shape}")
+            q_seed = np.array(np.broadcast_to(q_seed, (N, n)))
+        if full_pose:
+            self.T_d = np.array(targets)
+        else:  # orientation of the reference posture: only used to pick the closed-form seed
+            ref = q_seed if q_seed is not None else np.broadcast_to(q_ref, (N, n))
+            self.T_d = self.from_flange(forward_kinematics(self.kin, ref))
+            self.T_d[:, :3, 3] = targets
+        self.q0, self.reason0 = self._first_ik(q_seed, q_ref)
+
+    def _first_ik(self, q_seed, q_ref) -> tuple[np.ndarray, np.ndarray]:
+        T_f = self.to_flange(self.T_d)
+        if q_seed is not None:
+            q, reason = self.solve(self.T_d, q_seed)
+        elif is_ur_like(self.kin):
+            seed, reachable = same_branch_seed(self.kin, T_f, q_ref)
+            q, reason = self.solve(self.T_d, seed)
+            if self.full_pose:
+                reason = np.where(~reachable & (reason != REASON_OK), REASON_UNREACHABLE, reason)
+        else:
+            kw = {"mode": "pose"} if self.full_pose else {"mode": "position", "p_flange_tool": self.tool}
+            target = T_f if self.full_pose else T_f[:, :3, :3] @ self.tool + T_f[:, :3, 3]
+            res = solve_ik(self.kin, target, q_near=q_ref, **kw)
+            q, reason = res.q, np.where(res.reason == REASON_MAX_ITER, STATUS_NO_IK, res.reason)
+        q = np.array(q, dtype=float)
+        q[reason != REASON_OK] = np.nan
+        return q, np.asarray(reason).astype(str)
+
+
+def _run(
+    s: _Setup, generator: str, threshold: float, max_iter: int, patience: int, length_scale: float
+) -> CompensationResult:
+    """The pseudo-target loop of one generator over all targets, inactive targets dropping out."""
+    N = len(s.T_d)
+    ok0 = s.reason0 == REASON_OK
+    q = s.q0.copy()
+    T_p = s.T_d.copy()
+    status = s.reason0.astype(object).copy()
+    q_best = np.full_like(q, np.nan)
+    cost_best = np.full(N, np.inf)
+    pos_best = np.full(N, np.nan)
+    rot_best = np.full(N, np.nan)
+    pos0 = np.full(N, np.nan)
+    rot0 = np.full(N, np.nan)
+    since_best = np.zeros(N, int)
+    iters = np.zeros(N, int)
+    history = np.full((max_iter + 1, N), np.nan)
+    active = np.flatnonzero(ok0)
+    for k in range(max_iter + 1):
+        if active.size == 0:
+            break
+        T_a = s.predictor(q[active], active)
+        cost, dp, dr = pose_cost(T_a, s.T_d[active], s.full_pose, length_scale)
+        history[k, active] = cost
+        if k == 0:
+            pos0[active], rot0[active] = dp, dr
+        better = cost < cost_best[active]
+        b = active[better]
+        q_best[b], cost_best[b], pos_best[b], rot_best[b] = q[b], cost[better], dp[better], dr[better]
+        since_best[active] = np.where(better, 0, since_best[active] + 1)
+        done = cost_best[active] < threshold
+        status[active[done]] = STATUS_OK
+        stalled = ~done & (since_best[active] >= patience)
+        status[active[stalled]] = STATUS_STALLED
+        if k == max_iter:
+            status[active[~done & ~stalled]] = STATUS_MAX_ITER
+            break
+        keep = ~done & ~stalled
+        active, T_a = active[keep], T_a[keep]
+        if active.size == 0:
+            break
+        if s.full_pose:
+            T_p[active] = update_pseudo_target(generator, s.T_d[active], T_a, T_p[active])
+        else:
+            T_p[active, :3, 3] = update_pseudo_position(
+                s.T_d[active, :3, 3], T_a[:, :3, 3], T_p[active, :3, 3]
+            )
+        q_new, reason = s.solve(T_p[active], q[active], project=generator == "add")
+        iters[active] += 1
+        failed = reason != REASON_OK
+        status[active[failed]] = reason[failed]  # best joints so far stay
+        q[active] = q_new
+        active = active[~failed]
+    status = status.astype(str)
+    status[(status != STATUS_OK) & ok0 & (cost_best < threshold)] = STATUS_OK
+    return CompensationResult(
+        q=q_best,
+        error_m=pos_best,
+        rotation_error_rad=rot_best,
+        cost_m=np.where(np.isfinite(cost_best), cost_best, np.nan),
+        iterations=iters,
+        status=status,
+        generator=np.full(N, generator, dtype=object).astype(str),
+        initial_error_m=pos0,
+        initial_rotation_error_rad=rot0,
+        outside_volume=np.zeros(N, bool),
+        history=history,
+        full_pose=s.full_pose,
+    )
+
+
+def _pick_better(a: CompensationResult, b: CompensationResult) -> CompensationResult:
+    """Per target, the result with the lower remaining error measure (ties and NaN keep `a`)."""
+    take_b = np.nan_to_num(b.cost_m, nan=np.inf) < np.nan_to_num(a.cost_m, nan=np.inf)
+    out = {}
+    for name in a.__dataclass_fields__:
+        va, vb = getattr(a, name), getattr(b, name)
+        if name == "history":
+            out[name] = np.where(take_b[None, :], vb, va)
+        elif isinstance(va, np.ndarray) and va.shape[:1] == take_b.shape:
+            mask = take_b.reshape(-1, *([1] * (va.ndim - 1)))
+            out[name] = np.where(mask, vb, va)
+        else:
+            out[name] = va
+    return CompensationResult(**out)
