@@ -109,7 +109,7 @@ class CalibrationResult:
             "rms_mm": self.rms_mm,
             "iterations": self.iterations,
             "parameters": self.parameter_table(),
-            "outlier_rows": [int(i) for i in np.flatnonzero(self.outliers)],
+            "outlier_rows": [int(i) + 1 for i in np.flatnonzero(self.outliers)],  # data rows, from 1
             "identifiability": self.identifiability.to_dict() if self.identifiability else None,
             "notes": self.notes,
         }
@@ -370,6 +370,6 @@ def _calibrate(
         "std": result.std,
         "identifiability": report.to_dict(),
         "n_points": int(len(df)),
-        "outlier_rows": [int(i) for i in np.flatnonzero(result.outliers)],
+        "outlier_rows": [int(i) + 1 for i in np.flatnonzero(result.outliers)],  # data rows, from 1
     }
     return result

@@ -134,7 +134,7 @@ def test_gross_outlier_in_a_campaign_is_flagged_and_changes_nothing():
     bad = train.copy()
     bad.loc[40, "z_mm"] += 3.0  # a 3 mm blunder: the SMR was bumped in its nest
     report = run_diagnosis(bad, "ur10", df_validate=val)
-    assert 40 in report.model.info["outlier_rows"]
+    assert 41 in report.model.info["outlier_rows"]  # data row 41 (row 1 = first after the header)
     assert report.effects_added == clean.effects_added
     shift = np.linalg.norm(report.model.predict(val) - clean.model.predict(val), axis=1)
     assert shift.max() < 5e-6

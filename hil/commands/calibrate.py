@@ -9,17 +9,19 @@ import numpy as np
 import pandas as pd
 
 from hil.calibration import calibrate
+from hil.commands.arg_checks import InputError, check_paths, float_list
 from hil.dataset import DatasetError, load_dataset
 from hil.robots import ROBOT_NAMES, get_robot
 
 
 def parse_mm_vector(text: str | None) -> np.ndarray | None:
+    """'x,y,z' in mm -> metres (argparse type of --tool-mm); a tool point lies within 1 m of the flange."""
     if text is None:
         return None
-    parts = text.split(",")
-    if len(parts) != 3:
-        raise argparse.ArgumentTypeError(f"expected x,y,z in mm, got '{text}'")
-    return np.array([float(p) for p in parts]) / 1000.0
+    v = np.array(float_list(3, "x,y,z in mm")(text)) / 1000.0
+    if np.linalg.norm(v) > 1.0:
+        raise argparse.ArgumentTypeError(f"'{text}' lies more than 1 m from the flange: give millimetres")
+    return v
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -28,15 +30,19 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="identify base frame, tool point(s) and kinematic errors from a measurement dataset",
         description="Robust kinematic calibration. Runs both solvers (ridge + IGG3, and Levenberg-Marquardt "
         "with a robust loss), prints both, and writes the chosen one as a model file.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     p.add_argument(
         "data", help="dataset CSV (q1_rad..q6_rad, x_mm, y_mm, z_mm, optional t_s, temperature_c, smr)"
     )
-    p.add_argument("--robot", default="ur10", choices=ROBOT_NAMES, help="nominal robot model (default ur10)")
+    p.add_argument("--robot", default="ur10", choices=ROBOT_NAMES, help="nominal robot model")
     p.add_argument("-o", "--output", required=True, help="model JSON to write")
     p.add_argument("--solver", default="ridge", choices=("ridge", "lm"), help="solver whose model is written")
     p.add_argument(
-        "--tool-mm", default=None, help="initial guess of the tool point in the flange, 'x,y,z' mm"
+        "--tool-mm",
+        default=None,
+        type=parse_mm_vector,
+        help="initial guess of the tool point in the flange, 'x,y,z' mm (none: from the data)",
     )
     p.add_argument("--no-beta", action="store_true", help="plain DH on every joint (no Hayati beta)")
     p.add_argument(
@@ -49,9 +55,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     try:
+        check_paths({"DATA": args.data}, {"--output": args.output, "--residuals": args.residuals})
         df = load_dataset(args.data)
-        tool = parse_mm_vector(args.tool_mm)
-    except (DatasetError, ValueError, argparse.ArgumentTypeError) as exc:
+        tool = args.tool_mm
+    except (InputError, DatasetError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     nominal = get_robot(args.robot, use_beta=not args.no_beta)

@@ -8,6 +8,7 @@ import sys
 import numpy as np
 import pandas as pd
 
+from hil.commands.arg_checks import InputError, check_paths, float_in, float_list, int_in
 from hil.commands.calibrate import parse_mm_vector
 from hil.dataset import DatasetError, load_dataset
 from hil.diagnosis import DiagnosisReport, run_diagnosis
@@ -22,28 +23,43 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Calibrate, then test candidate effects the model lacks (gravity compliance, cyclic joint "
         "errors, backlash, thermal expansion/drift) by k-fold held-out improvement and a significance test "
         "against the measurement noise; add the winner, refit, repeat.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     p.add_argument("data", help="training dataset CSV")
-    p.add_argument("--robot", default="ur10", choices=ROBOT_NAMES)
+    p.add_argument("--robot", default="ur10", choices=ROBOT_NAMES, help="nominal robot model")
     p.add_argument("--validate", default=None, help="a separate dataset CSV never used for fitting")
     p.add_argument("-o", "--output", default=None, help="write the final model (effects included) as JSON")
     p.add_argument("--json", required=True, dest="json_path", help="write the report as JSON")
     p.add_argument("--html", default=None, help="write the report as a self-contained HTML page")
-    p.add_argument("--folds", type=int, default=5, help="k of the k-fold cross-validation (default 5)")
-    p.add_argument("--alpha", type=float, default=1e-3, help="significance level of the tests (default 1e-3)")
+    p.add_argument("--folds", type=int_in(2, 50), default=5, help="k of the k-fold cross-validation, 2..50")
+    p.add_argument(
+        "--alpha",
+        type=float_in(0.0, 0.5, lo_open=True),
+        default=1e-3,
+        help="significance level of the tests, in (0, 0.5]",
+    )
     p.add_argument(
         "--families",
         default=",".join(EFFECT_FAMILIES),
-        help=f"candidate effect families, comma separated (default all: {','.join(EFFECT_FAMILIES)})",
+        help="candidate effect families, comma separated",
     )
     p.add_argument(
-        "--repeatability-mm", type=float, default=0.0, help="robot repeatability added to the floor"
+        "--repeatability-mm",
+        type=float_in(0.0, 5.0),
+        default=0.0,
+        help="robot repeatability added to the noise floor, mm, 0..5",
     )
-    p.add_argument("--tool-mm", default=None, help="initial guess of the tool point, 'x,y,z' mm")
+    p.add_argument(
+        "--tool-mm",
+        default=None,
+        type=parse_mm_vector,
+        help="initial guess of the tool point, 'x,y,z' mm (none: from the data)",
+    )
     p.add_argument(
         "--tracker-mpe-um",
         default="15,6",
-        help="tracker MPE 'a,b' (a um + b um/m, taken as 2 sigma) for the noise floor (default 15,6: AT901/AT960)",
+        type=float_list(2, "'a,b': a um (> 0) + b um/m (>= 0)", lo=(0.0, 0.0), positive_first=True),
+        help="tracker MPE 'a,b' (a um + b um/m, taken as 2 sigma) for the noise floor (15,6: AT901/AT960)",
     )
     p.add_argument("--no-beta", action="store_true", help="plain DH on every joint (no Hayati beta)")
     p.add_argument(
@@ -56,26 +72,30 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     try:
-        df = load_dataset(args.data)
-        val = load_dataset(args.validate) if args.validate else None
-        tool = parse_mm_vector(args.tool_mm)
+        check_paths(
+            {"DATA": args.data, "--validate": args.validate},
+            {"--output": args.output, "--json": args.json_path, "--html": args.html},
+        )
         families = tuple(f.strip() for f in args.families.split(",") if f.strip())
         unknown = [f for f in families if f not in EFFECT_FAMILIES]
-        if unknown:
-            raise ValueError(
-                f"unknown effect famil{'y' if len(unknown) == 1 else 'ies'} {unknown}; "
-                f"known: {', '.join(EFFECT_FAMILIES)}"
+        if unknown or not families:
+            raise InputError(
+                f"--families: unknown effect famil{'y' if len(unknown) == 1 else 'ies'} {unknown}; "
+                f"choose from {', '.join(EFFECT_FAMILIES)}"
             )
-        mpe = tuple(float(v) * 1e-6 for v in args.tracker_mpe_um.split(","))
-        if len(mpe) != 2:
-            raise ValueError(f"--tracker-mpe-um needs 'a,b', got '{args.tracker_mpe_um}'")
-        if args.folds < 2:
-            raise ValueError("--folds must be at least 2")
-    except (DatasetError, ValueError, argparse.ArgumentTypeError) as exc:
+        mpe = tuple(v * 1e-6 for v in args.tracker_mpe_um)
+        df = load_dataset(args.data)
+        val = load_dataset(args.validate) if args.validate else None
+        tool = args.tool_mm
+    except (InputError, DatasetError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     if len(df) < 8 * args.folds:
-        print(f"error: {len(df)} points are too few for {args.folds}-fold cross-validation", file=sys.stderr)
+        print(
+            f"error: {len(df)} points are too few for {args.folds}-fold cross-validation; "
+            f"measure at least {8 * args.folds} poses or lower --folds",
+            file=sys.stderr,
+        )
         return 2
     try:
         report = _diagnose(args, df, val, tool, families, mpe)

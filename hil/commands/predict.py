@@ -7,6 +7,7 @@ import sys
 import warnings
 
 from hil.calibrated_model import CalibratedModel
+from hil.commands.arg_checks import InputError, check_paths
 from hil.dataset import POSITION_COLUMNS, DatasetError, load_dataset
 
 
@@ -14,6 +15,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "predict",
         help="predict x_mm, y_mm, z_mm (tracker frame) for the joints in a CSV with a calibrated model",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     p.add_argument("model", help="model JSON written by 'hil calibrate' or 'hil diagnose -o'")
     p.add_argument(
@@ -25,12 +27,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     try:
+        check_paths({"MODEL": args.model, "DATA": args.data}, {"--output": args.output})
         model = CalibratedModel.load(args.model)
         df = load_dataset(args.data, require_positions=False)
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             p = model.predict(df)
-    except (DatasetError, ValueError, OSError, KeyError) as exc:
+    except (InputError, DatasetError, ValueError, OSError, KeyError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     for w in caught:
