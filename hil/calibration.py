@@ -29,7 +29,7 @@ from scipy.optimize import least_squares
 from threadpoolctl import threadpool_limits
 
 from hil.calibrated_model import CalibratedModel, initial_model
-from hil.dataset import points_m, smr_ids
+from hil.dataset import data_rows, joints_rad, points_m, smr_ids
 from hil.effects import EffectContext
 from hil.identifiability import IdentifiabilityReport, analyse, scale_columns
 from hil.kinematics import KinematicModel
@@ -77,6 +77,13 @@ class CalibrationResult:
     iterations: int
     identifiability: IdentifiabilityReport | None = None
     notes: list[str] = field(default_factory=list)
+    row_numbers: np.ndarray | None = None  # data row (from 1) in the source file of each point
+
+    @property
+    def outlier_rows(self) -> list[int]:
+        """Flagged points as data rows of the source file, counting from 1."""
+        rows = np.arange(1, len(self.outliers) + 1) if self.row_numbers is None else self.row_numbers
+        return [int(r) for r in rows[self.outliers]]
 
     @property
     def rms_mm(self) -> float:
@@ -109,7 +116,7 @@ class CalibrationResult:
             "rms_mm": self.rms_mm,
             "iterations": self.iterations,
             "parameters": self.parameter_table(),
-            "outlier_rows": [int(i) + 1 for i in np.flatnonzero(self.outliers)],  # data rows, from 1
+            "outlier_rows": self.outlier_rows,
             "identifiability": self.identifiability.to_dict() if self.identifiability else None,
             "notes": self.notes,
         }
@@ -343,6 +350,7 @@ def _calibrate(
     ridge: float,
 ) -> CalibrationResult:
     model = robot if isinstance(robot, CalibratedModel) else initial_model(robot, df, tool_guess_m)
+    check_joint_limits(df, model.nominal)
     problem = Problem.from_frame(model, df)
     # Tool points first (the registration assumed a guess), so the identifiability sees a sane model.
     pre_free = np.array([n.startswith(("base_", "tool")) for n in model.param_names])
@@ -363,6 +371,8 @@ def _calibrate(
     else:
         raise ValueError(f"unknown solver '{solver}'; choose 'ridge' or 'lm'")
     result.identifiability = report
+    result.row_numbers = data_rows(df)
+    q = joints_rad(df, model.nominal.n_joints)
     result.model.info = {
         "solver": result.solver,
         "sigma0_mm": result.sigma0_m * 1000,
@@ -370,6 +380,46 @@ def _calibrate(
         "std": result.std,
         "identifiability": report.to_dict(),
         "n_points": int(len(df)),
-        "outlier_rows": [int(i) + 1 for i in np.flatnonzero(result.outliers)],  # data rows, from 1
+        "outlier_rows": result.outlier_rows,
+        "training_joint_range_rad": [q.min(axis=0).tolist(), q.max(axis=0).tolist()],
     }
+    result.notes += implausible_changes(result)
     return result
+
+
+# Beyond these, a change is no manufacturing error: wrong robot model, units or a confounded parameter.
+TOLERANCE_LENGTH_M = 5e-3
+TOLERANCE_ANGLE_RAD = np.deg2rad(1.0)
+
+
+def implausible_changes(result: CalibrationResult) -> list[str]:
+    """One message per geometric parameter that moved further than a manufacturing tolerance."""
+    out = []
+    for row in result.parameter_table():
+        if row["delta"] is None or row["name"] not in result.model.nominal.param_names:
+            continue
+        if row["unit"] == "m" and abs(row["delta"]) > TOLERANCE_LENGTH_M:
+            size = f"{row['delta'] * 1000:+.1f} mm (tolerance ~{TOLERANCE_LENGTH_M * 1000:g} mm)"
+        elif row["unit"] == "rad" and abs(row["delta"]) > TOLERANCE_ANGLE_RAD:
+            size = f"{np.rad2deg(row['delta']):+.2f} deg (tolerance ~{np.rad2deg(TOLERANCE_ANGLE_RAD):g} deg)"
+        else:
+            continue
+        out.append(
+            f"implausible: {row['name']} moved {size} from the {result.model.robot} nominal; is the robot "
+            "model right (data of another robot?), are the joints in radians and the positions in mm?"
+        )
+    return out
+
+
+def check_joint_limits(df: pd.DataFrame, nominal: KinematicModel, source: str = "dataset") -> None:
+    """Joints beyond the robot's limits (0.05 rad margin): degrees, or data of another robot."""
+    q = joints_rad(df, nominal.n_joints)
+    lim = np.asarray(nominal.joint_limits, float)
+    bad = (q < lim[:, 0] - 0.05) | (q > lim[:, 1] + 0.05)
+    if bad.any():
+        r, j = np.argwhere(bad)[0]
+        raise ValueError(
+            f"{source}: joint {j + 1} in data row {data_rows(df)[r]} is {q[r, j]:.3f} rad, beyond the "
+            f"{nominal.name} limits [{lim[j, 0]:.3f}, {lim[j, 1]:.3f}]; degrees (name the columns q1_deg..) "
+            "or data of another robot?"
+        )

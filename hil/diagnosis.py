@@ -241,6 +241,7 @@ class DiagnosisReport:
     histograms: dict = field(default_factory=dict)  # stage -> held-out error norms (mm)
     final_round: list[Candidate] = field(default_factory=list)
     ambiguities: list[dict] = field(default_factory=list)  # effects this data could not tell apart
+    run: dict = field(default_factory=dict)  # robot, input files (hash, rows), date, software version
 
     @property
     def effects_added(self) -> list[dict]:
@@ -264,6 +265,7 @@ class DiagnosisReport:
             "ambiguities": self.ambiguities,
             "calibration": self.calibration,
             "residual_map": self.residual_map,
+            "run": self.run,
         }
 
     def table(self) -> str:
@@ -588,6 +590,8 @@ def _run_diagnosis(
             "held-out one: the training campaign does not represent it (poses, visiting order, time), so an "
             "effect may be hidden in the training data by another one; measure a campaign in a random order."
         )
+    for note in ridge.notes:
+        conclusion += f" Caution: {note}"
     final_model.info["diagnosis"] = {
         "effects_added": [s.effect for s in steps],
         "noise_floor_mm": noise.floor_mm,
@@ -604,7 +608,36 @@ def _run_diagnosis(
         histograms=hist,
         final_round=final_round,
         ambiguities=ambiguities,
+        run=run_record(nominal.nominal, {"training": df, "validation": df_validate}),
     )
+
+
+def run_record(robot: KinematicModel, frames: dict[str, pd.DataFrame | None]) -> dict:
+    """What the report was made from: robot, each input (file, SHA-256, rows), date and software version."""
+    import datetime
+    import importlib.metadata
+
+    try:
+        version = importlib.metadata.version("hil")
+    except importlib.metadata.PackageNotFoundError:
+        version = "unknown"
+    inputs = {}
+    for role, df in frames.items():
+        if df is None:
+            continue
+        inputs[role] = {
+            "file": df.attrs.get("source"),
+            "sha256": df.attrs.get("sha256"),
+            "rows_in_file": df.attrs.get("rows_in_file", len(df)),
+            "rows_used": len(df),
+            "duplicate_rows": df.attrs.get("duplicate_rows", []),
+        }
+    return {
+        "robot": robot.name,
+        "inputs": inputs,
+        "date_utc": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        "software": f"hil {version}",
+    }
 
 
 def _p_base(model: CalibratedModel, problem: Problem) -> np.ndarray:

@@ -28,6 +28,9 @@ def files(tmp_path_factory):
     (d / "foreign.json").write_text(json.dumps({"effects_added": [], "stages": []}))
     (d / "binary.json").write_bytes(bytes(range(256)))
     df.drop(columns=["q3_rad"]).to_csv(d / "no_q3.csv", index=False)
+    metres = df.copy()
+    metres[["x_mm", "y_mm", "z_mm"]] /= 1000.0
+    metres.to_csv(d / "metres.csv", index=False)
     return d
 
 
@@ -44,6 +47,8 @@ CASES = [
     ("calibrate data.csv -o m.json --robot ur99", "--robot"),
     ("calibrate no_q3.csv -o m.json", "q3_rad"),
     ("calibrate . -o m.json", "not a file"),
+    ("calibrate metres.csv -o m.json", "look like metres"),
+    ("calibrate data.csv -o m.json --robot irb2600", "beyond the irb2600 limits"),
     ("diagnose data.csv --json r.json --alpha -1", "--alpha"),
     ("diagnose data.csv --json r.json --alpha 0", "--alpha"),
     ("diagnose data.csv --json r.json --alpha nan", "--alpha"),

@@ -69,12 +69,14 @@ def run(args: argparse.Namespace) -> int:
         return 2
     print(results["ridge"].identifiability.summary())
     for res in results.values():
-        flagged = np.flatnonzero(res.outliers)
+        flagged = res.outlier_rows
         print(
             f"{res.solver:>12}: RMS {res.rms_mm:.4f} mm over {int((~res.outliers).sum())} points, "
             f"sigma0 {res.sigma0_m * 1000:.4f} mm, outliers flagged: "
-            + (", ".join(f"row {i + 1}" for i in flagged) if flagged.size else "none")
+            + (", ".join(f"row {r}" for r in flagged) if flagged else "none")
         )
+    for note in results[args.solver].notes:
+        print(f"warning: {note}", file=sys.stderr)
     chosen = results[args.solver]
     print(f"{'parameter':<16}{'change':>14}{'std':>12}  unit")
     for row in chosen.parameter_table():
@@ -87,7 +89,7 @@ def run(args: argparse.Namespace) -> int:
         r_mm = chosen.residual_m * 1000.0
         pd.DataFrame(
             {
-                "row": np.arange(1, len(r_mm) + 1),
+                "row": chosen.row_numbers,
                 "dx_mm": r_mm[:, 0],
                 "dy_mm": r_mm[:, 1],
                 "dz_mm": r_mm[:, 2],
