@@ -41,19 +41,26 @@ JOINT_STIFFNESS: dict[str, tuple[float, ...]] = {
 }
 
 
-# Physical effects a cell can switch on beside its hidden geometric errors (CellConfig flags).
-CELL_EFFECTS: tuple[str, ...] = ("compliance", "cyclic", "backlash", "thermal")
+# Physical effects a cell can switch on beside its hidden geometric errors, named as the diagnosis names
+# its effect families (hil.effects.EFFECT_FAMILIES), each with the CellConfig flag that switches it.
+EFFECT_FLAGS: dict[str, str] = {
+    "gravity_compliance": "compliance",
+    "cyclic": "cyclic",
+    "backlash": "backlash",
+    "thermal_expansion": "thermal",
+}
+CELL_EFFECTS: tuple[str, ...] = tuple(EFFECT_FLAGS)
 
 
 def parse_effect_flags(text: str) -> dict[str, bool]:
-    """'compliance,thermal' (or 'none') -> CellConfig flags for every effect in CELL_EFFECTS."""
+    """'gravity_compliance,thermal_expansion' (or 'none') -> CellConfig flags of every effect in CELL_EFFECTS."""
     chosen = set() if text.strip().lower() == "none" else {e.strip() for e in text.split(",") if e.strip()}
     unknown = chosen - set(CELL_EFFECTS)
     if unknown:
         raise ValueError(
             f"unknown effect(s) {sorted(unknown)}: choose from {', '.join(CELL_EFFECTS)} or none"
         )
-    return {name: name in chosen for name in CELL_EFFECTS}
+    return {flag: name in chosen for name, flag in EFFECT_FLAGS.items()}
 
 
 @dataclass(frozen=True)
