@@ -21,7 +21,7 @@ as an outlier when its standardised residual exceeds k1.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import pandas as pd
@@ -33,6 +33,7 @@ from hil.dataset import data_rows, joints_rad, points_m, smr_ids
 from hil.effects import EffectContext
 from hil.identifiability import IdentifiabilityReport, analyse, scale_columns
 from hil.kinematics import KinematicModel
+from hil.se3 import fit_rigid
 
 K0, K1 = 1.5, 2.5  # IGG3 thresholds of the grid paper
 
@@ -423,3 +424,17 @@ def check_joint_limits(df: pd.DataFrame, nominal: KinematicModel, source: str = 
             f"{nominal.name} limits [{lim[j, 0]:.3f}, {lim[j, 1]:.3f}]; degrees (name the columns q1_deg..) "
             "or data of another robot?"
         )
+
+
+def reregister(model: CalibratedModel, df: pd.DataFrame, tool: bool = False) -> CalibratedModel:
+    """The model with its base frame (and, if `tool`, its tool points) fitted to another campaign.
+
+    For a campaign from another tracker placement: the robot is the same, the tracker <- base transform
+    is not. A rigid fit first (the placements may differ by metres), then a robust refinement.
+    """
+    ctx, _ = model.context(df)
+    p_base = replace(model, T_tracker_base=np.eye(4)).predict_ctx(ctx)
+    T, _ = fit_rigid(p_base, points_m(df))
+    moved = replace(model, T_tracker_base=T)
+    free = np.array([n.startswith("base_") or (tool and n.startswith("tool")) for n in moved.param_names])
+    return solve_ridge_igg3(moved, Problem.from_frame(moved, df), free, max_iter=10).model
