@@ -176,7 +176,6 @@ def test_an_effect_the_simulator_does_not_have_is_found_too():
 
 def test_one_name_per_effect_in_the_simulator_and_the_diagnosis():
     from fakes.cell import CELL_EFFECTS, CellConfig, parse_effect_flags
-
     from hil.effects import EFFECT_FAMILIES
 
     assert set(CELL_EFFECTS) <= set(EFFECT_FAMILIES)
