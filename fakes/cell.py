@@ -239,6 +239,18 @@ class SimulatedCell:
         """Simulated seconds since the cell started."""
         return self._time_s
 
+    def move_tracker(self, seed: int) -> None:
+        """Set the tracker up elsewhere (a new placement drawn from `seed`), as between two campaigns;
+        the robot, its hidden errors and the room's fixed SMRs stay where they are."""
+        fixed_base = {
+            i: np.linalg.inv(self.T_tracker_base) @ np.append(loc.point_m, 1.0)
+            for i, loc in self._smr_locations.items()
+            if loc.kind == "fixed"
+        }
+        self.T_tracker_base = self._draw_tracker_pose(np.random.default_rng([seed, 3]))
+        for i, p_base in fixed_base.items():
+            self._smr_locations[i] = SmrLocation("fixed", point_m=tuple((self.T_tracker_base @ p_base)[:3]))
+
     def advance_time(self, dt_s: float) -> None:
         """Move the simulated clock on by dt_s (>= 0)."""
         if dt_s < 0:
