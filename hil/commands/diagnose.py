@@ -28,6 +28,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("data", help="training dataset CSV")
     p.add_argument("--robot", default="ur10", choices=ROBOT_NAMES, help="nominal robot model")
     p.add_argument("--validate", default=None, help="a separate dataset CSV never used for fitting")
+    p.add_argument(
+        "--validate-reregister",
+        default="none",
+        choices=("none", "base", "base+tool"),
+        help="refit the base frame (and tool) of every stage on --validate first: a campaign from another "
+        "tracker placement; the report shows both",
+    )
     p.add_argument("-o", "--output", default=None, help="write the final model (effects included) as JSON")
     p.add_argument("--json", required=True, dest="json_path", help="write the report as JSON")
     p.add_argument("--html", default=None, help="write the report as a self-contained HTML page")
@@ -72,6 +79,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     try:
+        if args.validate_reregister != "none" and not args.validate:
+            raise InputError("--validate-reregister needs --validate VAL.csv; give the validation campaign")
         check_paths(
             {"DATA": args.data, "--validate": args.validate},
             {"--output": args.output, "--json": args.json_path, "--html": args.html},
@@ -125,6 +134,7 @@ def _diagnose(
         tool_guess_m=tool,
         tracker_mpe_m=mpe,
         compare_maps=args.compare_maps,
+        reregister_validation=args.validate_reregister,
     )
 
 
