@@ -45,6 +45,8 @@ CASES = [
     ("calibrate data.csv -o m.json --tool-mm 1,nan,0", "--tool-mm"),
     ("calibrate data.csv -o m.json --solver newton", "--solver"),
     ("calibrate data.csv -o m.json --robot ur99", "--robot"),
+    ("calibrate data.csv -o m.json --robot nowhere.toml", "robot file not found: nowhere.toml"),
+    ("diagnose data.csv --json r.json --robot data.csv", "--robot"),
     ("calibrate no_q3.csv -o m.json", "q3_rad"),
     ("calibrate . -o m.json", "not a file"),
     ("calibrate metres.csv -o m.json", "look like metres"),

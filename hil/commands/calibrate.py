@@ -11,7 +11,7 @@ import pandas as pd
 from hil.calibration import calibrate
 from hil.commands.arg_checks import InputError, check_paths, float_list
 from hil.dataset import DatasetError, load_dataset
-from hil.robots import ROBOT_NAMES, get_robot
+from hil.robots import ROBOT_NAMES, get_robot, robot_arg
 
 
 def parse_mm_vector(text: str | None) -> np.ndarray | None:
@@ -35,7 +35,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument(
         "data", help="dataset CSV (q1_rad..q6_rad, x_mm, y_mm, z_mm, optional t_s, temperature_c, smr)"
     )
-    p.add_argument("--robot", default="ur10", choices=ROBOT_NAMES, help="nominal robot model")
+    p.add_argument(
+        "--robot",
+        default="ur10",
+        type=robot_arg,
+        help=f"nominal robot: {', '.join(ROBOT_NAMES)} or a robot definition file (.toml, see hil/robot_models)",
+    )
     p.add_argument("-o", "--output", required=True, help="model JSON to write")
     p.add_argument("--solver", default="ridge", choices=("ridge", "lm"), help="solver whose model is written")
     p.add_argument(

@@ -13,7 +13,7 @@ from hil.commands.calibrate import parse_mm_vector
 from hil.dataset import DatasetError, load_dataset
 from hil.diagnosis import DiagnosisReport, run_diagnosis
 from hil.effects import EFFECT_FAMILIES
-from hil.robots import ROBOT_NAMES, get_robot
+from hil.robots import ROBOT_NAMES, get_robot, robot_arg
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -26,7 +26,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     p.add_argument("data", help="training dataset CSV")
-    p.add_argument("--robot", default="ur10", choices=ROBOT_NAMES, help="nominal robot model")
+    p.add_argument(
+        "--robot",
+        default="ur10",
+        type=robot_arg,
+        help=f"nominal robot: {', '.join(ROBOT_NAMES)} or a robot definition file (.toml, see hil/robot_models)",
+    )
     p.add_argument("--validate", default=None, help="a separate dataset CSV never used for fitting")
     p.add_argument(
         "--validate-reregister",
