@@ -92,7 +92,7 @@ def validate_dataset(
             f"{source}: column(s) {', '.join(map(str, unknown))} carry no unit suffix (e.g. '_mm'); ignored",
             stacklevel=2,
         )
-    return _drop_duplicates(out, required, source)
+    return drop_duplicate_rows(out, source)
 
 
 def _convert_units(df: pd.DataFrame, n_joints: int) -> pd.DataFrame:
@@ -122,10 +122,11 @@ def _check_positions_are_mm(df: pd.DataFrame, source: str) -> None:
         )
 
 
-def _drop_duplicates(df: pd.DataFrame, required: list[str], source: str) -> pd.DataFrame:
+def drop_duplicate_rows(df: pd.DataFrame, source: str = "dataset") -> pd.DataFrame:
     """Exact copies of a row (same joints, positions and SMR) counted once, reported by data row."""
-    rows = np.arange(1, len(df) + 1)
-    subset = required + (["smr"] if "smr" in df.columns else [])
+    rows = data_rows(df)
+    subset = [c for c in df.columns if re.fullmatch(r"q\d+_rad", str(c))]
+    subset += [c for c in (*POSITION_COLUMNS, "smr") if c in df.columns]
     dup = df.duplicated(subset=subset, keep="first").to_numpy()
     out = df
     if dup.any():
@@ -136,7 +137,8 @@ def _drop_duplicates(df: pd.DataFrame, required: list[str], source: str) -> pd.D
             stacklevel=3,
         )
         out = df.loc[~dup].reset_index(drop=True)
-    out.attrs = {**df.attrs, "row_numbers": rows[~dup].tolist(), "duplicate_rows": rows[dup].tolist()}
+    dropped = [*df.attrs.get("duplicate_rows", []), *rows[dup].tolist()]
+    out.attrs = {**df.attrs, "row_numbers": rows[~dup].tolist(), "duplicate_rows": dropped}
     return out
 
 

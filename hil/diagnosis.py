@@ -18,6 +18,7 @@ candidate explains and adds the map as a fallback stage.
 from __future__ import annotations
 
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -35,7 +36,7 @@ from hil.calibration import (
     solve_ridge_igg3,
 )
 from hil.calibration import reregister as reregister_model
-from hil.dataset import joints_rad
+from hil.dataset import drop_duplicate_rows, joints_rad
 from hil.effects import PHYSICAL_RANK, Effect, candidate_effects, make_effect, tool_points_rows
 from hil.identifiability import analyse, scale_columns
 from hil.kinematics import KinematicModel
@@ -434,6 +435,7 @@ def run_diagnosis(
     tracker_mpe_m: tuple[float, float] = (15e-6, 6e-6),
     compare_maps: bool = False,
     reregister_validation: str = "none",
+    progress: Progress | None = None,
 ) -> DiagnosisReport:
     """The whole loop on a training dataset (and an optional validation dataset never used for fitting).
 
@@ -441,15 +443,17 @@ def run_diagnosis(
     verdict. `compare_maps` runs the k-fold residual-map comparison (IDW / SVR / GP) even when the
     residual is at the noise floor. `reregister_validation` ("none", "base", "base+tool") refits the
     base frame (and tool) of every stage on the validation campaign first, for a campaign taken from
-    another tracker placement; the report then shows both.
+    another tracker placement; the report then shows both. `progress(phase, done, total)` is called as
+    the work advances (the CLI draws it with an ETA).
 
     Held-out figures of every stage are computed at the end on the same rows and spatial folds: all
     points except those the final model rejects as outliers.
     """
     if reregister_validation not in ("none", "base", "base+tool"):
         raise ValueError(f"reregister_validation '{reregister_validation}': use none, base or base+tool")
+    df = drop_duplicate_rows(df, "training data")  # copies would count twice in every test
     with threadpool_limits(1):  # small dense problems: threads only contend
-        base = _baseline_fit(df, robot, folds, seed, repeatability_mm, tool_guess_m, tracker_mpe_m)
+        base = _baseline_fit(df, robot, folds, seed, repeatability_mm, tool_guess_m, tracker_mpe_m, progress)
         path = _forward_selection(base, df, alpha, families, max_effects, banned=set())
         for _ in range(2):  # greedy got stuck above the floor? Try again without its first choice.
             if not path.effects or _excess_ratio(path.current.model, base, path) <= 1.1:
@@ -472,8 +476,20 @@ def run_diagnosis(
         return report
 
 
+Progress = Callable[[str, int, int], None]  # (phase, done, total)
+
+
+def _quiet(phase: str, done: int, total: int) -> None:
+    return None
+
+
 def _effect_label(name: str, joint: int | None) -> str:
     return name + (f" (joint {joint})" if joint else "")
+
+
+# Screening a candidate costs a Jacobian and a k-fold solve over every row; beyond this many rows a
+# fixed random subset decides (thousands of points already resolve micrometre effects); fits use all.
+SCREEN_MAX_ROWS = 3000
 
 
 @dataclass
@@ -489,18 +505,33 @@ class _Baseline:
     reg_free: np.ndarray
     n_folds: int
     seed: int
+    progress: Progress = field(default=lambda phase, done, total: None)
 
     def rows_and_folds(self, result: CalibrationResult) -> tuple[Problem, list[np.ndarray]]:
+        """The rows the screening and the held-out figures use (inliers of `result`; for big campaigns a
+        fixed random subset of SCREEN_MAX_ROWS of them) and their spatial folds. Fits use every row."""
         rows = np.flatnonzero(~result.outliers)
+        if len(rows) > SCREEN_MAX_ROWS:
+            order = np.random.default_rng([self.seed, 7]).permutation(len(self.full.measured))
+            rank = np.empty_like(order)
+            rank[order] = np.arange(len(order))  # the same rows whatever the outlier set
+            rows = rows[np.argsort(rank[rows])[:SCREEN_MAX_ROWS]]
+            rows.sort()
         return self.full.subset(rows), spatial_folds(self.full.measured[rows], self.n_folds, self.seed)
 
 
-def _baseline_fit(df, robot, folds, seed, repeatability_mm, tool_guess_m, tracker_mpe_m) -> _Baseline:
+def _baseline_fit(
+    df, robot, folds, seed, repeatability_mm, tool_guess_m, tracker_mpe_m, progress=None
+) -> _Baseline:
+    tell = progress or _quiet
     noise = estimate_noise_floor(
         df, mpe_const_m=tracker_mpe_m[0], mpe_per_m=tracker_mpe_m[1], repeatability_mm=repeatability_mm
     )
+    tell("geometric calibration", 0, 2)
     ridge = calibrate(df, robot, "ridge", tool_guess_m=tool_guess_m)
+    tell("geometric calibration", 1, 2)
     lm = calibrate(df, robot, "lm", tool_guess_m=tool_guess_m)
+    tell("geometric calibration", 2, 2)
     full = Problem.from_frame(ridge.model, df)
     nominal = initial_model(robot, df, tool_guess_m)
     reg_free = np.array([n.startswith(("base_", "tool")) for n in nominal.param_names])
@@ -514,6 +545,7 @@ def _baseline_fit(df, robot, folds, seed, repeatability_mm, tool_guess_m, tracke
         reg_free=reg_free,
         n_folds=folds,
         seed=seed,
+        progress=tell,
     )
     prob, _ = base.rows_and_folds(ridge)
     base.nominal = _fit_plain(nominal, prob, reg_free)
@@ -561,7 +593,13 @@ def _screen_round(
     # Screening is linear: one Gauss-Newton step from the current fit, for the current model and for
     # every candidate alike (the problem is nearly linear there); the winner is refitted in full.
     screen = _Screen(base_fit, path.prob, path.free, path.folds, base.sigma2, alpha, len(cands))
-    return [screen.test(eff) for eff in cands]
+    phase = f"effect {len(path.current.model.effects) + 1}: screening candidates"
+    out = []
+    for i, eff in enumerate(cands):
+        base.progress(phase, i, len(cands))
+        out.append(screen.test(eff))
+    base.progress(phase, len(cands), len(cands))
+    return out
 
 
 def _forward_selection(

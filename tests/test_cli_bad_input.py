@@ -72,7 +72,10 @@ CASES = [
     ("diagnose data.csv --json r.json -o r.json", "same file"),
     ("diagnose data.csv --json r.json --folds 20", "too few"),
     ("diagnose data.csv --json r.json --validate-reregister base", "needs --validate"),
-    ("diagnose data.csv --json r.json --validate data.csv --validate-reregister tool", "--validate-reregister"),
+    (
+        "diagnose data.csv --json r.json --validate data.csv --validate-reregister tool",
+        "--validate-reregister",
+    ),
     ("predict model.json joints.csv -o joints.csv", "would be overwritten"),
     ("predict model.json joints.csv -o model.json", "would be overwritten"),
     ("predict missing.json joints.csv -o p.csv", "file not found: missing.json"),

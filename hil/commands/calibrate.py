@@ -10,6 +10,7 @@ import pandas as pd
 
 from hil.calibration import calibrate
 from hil.commands.arg_checks import InputError, check_paths, float_list
+from hil.commands.progress import cli_progress
 from hil.dataset import DatasetError, load_dataset
 from hil.robots import ROBOT_NAMES, get_robot, robot_arg
 
@@ -68,7 +69,12 @@ def run(args: argparse.Namespace) -> int:
         return 2
     nominal = get_robot(args.robot, use_beta=not args.no_beta)
     try:
-        results = {s: calibrate(df, nominal, solver=s, tool_guess_m=tool) for s in ("ridge", "lm")}
+        results = {}
+        with cli_progress() as progress:
+            for i, s in enumerate(("ridge", "lm")):
+                progress(f"calibrating {len(df)} poses", i, 2)
+                results[s] = calibrate(df, nominal, solver=s, tool_guess_m=tool)
+            progress(f"calibrating {len(df)} poses", 2, 2)
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -10,6 +10,7 @@ import pandas as pd
 
 from hil.commands.arg_checks import InputError, check_paths, float_in, float_list, int_in
 from hil.commands.calibrate import parse_mm_vector
+from hil.commands.progress import cli_progress
 from hil.dataset import DatasetError, load_dataset
 from hil.diagnosis import DiagnosisReport, run_diagnosis
 from hil.effects import EFFECT_FAMILIES
@@ -128,6 +129,11 @@ def _diagnose(
     families: tuple[str, ...],
     mpe: tuple[float, ...],
 ) -> DiagnosisReport:
+    with cli_progress() as progress:
+        return _run(args, df, val, tool, families, mpe, progress)
+
+
+def _run(args, df, val, tool, families, mpe, progress) -> DiagnosisReport:
     return run_diagnosis(
         df,
         get_robot(args.robot, use_beta=not args.no_beta),
@@ -140,6 +146,7 @@ def _diagnose(
         tracker_mpe_m=mpe,
         compare_maps=args.compare_maps,
         reregister_validation=args.validate_reregister,
+        progress=progress,
     )
 
 
