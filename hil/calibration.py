@@ -26,11 +26,15 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 import pandas as pd
 from scipy.optimize import least_squares
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
 from threadpoolctl import threadpool_limits
 
 from hil.calibrated_model import CalibratedModel, initial_model
 from hil.dataset import data_rows, joints_rad, points_m, smr_ids
 from hil.effects import EffectContext
+from hil.folds import location_spacing, spatial_folds
 from hil.identifiability import IdentifiabilityReport, analyse, scale_columns
 from hil.kinematics import KinematicModel
 from hil.se3 import fit_rigid
@@ -79,6 +83,8 @@ class CalibrationResult:
     identifiability: IdentifiabilityReport | None = None
     notes: list[str] = field(default_factory=list)
     row_numbers: np.ndarray | None = None  # data row (from 1) in the source file of each point
+    std_folds: dict[str, float] = field(default_factory=dict)  # spread over spatial folds (jackknife)
+    outlier_regions: list[dict] = field(default_factory=list)  # flagged rows that cluster in space
 
     @property
     def outlier_rows(self) -> list[int]:
@@ -91,8 +97,14 @@ class CalibrationResult:
         ok = ~self.outliers
         return float(np.sqrt(np.mean(np.sum(self.residual_m[ok] ** 2, axis=1))) * 1000)
 
+    def honest_std(self, name: str) -> float | None:
+        """The larger of the least-squares standard error and the spread over spatial folds."""
+        ls, folds = self.std.get(name), self.std_folds.get(name)
+        return None if ls is None else max(ls, folds or 0.0)
+
     def parameter_table(self) -> list[dict]:
-        """Per free parameter: value, change from nominal (or start) and standard error, SI units."""
+        """Per free parameter: value, change from nominal (or start) and standard errors (the honest
+        one, the least-squares one and the spatial-fold spread), SI units."""
         names = self.model.param_names
         nominal = dict(zip(self.model.nominal.param_names, self.model.nominal.params, strict=True))
         values = full_values(self.model)
@@ -104,7 +116,9 @@ class CalibrationResult:
                     "name": nm,
                     "value": v,
                     "delta": v - float(nominal[nm]) if nm in nominal else None,
-                    "std": self.std.get(nm),
+                    "std": self.honest_std(nm),
+                    "std_ls": self.std.get(nm),
+                    "std_folds": self.std_folds.get(nm),
                     "unit": unit_of(nm),
                 }
             )
@@ -118,6 +132,12 @@ class CalibrationResult:
             "iterations": self.iterations,
             "parameters": self.parameter_table(),
             "outlier_rows": self.outlier_rows,
+            "outlier_regions": [
+                {**reg, "rows": [int(self.row_numbers[i]) for i in reg["rows"]]}
+                for reg in self.outlier_regions
+            ]
+            if self.row_numbers is not None
+            else self.outlier_regions,
             "identifiability": self.identifiability.to_dict() if self.identifiability else None,
             "notes": self.notes,
         }
@@ -385,7 +405,101 @@ def _calibrate(
         "training_joint_range_rad": [q.min(axis=0).tolist(), q.max(axis=0).tolist()],
     }
     result.notes += implausible_changes(result)
+    _honest_numbers(result, problem)
     return result
+
+
+def _honest_numbers(result: CalibrationResult, problem: Problem, k: int = 5) -> None:
+    """Spatial-fold spread of the parameters, confounded pairs and outlier regions, into the result."""
+    rows = np.flatnonzero(~result.outliers)
+    if len(rows) >= 4 * k:
+        result.std_folds = fold_spread_std(
+            result, problem.subset(rows), spatial_folds(problem.measured[rows], k, 0)
+        )
+    pairs = confounded_pairs(result, problem.subset(rows))
+    for a, b, c in pairs:
+        result.notes.append(
+            f"confounded: {a} and {b} correlate {c:+.3f} on these poses; each alone is unreliable (their "
+            "combination is); poses that move them differently separate them"
+        )
+    result.outlier_regions = outlier_regions(problem.measured, result.outliers)
+    for reg in result.outlier_regions:
+        result.notes.append(
+            f"outlier region: {reg['count']} flagged rows within {reg['radius_mm']:.0f} mm of "
+            f"({', '.join(f'{v:.0f}' for v in reg['centre_mm'])}) mm (tracker frame), data rows "
+            f"{', '.join(str(result.row_numbers[i]) for i in reg['rows'][:6])}{' ...' if reg['count'] > 6 else ''}: "
+            "a region the model does not fit (a missing effect there), not blunders"
+        )
+    result.model.info["std_folds"] = result.std_folds
+    result.model.info["outlier_regions"] = [
+        {**reg, "rows": [int(result.row_numbers[i]) for i in reg["rows"]]} for reg in result.outlier_regions
+    ]
+
+
+def fold_spread_std(result: CalibrationResult, problem: Problem, folds: list[np.ndarray]) -> dict[str, float]:
+    """Jackknife over spatial folds: how much each free parameter moves when a block of the volume is
+    left out. Unlike the least-squares covariance it sees model errors that depend on where one
+    measures, so it is closer to what another campaign gives; reports use the larger of the two."""
+    names = result.model.param_names
+    free = np.array([n in set(result.free) for n in names])
+    r, J = problem.evaluate(result.model)
+    Js, norms = scale_columns(flatten_jacobian(J)[:, free])
+    rv = r.reshape(-1)
+    N, g = Js.T @ Js, Js.T @ rv
+    est = []
+    for f in folds:
+        t = (3 * f[:, None] + np.arange(3)).ravel()
+        est.append(np.linalg.lstsq(N - Js[t].T @ Js[t], g - Js[t].T @ rv[t], rcond=None)[0] / norms)
+    est = np.array(est)
+    kf = len(folds)
+    spread = np.sqrt((kf - 1) / kf * np.sum((est - est.mean(axis=0)) ** 2, axis=0))
+    free_names = [n for n, m in zip(names, free, strict=True) if m]
+    return {n: float(v) for n, v in zip(free_names, spread, strict=True)}
+
+
+def confounded_pairs(result: CalibrationResult, problem: Problem, limit: float = 0.95) -> list[tuple]:
+    """Pairs of free geometric parameters whose estimates correlate beyond `limit` (|corr|)."""
+    names = result.model.param_names
+    free = np.array([n in set(result.free) for n in names])
+    _, J = problem.evaluate(result.model)
+    Js, _ = scale_columns(flatten_jacobian(J)[:, free])
+    cov = np.linalg.pinv(Js.T @ Js)
+    sd = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
+    corr = cov / np.outer(sd, sd)
+    fn = [n for n, m in zip(names, free, strict=True) if m]
+    geo = set(result.model.nominal.param_names)
+    out = []
+    for i in range(len(fn)):
+        for j in range(i + 1, len(fn)):
+            if (fn[i] in geo or fn[j] in geo) and abs(corr[i, j]) > limit:
+                out.append((fn[i], fn[j], float(corr[i, j])))
+    return out
+
+
+def outlier_regions(points: np.ndarray, outliers: np.ndarray, min_count: int = 4) -> list[dict]:
+    """Flagged points that cluster in one part of the volume (each within two location spacings of
+    another flagged point): a region the model does not fit, not independent blunders."""
+    idx = np.flatnonzero(outliers)
+    if len(idx) < min_count:
+        return []
+    radius = 2.0 * location_spacing(points)
+    pairs = cKDTree(points[idx]).query_pairs(radius, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(idx), len(idx)))
+    n_comp, label = connected_components(graph, directed=False)
+    regions = []
+    for c in range(n_comp):
+        members = idx[label == c]
+        if len(members) >= min_count:
+            centre = points[members].mean(axis=0)
+            regions.append(
+                {
+                    "count": int(len(members)),
+                    "rows": members.tolist(),  # positions in the frame (0-based); reports print data rows
+                    "centre_mm": (centre * 1000).tolist(),
+                    "radius_mm": float(np.max(np.linalg.norm(points[members] - centre, axis=1)) * 1000),
+                }
+            )
+    return regions
 
 
 # Beyond these, a change is no manufacturing error: wrong robot model, units or a confounded parameter.

@@ -38,6 +38,7 @@ from hil.calibration import (
 from hil.calibration import reregister as reregister_model
 from hil.dataset import drop_duplicate_rows, joints_rad
 from hil.effects import PHYSICAL_RANK, Effect, candidate_effects, make_effect, tool_points_rows
+from hil.folds import kfold, spatial_folds
 from hil.identifiability import analyse, scale_columns
 from hil.kinematics import KinematicModel
 from hil.noise_floor import NoiseFloor, estimate_noise_floor
@@ -53,34 +54,6 @@ def error_stats(err_m: np.ndarray) -> dict[str, float]:
         "max_mm": float(np.max(e)),
         "p95_mm": float(np.percentile(e, 95)),
     }
-
-
-def kfold(n: int, k: int, seed: int) -> list[np.ndarray]:
-    """k random folds of n rows (interpolation: every fold's neighbours are in the training folds)."""
-    perm = np.random.default_rng(seed).permutation(n)
-    return [np.sort(f) for f in np.array_split(perm, k)]
-
-
-def spatial_folds(points: np.ndarray, k: int, seed: int, iters: int = 25) -> list[np.ndarray]:
-    """k folds that are blocks of the measured volume (k-means on the points), so that held-out errors
-    score extrapolation to a region the fit has not seen, as a model is used beyond its grid.
-
-    A grid visited in raster order makes the blocks also blocks of time (a warm-up shows as a drift).
-    """
-    rng = np.random.default_rng(seed)
-    x = (points - points.mean(axis=0)) / (points.std(axis=0) + 1e-12)
-    centres = x[[rng.integers(len(x))]]
-    for _ in range(1, k):  # k-means++ seeding: spread the first centres
-        d2 = np.min(((x[:, None, :] - centres[None]) ** 2).sum(axis=2), axis=1)
-        centres = np.vstack([centres, x[rng.choice(len(x), p=d2 / d2.sum())]])
-    for _ in range(iters):
-        label = np.argmin(((x[:, None, :] - centres[None]) ** 2).sum(axis=2), axis=1)
-        new = np.array([x[label == c].mean(axis=0) if np.any(label == c) else centres[c] for c in range(k)])
-        if np.allclose(new, centres):
-            break
-        centres = new
-    folds = [np.flatnonzero(label == c) for c in range(k)]
-    return [f for f in folds if len(f) > 0]
 
 
 def _fit_plain(model: CalibratedModel, problem: Problem, free: np.ndarray, iters: int = 8) -> CalibratedModel:
@@ -389,7 +362,7 @@ def _effect_params(result: CalibrationResult, eff_index: int) -> list[dict]:
     eff = model.effects[eff_index]
     out = []
     for nm, v in zip(eff.param_names, eff.params, strict=True):
-        out.append({"name": nm, "value": float(v), "std": result.std.get(nm), "free": nm in result.std})
+        out.append({"name": nm, "value": float(v), "std": result.honest_std(nm), "free": nm in result.std})
     return out
 
 

@@ -89,11 +89,13 @@ def run(args: argparse.Namespace) -> int:
     for note in results[args.solver].notes:
         print(f"warning: {note}", file=sys.stderr)
     chosen = results[args.solver]
-    print(f"{'parameter':<16}{'change':>14}{'std':>12}  unit")
+    print(
+        f"{'parameter':<16}{'change':>14}{'std':>12}{'std LS':>12}  unit   (std: larger of LS and spatial folds)"
+    )
     for row in chosen.parameter_table():
         if row["delta"] is None:
             continue
-        print(f"{row['name']:<16}{row['delta']:14.3e}{row['std']:12.2e}  {row['unit']}")
+        print(f"{row['name']:<16}{row['delta']:14.3e}{row['std']:12.2e}{row['std_ls']:12.2e}  {row['unit']}")
     for smr, tool_m in sorted(chosen.model.tools.items()):
         print(f"tool point SMR {smr}: " + ", ".join(f"{v * 1000:.4f}" for v in tool_m) + " mm (flange frame)")
     if args.residuals:
