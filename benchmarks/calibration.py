@@ -13,6 +13,10 @@ Run:  PYTHONPATH=. python benchmarks/calibration.py [--sizes 200,500,2000] [--se
    Errors are prediction errors at the test points (measured - model), the quantity a compensation
    removes to first order.
 3. Time of the whole diagnosis loop on the simulated UR10 cell at grid steps of 150, 100 and 70 mm.
+4. Big campaigns (issue 11, section 4): `diagnose` on 12 000 poses (target <= 120 s, <= 1 GB) and both
+   solvers of `calibrate` on 200 000 poses (target <= 60 s), random poses of the simulated UR10 cell with
+   gravity compliance (and backlash for the diagnosis); peak memory is the process's maximum RSS.
+   `--big 0` skips them (they take minutes on a busy 2-core machine).
 """
 
 from __future__ import annotations
@@ -219,14 +223,59 @@ def diagnosis_timing(seed: int) -> None:
         print(f"{step * 1000:8.0f} {len(df):7d} {dt:7.1f}  {found}")
 
 
+def big_campaigns(seed: int, diagnose_poses: int = 12000, calibrate_poses: int = 200000) -> None:
+    """Section 4 of issue 11: diagnose on 12 000 poses, calibrate (both solvers) on 200 000."""
+    import resource
+    import warnings
+
+    from fakes.campaign import random_joints, simulate_campaign
+    from fakes.cell import CellConfig, SimulatedCell
+    from hil.diagnosis import run_diagnosis
+
+    def peak_mb() -> float:
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+    print("\nBig campaigns (random poses of the simulated UR10)")
+    print(f"{'task':<34} {'poses':>7} {'time s':>8} {'target s':>9} {'peak RSS MB':>12}  result")
+    cell = SimulatedCell(CellConfig(robot="ur10", seed=seed, backlash=True))
+    df = simulate_campaign(cell, random_joints(cell, diagnose_poses, seed=seed + 1))
+    t0 = time.perf_counter()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        report = run_diagnosis(df, "ur10")
+    dt = time.perf_counter() - t0
+    found = ", ".join(f"{e['name']} j{e['joint']}" for e in report.effects_added)
+    print(f"{'diagnose':<34} {len(df):7d} {dt:8.1f} {120:9d} {peak_mb():12.0f}  {found}")
+    cell = SimulatedCell(CellConfig(robot="ur10", seed=seed))
+    q = random_joints(cell, 4000, seed=seed + 2)
+    rng = np.random.default_rng(seed)
+    q = q[rng.integers(0, len(q), calibrate_poses)] + rng.normal(0, 0.01, (calibrate_poses, 6))
+    df = simulate_campaign(cell, q)
+    total = 0.0
+    for solver in ("ridge", "lm"):
+        t0 = time.perf_counter()
+        res = calibrate(df, "ur10", solver=solver)
+        dt = time.perf_counter() - t0
+        total += dt
+        print(
+            f"{'calibrate, ' + res.solver:<34} {len(df):7d} {dt:8.1f} {'':>9} {peak_mb():12.0f}  RMS {res.rms_mm:.4f} mm"
+        )
+    print(f"{'calibrate, both solvers (the CLI)':<34} {len(df):7d} {total:8.1f} {60:9d}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", default="200,500,2000")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--big", type=int, default=1, help="1: also the big-campaign figures (minutes)")
+    parser.add_argument("--only-big", action="store_true", help="only the big-campaign figures")
     args = parser.parse_args()
-    timing([int(s) for s in args.sizes.split(",")], args.seed)
-    grid_paper(args.seed)
-    diagnosis_timing(args.seed)
+    if not args.only_big:
+        timing([int(s) for s in args.sizes.split(",")], args.seed)
+        grid_paper(args.seed)
+        diagnosis_timing(args.seed)
+    if args.big or args.only_big:
+        big_campaigns(args.seed)
 
 
 if __name__ == "__main__":

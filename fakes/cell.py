@@ -43,7 +43,7 @@ JOINT_STIFFNESS: dict[str, tuple[float, ...]] = {
 
 
 class EffectFlags(TypedDict, total=False):
-    """Physical effects a cell can switch on beside its hidden geometric errors (SimCellConfig flags)."""
+    """SimCellConfig flags of the physical effects a cell can switch on beside its hidden geometric errors."""
 
     compliance: bool
     cyclic: bool
@@ -51,18 +51,26 @@ class EffectFlags(TypedDict, total=False):
     thermal: bool
 
 
-CELL_EFFECTS: tuple[str, ...] = tuple(EffectFlags.__annotations__)
+# Each effect named as the diagnosis names its effect family (hil.effects.EFFECT_FAMILIES), with the
+# SimCellConfig flag that switches it on: one name per effect across the simulator and the diagnosis.
+EFFECT_FLAGS: dict[str, str] = {
+    "gravity_compliance": "compliance",
+    "cyclic": "cyclic",
+    "backlash": "backlash",
+    "thermal_expansion": "thermal",
+}
+CELL_EFFECTS: tuple[str, ...] = tuple(EFFECT_FLAGS)
 
 
 def parse_effect_flags(text: str) -> EffectFlags:
-    """'compliance,thermal' (or 'none') -> SimCellConfig flags for every effect in CELL_EFFECTS."""
+    """'gravity_compliance,thermal_expansion' (or 'none') -> SimCellConfig flags of every effect."""
     chosen = set() if text.strip().lower() == "none" else {e.strip() for e in text.split(",") if e.strip()}
     unknown = chosen - set(CELL_EFFECTS)
     if unknown:
         raise ValueError(
             f"unknown effect(s) {sorted(unknown)}: choose from {', '.join(CELL_EFFECTS)} or none"
         )
-    return cast(EffectFlags, {name: name in chosen for name in CELL_EFFECTS})  # exactly EffectFlags' keys
+    return cast(EffectFlags, {flag: name in chosen for name, flag in EFFECT_FLAGS.items()})
 
 
 @dataclass(frozen=True)
@@ -254,6 +262,18 @@ class SimulatedCell:
     def time_s(self) -> float:
         """Simulated seconds since the cell started."""
         return self._time_s
+
+    def move_tracker(self, seed: int) -> None:
+        """Set the tracker up elsewhere (a new placement drawn from `seed`), as between two campaigns;
+        the robot, its hidden errors and the room's fixed SMRs stay where they are."""
+        fixed_base = {
+            i: np.linalg.inv(self.T_tracker_base) @ np.append(loc.point_m, 1.0)
+            for i, loc in self._smr_locations.items()
+            if loc.kind == "fixed"
+        }
+        self.T_tracker_base = self._draw_tracker_pose(np.random.default_rng([seed, 3]))
+        for i, p_base in fixed_base.items():
+            self._smr_locations[i] = SmrLocation("fixed", point_m=tuple((self.T_tracker_base @ p_base)[:3]))
 
     def advance_time(self, dt_s: float) -> None:
         """Move the simulated clock on by dt_s (>= 0)."""

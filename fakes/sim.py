@@ -31,12 +31,12 @@ class SimOptionError(ValueError):
 
 
 def add_effects_argument(parser: argparse.ArgumentParser) -> None:
-    """Add `--effects` (comma-separated physical effects of the simulated cell, default compliance)."""
+    """Add `--effects` (comma-separated physical effects of the simulated cell, default gravity_compliance)."""
     parser.add_argument(
         "--effects",
-        default="compliance",
-        help=f"physical effects of the simulated cell, comma-separated from {', '.join(CELL_EFFECTS)}, "
-        "or 'none' (default: compliance, the PT paper's undeclared effect)",
+        default="gravity_compliance",
+        help=f"physical effects of the simulated cell, comma-separated from {', '.join(CELL_EFFECTS)} (the "
+        "diagnosis' effect names), or 'none' (default: gravity_compliance, the PT paper's undeclared effect)",
     )
 
 

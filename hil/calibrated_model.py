@@ -246,7 +246,33 @@ class CalibratedModel:
 
     @classmethod
     def load(cls, path: str | Path) -> CalibratedModel:
-        return cls.from_dict(json.loads(Path(path).read_text()))
+        """Read a model file; a truncated, foreign or damaged file raises ValueError naming it and the cause."""
+        path = Path(path)
+        try:
+            text = path.read_text()
+        except UnicodeDecodeError:
+            raise ValueError(
+                f"{path}: not a model file (binary, not JSON); give a model written by hil"
+            ) from None
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as exc:
+            cause = "truncated" if exc.pos >= len(text.rstrip()) else "not valid JSON"
+            raise ValueError(
+                f"{path}: {cause} at line {exc.lineno} column {exc.colno} ({exc.msg}); "
+                "write the model again with 'hil calibrate -o' or 'hil diagnose -o'"
+            ) from None
+        if not isinstance(data, dict):
+            raise ValueError(
+                f"{path}: not a calibrated model file (JSON {type(data).__name__}); give a model file"
+            )
+        try:
+            return cls.from_dict(data)
+        except (KeyError, TypeError, ValueError) as exc:
+            detail = f"missing field {exc}" if isinstance(exc, KeyError) else str(exc)
+            raise ValueError(
+                f"{path}: {detail}; give a model written by 'hil calibrate -o' or 'hil diagnose -o'"
+            ) from None
 
 
 def _context_tools(ctx: EffectContext) -> np.ndarray:

@@ -21,18 +21,23 @@ as an outlier when its standardised residual exceeds k1.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import pandas as pd
 from scipy.optimize import least_squares
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
 from threadpoolctl import threadpool_limits
 
 from hil.calibrated_model import CalibratedModel, initial_model
-from hil.dataset import points_m, smr_ids
+from hil.dataset import data_rows, joints_rad, points_m, smr_ids
 from hil.effects import EffectContext
+from hil.folds import location_spacing, spatial_folds
 from hil.identifiability import IdentifiabilityReport, analyse, scale_columns
 from hil.kinematics import KinematicModel
+from hil.se3 import fit_rigid
 
 K0, K1 = 1.5, 2.5  # IGG3 thresholds of the grid paper
 
@@ -77,14 +82,29 @@ class CalibrationResult:
     iterations: int
     identifiability: IdentifiabilityReport | None = None
     notes: list[str] = field(default_factory=list)
+    row_numbers: np.ndarray | None = None  # data row (from 1) in the source file of each point
+    std_folds: dict[str, float] = field(default_factory=dict)  # spread over spatial folds (jackknife)
+    outlier_regions: list[dict] = field(default_factory=list)  # flagged rows that cluster in space
+
+    @property
+    def outlier_rows(self) -> list[int]:
+        """Flagged points as data rows of the source file, counting from 1."""
+        rows = np.arange(1, len(self.outliers) + 1) if self.row_numbers is None else self.row_numbers
+        return [int(r) for r in rows[self.outliers]]
 
     @property
     def rms_mm(self) -> float:
         ok = ~self.outliers
         return float(np.sqrt(np.mean(np.sum(self.residual_m[ok] ** 2, axis=1))) * 1000)
 
+    def honest_std(self, name: str) -> float | None:
+        """The larger of the least-squares standard error and the spread over spatial folds."""
+        ls, folds = self.std.get(name), self.std_folds.get(name)
+        return None if ls is None else max(ls, folds or 0.0)
+
     def parameter_table(self) -> list[dict]:
-        """Per free parameter: value, change from nominal (or start) and standard error, SI units."""
+        """Per free parameter: value, change from nominal (or start) and standard errors (the honest
+        one, the least-squares one and the spatial-fold spread), SI units."""
         names = self.model.param_names
         nominal = dict(zip(self.model.nominal.param_names, self.model.nominal.params, strict=True))
         values = full_values(self.model)
@@ -96,7 +116,9 @@ class CalibrationResult:
                     "name": nm,
                     "value": v,
                     "delta": v - float(nominal[nm]) if nm in nominal else None,
-                    "std": self.std.get(nm),
+                    "std": self.honest_std(nm),
+                    "std_ls": self.std.get(nm),
+                    "std_folds": self.std_folds.get(nm),
                     "unit": unit_of(nm),
                 }
             )
@@ -109,7 +131,13 @@ class CalibrationResult:
             "rms_mm": self.rms_mm,
             "iterations": self.iterations,
             "parameters": self.parameter_table(),
-            "outlier_rows": [int(i) for i in np.flatnonzero(self.outliers)],
+            "outlier_rows": self.outlier_rows,
+            "outlier_regions": [
+                {**reg, "rows": [int(self.row_numbers[i]) for i in reg["rows"]]}
+                for reg in self.outlier_regions
+            ]
+            if self.row_numbers is not None
+            else self.outlier_regions,
             "identifiability": self.identifiability.to_dict() if self.identifiability else None,
             "notes": self.notes,
         }
@@ -343,6 +371,7 @@ def _calibrate(
     ridge: float,
 ) -> CalibrationResult:
     model = robot if isinstance(robot, CalibratedModel) else initial_model(robot, df, tool_guess_m)
+    check_joint_limits(df, model.nominal)
     problem = Problem.from_frame(model, df)
     # Tool points first (the registration assumed a guess), so the identifiability sees a sane model.
     pre_free = np.array([n.startswith(("base_", "tool")) for n in model.param_names])
@@ -363,6 +392,8 @@ def _calibrate(
     else:
         raise ValueError(f"unknown solver '{solver}'; choose 'ridge' or 'lm'")
     result.identifiability = report
+    result.row_numbers = data_rows(df)
+    q = joints_rad(df, model.nominal.n_joints)
     result.model.info = {
         "solver": result.solver,
         "sigma0_mm": result.sigma0_m * 1000,
@@ -370,6 +401,154 @@ def _calibrate(
         "std": result.std,
         "identifiability": report.to_dict(),
         "n_points": int(len(df)),
-        "outlier_rows": [int(i) for i in np.flatnonzero(result.outliers)],
+        "outlier_rows": result.outlier_rows,
+        "training_joint_range_rad": [q.min(axis=0).tolist(), q.max(axis=0).tolist()],
     }
+    result.notes += implausible_changes(result)
+    _honest_numbers(result, problem)
     return result
+
+
+def _honest_numbers(result: CalibrationResult, problem: Problem, k: int = 5) -> None:
+    """Spatial-fold spread of the parameters, confounded pairs and outlier regions, into the result."""
+    rows = np.flatnonzero(~result.outliers)
+    if len(rows) >= 4 * k:
+        result.std_folds = fold_spread_std(
+            result, problem.subset(rows), spatial_folds(problem.measured[rows], k, 0)
+        )
+    pairs = confounded_pairs(result, problem.subset(rows))
+    for a, b, c in pairs:
+        result.notes.append(
+            f"confounded: {a} and {b} correlate {c:+.3f} on these poses; each alone is unreliable (their "
+            "combination is); poses that move them differently separate them"
+        )
+    result.outlier_regions = outlier_regions(problem.measured, result.outliers)
+    for reg in result.outlier_regions:
+        result.notes.append(
+            f"outlier region: {reg['count']} flagged rows within {reg['radius_mm']:.0f} mm of "
+            f"({', '.join(f'{v:.0f}' for v in reg['centre_mm'])}) mm (tracker frame), data rows "
+            f"{', '.join(str(result.row_numbers[i]) for i in reg['rows'][:6])}{' ...' if reg['count'] > 6 else ''}: "
+            "a region the model does not fit (a missing effect there), not blunders"
+        )
+    result.model.info["std_folds"] = result.std_folds
+    result.model.info["outlier_regions"] = [
+        {**reg, "rows": [int(result.row_numbers[i]) for i in reg["rows"]]} for reg in result.outlier_regions
+    ]
+
+
+def fold_spread_std(result: CalibrationResult, problem: Problem, folds: list[np.ndarray]) -> dict[str, float]:
+    """Jackknife over spatial folds: how much each free parameter moves when a block of the volume is
+    left out. Unlike the least-squares covariance it sees model errors that depend on where one
+    measures, so it is closer to what another campaign gives; reports use the larger of the two."""
+    names = result.model.param_names
+    free = np.array([n in set(result.free) for n in names])
+    r, J = problem.evaluate(result.model)
+    Js, norms = scale_columns(flatten_jacobian(J)[:, free])
+    rv = r.reshape(-1)
+    N, g = Js.T @ Js, Js.T @ rv
+    est = []
+    for f in folds:
+        t = (3 * f[:, None] + np.arange(3)).ravel()
+        est.append(np.linalg.lstsq(N - Js[t].T @ Js[t], g - Js[t].T @ rv[t], rcond=None)[0] / norms)
+    est = np.array(est)
+    kf = len(folds)
+    spread = np.sqrt((kf - 1) / kf * np.sum((est - est.mean(axis=0)) ** 2, axis=0))
+    free_names = [n for n, m in zip(names, free, strict=True) if m]
+    return {n: float(v) for n, v in zip(free_names, spread, strict=True)}
+
+
+def confounded_pairs(result: CalibrationResult, problem: Problem, limit: float = 0.95) -> list[tuple]:
+    """Pairs of free geometric parameters whose estimates correlate beyond `limit` (|corr|)."""
+    names = result.model.param_names
+    free = np.array([n in set(result.free) for n in names])
+    _, J = problem.evaluate(result.model)
+    Js, _ = scale_columns(flatten_jacobian(J)[:, free])
+    cov = np.linalg.pinv(Js.T @ Js)
+    sd = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
+    corr = cov / np.outer(sd, sd)
+    fn = [n for n, m in zip(names, free, strict=True) if m]
+    geo = set(result.model.nominal.param_names)
+    out = []
+    for i in range(len(fn)):
+        for j in range(i + 1, len(fn)):
+            if (fn[i] in geo or fn[j] in geo) and abs(corr[i, j]) > limit:
+                out.append((fn[i], fn[j], float(corr[i, j])))
+    return out
+
+
+def outlier_regions(points: np.ndarray, outliers: np.ndarray, min_count: int = 4) -> list[dict]:
+    """Flagged points that cluster in one part of the volume (each within two location spacings of
+    another flagged point): a region the model does not fit, not independent blunders."""
+    idx = np.flatnonzero(outliers)
+    if len(idx) < min_count:
+        return []
+    radius = 2.0 * location_spacing(points)
+    pairs = cKDTree(points[idx]).query_pairs(radius, output_type="ndarray")
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(idx), len(idx)))
+    n_comp, label = connected_components(graph, directed=False)
+    regions = []
+    for c in range(n_comp):
+        members = idx[label == c]
+        if len(members) >= min_count:
+            centre = points[members].mean(axis=0)
+            regions.append(
+                {
+                    "count": int(len(members)),
+                    "rows": members.tolist(),  # positions in the frame (0-based); reports print data rows
+                    "centre_mm": (centre * 1000).tolist(),
+                    "radius_mm": float(np.max(np.linalg.norm(points[members] - centre, axis=1)) * 1000),
+                }
+            )
+    return regions
+
+
+# Beyond these, a change is no manufacturing error: wrong robot model, units or a confounded parameter.
+TOLERANCE_LENGTH_M = 5e-3
+TOLERANCE_ANGLE_RAD = np.deg2rad(1.0)
+
+
+def implausible_changes(result: CalibrationResult) -> list[str]:
+    """One message per geometric parameter that moved further than a manufacturing tolerance."""
+    out = []
+    for row in result.parameter_table():
+        if row["delta"] is None or row["name"] not in result.model.nominal.param_names:
+            continue
+        if row["unit"] == "m" and abs(row["delta"]) > TOLERANCE_LENGTH_M:
+            size = f"{row['delta'] * 1000:+.1f} mm (tolerance ~{TOLERANCE_LENGTH_M * 1000:g} mm)"
+        elif row["unit"] == "rad" and abs(row["delta"]) > TOLERANCE_ANGLE_RAD:
+            size = f"{np.rad2deg(row['delta']):+.2f} deg (tolerance ~{np.rad2deg(TOLERANCE_ANGLE_RAD):g} deg)"
+        else:
+            continue
+        out.append(
+            f"implausible: {row['name']} moved {size} from the {result.model.robot} nominal; is the robot "
+            "model right (data of another robot?), are the joints in radians and the positions in mm?"
+        )
+    return out
+
+
+def check_joint_limits(df: pd.DataFrame, nominal: KinematicModel, source: str = "dataset") -> None:
+    """Joints beyond the robot's limits (0.05 rad margin): degrees, or data of another robot."""
+    q = joints_rad(df, nominal.n_joints)
+    lim = np.asarray(nominal.joint_limits, float)
+    bad = (q < lim[:, 0] - 0.05) | (q > lim[:, 1] + 0.05)
+    if bad.any():
+        r, j = np.argwhere(bad)[0]
+        raise ValueError(
+            f"{source}: joint {j + 1} in data row {data_rows(df)[r]} is {q[r, j]:.3f} rad, beyond the "
+            f"{nominal.name} limits [{lim[j, 0]:.3f}, {lim[j, 1]:.3f}]; degrees (name the columns q1_deg..) "
+            "or data of another robot?"
+        )
+
+
+def reregister(model: CalibratedModel, df: pd.DataFrame, tool: bool = False) -> CalibratedModel:
+    """The model with its base frame (and, if `tool`, its tool points) fitted to another campaign.
+
+    For a campaign from another tracker placement: the robot is the same, the tracker <- base transform
+    is not. A rigid fit first (the placements may differ by metres), then a robust refinement.
+    """
+    ctx, _ = model.context(df)
+    p_base = replace(model, T_tracker_base=np.eye(4)).predict_ctx(ctx)
+    T, _ = fit_rigid(p_base, points_m(df))
+    moved = replace(model, T_tracker_base=T)
+    free = np.array([n.startswith("base_") or (tool and n.startswith("tool")) for n in moved.param_names])
+    return solve_ridge_igg3(moved, Problem.from_frame(moved, df), free, max_iter=10).model

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import importlib.metadata
 import os
 import sys
 
@@ -24,12 +25,28 @@ COMMAND_MODULES: tuple[str, ...] = (
 )
 
 
+class OneLineErrorParser(argparse.ArgumentParser):
+    """An argument parser whose usage errors follow the CLI convention (message, what to do; exit 2)."""
+
+    def error(self, message: str):  # type: ignore[override]
+        print(CliError(message, f"see '{self.prog} --help'").render(self.prog.removeprefix("hil ")), file=sys.stderr)
+        raise SystemExit(EXIT_USAGE)
+
+
+def _version() -> str:
+    try:
+        return importlib.metadata.version("hil")
+    except importlib.metadata.PackageNotFoundError:
+        return "unknown"
+
+
 def build_parser() -> argparse.ArgumentParser:
     """Build the top-level parser with every registered subcommand."""
-    parser = argparse.ArgumentParser(
+    parser = OneLineErrorParser(
         prog="hil",
         description="Hardware-in-the-loop measurement runner for industrial-robot accuracy.",
     )
+    parser.add_argument("--version", action="version", version=f"hil {_version()}")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
     for module_name in COMMAND_MODULES:
         importlib.import_module(module_name).register(subparsers)

@@ -7,6 +7,7 @@ tracker frame). Optional: ``t_s`` (seconds since the campaign started), ``temper
 
 from __future__ import annotations
 
+import hashlib
 import re
 import warnings
 from pathlib import Path
@@ -32,8 +33,12 @@ def validate_dataset(
 ) -> pd.DataFrame:
     """Check a frame against the contract and return it with clean dtypes (raises DatasetError).
 
-    `require_positions=False` accepts a joints-only file (targets to predict).
+    `require_positions=False` accepts a joints-only file (targets to predict). Columns labelled in
+    degrees (`q1_deg`) or metres (`x_m`) are converted; exact duplicate rows are dropped, counted once
+    and reported (warning and `attrs["duplicate_rows"]`); `attrs["row_numbers"]` keeps each row's data
+    row number in the file (from 1).
     """
+    df = _convert_units(df, n_joints)
     required = joint_columns(n_joints) + (list(POSITION_COLUMNS) if require_positions else [])
     missing = [c for c in required if c not in df.columns]
     if missing:
@@ -67,8 +72,11 @@ def validate_dataset(
     if np.any(np.abs(q) > 4 * np.pi):
         row = int(np.flatnonzero(np.any(np.abs(q) > 4 * np.pi, axis=1))[0]) + 1
         raise DatasetError(
-            f"{source}: joint angles beyond 4*pi in data row {row}: are they in degrees? use radians"
+            f"{source}: joint angles beyond 4*pi in data row {row} look like degrees; give radians in "
+            "q1_rad.. or name the columns q1_deg.."
         )
+    if require_positions:
+        _check_positions_are_mm(out, source)
     if "t_s" in out.columns and np.any(np.diff(out["t_s"].to_numpy()) < 0):
         row = int(np.flatnonzero(np.diff(out["t_s"].to_numpy()) < 0)[0]) + 2
         raise DatasetError(
@@ -84,7 +92,62 @@ def validate_dataset(
             f"{source}: column(s) {', '.join(map(str, unknown))} carry no unit suffix (e.g. '_mm'); ignored",
             stacklevel=2,
         )
+    return drop_duplicate_rows(out, source)
+
+
+def _convert_units(df: pd.DataFrame, n_joints: int) -> pd.DataFrame:
+    """`qi_deg` -> `qi_rad`, `x_m` -> `x_mm` where the contract's column is absent."""
+    renames = {}
+    for i in range(1, n_joints + 1):
+        if f"q{i}_rad" not in df.columns and f"q{i}_deg" in df.columns:
+            renames[f"q{i}_deg"] = (f"q{i}_rad", np.pi / 180.0)
+    for ax in "xyz":
+        if f"{ax}_mm" not in df.columns and f"{ax}_m" in df.columns:
+            renames[f"{ax}_m"] = (f"{ax}_mm", 1000.0)
+    if not renames:
+        return df
+    out = df.copy()
+    for old, (new, factor) in renames.items():
+        out[new] = pd.to_numeric(out[old], errors="coerce") * factor
+    return out.drop(columns=list(renames))
+
+
+def _check_positions_are_mm(df: pd.DataFrame, source: str) -> None:
+    """A robot campaign spans hundreds of millimetres: positions within a few units are metres."""
+    p = df[list(POSITION_COLUMNS)].to_numpy(float)
+    if len(p) >= 5 and np.max(np.abs(p)) < 20.0 and np.max(np.ptp(p, axis=0)) < 10.0:
+        raise DatasetError(
+            f"{source}: x_mm, y_mm, z_mm span only {np.max(np.ptp(p, axis=0)):.3g} and stay within "
+            f"{np.max(np.abs(p)):.3g}: they look like metres; multiply by 1000 or name the columns x_m, y_m, z_m"
+        )
+
+
+def drop_duplicate_rows(df: pd.DataFrame, source: str = "dataset") -> pd.DataFrame:
+    """Exact copies of a row (same joints, positions and SMR) counted once, reported by data row."""
+    rows = data_rows(df)
+    subset = [c for c in df.columns if re.fullmatch(r"q\d+_rad", str(c))]
+    subset += [c for c in (*POSITION_COLUMNS, "smr") if c in df.columns]
+    dup = df.duplicated(subset=subset, keep="first").to_numpy()
+    out = df
+    if dup.any():
+        listed = ", ".join(str(r) for r in rows[dup][:8]) + (" ..." if dup.sum() > 8 else "")
+        warnings.warn(
+            f"{source}: {int(dup.sum())} duplicated row(s) (data rows {listed}) repeat an earlier row; "
+            "each is counted once (check the export)",
+            stacklevel=3,
+        )
+        out = df.loc[~dup].reset_index(drop=True)
+    dropped = [*df.attrs.get("duplicate_rows", []), *rows[dup].tolist()]
+    out.attrs = {**df.attrs, "row_numbers": rows[~dup].tolist(), "duplicate_rows": dropped}
     return out
+
+
+def data_rows(df: pd.DataFrame) -> np.ndarray:
+    """Data row number in the source file (from 1) of each row of a validated frame."""
+    rows = df.attrs.get("row_numbers")
+    if rows is not None and len(rows) == len(df):
+        return np.asarray(rows, int)
+    return np.arange(1, len(df) + 1)
 
 
 def load_dataset(path: str | Path, n_joints: int = 6, require_positions: bool = True) -> pd.DataFrame:
@@ -93,10 +156,30 @@ def load_dataset(path: str | Path, n_joints: int = 6, require_positions: bool = 
     if not path.exists():
         raise DatasetError(f"dataset file not found: {path}")
     try:
-        df = pd.read_csv(path)
+        df = _read_csv(path)
     except (pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
-        raise DatasetError(f"{path}: not a readable CSV ({exc})") from exc
-    return validate_dataset(df, n_joints, source=str(path), require_positions=require_positions)
+        raise DatasetError(f"{path}: not a readable CSV ({exc}); export it as CSV text") from exc
+    out = validate_dataset(df, n_joints, source=str(path), require_positions=require_positions)
+    out.attrs.update(
+        source=str(path), sha256=hashlib.sha256(path.read_bytes()).hexdigest(), rows_in_file=len(df)
+    )
+    return out
+
+
+def _read_csv(path: Path) -> pd.DataFrame:
+    """CSV with ',' or (spreadsheet export) ';' / tab separators; ';' files may use decimal commas."""
+    with open(path, encoding="utf-8-sig", newline="") as f:
+        header, first = f.readline(), f.readline()
+    counts = {sep: header.count(sep) for sep in (",", ";", "\t")}
+    sep = max(counts, key=lambda k: counts[k]) if max(counts.values()) > 0 else ","
+    decimal = "," if sep != "," and re.search(r"\d,\d", first) else "."
+    if sep == "," and first.count(",") > header.count(","):
+        raise DatasetError(
+            f"{path}: data rows have more fields than the header ({first.count(',') + 1} vs "
+            f"{header.count(',') + 1}): decimal commas in a comma-separated file? export with ';' "
+            "separators or decimal points"
+        )
+    return pd.read_csv(path, sep=sep, decimal=decimal, encoding="utf-8-sig")
 
 
 def write_dataset(df: pd.DataFrame, path: str | Path) -> None:

@@ -18,6 +18,7 @@ candidate explains and adds the map as a fallback stage.
 from __future__ import annotations
 
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -34,11 +35,14 @@ from hil.calibration import (
     identify,
     solve_ridge_igg3,
 )
-from hil.effects import Effect, candidate_effects, make_effect, tool_points_rows
+from hil.calibration import reregister as reregister_model
+from hil.dataset import drop_duplicate_rows, joints_rad
+from hil.effects import PHYSICAL_RANK, Effect, candidate_effects, make_effect, tool_points_rows
+from hil.folds import kfold, spatial_folds
 from hil.identifiability import analyse, scale_columns
 from hil.kinematics import KinematicModel
 from hil.noise_floor import NoiseFloor, estimate_noise_floor
-from hil.residual_maps import MAP_KINDS, kfold_map_errors, make_map
+from hil.residual_maps import MAP_KINDS, kfold_map_errors, make_map, map_from_dict
 
 
 def error_stats(err_m: np.ndarray) -> dict[str, float]:
@@ -50,11 +54,6 @@ def error_stats(err_m: np.ndarray) -> dict[str, float]:
         "max_mm": float(np.max(e)),
         "p95_mm": float(np.percentile(e, 95)),
     }
-
-
-def kfold(n: int, k: int, seed: int) -> list[np.ndarray]:
-    perm = np.random.default_rng(seed).permutation(n)
-    return [np.sort(f) for f in np.array_split(perm, k)]
 
 
 def _fit_plain(model: CalibratedModel, problem: Problem, free: np.ndarray, iters: int = 8) -> CalibratedModel:
@@ -98,6 +97,23 @@ def linear_fit_cv(
     return fit, cv
 
 
+# A candidate whose every direction correlates more than this with the geometric (base, tool) columns
+# only re-shapes the geometry on the measured poses: rejected. (A real 300 ppm scale error of a UR10's
+# joint 2 sampled over 90 deg correlates 0.994 and is found; what correlates less but still fakes
+# geometry, like a cyclic term of degrees on a short arc, is caught by its implausible size.)
+MAX_GEOMETRY_CORRELATION = 0.998
+
+
+def geometry_correlation(J: np.ndarray, n_effect: int) -> float:
+    """Smallest canonical correlation between the last `n_effect` columns of J and the others: how well
+    the geometry imitates the effect's most separable direction (1 = not separable at all)."""
+    G, E = J[:, :-n_effect], J[:, -n_effect:]
+    Qg = np.linalg.qr(G / np.linalg.norm(G, axis=0))[0]
+    Qe = np.linalg.qr(E / np.linalg.norm(E, axis=0))[0]
+    sines = np.linalg.svd(Qe - Qg @ (Qg.T @ Qe), compute_uv=False)
+    return float(np.sqrt(max(0.0, 1.0 - float(np.max(sines)) ** 2)))
+
+
 class _Screen:
     """Linearised test of candidate effects against a base model (see the module docstring)."""
 
@@ -127,6 +143,14 @@ class _Screen:
         if n_new == 0:
             note = "inseparable from the geometry"
             return Candidate(eff.family, eff.joint, 0, float("nan"), 0.0, 1.0, 1.0, False, note), None
+        corr = geometry_correlation(Jt[:, tfree], n_new)
+        if corr > MAX_GEOMETRY_CORRELATION:
+            note = (
+                f"collinear with the geometric parameters (correlation {corr:.3f}): on these poses it would "
+                "fake geometry and extrapolate badly"
+            )
+            cand = Candidate(eff.family, eff.joint, n_new, float("nan"), 0.0, 1.0, 1.0, False, note, corr)
+            return cand, None
         step: list = []
         fit, cv = linear_fit_cv(Jt[:, tfree], r_t, self.folds, step)
         sse = float(np.sum(fit**2))
@@ -137,14 +161,39 @@ class _Screen:
         gain = float(np.mean(d))
         p_cv = float(stats.t.sf(gain / se, len(d) - 1)) if se > 0 else (0.0 if gain > 0 else 1.0)
         passed = gain > 0 and p_cv < self.alpha_cv and p_chi2 < self.alpha_chi2
-        cand = Candidate(
-            eff.family, eff.joint, n_new, error_stats(cv)["rms_mm"], gain * 1e6, p_cv, p_chi2, passed
-        )
-        if not passed:
-            return cand, None
         dx = np.zeros(len(trial.param_names))
         dx[tfree] = step[0]
-        return cand, trial.apply_increment(dx)  # start the full refit from the linear solution
+        fitted = trial.apply_increment(dx)  # start the full refit from the linear solution
+        why = fitted.effects[-1].implausible(self.prob.ctx, fitted.nominal) if passed else None
+        cand = Candidate(
+            eff.family,
+            eff.joint,
+            n_new,
+            error_stats(cv)["rms_mm"],
+            gain * 1e6,
+            p_cv,
+            p_chi2,
+            passed and why is None,
+            why or "",
+            corr,
+        )
+        return cand, fitted if cand.passed else None
+
+
+NEAR_TIE = 0.9  # candidates within 10 % of the best held-out gain are a near-tie
+
+
+def pick_winner(winners: list[tuple[Candidate, CalibratedModel]]) -> tuple[Candidate, CalibratedModel]:
+    """The largest held-out gain, except that a near-tie goes to the simpler effect (fewer parameters),
+    then to the more physically expected family (the data cannot tell them apart; parsimony can)."""
+    top = max(c.gain_mm2 for c, _ in winners)
+    tied = [cm for cm in winners if cm[0].gain_mm2 >= NEAR_TIE * top]
+    best = min(tied, key=lambda cm: (cm[0].n_params, PHYSICAL_RANK.get(cm[0].name, 9), -cm[0].gain_mm2))
+    if best[0].gain_mm2 < top:
+        best[0].note = (
+            best[0].note + "; " if best[0].note else ""
+        ) + "chosen in a near-tie: simpler / physically expected"
+    return best
 
 
 def _weakest_effect(
@@ -204,6 +253,7 @@ class Candidate:
     p_chi2: float
     passed: bool
     note: str = ""
+    geometry_correlation: float = float("nan")  # largest canonical correlation with the geometry
 
     def to_dict(self) -> dict:
         return dict(self.__dict__)
@@ -236,11 +286,12 @@ class DiagnosisReport:
     stages: list[dict]
     steps: list[Step]
     unexplained_structure: bool
-    conclusion: str
+    verdict: dict  # what the conclusion says, as data (see `conclusion`)
     residual_map: dict | None = None
     histograms: dict = field(default_factory=dict)  # stage -> held-out error norms (mm)
     final_round: list[Candidate] = field(default_factory=list)
     ambiguities: list[dict] = field(default_factory=list)  # effects this data could not tell apart
+    run: dict = field(default_factory=dict)  # robot, input files (hash, rows), date, software version
 
     @property
     def effects_added(self) -> list[dict]:
@@ -251,6 +302,26 @@ class DiagnosisReport:
     def noise_floor_mm(self) -> float:
         return self.noise.floor_mm
 
+    @property
+    def conclusion(self) -> str:
+        """The verdict in words: what was added, what is left, and every caution."""
+        v = self.verdict
+        added = ", ".join(_effect_label(e["name"], e["joint"]) for e in self.effects_added) or "nothing"
+        if v["residual"] == "structured":
+            text = (
+                f"Added: {added}. Structured residual remains that no candidate effect explains (residual "
+                f"sigma {v['ratio']:.2f}x the noise floor; a {v['map']} residual map predicts it on held-out "
+                "points), so a residual map is used as the fallback."
+            )
+        elif v["residual"] == "excess":
+            text = (
+                f"Added: {added}. The residual is {v['ratio']:.2f}x the noise floor but shows no structure a "
+                "residual map can predict: the noise floor is probably underestimated (robot repeatability?)."
+            )
+        else:
+            text = f"Added: {added}. The residual is at the noise floor ({v['ratio']:.2f}x)."
+        return " ".join([text, *(f"Caution: {c}" for c in v["cautions"])])
+
     def to_dict(self) -> dict:
         return {
             "effects_added": self.effects_added,
@@ -259,11 +330,13 @@ class DiagnosisReport:
             "noise_floor_mm": self.noise.floor_mm,
             "noise_floor_method": self.noise.method,
             "conclusion": self.conclusion,
+            "verdict": self.verdict,
             "steps": [s.to_dict() for s in self.steps],
             "final_round_candidates": [c.to_dict() for c in self.final_round],
             "ambiguities": self.ambiguities,
             "calibration": self.calibration,
             "residual_map": self.residual_map,
+            "run": self.run,
         }
 
     def table(self) -> str:
@@ -289,7 +362,7 @@ def _effect_params(result: CalibrationResult, eff_index: int) -> list[dict]:
     eff = model.effects[eff_index]
     out = []
     for nm, v in zip(eff.param_names, eff.params, strict=True):
-        out.append({"name": nm, "value": float(v), "std": result.std.get(nm), "free": nm in result.std})
+        out.append({"name": nm, "value": float(v), "std": result.honest_std(nm), "free": nm in result.std})
     return out
 
 
@@ -334,147 +407,247 @@ def run_diagnosis(
     tool_guess_m: np.ndarray | None = None,
     tracker_mpe_m: tuple[float, float] = (15e-6, 6e-6),
     compare_maps: bool = False,
+    reregister_validation: str = "none",
+    progress: Progress | None = None,
 ) -> DiagnosisReport:
     """The whole loop on a training dataset (and an optional validation dataset never used for fitting).
 
-    `compare_maps` runs the k-fold residual-map comparison (IDW / SVR / GP) even when the residual is
-    at the noise floor (otherwise only when it is not).
+    Named steps: baseline fit, forward selection (candidate screening each round), stage evaluation,
+    verdict. `compare_maps` runs the k-fold residual-map comparison (IDW / SVR / GP) even when the
+    residual is at the noise floor. `reregister_validation` ("none", "base", "base+tool") refits the
+    base frame (and tool) of every stage on the validation campaign first, for a campaign taken from
+    another tracker placement; the report then shows both. `progress(phase, done, total)` is called as
+    the work advances (the CLI draws it with an ETA).
 
-    Held-out figures of every stage are computed at the end on the same rows: all points except those
-    the final model rejects as outliers (a model that lacks an effect rejects the points that show it
-    most, so its own outlier set would flatter it).
+    Held-out figures of every stage are computed at the end on the same rows and spatial folds: all
+    points except those the final model rejects as outliers.
     """
+    if reregister_validation not in ("none", "base", "base+tool"):
+        raise ValueError(f"reregister_validation '{reregister_validation}': use none, base or base+tool")
+    df = drop_duplicate_rows(df, "training data")  # copies would count twice in every test
     with threadpool_limits(1):  # small dense problems: threads only contend
-        return _run_diagnosis(
-            df,
-            robot,
-            df_validate,
-            folds,
-            alpha,
-            seed,
-            families,
-            max_effects,
-            repeatability_mm,
-            tool_guess_m,
-            tracker_mpe_m,
-            compare_maps,
-        )
+        base = _baseline_fit(df, robot, folds, seed, repeatability_mm, tool_guess_m, tracker_mpe_m, progress)
+        path = _forward_selection(base, df, alpha, families, max_effects, banned=set())
+        for _ in range(2):  # greedy got stuck above the floor? Try again without its first choice.
+            if not path.effects or _excess_ratio(path.current.model, base, path) <= 1.1:
+                break
+            first = path.effects[0]
+            other = _forward_selection(base, df, alpha, families, max_effects, banned={*path.banned, first})
+            if other.cv_rms_mm < 0.95 * path.cv_rms_mm:
+                other.cautions.append(
+                    f"a first choice of {_effect_label(*first)} led to a worse final model "
+                    f"({path.cv_rms_mm:.4f} vs {other.cv_rms_mm:.4f} mm held-out); it was set aside"
+                )
+                path = other
+            else:
+                break
+        stages, hist, steps = _evaluate_stages(path)
+        report = _verdict(base, path, stages, hist, steps, alpha, compare_maps)
+        if df_validate is not None:
+            _validate(report, path, df, df_validate, reregister_validation)
+        report.run = run_record(base.nominal.nominal, {"training": df, "validation": df_validate})
+        return report
 
 
-def _run_diagnosis(
-    df: pd.DataFrame,
-    robot: str | KinematicModel,
-    df_validate: pd.DataFrame | None,
-    folds: int,
-    alpha: float,
-    seed: int,
-    families: tuple[str, ...] | None,
-    max_effects: int,
-    repeatability_mm: float,
-    tool_guess_m: np.ndarray | None,
-    tracker_mpe_m: tuple[float, float],
-    compare_maps: bool,
-) -> DiagnosisReport:
+Progress = Callable[[str, int, int], None]  # (phase, done, total)
+
+
+def _quiet(phase: str, done: int, total: int) -> None:
+    return None
+
+
+def _effect_label(name: str, joint: int | None) -> str:
+    return name + (f" (joint {joint})" if joint else "")
+
+
+# Screening a candidate costs a Jacobian and a k-fold solve over every row; beyond this many rows a
+# fixed random subset decides (thousands of points already resolve micrometre effects); fits use all.
+SCREEN_MAX_ROWS = 3000
+
+
+@dataclass
+class _Baseline:
+    """Step 1: the noise floor, both geometric fits, the rows and folds every later step shares."""
+
+    noise: NoiseFloor
+    sigma2: float
+    ridge: CalibrationResult
+    calibration: dict
+    full: Problem
+    nominal: CalibratedModel  # nominal geometry with base and tool registered
+    reg_free: np.ndarray
+    n_folds: int
+    seed: int
+    progress: Progress = field(default=lambda phase, done, total: None)
+
+    def rows_and_folds(self, result: CalibrationResult) -> tuple[Problem, list[np.ndarray]]:
+        """The rows the screening and the held-out figures use (inliers of `result`; for big campaigns a
+        fixed random subset of SCREEN_MAX_ROWS of them) and their spatial folds. Fits use every row."""
+        rows = np.flatnonzero(~result.outliers)
+        if len(rows) > SCREEN_MAX_ROWS:
+            order = np.random.default_rng([self.seed, 7]).permutation(len(self.full.measured))
+            rank = np.empty_like(order)
+            rank[order] = np.arange(len(order))  # the same rows whatever the outlier set
+            rows = rows[np.argsort(rank[rows])[:SCREEN_MAX_ROWS]]
+            rows.sort()
+        return self.full.subset(rows), spatial_folds(self.full.measured[rows], self.n_folds, self.seed)
+
+
+def _baseline_fit(
+    df, robot, folds, seed, repeatability_mm, tool_guess_m, tracker_mpe_m, progress=None
+) -> _Baseline:
+    tell = progress or _quiet
     noise = estimate_noise_floor(
         df, mpe_const_m=tracker_mpe_m[0], mpe_per_m=tracker_mpe_m[1], repeatability_mm=repeatability_mm
     )
-    sigma2 = float(np.mean(noise.sigma_axis_m**2))
+    tell("geometric calibration", 0, 2)
     ridge = calibrate(df, robot, "ridge", tool_guess_m=tool_guess_m)
+    tell("geometric calibration", 1, 2)
     lm = calibrate(df, robot, "lm", tool_guess_m=tool_guess_m)
-    calibration = {"ridge_igg3": ridge.to_dict(), "lm": lm.to_dict()}
-    current = ridge
-    full = Problem.from_frame(current.model, df)
-
-    def ok_problem(result: CalibrationResult) -> tuple[Problem, list[np.ndarray]]:
-        rows = np.flatnonzero(~result.outliers)
-        return full.subset(rows), kfold(len(rows), folds, seed)
-
-    prob, fold_idx = ok_problem(current)
+    tell("geometric calibration", 2, 2)
+    full = Problem.from_frame(ridge.model, df)
     nominal = initial_model(robot, df, tool_guess_m)
     reg_free = np.array([n.startswith(("base_", "tool")) for n in nominal.param_names])
-    nominal = _fit_plain(nominal, prob, reg_free)
-    stage_models: list[tuple[str, CalibratedModel]] = [
-        ("uncompensated (nominal)", nominal),
-        ("kinematic", current.model),
-    ]
-    free, _ = _free_mask(current.model, prob)
-    cv_cur = cv_residuals(current.model, free, prob, fold_idx)
+    base = _Baseline(
+        noise=noise,
+        sigma2=float(np.mean(noise.sigma_axis_m**2)),
+        ridge=ridge,
+        calibration={"ridge_igg3": ridge.to_dict(), "lm": lm.to_dict()},
+        full=full,
+        nominal=nominal,
+        reg_free=reg_free,
+        n_folds=folds,
+        seed=seed,
+        progress=tell,
+    )
+    prob, _ = base.rows_and_folds(ridge)
+    base.nominal = _fit_plain(nominal, prob, reg_free)
+    return base
 
-    pending: list[dict] = []
-    ambiguities: list[dict] = []
-    final_round: list[Candidate] = []
+
+@dataclass
+class _Path:
+    """Step 2's outcome: the stages one forward selection went through."""
+
+    current: CalibrationResult
+    prob: Problem
+    folds: list[np.ndarray]
+    free: np.ndarray
+    stage_models: list[tuple[str, CalibratedModel]]
+    pending: list[dict]
+    ambiguities: list[dict]
+    final_round: list[Candidate]
+    banned: set
+    cautions: list[str] = field(default_factory=list)
+    cv_final: np.ndarray | None = None  # held-out residuals of the last stage (step 3)
+
+    @property
+    def effects(self) -> list[tuple[str, int | None]]:
+        return [(e.family, e.joint) for e in self.current.model.effects]
+
+    @property
+    def cv_rms_mm(self) -> float:
+        return error_stats(cv_residuals(self.current.model, self.free, self.prob, self.folds))["rms_mm"]
+
+
+def _excess_ratio(model: CalibratedModel, base: _Baseline, path: _Path) -> float:
+    """Residual sigma over the noise sigma on the path's rows."""
+    r = path.prob.residuals(model)
+    return float(np.sqrt(np.sum(r**2) / max(r.size - int(path.free.sum()), 1) / base.sigma2))
+
+
+def _screen_round(
+    base: _Baseline, path: _Path, alpha: float, families: tuple[str, ...] | None, banned: set
+) -> list[tuple[Candidate, CalibratedModel | None]]:
+    """Candidate screening: every effect the data could show, tested linearly against the current model."""
+    cands = candidate_effects(base.full.ctx, path.current.model.nominal, path.current.model.effects, families)
+    cands = [c for c in cands if (c.family, c.joint) not in banned]
+    base_fit = _fit_plain(path.current.model, path.prob, path.free, iters=3)
+    # Screening is linear: one Gauss-Newton step from the current fit, for the current model and for
+    # every candidate alike (the problem is nearly linear there); the winner is refitted in full.
+    screen = _Screen(base_fit, path.prob, path.free, path.folds, base.sigma2, alpha, len(cands))
+    phase = f"effect {len(path.current.model.effects) + 1}: screening candidates"
+    out = []
+    for i, eff in enumerate(cands):
+        base.progress(phase, i, len(cands))
+        out.append(screen.test(eff))
+    base.progress(phase, len(cands), len(cands))
+    return out
+
+
+def _forward_selection(
+    base: _Baseline,
+    df: pd.DataFrame,
+    alpha: float,
+    families: tuple[str, ...] | None,
+    max_effects: int,
+    banned: set,
+) -> _Path:
+    """Step 2: add the best passing candidate, refit, drop effects a later one made redundant; repeat."""
+    current = base.ridge
+    prob, folds = base.rows_and_folds(current)
+    path = _Path(
+        current=current,
+        prob=prob,
+        folds=folds,
+        free=_free_mask(current.model, prob)[0],
+        stage_models=[("uncompensated (nominal)", base.nominal), ("kinematic", current.model)],
+        pending=[],
+        ambiguities=[],
+        final_round=[],
+        banned=set(banned),
+    )
+
+    def refit(result: CalibrationResult) -> object:
+        path.current = result
+        path.prob, path.folds = base.rows_and_folds(result)
+        path.free, rep = _free_mask(result.model, path.prob)
+        return rep
+
     for _ in range(max_effects):
-        cands = candidate_effects(full.ctx, current.model.nominal, current.model.effects, families)
-        base_fit = _fit_plain(current.model, prob, free, iters=3)
-        # Screening is linear: one Gauss-Newton step from the current fit, for the current model and for
-        # every candidate alike (the problem is nearly linear there); the winner is refitted in full.
-        screen = _Screen(base_fit, prob, free, fold_idx, sigma2, alpha, len(cands))
-        results = [screen.test(eff) for eff in cands]
+        results = _screen_round(base, path, alpha, families, banned)
         winners = [(c, m) for c, m in results if c.passed]
         if not winners:
-            final_round = [c for c, _ in results]
+            path.final_round = [c for c, _ in results]
             break
-        best, best_model = max(winners, key=lambda cm: cm[0].gain_mm2)
+        best, best_model = pick_winner(winners)
         close = [c for c, _ in winners if c is not best and c.gain_mm2 >= 0.8 * best.gain_mm2]
         if close:  # say so when the data hardly tells two candidates apart
-            best.note = "nearly as good: " + ", ".join(
-                c.name + (f" j{c.joint}" if c.joint else "") for c in close
+            best.note = (
+                (best.note + "; " if best.note else "")
+                + "nearly as good: "
+                + ", ".join(c.name + (f" j{c.joint}" if c.joint else "") for c in close)
             )
-        current = calibrate(df, best_model, "ridge")
-        if close:  # did the winner take the others' gain? Then the data cannot tell them apart.
-            prob_now, folds_now = ok_problem(current)
-            after = _Screen(
-                current.model, prob_now, _free_mask(current.model, prob_now)[0], folds_now, sigma2, alpha, 1
-            )
-            for c in close:
-                eff_c = make_effect(c.name, c.joint)
-                eff_c.prepare(full.ctx, current.model.nominal)
-                left = after.test(eff_c)[0].gain_mm2
-                if left < 0.25 * c.gain_mm2:
-                    ambiguities.append(
-                        {
-                            "chosen": {"name": best.name, "joint": best.joint},
-                            "confounded_with": {"name": c.name, "joint": c.joint},
-                            "gain_before_mm2": c.gain_mm2,
-                            "gain_left_mm2": left,
-                        }
-                    )
-        prob, fold_idx = ok_problem(current)
-        free, rep = _free_mask(current.model, prob)
-        cv_cur = cv_residuals(current.model, free, prob, fold_idx)
-        label = f"+ {best.name}" + (f" (joint {best.joint})" if best.joint else "")
-        stage_models.append((label, current.model))
-        eff_index = len(current.model.effects) - 1
-        eff = current.model.effects[eff_index]
-        pending.append(
+        rep = refit(calibrate(df, best_model, "ridge"))
+        if close:
+            path.ambiguities += _confounded(base, path, best, close, alpha)
+        path.stage_models.append(("+ " + _effect_label(best.name, best.joint), path.current.model))
+        eff_index = len(path.current.model.effects) - 1
+        eff = path.current.model.effects[eff_index]
+        path.pending.append(
             {
                 "effect": {"name": best.name, "joint": best.joint},
-                "parameters": _effect_params(current, eff_index),
+                "parameters": _effect_params(path.current, eff_index),
                 "candidates": [c for c, _ in results],
                 "merged": [d for d in rep.dropped if d["name"] in eff.param_names],
-                "correlations": _correlations(current, prob, eff),
-                "summary": eff.summary(prob.ctx, current.model.nominal),
+                "correlations": _correlations(path.current, path.prob, eff),
+                "summary": eff.summary(path.prob.ctx, path.current.model.nominal),
             }
         )
         # Backward check: does every earlier effect still earn its place beside the new one?
-        while len(current.model.effects) > 1:
-            weakest = _weakest_effect(current.model, prob, fold_idx, sigma2, alpha)
+        while len(path.current.model.effects) > 1:
+            weakest = _weakest_effect(path.current.model, path.prob, path.folds, base.sigma2, alpha)
             if weakest is None:
                 break
             idx, cand = weakest
-            gone = current.model.effects[idx]
+            gone = path.current.model.effects[idx]
             reduced = replace(
-                current.model, effects=[e for k, e in enumerate(current.model.effects) if k != idx]
+                path.current.model, effects=[e for k, e in enumerate(path.current.model.effects) if k != idx]
             )
-            current = calibrate(df, reduced, "ridge")
-            prob, fold_idx = ok_problem(current)
-            free, rep = _free_mask(current.model, prob)
-            cv_cur = cv_residuals(current.model, free, prob, fold_idx)
-            label = (
-                f"- {gone.family}" + (f" (joint {gone.joint})" if gone.joint else "") + " (no longer needed)"
-            )
-            stage_models.append((label, current.model))
-            pending.append(
+            refit(calibrate(df, reduced, "ridge"))
+            label = "- " + _effect_label(gone.family, gone.joint) + " (no longer needed)"
+            path.stage_models.append((label, path.current.model))
+            path.pending.append(
                 {
                     "action": "removed",
                     "effect": {"name": gone.family, "joint": gone.joint},
@@ -485,29 +658,57 @@ def _run_diagnosis(
                     "summary": {},
                 }
             )
+    return path
 
-    # Every stage on the final rows and folds.
+
+def _confounded(base: _Baseline, path: _Path, best: Candidate, close: list[Candidate], alpha: float) -> list:
+    """Did the winner take the near runners-up's gain? Then the data cannot tell them apart."""
+    after = _Screen(path.current.model, path.prob, path.free, path.folds, base.sigma2, alpha, 1)
+    out = []
+    for c in close:
+        eff_c = make_effect(c.name, c.joint)
+        eff_c.prepare(base.full.ctx, path.current.model.nominal)
+        left = after.test(eff_c)[0].gain_mm2
+        if left < 0.25 * c.gain_mm2:
+            out.append(
+                {
+                    "chosen": {"name": best.name, "joint": best.joint},
+                    "confounded_with": {"name": c.name, "joint": c.joint},
+                    "gain_before_mm2": c.gain_mm2,
+                    "gain_left_mm2": left,
+                }
+            )
+    return out
+
+
+def _evaluate_stages(path: _Path) -> tuple[list[dict], dict, list[Step]]:
+    """Step 3: every stage's held-out error on the final rows and folds; a stage worse than the one
+    before it is flagged (`worse_than_previous`)."""
     stages: list[dict] = []
     hist: dict[str, list[float]] = {}
     cv_by_stage: list[np.ndarray] = []
-    for label, m in stage_models:
-        mfree = reg_free if label.startswith("uncompensated") else _free_mask(m, prob)[0]
-        cv = cv_residuals(m, mfree, prob, fold_idx)
+    for label, m in path.stage_models:
+        mfree = _free_mask(m, path.prob)[0]
+        if label.startswith("uncompensated"):
+            mfree = np.array([n.startswith(("base_", "tool")) for n in m.param_names])
+        cv = cv_residuals(m, mfree, path.prob, path.folds)
         cv_by_stage.append(cv)
-        stages.append(_stage(label, "heldout", cv))
+        stage = _stage(label, "heldout", cv)
+        if len(stages) > 1 and stage["rms_mm"] > stages[-1]["rms_mm"] * 1.0001:
+            stage["worse_than_previous"] = True
+        stages.append(stage)
         hist[label] = (np.linalg.norm(cv, axis=1) * 1000).tolist()
     steps: list[Step] = []
-    final_model = current.model
-    for k, info in enumerate(pending):
+    for k, info in enumerate(path.pending):
         before, after = cv_by_stage[k + 1], cv_by_stage[k + 2]
         plot = {}
         if info.get("action", "added") == "added":
-            stage_model = stage_models[k + 2][1]
+            stage_model = path.stage_models[k + 2][1]
             eff_index = len(stage_model.effects) - 1
-            disp = _effect_displacement(stage_model, prob, eff_index)
+            disp = _effect_displacement(stage_model, path.prob, eff_index)
             norm = np.linalg.norm(disp, axis=1, keepdims=True)
             u = disp / np.where(norm > 0, norm, 1.0)
-            drv_label, drv = stage_model.effects[eff_index].driver(prob.ctx, stage_model.nominal)
+            drv_label, drv = stage_model.effects[eff_index].driver(path.prob.ctx, stage_model.nominal)
             plot = {
                 "driver_label": drv_label,
                 "driver": np.asarray(drv).tolist(),
@@ -517,15 +718,30 @@ def _run_diagnosis(
         steps.append(
             Step(heldout_before=error_stats(before), heldout_after=error_stats(after), plot=plot, **info)
         )
-    cv_cur = cv_by_stage[-1]
+    path.cv_final = cv_by_stage[-1]
+    return stages, hist, steps
 
-    # What is left: more than noise? structured (a residual map predicts it)?
+
+def _verdict(
+    base: _Baseline,
+    path: _Path,
+    stages: list[dict],
+    hist: dict,
+    steps: list[Step],
+    alpha: float,
+    compare_maps: bool,
+) -> DiagnosisReport:
+    """Step 4: what is left (noise? structure a residual map predicts?) and every caution, as data."""
+    final_model, prob, free = path.current.model, path.prob, path.free
     r_fit = prob.residuals(final_model)
     dof = max(r_fit.size - int(free.sum()), 1)
-    ratio = float(np.sqrt(np.sum(r_fit**2) / dof / sigma2))
-    p_excess = float(stats.chi2.sf(np.sum(r_fit**2) / sigma2, dof))
+    ratio = float(np.sqrt(np.sum(r_fit**2) / dof / base.sigma2))
+    p_excess = float(stats.chi2.sf(np.sum(r_fit**2) / base.sigma2, dof))
     if (p_excess < alpha and ratio > 1.1) or compare_maps:
-        map_report = _try_residual_maps(final_model, prob, cv_cur, fold_idx, noise, alpha)
+        # A map interpolates (it warns outside the measured volume): judge it on random folds.
+        rfolds = kfold(len(r_fit), base.n_folds, base.seed)
+        cv_random = cv_residuals(final_model, free, prob, rfolds)
+        map_report = _try_residual_maps(final_model, prob, cv_random, rfolds, base.noise, alpha)
     else:  # at the noise floor: nothing for a map to find
         map_report = {
             "candidates": {},
@@ -534,77 +750,142 @@ def _run_diagnosis(
             "note": "residual at the noise floor",
         }
     unexplained = bool(p_excess < alpha and ratio > 1.1 and map_report["structured"])
-    residual_map_obj = None
     if unexplained:
-        best_kind = map_report["winner"]
-        label = f"+ residual map ({best_kind})"
+        label = f"+ residual map ({map_report['winner']})"
         stages.append(_stage(label, "heldout", np.asarray(map_report["heldout_residual"])))
         hist[label] = (np.linalg.norm(map_report["heldout_residual"], axis=1) * 1000).tolist()
-        residual_map_obj = make_map(best_kind).fit(
-            prob.ctx.q, _p_base(final_model, prob), r_fit, float(np.sqrt(sigma2))
+        final_model.residual_map = (
+            make_map(map_report["winner"])
+            .fit(prob.ctx.q, _p_base(final_model, prob), r_fit, float(np.sqrt(base.sigma2)))
+            .to_dict()
         )
-        final_model.residual_map = residual_map_obj.to_dict()
     map_report.pop("heldout_residual", None)
-    added = ", ".join(f"{e.family}" + (f" (joint {e.joint})" if e.joint else "") for e in final_model.effects)
-    if unexplained:
-        conclusion = (
-            f"Added: {added or 'nothing'}. Structured residual remains that no candidate effect explains "
-            f"(residual sigma {ratio:.2f}x the noise floor; a {map_report['winner']} residual map predicts it on "
-            "held-out points), so a residual map is used as the fallback."
-        )
-    elif ratio > 1.1 and p_excess < alpha:
-        conclusion = (
-            f"Added: {added or 'nothing'}. The residual is {ratio:.2f}x the noise floor but shows no structure a "
-            "residual map can predict: the noise floor is probably underestimated (robot repeatability?)."
-        )
-    else:
-        conclusion = f"Added: {added or 'nothing'}. The residual is at the noise floor ({ratio:.2f}x)."
-    for amb in ambiguities:
+    cautions = list(path.cautions)
+    for st in stages:
+        if st.get("worse_than_previous"):
+            cautions.append(
+                f"stage '{st['stage']}' predicts held-out points worse than the stage before it "
+                f"({st['rms_mm']:.4f} mm)"
+            )
+    for amb in path.ambiguities:
         a, b = amb["chosen"], amb["confounded_with"]
-        conclusion += (
-            f" Caution: on this data {a['name']}"
-            + (f" (joint {a['joint']})" if a["joint"] else "")
-            + f" and {b['name']}"
-            + (f" (joint {b['joint']})" if b["joint"] else "")
-            + " explain the same residual; the choice between them is not reliable (measure poses or approach"
-            " directions that separate them, e.g. a random visiting order)."
+        cautions.append(
+            f"on this data {_effect_label(a['name'], a['joint'])} and {_effect_label(b['name'], b['joint'])} "
+            "explain the same residual; the choice between them is not reliable (measure poses or approach "
+            "directions that separate them, e.g. a random visiting order)."
         )
-    if df_validate is not None:
-        val = Problem.from_frame(final_model, df_validate)
-        for label, m in stage_models:
-            stages.append(_stage(label, "validate", val.residuals(m)))
-            hist[f"{label} [validate]"] = (np.linalg.norm(val.residuals(m), axis=1) * 1000).tolist()
-        if residual_map_obj is not None:
-            r_val = val.residuals(final_model)
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore")
-                corr = residual_map_obj.predict_raw(val.ctx.q, _p_base(final_model, val))
-            stages.append(_stage(f"+ residual map ({map_report['winner']})", "validate", r_val - corr))
-    held = [st["rms_mm"] for st in stages if st["on"] == "heldout"]
-    valid = [st["rms_mm"] for st in stages if st["on"] == "validate"]
-    if valid and valid[-1] > 1.5 * held[-1]:
-        conclusion += (
-            f" Caution: the validation campaign's RMS ({valid[-1]:.4f} mm) is {valid[-1] / held[-1]:.1f}x the "
-            "held-out one: the training campaign does not represent it (poses, visiting order, time), so an "
-            "effect may be hidden in the training data by another one; measure a campaign in a random order."
-        )
+    cautions += base.ridge.notes
     final_model.info["diagnosis"] = {
         "effects_added": [s.effect for s in steps],
-        "noise_floor_mm": noise.floor_mm,
+        "noise_floor_mm": base.noise.floor_mm,
     }
+    residual = "structured" if unexplained else ("excess" if ratio > 1.1 and p_excess < alpha else "floor")
     return DiagnosisReport(
         model=final_model,
-        calibration=calibration,
-        noise=noise,
+        calibration=base.calibration,
+        noise=base.noise,
         stages=stages,
         steps=steps,
         unexplained_structure=unexplained,
-        conclusion=conclusion,
+        verdict={"residual": residual, "ratio": ratio, "map": map_report["winner"], "cautions": cautions},
         residual_map={**map_report, "excess_ratio": ratio, "p_excess": p_excess},
         histograms=hist,
-        final_round=final_round,
-        ambiguities=ambiguities,
+        final_round=path.final_round,
+        ambiguities=path.ambiguities,
     )
+
+
+def _validate(
+    report: DiagnosisReport, path: _Path, df: pd.DataFrame, df_val: pd.DataFrame, reregister: str
+) -> None:
+    """Every stage on the validation campaign (never used for fitting), with extrapolation warnings."""
+    final_model = report.model
+    cautions = report.verdict["cautions"]
+    val = Problem.from_frame(final_model, df_val)
+    models = list(path.stage_models)
+    for label, m in models:
+        stage = _stage(label, "validate", val.residuals(m))
+        report.stages.append(stage)
+        report.histograms[f"{label} [validate]"] = (np.linalg.norm(val.residuals(m), axis=1) * 1000).tolist()
+    if final_model.residual_map is not None:
+        r_val = val.residuals(final_model)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            corr = map_from_dict(final_model.residual_map).predict_raw(val.ctx.q, _p_base(final_model, val))
+        report.stages.append(_stage(f"+ residual map ({report.verdict['map']})", "validate", r_val - corr))
+    if reregister != "none":
+        on = f"validate, {reregister} re-registered"
+        for label, m in models[1:]:
+            moved = reregister_model(m, df_val, tool=reregister == "base+tool")
+            report.stages.append(_stage(label, on, Problem.from_frame(moved, df_val).residuals(moved)))
+    held = [st["rms_mm"] for st in report.stages if st["on"] == "heldout"]
+    valid = [st["rms_mm"] for st in report.stages if st["on"] == "validate"]
+    if valid and valid[-1] > 1.5 * held[-1]:
+        cautions.append(
+            f"the validation campaign's RMS ({valid[-1]:.4f} mm) is {valid[-1] / held[-1]:.1f}x the "
+            "held-out one: the training campaign does not represent it (poses, visiting order, time, tracker "
+            "placement), so an effect may be hidden in the training data by another one; measure a campaign "
+            "in a random order" + ("" if reregister != "none" else ", or re-register the base on it")
+        )
+    geo = [st["rms_mm"] for st in report.stages if st["on"] == "validate" and st["stage"] == "kinematic"]
+    if valid and geo and valid[-1] > geo[0] * 1.02:
+        cautions.append(
+            f"on the validation campaign the final model ({valid[-1]:.4f} mm) predicts worse than the geometric "
+            f"one ({geo[0]:.4f} mm): use the geometric model there"
+        )
+    cautions += extrapolation_warnings(df, df_val)
+
+
+def extrapolation_warnings(df: pd.DataFrame, df_val: pd.DataFrame) -> list[str]:
+    """Validation temperatures or joint ranges outside the training's: the model extrapolates there."""
+    out = []
+    if "temperature_c" in df.columns and "temperature_c" in df_val.columns:
+        lo, hi = df["temperature_c"].min(), df["temperature_c"].max()
+        vlo, vhi = df_val["temperature_c"].min(), df_val["temperature_c"].max()
+        if vlo < lo - 0.5 or vhi > hi + 0.5:
+            out.append(
+                f"validation temperatures {vlo:.1f}..{vhi:.1f} C lie outside the training's {lo:.1f}..{hi:.1f} C: "
+                "the model extrapolates thermal effects (measure the training over the working temperatures)"
+            )
+    q, qv = joints_rad(df), joints_rad(df_val)
+    margin = np.deg2rad(5.0)
+    outside = np.flatnonzero(
+        (qv.min(axis=0) < q.min(axis=0) - margin) | (qv.max(axis=0) > q.max(axis=0) + margin)
+    )
+    if outside.size:
+        out.append(
+            f"validation joint(s) {', '.join(str(j + 1) for j in outside)} leave the training's range by more "
+            "than 5 deg: the model extrapolates there"
+        )
+    return out
+
+
+def run_record(robot: KinematicModel, frames: dict[str, pd.DataFrame | None]) -> dict:
+    """What the report was made from: robot, each input (file, SHA-256, rows), date and software version."""
+    import datetime
+    import importlib.metadata
+
+    try:
+        version = importlib.metadata.version("hil")
+    except importlib.metadata.PackageNotFoundError:
+        version = "unknown"
+    inputs = {}
+    for role, df in frames.items():
+        if df is None:
+            continue
+        inputs[role] = {
+            "file": df.attrs.get("source"),
+            "sha256": df.attrs.get("sha256"),
+            "rows_in_file": df.attrs.get("rows_in_file", len(df)),
+            "rows_used": len(df),
+            "duplicate_rows": df.attrs.get("duplicate_rows", []),
+        }
+    return {
+        "robot": robot.name,
+        "inputs": inputs,
+        "date_utc": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        "software": f"hil {version}",
+    }
 
 
 def _p_base(model: CalibratedModel, problem: Problem) -> np.ndarray:

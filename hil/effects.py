@@ -8,7 +8,8 @@ Every family is written from its physics, independently of any simulator:
   at frame origins and a uniform link's centre of mass lies between two origins, so the lever arms of
   the downstream origins span the torque. The unknown masses and the stiffness merge into one
   coefficient per lever arm; the arms the data cannot tell apart are merged by an SVD at fit time.
-- ``cyclic`` (joint j): 1st and 2nd harmonic of the joint angle (gear eccentricity, encoder mounting).
+- ``cyclic`` (joint j): 1st and 2nd harmonic of the joint angle (gear eccentricity, encoder mounting),
+  each only where the sampled range covers most of its period (`CYCLIC_MIN_PERIODS`).
 - ``backlash`` (joint j): half the gap times the sign of the joint's approach direction (row order).
 - ``joint_scale`` (joint j): the joint turns (1 + s) times what its encoder says (a transmission ratio
   or encoder scale error), i.e. an offset ``s * q``.
@@ -42,6 +43,27 @@ EFFECT_FAMILIES: tuple[str, ...] = (
 )
 
 GRAVITY_DIRECTION_BASE = np.array([0.0, 0.0, -1.0])  # the robot stands upright: base z points up
+
+# Largest plausible half swing of the joint offset a joint effect adds (industrial arms, harmonic drives
+# and RV gears): beyond it the fitted "effect" stands in for something else (geometry, units, robot model).
+PLAUSIBLE_SWING_RAD: dict[str, float] = {
+    "gravity_compliance": np.deg2rad(0.3),
+    "cyclic": np.deg2rad(0.1),
+    "backlash": np.deg2rad(0.1),
+    "joint_scale": np.deg2rad(0.3),
+}
+PLAUSIBLE_EXPANSION_PER_K = 100e-6  # aluminium 23, steel 12, a carbon tube ~0 ppm/K
+PLAUSIBLE_DRIFT_M = 2e-3  # largest base drift over one campaign
+
+# Near-ties between candidates go to the more physically expected family (lower rank first).
+PHYSICAL_RANK: dict[str, int] = {
+    "gravity_compliance": 0,
+    "thermal_expansion": 1,
+    "backlash": 2,
+    "cyclic": 3,
+    "thermal_drift": 4,
+    "joint_scale": 5,
+}
 
 
 @dataclass
@@ -127,7 +149,8 @@ class Effect:
         tool = (
             b"" if ctx.p_flange_tool is None else np.round(ctx.p_flange_tool * 1e4).astype(np.int64).tobytes()
         )
-        key = (self.label, repr(self.state.get("mix", self.state.get("driver"))), hash(tool))
+        drivers = (self.state.get("mix"), self.state.get("driver"), self.state.get("harmonics"))
+        key = (self.label, repr(drivers), hash(tool))
         if key not in ctx.cache:
             ctx.cache[key] = self.regressors(ctx, nominal)
         return ctx.cache[key]
@@ -139,6 +162,20 @@ class Effect:
     def summary(self, ctx: EffectContext, nominal: KinematicModel) -> dict[str, float]:
         """Physically meaningful figures of the fitted effect (for reports)."""
         return {}
+
+    def implausible(self, ctx: EffectContext, nominal: KinematicModel) -> str | None:
+        """Why the fitted size is physically implausible on these rows (None when it is plausible)."""
+        limit = PLAUSIBLE_SWING_RAD.get(self.family)
+        if self.kind != "joint" or limit is None:
+            return None
+        offset = self.regressors(ctx, nominal) @ self.params
+        swing = float(np.ptp(offset)) / 2
+        if swing <= limit:
+            return None
+        return (
+            f"implausible size: it swings joint {self.joint} by +-{np.rad2deg(swing):.3g} deg (a real "
+            f"{self.family.replace('_', ' ')} stays below {np.rad2deg(limit):.2g} deg); it is fitting something else"
+        )
 
     def to_dict(self) -> dict:
         return {
@@ -211,24 +248,39 @@ class GravityCompliance(Effect):
         ) * 1e3
 
 
+# A harmonic of a joint's angle is offered only where the sampled range covers this many of its periods:
+# over a shorter arc sin/cos look like a polynomial the geometry (offset, scale) imitates, and the fit
+# extrapolates wildly. The 1st harmonic then needs ~0.8 of a turn, the 2nd ~0.4.
+CYCLIC_MIN_PERIODS = 0.8
+
+
 class Cyclic(Effect):
     family = "cyclic"
 
+    def harmonics(self) -> list[int]:
+        return list(self.state.get("harmonics", [1, 2]))
+
     def coefficient_names(self) -> list[str]:
-        return ["sin1", "cos1", "sin2", "cos2"]
+        return [f"{f}{h}" for h in self.harmonics() for f in ("sin", "cos")]
+
+    def prepare(self, ctx: EffectContext, nominal: KinematicModel) -> bool:
+        span = float(np.ptp(ctx.q[:, self.joint - 1]))
+        harmonics = [h for h in (1, 2) if span >= CYCLIC_MIN_PERIODS * 2 * np.pi / h]
+        self.state = {"harmonics": harmonics, "range_rad": span}
+        self.params = np.zeros(2 * len(harmonics))
+        return bool(harmonics)
 
     def regressors(self, ctx: EffectContext, nominal: KinematicModel) -> np.ndarray:
         qj = ctx.q[:, self.joint - 1]
-        return np.stack([np.sin(qj), np.cos(qj), np.sin(2 * qj), np.cos(2 * qj)], axis=1)
+        return np.stack([f(h * qj) for h in self.harmonics() for f in (np.sin, np.cos)], axis=1)
 
     def summary(self, ctx: EffectContext, nominal: KinematicModel) -> dict[str, float]:
-        s1, c1, s2, c2 = self.params  # a sin x + b cos x = hypot(a, b) sin(x + atan2(b, a))
-        return {
-            "amplitude1_mdeg": float(np.rad2deg(np.hypot(s1, c1)) * 1e3),
-            "phase1_deg": float(np.rad2deg(np.arctan2(c1, s1))),
-            "amplitude2_mdeg": float(np.rad2deg(np.hypot(s2, c2)) * 1e3),
-            "phase2_deg": float(np.rad2deg(np.arctan2(c2, s2))),
-        }
+        out = {}
+        for k, h in enumerate(self.harmonics()):  # a sin x + b cos x = hypot(a, b) sin(x + atan2(b, a))
+            s, c = self.params[2 * k : 2 * k + 2]
+            out[f"amplitude{h}_mdeg"] = float(np.rad2deg(np.hypot(s, c)) * 1e3)
+            out[f"phase{h}_deg"] = float(np.rad2deg(np.arctan2(c, s)))
+        return out
 
     def driver(self, ctx: EffectContext, nominal: KinematicModel) -> tuple[str, np.ndarray]:
         return f"joint {self.joint} angle (deg)", np.rad2deg(ctx.q[:, self.joint - 1])
@@ -322,6 +374,15 @@ class ThermalExpansion(_Thermal):
     family = "thermal_expansion"
     kind = "growth"
 
+    def implausible(self, ctx: EffectContext, nominal: KinematicModel) -> str | None:
+        k = abs(float(self.params[0]))
+        if self.state["driver"] == "temperature_c" and k > PLAUSIBLE_EXPANSION_PER_K:
+            return f"implausible size: {k * 1e6:.3g} ppm/K (metals expand 10-25 ppm/K)"
+        growth = k * float(np.ptp(self.delta(ctx)))
+        if growth > PLAUSIBLE_EXPANSION_PER_K * 20:  # 20 K of warm-up at most
+            return f"implausible size: the links would grow {growth * 1e6:.3g} ppm over the campaign"
+        return None
+
     def summary(self, ctx: EffectContext, nominal: KinematicModel) -> dict[str, float]:
         unit = "K" if self.state["driver"] == "temperature_c" else "s"
         return {f"expansion_ppm_per_{unit}": float(self.params[0] * 1e6)}
@@ -333,6 +394,12 @@ class ThermalExpansion(_Thermal):
 class ThermalDrift(_Thermal):
     family = "thermal_drift"
     kind = "offset"
+
+    def implausible(self, ctx: EffectContext, nominal: KinematicModel) -> str | None:
+        drift = float(np.ptp(self.delta(ctx)) * np.linalg.norm(self.params))
+        if drift <= PLAUSIBLE_DRIFT_M:
+            return None
+        return f"implausible size: the base would drift {drift * 1000:.3g} mm over the campaign"
 
     def summary(self, ctx: EffectContext, nominal: KinematicModel) -> dict[str, float]:
         unit = "K" if self.state["driver"] == "temperature_c" else "s"

@@ -104,6 +104,7 @@ def render_html(report: DiagnosisReport) -> str:
         ),
         "<p>held-out = k-fold cross-validation on the training campaign; validate = a separate campaign "
         "never used for fitting.</p>",
+        _run_html(report.run),
     ]
     parts.append("<h2>Effects added</h2>")
     if not report.steps:
@@ -182,6 +183,28 @@ def render_html(report: DiagnosisReport) -> str:
         parts.append("</details>")
     parts.append("</body></html>")
     return "\n".join(parts)
+
+
+def _run_html(run: dict) -> str:
+    """The run: robot, inputs with hash and row counts (data rows from 1), date, software version."""
+    if not run:
+        return ""
+    rows = [
+        {
+            "input": role,
+            "file": i.get("file") or "(in memory)",
+            "sha256": (i.get("sha256") or "")[:16],
+            "rows_in_file": i["rows_in_file"],
+            "rows_used": i["rows_used"],
+            "duplicate_rows": ", ".join(map(str, i["duplicate_rows"][:10])) or "none",
+        }
+        for role, i in run["inputs"].items()
+    ]
+    return (
+        f"<h2>Run</h2><p>robot {html.escape(run['robot'])}; {html.escape(run['software'])}; "
+        f"{html.escape(run['date_utc'])}</p>"
+        + _table(rows, ["input", "file", "sha256", "rows_in_file", "rows_used", "duplicate_rows"])
+    )
 
 
 def write_html(report: DiagnosisReport, path: str | Path) -> None:

@@ -2,7 +2,7 @@
 
 - ``idw``: inverse-distance weighting over the 8 vertices of the grid cube holding the target
   (grid paper, methods.md 2c; power 2; a target on a vertex takes that vertex's residual). The grid is
-  found in the robot base frame from the measured points (step = median nearest-neighbour spacing).
+  found in the robot base frame from the measured points (step = median spacing between distinct locations).
 - ``svr``: one RBF-kernel support-vector regressor per axis on the six joint angles (SVR paper,
   methods.md 3: kernel width sigma = 2 rad -> gamma = 1/(2 sigma^2)). Targets are in units of the noise
   sigma, epsilon = 0.5 sigma, and C is chosen by 3-fold cross-validation from 0.1 ... 100: the paper's
@@ -20,6 +20,8 @@ import warnings
 
 import numpy as np
 from scipy.spatial import cKDTree
+
+from hil.folds import location_spacing
 
 MAP_KINDS: tuple[str, ...] = ("idw", "svr", "gp")
 
@@ -50,7 +52,7 @@ class ResidualMap:
         return self.predict_raw(q, p_base)
 
     def _remember_volume(self, p_base: np.ndarray) -> None:
-        spacing = float(np.median(cKDTree(p_base).query(p_base, k=2)[0][:, 1]))  # nearest other point
+        spacing = location_spacing(p_base)  # nearest other location: repeated orientations don't count
         self.state["volume"] = {
             "lo": p_base.min(axis=0).tolist(),
             "hi": p_base.max(axis=0).tolist(),

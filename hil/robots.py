@@ -1,78 +1,99 @@
-"""Catalogue of nominal robot models: UR5, UR10, UR5e, UR10e (standard DH + beta on joints 2-3)
-and ABB IRB2600 (grid paper), with joint limits and the flange convention (flange = last DH frame).
+"""Nominal robot models from robot definition files (TOML): the built-ins live in hil/robot_models/
+(UR5, UR10, UR5e, UR10e, ABB IRB2600, KUKA KR 6 R900), and any other serial arm is one more such file.
+
+A file holds `name`, `convention = "dh"` and one `[[joint]]` table per joint, in the units an engineer
+reads off a data sheet: `d_mm`, `a_mm`, `alpha_deg`, optional `theta_offset_deg` (0), `hayati_beta`
+(false; true on a joint whose axis is parallel to the next one) and `limits_deg` ([-360, 360]). Optional
+`mass_kg` per joint is accepted (gravity data, for the reader). The flange is the last DH frame.
 """
 
 from __future__ import annotations
+
+import tomllib
+from pathlib import Path
 
 import numpy as np
 
 from hil.kinematics import KinematicModel
 
-_UR_ALPHA = np.array([np.pi / 2, 0.0, 0.0, np.pi / 2, -np.pi / 2, 0.0])
-
-# (d1, a2, a3, d4, d5, d6) in metres, methods.md section 5.
-_UR_DH: dict[str, tuple[float, float, float, float, float, float]] = {
-    "ur5": (0.089159, -0.425, -0.39225, 0.10915, 0.09465, 0.0823),
-    "ur10": (0.1273, -0.612, -0.5723, 0.163941, 0.1157, 0.0922),
-    "ur5e": (0.1625, -0.425, -0.3922, 0.1333, 0.0997, 0.0996),
-    "ur10e": (0.1807, -0.6127, -0.57155, 0.17415, 0.11985, 0.11655),
-}
-
-# UR joints 2, 3, 4 are parallel: the transforms of joints 2 and 3 get Hayati's beta.
-_UR_USES_BETA = np.array([False, True, True, False, False, False])
+ROBOT_DIR = Path(__file__).with_name("robot_models")
+ROBOT_NAMES: tuple[str, ...] = ("ur5", "ur10", "ur5e", "ur10e", "irb2600", "kr6r900")
+_JOINT_KEYS = {"d_mm", "a_mm", "alpha_deg", "theta_offset_deg", "hayati_beta", "limits_deg", "mass_kg"}
 
 
-def _ur(name: str, use_beta: bool) -> KinematicModel:
-    d1, a2, a3, d4, d5, d6 = _UR_DH[name]
-    limit = 2 * np.pi
-    return KinematicModel(
-        name=name,
-        theta=np.zeros(6),
-        d=np.array([d1, 0.0, 0.0, d4, d5, d6]),
-        a=np.array([0.0, a2, a3, 0.0, 0.0, 0.0]),
-        alpha=_UR_ALPHA.copy(),
-        beta=np.zeros(6),
-        uses_beta=_UR_USES_BETA.copy() if use_beta else np.zeros(6, bool),
-        joint_limits=np.tile([-limit, limit], (6, 1)),
-    )
-
-
-def _irb2600(use_beta: bool) -> KinematicModel:
-    deg = np.deg2rad
-    # (alpha deg, a mm, d mm, theta offset deg) per joint, methods.md section 2d.
-    table = np.array(
-        [
-            [-90, 150, 445, 0],
-            [0, 700, 0, -90],
-            [-90, 115, 0, 0],
-            [90, 0, 795, 0],
-            [90, 0, 0, 180],
-            [0, 0, 85, 0],
-        ],
-        dtype=float,
-    )
-    limits_deg = np.array([[-180, 180], [-95, 155], [-180, 75], [-400, 400], [-120, 120], [-400, 400]])
-    return KinematicModel(
-        name="irb2600",
-        theta=deg(table[:, 3]),
-        d=table[:, 2] / 1000.0,
-        a=table[:, 1] / 1000.0,
-        alpha=deg(table[:, 0]),
-        beta=np.zeros(6),
-        # Joints 2 and 3 are parallel (alpha2 = 0): beta on joint 2.
-        uses_beta=np.array([False, True, False, False, False, False]) if use_beta else np.zeros(6, bool),
-        joint_limits=deg(limits_deg.astype(float)),
-    )
-
-
-ROBOT_NAMES: tuple[str, ...] = ("ur5", "ur10", "ur5e", "ur10e", "irb2600")
+def is_robot_file(name: str) -> bool:
+    return name.lower().endswith(".toml")
 
 
 def get_robot(name: str, use_beta: bool = True) -> KinematicModel:
-    """Nominal model by name; `use_beta=False` gives plain standard DH on every joint."""
-    key = name.lower().replace("-", "").replace("_", "")
-    if key in _UR_DH:
-        return _ur(key, use_beta)
-    if key == "irb2600":
-        return _irb2600(use_beta)
-    raise ValueError(f"unknown robot '{name}'; choose one of {', '.join(ROBOT_NAMES)}")
+    """Nominal model by built-in name or robot-definition file path; `use_beta=False` gives plain DH."""
+    if is_robot_file(name):
+        return load_robot_file(name, use_beta)
+    key = name.lower().replace("-", "").replace("_", "").replace(" ", "")
+    if key not in ROBOT_NAMES:
+        raise ValueError(
+            f"unknown robot '{name}'; choose one of {', '.join(ROBOT_NAMES)} or give a robot file (.toml)"
+        )
+    return load_robot_file(ROBOT_DIR / f"{key}.toml", use_beta)
+
+
+def load_robot_file(path: str | Path, use_beta: bool = True) -> KinematicModel:
+    """Read and check a robot definition file (raises ValueError naming the file and what to fix)."""
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise ValueError(f"robot file not found: {path}; check the path") from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise ValueError(f"{path}: not a valid TOML robot file ({exc}); fix its syntax") from None
+    convention = data.get("convention", "dh")
+    if convention != "dh":
+        raise ValueError(
+            f"{path}: convention '{convention}' is not supported; give the standard DH table "
+            '(convention = "dh", Hayati beta on parallel joints)'
+        )
+    joints = data.get("joint")
+    if not isinstance(joints, list) or not joints:
+        raise ValueError(f"{path}: no [[joint]] tables; give one per joint (d_mm, a_mm, alpha_deg ...)")
+    rows = []
+    for i, j in enumerate(joints, start=1):
+        unknown = set(j) - _JOINT_KEYS
+        missing = {"d_mm", "a_mm", "alpha_deg"} - set(j)
+        if unknown or missing:
+            what = f"unknown key(s) {sorted(unknown)}" if unknown else f"missing {sorted(missing)}"
+            raise ValueError(f"{path}: joint {i}: {what}; keys are {', '.join(sorted(_JOINT_KEYS))}")
+        limits = j.get("limits_deg", [-360.0, 360.0])
+        if len(limits) != 2 or not limits[0] < limits[1]:
+            raise ValueError(f"{path}: joint {i}: limits_deg must be [lower, upper] with lower < upper")
+        rows.append(
+            (
+                float(j.get("theta_offset_deg", 0.0)),
+                float(j["d_mm"]),
+                float(j["a_mm"]),
+                float(j["alpha_deg"]),
+                bool(j.get("hayati_beta", False)),
+                limits,
+            )
+        )
+    theta, d, a, alpha, beta, limits = zip(*rows, strict=True)
+    return KinematicModel(
+        name=str(data.get("name", path.stem)),
+        theta=np.deg2rad(theta),
+        d=np.array(d) / 1000.0,
+        a=np.array(a) / 1000.0,
+        alpha=np.deg2rad(alpha),
+        beta=np.zeros(len(rows)),
+        uses_beta=np.array(beta, bool) if use_beta else np.zeros(len(rows), bool),
+        joint_limits=np.deg2rad(np.array(limits, float)),
+    )
+
+
+def robot_arg(text: str) -> str:
+    """argparse type of `--robot`: a built-in name or an existing robot file, checked before any work."""
+    import argparse
+
+    try:
+        get_robot(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return text

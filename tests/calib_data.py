@@ -54,3 +54,18 @@ def cell_datasets(step_m: float = 0.1, n_val: int = 100, seed: int = 0, **config
     train = simulate_campaign(cell, grid_joints(cell, step_m=step_m, seed=seed))
     val = simulate_campaign(cell, held_out_joints(cell, n_val, seed=seed + 1))
     return cell, train, val
+
+
+def true_effect_model(train, robot: str, families: tuple[str, ...]):
+    """The model a user who knew the cell's effects would fit: geometry plus every candidate of those
+    families the data can show (the yardstick of the diagnosis goals)."""
+    from hil.calibrated_model import initial_model
+    from hil.calibration import calibrate
+    from hil.dataset import joints_rad
+    from hil.effects import EffectContext, candidate_effects
+
+    model = initial_model(robot, train)
+    ctx = EffectContext.from_frame(train, joints_rad(train))
+    for eff in candidate_effects(ctx, model.nominal, [], families):
+        model = model.with_effect(eff)
+    return calibrate(train, model, "ridge").model

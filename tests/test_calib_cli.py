@@ -1,5 +1,6 @@
 """The stable CLI: hil calibrate / diagnose / predict on a simulated campaign, through `python -m hil`."""
 
+import hashlib
 import json
 import subprocess
 import sys
@@ -56,6 +57,10 @@ def test_calibrate_diagnose_predict(campaign):
     report = json.loads((d / "report.json").read_text(), parse_constant=strict)
     json.loads((d / "model.json").read_text(), parse_constant=strict)
     assert {"effects_added", "stages", "unexplained_structure", "noise_floor_mm"} <= set(report)
+    run = report["run"]  # what the report was made from
+    assert run["robot"] == "ur10" and run["software"].startswith("hil ")
+    assert run["inputs"]["training"]["sha256"] == hashlib.sha256((d / "train.csv").read_bytes()).hexdigest()
+    assert run["inputs"]["validation"]["rows_used"] == len(pd.read_csv(d / "val.csv"))
     assert report["effects_added"] and report["effects_added"][0]["name"] == "gravity_compliance"
     for stage in report["stages"]:
         assert stage["on"] in ("heldout", "validate")

@@ -9,18 +9,22 @@ import numpy as np
 import pandas as pd
 
 from hil.calibration import calibrate
+from hil.commands.arg_checks import InputError, check_paths, float_list
+from hil.commands.errors import CliError
 from hil.commands.inputs import read_measurements
+from hil.commands.progress import cli_progress
 from hil.dataset import DatasetError
-from hil.robots import ROBOT_NAMES, get_robot
+from hil.robots import ROBOT_NAMES, get_robot, robot_arg
 
 
 def parse_mm_vector(text: str | None) -> np.ndarray | None:
+    """'x,y,z' in mm -> metres (argparse type of --tool-mm); a tool point lies within 1 m of the flange."""
     if text is None:
         return None
-    parts = text.split(",")
-    if len(parts) != 3:
-        raise argparse.ArgumentTypeError(f"expected x,y,z in mm, got '{text}'")
-    return np.array([float(p) for p in parts]) / 1000.0
+    v = np.array(float_list(3, "x,y,z in mm")(text)) / 1000.0
+    if np.linalg.norm(v) > 1.0:
+        raise argparse.ArgumentTypeError(f"'{text}' lies more than 1 m from the flange: give millimetres")
+    return v
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -29,15 +33,24 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="identify base frame, tool point(s) and kinematic errors from a measurement dataset",
         description="Robust kinematic calibration. Runs both solvers (ridge + IGG3, and Levenberg-Marquardt "
         "with a robust loss), prints both, and writes the chosen one as a model file.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     p.add_argument(
         "data", help="dataset CSV (q1_rad..q6_rad, x_mm, y_mm, z_mm, optional t_s, temperature_c, smr)"
     )
-    p.add_argument("--robot", default="ur10", choices=ROBOT_NAMES, help="nominal robot model (default ur10)")
+    p.add_argument(
+        "--robot",
+        default="ur10",
+        type=robot_arg,
+        help=f"nominal robot: {', '.join(ROBOT_NAMES)} or a robot definition file (.toml, see hil/robot_models)",
+    )
     p.add_argument("-o", "--output", required=True, help="model JSON to write")
     p.add_argument("--solver", default="ridge", choices=("ridge", "lm"), help="solver whose model is written")
     p.add_argument(
-        "--tool-mm", default=None, help="initial guess of the tool point in the flange, 'x,y,z' mm"
+        "--tool-mm",
+        default=None,
+        type=parse_mm_vector,
+        help="initial guess of the tool point in the flange, 'x,y,z' mm (none: from the data)",
     )
     p.add_argument("--no-beta", action="store_true", help="plain DH on every joint (no Hayati beta)")
     p.add_argument(
@@ -50,38 +63,46 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     try:
+        check_paths({"DATA": args.data}, {"--output": args.output, "--residuals": args.residuals})
         df = read_measurements(args.data)
-        tool = parse_mm_vector(args.tool_mm)
-    except (DatasetError, ValueError, argparse.ArgumentTypeError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+        tool = args.tool_mm
+    except (InputError, DatasetError, ValueError) as exc:
+        raise CliError.from_text(str(exc)) from exc
     nominal = get_robot(args.robot, use_beta=not args.no_beta)
     try:
-        results = {s: calibrate(df, nominal, solver=s, tool_guess_m=tool) for s in ("ridge", "lm")}
+        results = {}
+        with cli_progress() as progress:
+            for i, s in enumerate(("ridge", "lm")):
+                progress(f"calibrating {len(df)} poses", i, 2)
+                results[s] = calibrate(df, nominal, solver=s, tool_guess_m=tool)
+            progress(f"calibrating {len(df)} poses", 2, 2)
     except ValueError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+        raise CliError.from_text(str(exc)) from exc
     print(results["ridge"].identifiability.summary())
     for res in results.values():
-        flagged = np.flatnonzero(res.outliers)
+        flagged = res.outlier_rows
         print(
             f"{res.solver:>12}: RMS {res.rms_mm:.4f} mm over {int((~res.outliers).sum())} points, "
             f"sigma0 {res.sigma0_m * 1000:.4f} mm, outliers flagged: "
-            + (", ".join(f"row {i + 1}" for i in flagged) if flagged.size else "none")
+            + (", ".join(f"row {r}" for r in flagged) if flagged else "none")
         )
+    for note in results[args.solver].notes:
+        print(f"warning: {note}", file=sys.stderr)
     chosen = results[args.solver]
-    print(f"{'parameter':<16}{'change':>14}{'std':>12}  unit")
+    print(
+        f"{'parameter':<16}{'change':>14}{'std':>12}{'std LS':>12}  unit   (std: larger of LS and spatial folds)"
+    )
     for row in chosen.parameter_table():
         if row["delta"] is None:
             continue
-        print(f"{row['name']:<16}{row['delta']:14.3e}{row['std']:12.2e}  {row['unit']}")
+        print(f"{row['name']:<16}{row['delta']:14.3e}{row['std']:12.2e}{row['std_ls']:12.2e}  {row['unit']}")
     for smr, tool_m in sorted(chosen.model.tools.items()):
         print(f"tool point SMR {smr}: " + ", ".join(f"{v * 1000:.4f}" for v in tool_m) + " mm (flange frame)")
     if args.residuals:
         r_mm = chosen.residual_m * 1000.0
         pd.DataFrame(
             {
-                "row": np.arange(1, len(r_mm) + 1),
+                "row": chosen.row_numbers,
                 "dx_mm": r_mm[:, 0],
                 "dy_mm": r_mm[:, 1],
                 "dz_mm": r_mm[:, 2],

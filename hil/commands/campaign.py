@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pandas as pd
 
+from hil.commands.errors import CliError
 from hil.dataset import DatasetError
 from hil.store import CampaignError, CampaignStore, export_csv, export_parquet, is_campaign_file
 
@@ -45,8 +46,7 @@ def _usage(parser: argparse.ArgumentParser) -> int:
 
 
 def _fail(message: str) -> int:
-    print(f"error: {message}", file=sys.stderr)
-    return 2
+    raise CliError.from_text(message)
 
 
 def _check_campaign(path: str) -> str | None:

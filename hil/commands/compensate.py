@@ -11,6 +11,7 @@ import pandas as pd
 from scipy.spatial.transform import Rotation
 
 from hil.calibrated_model import CalibratedModel
+from hil.commands.errors import CliError
 from hil.compensation import ENSEMBLE, compensate, compensate_path
 from hil.dataset import POSITION_COLUMNS, joint_columns
 from hil.pseudo_targets import GENERATORS
@@ -98,8 +99,7 @@ def read_targets(path: str) -> tuple[np.ndarray, pd.DataFrame]:
 
 def run(args: argparse.Namespace) -> int:
     if args.threshold_mm <= 0 or args.max_iter < 0 or args.length_scale_mm <= 0:
-        print("error: --threshold-mm and --length-scale-mm must be > 0, --max-iter >= 0", file=sys.stderr)
-        return 2
+        raise CliError("--threshold-mm and --length-scale-mm must be > 0, --max-iter >= 0", "give values in range")
     try:
         model = CalibratedModel.load(args.model)
         targets, df = read_targets(args.targets)
@@ -121,8 +121,7 @@ def run(args: argparse.Namespace) -> int:
                 else compensate(model, targets, **kwargs)
             )
     except (ValueError, OSError, KeyError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+        raise CliError.from_text(str(exc)) from exc
     for w in caught:
         print(f"warning: {w.message}", file=sys.stderr)
     out = df.copy()

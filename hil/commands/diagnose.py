@@ -3,17 +3,19 @@
 from __future__ import annotations
 
 import argparse
-import sys
 
 import numpy as np
 import pandas as pd
 
+from hil.commands.arg_checks import InputError, check_paths, float_in, float_list, int_in
 from hil.commands.calibrate import parse_mm_vector
+from hil.commands.errors import CliError
 from hil.commands.inputs import read_training_and_validation
+from hil.commands.progress import cli_progress
 from hil.dataset import DatasetError
 from hil.diagnosis import DiagnosisReport, run_diagnosis
 from hil.effects import EFFECT_FAMILIES
-from hil.robots import ROBOT_NAMES, get_robot
+from hil.robots import ROBOT_NAMES, get_robot, robot_arg
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -23,28 +25,55 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Calibrate, then test candidate effects the model lacks (gravity compliance, cyclic joint "
         "errors, backlash, thermal expansion/drift) by k-fold held-out improvement and a significance test "
         "against the measurement noise; add the winner, refit, repeat.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     p.add_argument("data", help="training dataset CSV")
-    p.add_argument("--robot", default="ur10", choices=ROBOT_NAMES)
+    p.add_argument(
+        "--robot",
+        default="ur10",
+        type=robot_arg,
+        help=f"nominal robot: {', '.join(ROBOT_NAMES)} or a robot definition file (.toml, see hil/robot_models)",
+    )
     p.add_argument("--validate", default=None, help="a separate dataset CSV never used for fitting")
+    p.add_argument(
+        "--validate-reregister",
+        default="none",
+        choices=("none", "base", "base+tool"),
+        help="refit the base frame (and tool) of every stage on --validate first: a campaign from another "
+        "tracker placement; the report shows both",
+    )
     p.add_argument("-o", "--output", default=None, help="write the final model (effects included) as JSON")
     p.add_argument("--json", required=True, dest="json_path", help="write the report as JSON")
     p.add_argument("--html", default=None, help="write the report as a self-contained HTML page")
-    p.add_argument("--folds", type=int, default=5, help="k of the k-fold cross-validation (default 5)")
-    p.add_argument("--alpha", type=float, default=1e-3, help="significance level of the tests (default 1e-3)")
+    p.add_argument("--folds", type=int_in(2, 50), default=5, help="k of the k-fold cross-validation, 2..50")
+    p.add_argument(
+        "--alpha",
+        type=float_in(0.0, 0.5, lo_open=True),
+        default=1e-3,
+        help="significance level of the tests, in (0, 0.5]",
+    )
     p.add_argument(
         "--families",
         default=",".join(EFFECT_FAMILIES),
-        help=f"candidate effect families, comma separated (default all: {','.join(EFFECT_FAMILIES)})",
+        help="candidate effect families, comma separated",
     )
     p.add_argument(
-        "--repeatability-mm", type=float, default=0.0, help="robot repeatability added to the floor"
+        "--repeatability-mm",
+        type=float_in(0.0, 5.0),
+        default=0.0,
+        help="robot repeatability added to the noise floor, mm, 0..5",
     )
-    p.add_argument("--tool-mm", default=None, help="initial guess of the tool point, 'x,y,z' mm")
+    p.add_argument(
+        "--tool-mm",
+        default=None,
+        type=parse_mm_vector,
+        help="initial guess of the tool point, 'x,y,z' mm (none: from the data)",
+    )
     p.add_argument(
         "--tracker-mpe-um",
         default="15,6",
-        help="tracker MPE 'a,b' (a um + b um/m, taken as 2 sigma) for the noise floor (default 15,6: AT901/AT960)",
+        type=float_list(2, "'a,b': a um (> 0) + b um/m (>= 0)", lo=(0.0, 0.0), positive_first=True),
+        help="tracker MPE 'a,b' (a um + b um/m, taken as 2 sigma) for the noise floor (15,6: AT901/AT960)",
     )
     p.add_argument("--no-beta", action="store_true", help="plain DH on every joint (no Hayati beta)")
     p.add_argument(
@@ -57,31 +86,33 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     try:
-        df, val = read_training_and_validation(args.data, args.validate)
-        tool = parse_mm_vector(args.tool_mm)
+        if args.validate_reregister != "none" and not args.validate:
+            raise InputError("--validate-reregister needs --validate VAL.csv; give the validation campaign")
+        check_paths(
+            {"DATA": args.data, "--validate": args.validate},
+            {"--output": args.output, "--json": args.json_path, "--html": args.html},
+        )
         families = tuple(f.strip() for f in args.families.split(",") if f.strip())
         unknown = [f for f in families if f not in EFFECT_FAMILIES]
-        if unknown:
-            raise ValueError(
-                f"unknown effect famil{'y' if len(unknown) == 1 else 'ies'} {unknown}; "
-                f"known: {', '.join(EFFECT_FAMILIES)}"
+        if unknown or not families:
+            raise InputError(
+                f"--families: unknown effect famil{'y' if len(unknown) == 1 else 'ies'} {unknown}; "
+                f"choose from {', '.join(EFFECT_FAMILIES)}"
             )
-        mpe = tuple(float(v) * 1e-6 for v in args.tracker_mpe_um.split(","))
-        if len(mpe) != 2:
-            raise ValueError(f"--tracker-mpe-um needs 'a,b', got '{args.tracker_mpe_um}'")
-        if args.folds < 2:
-            raise ValueError("--folds must be at least 2")
-    except (DatasetError, ValueError, argparse.ArgumentTypeError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+        mpe = tuple(v * 1e-6 for v in args.tracker_mpe_um)
+        df, val = read_training_and_validation(args.data, args.validate)
+        tool = args.tool_mm
+    except (InputError, DatasetError, ValueError) as exc:
+        raise CliError.from_text(str(exc)) from exc
     if len(df) < 8 * args.folds:
-        print(f"error: {len(df)} points are too few for {args.folds}-fold cross-validation", file=sys.stderr)
-        return 2
+        raise CliError(
+            f"{len(df)} points are too few for {args.folds}-fold cross-validation",
+            f"measure at least {8 * args.folds} poses or lower --folds",
+        )
     try:
         report = _diagnose(args, df, val, tool, families, mpe)
     except ValueError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+        raise CliError.from_text(str(exc)) from exc
     _print_and_write(args, report)
     return 0
 
@@ -94,6 +125,11 @@ def _diagnose(
     families: tuple[str, ...],
     mpe: tuple[float, ...],
 ) -> DiagnosisReport:
+    with cli_progress() as progress:
+        return _run(args, df, val, tool, families, mpe, progress)
+
+
+def _run(args, df, val, tool, families, mpe, progress) -> DiagnosisReport:
     return run_diagnosis(
         df,
         get_robot(args.robot, use_beta=not args.no_beta),
@@ -105,6 +141,8 @@ def _diagnose(
         tool_guess_m=tool,
         tracker_mpe_m=mpe,
         compare_maps=args.compare_maps,
+        reregister_validation=args.validate_reregister,
+        progress=progress,
     )
 
 

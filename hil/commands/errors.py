@@ -16,6 +16,13 @@ class CliError(Exception):
         self.message = message
         self.remedy = remedy
 
+    @classmethod
+    def from_text(cls, text: str, remedy: str = "fix the input named above and run the command again") -> CliError:
+        """From a one-line "what is wrong; what to do" text (input checks, dataset errors): split at the last
+        '; ' into message and remedy; a text without one gets the generic remedy."""
+        message, sep, what_to_do = text.rpartition("; ")
+        return cls(message, what_to_do) if sep and message else cls(text, remedy)
+
     def render(self, command: str) -> str:
         """The two stderr lines for `hil <command>`."""
         return f"hil {command}: {self.message}\n  what to do: {self.remedy}"

@@ -6,15 +6,21 @@ import argparse
 import sys
 import warnings
 
+import numpy as np
+import pandas as pd
+
 from hil.calibrated_model import CalibratedModel
+from hil.commands.arg_checks import InputError, check_paths
+from hil.commands.errors import CliError
 from hil.commands.inputs import read_measurements
-from hil.dataset import POSITION_COLUMNS, DatasetError
+from hil.dataset import POSITION_COLUMNS, DatasetError, joints_rad
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "predict",
         help="predict x_mm, y_mm, z_mm (tracker frame) for the joints in a CSV with a calibrated model",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     p.add_argument("model", help="model JSON written by 'hil calibrate' or 'hil diagnose -o'")
     p.add_argument(
@@ -24,18 +30,44 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
+def plausibility_notes(model: CalibratedModel, df: pd.DataFrame, p_m: np.ndarray) -> list[str]:
+    """Joints outside what the model was trained on; predictions far from positions the file holds."""
+    notes = []
+    lo_hi = model.info.get("training_joint_range_rad")
+    if lo_hi:
+        q = joints_rad(df, model.nominal.n_joints)
+        lo, hi = np.asarray(lo_hi[0]), np.asarray(lo_hi[1])
+        out = np.flatnonzero(np.any((q < lo - 0.05) | (q > hi + 0.05), axis=0))
+        if out.size:
+            notes.append(
+                f"joint(s) {', '.join(str(j + 1) for j in out)} leave the range the model was trained on "
+                "(extrapolation: expect larger errors there)"
+            )
+    if all(c in df.columns for c in POSITION_COLUMNS):
+        off = np.linalg.norm(p_m * 1000.0 - df[list(POSITION_COLUMNS)].to_numpy(float), axis=1)
+        rms = float(np.sqrt(np.mean(off**2)))
+        if rms > 10.0:
+            notes.append(
+                f"the predictions are {rms:.1f} mm RMS off the positions in the file: joints of another robot "
+                f"(the model is for {model.robot}), another tracker placement, or positions not in mm?"
+            )
+    return notes
+
+
 def run(args: argparse.Namespace) -> int:
     try:
+        check_paths({"MODEL": args.model, "DATA": args.data}, {"--output": args.output})
         model = CalibratedModel.load(args.model)
         df = read_measurements(args.data, require_positions=False)
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             p = model.predict(df)
-    except (DatasetError, ValueError, OSError, KeyError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
+    except (InputError, DatasetError, ValueError, OSError, KeyError) as exc:
+        raise CliError.from_text(str(exc)) from exc
     for w in caught:
         print(f"warning: {w.message}", file=sys.stderr)
+    for note in plausibility_notes(model, df, p):
+        print(f"warning: {note}", file=sys.stderr)
     out = df.copy()
     for i, col in enumerate(POSITION_COLUMNS):
         out[col] = p[:, i] * 1000.0
