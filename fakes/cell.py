@@ -267,7 +267,7 @@ class SimulatedCell:
         """Set the tracker up elsewhere (a new placement drawn from `seed`), as between two campaigns;
         the robot, its hidden errors and the room's fixed SMRs stay where they are."""
         fixed_base = {
-            i: np.linalg.inv(self.T_tracker_base) @ np.append(loc.point_m, 1.0)
+            i: np.linalg.inv(self.T_tracker_base) @ np.append(np.asarray(loc.point_m, float), 1.0)
             for i, loc in self._smr_locations.items()
             if loc.kind == "fixed"
         }

@@ -423,16 +423,17 @@ def _honest_numbers(result: CalibrationResult, problem: Problem, k: int = 5) -> 
             "combination is); poses that move them differently separate them"
         )
     result.outlier_regions = outlier_regions(problem.measured, result.outliers)
+    row_numbers = np.arange(1, len(result.outliers) + 1) if result.row_numbers is None else result.row_numbers
     for reg in result.outlier_regions:
         result.notes.append(
             f"outlier region: {reg['count']} flagged rows within {reg['radius_mm']:.0f} mm of "
             f"({', '.join(f'{v:.0f}' for v in reg['centre_mm'])}) mm (tracker frame), data rows "
-            f"{', '.join(str(result.row_numbers[i]) for i in reg['rows'][:6])}{' ...' if reg['count'] > 6 else ''}: "
+            f"{', '.join(str(row_numbers[i]) for i in reg['rows'][:6])}{' ...' if reg['count'] > 6 else ''}: "
             "a region the model does not fit (a missing effect there), not blunders"
         )
     result.model.info["std_folds"] = result.std_folds
     result.model.info["outlier_regions"] = [
-        {**reg, "rows": [int(result.row_numbers[i]) for i in reg["rows"]]} for reg in result.outlier_regions
+        {**reg, "rows": [int(row_numbers[i]) for i in reg["rows"]]} for reg in result.outlier_regions
     ]
 
 
@@ -446,11 +447,12 @@ def fold_spread_std(result: CalibrationResult, problem: Problem, folds: list[np.
     Js, norms = scale_columns(flatten_jacobian(J)[:, free])
     rv = r.reshape(-1)
     N, g = Js.T @ Js, Js.T @ rv
-    est = []
-    for f in folds:
-        t = (3 * f[:, None] + np.arange(3)).ravel()
-        est.append(np.linalg.lstsq(N - Js[t].T @ Js[t], g - Js[t].T @ rv[t], rcond=None)[0] / norms)
-    est = np.array(est)
+    est = np.array(
+        [
+            np.linalg.lstsq(N - Js[t].T @ Js[t], g - Js[t].T @ rv[t], rcond=None)[0] / norms
+            for t in ((3 * f[:, None] + np.arange(3)).ravel() for f in folds)
+        ]
+    )
     kf = len(folds)
     spread = np.sqrt((kf - 1) / kf * np.sum((est - est.mean(axis=0)) ** 2, axis=0))
     free_names = [n for n, m in zip(names, free, strict=True) if m]

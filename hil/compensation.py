@@ -239,11 +239,13 @@ def compensate(
             f"{int(outside.sum())} target(s) lie outside the calibrated volume: the model extrapolates there",
             stacklevel=2,
         )
-    best = None
+    best: CompensationResult | None = None
     for name in names:
         res = _run(ctx, name, threshold_m, max_iter, patience, length_scale_m)
         res.outside_volume = outside
         best = res if best is None else _pick_better(best, res)
+    if best is None:
+        raise ValueError("no pseudo-target generator to run")
     return best
 
 

@@ -578,13 +578,18 @@ def solve_ik(
         # steps finish most targets far cheaper than LM; the rest go through the LM attempts below.
         todo = np.flatnonzero(seed_ok[0] & ~beyond)
         if todo.size:
+            first_seed = np.asarray(seeds[0])  # seed_ok[0] is False where the first seed is missing
             if mode == "pose":
                 T_f = tgt[todo] @ invert(T_ft)
-                tol = {"tol_position": 0.5 * tol_position, "tol_rotation": 0.5 * tol_rotation}
-                nr = newton_ik(model, T_f, seeds[0][todo], max_steps=NEWTON_STEPS, validate=False, **tol)
+                nr = newton_ik(
+                    model, T_f, first_seed[todo], max_steps=NEWTON_STEPS, validate=False,
+                    tol_position=0.5 * tol_position, tol_rotation=0.5 * tol_rotation,
+                )  # fmt: skip
             else:
-                tol = {"tol_position": 0.5 * tol_position}
-                nr = newton_ik(model, tgt[todo], seeds[0][todo], "position", T_ft[:3, 3], NEWTON_STEPS, **tol)
+                nr = newton_ik(
+                    model, tgt[todo], first_seed[todo], "position", T_ft[:3, 3], NEWTON_STEPS,
+                    tol_position=0.5 * tol_position,
+                )  # fmt: skip
             e = prob.residual(nr.q, todo)
             conv = prob.converged(e) & model.within_limits(nr.q, tol=1e-12)
             done = todo[conv]
