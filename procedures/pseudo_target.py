@@ -1,0 +1,477 @@
+"""Pseudo-target loop: put the SMR on targets, measured (PT paper, methods.md section 4).
+
+Shop-floor instruction: the cell is registered (`hil run registration`) and, best, a calibrated model
+exists (`hil calibrate`). With one SMR, put SMR 1 in tool nest 1: the loop corrects the position. With
+three SMRs, put SMRs 1, 2, 3 in tool nests 1, 2, 3: the tracker measures each nest in turn, the known
+nest layout gives the tool's pose, and the loop corrects the orientation too.
+
+For each target (tracker frame: where SMR 1 in nest 1 should be, and for three SMRs the flange
+orientation) the robot goes to the model-based compensated joints (nominal IK without a model), settles
+and is measured. What the measurement missed moves a pseudo target (the chosen generator); its IK, seeded
+with the joints just used, gives the next joints. This repeats until the error is below the threshold or
+the iteration cap is reached; the best joints measured are kept. Every iteration is its own point in the
+campaign (`t007/i2`, with nests `t007/i2/n1`..`n3`), committed before the next motion: re-running the same
+command replays what is recorded and measures only what is missing. Targets the arm cannot reach, near a
+singularity or outside the envelope are reported with the reason and not visited.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from scipy.spatial.transform import Rotation
+
+from hil.calibrated_model import CalibratedModel
+from hil.cell_config import CellConfig
+from hil.compensation import PosePredictor, PseudoTargetIK, compensate, pose_cost
+from hil.kinematics import forward_kinematics
+from hil.operator import OperatorStep
+from hil.plan import Plan, PlannedPose
+from hil.planners import (
+    SINGULAR_SIGMA_M,
+    facing_poses,
+    plan_joints,
+    position_sigma_min_m,
+    random_points,
+    workspace_box,
+)
+from hil.pseudo_targets import check_generator, update_pseudo_position, update_pseudo_target
+from hil.se3 import fit_rigid
+from hil.session import CampaignStopped, Session
+
+PROCEDURE = "pseudo_target"
+STEP = "loop"
+LENGTH_SCALE_M = 0.1  # pose error measure: sqrt(dp^2 + (L * angle)^2), as hil.compensation
+USABLE_START = ("ok", "max_iter", "stalled")  # compensation statuses whose joints are worth measuring
+SMR_MODES = (1, 3)
+
+
+@dataclass
+class TargetResult:
+    """One target: measured error per iteration (m, rad), the best joints and why the loop ended."""
+
+    target_id: str
+    status: str  # ok, max_iter, or why the target was not (or no longer) visited
+    errors_m: list[float] = field(default_factory=list)
+    rotation_errors_rad: list[float] = field(default_factory=list)
+    q_rad: np.ndarray | None = None  # best joints measured
+    best_iteration: int = -1
+    uncompensated_error_m: float = np.nan
+    uncompensated_rotation_rad: float = np.nan
+
+    @property
+    def iterations(self) -> int:
+        """Corrections made (measurements - 1)."""
+        return max(len(self.errors_m) - 1, 0)
+
+    @property
+    def error_m(self) -> float:
+        return self.errors_m[self.best_iteration] if self.errors_m else np.nan
+
+    @property
+    def rotation_error_rad(self) -> float:
+        return self.rotation_errors_rad[self.best_iteration] if self.rotation_errors_rad else np.nan
+
+    def to_dict(self) -> dict:
+        return {
+            "target": self.target_id,
+            "status": self.status,
+            "iterations": self.iterations,
+            "errors_mm": [e * 1e3 for e in self.errors_m],
+            "rotation_errors_deg": [float(np.rad2deg(r)) for r in self.rotation_errors_rad],
+            "error_mm": self.error_m * 1e3,
+            "rotation_error_deg": float(np.rad2deg(self.rotation_error_rad)),
+            "uncompensated_error_mm": self.uncompensated_error_m * 1e3,
+            "q_rad": None if self.q_rad is None else np.round(self.q_rad, 9).tolist(),
+        }
+
+
+def error_stats(values: np.ndarray) -> dict[str, float]:
+    """mean / RMS / max / 95th percentile of errors (NaN rows ignored), in the input's unit."""
+    v = np.asarray(values, float)
+    v = v[np.isfinite(v)]
+    if v.size == 0:
+        return {"mean": np.nan, "rms": np.nan, "max": np.nan, "p95": np.nan, "n": 0}
+    return {"mean": float(v.mean()), "rms": float(np.sqrt(np.mean(v**2))), "max": float(v.max()),
+            "p95": float(np.percentile(v, 95)), "n": int(v.size)}  # fmt: skip
+
+
+@dataclass
+class LoopResult:
+    """All targets and the before / after statistics (mm, deg) of the visited ones."""
+
+    targets: list[TargetResult]
+    smrs: int
+    generator: str
+    model_based: bool
+
+    @property
+    def visited(self) -> list[TargetResult]:
+        return [t for t in self.targets if t.errors_m]
+
+    def summary(self) -> dict:
+        v = self.visited
+        out: dict = {
+            "targets": len(self.targets),
+            "visited": len(v),
+            "smrs": self.smrs,
+            "generator": self.generator,
+            "start": "model-based" if self.model_based else "nominal IK",
+            "statuses": {s: sum(t.status == s for t in self.targets) for s in sorted({t.status for t in self.targets})},
+            "iterations_mean": float(np.mean([t.iterations for t in v])) if v else np.nan,
+            "position_mm": {
+                "uncompensated": error_stats(np.array([t.uncompensated_error_m for t in v]) * 1e3),
+                "start": error_stats(np.array([t.errors_m[0] for t in v]) * 1e3),
+                "final": error_stats(np.array([t.error_m for t in v]) * 1e3),
+            },
+        }
+        if self.smrs == 3:
+            out["orientation_deg"] = {
+                "uncompensated": error_stats(np.rad2deg([t.uncompensated_rotation_rad for t in v])),
+                "start": error_stats(np.rad2deg([t.rotation_errors_rad[0] for t in v])),
+                "final": error_stats(np.rad2deg([t.rotation_error_rad for t in v])),
+            }
+        return out
+
+    def table(self) -> str:
+        """Per-target lines and the before / after table, for the console."""
+        lines = [f"pseudo-target loop ({self.smrs} SMR{'s' if self.smrs > 1 else ''}, generator {self.generator}, "
+                 f"{'model-based' if self.model_based else 'nominal IK'} start):"]  # fmt: skip
+        for t in self.targets:
+            if not t.errors_m:
+                lines.append(f"  {t.target_id}: {t.status} (not measured)")
+                continue
+            errs = " -> ".join(f"{e * 1e3:.4f}" for e in t.errors_m)
+            rot = f"; {np.rad2deg(t.rotation_error_rad):.4f} deg" if self.smrs == 3 else ""
+            lines.append(f"  {t.target_id}: {errs} mm ({t.iterations} it, {t.status}){rot}")
+        s = self.summary()
+        lines.append("")
+        lines.append(stage_table(s))
+        return "\n".join(lines)
+
+
+def stage_table(summary: dict) -> str:
+    """The before / after table: uncompensated (when measured) -> start -> measured loop."""
+    start = "model-based" if summary["start"] == "model-based" else "nominal IK"
+    rows = [("uncompensated", "uncompensated"), (start, "start"), ("measured loop", "final")]
+    head = f"  {'stage':<16}{'mean':>9}{'RMS':>9}{'max':>9}{'p95':>9}  (mm)"
+    if "orientation_deg" in summary:
+        head += f"{'mean':>10}{'max':>9}  (deg)"
+    lines = [head]
+    for label, key in rows:
+        p = summary["position_mm"][key]
+        if not p["n"]:
+            continue
+        line = f"  {label:<16}{p['mean']:9.4f}{p['rms']:9.4f}{p['max']:9.4f}{p['p95']:9.4f}      "
+        if "orientation_deg" in summary:
+            o = summary["orientation_deg"][key]
+            line += f"{o['mean']:10.4f}{o['max']:9.4f}" if o["n"] else ""
+        lines.append(line)
+    return "\n".join(lines)
+
+
+# ------------------------------------------------------------------------------------------ targets
+def load_model(model: CalibratedModel | str | Path | None) -> CalibratedModel | None:
+    if model is None or isinstance(model, CalibratedModel):
+        return model
+    if not Path(model).is_file():
+        raise ValueError(f"--model {model}: no such file; give a model written by `hil calibrate` or `hil diagnose`")
+    return CalibratedModel.load(model)
+
+
+def nominal_model(config: CellConfig, T_tracker_base: np.ndarray, p_nest1_m: np.ndarray) -> CalibratedModel:
+    """The controller's view without calibration: nominal geometry, the registration, the tool drawing / fit."""
+    nominal = config.nominal
+    return CalibratedModel(nominal.name, nominal, nominal, np.asarray(T_tracker_base, float), {1: np.asarray(p_nest1_m, float)})
+
+
+def random_targets(config: CellConfig, model: CalibratedModel, count: int, seed: int = 0, full_pose: bool = False,
+                   tilt_deg: float = 15.0) -> np.ndarray:  # fmt: skip
+    """`count` held-out targets in the sampled volume (tracker frame): where the model says the robot really
+    puts SMR 1 (and the flange) for random reachable, non-singular poses facing the tracker inside the
+    envelope. Points (count, 3), or poses (count, 4, 4) T_tracker_tool for full_pose."""
+    if count < 1:
+        raise ValueError("--targets must be at least 1")
+    rng = np.random.default_rng(seed)
+    box = workspace_box(config.nominal, config.p_base_tracker_m)
+    p_nest = config.nests_flange_m[0]
+    found: list[np.ndarray] = []
+    for _ in range(20):
+        T = facing_poses(random_points(box, 3 * count, rng), config.p_base_tracker_m, rng, tilt_deg=tilt_deg)
+        joints = plan_joints(config.nominal, T, p_nest, q_near=config.q_home_rad)
+        q = joints.q[joints.usable]
+        inside = np.array([p is None for p in config.envelope.pose_problems(config.nominal, q, config.nests_flange_m)], bool)
+        found.append(q[inside] if len(q) else np.zeros((0, 6)))
+        if sum(len(f) for f in found) >= count:
+            break
+    q_all = np.vstack(found)[:count]
+    if len(q_all) < count:
+        raise ValueError(f"found only {len(q_all)} usable target poses in the sampled volume; widen [envelope] or ask for fewer")
+    T_actual = PosePredictor(model, smr=1)(q_all)
+    return T_actual if full_pose else T_actual[:, :3, 3]
+
+
+def read_targets_csv(path: str | Path) -> np.ndarray:
+    """Targets from a CSV: x_mm, y_mm, z_mm (SMR 1 in the tracker frame), optionally rx_deg, ry_deg, rz_deg
+    (flange orientation, tracker frame, rotation vector) for full-pose targets."""
+    try:
+        df = pd.read_csv(path)
+    except (OSError, pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
+        raise ValueError(f"cannot read targets {path}: {exc}") from exc
+    pos = ["x_mm", "y_mm", "z_mm"]
+    rot = [c for c in ("rx_deg", "ry_deg", "rz_deg") if c in df.columns]
+    if any(c not in df.columns for c in pos) or len(rot) not in (0, 3) or len(df) == 0:
+        raise ValueError(f"{path}: targets need columns x_mm, y_mm, z_mm (optionally all of rx_deg, ry_deg, rz_deg) and a row")
+    values = df[pos + rot].apply(pd.to_numeric, errors="coerce").to_numpy(float)
+    if not np.all(np.isfinite(values)):
+        raise ValueError(f"{path}: row {int(np.flatnonzero(~np.all(np.isfinite(values), axis=1))[0]) + 1} has a missing or non-numeric value")
+    if not rot:
+        return values / 1e3
+    T = np.tile(np.eye(4), (len(values), 1, 1))
+    T[:, :3, :3] = Rotation.from_rotvec(np.deg2rad(values[:, 3:])).as_matrix()
+    T[:, :3, 3] = values[:, :3] / 1e3
+    return T
+
+
+def resolve_targets(targets: int | str | np.ndarray, config: CellConfig, model: CalibratedModel, seed: int, smrs: int) -> np.ndarray:
+    """Targets as poses (N, 4, 4) for three SMRs or points (N, 3) for one, from a count, a CSV or an array."""
+    if smrs not in SMR_MODES:
+        raise ValueError(f"--smrs {smrs}: use 1 (position) or 3 (pose: SMRs in nests 1, 2, 3)")
+    if smrs == 3 and len(config.nests_flange_m) < 3:
+        raise ValueError("--smrs 3 needs a tool with three nests ([tool] nests_flange_mm)")
+    if isinstance(targets, str):
+        targets = int(targets) if targets.strip().isdigit() else read_targets_csv(targets)
+    if isinstance(targets, (int, np.integer)):
+        return random_targets(config, model, int(targets), seed, full_pose=smrs == 3)
+    t = np.asarray(targets, float)
+    if t.ndim == 2 and t.shape[1] == 3:
+        if smrs == 3:
+            raise ValueError("three SMRs correct the orientation too: give targets with rx_deg, ry_deg, rz_deg")
+        return t
+    if t.ndim == 3 and t.shape[1:] == (4, 4):
+        return t if smrs == 3 else t[:, :3, 3]
+    raise ValueError(f"targets must be points (N, 3) or poses (N, 4, 4) in metres, got shape {t.shape}")
+
+
+# ------------------------------------------------------------------------------------------ start joints
+@dataclass
+class Start:
+    q: np.ndarray  # (N, 6) joints of the first measurement (NaN where not usable)
+    q_uncompensated: np.ndarray  # (N, 6) plain nominal IK
+    status: np.ndarray  # (N,) "ok" or why the target is not visited
+
+
+def start_joints(config: CellConfig, ik_model: CalibratedModel, model: CalibratedModel | None, T_d: np.ndarray,
+                 generator: str, threshold_m: float) -> Start:  # fmt: skip
+    """Model-based compensated joints (nominal IK without a model), checked for reach, singularity, envelope."""
+    full_pose = T_d.ndim == 3
+    gen = generator if full_pose else None
+    home = config.q_home_rad
+    if full_pose:
+        plain = compensate(ik_model, T_d, generator=gen, max_iter=0, threshold_m=threshold_m, q_near=home)
+        q_plain, status = plain.q, plain.status.astype(object)
+        seed = None
+    else:  # points: the SMR facing the tracker (no tilt), nominal IK of that pose is the uncompensated start
+        T_bt = np.linalg.inv(ik_model.T_tracker_base)
+        p_base = T_d @ T_bt[:3, :3].T + T_bt[:3, 3]
+        T_face = facing_poses(p_base, config.p_base_tracker_m, np.random.default_rng(0), tilt_deg=0.0)
+        joints = plan_joints(config.nominal, T_face, ik_model.tools[1], q_near=home)
+        status = np.where(joints.reason == "ok", "ok", joints.reason).astype(object)
+        q_plain = np.where(joints.usable[:, None], joints.q, np.nan)
+        seed = np.where(joints.usable[:, None], joints.q, home)
+    if model is not None:
+        res = compensate(model, T_d, generator=gen, max_iter=10, threshold_m=min(threshold_m, 1e-5) / 10, q_near=home, q_seed=seed)
+        q = res.q
+        status = np.where(status == "ok", res.status, status).astype(object)
+    else:
+        q = q_plain.copy()
+    status[np.isin(status, USABLE_START)] = "ok"
+    ok = (status == "ok") & np.all(np.isfinite(q), axis=1)
+    status[~ok & (status == "ok")] = "no_ik_solution"
+    if ok.any():
+        sigma = position_sigma_min_m(config.nominal, q[ok], config.nests_flange_m[0])
+        status[np.flatnonzero(ok)[sigma < SINGULAR_SIGMA_M]] = "singular"
+        ok = status == "ok"
+    if ok.any():
+        problems = config.envelope.pose_problems(config.nominal, q[ok], config.nests_flange_m)
+        status[np.flatnonzero(ok)[[p is not None for p in problems]]] = "envelope"
+    q = np.where((status == "ok")[:, None], q, np.nan)
+    return Start(q, q_plain, status.astype(str))
+
+
+def target_ids(count: int) -> list[str]:
+    return [f"t{k + 1:03d}" for k in range(count)]
+
+
+def plan(config: CellConfig, *, model: CalibratedModel | str | None = None, targets: int | str = 20, generator: str = "yin",
+         threshold_mm: float = 0.01, max_iter: int = 3, smrs: int = 1, seed: int = 0) -> Plan:  # fmt: skip
+    """The first pose of every usable target (model-based start), for --dry-run and the envelope check."""
+    check_options(generator, threshold_mm, max_iter)
+    the_model = load_model(model)
+    if the_model is None:
+        raise ValueError("planning the loop needs --model (the registration it would use is only known on the cell)")
+    T_d = resolve_targets(targets, config, the_model, seed, smrs)
+    ik_model = nominal_model(config, the_model.T_tracker_base, the_model.tools.get(1, config.nests_flange_m[0]))
+    start = start_joints(config, ik_model, the_model, T_d, generator, threshold_mm / 1e3)
+    ids = target_ids(len(T_d))
+    poses = [PlannedPose(f"{i}/i0", PROCEDURE, STEP, q, "nest1") for i, q, s in zip(ids, start.q, start.status, strict=True) if s == "ok"]
+    if not poses:
+        raise ValueError("no target is usable (see the statuses): give targets inside the calibrated volume")
+    dropped = {str(s): int(np.sum(start.status == s)) for s in np.unique(start.status) if s != "ok"}
+    per_point = smrs * (config.settle_s + config.shots_per_point * config.meas_time_s + 0.5) * (max_iter + 1)
+    return Plan(PROCEDURE, poses, config, operator_steps=smrs, dropped=dropped, per_point_s=per_point)
+
+
+def check_options(generator: str, threshold_mm: float, max_iter: int) -> None:
+    check_generator(generator)
+    if not 0.0005 <= threshold_mm <= 10.0:
+        raise ValueError(f"--threshold-mm {threshold_mm:g} is outside 0.0005..10 mm")
+    if not 0 <= max_iter <= 20:
+        raise ValueError(f"--max-iter {max_iter} is outside 0..20")
+
+
+# ------------------------------------------------------------------------------------------ the loop
+def run(session: Session, *, model: CalibratedModel | str | None = None, targets: int | str | np.ndarray = 20,
+        generator: str = "yin", threshold_mm: float = 0.01, max_iter: int = 3, smrs: int = 1, seed: int = 0,
+        shots: int | None = None, measure_uncompensated: bool = False) -> LoopResult:  # fmt: skip
+    """Run the measured pseudo-target loop on every target (see the module docstring); resumable.
+
+    `targets`: a count of random held-out targets in the sampled volume, a CSV path, or an array (tracker
+    frame, m). `max_iter`: corrections after the first measurement. `measure_uncompensated` also measures
+    each target's plain nominal IK once (`t007/u`), the "uncompensated" row of the before / after table.
+    """
+    check_options(generator, threshold_mm, max_iter)
+    the_model = load_model(model)
+    reg = session.require_registration()
+    T_tb = the_model.T_tracker_base if the_model is not None else reg.T_tracker_base
+    ik_model = the_model if the_model is not None else nominal_model(session.config, T_tb, session.nest_flange_m(1))
+    T_d = resolve_targets(targets, session.config, ik_model, seed, smrs)
+    _pin_targets(session, T_d, generator, threshold_mm, max_iter, smrs, the_model is not None)
+    threshold_m = threshold_mm / 1e3
+    nominal_ik = nominal_model(session.config, T_tb, ik_model.tools[1])
+    start = start_joints(session.config, nominal_ik, the_model, T_d, generator, threshold_m)
+    loop = _Loop(session, ik_model, T_d, generator, threshold_m, max_iter, smrs, shots)
+    ids = target_ids(len(T_d))
+    results = [TargetResult(i, str(s)) for i, s in zip(ids, start.status, strict=True)]
+    todo = [k for k, r in enumerate(results) if r.status == "ok"]
+    loop.ask_operator()
+    with session.progress.task("pseudo-target loop", total=len(todo)) as advance:
+        for k in todo:
+            if measure_uncompensated:
+                T_u = loop.measure(f"{ids[k]}/u", start.q_uncompensated[k])
+                _, results[k].uncompensated_error_m, results[k].uncompensated_rotation_rad = (
+                    x[0] for x in pose_cost(T_u[None], loop.T_d4[k : k + 1], smrs == 3, LENGTH_SCALE_M)
+                )
+            loop.run_target(k, ids[k], start.q[k], results[k])
+            advance()
+    result = LoopResult(results, smrs, generator, the_model is not None)
+    session.finish_step(PROCEDURE, "summary", {"summary": result.summary(), "targets": [r.to_dict() for r in results]})
+    return result
+
+
+def _pin_targets(session: Session, T_d: np.ndarray, generator: str, threshold_mm: float, max_iter: int, smrs: int, model_based: bool) -> None:
+    """Record the targets and options on the first run; a resume with other ones would mix two jobs."""
+    pinned = session.step_result(PROCEDURE, "targets")
+    options = {"generator": generator, "threshold_mm": threshold_mm, "max_iter": max_iter, "smrs": smrs, "model_based": model_based}
+    if pinned is None:
+        session.finish_step(PROCEDURE, "targets", {"targets_m": np.round(T_d, 12).tolist(), **options})
+        return
+    same = np.shape(pinned["targets_m"]) == T_d.shape and np.allclose(pinned["targets_m"], T_d, atol=1e-9)
+    if not same or any(pinned.get(k) != v for k, v in options.items()):
+        raise CampaignStopped(
+            "this campaign already holds a pseudo-target loop with other targets or options",
+            "re-run with the same options and model to resume it, or use a new --campaign file",
+        )
+
+
+class _Loop:
+    """Measure (or recall what is recorded), update the pseudo target, solve its IK: one target at a time."""
+
+    def __init__(self, session: Session, ik_model: CalibratedModel, T_d: np.ndarray, generator: str,
+                 threshold_m: float, max_iter: int, smrs: int, shots: int | None) -> None:  # fmt: skip
+        self.session, self.generator, self.threshold_m = session, generator, threshold_m
+        self.max_iter, self.smrs, self.shots = max_iter, smrs, shots
+        self.full_pose = smrs == 3
+        self.ik = PseudoTargetIK(ik_model, "kinematic", smr=1, full_pose=self.full_pose)
+        if self.full_pose:
+            self.T_d4 = np.asarray(T_d, float)
+        else:
+            self.T_d4 = np.tile(np.eye(4), (len(T_d), 1, 1))
+            self.T_d4[:, :3, 3] = T_d
+        self.nests = np.array([session.nest_flange_m(k) for k in range(1, smrs + 1)])
+        rows = session.store.measurements(PROCEDURE, STEP)
+        self.recorded = {
+            pid: (np.array(p, float), np.array(q, float))
+            for pid, p, q in zip(rows["point_id"], rows["p_tracker_m"], rows["q_target_rad"], strict=True)
+        } if len(rows) else {}  # fmt: skip
+
+    def ask_operator(self) -> None:
+        for k in range(1, self.smrs + 1):
+            self.session.ask(OperatorStep(f"Put SMR {k} in tool nest {k}.", "place_smr", smr=k, location=f"nest{k}"))
+
+    def _point(self, point_id: str, q: np.ndarray, nest: int) -> np.ndarray:
+        if point_id in self.recorded:
+            p, q_rec = self.recorded[point_id]
+            if not np.allclose(q_rec, q, atol=1e-6):
+                raise CampaignStopped(
+                    f"{point_id} was recorded at other joints than this run would command",
+                    "re-run with the same model and options, or use a new --campaign file",
+                )
+            return p
+        record = self.session.measure_point(
+            PROCEDURE, STEP, point_id, q, smr=nest, location=f"nest{nest}", p_flange_m=self.nests[nest - 1],
+            shots=self.shots, extra={"target": point_id.split("/")[0]},
+        )
+        if record is None:  # recorded between our read and now (not expected): read it back
+            rows = self.session.store.measurements(PROCEDURE, STEP)
+            return np.array(rows.loc[rows["point_id"] == point_id, "p_tracker_m"].iloc[0], float)
+        return np.asarray(record.p_tracker_m, float)
+
+    def measure(self, base_id: str, q: np.ndarray) -> np.ndarray:
+        """Measured T_tracker_tool (4, 4): SMR 1's point, and with three SMRs the flange orientation from
+        the nest layout fitted to the three measured nests (Kabsch)."""
+        T = np.eye(4)
+        if self.smrs == 1:
+            T[:3, 3] = self._point(base_id, q, 1)
+            return T
+        p = np.array([self._point(f"{base_id}/n{k}", q, k) for k in range(1, self.smrs + 1)])
+        T_tracker_flange, _ = fit_rigid(self.nests, p)
+        T[:3, :3] = T_tracker_flange[:3, :3]
+        T[:3, 3] = p[0]
+        return T
+
+    def run_target(self, k: int, tid: str, q0: np.ndarray, out: TargetResult) -> None:
+        q = np.asarray(q0, float)
+        T_p = self.ik.from_flange(forward_kinematics(self.ik.kin, q[None]))  # the pseudo target FK(q)
+        T_d = self.T_d4[k : k + 1]
+        best = np.inf
+        for i in range(self.max_iter + 1):
+            T_a = self.measure(f"{tid}/i{i}", q)[None]
+            cost, dp, dr = pose_cost(T_a, T_d, self.full_pose, LENGTH_SCALE_M)
+            out.errors_m.append(float(dp[0]))
+            out.rotation_errors_rad.append(float(dr[0]))
+            if cost[0] < best:
+                best, out.best_iteration, out.q_rad = float(cost[0]), i, q.copy()
+            if best < self.threshold_m:
+                out.status = "ok"
+                return
+            if i == self.max_iter:
+                out.status = "max_iter"
+                return
+            if self.full_pose:
+                T_p = update_pseudo_target(self.generator, T_d, T_a, T_p)
+            else:
+                T_p = T_p.copy()
+                T_p[:, :3, 3] = update_pseudo_position(T_d[:, :3, 3], T_a[:, :3, 3], T_p[:, :3, 3])
+            q_new, reason = self.ik.solve(T_p, q[None], project=self.generator == "add")
+            if reason[0] != "ok":
+                out.status = str(reason[0])
+                return
+            cfg = self.session.config
+            if cfg.envelope.pose_problems(cfg.nominal, q_new, cfg.nests_flange_m)[0] is not None:
+                out.status = "envelope"
+                return
+            q = q_new[0]
