@@ -120,7 +120,9 @@ class LoopResult:
             "smrs": self.smrs,
             "generator": self.generator,
             "start": "model-based" if self.model_based else "nominal IK",
-            "statuses": {s: sum(t.status == s for t in self.targets) for s in sorted({t.status for t in self.targets})},
+            "statuses": {
+                s: sum(t.status == s for t in self.targets) for s in sorted({t.status for t in self.targets})
+            },
             "iterations_mean": float(np.mean([t.iterations for t in v])) if v else np.nan,
             "position_mm": {
                 "uncompensated": error_stats(np.array([t.uncompensated_error_m for t in v]) * 1e3),
@@ -178,14 +180,18 @@ def load_model(model: CalibratedModel | str | Path | None) -> CalibratedModel | 
     if model is None or isinstance(model, CalibratedModel):
         return model
     if not Path(model).is_file():
-        raise ValueError(f"--model {model}: no such file; give a model written by `hil calibrate` or `hil diagnose`")
+        raise ValueError(
+            f"--model {model}: no such file; give a model written by `hil calibrate` or `hil diagnose`"
+        )
     return CalibratedModel.load(model)
 
 
 def nominal_model(config: CellConfig, T_tracker_base: np.ndarray, p_nest1_m: np.ndarray) -> CalibratedModel:
     """The controller's view without calibration: nominal geometry, the registration, the tool drawing / fit."""
     nominal = config.nominal
-    return CalibratedModel(nominal.name, nominal, nominal, np.asarray(T_tracker_base, float), {1: np.asarray(p_nest1_m, float)})
+    return CalibratedModel(
+        nominal.name, nominal, nominal, np.asarray(T_tracker_base, float), {1: np.asarray(p_nest1_m, float)}
+    )
 
 
 def random_targets(config: CellConfig, model: CalibratedModel, count: int, seed: int = 0, full_pose: bool = False,
@@ -203,13 +209,17 @@ def random_targets(config: CellConfig, model: CalibratedModel, count: int, seed:
         T = facing_poses(random_points(box, 3 * count, rng), config.p_base_tracker_m, rng, tilt_deg=tilt_deg)
         joints = plan_joints(config.nominal, T, p_nest, q_near=config.q_home_rad)
         q = joints.q[joints.usable]
-        inside = np.array([p is None for p in config.envelope.pose_problems(config.nominal, q, config.nests_flange_m)], bool)
+        inside = np.array(
+            [p is None for p in config.envelope.pose_problems(config.nominal, q, config.nests_flange_m)], bool
+        )
         found.append(q[inside] if len(q) else np.zeros((0, 6)))
         if sum(len(f) for f in found) >= count:
             break
     q_all = np.vstack(found)[:count]
     if len(q_all) < count:
-        raise ValueError(f"found only {len(q_all)} usable target poses in the sampled volume; widen [envelope] or ask for fewer")
+        raise ValueError(
+            f"found only {len(q_all)} usable target poses in the sampled volume; widen [envelope] or ask for fewer"
+        )
     T_actual = PosePredictor(model, smr=1)(q_all)
     return T_actual if full_pose else T_actual[:, :3, 3]
 
@@ -224,10 +234,14 @@ def read_targets_csv(path: str | Path) -> np.ndarray:
     pos = ["x_mm", "y_mm", "z_mm"]
     rot = [c for c in ("rx_deg", "ry_deg", "rz_deg") if c in df.columns]
     if any(c not in df.columns for c in pos) or len(rot) not in (0, 3) or len(df) == 0:
-        raise ValueError(f"{path}: targets need columns x_mm, y_mm, z_mm (optionally all of rx_deg, ry_deg, rz_deg) and a row")
+        raise ValueError(
+            f"{path}: targets need columns x_mm, y_mm, z_mm (optionally all of rx_deg, ry_deg, rz_deg) and a row"
+        )
     values = df[pos + rot].apply(pd.to_numeric, errors="coerce").to_numpy(float)
     if not np.all(np.isfinite(values)):
-        raise ValueError(f"{path}: row {int(np.flatnonzero(~np.all(np.isfinite(values), axis=1))[0]) + 1} has a missing or non-numeric value")
+        raise ValueError(
+            f"{path}: row {int(np.flatnonzero(~np.all(np.isfinite(values), axis=1))[0]) + 1} has a missing or non-numeric value"
+        )
     if not rot:
         return values / 1e3
     T = np.tile(np.eye(4), (len(values), 1, 1))
@@ -236,7 +250,9 @@ def read_targets_csv(path: str | Path) -> np.ndarray:
     return T
 
 
-def resolve_targets(targets: int | str | np.ndarray, config: CellConfig, model: CalibratedModel, seed: int, smrs: int) -> np.ndarray:
+def resolve_targets(
+    targets: int | str | np.ndarray, config: CellConfig, model: CalibratedModel, seed: int, smrs: int
+) -> np.ndarray:
     """Targets as poses (N, 4, 4) for three SMRs or points (N, 3) for one, from a count, a CSV or an array."""
     if smrs not in SMR_MODES:
         raise ValueError(f"--smrs {smrs}: use 1 (position) or 3 (pose: SMRs in nests 1, 2, 3)")
@@ -249,7 +265,9 @@ def resolve_targets(targets: int | str | np.ndarray, config: CellConfig, model: 
     t = np.asarray(targets, float)
     if t.ndim == 2 and t.shape[1] == 3:
         if smrs == 3:
-            raise ValueError("three SMRs correct the orientation too: give targets with rx_deg, ry_deg, rz_deg")
+            raise ValueError(
+                "three SMRs correct the orientation too: give targets with rx_deg, ry_deg, rz_deg"
+            )
         return t
     if t.ndim == 3 and t.shape[1:] == (4, 4):
         return t if smrs == 3 else t[:, :3, 3]
@@ -283,7 +301,15 @@ def start_joints(config: CellConfig, ik_model: CalibratedModel, model: Calibrate
         q_plain = np.where(joints.usable[:, None], joints.q, np.nan)
         seed = np.where(joints.usable[:, None], joints.q, home)
     if model is not None:
-        res = compensate(model, T_d, generator=gen, max_iter=10, threshold_m=min(threshold_m, 1e-5) / 10, q_near=home, q_seed=seed)
+        res = compensate(
+            model,
+            T_d,
+            generator=gen,
+            max_iter=10,
+            threshold_m=min(threshold_m, 1e-5) / 10,
+            q_near=home,
+            q_seed=seed,
+        )
         q = res.q
         status = np.where(status == "ok", res.status, status).astype(object)
     else:
@@ -312,12 +338,20 @@ def plan(config: CellConfig, *, model: CalibratedModel | str | None = None, targ
     check_options(generator, threshold_mm, max_iter)
     the_model = load_model(model)
     if the_model is None:
-        raise ValueError("planning the loop needs --model (the registration it would use is only known on the cell)")
+        raise ValueError(
+            "planning the loop needs --model (the registration it would use is only known on the cell)"
+        )
     T_d = resolve_targets(targets, config, the_model, seed, smrs)
-    ik_model = nominal_model(config, the_model.T_tracker_base, the_model.tools.get(1, config.nests_flange_m[0]))
+    ik_model = nominal_model(
+        config, the_model.T_tracker_base, the_model.tools.get(1, config.nests_flange_m[0])
+    )
     start = start_joints(config, ik_model, the_model, T_d, generator, threshold_mm / 1e3)
     ids = target_ids(len(T_d))
-    poses = [PlannedPose(f"{i}/i0", PROCEDURE, STEP, q, "nest1") for i, q, s in zip(ids, start.q, start.status, strict=True) if s == "ok"]
+    poses = [
+        PlannedPose(f"{i}/i0", PROCEDURE, STEP, q, "nest1")
+        for i, q, s in zip(ids, start.q, start.status, strict=True)
+        if s == "ok"
+    ]
     if not poses:
         raise ValueError("no target is usable (see the statuses): give targets inside the calibrated volume")
     dropped = {str(s): int(np.sum(start.status == s)) for s in np.unique(start.status) if s != "ok"}
@@ -347,7 +381,9 @@ def run(session: Session, *, model: CalibratedModel | str | None = None, targets
     the_model = load_model(model)
     reg = session.require_registration()
     T_tb = the_model.T_tracker_base if the_model is not None else reg.T_tracker_base
-    ik_model = the_model if the_model is not None else nominal_model(session.config, T_tb, session.nest_flange_m(1))
+    ik_model = (
+        the_model if the_model is not None else nominal_model(session.config, T_tb, session.nest_flange_m(1))
+    )
     T_d = resolve_targets(targets, session.config, ik_model, seed, smrs)
     _pin_targets(session, T_d, generator, threshold_mm, max_iter, smrs, the_model is not None)
     threshold_m = threshold_mm / 1e3
@@ -368,14 +404,30 @@ def run(session: Session, *, model: CalibratedModel | str | None = None, targets
             loop.run_target(k, ids[k], start.q[k], results[k])
             advance()
     result = LoopResult(results, smrs, generator, the_model is not None)
-    session.finish_step(PROCEDURE, "summary", {"summary": result.summary(), "targets": [r.to_dict() for r in results]})
+    session.finish_step(
+        PROCEDURE, "summary", {"summary": result.summary(), "targets": [r.to_dict() for r in results]}
+    )
     return result
 
 
-def _pin_targets(session: Session, T_d: np.ndarray, generator: str, threshold_mm: float, max_iter: int, smrs: int, model_based: bool) -> None:
+def _pin_targets(
+    session: Session,
+    T_d: np.ndarray,
+    generator: str,
+    threshold_mm: float,
+    max_iter: int,
+    smrs: int,
+    model_based: bool,
+) -> None:
     """Record the targets and options on the first run; a resume with other ones would mix two jobs."""
     pinned = session.step_result(PROCEDURE, "targets")
-    options = {"generator": generator, "threshold_mm": threshold_mm, "max_iter": max_iter, "smrs": smrs, "model_based": model_based}
+    options = {
+        "generator": generator,
+        "threshold_mm": threshold_mm,
+        "max_iter": max_iter,
+        "smrs": smrs,
+        "model_based": model_based,
+    }
     if pinned is None:
         session.finish_step(PROCEDURE, "targets", {"targets_m": np.round(T_d, 12).tolist(), **options})
         return
@@ -410,7 +462,9 @@ class _Loop:
 
     def ask_operator(self) -> None:
         for k in range(1, self.smrs + 1):
-            self.session.ask(OperatorStep(f"Put SMR {k} in tool nest {k}.", "place_smr", smr=k, location=f"nest{k}"))
+            self.session.ask(
+                OperatorStep(f"Put SMR {k} in tool nest {k}.", "place_smr", smr=k, location=f"nest{k}")
+            )
 
     def _point(self, point_id: str, q: np.ndarray, nest: int) -> np.ndarray:
         if point_id in self.recorded:
@@ -422,8 +476,15 @@ class _Loop:
                 )
             return p
         record = self.session.measure_point(
-            PROCEDURE, STEP, point_id, q, smr=nest, location=f"nest{nest}", p_flange_m=self.nests[nest - 1],
-            shots=self.shots, extra={"target": point_id.split("/")[0]},
+            PROCEDURE,
+            STEP,
+            point_id,
+            q,
+            smr=nest,
+            location=f"nest{nest}",
+            p_flange_m=self.nests[nest - 1],
+            shots=self.shots,
+            extra={"target": point_id.split("/")[0]},
         )
         if record is None:  # recorded between our read and now (not expected): read it back
             rows = self.session.store.measurements(PROCEDURE, STEP)

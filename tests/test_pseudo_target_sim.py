@@ -64,7 +64,9 @@ def true_layout_poses(q: np.ndarray, layout: np.ndarray) -> np.ndarray:
     sim = SimulatedCell(SimCellConfig(seed=SEED))
     truth = sim.ground_truth()
     T_flange = true_tool_poses(q)
-    T_flange[:, :3, 3] -= T_flange[:, :3, :3] @ np.asarray(truth["tool_nests_flange_m"][0]) + np.asarray(truth["smr_centering_m"][0])
+    T_flange[:, :3, 3] -= T_flange[:, :3, :3] @ np.asarray(truth["tool_nests_flange_m"][0]) + np.asarray(
+        truth["smr_centering_m"][0]
+    )
     nests_true = np.asarray(truth["tool_nests_flange_m"])
     centering = np.asarray(truth["smr_centering_m"])[:3]
     out = []
@@ -78,14 +80,18 @@ def true_layout_poses(q: np.ndarray, layout: np.ndarray) -> np.ndarray:
 
 def noise_floor_m(p_tracker: np.ndarray, shots: int) -> float:
     """RMS 3-D error of one measured point: the cell's tracker sigma at those distances, averaged over the shots."""
-    sigma = SimulatedCell(SimCellConfig(seed=SEED)).tracker_sigma_m(np.linalg.norm(p_tracker, axis=1)) / np.sqrt(shots)
+    sigma = SimulatedCell(SimCellConfig(seed=SEED)).tracker_sigma_m(
+        np.linalg.norm(p_tracker, axis=1)
+    ) / np.sqrt(shots)
     return float(np.sqrt(3.0 * np.mean(sigma**2)))
 
 
 def test_one_smr_brings_the_mean_error_to_the_noise_floor_in_three_iterations(cell):
     config, model = cell["config"], cell["model"]
     with session_on(config, campaign(cell, "one")) as session:
-        result = pseudo_target.run(session, model=model, targets=20, smrs=1, max_iter=3, seed=1, measure_uncompensated=True)
+        result = pseudo_target.run(
+            session, model=model, targets=20, smrs=1, max_iter=3, seed=1, measure_uncompensated=True
+        )
         targets = np.array(session.step_result("pseudo_target", "targets")["targets_m"])
     visited = result.visited
     assert len(visited) == 20 and all(t.iterations <= 3 for t in visited)
@@ -94,7 +100,9 @@ def test_one_smr_brings_the_mean_error_to_the_noise_floor_in_three_iterations(ce
     final = np.linalg.norm(true_tool_poses(q_final)[:, :3, 3] - targets, axis=1)
     start = np.linalg.norm(true_tool_poses(q_start)[:, :3, 3] - targets, axis=1)
     floor = noise_floor_m(targets, config.shots_per_point)
-    print(f"true error: model-based start {start.mean() * 1e3:.4f} mm, loop {final.mean() * 1e3:.4f} mm, floor {floor * 1e3:.4f} mm")
+    print(
+        f"true error: model-based start {start.mean() * 1e3:.4f} mm, loop {final.mean() * 1e3:.4f} mm, floor {floor * 1e3:.4f} mm"
+    )
     assert final.mean() < 1.2 * floor
     assert start.mean() > final.mean()  # the measurements did something the model could not
     summary = result.summary()["position_mm"]
@@ -148,7 +156,9 @@ def test_a_killed_loop_resumes_without_measuring_twice(cell):
         first = session.store.measurements("pseudo_target", "loop")
     assert len(first) == 5
     with session_on(config, path) as session:
-        result = pseudo_target.run(session, model=model, targets=4, smrs=1, max_iter=2, seed=3, threshold_mm=0.001)
+        result = pseudo_target.run(
+            session, model=model, targets=4, smrs=1, max_iter=2, seed=3, threshold_mm=0.001
+        )
         rows = session.store.measurements("pseudo_target", "loop")
     assert rows["point_id"].is_unique
     assert rows["point_id"].tolist()[:5] == first["point_id"].tolist()
@@ -163,7 +173,9 @@ def test_a_killed_loop_resumes_without_measuring_twice(cell):
 def test_unreachable_and_singular_targets_are_reported_and_not_visited(cell):
     config, model = cell["config"], cell["model"]
     good = pseudo_target.random_targets(config, model, 1, seed=4)
-    p_base = np.array([[4.0, 0.0, 0.5], [0.0, 0.0, 1.0]])  # far out of reach; on the base axis (shoulder singularity)
+    p_base = np.array(
+        [[4.0, 0.0, 0.5], [0.0, 0.0, 1.0]]
+    )  # far out of reach; on the base axis (shoulder singularity)
     targets = np.vstack([transform_points(model.T_tracker_base, p_base), good])
     with session_on(config, campaign(cell, "bad")) as session:
         result = pseudo_target.run(session, model=model, targets=targets, smrs=1, max_iter=1)
