@@ -185,3 +185,39 @@ def test_unreachable_and_singular_targets_are_reported_and_not_visited(cell):
     assert status[2] in ("ok", "max_iter")
     assert {p.split("/")[0] for p in rows["point_id"]} == {"t003"}
     assert "unreachable" in result.table() and "singular" in result.table()
+
+
+def test_cli_dry_run_plans_the_first_poses_and_bad_options_exit_2(cell, tmp_path):
+    import subprocess
+
+    model_path = tmp_path / "model.json"
+    cell["model"].save(model_path)
+    text = (cell["folder"] / "cell.toml").read_text().replace(cell["config"].robot_host, "127.254.254.254")
+    offline = tmp_path / "cell.toml"
+    offline.write_text(text)  # nothing listens there: a dry run must not try
+    base = [
+        sys.executable,
+        "-m",
+        "hil",
+        "run",
+        "pseudo_target",
+        "--cell",
+        str(offline),
+        "--campaign",
+        str(tmp_path / "c.sqlite"),
+    ]
+    done = subprocess.run(
+        [*base, "--dry-run", "--model", str(model_path), "--targets", "5", "--smrs", "3"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert done.returncode == 0, done.stderr
+    assert "plan of pseudo_target: 5 poses" in done.stdout and "t005/i0" in done.stdout
+    for bad in (
+        ["--model", str(tmp_path / "none.json")],
+        ["--model", str(model_path), "--threshold-mm", "0"],
+    ):
+        done = subprocess.run([*base, "--dry-run", *bad], capture_output=True, text=True, timeout=120)
+        assert done.returncode == 2 and "what to do" in done.stderr, done.stderr
+    assert not (tmp_path / "c.sqlite").exists()

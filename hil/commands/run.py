@@ -19,6 +19,7 @@ from hil.cell_config import CellConfigError, load_cell_config
 from hil.commands.errors import CliError
 from hil.envelope import EnvelopeError
 from hil.operator import OperatorAbortError
+from hil.pseudo_targets import GENERATORS
 from hil.session import CampaignStopped
 
 # name -> (module, options: list of (flag, kwargs for argparse))
@@ -46,6 +47,15 @@ PROCEDURE_OPTIONS: dict[str, list[tuple[str, dict[str, Any]]]] = {
         ("--nest", {"type": int, "default": 1, "help": "tool nest holding the SMR (default 1)"}),
         ("--tilt-deg", {"type": float, "default": 20.0, "help": "max tilt of the SMR from the tracker line, deg (default 20)"}),
         ("--seed", {"type": int, "default": 0, "help": "seed of the orientations and validation poses (default 0)"}),
+    ],
+    "pseudo_target": [
+        ("--model", {"required": True, "help": "calibrated model (model.json from hil calibrate / hil diagnose)"}),
+        ("--targets", {"default": "20", "help": "N random held-out targets in the sampled volume, or a CSV: x_mm, y_mm, z_mm (tracker frame) [, rx_deg, ry_deg, rz_deg] (default 20)"}),
+        ("--generator", {"choices": list(GENERATORS), "default": "yin", "help": "pseudo-target generator (default yin)"}),
+        ("--threshold-mm", {"type": float, "default": 0.01, "help": "stop below this measured error, mm (default 0.01)"}),
+        ("--max-iter", {"type": int, "default": 3, "help": "measured corrections per target (default 3)"}),
+        ("--smrs", {"type": int, "choices": [1, 3], "default": 1, "help": "1: position (SMR in nest 1); 3: pose (SMRs in nests 1-3) (default 1)"}),
+        ("--seed", {"type": int, "default": 0, "help": "seed of the random targets (default 0)"}),
     ],
 }
 
@@ -151,6 +161,8 @@ def summarise(name: str, result: Any) -> str:
             f"grid sampling: {result.recorded}/{result.planned} grid points and {result.validation_recorded}/"
             f"{result.validation_planned} validation points recorded; left out when planning: {dropped}"
         )
+    if name == "pseudo_target":
+        return result.table()
     return str(result)
 
 
