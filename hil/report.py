@@ -86,7 +86,8 @@ def _table(rows: list[dict], columns: list[str], fmt: dict | None = None) -> str
     return f"<table><tr>{head}</tr>{''.join(body)}</table>"
 
 
-def render_html(report: DiagnosisReport) -> str:
+def render_html(report: DiagnosisReport, compensation: dict | None = None) -> str:
+    """The report page; `compensation` (procedures.pseudo_target's summary) adds the measured loop's table."""
     d = report.to_dict()
     parts = [
         "<!doctype html><html><head><meta charset='utf-8'><title>hil calibration report</title>",
@@ -181,8 +182,34 @@ def render_html(report: DiagnosisReport) -> str:
         parts.append("<details><summary>parameters</summary>")
         parts.append(_table(cal["parameters"], ["name", "value", "delta", "std", "unit"]))
         parts.append("</details>")
+    if compensation:
+        parts.append(_compensation_html(compensation))
     parts.append("</body></html>")
     return "\n".join(parts)
+
+
+def _compensation_html(summary: dict) -> str:
+    """Uncompensated -> model-based (or nominal IK) -> measured loop on held-out targets, mm (and deg)."""
+    names = {"uncompensated": "uncompensated", "start": summary.get("start", "start"), "final": "measured loop"}
+    rows = []
+    for key, label in names.items():
+        p = summary["position_mm"][key]
+        if not p["n"]:
+            continue
+        row = {"stage": label, "targets": p["n"], **{f"{k}_mm": p[k] for k in ("mean", "rms", "max", "p95")}}
+        if "orientation_deg" in summary:
+            row.update({f"{k}_deg": summary["orientation_deg"][key][k] for k in ("mean", "max")})
+        rows.append(row)
+    columns = ["stage", "targets", "mean_mm", "rms_mm", "max_mm", "p95_mm"]
+    if "orientation_deg" in summary:
+        columns += ["mean_deg", "max_deg"]
+    return (
+        "<h2>Measured pseudo-target loop (held-out targets)</h2>"
+        f"<p>{summary['visited']} of {summary['targets']} targets visited, {summary['smrs']} SMR(s), generator "
+        f"{html.escape(str(summary['generator']))}, {summary['iterations_mean']:.1f} corrections per target on "
+        "average; errors measured by the tracker.</p>"
+        + _table(rows, columns, dict.fromkeys(columns[2:], ".4f"))
+    )
 
 
 def _run_html(run: dict) -> str:
@@ -207,6 +234,6 @@ def _run_html(run: dict) -> str:
     )
 
 
-def write_html(report: DiagnosisReport, path: str | Path) -> None:
+def write_html(report: DiagnosisReport, path: str | Path, compensation: dict | None = None) -> None:
     """Write the self-contained HTML report (tables + PNG plots embedded as base64)."""
-    Path(path).write_text(render_html(report))
+    Path(path).write_text(render_html(report, compensation))

@@ -19,8 +19,13 @@ def test_demo_runs_the_procedures_through_the_drivers_and_finds_compliance(tmp_p
     assert {e["name"] for e in report["effects_added"]} == {"gravity_compliance"}
     for name in ("cell.toml", "campaign.sqlite", "grid.csv", "validate.csv", "report.html", "model.json"):
         assert (tmp_path / name).stat().st_size > 0
-    for step in ("registration", "tool fit", "grid sampling"):
+    for step in ("registration", "tool fit", "grid sampling", "measured pseudo-target loop"):
         assert step in out.stdout
+    stages = {line.split()[0]: float(line.split()[-4]) for line in out.stdout.splitlines()
+              if line.strip().startswith(("uncompensated", "model-based", "measured loop"))}  # fmt: skip
+    assert set(stages) == {"uncompensated", "model-based", "measured"}, out.stdout[-2000:]
+    assert stages["measured"] < stages["model-based"] < 0.2 * stages["uncompensated"]  # mean error, mm
+    assert "Measured pseudo-target loop" in (tmp_path / "report.html").read_text()
     with sqlite3.connect(tmp_path / "campaign.sqlite") as db:
         (count,) = db.execute("select count(*) from measurements").fetchone()
     again = subprocess.run(args, capture_output=True, text=True, timeout=380)

@@ -7,7 +7,10 @@
    sampling at 100 mm plus random held-out validation poses.
 3. Export the grid and the validation set from the campaign, calibrate and diagnose: find what the
    geometric model misses, add it, and print the error before and after on held-out and validation data.
-4. Write the JSON report, the HTML report and the final model.
+4. Close the loop on held-out targets: the cell runs again, the robot goes to the model-based compensated
+   joints of random targets in the sampled volume and the measured pseudo-target loop corrects what is left
+   (uncompensated -> model-based -> measured loop, all measured by the tracker).
+5. Write the JSON report, the HTML report and the final model.
 
 Interrupted (Ctrl-C, a crash), the same command resumes the campaign: recorded points are not measured again.
 """
@@ -38,6 +41,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--step-mm", type=float, default=100.0, help="grid step in mm (default 100)")
     parser.add_argument("--validate", type=int, default=100, help="random validation poses (default 100)")
     add_effects_argument(parser)
+    parser.add_argument(
+        "--loop-targets", type=int, default=10, help="held-out targets of the measured loop (default 10; 0: skip)"
+    )
     parser.add_argument("--out", default="demo-out", help="output folder (default ./demo-out)")
     parser.add_argument(
         "--time-scale", type=float, default=20.0, help="simulated seconds per wall second (default 20)"
@@ -55,6 +61,8 @@ def run(args: argparse.Namespace) -> int:
         return _fail(f"--step-mm {args.step_mm:g} is outside 20..500", "use a grid step of 100-200 mm")
     if args.validate < 10:
         return _fail("--validate must be at least 10", "give more validation poses")
+    if not 0 <= args.loop_targets <= 200:
+        return _fail(f"--loop-targets {args.loop_targets} is outside 0..200", "use e.g. 10")
     if not 0.5 <= args.time_scale <= 50.0:
         return _fail(f"--time-scale {args.time_scale:g} is outside 0.5..50", "use e.g. 20")
     out = Path(args.out)
@@ -76,7 +84,19 @@ def run(args: argparse.Namespace) -> int:
         except CampaignStopped as exc:
             return _fail(exc.message, exc.remedy + " (run hil demo again to resume)")
     print(f"measured through the drivers in {time.monotonic() - started:.0f} s")
-    return analyse(args, out, campaign)
+    report = analyse(args, out, campaign)
+    loop = None
+    if args.loop_targets:
+        with interrupt_guard():
+            try:
+                loop = measured_loop(args, out, campaign, report.model)
+            except CampaignStopped as exc:
+                return _fail(exc.message, exc.remedy + " (run hil demo again to resume)")
+    from hil.report import write_html
+
+    write_html(report, out / "report.html", compensation=loop)
+    print(f"\nwrote {out}/campaign.sqlite, cell.toml, grid.csv, validate.csv, report.json, report.html, model.json")
+    return 0
 
 
 def measure(args: argparse.Namespace, out: Path, campaign: Path) -> None:
@@ -104,13 +124,39 @@ def measure(args: argparse.Namespace, out: Path, campaign: Path) -> None:
                 print(summarise("grid_sampling", result))
 
 
-def analyse(args: argparse.Namespace, out: Path, campaign: Path) -> int:
-    """Diagnose the grid against the validation set and write the reports and the model."""
+def measured_loop(args: argparse.Namespace, out: Path, campaign: Path, model) -> dict:
+    """Start the cell again and run the measured pseudo-target loop on held-out targets; its summary."""
+    from fakes.launch import sim_cell
+    from hil.cell_config import load_cell_config
+    from hil.commands.instruments import open_session, simulated_operator
+    from hil.commands.sim_cell import write_sim_cell
+    from procedures import pseudo_target
+
+    print(f"\nmeasured pseudo-target loop on {args.loop_targets} held-out targets (model-based start):")
+    cell_path = out / "cell.toml"
+    with sim_cell(
+        robot=args.robot, seed=args.seed, time_scale=args.time_scale, extra_args=("--effects", args.effects)
+    ) as cell:
+        write_sim_cell(cell_path, cell.info, cell.control.call("ground_truth"), args.time_scale)
+        config = load_cell_config(cell_path)
+        with ExitStack() as stack:
+            session = open_session(config, campaign, simulated_operator(config.simulator_control), stack)
+            with session:
+                result = pseudo_target.run(
+                    session, model=model, targets=args.loop_targets, max_iter=2, seed=args.seed + 1000,
+                    measure_uncompensated=True,
+                )  # fmt: skip
+    print(pseudo_target.stage_table(result.summary()))
+    return result.summary()
+
+
+def analyse(args: argparse.Namespace, out: Path, campaign: Path):
+    """Diagnose the grid against the validation set and write the JSON report and the model."""
     import numpy as np
 
     from hil.dataset import write_dataset
     from hil.diagnosis import run_diagnosis
-    from hil.report import write_html, write_json
+    from hil.report import write_json
     from hil.robots import get_robot
     from hil.store import CampaignStore, campaign_dataset
 
@@ -131,7 +177,5 @@ def analyse(args: argparse.Namespace, out: Path, campaign: Path) -> int:
     print(f"effects added: {added or 'none'}")
     print(report.conclusion)
     write_json(report, out / "report.json")
-    write_html(report, out / "report.html")
     report.model.save(out / "model.json")
-    print(f"\nwrote {out}/campaign.sqlite, cell.toml, grid.csv, validate.csv, report.json, report.html, model.json")
-    return 0
+    return report
