@@ -228,17 +228,18 @@ def big_campaigns(seed: int, diagnose_poses: int = 12000, calibrate_poses: int =
     import resource
     import warnings
 
-    from fakes.campaign import random_joints, simulate_campaign
-    from fakes.cell import CellConfig, SimulatedCell
+    from fakes.campaign import simulate_campaign
+    from fakes.cell import SimCellConfig, SimulatedCell
     from hil.diagnosis import run_diagnosis
+    from tests.sim_campaigns import held_out_joints
 
     def peak_mb() -> float:
         return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
     print("\nBig campaigns (random poses of the simulated UR10)")
     print(f"{'task':<34} {'poses':>7} {'time s':>8} {'target s':>9} {'peak RSS MB':>12}  result")
-    cell = SimulatedCell(CellConfig(robot="ur10", seed=seed, backlash=True))
-    df = simulate_campaign(cell, random_joints(cell, diagnose_poses, seed=seed + 1))
+    cell = SimulatedCell(SimCellConfig(robot="ur10", seed=seed, backlash=True))
+    df = simulate_campaign(cell, held_out_joints(cell, diagnose_poses, seed=seed + 1))
     t0 = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -246,8 +247,8 @@ def big_campaigns(seed: int, diagnose_poses: int = 12000, calibrate_poses: int =
     dt = time.perf_counter() - t0
     found = ", ".join(f"{e['name']} j{e['joint']}" for e in report.effects_added)
     print(f"{'diagnose':<34} {len(df):7d} {dt:8.1f} {120:9d} {peak_mb():12.0f}  {found}")
-    cell = SimulatedCell(CellConfig(robot="ur10", seed=seed))
-    q = random_joints(cell, 4000, seed=seed + 2)
+    cell = SimulatedCell(SimCellConfig(robot="ur10", seed=seed))
+    q = held_out_joints(cell, 4000, seed=seed + 2)
     rng = np.random.default_rng(seed)
     q = q[rng.integers(0, len(q), calibrate_poses)] + rng.normal(0, 0.01, (calibrate_poses, 6))
     df = simulate_campaign(cell, q)

@@ -4,8 +4,9 @@ Two estimates, the better one wins:
 - repeated poses (rows whose reported joints agree within `repeat_tol_rad`, at least 5 groups): the
   pooled scatter of their measured positions;
 - otherwise the tracker's noise model at each point's distance (MPE = a + b * distance, taken as
-  `mpe_sigmas` sigma per axis; defaults: AT901/AT960 class, 15 um + 6 um/m, MPE = 2 sigma), combined
-  with a robot repeatability the user states (default 0).
+  `mpe_sigmas` sigma per axis; defaults: AT901/AT960 class, 15 um + 6 um/m, MPE = 2 sigma), divided by
+  the square root of the shots averaged per point when the data says (`shots_count`, as a campaign
+  export has it), combined with a robot repeatability the user states (default 0).
 The floor is quoted as the RMS of the 3-D error a perfect model would leave, in mm.
 """
 
@@ -41,11 +42,14 @@ def estimate_noise_floor(
     p = points_m(df)
     dist = np.linalg.norm(p, axis=1)
     sigma_tracker = (mpe_const_m + mpe_per_m * dist) / mpe_sigmas
+    shots = df["shots_count"].to_numpy(float) if "shots_count" in df.columns else np.ones(len(p))
+    sigma_tracker = sigma_tracker / np.sqrt(np.clip(shots, 1.0, None))  # each row averages its shots
     rep_axis = repeatability_mm / 1000.0 / np.sqrt(3.0)
     sigma = np.sqrt(sigma_tracker**2 + rep_axis**2)
     method = (
         f"tracker noise model {mpe_const_m * 1e6:.0f} um + {mpe_per_m * 1e6:.0f} um/m as {mpe_sigmas:g} sigma "
         f"at the measured distances ({dist.min():.2f}-{dist.max():.2f} m)"
+        + (f", averaged over {np.median(shots):g} shots per point" if np.any(shots > 1) else "")
         + (f", plus robot repeatability {repeatability_mm} mm" if repeatability_mm else "")
     )
     groups = _repeat_groups(joints_rad(df), repeat_tol_rad)

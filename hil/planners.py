@@ -19,7 +19,7 @@ from hil.kinematics import KinematicModel, geometric_jacobian, link_frames
 # Smallest singular value of the position Jacobian (m/rad) below which a pose counts as near-singular:
 # a joint error of 1e-5 rad would then move the tool by less than ~0.5 um in some direction, and
 # nearby commands swing the wrist. UR wrist singularities (q5 ~ 0) fall far below it.
-SINGULAR_SIGMA_M = 0.05
+SINGULAR_SIGMA_M = 0.02
 
 
 @dataclass(frozen=True)

@@ -270,7 +270,7 @@ def test_cli(model, tmp_path, capsys):
     out = _hil("compensate", "model.json", "bad.csv", "-o", "j3.csv", cwd=tmp_path, capsys=capsys)
     assert out[0] == 2 and "rx_deg, ry_deg, rz_deg" in out[2]
     out = _hil("compensate", "model.json", "missing.csv", "-o", "j3.csv", cwd=tmp_path, capsys=capsys)
-    assert out[0] == 2 and "error:" in out[2]
+    assert out[0] == 2 and "hil compensate: " in out[2] and "what to do: " in out[2]
 
 
 def test_the_update_and_ik_steps_work_on_poses_from_elsewhere(model):

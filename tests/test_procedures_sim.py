@@ -82,6 +82,19 @@ def test_grid_records_every_planned_reachable_point_once(campaign):
     assert campaign["measured_again"] == campaign["measured"]  # nothing measured twice on the resume
 
 
+def test_the_campaign_holds_the_snapshot_the_log_and_the_step_results(campaign):
+    with CampaignStore(campaign["path"]) as store:
+        snapshot = store.snapshots()[0]
+        log = " ".join(store.log_lines()["message"])
+        assert store.step_result("registration", "fit")["inliers"] == 12
+        assert set(store.step_result("tool_fit", "fit")["nests_flange_mm"]) == {"1", "2", "3"}
+        kinds = set(store.events()["kind"])
+    assert snapshot["cell"]["robot"]["model"] == "ur10" and snapshot["software"]["numpy"]
+    assert snapshot["station"]["robot_controller_version"]
+    assert "registration:" in log
+    assert "operator" in kinds  # every manual step is an event
+
+
 def test_the_export_is_a_dataset_diagnose_reads(campaign):
     out = campaign["folder"] / "grid.csv"
     done = subprocess.run(
