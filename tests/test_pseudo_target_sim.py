@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from fakes.cell import SimCellConfig, SimulatedCell
+from hil.compensation import PosePredictor
 from hil.pseudo_targets import pose_errors
 from hil.se3 import fit_rigid, transform_points
 from procedures import pseudo_target, registration, tool_fit
@@ -171,14 +172,17 @@ def test_a_killed_loop_resumes_without_measuring_twice(cell):
 
 
 def test_unreachable_and_singular_targets_are_reported_and_not_visited(cell):
+    """Pose targets (three SMRs): one 4 m from the base, one in a wrist singularity (q5 = 0), one usable."""
     config, model = cell["config"], cell["model"]
-    good = pseudo_target.random_targets(config, model, 1, seed=4)
-    p_base = np.array(
-        [[4.0, 0.0, 0.5], [0.0, 0.0, 1.0]]
-    )  # far out of reach; on the base axis (shoulder singularity)
-    targets = np.vstack([transform_points(model.T_tracker_base, p_base), good])
+    good = pseudo_target.random_targets(config, model, 1, seed=4, full_pose=True)
+    far = good.copy()
+    far[0, :3, 3] = transform_points(model.T_tracker_base, np.array([[4.0, 0.0, 0.5]]))[0]
+    q_singular = np.array(config.q_home_rad, float)
+    q_singular[1:3], q_singular[4] = (-1.2, 1.0), 0.0
+    singular = PosePredictor(model, smr=1)(q_singular[None])
+    targets = np.concatenate([far, singular, good])
     with session_on(config, campaign(cell, "bad")) as session:
-        result = pseudo_target.run(session, model=model, targets=targets, smrs=1, max_iter=1)
+        result = pseudo_target.run(session, model=model, targets=targets, smrs=3, max_iter=1)
         rows = session.store.measurements("pseudo_target", "loop")
     status = [t.status for t in result.targets]
     assert status[0] == "unreachable" and status[1] == "singular", status
