@@ -171,7 +171,7 @@ def stage_table(summary: dict) -> str:
         if "orientation_deg" in summary:
             o = summary["orientation_deg"][key]
             line += f"{o['mean']:10.4f}{o['max']:9.4f}" if o["n"] else ""
-        lines.append(line)
+        lines.append(line.rstrip())
     return "\n".join(lines)
 
 
