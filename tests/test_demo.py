@@ -24,7 +24,8 @@ def test_demo_runs_the_procedures_through_the_drivers_and_finds_compliance(tmp_p
     stages = {line.split()[0]: float(line.split()[-4]) for line in out.stdout.splitlines()
               if line.strip().startswith(("uncompensated", "model-based", "measured loop"))}  # fmt: skip
     assert set(stages) == {"uncompensated", "model-based", "measured"}, out.stdout[-2000:]
-    assert stages["measured"] < stages["model-based"] < 0.2 * stages["uncompensated"]  # mean error, mm
+    # mean measured errors, mm: the model removes most of it, the measured loop ends near the ~0.013 mm floor
+    assert stages["model-based"] < 0.2 * stages["uncompensated"] and stages["measured"] < 0.03
     assert "Measured pseudo-target loop" in (tmp_path / "report.html").read_text()
     with sqlite3.connect(tmp_path / "campaign.sqlite") as db:
         (count,) = db.execute("select count(*) from measurements").fetchone()
