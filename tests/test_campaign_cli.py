@@ -146,7 +146,9 @@ def test_cli_errors_are_refused_before_any_work(files, capsys, tmp_path, argv, m
     argv = [a.format(d=d, t=tmp_path) for a in argv]
     assert main(["campaign", *argv]) == 2
     err = capsys.readouterr().err.strip()
-    assert message in err and len(err.splitlines()) == 1 and err.startswith("error: ")
+    lines = err.splitlines()
+    assert message in err and len(lines) == 2 and lines[0].startswith("hil campaign: ")
+    assert lines[1].startswith("  what to do: ")
     assert list(tmp_path.iterdir()) == []  # nothing written
     assert (d / "c.hilc").read_bytes() == before
 

@@ -22,7 +22,7 @@ def test_sim_refuses_a_non_loopback_host_before_starting(capsys):
 
 
 def test_unknown_effect_names_the_known_ones(capsys):
-    assert main(["sim", "--host", "127.0.0.9", "--effects", "gravity,thermal"]) == 2
+    assert main(["sim", "--host", "127.0.0.9", "--effects", "gravity,thermal_expansion"]) == 2
     first, second = stderr_lines(capsys)
     assert first.startswith("hil sim: unknown effect(s) ['gravity']")
-    assert "compliance" in second and "thermal" in second
+    assert "gravity_compliance" in first + second and "thermal_expansion" in first + second

@@ -104,3 +104,33 @@ def test_hil_sim_is_the_same_cell_and_writes_its_cell_config(tmp_path):
     finally:
         stop_process(process)
     assert process.returncode == 0
+
+
+@pytest.mark.sim
+@pytest.mark.timeout(90)
+def test_write_cell_gives_a_config_that_checks_and_connects(tmp_path):
+    """`hil sim --write-cell` writes the cell.toml of the cell it starts; `hil cell check --connect` reaches
+    the robot (ur-rtde) and the tracker (emScon) it names."""
+    import subprocess
+    import sys
+
+    from fakes.launch import random_loopback_host, stop_process
+
+    cell_toml = tmp_path / "cell.toml"
+    host = random_loopback_host()
+    process = subprocess.Popen(
+        [sys.executable, "-m", "hil", "sim", "--host", host, "--time-scale", "5", "--write-cell", str(cell_toml)],
+        stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
+    )  # fmt: skip
+    try:
+        ready = json.loads(process.stdout.readline())  # printed once every server listens
+        assert ready["robot"]["host"] == host
+        check = subprocess.run(
+            [sys.executable, "-m", "hil", "cell", "check", str(cell_toml), "--connect"],
+            capture_output=True, text=True, timeout=60,
+        )  # fmt: skip
+        assert check.returncode == 0, check.stdout + check.stderr
+        assert "robot connected" in check.stdout and "tracker connected" in check.stdout
+        assert f'host = "{host}"' in cell_toml.read_text()
+    finally:
+        stop_process(process)

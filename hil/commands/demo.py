@@ -15,12 +15,12 @@ Interrupted (Ctrl-C, a crash), the same command resumes the campaign: recorded p
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from contextlib import ExitStack
 from pathlib import Path
 
 from hil.commands.cell_options import add_effects_argument, effect_flags
+from hil.commands.errors import CliError
 from hil.robots import ROBOT_NAMES
 
 UR_ROBOTS = [name for name in ROBOT_NAMES if name.startswith("ur")]
@@ -46,8 +46,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _fail(message: str, remedy: str) -> int:
-    print(f"hil demo: {message}\n  what to do: {remedy}", file=sys.stderr)
-    return 2
+    raise CliError(message, remedy)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -108,9 +108,17 @@ def run(args: argparse.Namespace) -> int:
         operator = choose_operator(config, args.operator)
     except ValueError as exc:
         raise CliError(str(exc), "pick another --operator") from exc
+    from drivers.robot import RobotError
+    from drivers.tracker import TrackerError
+
     with interrupt_guard(), ExitStack() as stack:
         try:
             session = open_session(config, campaign, operator, stack)
+        except RobotError as exc:
+            raise CliError(f"cannot connect to the robot at {config.robot_host}: {exc.message}", exc.remedy) from exc
+        except (TrackerError, OSError) as exc:
+            raise CliError(f"cannot connect to the tracker at {config.tracker_url}: {exc}", "check the tracker, its URL and the network") from exc
+        try:
             with session:
                 result = module.run(session, **kwargs)
         except CampaignStopped as exc:

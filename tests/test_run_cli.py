@@ -1,0 +1,69 @@
+"""`hil run` refuses a broken config, bad options and out-of-envelope plans before connecting to anything;
+grid plans in random order and from both directions."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import tomllib
+
+import numpy as np
+
+from hil.cell_config import format_cell_toml, parse_cell_config
+from procedures import grid_sampling
+from tests.cell_fixtures import sim_cell_toml
+
+# Nothing listens there: a command that tried to connect would fail with a connection error instead.
+OFFLINE_HOST = "127.254.254.254"
+
+
+def _run(tmp_path, cell_text: str, *args: str) -> subprocess.CompletedProcess:
+    cell = tmp_path / "cell.toml"
+    cell.write_text(cell_text.replace("127.0.0.9", OFFLINE_HOST))
+    command = [sys.executable, "-m", "hil", "run", *args[:1], "--cell", str(cell), "--campaign", str(tmp_path / "c.sqlite"), *args[1:]]
+    return subprocess.run(command, capture_output=True, text=True, timeout=60)
+
+
+def test_a_broken_config_is_refused_before_anything_connects(tmp_path):
+    text = sim_cell_toml().replace("[envelope]\n", "[envelope]\nbox_size_mm = 3\n")
+    done = _run(tmp_path, text, "grid_sampling")
+    assert done.returncode == 2
+    assert "envelope.box_size_mm: unknown setting" in done.stderr and "what to do" in done.stderr
+    assert not (tmp_path / "c.sqlite").exists()
+
+
+def test_a_sampling_box_outside_the_envelope_is_refused_before_any_motion(tmp_path):
+    data = tomllib.loads(sim_cell_toml())
+    data["envelope"]["box_min_mm"] = [-1500.0, -1500.0, 300.0]  # nothing may go below z = 300 mm
+    done = _run(tmp_path, format_cell_toml(data), "grid_sampling", "--box-min-mm", "200", "200", "0", "--box-max-mm", "700", "700", "250")
+    assert done.returncode == 2
+    assert "inside the envelope" in done.stderr and "what to do" in done.stderr, done.stderr
+    assert not (tmp_path / "c.sqlite").exists()
+
+
+def test_an_unreachable_robot_is_a_clear_error(tmp_path):
+    done = _run(tmp_path, sim_cell_toml(), "registration")
+    assert done.returncode == 2 and "Traceback" not in done.stderr
+    assert "robot" in done.stderr and "what to do" in done.stderr
+
+
+def test_bad_procedure_options_are_refused(tmp_path):
+    done = _run(tmp_path, sim_cell_toml(), "grid_sampling", "--step-mm", "5")
+    assert done.returncode == 2 and "--step-mm" in done.stderr
+    done = _run(tmp_path, sim_cell_toml(), "tool_fit", "--poses", "1")
+    assert done.returncode == 2 and "--poses" in done.stderr
+
+
+def test_random_order_and_both_directions():
+    config = parse_cell_config(tomllib.loads(sim_cell_toml()))
+    travel = grid_sampling.plan(config, step_mm=200, validation=0)
+    shuffled = grid_sampling.plan(config, step_mm=200, validation=0, order="random")
+    assert sorted(p.point_id for p in travel.poses) == sorted(p.point_id for p in shuffled.poses)
+    assert [p.point_id for p in travel.poses] != [p.point_id for p in shuffled.poses]
+    assert shuffled.estimated_duration_s() > travel.estimated_duration_s()
+    both = grid_sampling.plan(config, step_mm=200, validation=0, both_directions=True)
+    assert len(both.poses) == 2 * len(travel.poses)
+    pose = both.poses[0]
+    below = grid_sampling.approach_pose(pose.point_id, pose.q_rad)
+    above = grid_sampling.approach_pose(both.poses[1].point_id, both.poses[1].q_rad)
+    assert np.all(below < pose.q_rad) and np.all(above > both.poses[1].q_rad)
