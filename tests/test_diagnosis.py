@@ -175,13 +175,13 @@ def test_an_effect_the_simulator_does_not_have_is_found_too():
 
 
 def test_one_name_per_effect_in_the_simulator_and_the_diagnosis():
-    from fakes.cell import CELL_EFFECTS, CellConfig, parse_effect_flags
+    from fakes.cell import CELL_EFFECTS, SimCellConfig, parse_effect_flags
     from hil.effects import EFFECT_FAMILIES
 
     assert set(CELL_EFFECTS) <= set(EFFECT_FAMILIES)
     for name in CELL_EFFECTS:
         flags = parse_effect_flags(name)
         assert sum(flags.values()) == 1
-        CellConfig(**flags)  # every flag is a field of the cell
+        SimCellConfig(**flags)  # every flag is a field of the cell
     with pytest.raises(ValueError, match="unknown effect"):
         parse_effect_flags("compliance")

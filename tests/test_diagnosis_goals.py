@@ -13,17 +13,19 @@ pytestmark = pytest.mark.timeout(180)
 
 
 def _campaigns(seed, pause_s=0.0, second_placement=False, **config):
-    from fakes.campaign import grid_joints, random_joints, simulate_campaign
-    from fakes.cell import CellConfig, SimulatedCell
+    from sim_campaigns import grid_joints, held_out_joints
 
-    cell = SimulatedCell(CellConfig(robot="ur10", seed=seed, **config))
+    from fakes.campaign import simulate_campaign
+    from fakes.cell import SimCellConfig, SimulatedCell
+
+    cell = SimulatedCell(SimCellConfig(robot="ur10", seed=seed, **config))
     train = simulate_campaign(cell, grid_joints(cell, step_m=0.1, seed=seed))
     cell.advance_time(pause_s)
     if second_placement:
         cell.move_tracker(seed + 100)
         val = simulate_campaign(cell, grid_joints(cell, step_m=0.15, seed=seed + 7))
     else:
-        val = simulate_campaign(cell, random_joints(cell, 100, seed=seed + 1))
+        val = simulate_campaign(cell, held_out_joints(cell, 100, seed=seed + 1))
     return train, val
 
 

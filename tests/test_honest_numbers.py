@@ -12,12 +12,14 @@ pytestmark = pytest.mark.timeout(120)
 
 def test_parameter_uncertainties_agree_with_another_campaign():
     # Two campaigns of one cell (gravity compliance the geometric model lacks): a grid and random poses.
-    from fakes.campaign import grid_joints, random_joints, simulate_campaign
-    from fakes.cell import CellConfig, SimulatedCell
+    from sim_campaigns import grid_joints, held_out_joints
 
-    cell = SimulatedCell(CellConfig(robot="ur10", seed=2))
+    from fakes.campaign import simulate_campaign
+    from fakes.cell import SimCellConfig, SimulatedCell
+
+    cell = SimulatedCell(SimCellConfig(robot="ur10", seed=2))
     a = calibrate(simulate_campaign(cell, grid_joints(cell, step_m=0.12, seed=2)), "ur10")
-    b = calibrate(simulate_campaign(cell, random_joints(cell, 200, seed=7)), "ur10")
+    b = calibrate(simulate_campaign(cell, held_out_joints(cell, 200, seed=7)), "ur10")
     ta, tb = ({r["name"]: r for r in res.parameter_table()} for res in (a, b))
     geo = [n for n in ta if n in tb and n in a.model.nominal.param_names]
     assert len(geo) > 15
