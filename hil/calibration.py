@@ -292,7 +292,7 @@ def solve_ridge_igg3(
     w_rows = np.repeat(w_pts, 3)
     Nm = (Js * w_rows[:, None]).T @ Js
     mu = ridge * np.linalg.eigvalsh(Nm)[-1]
-    dof = max(np.count_nonzero(w_rows) - int(free.sum()), 1)
+    dof = max(int(np.count_nonzero(w_rows)) - int(free.sum()), 1)
     sigma0 = float(np.sqrt(np.sum(w_rows * r.reshape(-1) ** 2) / dof))
     cov_s = np.linalg.inv(Nm + mu * np.diag(prior_mask.astype(float)) + 1e-14 * np.eye(len(Nm)))
     std = sigma0 * np.sqrt(np.diag(cov_s)) / norms
