@@ -199,23 +199,33 @@ def grid_paper(seed: int) -> None:
         print(f"{kind:<14}{error_stats(cv)['rms_mm']:11.4f}{e['rms_mm']:10.4f}{e['max_mm']:10.4f}")
 
 
+def planned_joints(cell, points_in_box, seed: int) -> np.ndarray:
+    """Usable joints on the simulated cell for the points `points_in_box(box, rng)` of the default sampling
+    box, planned from the tracker's position, the tool drawing and the nominal model (near-singular poses kept,
+    as in the tests' campaigns)."""
+    from hil.planners import facing_poses, plan_joints, workspace_box
+
+    rng = np.random.default_rng(seed)
+    p_base_tracker = np.linalg.inv(cell.T_tracker_base)[:3, 3]
+    points = points_in_box(workspace_box(cell.nominal, p_base_tracker), rng)
+    poses = facing_poses(points, p_base_tracker, rng)
+    p_nest = np.asarray(cell.config.tool_nests_flange_m[0])
+    plan = plan_joints(cell.nominal, poses, p_nest, cell.config.q_home_rad, singular_sigma_m=0.0)
+    return plan.q[plan.usable]
+
+
 def diagnosis_timing(seed: int) -> None:
     """The whole diagnosis loop on the simulated UR10 cell (compliance + backlash) at three grid steps."""
     from fakes.campaign import simulate_campaign
     from fakes.cell import SimCellConfig, SimulatedCell
     from hil.diagnosis import run_diagnosis
-    from hil.planners import facing_poses, grid_points, plan_joints, workspace_box
+    from hil.planners import grid_points
 
     print("\nDiagnosis loop on the simulated UR10 (gravity compliance + backlash), grid campaigns")
     print(f"{'grid mm':>8} {'points':>7} {'time s':>7}  effects found")
     for step in (0.15, 0.10, 0.07):
         cell = SimulatedCell(SimCellConfig(robot="ur10", seed=seed, backlash=True))
-        # planned as grid sampling plans it: the tracker's position, the tool drawing, the nominal model
-        p_base_tracker = np.linalg.inv(cell.T_tracker_base)[:3, 3]
-        points = grid_points(workspace_box(cell.nominal, p_base_tracker), step)
-        poses = facing_poses(points, p_base_tracker, np.random.default_rng(seed))
-        plan = plan_joints(cell.nominal, poses, np.asarray(cell.config.tool_nests_flange_m[0]), cell.config.q_home_rad)
-        df = simulate_campaign(cell, plan.q[plan.usable])
+        df = simulate_campaign(cell, planned_joints(cell, lambda box, rng, step=step: grid_points(box, step), seed))
         t0 = time.perf_counter()
         report = run_diagnosis(df, "ur10")
         dt = time.perf_counter() - t0
@@ -231,7 +241,7 @@ def big_campaigns(seed: int, diagnose_poses: int = 12000, calibrate_poses: int =
     from fakes.campaign import simulate_campaign
     from fakes.cell import SimCellConfig, SimulatedCell
     from hil.diagnosis import run_diagnosis
-    from tests.sim_campaigns import held_out_joints
+    from hil.planners import random_points
 
     def peak_mb() -> float:
         return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
@@ -239,7 +249,9 @@ def big_campaigns(seed: int, diagnose_poses: int = 12000, calibrate_poses: int =
     print("\nBig campaigns (random poses of the simulated UR10)")
     print(f"{'task':<34} {'poses':>7} {'time s':>8} {'target s':>9} {'peak RSS MB':>12}  result")
     cell = SimulatedCell(SimCellConfig(robot="ur10", seed=seed, backlash=True))
-    df = simulate_campaign(cell, held_out_joints(cell, diagnose_poses, seed=seed + 1))
+    df = simulate_campaign(
+        cell, planned_joints(cell, lambda box, rng: random_points(box, 2 * diagnose_poses, rng), seed + 1)[:diagnose_poses]
+    )
     t0 = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -248,7 +260,7 @@ def big_campaigns(seed: int, diagnose_poses: int = 12000, calibrate_poses: int =
     found = ", ".join(f"{e['name']} j{e['joint']}" for e in report.effects_added)
     print(f"{'diagnose':<34} {len(df):7d} {dt:8.1f} {120:9d} {peak_mb():12.0f}  {found}")
     cell = SimulatedCell(SimCellConfig(robot="ur10", seed=seed))
-    q = held_out_joints(cell, 4000, seed=seed + 2)
+    q = planned_joints(cell, lambda box, rng: random_points(box, 8000, rng), seed + 2)[:4000]
     rng = np.random.default_rng(seed)
     q = q[rng.integers(0, len(q), calibrate_poses)] + rng.normal(0, 0.01, (calibrate_poses, 6))
     df = simulate_campaign(cell, q)

@@ -90,6 +90,80 @@ def timed_proxy(target, totals: dict, name: str):
     return Proxy()
 
 
+class InstantRobot:
+    """A Robot that is wherever it is told at once (no controller): leaves only the runner's own time."""
+
+    def __init__(self, q: np.ndarray, nominal):
+        self.q, self.nominal = np.asarray(q, float), nominal
+
+    def move_joints(self, q, speed=None, accel=None):
+        self.q = np.asarray(q, float)
+
+    def joints(self):
+        return self.q.copy()
+
+    def flange_pose(self):
+        from hil.kinematics import forward_kinematics
+
+        return forward_kinematics(self.nominal, self.q[None])[0]
+
+    def wait_settled(self, dwell_s=None, timeout_s=None):
+        pass
+
+    def stop(self):
+        pass
+
+    def recover(self):
+        pass
+
+    def close(self):
+        pass
+
+
+class InstantTracker:
+    """A Tracker that answers at once with a fixed point."""
+
+    def measure(self, shots: int = 1):
+        from drivers.tracker import TrackerMeasurement
+
+        zero = np.zeros(3)
+        return TrackerMeasurement(np.ones(3), zero, zero, 0.0, np.ones((shots, 3)), (), 20.0, 1013.0, 40.0, time.time(), 1)
+
+    def point_at(self, p_tracker_m):
+        pass
+
+    def close(self):
+        pass
+
+
+def runner_alone(step_mm: float, validation: int) -> dict:
+    """The grid procedure with instant instruments: all that is left is the runner (envelope check of every
+    path, resume check, durable commit, aiming prediction, progress), per point, planning excluded."""
+    import tomllib
+
+    from hil.cell_config import parse_cell_config
+    from hil.operator import ScriptedOperator
+    from hil.session import Session
+    from procedures import grid_sampling
+    from tests.cell_fixtures import sim_cell_toml
+
+    config = parse_cell_config(tomllib.loads(sim_cell_toml()))
+    with tempfile.TemporaryDirectory() as folder:
+        store = CampaignStore(Path(folder) / "campaign.sqlite")
+        robot = InstantRobot(config.q_home_rad, config.nominal)
+        session = Session(config, robot, InstantTracker(), store, ScriptedOperator({"place_smr": lambda step: None}))
+        with session:
+            session.finish_step("registration", "fit", {"T_tracker_base": np.eye(4).tolist(), "rms_mm": 1.0})
+            t0 = time.perf_counter()
+            grid_sampling.plan(config, step_mm=step_mm, validation=validation)
+            plan_s = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            result = grid_sampling.run(session, step_mm=step_mm, validation=validation)
+            wall = time.perf_counter() - t0
+    points = result.recorded + result.validation_recorded
+    return {"points": points, "per_point_ms": 1e3 * (wall - plan_s) / points}
+
+
 def grid_on_sim(step_mm: float, validation: int, time_scale: float) -> dict:
     """Registration, then a grid campaign on hil sim: points per minute and per-point times."""
     from contextlib import ExitStack
@@ -112,6 +186,9 @@ def grid_on_sim(step_mm: float, validation: int, time_scale: float) -> dict:
             session.tracker = timed_proxy(session.tracker, totals, "tracker")
             session.store = timed_proxy(session.store, totals, "store")
             t0 = time.perf_counter()
+            grid_sampling.plan(config, step_mm=step_mm, validation=validation)  # what run() plans first
+            plan_s = time.perf_counter() - t0
+            t0 = time.perf_counter()
             result = grid_sampling.run(session, step_mm=step_mm, validation=validation)
             wall = time.perf_counter() - t0
             totals = dict(totals)  # closing the session below calls the drivers again
@@ -121,6 +198,7 @@ def grid_on_sim(step_mm: float, validation: int, time_scale: float) -> dict:
         "wall_s": wall,
         "points_per_min": 60 * points / wall,
         "runner_ms": 1e3 * (wall - totals["robot"] - totals["tracker"]) / points,
+        "per_point_ms": 1e3 * (wall - plan_s - totals["robot"] - totals["tracker"]) / points,
         "store_ms": 1e3 * totals["store"] / points,
         "robot_ms": 1e3 * totals["robot"] / points,
         "tracker_ms": 1e3 * totals["tracker"] / points,
@@ -165,17 +243,24 @@ def main() -> None:
     for name, t in {**rows, **reads}.items():
         ms = t * 1000
         print(f"{name:<34}{len(ms):>7}{np.median(ms):>11.3f}{np.percentile(ms, 99):>9.3f}{ms.max():>9.3f}")
+    alone = runner_alone(100.0, 50)
+    print(f"\nrunner alone (instant robot and tracker, 100 mm grid + 50 validation): {alone['points']} points, "
+          f"{alone['per_point_ms']:.2f} ms per point beyond the instruments (planning excluded)")
     if args.no_sim:
         return
     r = grid_on_sim(args.step_mm, args.validation, args.time_scale)
     print(f"\ngrid campaign on hil sim ({args.step_mm:g} mm, {args.validation} validation, --time-scale {args.time_scale:g})")
-    print(f"{'points':>7}{'wall s':>9}{'points/min':>12}{'runner ms/pt':>14}{'of it store':>13}{'robot ms/pt':>13}{'tracker ms/pt':>15}")
     print(
-        f"{r['points']:>7}{r['wall_s']:>9.1f}{r['points_per_min']:>12.1f}{r['runner_ms']:>14.2f}{r['store_ms']:>13.2f}"
-        f"{r['robot_ms']:>13.1f}{r['tracker_ms']:>15.1f}"
+        f"{'points':>7}{'wall s':>9}{'points/min':>12}{'runner ms/pt':>14}{'w/o planning':>14}{'of it store':>13}"
+        f"{'robot ms/pt':>13}{'tracker ms/pt':>15}"
     )
-    print("runner ms/pt: time per point outside the robot and tracker drivers; 'of it store': the campaign")
-    print("store's calls (the resume check and the durable commit, fsync included) within it")
+    print(
+        f"{r['points']:>7}{r['wall_s']:>9.1f}{r['points_per_min']:>12.1f}{r['runner_ms']:>14.2f}{r['per_point_ms']:>14.2f}"
+        f"{r['store_ms']:>13.2f}{r['robot_ms']:>13.1f}{r['tracker_ms']:>15.1f}"
+    )
+    print("runner ms/pt: time per point outside the robot and tracker drivers (w/o planning: less the one-off")
+    print("plan of the whole grid); 'of it store': the campaign store's calls (the resume check and the durable")
+    print("commit, fsync included)")
 
 
 if __name__ == "__main__":

@@ -106,7 +106,7 @@ class CalibratedModel:
         dq = np.zeros_like(ctx.q)
         for eff in self.effects:
             if eff.kind == "joint":
-                dq[:, _joint_column(eff)] += eff.cached_regressors(ctx, self.nominal) @ eff.params
+                dq[:, eff.joint_index] += eff.cached_regressors(ctx, self.nominal) @ eff.params
         return dq
 
     def predict_ctx(self, ctx: EffectContext) -> np.ndarray:
@@ -160,7 +160,7 @@ class CalibratedModel:
         for eff, sl in zip(self.effects, self.effect_slices(), strict=True):
             reg = eff.cached_regressors(ctx, self.nominal)
             if eff.kind == "joint":
-                col = J[:, :, theta_cols[_joint_column(eff)]]
+                col = J[:, :, theta_cols[eff.joint_index]]
                 J[:, :, sl] = col[:, :, None] * reg[:, None, :]
             elif eff.kind == "growth":
                 G = growth_direction(self.kinematic, q_eff, _context_tools(ctx)) @ R.T
@@ -280,13 +280,6 @@ def _context_tools(ctx: EffectContext) -> np.ndarray:
     if ctx.p_flange_tool is None:
         raise ValueError("the effect context has no tool points: build it with CalibratedModel.context(df)")
     return ctx.p_flange_tool
-
-
-def _joint_column(effect: Effect) -> int:
-    """Column (0-based) of the joint a joint effect acts on."""
-    if effect.joint is None:
-        raise ValueError(f"the joint effect {effect.label} names no joint")
-    return effect.joint - 1
 
 
 def model_to_dict(m: KinematicModel) -> dict:

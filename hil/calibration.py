@@ -40,6 +40,11 @@ from hil.kinematics import KinematicModel
 from hil.se3 import fit_rigid
 
 K0, K1 = 1.5, 2.5  # IGG3 thresholds of the grid paper
+# Beyond this many rows the solvers converge on a fixed random subset of them, then finish on every row
+# (IGG3 iterations linearised at the subset's solution until converged, at most FINISH_ITERS, or LM
+# from that start).
+CONVERGE_ROWS = 10000
+FINISH_ITERS = 30
 
 
 @dataclass
@@ -203,10 +208,20 @@ def solve_ridge_igg3(
     k1: float = K1,
     max_iter: int = 60,
     robust: bool = True,
+    frozen_jacobian: bool = False,
 ) -> CalibrationResult:
-    """Robust ridge estimation with IGG3 re-weighting (see module docstring)."""
+    """Robust ridge estimation with IGG3 re-weighting (see module docstring).
+
+    `frozen_jacobian` linearises once at `model` (which must be near the optimum, e.g. a subset's
+    solution): the iterations then cost no kinematics, the model is updated once at the end.
+    """
     free = np.asarray(free, bool)
     names = model.param_names
+    start = model
+    if frozen_jacobian:
+        r0, J0 = problem.evaluate(model)
+        r0v, J0f = r0.reshape(-1), flatten_jacobian(J0)[:, free]
+        del J0
     prior_mask = np.array([not (n.startswith("base_") or n.startswith("tool")) for n in names])[free]
     N_pts = problem.measured.shape[0]
     w_pts = np.ones(N_pts)
@@ -215,8 +230,11 @@ def solve_ridge_igg3(
     it = 0
     sigma_robust: float | None = None
     for it in range(1, max_iter + 1):  # noqa: B007
-        r, J = problem.evaluate(model)
-        Jf = flatten_jacobian(J)[:, free]
+        if frozen_jacobian:
+            r, Jf = (r0v - J0f @ dev).reshape(-1, 3), J0f
+        else:
+            r, J = problem.evaluate(model)
+            Jf = flatten_jacobian(J)[:, free]
         Js, norms = scale_columns(Jf)
         rv = r.reshape(-1)
         w_rows = np.repeat(w_pts, 3)
@@ -231,8 +249,11 @@ def solve_ridge_igg3(
         for _ in range(12):
             dx = np.zeros(len(names))
             dx[free] = step
-            trial = model.apply_increment(dx)
-            r_new = problem.residuals(trial).reshape(-1)
+            if frozen_jacobian:
+                trial, r_new = model, r0v - J0f @ (dev + step)
+            else:
+                trial = model.apply_increment(dx)
+                r_new = problem.residuals(trial).reshape(-1)
             cost = float(np.sum(w_rows * r_new**2) + mu * np.sum(prior_mask * ((dev + step) * norms) ** 2))
             if cost <= cost0 * (1 + 1e-12):
                 break
@@ -261,13 +282,17 @@ def solve_ridge_igg3(
         w_pts = w_new
         if small and not changed:
             break
+    if frozen_jacobian:
+        dx = np.zeros(len(names))
+        dx[free] = dev
+        model = start.apply_increment(dx)
     r, J = problem.evaluate(model)
     Jf = flatten_jacobian(J)[:, free]
     Js, norms = scale_columns(Jf)
     w_rows = np.repeat(w_pts, 3)
     Nm = (Js * w_rows[:, None]).T @ Js
     mu = ridge * np.linalg.eigvalsh(Nm)[-1]
-    dof = max(np.count_nonzero(w_rows) - int(free.sum()), 1)
+    dof = max(int(np.count_nonzero(w_rows)) - int(free.sum()), 1)
     sigma0 = float(np.sqrt(np.sum(w_rows * r.reshape(-1) ** 2) / dof))
     cov_s = np.linalg.inv(Nm + mu * np.diag(prior_mask.astype(float)) + 1e-14 * np.eye(len(Nm)))
     std = sigma0 * np.sqrt(np.diag(cov_s)) / norms
@@ -286,12 +311,24 @@ def solve_ridge_igg3(
 
 
 def solve_lm(
-    model: CalibratedModel, problem: Problem, free: np.ndarray, loss: str = "soft_l1", k1: float = K1
+    model: CalibratedModel,
+    problem: Problem,
+    free: np.ndarray,
+    loss: str = "soft_l1",
+    k1: float = K1,
+    frozen_jacobian: bool = False,
 ) -> CalibrationResult:
-    """Levenberg-Marquardt-type fit (scipy least_squares, trust region) with a robust loss."""
+    """Levenberg-Marquardt-type fit (scipy least_squares, trust region) with a robust loss.
+
+    `frozen_jacobian`: linearised once at `model` (near the optimum), as in `solve_ridge_igg3`.
+    """
     free = np.asarray(free, bool)
     names = model.param_names
     start = model
+    if frozen_jacobian:
+        r0, J0 = problem.evaluate(model)
+        r0v, J0f = r0.reshape(-1), flatten_jacobian(J0)[:, free]
+        del J0
 
     def at(x: np.ndarray) -> CalibratedModel:
         dx = np.zeros(len(names))
@@ -299,9 +336,13 @@ def solve_lm(
         return start.apply_increment(dx)
 
     def fun(x: np.ndarray) -> np.ndarray:
+        if frozen_jacobian:
+            return J0f @ x - r0v
         return -problem.residuals(at(x)).reshape(-1)
 
     def jac(x: np.ndarray) -> np.ndarray:
+        if frozen_jacobian:
+            return J0f
         _, J = problem.evaluate(at(x))
         return flatten_jacobian(J)[:, free]
 
@@ -372,7 +413,12 @@ def _calibrate(
 ) -> CalibrationResult:
     model = robot if isinstance(robot, CalibratedModel) else initial_model(robot, df, tool_guess_m)
     check_joint_limits(df, model.nominal)
-    problem = Problem.from_frame(model, df)
+    full = Problem.from_frame(model, df)
+    # A big campaign converges on a fixed random subset first, then finishes on every row (below).
+    big = len(df) > CONVERGE_ROWS
+    problem = (
+        full.subset(np.sort(np.random.default_rng(0).permutation(len(df))[:CONVERGE_ROWS])) if big else full
+    )
     # Tool points first (the registration assumed a guess), so the identifiability sees a sane model.
     pre_free = np.array([n.startswith(("base_", "tool")) for n in model.param_names])
     model = solve_ridge_igg3(model, problem, pre_free, robust=False, max_iter=10).model
@@ -387,10 +433,17 @@ def _calibrate(
         raise ValueError(f"unknown solver '{solver}'; choose 'ridge' or 'lm'")
     if solver == "ridge":
         result = solve_ridge_igg3(model, problem, report.keep_mask, ridge=ridge)
+        if big:  # IGG3 on every row, linearised at the subset's solution
+            result = solve_ridge_igg3(
+                result.model, full, report.keep_mask, ridge=ridge, max_iter=FINISH_ITERS, frozen_jacobian=True
+            )
     elif solver == "lm":
         result = solve_lm(model, problem, report.keep_mask)
+        if big:
+            result = solve_lm(result.model, full, report.keep_mask, frozen_jacobian=True)
     else:
         raise ValueError(f"unknown solver '{solver}'; choose 'ridge' or 'lm'")
+    problem = full
     result.identifiability = report
     result.row_numbers = data_rows(df)
     q = joints_rad(df, model.nominal.n_joints)
@@ -412,11 +465,12 @@ def _calibrate(
 def _honest_numbers(result: CalibrationResult, problem: Problem, k: int = 5) -> None:
     """Spatial-fold spread of the parameters, confounded pairs and outlier regions, into the result."""
     rows = np.flatnonzero(~result.outliers)
+    inliers = problem.subset(rows)
+    evaluated = inliers.evaluate(result.model)  # one Jacobian for both figures
     if len(rows) >= 4 * k:
-        result.std_folds = fold_spread_std(
-            result, problem.subset(rows), spatial_folds(problem.measured[rows], k, 0)
-        )
-    pairs = confounded_pairs(result, problem.subset(rows))
+        folds = spatial_folds(problem.measured[rows], k, 0)
+        result.std_folds = fold_spread_std(result, inliers, folds, evaluated)
+    pairs = confounded_pairs(result, inliers, evaluated=evaluated)
     for a, b, c in pairs:
         result.notes.append(
             f"confounded: {a} and {b} correlate {c:+.3f} on these poses; each alone is unreliable (their "
@@ -437,13 +491,15 @@ def _honest_numbers(result: CalibrationResult, problem: Problem, k: int = 5) -> 
     ]
 
 
-def fold_spread_std(result: CalibrationResult, problem: Problem, folds: list[np.ndarray]) -> dict[str, float]:
+def fold_spread_std(
+    result: CalibrationResult, problem: Problem, folds: list[np.ndarray], evaluated: tuple | None = None
+) -> dict[str, float]:
     """Jackknife over spatial folds: how much each free parameter moves when a block of the volume is
     left out. Unlike the least-squares covariance it sees model errors that depend on where one
     measures, so it is closer to what another campaign gives; reports use the larger of the two."""
     names = result.model.param_names
     free = np.array([n in set(result.free) for n in names])
-    r, J = problem.evaluate(result.model)
+    r, J = evaluated or problem.evaluate(result.model)
     Js, norms = scale_columns(flatten_jacobian(J)[:, free])
     rv = r.reshape(-1)
     N, g = Js.T @ Js, Js.T @ rv
@@ -459,11 +515,13 @@ def fold_spread_std(result: CalibrationResult, problem: Problem, folds: list[np.
     return {n: float(v) for n, v in zip(free_names, spread, strict=True)}
 
 
-def confounded_pairs(result: CalibrationResult, problem: Problem, limit: float = 0.95) -> list[tuple]:
+def confounded_pairs(
+    result: CalibrationResult, problem: Problem, limit: float = 0.95, evaluated: tuple | None = None
+) -> list[tuple]:
     """Pairs of free geometric parameters whose estimates correlate beyond `limit` (|corr|)."""
     names = result.model.param_names
     free = np.array([n in set(result.free) for n in names])
-    _, J = problem.evaluate(result.model)
+    _, J = evaluated or problem.evaluate(result.model)
     Js, _ = scale_columns(flatten_jacobian(J)[:, free])
     cov = np.linalg.pinv(Js.T @ Js)
     sd = np.sqrt(np.clip(np.diag(cov), 1e-300, None))

@@ -20,6 +20,7 @@ from __future__ import annotations
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -39,7 +40,7 @@ from hil.calibration import reregister as reregister_model
 from hil.dataset import drop_duplicate_rows, joints_rad
 from hil.effects import PHYSICAL_RANK, Effect, candidate_effects, make_effect, tool_points_rows
 from hil.folds import kfold, spatial_folds
-from hil.identifiability import analyse, scale_columns
+from hil.identifiability import IdentifiabilityReport, analyse, scale_columns
 from hil.kinematics import KinematicModel
 from hil.noise_floor import NoiseFloor, estimate_noise_floor
 from hil.residual_maps import MAP_KINDS, kfold_map_errors, make_map, map_from_dict
@@ -237,7 +238,7 @@ def _weakest_effect(
     return weakest
 
 
-def _free_mask(model: CalibratedModel, problem: Problem) -> tuple[np.ndarray, object]:
+def _free_mask(model: CalibratedModel, problem: Problem) -> tuple[np.ndarray, IdentifiabilityReport]:
     report = identify(model, problem)
     return report.keep_mask, report
 
@@ -598,7 +599,7 @@ def _forward_selection(
         banned=set(banned),
     )
 
-    def refit(result: CalibrationResult) -> object:
+    def refit(result: CalibrationResult) -> IdentifiabilityReport:
         path.current = result
         path.prob, path.folds = base.rows_and_folds(result)
         path.free, rep = _free_mask(result.model, path.prob)
@@ -606,7 +607,7 @@ def _forward_selection(
 
     for _ in range(max_effects):
         results = _screen_round(base, path, alpha, families, banned)
-        winners = [(c, m) for c, m in results if c.passed]
+        winners = [(c, m) for c, m in results if c.passed and m is not None]
         if not winners:
             path.final_round = [c for c, _ in results]
             break
@@ -906,7 +907,7 @@ def _try_residual_maps(
     p_base = _p_base(model, prob)
     sigma = float(np.sqrt(np.mean(noise.sigma_axis_m**2)))
     e0 = np.sum(cv_res**2, axis=1)
-    table = {}
+    table: dict[str, dict[str, Any]] = {}
     best = None
     for kind in MAP_KINDS:
         try:

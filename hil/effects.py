@@ -129,6 +129,13 @@ class Effect:
         return self.family if self.joint is None else f"{self.family}_j{self.joint}"
 
     @property
+    def joint_index(self) -> int:
+        """0-based column of the joint a joint effect acts on (`joint` counts from 1)."""
+        if self.joint is None:
+            raise ValueError(f"the effect {self.label} names no joint")
+        return self.joint - 1
+
+    @property
     def param_names(self) -> list[str]:
         return [f"{self.label}.{nm}" for nm in self.coefficient_names()]
 
@@ -196,7 +203,7 @@ class GravityCompliance(Effect):
 
     def _levers(self, ctx: EffectContext, nominal: KinematicModel) -> np.ndarray:
         """Lever arms (N, K) in metres about joint `joint`'s axis of gravity on each downstream point."""
-        j = self.joint - 1
+        j = self.joint_index
         key = ("link_frames", id(nominal))  # shared by every gravity effect of the model
         frames = ctx.cache.get(key)
         if frames is None:
@@ -264,14 +271,14 @@ class Cyclic(Effect):
         return [f"{f}{h}" for h in self.harmonics() for f in ("sin", "cos")]
 
     def prepare(self, ctx: EffectContext, nominal: KinematicModel) -> bool:
-        span = float(np.ptp(ctx.q[:, self.joint - 1]))
+        span = float(np.ptp(ctx.q[:, self.joint_index]))
         harmonics = [h for h in (1, 2) if span >= CYCLIC_MIN_PERIODS * 2 * np.pi / h]
         self.state = {"harmonics": harmonics, "range_rad": span}
         self.params = np.zeros(2 * len(harmonics))
         return bool(harmonics)
 
     def regressors(self, ctx: EffectContext, nominal: KinematicModel) -> np.ndarray:
-        qj = ctx.q[:, self.joint - 1]
+        qj = ctx.q[:, self.joint_index]
         return np.stack([f(h * qj) for h in self.harmonics() for f in (np.sin, np.cos)], axis=1)
 
     def summary(self, ctx: EffectContext, nominal: KinematicModel) -> dict[str, float]:
@@ -283,7 +290,7 @@ class Cyclic(Effect):
         return out
 
     def driver(self, ctx: EffectContext, nominal: KinematicModel) -> tuple[str, np.ndarray]:
-        return f"joint {self.joint} angle (deg)", np.rad2deg(ctx.q[:, self.joint - 1])
+        return f"joint {self.joint} angle (deg)", np.rad2deg(ctx.q[:, self.joint_index])
 
 
 def approach_signs(q: np.ndarray, tol_rad: float = 2e-5) -> np.ndarray:
@@ -311,7 +318,7 @@ class Backlash(Effect):
 
     def regressors(self, ctx: EffectContext, nominal: KinematicModel) -> np.ndarray:
         signs = approach_signs(ctx.q) if ctx.approach is None else ctx.approach
-        return signs[:, self.joint - 1 : self.joint]
+        return signs[:, self.joint_index : self.joint_index + 1]
 
     def summary(self, ctx: EffectContext, nominal: KinematicModel) -> dict[str, float]:
         return {"half_gap_mdeg": float(np.rad2deg(self.params[0]) * 1e3)}
@@ -327,13 +334,13 @@ class JointScale(Effect):
         return ["scale"]
 
     def regressors(self, ctx: EffectContext, nominal: KinematicModel) -> np.ndarray:
-        return ctx.q[:, self.joint - 1 : self.joint]
+        return ctx.q[:, self.joint_index : self.joint_index + 1]
 
     def summary(self, ctx: EffectContext, nominal: KinematicModel) -> dict[str, float]:
         return {"scale_ppm": float(self.params[0] * 1e6)}
 
     def driver(self, ctx: EffectContext, nominal: KinematicModel) -> tuple[str, np.ndarray]:
-        return f"joint {self.joint} angle (deg)", np.rad2deg(ctx.q[:, self.joint - 1])
+        return f"joint {self.joint} angle (deg)", np.rad2deg(ctx.q[:, self.joint_index])
 
 
 def _thermal_driver(ctx: EffectContext) -> tuple[str, np.ndarray] | None:

