@@ -19,12 +19,17 @@ from __future__ import annotations
 
 import argparse
 import time
-from contextlib import ExitStack
+from collections.abc import Iterator
+from contextlib import ExitStack, contextmanager
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from hil.commands.cell_options import add_effects_argument, effect_flags
 from hil.commands.errors import CliError
 from hil.robots import ROBOT_NAMES
+
+if TYPE_CHECKING:
+    from hil.session import Session
 
 UR_ROBOTS = [name for name in ROBOT_NAMES if name.startswith("ur")]
 
@@ -99,14 +104,14 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def measure(args: argparse.Namespace, out: Path, campaign: Path) -> None:
-    """Start the simulated cell, write its cell.toml and run the procedures into the campaign."""
+@contextmanager
+def simulated_session(args: argparse.Namespace, out: Path, campaign: Path) -> Iterator[Session]:
+    """Start the simulated cell, write its cell.toml (as for a real cell) and open a Session on it through
+    ur-rtde and emScon, the scripted operator moving the simulated SMRs; the cell stops on leaving."""
     from fakes.launch import sim_cell
     from hil.cell_config import load_cell_config
     from hil.commands.instruments import open_session, simulated_operator
-    from hil.commands.run import summarise
     from hil.commands.sim_cell import write_sim_cell
-    from procedures import grid_sampling, registration, tool_fit
 
     cell_path = out / "cell.toml"
     with sim_cell(
@@ -118,34 +123,31 @@ def measure(args: argparse.Namespace, out: Path, campaign: Path) -> None:
         with ExitStack() as stack:
             session = open_session(config, campaign, simulated_operator(config.simulator_control), stack)
             with session:
-                print(summarise("registration", registration.run(session)))
-                print(summarise("tool_fit", tool_fit.run(session)))
-                result = grid_sampling.run(session, step_mm=args.step_mm, validation=args.validate, seed=args.seed)
-                print(summarise("grid_sampling", result))
+                yield session
+
+
+def measure(args: argparse.Namespace, out: Path, campaign: Path) -> None:
+    """Run the procedures into the campaign: registration, tool fit, grid with held-out validation."""
+    from hil.commands.run import summarise
+    from procedures import grid_sampling, registration, tool_fit
+
+    with simulated_session(args, out, campaign) as session:
+        print(summarise("registration", registration.run(session)))
+        print(summarise("tool_fit", tool_fit.run(session)))
+        result = grid_sampling.run(session, step_mm=args.step_mm, validation=args.validate, seed=args.seed)
+        print(summarise("grid_sampling", result))
 
 
 def measured_loop(args: argparse.Namespace, out: Path, campaign: Path, model) -> dict:
     """Start the cell again and run the measured pseudo-target loop on held-out targets; its summary."""
-    from fakes.launch import sim_cell
-    from hil.cell_config import load_cell_config
-    from hil.commands.instruments import open_session, simulated_operator
-    from hil.commands.sim_cell import write_sim_cell
     from procedures import pseudo_target
 
     print(f"\nmeasured pseudo-target loop on {args.loop_targets} held-out targets (model-based start):")
-    cell_path = out / "cell.toml"
-    with sim_cell(
-        robot=args.robot, seed=args.seed, time_scale=args.time_scale, extra_args=("--effects", args.effects)
-    ) as cell:
-        write_sim_cell(cell_path, cell.info, cell.control.call("ground_truth"), args.time_scale)
-        config = load_cell_config(cell_path)
-        with ExitStack() as stack:
-            session = open_session(config, campaign, simulated_operator(config.simulator_control), stack)
-            with session:
-                result = pseudo_target.run(
-                    session, model=model, targets=args.loop_targets, max_iter=2, seed=args.seed + 1000,
-                    measure_uncompensated=True,
-                )  # fmt: skip
+    with simulated_session(args, out, campaign) as session:
+        result = pseudo_target.run(
+            session, model=model, targets=args.loop_targets, max_iter=2, seed=args.seed + 1000,
+            measure_uncompensated=True,
+        )  # fmt: skip
     print(pseudo_target.stage_table(result.summary()))
     return result.summary()
 
