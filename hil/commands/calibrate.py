@@ -12,6 +12,7 @@ from hil.calibration import calibrate
 from hil.commands.arg_checks import InputError, check_paths, float_list
 from hil.commands.progress import cli_progress
 from hil.dataset import DatasetError, load_dataset
+from hil.diagnosis import run_record
 from hil.robots import ROBOT_NAMES, get_robot, robot_arg
 
 
@@ -112,6 +113,7 @@ def run(args: argparse.Namespace) -> int:
             }
         ).to_csv(args.residuals, index=False, float_format="%.6g")
         print(f"residuals written to {args.residuals}")
+    chosen.model.info["run"] = run_record(nominal, {"training": df})  # what the model was made from
     chosen.model.save(args.output)
     print(f"model written to {args.output}")
     return 0
