@@ -55,7 +55,10 @@ def test_calibrate_diagnose_predict(campaign):
         raise AssertionError(f"report.json holds {constant}")
 
     report = json.loads((d / "report.json").read_text(), parse_constant=strict)
-    json.loads((d / "model.json").read_text(), parse_constant=strict)
+    model_run = json.loads((d / "model.json").read_text(), parse_constant=strict)["info"]["run"]
+    assert model_run["inputs"]["training"]["file"] == "train.csv"
+    kin_run = json.loads((d / "kin.json").read_text())["info"]["run"]
+    assert kin_run["robot"] == "ur10" and len(kin_run["inputs"]["training"]["sha256"]) == 64
     assert {"effects_added", "stages", "unexplained_structure", "noise_floor_mm"} <= set(report)
     run = report["run"]  # what the report was made from
     assert run["robot"] == "ur10" and run["software"].startswith("hil ")

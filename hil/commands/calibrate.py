@@ -14,6 +14,7 @@ from hil.commands.errors import CliError
 from hil.commands.inputs import read_measurements
 from hil.commands.progress import cli_progress
 from hil.dataset import DatasetError
+from hil.diagnosis import run_record
 from hil.robots import ROBOT_NAMES, get_robot, robot_arg
 
 
@@ -114,6 +115,7 @@ def run(args: argparse.Namespace) -> int:
             }
         ).to_csv(args.residuals, index=False, float_format="%.6g")
         print(f"residuals written to {args.residuals}")
+    chosen.model.info["run"] = run_record(nominal, {"training": df})  # what the model was made from
     chosen.model.save(args.output)
     print(f"model written to {args.output}")
     return 0

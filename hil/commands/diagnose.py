@@ -165,5 +165,6 @@ def _print_and_write(args: argparse.Namespace, report: DiagnosisReport) -> None:
         write_html(report, args.html)
         print(f"HTML report written to {args.html}")
     if args.output:
+        report.model.info["run"] = report.run  # what the model was made from
         report.model.save(args.output)
         print(f"model written to {args.output}")
