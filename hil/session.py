@@ -360,8 +360,8 @@ class Session:
                 self.event("outliers", f"too few consistent shots at {point_id} (attempt {attempt}): {exc}", **where)
             except TrackerError as exc:
                 raise CampaignStopped(
-                    f"the tracker failed at {point_id}: {exc}",
-                    "check the tracker (initialized, meteo, reflector), then re-run to resume",
+                    f"the tracker failed at {point_id}: {exc.message}",
+                    f"{exc.remedy}; then re-run the same command to resume",
                 ) from exc
         raise CampaignStopped(
             f"no measurement at {point_id} after {MEASURE_ATTEMPTS} attempts ({type(last_error).__name__}: {last_error})",

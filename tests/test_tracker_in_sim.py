@@ -1,18 +1,14 @@
-"""The fake tracker inside `hil sim`, beside the fake controller on the same simulated cell.
-
-Skipped until `hil sim` (fakes/launch.py, from the UR work) is on this branch; once merged, it checks the
-tracker is announced as {"tracker": {"url": ...}} and reachable with its control-channel faults.
-"""
+"""The fake tracker inside `hil sim`, beside the fake controller on the same simulated cell: announced as
+{"tracker": {"url": ...}} and reachable, with its control-channel faults."""
 
 import numpy as np
 import pytest
 
 from drivers.emscon import EmsconConfig, EmsconTracker
 from drivers.tracker import NoTargetError
+from fakes import launch
 
 pytestmark = pytest.mark.sim  # starts a simulated cell or a fake server over sockets
-
-launch = pytest.importorskip("fakes.launch", reason="hil sim is not on this branch yet")
 
 
 @pytest.mark.timeout(90)
