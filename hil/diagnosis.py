@@ -321,7 +321,7 @@ class DiagnosisReport:
             )
         else:
             text = f"Added: {added}. The residual is at the noise floor ({v['ratio']:.2f}x)."
-        return " ".join([text, *(f"Caution: {c}" for c in v["cautions"])])
+        return "\n".join([text, *(f"Caution: {c}" for c in v["cautions"])])  # one caution a line
 
     def to_dict(self) -> dict:
         return {

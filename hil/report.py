@@ -95,7 +95,7 @@ def render_html(report: DiagnosisReport, compensation: dict | None = None) -> st
         "margin:0.5em 0}td,th{border:1px solid #bbb;padding:2px 8px;text-align:right}th{background:#eee}"
         "h2{border-bottom:1px solid #888}</style></head><body>",
         "<h1>Calibration and diagnosis</h1>",
-        f"<p><b>{html.escape(report.conclusion)}</b></p>",
+        "<p><b>" + "<br>".join(html.escape(line) for line in report.conclusion.splitlines()) + "</b></p>",
         f"<p>Noise floor: {report.noise_floor_mm:.4f} mm RMS ({html.escape(report.noise.method)}).</p>",
         "<h2>Error at each stage (mm)</h2>",
         _table(
