@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import tomllib
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -62,9 +63,9 @@ class CellConfig:
     source: str = "cell.toml"
     raw: dict = field(default_factory=dict)
 
-    @property
+    @cached_property
     def nominal(self) -> KinematicModel:
-        """The nominal model of the configured robot."""
+        """The nominal model of the configured robot (read once: planners and path checks ask per pose)."""
         return get_robot(self.robot_model)
 
     def robot_mapping(self) -> dict[str, Any]:

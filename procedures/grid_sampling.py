@@ -90,8 +90,7 @@ def plan(
         T = facing_poses(points, config.p_base_tracker_m, rng, tilt_deg=tilt_deg)
         joints = plan_joints(config.nominal, T, p_nest, q_near=config.q_home_rad)
         reason = joints.reason.copy()
-        problems = config.envelope.pose_problems(config.nominal, joints.q, config.nests_flange_m)
-        reason[joints.usable & np.array([p is not None for p in problems])] = "envelope"
+        reason[joints.usable & config.envelope.outside(config.nominal, joints.q, config.nests_flange_m)] = "envelope"
         for r in reason[reason != "ok"]:
             dropped[str(r)] = dropped.get(str(r), 0) + 1
         keep = reason == "ok"

@@ -209,9 +209,7 @@ def random_targets(config: CellConfig, model: CalibratedModel, count: int, seed:
         T = facing_poses(random_points(box, 3 * count, rng), config.p_base_tracker_m, rng, tilt_deg=tilt_deg)
         joints = plan_joints(config.nominal, T, p_nest, q_near=config.q_home_rad)
         q = joints.q[joints.usable]
-        inside = np.array(
-            [p is None for p in config.envelope.pose_problems(config.nominal, q, config.nests_flange_m)], bool
-        )
+        inside = ~config.envelope.outside(config.nominal, q, config.nests_flange_m)
         found.append(q[inside] if len(q) else np.zeros((0, 6)))
         if sum(len(f) for f in found) >= count:
             break
@@ -322,8 +320,7 @@ def start_joints(config: CellConfig, ik_model: CalibratedModel, model: Calibrate
         status[np.flatnonzero(ok)[sigma < SINGULAR_SIGMA_M]] = "singular"
         ok = status == "ok"
     if ok.any():
-        problems = config.envelope.pose_problems(config.nominal, q[ok], config.nests_flange_m)
-        status[np.flatnonzero(ok)[[p is not None for p in problems]]] = "envelope"
+        status[np.flatnonzero(ok)[config.envelope.outside(config.nominal, q[ok], config.nests_flange_m)]] = "envelope"
     q = np.where((status == "ok")[:, None], q, np.nan)
     return Start(q, q_plain, status.astype(str))
 
@@ -532,7 +529,7 @@ class _Loop:
                 out.status = str(reason[0])
                 return
             cfg = self.session.config
-            if cfg.envelope.pose_problems(cfg.nominal, q_new, cfg.nests_flange_m)[0] is not None:
+            if cfg.envelope.outside(cfg.nominal, q_new, cfg.nests_flange_m)[0]:
                 out.status = "envelope"
                 return
             q = q_new[0]

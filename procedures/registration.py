@@ -44,8 +44,7 @@ def plan(config: CellConfig, *, poses: int = 12, nest: int = 1, seed: int = 0) -
     candidates = np.vstack([shrunk.centre_m, shrunk.corners(), shrunk.centre_m + rng.uniform(-1, 1, (3 * poses, 3)) @ shrunk.axes_m.T])
     T = facing_poses(candidates, config.p_base_tracker_m, rng, tilt_deg=15.0, roll_deg=60.0)
     joints = plan_joints(config.nominal, T, config.nests_flange_m[nest - 1], q_near=config.q_home_rad)
-    problems = config.envelope.pose_problems(config.nominal, joints.q, config.nests_flange_m)
-    usable = joints.usable & np.array([p is None for p in problems])
+    usable = joints.usable & ~config.envelope.outside(config.nominal, joints.q, config.nests_flange_m)
     q = joints.q[usable][:poses]
     if len(q) < 6:
         raise ValueError(

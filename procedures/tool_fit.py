@@ -74,13 +74,13 @@ def plan(config: CellConfig, *, poses: int = 3, check_poses: int = 12, seed: int
     points = inner.centre_m + rng.uniform(-1, 1, (4 * poses, 3)) @ inner.axes_m.T
     T = facing_poses(points, config.p_base_tracker_m, rng, tilt_deg=8.0, roll_deg=90.0)
     joints = plan_joints(config.nominal, T, np.zeros(3), q_near=config.q_home_rad)
-    ok = joints.usable & np.array([p is None for p in config.envelope.pose_problems(config.nominal, joints.q, config.nests_flange_m)])
+    ok = joints.usable & ~config.envelope.outside(config.nominal, joints.q, config.nests_flange_m)
     q_fit = joints.q[ok][:poses]
     check_box = Box(box.centre_m, 0.7 * box.axes_m)
     points = check_box.centre_m + rng.uniform(-1, 1, (4 * check_poses, 3)) @ check_box.axes_m.T
     T = facing_poses(points, config.p_base_tracker_m, rng, tilt_deg=25.0, roll_deg=180.0)
     joints = plan_joints(config.nominal, T, config.nests_flange_m[0], q_near=config.q_home_rad)
-    ok = joints.usable & np.array([p is None for p in config.envelope.pose_problems(config.nominal, joints.q, config.nests_flange_m)])
+    ok = joints.usable & ~config.envelope.outside(config.nominal, joints.q, config.nests_flange_m)
     q_check = joints.q[ok][:check_poses]
     if len(q_fit) < poses or len(q_check) < check_poses:
         raise ValueError("not enough reachable tool-fit poses inside the envelope; widen [envelope]")
