@@ -45,10 +45,6 @@ def _usage(parser: argparse.ArgumentParser) -> int:
     return 2
 
 
-def _fail(message: str) -> int:
-    raise CliError.from_text(message)
-
-
 def _check_campaign(path: str) -> str | None:
     """Why `path` cannot be read as a campaign (one line with what to do), or None."""
     p = Path(path)
@@ -97,7 +93,7 @@ def _snapshot_section(snapshot: dict, key: str) -> dict | None:
 def run_show(args: argparse.Namespace) -> int:
     problem = _check_campaign(args.file)
     if problem:
-        return _fail(problem)
+        raise CliError.from_text(problem)
     try:
         with CampaignStore(args.file, create=False) as store:
             snapshots = store.snapshots()
@@ -107,7 +103,7 @@ def run_show(args: argparse.Namespace) -> int:
             log = store.log_lines(last=max(args.log_lines, 0))
             created_s = store.created_s
     except CampaignError as exc:
-        return _fail(str(exc))
+        raise CliError.from_text(str(exc)) from exc
 
     print(f"campaign {args.file}: created {_utc(created_s)}, {int(counts['points'].sum())} measurements")
     if counts.size:
@@ -152,19 +148,19 @@ def run_show(args: argparse.Namespace) -> int:
 def run_export(args: argparse.Namespace) -> int:
     problem = _check_campaign(args.file)
     if problem:
-        return _fail(problem)
+        raise CliError.from_text(problem)
     if (args.csv is None) == (args.parquet is None):
-        return _fail("give exactly one of --csv OUT or --parquet OUT")
+        raise CliError.from_text("give exactly one of --csv OUT or --parquet OUT")
     out = Path(args.csv or args.parquet)
     if not out.parent.is_dir():
-        return _fail(f"output folder {out.parent} does not exist; create it or choose another path")
+        raise CliError.from_text(f"output folder {out.parent} does not exist; create it or choose another path")
     if out.exists() and out.resolve() == Path(args.file).resolve():
-        return _fail("the output would overwrite the campaign file itself; choose another output path")
+        raise CliError.from_text("the output would overwrite the campaign file itself; choose another output path")
     write = export_csv if args.csv else export_parquet
     try:
         rows = write(args.file, out, args.procedure, args.step)
     except (DatasetError, CampaignError, ValueError) as exc:
-        return _fail(str(exc))
+        raise CliError.from_text(str(exc)) from exc
     what = args.procedure + (f"/{args.step}" if args.step else "")
     print(f"{rows} measurements of {what} written to {out}")
     return 0

@@ -56,20 +56,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.set_defaults(func=run)
 
 
-def _fail(message: str, remedy: str) -> int:
-    raise CliError(message, remedy)
-
-
 def run(args: argparse.Namespace) -> int:
     flags = effect_flags(args)
     if not 20.0 <= args.step_mm <= 500.0:
-        return _fail(f"--step-mm {args.step_mm:g} is outside 20..500", "use a grid step of 100-200 mm")
+        raise CliError(f"--step-mm {args.step_mm:g} is outside 20..500", "use a grid step of 100-200 mm")
     if args.validate < 10:
-        return _fail("--validate must be at least 10", "give more validation poses")
+        raise CliError("--validate must be at least 10", "give more validation poses")
     if not 0 <= args.loop_targets <= 200:
-        return _fail(f"--loop-targets {args.loop_targets} is outside 0..200", "use e.g. 10")
+        raise CliError(f"--loop-targets {args.loop_targets} is outside 0..200", "use e.g. 10")
     if not 0.5 <= args.time_scale <= 50.0:
-        return _fail(f"--time-scale {args.time_scale:g} is outside 0.5..50", "use e.g. 20")
+        raise CliError(f"--time-scale {args.time_scale:g} is outside 0.5..50", "use e.g. 20")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     campaign = out / "campaign.sqlite"
@@ -87,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
         try:
             measure(args, out, campaign)
         except CampaignStopped as exc:
-            return _fail(exc.message, exc.remedy + " (run hil demo again to resume)")
+            raise CliError(exc.message, exc.remedy + " (run hil demo again to resume)") from exc
     print(f"measured through the drivers in {time.monotonic() - started:.0f} s")
     report = analyse(args, out, campaign)
     loop = None
@@ -96,7 +92,7 @@ def run(args: argparse.Namespace) -> int:
             try:
                 loop = measured_loop(args, out, campaign, report.model)
             except CampaignStopped as exc:
-                return _fail(exc.message, exc.remedy + " (run hil demo again to resume)")
+                raise CliError(exc.message, exc.remedy + " (run hil demo again to resume)") from exc
     from hil.report import write_html
 
     write_html(report, out / "report.html", compensation=loop)
