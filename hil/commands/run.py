@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import os
 import signal
+import threading
 from collections.abc import Iterator
 from contextlib import ExitStack, contextmanager
 from pathlib import Path
@@ -166,6 +167,9 @@ def summarise(name: str, result: Any) -> str:
     return str(result)
 
 
+INTERRUPT_GRACE_S = 5.0  # after a Ctrl-C the process is gone by then, whatever a driver does
+
+
 @contextmanager
 def interrupt_guard() -> Iterator[None]:
     """First Ctrl-C: KeyboardInterrupt (the Session stops the robot and closes the store, bounded in time).
@@ -178,6 +182,11 @@ def interrupt_guard() -> Iterator[None]:
             count[0] += 1
             if count[0] > 1:
                 os._exit(130)
+            # Clean-up is bounded, but a driver call the interrupt lands in may block it: give up waiting after
+            # INTERRUPT_GRACE_S as a second Ctrl-C would (every measurement is already committed).
+            watchdog = threading.Timer(INTERRUPT_GRACE_S, os._exit, args=(130,))
+            watchdog.daemon = True
+            watchdog.start()
             raise KeyboardInterrupt
 
         signal.signal(signal.SIGINT, handler)
