@@ -508,9 +508,12 @@ class URRobot:
     def wait_settled(self, dwell_s: float | None = None, timeout_s: float | None = None) -> None:
         dwell_s = self.config.settle_dwell_s if dwell_s is None else dwell_s
         deadline = time.monotonic() + (self.config.settle_timeout_s if timeout_s is None else timeout_s)
+        rx = self._rx
         while True:
             self._check()
-            if float(np.max(np.abs(self._rx.getActualQd()))) < 1e-6 and self._ctrl.isSteady():
+            # At rest by the receive stream alone: ur-rtde's isSteady() is a command to the control script, and
+            # with the controller gone it sleeps in its reconnect loop for ever (seen after Ctrl-C of hil demo).
+            if max(np.max(np.abs(rx.getActualQd())), np.max(np.abs(rx.getTargetQd()))) < 1e-6:
                 break
             if time.monotonic() > deadline:
                 raise RobotTimeoutError("the robot did not settle")

@@ -75,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
         f"simulated cell: {args.robot}, seed {args.seed}, hidden geometric errors + {', '.join(on)}; "
         f"campaign {campaign}{' (resuming)' if resumed else ''}"
     )
-    from hil.commands.run import interrupt_guard
+    from hil.commands.interrupts import interrupt_guard
     from hil.session import CampaignStopped
 
     started = time.monotonic()

@@ -8,16 +8,13 @@ nothing. Ctrl-C stops the robot, closes the campaign and exits; a second Ctrl-C 
 from __future__ import annotations
 
 import argparse
-import os
-import signal
-import threading
-from collections.abc import Iterator
-from contextlib import ExitStack, contextmanager
+from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
 
 from hil.cell_config import CellConfigError, load_cell_config
 from hil.commands.errors import CliError
+from hil.commands.interrupts import interrupt_guard
 from hil.envelope import EnvelopeError
 from hil.operator import OperatorAbortError
 from hil.pseudo_targets import GENERATORS
@@ -165,41 +162,3 @@ def summarise(name: str, result: Any) -> str:
     if name == "pseudo_target":
         return result.table()
     return str(result)
-
-
-INTERRUPT_GRACE_S = 5.0  # after a Ctrl-C the process is gone by then, whatever a driver does
-
-
-@contextmanager
-def interrupt_guard() -> Iterator[None]:
-    """First Ctrl-C: KeyboardInterrupt (the Session stops the robot and closes the store, bounded in time).
-    A second one while that clean-up runs exits at once."""
-    if threading_is_main():
-        previous = signal.getsignal(signal.SIGINT)
-        count = [0]
-
-        def handler(signum: int, frame: Any) -> None:
-            count[0] += 1
-            if count[0] > 1:
-                os._exit(130)
-            # Clean-up is bounded, but a driver call the interrupt lands in may block it: give up waiting after
-            # INTERRUPT_GRACE_S as a second Ctrl-C would (every measurement is already committed).
-            watchdog = threading.Timer(INTERRUPT_GRACE_S, os._exit, args=(130,))
-            watchdog.daemon = True
-            watchdog.start()
-            raise KeyboardInterrupt
-
-        signal.signal(signal.SIGINT, handler)
-        try:
-            yield
-        finally:
-            signal.signal(signal.SIGINT, previous)
-    else:
-        yield
-
-
-def threading_is_main() -> bool:
-    import threading
-
-    return threading.current_thread() is threading.main_thread()
-

@@ -1,0 +1,92 @@
+"""Ctrl-C while instruments are connected: the Session stops the robot and closes the store, and the process
+is gone within a bounded time whatever a driver call is doing.
+
+Python runs a signal handler only in the main thread, between bytecodes: a Ctrl-C that lands while the main
+thread waits in a driver's C++ call (ur-rtde) runs no Python handler until that call returns, and a C++
+destructor that blocks with the GIL held stops every Python thread. So the guard does not rely on the handler
+alone: the C-level handler writes each signal to a pipe (``signal.set_wakeup_fd``); a watcher thread reads it
+and arms two deadlines, one in Python (exit 130) and, behind it, faulthandler's C watchdog, which needs no GIL,
+prints every thread's stack to stderr (where it hung) and exits 1.
+"""
+
+from __future__ import annotations
+
+import faulthandler
+import os
+import signal
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import Any
+
+INTERRUPT_GRACE_S = 5.0  # after a Ctrl-C the process is gone by then, whatever a driver does
+BACKSTOP_S = 2.0  # then faulthandler's C thread ends it even if the GIL is held
+EXIT_INTERRUPTED = 130
+
+
+@contextmanager
+def interrupt_guard() -> Iterator[None]:
+    """First Ctrl-C: KeyboardInterrupt in the main thread (the Session's clean-up is bounded in time) and the
+    deadlines armed; a second Ctrl-C exits at once. Outside the main thread it does nothing."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    read_fd, write_fd = os.pipe()
+    os.set_blocking(write_fd, False)
+    previous_handler = signal.getsignal(signal.SIGINT)
+    previous_wakeup = signal.set_wakeup_fd(write_fd, warn_on_full_buffer=False)
+    stop = threading.Event()
+    watcher = threading.Thread(target=_watch, args=(read_fd, stop), name="hil-interrupt-watcher", daemon=True)
+    watcher.start()
+    signal.signal(signal.SIGINT, _raise_keyboard_interrupt)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous_handler)
+        signal.set_wakeup_fd(previous_wakeup)
+        stop.set()
+        os.write(write_fd, b"\0")  # wake the watcher so it sees `stop`
+        os.close(write_fd)
+
+
+def _raise_keyboard_interrupt(signum: int, frame: Any) -> None:
+    _arm_deadlines()  # here too: after the handler the main thread may block holding the GIL, the watcher then never runs
+    raise KeyboardInterrupt
+
+
+_armed: list[bool] = []
+
+
+def _arm_deadlines() -> None:
+    """Once per process: leave with 130 after INTERRUPT_GRACE_S; faulthandler's C thread, behind it, dumps every
+    thread's stack and exits 1 even if the GIL is never released again."""
+    if _armed:
+        return
+    _armed.append(True)
+    faulthandler.dump_traceback_later(INTERRUPT_GRACE_S + BACKSTOP_S, exit=True, file=2)
+    deadline = threading.Timer(INTERRUPT_GRACE_S, _leave_now)
+    deadline.daemon = True
+    deadline.start()
+
+
+def _watch(read_fd: int, stop: threading.Event) -> None:
+    """Read signal numbers off the wakeup pipe: on the first SIGINT arm the deadlines, on the second leave."""
+    interrupts = 0
+    try:
+        while True:
+            data = os.read(read_fd, 64)
+            if stop.is_set() or not data:
+                return
+            interrupts += data.count(signal.SIGINT)
+            if interrupts >= 2:
+                _leave_now()
+            if interrupts == 1:
+                _arm_deadlines()
+    finally:
+        os.close(read_fd)
+
+
+def _leave_now() -> None:
+    """Every measurement is committed before the next motion: nothing is lost by not waiting for a driver.
+    No flush: the main thread may hold stdout's lock, blocked on a full pipe."""
+    os._exit(EXIT_INTERRUPTED)
