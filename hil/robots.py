@@ -1,24 +1,50 @@
 """Nominal robot models from robot definition files (TOML): the built-ins live in hil/robot_models/
-(UR5, UR10, UR5e, UR10e, ABB IRB2600, KUKA KR 6 R900), and any other serial arm is one more such file.
+(UR5, UR10, UR5e, UR10e, ABB IRB2600, KUKA KR 6 R900 in standard DH; FANUC LR Mate 200iD and ABB IRB 4600
+in modified DH), and any other serial arm is one more such file.
 
-A file holds `name`, `convention = "dh"` and one `[[joint]]` table per joint, in the units an engineer
-reads off a data sheet: `d_mm`, `a_mm`, `alpha_deg`, optional `theta_offset_deg` (0), `hayati_beta`
-(false; true on a joint whose axis is parallel to the next one) and `limits_deg` ([-360, 360]). Optional
-`mass_kg` per joint is accepted (gravity data, for the reader). The flange is the last DH frame.
+A file holds `name`, `convention` and one `[[joint]]` table per joint, in the units an engineer reads off a
+data sheet: `d_mm`, `a_mm`, `alpha_deg`, optional `theta_offset_deg` (0), `hayati_beta` (false) and
+`limits_deg` ([-360, 360]). Optional `mass_kg` per joint (the link that joint moves) is checked and kept
+for the reader only: no module uses it yet (the simulator has its own mass table per built-in name).
+
+`convention = "dh"` (standard Denavit-Hartenberg, the internal form of hil.kinematics): joint i is
+Rz(θ_i) Tz(d_i) Tx(a_i) Rx(α_i) [Ry(β_i)], `hayati_beta` on a joint whose axis is parallel to the next.
+`convention = "mdh"` (modified DH after Craig; "modified_dh" and "craig" are the same): row i is
+Rx(α_{i-1}) Tx(a_{i-1}) [Ry(β_{i-1})] Rz(θ_i) Tz(d_i), so its `a_mm`, `alpha_deg` describe the link that
+ends at axis i, and `hayati_beta` goes on the row between two parallel axes (its α is 0 or 180): the β
+tilt about the y axis of the frame where that link's common normal meets axis i.
+
+Conversion at load time, exact. Rx and Tx commute, so Craig's chain regroups as Π Rz(θ_i) Tz(d_i)
+Tx(a_i) Rx(α_i) Ry(β_i) with the NEXT row's a, α, β: that is the internal joint i, β included unchanged;
+the last joint gets a = α = β = 0 and the flange is frame n in both conventions. Craig's first prefix
+Rx(α_0) Tx(a_0) would stand before joint 1, where the model has no fixed transform; it must be zero (base
+frame on axis 1, as every maker defines it). Folding it into the identified base T_tracker_base would
+keep calibration and the identification Jacobian right but silently move the base frame in which FK,
+the safety envelope, gravity and compensated targets are expressed, so a non-zero prefix is refused.
 """
 
 from __future__ import annotations
 
+import math
 import tomllib
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from hil.kinematics import KinematicModel
 
 ROBOT_DIR = Path(__file__).with_name("robot_models")
-ROBOT_NAMES: tuple[str, ...] = ("ur5", "ur10", "ur5e", "ur10e", "irb2600", "kr6r900")
+ROBOT_NAMES: tuple[str, ...] = (
+    "ur5", "ur10", "ur5e", "ur10e", "irb2600", "kr6r900", "lrmate200id", "irb4600",
+)  # fmt: skip
+_FILE_KEYS = {"name", "convention", "joint"}
 _JOINT_KEYS = {"d_mm", "a_mm", "alpha_deg", "theta_offset_deg", "hayati_beta", "limits_deg", "mass_kg"}
+# Accepted spellings of `convention`, each mapped to "dh" or "mdh".
+CONVENTIONS: dict[str, str] = {
+    "dh": "dh", "standard_dh": "dh", "mdh": "mdh", "modified_dh": "mdh", "craig": "mdh",
+}  # fmt: skip
+_PARALLEL_TOL_DEG = 1.0  # a Hayati-beta joint's alpha must be within this of 0 or 180 deg
 
 
 def is_robot_file(name: str) -> bool:
@@ -38,7 +64,7 @@ def get_robot(name: str, use_beta: bool = True) -> KinematicModel:
 
 
 def load_robot_file(path: str | Path, use_beta: bool = True) -> KinematicModel:
-    """Read and check a robot definition file (raises ValueError naming the file and what to fix)."""
+    """Read and check a robot definition file (raises ValueError naming the file, the key and what to fix)."""
     path = Path(path)
     try:
         data = tomllib.loads(path.read_text())
@@ -46,36 +72,20 @@ def load_robot_file(path: str | Path, use_beta: bool = True) -> KinematicModel:
         raise ValueError(f"robot file not found: {path}; check the path") from None
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise ValueError(f"{path}: not a valid TOML robot file ({exc}); fix its syntax") from None
-    convention = data.get("convention", "dh")
-    if convention != "dh":
+    unknown = set(data) - _FILE_KEYS
+    if unknown:
         raise ValueError(
-            f"{path}: convention '{convention}' is not supported; give the standard DH table "
-            '(convention = "dh", Hayati beta on parallel joints)'
+            f"{path}: unknown key(s) {sorted(unknown)} at the top; keys are {', '.join(sorted(_FILE_KEYS))} "
+            "(each joint's data goes in a [[joint]] table)"
         )
+    convention = _convention(path, data.get("convention", "dh"))
     joints = data.get("joint")
     if not isinstance(joints, list) or not joints:
         raise ValueError(f"{path}: no [[joint]] tables; give one per joint (d_mm, a_mm, alpha_deg ...)")
-    rows = []
-    for i, j in enumerate(joints, start=1):
-        unknown = set(j) - _JOINT_KEYS
-        missing = {"d_mm", "a_mm", "alpha_deg"} - set(j)
-        if unknown or missing:
-            what = f"unknown key(s) {sorted(unknown)}" if unknown else f"missing {sorted(missing)}"
-            raise ValueError(f"{path}: joint {i}: {what}; keys are {', '.join(sorted(_JOINT_KEYS))}")
-        limits = j.get("limits_deg", [-360.0, 360.0])
-        if len(limits) != 2 or not limits[0] < limits[1]:
-            raise ValueError(f"{path}: joint {i}: limits_deg must be [lower, upper] with lower < upper")
-        rows.append(
-            (
-                float(j.get("theta_offset_deg", 0.0)),
-                float(j["d_mm"]),
-                float(j["a_mm"]),
-                float(j["alpha_deg"]),
-                bool(j.get("hayati_beta", False)),
-                limits,
-            )
-        )
-    theta, d, a, alpha, beta, limits = zip(*rows, strict=True)
+    rows = [_joint_row(path, i, j, convention) for i, j in enumerate(joints, start=1)]
+    theta, d, a, alpha, beta, limits = (list(col) for col in zip(*rows, strict=True))
+    if convention == "mdh":
+        a, alpha, beta = _craig_to_internal(path, a, alpha, beta)
     return KinematicModel(
         name=str(data.get("name", path.stem)),
         theta=np.deg2rad(theta),
@@ -86,6 +96,84 @@ def load_robot_file(path: str | Path, use_beta: bool = True) -> KinematicModel:
         uses_beta=np.array(beta, bool) if use_beta else np.zeros(len(rows), bool),
         joint_limits=np.deg2rad(np.array(limits, float)),
     )
+
+
+def _convention(path: Path, value: Any) -> str:
+    """The file's convention as "dh" or "mdh"; any other spelling is named with the accepted ones."""
+    key = value.strip().lower().replace("-", "_").replace(" ", "_") if isinstance(value, str) else None
+    if key not in CONVENTIONS:
+        raise ValueError(
+            f"{path}: convention {value!r} is not supported; write convention = one of "
+            f"{', '.join(repr(c) for c in CONVENTIONS)} (standard DH, or modified DH after Craig)"
+        )
+    return CONVENTIONS[key]
+
+
+def _joint_row(path: Path, i: int, j: Any, convention: str) -> tuple:
+    """One [[joint]] table checked: (theta_offset_deg, d_mm, a_mm, alpha_deg, hayati_beta, limits_deg)."""
+    where = f"{path}: joint {i}"
+    if not isinstance(j, dict):
+        raise ValueError(f"{where}: not a table; write each joint as a [[joint]] table")
+    unknown = set(j) - _JOINT_KEYS
+    missing = {"d_mm", "a_mm", "alpha_deg"} - set(j)
+    if unknown or missing:
+        what = f"unknown key(s) {sorted(unknown)}" if unknown else f"missing {sorted(missing)}"
+        raise ValueError(f"{where}: {what}; keys are {', '.join(sorted(_JOINT_KEYS))}")
+    values = {k: _number(where, k, j[k]) for k in ("d_mm", "a_mm", "alpha_deg", "theta_offset_deg") if k in j}
+    if "mass_kg" in j and not _number(where, "mass_kg", j["mass_kg"]) > 0:
+        raise ValueError(f"{where}: mass_kg must be positive (kg); leave it out if unknown")
+    beta = j.get("hayati_beta", False)
+    if not isinstance(beta, bool):
+        raise ValueError(f"{where}: hayati_beta must be true or false, got {beta!r}")
+    limits = j.get("limits_deg", [-360.0, 360.0])
+    if not isinstance(limits, list) or len(limits) != 2:
+        raise ValueError(f"{where}: limits_deg must be [lower, upper] in degrees, got {limits!r}")
+    lo, hi = (_number(where, "limits_deg", v) for v in limits)
+    if not lo < hi:
+        raise ValueError(f"{where}: limits_deg must be [lower, upper] with lower < upper")
+    if beta:
+        if convention == "mdh" and i == 1:
+            raise ValueError(
+                f"{where}: hayati_beta on the first row of a modified-DH table; in Craig's table put it on "
+                "the row whose a_mm/alpha_deg join two parallel axes (axis i-1 and axis i)"
+            )
+        off = abs(math.remainder(values["alpha_deg"], 180.0))
+        if off > _PARALLEL_TOL_DEG:
+            between = "axes i-1 and i" if convention == "mdh" else "axes i and i+1"
+            raise ValueError(
+                f"{where}: hayati_beta = true but alpha_deg = {values['alpha_deg']:g}: beta is for parallel "
+                f"{between} (alpha_deg 0 or 180); set hayati_beta = false or fix alpha_deg"
+            )
+    return (
+        values.get("theta_offset_deg", 0.0),
+        values["d_mm"],
+        values["a_mm"],
+        values["alpha_deg"],
+        beta,
+        [lo, hi],
+    )
+
+
+def _number(where: str, key: str, value: Any) -> float:
+    """A finite number from the file, or an error naming the key."""
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+        raise ValueError(f"{where}: {key} must be a finite number, got {value!r}")
+    return float(value)
+
+
+def _craig_to_internal(
+    path: Path, a: list[float], alpha: list[float], beta: list[bool]
+) -> tuple[list[float], list[float], list[bool]]:
+    """Craig rows (a_{i-1}, alpha_{i-1}, beta_{i-1} on row i) -> internal joints (a_i, alpha_i, beta_i): shift
+    by one row; the last joint gets 0. Craig's (a_0, alpha_0) must be 0 (see the module docstring)."""
+    if a[0] != 0.0 or alpha[0] != 0.0:
+        raise ValueError(
+            f"{path}: joint 1: a_mm = {a[0]:g}, alpha_deg = {alpha[0]:g}; in a modified-DH table the first "
+            "row's a_mm and alpha_deg (Craig's a_0, alpha_0) must be 0: put the base frame on joint 1's "
+            "axis with z along it (its height goes in joint 1's d_mm); a tilted or offset mounting is "
+            "the cell's base pose, which calibration identifies"
+        )
+    return a[1:] + [0.0], alpha[1:] + [0.0], beta[1:] + [False]
 
 
 def robot_arg(text: str) -> str:
