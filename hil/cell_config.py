@@ -17,7 +17,7 @@ import numpy as np
 
 from hil.envelope import Envelope
 from hil.kinematics import KinematicModel
-from hil.robots import ROBOT_NAMES, get_robot
+from hil.robots import ROBOT_NAMES, get_robot, is_robot_file
 
 SMR_RADIUS_MM = 19.05  # 1.5" sphere
 
@@ -156,13 +156,31 @@ def _numbers(value: Any) -> np.ndarray | None:
     return arr if np.all(np.isfinite(arr)) else None
 
 
+def _robot_model(r: _Reader, model: str | None, source: str) -> str | None:
+    """A built-in name (lower case) or a robot definition file, relative to the cell file's folder; None with
+    the problem noted when it is neither."""
+    if model is None:
+        return None
+    if is_robot_file(model):
+        path = Path(model) if Path(model).is_absolute() else Path(source).parent / model
+        try:
+            get_robot(str(path))
+        except ValueError as exc:
+            r.problems.append(f"robot.model: {exc}")
+            return None
+        return str(path)
+    if model.lower() not in ROBOT_NAMES:
+        r.problems.append(
+            f"robot.model: unknown robot {model!r}; choose one of {', '.join(ROBOT_NAMES)} or give a robot file (.toml)"
+        )
+        return None
+    return model.lower()
+
+
 def parse_cell_config(data: dict, source: str = "cell.toml") -> CellConfig:
     """Build and check a CellConfig from parsed TOML; raises CellConfigError listing every problem."""
     r = _Reader(data)
-    model = r.get("robot", "model", "str", required=True)
-    if model is not None and model.lower() not in ROBOT_NAMES:
-        r.problems.append(f"robot.model: unknown robot {model!r}; choose one of {', '.join(ROBOT_NAMES)}")
-        model = None
+    model = _robot_model(r, r.get("robot", "model", "str", required=True), source)
     host = r.get("robot", "host", "str", required=True)
     driver = {k: v for k, v in r.table("robot").items() if k in ROBOT_DRIVER_KEYS}
     for key, value in driver.items():
@@ -170,7 +188,7 @@ def parse_cell_config(data: dict, source: str = "cell.toml") -> CellConfig:
             r.problems.append(f"robot.{key}: must be a number, got {value!r}")
         elif key != "power_on_at_connect" and value <= 0:
             r.problems.append(f"robot.{key}: must be positive, got {value!r}")
-    nominal = get_robot(model.lower()) if model else None
+    nominal = get_robot(model) if model else None
     n = nominal.n_joints if nominal else 6
 
     url = r.get("tracker", "url", "str", required=True)
@@ -227,16 +245,16 @@ def parse_cell_config(data: dict, source: str = "cell.toml") -> CellConfig:
     r.unknown_keys({"robot": ROBOT_DRIVER_KEYS})
     if r.problems:
         raise CellConfigError(source, r.problems)
-    assert nests_arr is not None  # a missing or malformed tool.nests_flange_mm is one of r.problems
+    assert nests_arr is not None and model is not None  # a missing or malformed one is one of r.problems
     envelope = Envelope(box_min / 1e3, box_max / 1e3, np.deg2rad(jmin), np.deg2rad(jmax))
     home = np.deg2rad(home_deg)
-    problem = envelope.pose_problems(get_robot(model.lower()), home[None], nests_arr)[0]
+    problem = envelope.pose_problems(get_robot(model), home[None], nests_arr)[0]
     if problem:
         raise CellConfigError(
             source, [f"motion.home_deg: the home pose leaves the envelope ({problem}); it is the safe detour of moves"]
         )
     return CellConfig(
-        robot_model=model.lower(),
+        robot_model=model,
         robot_host=host,
         robot_driver=driver,
         tracker_url=url,

@@ -28,6 +28,22 @@ def test_simulated_cell_config_loads_in_si_units(tmp_path):
     assert np.allclose(again.p_base_tracker_m, config.p_base_tracker_m)
 
 
+def test_the_robot_may_be_a_robot_file_beside_the_cell_file(tmp_path):
+    """A cell's own robot definition (here the UR10's file with d1 1 mm longer), relative to cell.toml."""
+    from hil.robots import ROBOT_DIR, get_robot
+
+    text = (ROBOT_DIR / "ur10.toml").read_text()
+    (tmp_path / "our_ur10.toml").write_text(text.replace('name = "ur10"', 'name = "our_ur10"').replace("d_mm = 127.3", "d_mm = 128.3", 1))
+    path = tmp_path / "cell.toml"
+    path.write_text(sim_cell_toml().replace('model = "ur10"', 'model = "our_ur10.toml"'))
+    config = load_cell_config(path)
+    assert config.nominal.name == "our_ur10"
+    assert np.isclose(config.nominal.d[0] - get_robot("ur10").d[0], 0.001)
+    path.write_text(sim_cell_toml().replace('model = "ur10"', 'model = "missing.toml"'))
+    with pytest.raises(CellConfigError, match=r"robot.model: robot file not found: .*missing.toml"):
+        load_cell_config(path)
+
+
 def test_every_problem_is_reported_with_its_key():
     data = tomllib.loads(sim_cell_toml())
     del data["robot"]["host"]
