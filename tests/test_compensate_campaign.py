@@ -159,6 +159,7 @@ def test_grid_and_validation_targets_are_the_commanded_points_compensated_per_ne
     assert np.linalg.norm(reached - target, axis=1).max() < 1e-6  # each nest on its own target
     wrong_nest = predicted(model, df[Q_COLS].to_numpy(), np.ones(len(df), int))
     assert np.linalg.norm(wrong_nest - target, axis=1)[grid["smr"] == 2].min() > 0.05
+    assert np.abs(df[Q_COLS].to_numpy() - grid["q"]).max() < 0.01  # the commanded posture, corrected
     np.testing.assert_allclose(df["t_s"], 10.0 + 4.0 * np.arange(len(df)))  # time of each point, for thermal models
 
 

@@ -254,6 +254,7 @@ def test_cli_dry_run_plans_the_first_poses_and_bad_options_exit_2(cell, tmp_path
     for bad in (
         ["--model", str(tmp_path / "none.json")],
         ["--model", str(model_path), "--threshold-mm", "0"],
+        ["--model", str(model_path), "--patience", "-1"],
     ):
         done = subprocess.run([*base, "--dry-run", *bad], capture_output=True, text=True, timeout=120)
         assert done.returncode == 2 and "what to do" in done.stderr, done.stderr

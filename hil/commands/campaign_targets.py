@@ -3,7 +3,8 @@
 - `grid` / `validation` (grid_sampling): the SMR centre the commanded joints aimed at, tracker frame: the
   robot's nominal kinematics (the campaign's cell config) at the commanded joints, the measurement's nest
   (tool fit when the campaign has one, else the drawing) and the campaign's registration; one SMR, so
-  point targets. Each keeps its point id, its nest and the time / temperature it was measured at.
+  point targets. Each keeps its point id, its nest and the time / temperature it was measured at, and the
+  commanded joints seed its compensation (same posture and branch, the SMR still facing the tracker).
 - `loop` (pseudo_target): the loop's own targets (SMR 1 in nest 1), poses when it ran with three SMRs.
 """
 
@@ -40,6 +41,7 @@ class CampaignTargets:
     frame: pd.DataFrame
     smr: np.ndarray
     robot: str
+    q_seed: np.ndarray | None = None  # (N, 6) joints to start each target's IK from (the commanded ones)
 
 
 def available_steps(store: CampaignStore) -> dict[str, int]:
@@ -141,7 +143,7 @@ def _commanded_points(store: CampaignStore, path: str | Path, step: str, robot: 
     temperature = m["temperature_c"].to_numpy(float)
     if np.all(np.isfinite(temperature)):
         frame["temperature_c"] = temperature
-    return CampaignTargets(step, p, frame, smr, robot)
+    return CampaignTargets(step, p, frame, smr, robot, q_seed=q)
 
 
 def _loop_targets(store: CampaignStore, robot: str) -> CampaignTargets:

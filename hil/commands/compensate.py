@@ -91,13 +91,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def compensate_per_smr(
     model: CalibratedModel, targets: np.ndarray, smr: np.ndarray, drivers: dict, path: bool, kwargs: dict
 ) -> CompensationResult:
-    """`compensate` (or `compensate_path`) once per SMR nest of the targets, merged back into target order."""
+    """`compensate` (or `compensate_path`) once per SMR nest of the targets, merged back into target order;
+    per-target arrays among `kwargs` (q_seed) follow their rows."""
     results: list[tuple[np.ndarray, CompensationResult]] = []
     for nest in np.unique(smr):
         rows = np.flatnonzero(smr == nest)
         run_one = compensate_path if path else compensate
         d = {k: v[rows] for k, v in drivers.items()}
-        results.append((rows, run_one(model, targets[rows], smr=int(nest), **d, **kwargs)))
+        options = {k: v[rows] if k == "q_seed" else v for k, v in kwargs.items()}
+        results.append((rows, run_one(model, targets[rows], smr=int(nest), **d, **options)))
     if len(results) == 1:
         return results[0][1]
     n = len(smr)
@@ -172,7 +174,7 @@ def run(args: argparse.Namespace) -> int:
         model = CalibratedModel.load(args.model)
         if campaign:
             source = read_campaign_targets(args.targets, args.step)
-            targets, df = source.targets, source.frame
+            targets, df, q_seed = source.targets, source.frame, source.q_seed
             smr = source.smr if args.smr is None else np.full(len(df), args.smr)
             print(f"{len(df)} {source.step} targets of campaign {args.targets}", file=sys.stderr)
             if source.robot != model.robot.lower():
@@ -188,6 +190,7 @@ def run(args: argparse.Namespace) -> int:
                 )
         else:
             targets, df = read_targets(args.targets)
+            q_seed = None
             smr = np.full(len(df), sorted(model.tools)[0] if args.smr is None else args.smr)
         drivers = {c: df[c].to_numpy(float) for c in DRIVER_COLUMNS if c in df.columns}
         kwargs = dict(
@@ -199,6 +202,8 @@ def run(args: argparse.Namespace) -> int:
         )
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
+            if q_seed is not None and not args.path:  # a path seeds each target from its neighbour
+                kwargs["q_seed"] = q_seed
             res = compensate_per_smr(model, targets, smr, drivers, args.path, kwargs)
     except (ValueError, OSError, KeyError) as exc:
         raise CliError.from_text(str(exc)) from exc
