@@ -12,10 +12,11 @@ with the joints just used, gives the next joints. This repeats until the error i
 the iteration cap is reached, or `patience` corrections in a row have not beaten the best error so far by
 more than the measurement noise (the loop has reached the tracker's noise floor); the best joints measured
 are kept. Each target's status says why it ended: ok (below the threshold), max_iter, no_improvement, or
-why it was not (or no longer) visited: unreachable, singular, envelope, no_ik_solution, joint_limits. Every iteration is its own point in the
-campaign (`t007/i2`, with nests `t007/i2/n1`..`n3`), committed before the next motion: re-running the same
-command replays what is recorded and measures only what is missing. Targets the arm cannot reach, near a
-singularity or outside the envelope are reported with the reason and not visited.
+why it was not (or no longer) visited: unreachable, singular, envelope, no_ik_solution, ... Every
+iteration is its own point in the campaign (`t007/i2`, with nests `t007/i2/n1`..`n3`), committed before
+the next motion: re-running the same command replays what is recorded and measures only what is missing
+(the stop rules decide again from the recorded points, so a resumed target ends where it did). Targets
+the arm cannot reach, near a singularity or outside the envelope are reported with the reason, not visited.
 """
 
 from __future__ import annotations
@@ -56,7 +57,6 @@ PATIENCE = 2  # corrections without a gain beyond the noise margin before a targ
 # (MPE = 15 um + 6 um/m taken as 2 sigma, as hil.noise_floor) and the recorded shot spread, each / sqrt(shots).
 GAIN_SIGMAS = 1.0
 TRACKER_MPE_CONST_M, TRACKER_MPE_PER_M, TRACKER_MPE_SIGMAS = 15e-6, 6e-6, 2.0
-STOP_REASONS = ("ok", "max_iter", "no_improvement")  # why a visited target's loop ended (ok: below threshold)
 
 
 @dataclass
