@@ -8,11 +8,15 @@ nest layout gives the tool's pose, and the loop corrects the orientation too.
 For each target (tracker frame: where SMR 1 in nest 1 should be, and for three SMRs the flange
 orientation) the robot goes to the model-based compensated joints (nominal IK without a model), settles
 and is measured. What the measurement missed moves a pseudo target (the chosen generator); its IK, seeded
-with the joints just used, gives the next joints. This repeats until the error is below the threshold or
-the iteration cap is reached; the best joints measured are kept. Every iteration is its own point in the
-campaign (`t007/i2`, with nests `t007/i2/n1`..`n3`), committed before the next motion: re-running the same
-command replays what is recorded and measures only what is missing. Targets the arm cannot reach, near a
-singularity or outside the envelope are reported with the reason and not visited.
+with the joints just used, gives the next joints. This repeats until the error is below the threshold,
+the iteration cap is reached, or `patience` corrections in a row have not beaten the best error so far by
+more than the measurement noise (the loop has reached the tracker's noise floor); the best joints measured
+are kept. Each target's status says why it ended: ok (below the threshold), max_iter, no_improvement, or
+why it was not (or no longer) visited: unreachable, singular, envelope, no_ik_solution, ... Every
+iteration is its own point in the campaign (`t007/i2`, with nests `t007/i2/n1`..`n3`), committed before
+the next motion: re-running the same command replays what is recorded and measures only what is missing
+(the stop rules decide again from the recorded points, so a resumed target ends where it did). Targets
+the arm cannot reach, near a singularity or outside the envelope are reported with the reason, not visited.
 """
 
 from __future__ import annotations
@@ -47,6 +51,12 @@ STEP = "loop"
 LENGTH_SCALE_M = 0.1  # pose error measure: sqrt(dp^2 + (L * angle)^2), as hil.compensation
 USABLE_START = ("ok", "max_iter", "stalled")  # compensation statuses whose joints are worth measuring
 SMR_MODES = (1, 3)
+PATIENCE = 2  # corrections without a gain beyond the noise margin before a target stops (0: never)
+# Noise margin: a correction counts as a gain when it beats the best error so far by more than
+# GAIN_SIGMAS x the per-axis 1-sigma noise of the measured point: the larger of the tracker's noise model
+# (MPE = 15 um + 6 um/m taken as 2 sigma, as hil.noise_floor) and the recorded shot spread, each / sqrt(shots).
+GAIN_SIGMAS = 1.0
+TRACKER_MPE_CONST_M, TRACKER_MPE_PER_M, TRACKER_MPE_SIGMAS = 15e-6, 6e-6, 2.0
 
 
 @dataclass
@@ -54,13 +64,14 @@ class TargetResult:
     """One target: measured error per iteration (m, rad), the best joints and why the loop ended."""
 
     target_id: str
-    status: str  # ok, max_iter, or why the target was not (or no longer) visited
+    status: str  # ok (below threshold), max_iter, no_improvement, or why it was not (or no longer) visited
     errors_m: list[float] = field(default_factory=list)
     rotation_errors_rad: list[float] = field(default_factory=list)
     q_rad: np.ndarray | None = None  # best joints measured
     best_iteration: int = -1
     uncompensated_error_m: float = np.nan
     uncompensated_rotation_rad: float = np.nan
+    noise_m: list[float] = field(default_factory=list)  # per-axis 1-sigma of each measurement
 
     @property
     def iterations(self) -> int:
@@ -85,6 +96,8 @@ class TargetResult:
             "error_mm": self.error_m * 1e3,
             "rotation_error_deg": float(np.rad2deg(self.rotation_error_rad)),
             "uncompensated_error_mm": self.uncompensated_error_m * 1e3,
+            "noise_sigma_mm": [s * 1e3 for s in self.noise_m],
+            "best_iteration": self.best_iteration,
             "q_rad": None if self.q_rad is None else np.round(self.q_rad, 9).tolist(),
         }
 
@@ -325,14 +338,25 @@ def start_joints(config: CellConfig, ik_model: CalibratedModel, model: Calibrate
     return Start(q, q_plain, status.astype(str))
 
 
+def measurement_sigma_m(p_tracker_m: np.ndarray, spread_m: np.ndarray, shots: int) -> float:
+    """Per-axis 1-sigma noise of one measured (mean) point: the larger of the tracker's noise model at its
+    distance and the RMS spread of its kept shots, each divided by sqrt(shots)."""
+    distance = float(np.linalg.norm(p_tracker_m))
+    model = (TRACKER_MPE_CONST_M + TRACKER_MPE_PER_M * distance) / TRACKER_MPE_SIGMAS
+    spread = np.asarray(spread_m, float)
+    seen = float(np.sqrt(np.mean(spread**2))) if np.all(np.isfinite(spread)) else 0.0
+    return max(model, seen) / np.sqrt(max(int(shots), 1))
+
+
 def target_ids(count: int) -> list[str]:
     return [f"t{k + 1:03d}" for k in range(count)]
 
 
 def plan(config: CellConfig, *, model: CalibratedModel | str | None = None, targets: int | str = 20, generator: str = "yin",
-         threshold_mm: float = 0.01, max_iter: int = 3, smrs: int = 1, seed: int = 0) -> Plan:  # fmt: skip
+         threshold_mm: float = 0.01, max_iter: int = 3, smrs: int = 1, seed: int = 0,
+         patience: int = PATIENCE) -> Plan:  # fmt: skip
     """The first pose of every usable target (model-based start), for --dry-run and the envelope check."""
-    check_options(generator, threshold_mm, max_iter)
+    check_options(generator, threshold_mm, max_iter, patience)
     the_model = load_model(model)
     if the_model is None:
         raise ValueError(
@@ -356,25 +380,28 @@ def plan(config: CellConfig, *, model: CalibratedModel | str | None = None, targ
     return Plan(PROCEDURE, poses, config, operator_steps=smrs, dropped=dropped, per_point_s=per_point)
 
 
-def check_options(generator: str, threshold_mm: float, max_iter: int) -> None:
+def check_options(generator: str, threshold_mm: float, max_iter: int, patience: int = PATIENCE) -> None:
     check_generator(generator)
     if not 0.0005 <= threshold_mm <= 10.0:
         raise ValueError(f"--threshold-mm {threshold_mm:g} is outside 0.0005..10 mm")
     if not 0 <= max_iter <= 20:
         raise ValueError(f"--max-iter {max_iter} is outside 0..20")
+    if not 0 <= patience <= 20:
+        raise ValueError(f"--patience {patience} is outside 0..20 (0 turns the no-improvement stop off)")
 
 
 # ------------------------------------------------------------------------------------------ the loop
 def run(session: Session, *, model: CalibratedModel | str | None = None, targets: int | str | np.ndarray = 20,
         generator: str = "yin", threshold_mm: float = 0.01, max_iter: int = 3, smrs: int = 1, seed: int = 0,
-        shots: int | None = None, measure_uncompensated: bool = False) -> LoopResult:  # fmt: skip
+        shots: int | None = None, measure_uncompensated: bool = False, patience: int = PATIENCE) -> LoopResult:  # fmt: skip
     """Run the measured pseudo-target loop on every target (see the module docstring); resumable.
 
     `targets`: a count of random held-out targets in the sampled volume, a CSV path, or an array (tracker
-    frame, m). `max_iter`: corrections after the first measurement. `measure_uncompensated` also measures
-    each target's plain nominal IK once (`t007/u`), the "uncompensated" row of the before / after table.
+    frame, m). `max_iter`: corrections after the first measurement. `patience`: stop a target after this
+    many corrections in a row without a gain beyond the noise margin (0: off). `measure_uncompensated` also
+    measures each target's plain nominal IK once (`t007/u`), the "uncompensated" row of the before / after table.
     """
-    check_options(generator, threshold_mm, max_iter)
+    check_options(generator, threshold_mm, max_iter, patience)
     the_model = load_model(model)
     reg = session.require_registration()
     T_tb = the_model.T_tracker_base if the_model is not None else reg.T_tracker_base
@@ -382,11 +409,11 @@ def run(session: Session, *, model: CalibratedModel | str | None = None, targets
         the_model if the_model is not None else nominal_model(session.config, T_tb, session.nest_flange_m(1))
     )
     T_d = resolve_targets(targets, session.config, ik_model, seed, smrs)
-    _pin_targets(session, T_d, generator, threshold_mm, max_iter, smrs, the_model is not None)
+    _pin_targets(session, T_d, generator, threshold_mm, max_iter, smrs, the_model is not None, patience)
     threshold_m = threshold_mm / 1e3
     nominal_ik = nominal_model(session.config, T_tb, ik_model.tools[1])
     start = start_joints(session.config, nominal_ik, the_model, T_d, generator, threshold_m)
-    loop = _Loop(session, ik_model, T_d, generator, threshold_m, max_iter, smrs, shots)
+    loop = _Loop(session, ik_model, T_d, generator, threshold_m, max_iter, smrs, shots, patience)
     ids = target_ids(len(T_d))
     results = [TargetResult(i, str(s)) for i, s in zip(ids, start.status, strict=True)]
     todo = [k for k, r in enumerate(results) if r.status == "ok"]
@@ -415,8 +442,10 @@ def _pin_targets(
     max_iter: int,
     smrs: int,
     model_based: bool,
+    patience: int,
 ) -> None:
-    """Record the targets and options on the first run; a resume with other ones would mix two jobs."""
+    """Record the targets and options on the first run; a resume with other ones would mix two jobs.
+    (A loop pinned before `patience` existed resumes with any patience.)"""
     pinned = session.step_result(PROCEDURE, "targets")
     options = {
         "generator": generator,
@@ -424,12 +453,13 @@ def _pin_targets(
         "max_iter": max_iter,
         "smrs": smrs,
         "model_based": model_based,
+        "patience": patience,
     }
     if pinned is None:
         session.finish_step(PROCEDURE, "targets", {"targets_m": np.round(T_d, 12).tolist(), **options})
         return
     same = np.shape(pinned["targets_m"]) == T_d.shape and np.allclose(pinned["targets_m"], T_d, atol=1e-9)
-    if not same or any(pinned.get(k) != v for k, v in options.items()):
+    if not same or any(pinned.get(k, v if k == "patience" else None) != v for k, v in options.items()):
         raise CampaignStopped(
             "this campaign already holds a pseudo-target loop with other targets or options",
             "re-run with the same options and model to resume it, or use a new --campaign file",
@@ -440,9 +470,9 @@ class _Loop:
     """Measure (or recall what is recorded), update the pseudo target, solve its IK: one target at a time."""
 
     def __init__(self, session: Session, ik_model: CalibratedModel, T_d: np.ndarray, generator: str,
-                 threshold_m: float, max_iter: int, smrs: int, shots: int | None) -> None:  # fmt: skip
+                 threshold_m: float, max_iter: int, smrs: int, shots: int | None, patience: int) -> None:  # fmt: skip
         self.session, self.generator, self.threshold_m = session, generator, threshold_m
-        self.max_iter, self.smrs, self.shots = max_iter, smrs, shots
+        self.max_iter, self.smrs, self.shots, self.patience = max_iter, smrs, shots, patience
         self.full_pose = smrs == 3
         self.ik = PseudoTargetIK(ik_model, "kinematic", smr=1, full_pose=self.full_pose)
         if self.full_pose:
@@ -453,9 +483,11 @@ class _Loop:
         self.nests = np.array([session.nest_flange_m(k) for k in range(1, smrs + 1)])
         rows = session.store.measurements(PROCEDURE, STEP)
         self.recorded = {
-            pid: (np.array(p, float), np.array(q, float))
-            for pid, p, q in zip(rows["point_id"], rows["p_tracker_m"], rows["q_target_rad"], strict=True)
+            pid: (np.array(p, float), np.array(q, float), measurement_sigma_m(p, spread, shots))
+            for pid, p, q, spread, shots in zip(rows["point_id"], rows["p_tracker_m"], rows["q_target_rad"],
+                                                rows["spread_m"], rows["shots"], strict=True)
         } if len(rows) else {}  # fmt: skip
+        self.sigma_m = 0.0  # per-axis noise of the last measure(): the largest of its points'
 
     def ask_operator(self) -> None:
         for k in range(1, self.smrs + 1):
@@ -465,12 +497,13 @@ class _Loop:
 
     def _point(self, point_id: str, q: np.ndarray, nest: int) -> np.ndarray:
         if point_id in self.recorded:
-            p, q_rec = self.recorded[point_id]
+            p, q_rec, sigma = self.recorded[point_id]
             if not np.allclose(q_rec, q, atol=1e-6):
                 raise CampaignStopped(
                     f"{point_id} was recorded at other joints than this run would command",
                     "re-run with the same model and options, or use a new --campaign file",
                 )
+            self.sigma_m = max(self.sigma_m, sigma)
             return p
         record = self.session.measure_point(
             PROCEDURE,
@@ -485,12 +518,16 @@ class _Loop:
         )
         if record is None:  # recorded between our read and now (not expected): read it back
             rows = self.session.store.measurements(PROCEDURE, STEP)
-            return np.array(rows.loc[rows["point_id"] == point_id, "p_tracker_m"].iloc[0], float)
+            row = rows.loc[rows["point_id"] == point_id].iloc[0]
+            self.sigma_m = max(self.sigma_m, measurement_sigma_m(row["p_tracker_m"], row["spread_m"], row["shots"]))
+            return np.array(row["p_tracker_m"], float)
+        self.sigma_m = max(self.sigma_m, measurement_sigma_m(record.p_tracker_m, record.spread_m, record.shots))
         return np.asarray(record.p_tracker_m, float)
 
     def measure(self, base_id: str, q: np.ndarray) -> np.ndarray:
         """Measured T_tracker_tool (4, 4): SMR 1's point, and with three SMRs the flange orientation from
-        the nest layout fitted to the three measured nests (Kabsch)."""
+        the nest layout fitted to the three measured nests (Kabsch). Sets `sigma_m`, its per-axis noise."""
+        self.sigma_m = 0.0
         T = np.eye(4)
         if self.smrs == 1:
             T[:3, 3] = self._point(base_id, q, 1)
@@ -505,16 +542,21 @@ class _Loop:
         q = np.asarray(q0, float)
         T_p = self.ik.from_flange(forward_kinematics(self.ik.kin, q[None]))  # the pseudo target FK(q)
         T_d = self.T_d4[k : k + 1]
-        best = np.inf
+        best, stale = np.inf, 0  # best error measure so far; corrections in a row without a real gain
         for i in range(self.max_iter + 1):
             T_a = self.measure(f"{tid}/i{i}", q)[None]
             cost, dp, dr = pose_cost(T_a, T_d, self.full_pose, LENGTH_SCALE_M)
             out.errors_m.append(float(dp[0]))
             out.rotation_errors_rad.append(float(dr[0]))
+            out.noise_m.append(self.sigma_m)
+            stale = 0 if i == 0 or cost[0] < best - GAIN_SIGMAS * self.sigma_m else stale + 1
             if cost[0] < best:
                 best, out.best_iteration, out.q_rad = float(cost[0]), i, q.copy()
             if best < self.threshold_m:
                 out.status = "ok"
+                return
+            if self.patience and stale >= self.patience:
+                out.status = "no_improvement"
                 return
             if i == self.max_iter:
                 out.status = "max_iter"

@@ -164,11 +164,44 @@ def test_a_killed_loop_resumes_without_measuring_twice(cell):
     assert rows["point_id"].is_unique
     assert rows["point_id"].tolist()[:5] == first["point_id"].tolist()
     assert np.allclose(np.stack(rows["p_tracker_m"][:5]), np.stack(first["p_tracker_m"]))
-    assert len(result.visited) == 4 and all(t.status in ("ok", "max_iter") for t in result.visited)
+    assert len(result.visited) == 4
+    assert all(t.status in ("ok", "max_iter", "no_improvement") for t in result.visited)
     assert len(rows) == sum(len(t.errors_m) for t in result.visited)  # every iteration measured exactly once
     with session_on(config, path) as session:  # a finished loop re-run measures nothing
         pseudo_target.run(session, model=model, targets=4, smrs=1, max_iter=2, seed=3, threshold_mm=0.001)
         assert len(session.store.measurements("pseudo_target", "loop")) == len(rows)
+
+
+def test_below_the_noise_floor_each_target_stops_for_no_improvement_and_keeps_its_best(cell):
+    """A threshold the tracker cannot resolve: without the no-improvement rule every target would spend all
+    eight corrections; with it each stops once two corrections in a row gain nothing beyond the noise."""
+    config, model = cell["config"], cell["model"]
+    path = campaign(cell, "stall")
+    options = dict(model=model, targets=3, smrs=1, max_iter=8, seed=5, threshold_mm=0.0005, patience=2)
+    with session_on(config, path) as session:
+        result = pseudo_target.run(session, **options)
+        rows = session.store.measurements("pseudo_target", "loop")
+        stored = session.step_result("pseudo_target", "summary")
+    assert len(result.visited) == 3
+    q_of = dict(zip(rows["point_id"], rows["q_target_rad"], strict=True))
+    for t in result.visited:
+        print(t.target_id, [f"{e * 1e3:.4f}" for e in t.errors_m], f"noise {t.noise_m[-1] * 1e3:.4f} mm")
+        assert t.status == "no_improvement", t.to_dict()
+        assert 2 <= t.iterations < 8
+        errors, noise = np.array(t.errors_m), np.array(t.noise_m)
+        best_before = np.minimum.accumulate(errors)[-3]  # best before the last two corrections
+        assert np.all(errors[-2:] >= best_before - pseudo_target.GAIN_SIGMAS * noise[-2:])
+        assert t.error_m == errors.min() and t.best_iteration == int(np.argmin(errors))
+        np.testing.assert_array_equal(t.q_rad, q_of[f"{t.target_id}/i{t.best_iteration}"])
+        assert 0.002 < noise[-1] * 1e3 < 0.05  # a per-axis tracker sigma of a few shots, mm
+    assert stored["summary"]["statuses"] == {"no_improvement": 3}
+    assert [s["status"] for s in stored["targets"]] == ["no_improvement"] * 3
+    assert len(rows) == sum(len(t.errors_m) for t in result.visited)
+    with session_on(config, path) as session:  # the replay of what is recorded stops at the same place
+        again = pseudo_target.run(session, **options)
+        assert len(session.store.measurements("pseudo_target", "loop")) == len(rows)
+    for t, u in zip(result.targets, again.targets, strict=True):
+        assert (u.status, u.errors_m, u.best_iteration, u.noise_m) == (t.status, t.errors_m, t.best_iteration, t.noise_m)
 
 
 def test_unreachable_and_singular_targets_are_reported_and_not_visited(cell):
@@ -221,6 +254,7 @@ def test_cli_dry_run_plans_the_first_poses_and_bad_options_exit_2(cell, tmp_path
     for bad in (
         ["--model", str(tmp_path / "none.json")],
         ["--model", str(model_path), "--threshold-mm", "0"],
+        ["--model", str(model_path), "--patience", "-1"],
     ):
         done = subprocess.run([*base, "--dry-run", *bad], capture_output=True, text=True, timeout=120)
         assert done.returncode == 2 and "what to do" in done.stderr, done.stderr

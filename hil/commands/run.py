@@ -52,6 +52,7 @@ PROCEDURE_OPTIONS: dict[str, list[tuple[str, dict[str, Any]]]] = {
         ("--generator", {"choices": list(GENERATORS), "default": "yin", "help": "pseudo-target generator (default yin)"}),
         ("--threshold-mm", {"type": float, "default": 0.01, "help": "stop below this measured error, mm (default 0.01)"}),
         ("--max-iter", {"type": int, "default": 3, "help": "measured corrections per target (default 3)"}),
+        ("--patience", {"type": int, "default": 2, "help": "stop a target after this many corrections in a row that do not beat its best error by more than the measurement noise (1 sigma of the tracker's noise model or the shot spread, whichever is larger); status no_improvement, best joints kept; 0 = off (default 2)"}),
         ("--smrs", {"type": int, "choices": [1, 3], "default": 1, "help": "1: position (SMR in nest 1); 3: pose (SMRs in nests 1-3) (default 1)"}),
         ("--seed", {"type": int, "default": 0, "help": "seed of the random targets (default 0)"}),
     ],

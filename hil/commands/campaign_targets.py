@@ -1,0 +1,163 @@
+"""Targets of `hil compensate` read from a campaign file: where the campaign meant the SMR to be, per point id.
+
+- `grid` / `validation` (grid_sampling): the SMR centre the commanded joints aimed at, tracker frame: the
+  robot's nominal kinematics (the campaign's cell config) at the commanded joints, the measurement's nest
+  (tool fit when the campaign has one, else the drawing) and the campaign's registration; one SMR, so
+  point targets. Each keeps its point id, its nest and the time / temperature it was measured at, and the
+  commanded joints seed its compensation (same posture and branch, the SMR still facing the tracker).
+- `loop` (pseudo_target): the loop's own targets (SMR 1 in nest 1), poses when it ran with three SMRs.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+from scipy.spatial.transform import Rotation
+
+from hil.commands.errors import CliError
+from hil.kinematics import forward_kinematics
+from hil.robots import get_robot
+from hil.store import CampaignError, CampaignStore
+
+# --step NAME -> (procedure, step) in the campaign; the default is the first of DEFAULT_ORDER it holds
+SOURCES: dict[str, tuple[str, str]] = {
+    "loop": ("pseudo_target", "targets"),
+    "validation": ("grid_sampling", "validation"),
+    "grid": ("grid_sampling", "grid"),
+}
+DEFAULT_ORDER: tuple[str, ...] = ("loop", "validation", "grid")
+
+
+@dataclass
+class CampaignTargets:
+    """Targets (tracker frame, m): points (N, 3) or poses (N, 4, 4); `frame` holds the columns the output
+    starts with (point_id, step_id, smr, x_mm.. [rx_deg..] [t_s, temperature_c]); `smr` the nest per target."""
+
+    step: str
+    targets: np.ndarray
+    frame: pd.DataFrame
+    smr: np.ndarray
+    robot: str
+    q_seed: np.ndarray | None = None  # (N, 6) joints to start each target's IK from (the commanded ones)
+
+
+def available_steps(store: CampaignStore) -> dict[str, int]:
+    """Target sources the campaign holds (--step names) and how many targets each has."""
+    out: dict[str, int] = {}
+    for name, (procedure, step) in SOURCES.items():
+        if procedure == "pseudo_target":
+            pinned = store.step_result(procedure, step)
+            n = len(pinned.get("targets_m", [])) if pinned is not None else 0
+        else:  # measurements with the SMR in a nest (a face or hole probe is no target)
+            n = int((store.measurement_columns(["smr"], procedure, step)["smr"] > 0).sum())
+        if n:
+            out[name] = n
+    return out
+
+
+def read_campaign_targets(path: str | Path, step: str | None = None) -> CampaignTargets:
+    """The targets of one step of a campaign (default: loop, else validation, else grid); CliError on bad input."""
+    if step is not None and step not in SOURCES:
+        raise CliError(f"--step {step!r} is not a target source", f"give --step {' | '.join(SOURCES)}")
+    try:
+        store = CampaignStore(path, create=False)
+    except CampaignError as exc:
+        raise CliError.from_text(str(exc)) from exc
+    with store:
+        have = available_steps(store)
+        if not have:
+            held = ", ".join(f"{r.procedure}/{r.step} ({r.points})" for r in store.point_counts().itertuples())
+            raise CliError(
+                f"campaign {path} holds no targets (it holds: {held or 'no measurements'})",
+                "run `hil run grid_sampling` or `hil run pseudo_target` on it first, or give a targets CSV",
+            )
+        if step is None:
+            step = next(s for s in DEFAULT_ORDER if s in have)
+        elif step not in have:
+            listing = ", ".join(f"{s} ({n})" for s, n in have.items())
+            raise CliError(
+                f"campaign {path} has no {step} targets; it has: {listing}",
+                f"give --step {' | '.join(have)}",
+            )
+        robot = _robot_name(store, path)
+        if step == "loop":
+            return _loop_targets(store, robot)
+        return _commanded_points(store, path, step, robot)
+
+
+def _robot_name(store: CampaignStore, path: str | Path) -> str:
+    for snapshot in reversed(store.snapshots()):
+        model = snapshot.get("cell", {}).get("robot", {}).get("model")
+        if isinstance(model, str):
+            return model.lower()
+    raise CliError(
+        f"campaign {path} has no station snapshot naming the robot ([robot] model)",
+        "give the targets as a CSV (hil campaign export, then x_mm, y_mm, z_mm)",
+    )
+
+
+def _drawing_nests_m(store: CampaignStore) -> dict[int, np.ndarray]:
+    for snapshot in reversed(store.snapshots()):
+        nests = snapshot.get("cell", {}).get("tool", {}).get("nests_flange_mm")
+        if isinstance(nests, list):
+            return {k + 1: np.asarray(v, float) / 1e3 for k, v in enumerate(nests)}
+    return {}
+
+
+def _commanded_points(store: CampaignStore, path: str | Path, step: str, robot: str) -> CampaignTargets:
+    """SMR centres the commanded joints aimed at, by nominal kinematics + nest + registration (tracker frame)."""
+    procedure, step_name = SOURCES[step]
+    reg = store.step_result("registration", "fit")
+    if reg is None:
+        raise CliError(
+            f"campaign {path} has no registration: its commanded points have no place in the tracker frame",
+            "run `hil run registration` on the campaign, or give the targets as a CSV",
+        )
+    T_tracker_base = np.asarray(reg["T_tracker_base"], float)
+    nests = _drawing_nests_m(store)
+    fit = store.step_result("tool_fit", "fit") or {}
+    nests.update({int(k): np.asarray(v, float) / 1e3 for k, v in fit.get("nests_flange_mm", {}).items()})
+    m = store.measurements(procedure, step_name)
+    m = m[m["smr"] > 0]
+    if m.empty:
+        raise CliError(f"campaign {path}: no {step} point was measured in a tool nest", "give another --step")
+    smr = m["smr"].to_numpy(int)
+    unknown = sorted(set(smr) - set(nests))
+    if unknown:
+        raise CliError(
+            f"campaign {path}: nest(s) {unknown} have no position in the flange (no tool fit, not in the cell config)",
+            "run `hil run tool_fit` on the campaign, or give the targets as a CSV",
+        )
+    q = np.stack(m["q_target_rad"].to_numpy()).astype(float)
+    T = forward_kinematics(get_robot(robot), q)
+    p_flange = np.array([nests[s] for s in smr])
+    p_base = np.einsum("nij,nj->ni", T[:, :3, :3], p_flange) + T[:, :3, 3]
+    p = p_base @ T_tracker_base[:3, :3].T + T_tracker_base[:3, 3]
+    frame = pd.DataFrame({"point_id": m["point_id"].astype(str).to_numpy(), "step_id": step, "smr": smr})
+    for i, axis in enumerate("xyz"):
+        frame[f"{axis}_mm"] = p[:, i] * 1e3
+    frame["t_s"] = m["timestamp_s"].to_numpy(float) - store.started_s
+    temperature = m["temperature_c"].to_numpy(float)
+    if np.all(np.isfinite(temperature)):
+        frame["temperature_c"] = temperature
+    return CampaignTargets(step, p, frame, smr, robot, q_seed=q)
+
+
+def _loop_targets(store: CampaignStore, robot: str) -> CampaignTargets:
+    """The pseudo-target loop's targets (SMR 1 in nest 1): points, or poses when it ran with three SMRs."""
+    pinned = store.step_result(*SOURCES["loop"])
+    assert pinned is not None  # available_steps found it
+    targets = np.asarray(pinned["targets_m"], float)
+    ids = [f"t{k + 1:03d}" for k in range(len(targets))]
+    frame = pd.DataFrame({"point_id": ids, "step_id": "loop", "smr": 1})
+    p = targets[:, :3, 3] if targets.ndim == 3 else targets
+    for i, axis in enumerate("xyz"):
+        frame[f"{axis}_mm"] = p[:, i] * 1e3
+    if targets.ndim == 3:
+        rotvec = np.rad2deg(Rotation.from_matrix(targets[:, :3, :3]).as_rotvec())
+        for i, axis in enumerate("xyz"):
+            frame[f"r{axis}_deg"] = rotvec[:, i]
+    return CampaignTargets("loop", targets, frame, np.ones(len(targets), int), robot)
