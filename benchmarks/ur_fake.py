@@ -3,15 +3,19 @@
 Starts `hil sim`, connects one RTDEReceiveInterface and one RTDEControlInterface (the load), then
   1. RTDE period statistics: the controller's own tick periods (from the cell's clock) and the
      inter-arrival times of data packages seen by a raw RTDE observer socket;
-  2. the handshake latency of blocking commands (getForwardKinematics, isSteady): ready -> command
-     -> done -> clear, i.e. about two controller cycles.
+  2. the handshake latency of blocking commands (getForwardKinematics, isSteady, and commands the fake
+     acknowledges without modelling them): ready -> command -> done -> clear, about two controller cycles;
+then, through the UR driver (drivers/ur.py) on a second cell at time scale 10,
+  3. how fast each injected fault surfaces as the driver's typed error, and how long recover() takes;
+  4. how fast connecting fails to an address with no controller and to a powered-off arm.
 
-Run: PYTHONPATH=. python benchmarks/ur_fake.py [--personality eseries|cb3] [--seconds 5]
+Run: PYTHONPATH=. python benchmarks/ur_fake.py [--personality eseries|cb3] [--seconds 5] [--fault-repeats 3]
 """
 
 from __future__ import annotations
 
 import argparse
+import logging
 import os
 import socket
 import struct
@@ -24,8 +28,20 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from fakes.launch import sim_cell  # noqa: E402
+from drivers.robot import RobotError  # noqa: E402
+from drivers.ur import URConfig, URRobot  # noqa: E402
+from fakes.launch import random_loopback_host, sim_cell  # noqa: E402
 from fakes.rtde_wire import frame  # noqa: E402
+
+HOME = [0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0]
+FAULTS = {  # kind -> options, as in tests/test_ur_driver.py
+    "protective_stop": {},
+    "emergency_stop": {},
+    "stop_script": {},
+    "drop_rtde": {"duration_s": 1.0},
+    "stall": {"duration_s": 1.0},
+    "latency": {"duration_s": 1.0},
+}
 
 
 def observe_rtde(host: str, frequency: float, seconds: float, out: list[float]) -> None:
@@ -87,6 +103,7 @@ def main() -> int:
     parser.add_argument("--personality", choices=["eseries", "cb3"], default="eseries")
     parser.add_argument("--seconds", type=float, default=5.0)
     parser.add_argument("--commands", type=int, default=300)
+    parser.add_argument("--fault-repeats", type=int, default=3)
     args = parser.parse_args()
     import rtde_control
     import rtde_receive
@@ -117,6 +134,9 @@ def main() -> int:
             for name, call in (
                 ("getForwardKinematics()", ctrl.getForwardKinematics),
                 ("isSteady()", ctrl.isSteady),
+                ("setPayload()", lambda: ctrl.setPayload(1.0, [0.0, 0.0, 0.05])),
+                ("zeroFtSensor() (not modelled)", ctrl.zeroFtSensor),
+                ("endTeachMode() (not modelled)", ctrl.endTeachMode),
             ):
                 samples = []
                 for _ in range(args.commands):
@@ -147,7 +167,88 @@ def main() -> int:
             f"| {name} | {len(samples)} | {np.percentile(samples, 50):.2f} | {np.percentile(samples, 90):.2f} | "
             f"{np.percentile(samples, 99):.2f} | {samples.max():.2f} | {np.percentile(samples, 50) / nominal_ms:.1f} |"
         )
+    logging.getLogger("drivers.ur").setLevel(logging.ERROR)  # its retry warnings would cut into the tables
+    faults = fault_latencies(robot, args.personality, args.fault_repeats)
+    print(
+        f"\n# UR driver, one cell at time scale 10: move 1.2 rad at 0.5 rad/s, fault at 30 % ({args.fault_repeats} each)"
+    )
+    print(
+        "# fault -> error: simulated time from the fault firing to just after the error, in wall ms (an upper"
+    )
+    print("# bound: it includes one control-channel round trip)\n")
+    print(
+        "| fault | typed error | fault -> error ms (median, max) | failing move_joints s (max) | recover() s (max) |"
+    )
+    print("|---|---|---|---|---|")
+    for kind, rows in faults.items():
+        errors = sorted({row[0] for row in rows})
+        after_ms = np.array([row[1] for row in rows])
+        print(
+            f"| {kind} | {', '.join(errors)} | {np.median(after_ms):.0f}, {after_ms.max():.0f} | "
+            f"{max(row[2] for row in rows):.2f} | {max(row[3] for row in rows):.2f} |"
+        )
+    print("\n| connect to | error | seconds |")
+    print("|---|---|---|")
+    for what, error, seconds in connect_refusals(robot):
+        print(f"| {what} | {error} | {seconds:.2f} |")
     return 0
+
+
+def fault_latencies(
+    robot: str, personality: str, repeats: int
+) -> dict[str, list[tuple[str, float, float, float]]]:
+    """Per fault kind: (error type, fault -> error wall ms, failing move s, recover s) for each repeat."""
+    time_scale = 10.0
+    far = [HOME[0] + 1.2, *HOME[1:]]
+    results: dict[str, list[tuple[str, float, float, float]]] = {kind: [] for kind in FAULTS}
+    with sim_cell(robot=robot, personality=personality, time_scale=time_scale) as cell:
+        driver = URRobot(URConfig(cell.host))
+        try:
+            for _ in range(repeats):
+                for kind, options in FAULTS.items():
+                    driver.move_joints(np.array(HOME))
+                    cell.control.call("robot.fault", kind=kind, at_move=1, fraction=0.3, **options)
+                    started = time.perf_counter()
+                    try:
+                        driver.move_joints(np.array(far), speed=0.5)
+                        raise RuntimeError(f"the {kind} fault gave no error")
+                    except RobotError as exc:
+                        error, failed = type(exc).__name__, time.perf_counter() - started
+                    now_s = cell.control.call("ping")["time_s"]
+                    fired_s = cell.control.call("robot.state")["faults"][-1]["time_s"]
+                    started = time.perf_counter()
+                    cell.control.call("robot.clear_faults")
+                    cell.control.call("robot.release_estop")
+                    driver.recover()
+                    recovered = time.perf_counter() - started
+                    results[kind].append((error, (now_s - fired_s) / time_scale * 1000.0, failed, recovered))
+        finally:
+            driver.close()
+    return results
+
+
+def connect_refusals(robot: str) -> list[tuple[str, str, float]]:
+    """Time for URRobot() to fail: no controller at the address (2 attempts, 0.5 s probe timeout), and an arm
+    that is powered off (refused before the control program is uploaded)."""
+    import gc
+
+    gc.collect()  # leftover ur-rtde objects sleep 500 ms in their destructors: not part of these timings
+    nothing = URConfig(random_loopback_host(), connect_timeout_s=0.5, connect_attempts=2)
+    rows = [("no controller (2 attempts, 0.5 s timeout)", *_time_connect(nothing))]
+    with sim_cell(robot=robot, time_scale=10.0, extra_args=("--powered-off",)) as off:
+        rows.append(("a powered-off arm", *_time_connect(URConfig(off.host))))
+    return rows
+
+
+def _time_connect(config: URConfig) -> tuple[str, float]:
+    """The error type URRobot(config) raised ("none" if it connected) and the seconds it took."""
+    started = time.perf_counter()
+    try:
+        URRobot(config).close()
+        error = "none"
+    except RobotError as exc:
+        error = type(exc).__name__
+    return error, time.perf_counter() - started
 
 
 if __name__ == "__main__":

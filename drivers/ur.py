@@ -19,6 +19,7 @@ import struct
 import time
 import weakref
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -183,9 +184,10 @@ class URRobot:
 
     def __init__(self, config: URConfig):
         self.config = config
-        self._rx = None
-        self._ctrl = None
-        self._dash = None
+        # ur-rtde's receive, control and dashboard interfaces (untyped C++ objects); None when not connected
+        self._rx: Any | None = None
+        self._ctrl: Any | None = None
+        self._dash: Any | None = None
         self.version = ""
         self._last_stamp = -1.0
         self._last_stamp_wall = 0.0
@@ -205,15 +207,15 @@ class URRobot:
         for attempt in range(cfg.connect_attempts):
             try:
                 self.version = probe_controller(cfg.host, cfg.connect_timeout_s)
-                self._dash = dashboard_client.DashboardClient(cfg.host)
-                self._dash.connect(int(cfg.connect_timeout_s * 1000))
-                self._rx = rtde_receive.RTDEReceiveInterface(cfg.host)
+                self._dash = dash = dashboard_client.DashboardClient(cfg.host)
+                dash.connect(int(cfg.connect_timeout_s * 1000))
+                self._rx = rx = rtde_receive.RTDEReceiveInterface(cfg.host)
                 self._require_arm_ready()  # the control program would not start otherwise (a 5 s stall)
-                self._ctrl = rtde_control.RTDEControlInterface(
+                self._ctrl = ctrl = rtde_control.RTDEControlInterface(
                     cfg.host, -1.0, rtde_control.RTDEControlInterface.FLAG_UPLOAD_SCRIPT
                 )
-                self._ctrl.setTcp([0.0] * 6)  # TCP pose = flange pose
-                self._last_stamp, self._last_stamp_wall = self._rx.getTimestamp(), time.monotonic()
+                ctrl.setTcp([0.0] * 6)  # TCP pose = flange pose
+                self._last_stamp, self._last_stamp_wall = rx.getTimestamp(), time.monotonic()
                 return
             except (EmergencyStopError, ProtectiveStopError, RobotNotReadyError):
                 self._disconnect()
@@ -227,7 +229,7 @@ class URRobot:
 
     def _require_arm_ready(self) -> None:
         """Before the control program is uploaded: the arm must be powered, brakes released, no stop."""
-        rx = self._rx
+        rx = self._receive()
         deadline = time.monotonic() + 2.0
         while rx.getTimestamp() <= 0 and time.monotonic() < deadline:
             time.sleep(0.002)
@@ -249,13 +251,32 @@ class URRobot:
                 f"the arm is {mode}, not RUNNING",
                 "power on and release the brakes on the pendant, or use URConfig(power_on_at_connect=True)",
             )
-        self._dash.powerOn()
-        self._dash.brakeRelease()
+        dash = self._dashboard()
+        dash.powerOn()
+        dash.brakeRelease()
         deadline = time.monotonic() + self.config.recover_timeout_s
         while ROBOT_MODES.get(rx.getRobotMode()) != "RUNNING":
             if time.monotonic() > deadline:
                 raise RobotNotReadyError("the arm did not reach RUNNING after power on and brake release")
             time.sleep(0.02)
+
+    def _receive(self) -> Any:
+        """The RTDE receive interface; RobotConnectionError when it is gone (closed or being rebuilt)."""
+        if self._rx is None:
+            raise RobotConnectionError(f"not connected to {self.config.host}")
+        return self._rx
+
+    def _control(self) -> Any:
+        """The RTDE control interface; RobotConnectionError when it is gone (closed or being rebuilt)."""
+        if self._ctrl is None:
+            raise RobotConnectionError(f"not connected to {self.config.host}")
+        return self._ctrl
+
+    def _dashboard(self) -> Any:
+        """The dashboard client; RobotConnectionError when it is gone (closed or being rebuilt)."""
+        if self._dash is None:
+            raise RobotConnectionError(f"not connected to {self.config.host}")
+        return self._dash
 
     def _disconnect(self) -> None:
         URRobot._release([self._ctrl, self._rx, self._dash])
@@ -287,10 +308,10 @@ class URRobot:
             healthy = False
         if healthy:
             try:
-                self._ctrl = rtde_control.RTDEControlInterface(
+                self._ctrl = ctrl = rtde_control.RTDEControlInterface(
                     self.config.host, -1.0, rtde_control.RTDEControlInterface.FLAG_UPLOAD_SCRIPT
                 )
-                self._ctrl.setTcp([0.0] * 6)
+                ctrl.setTcp([0.0] * 6)
             except (RuntimeError, RobotConnectionError) as exc:
                 log.warning("rebuilding the control interface failed (%s); reconnecting everything", exc)
                 healthy = False
@@ -317,7 +338,7 @@ class URRobot:
     def _read_consistent(self, *getters) -> list:
         """Call receive getters so that all values come from one package: the receive thread replaces a
         whole package under one lock, so an unchanged timestamp around the reads means one package."""
-        rx = self._rx
+        rx = self._receive()
         for _ in range(_SNAPSHOT_TRIES):
             stamp = rx.getTimestamp()
             values = [stamp, *(getter() for getter in getters)]
@@ -327,7 +348,7 @@ class URRobot:
 
     def _snapshot(self) -> _Snapshot:
         """Timestamp, safety and program state from one receive package."""
-        rx = self._rx
+        rx = self._receive()
         return _Snapshot(
             *self._read_consistent(
                 rx.getTimestamp, rx.getSafetyStatusBits, rx.getSafetyMode, rx.getRobotMode, rx.getRuntimeState
@@ -359,10 +380,10 @@ class URRobot:
         deadline = time.monotonic() + expected_s * 3 + self.config.move_timeout_margin_s
         while True:
             self._check()
-            status = self._ctrl.getAsyncOperationProgressEx()
+            status = self._control().getAsyncOperationProgressEx()
             if status.operationId() != op_before and not status.isAsyncOperationRunning():
                 # read after the status on the same (control) stream, so never from an older package
-                if not self._ctrl.isProgramRunning():
+                if not self._control().isProgramRunning():
                     self._raise_program_end(what)
                 return
             if time.monotonic() > deadline:
@@ -385,9 +406,10 @@ class URRobot:
         """Wait for a couple of fresh receive packages: the receive and control streams are separate
         sockets, so right after the control side reports an event the receive side may lag a cycle."""
         deadline = time.monotonic() + self.config.stale_after_s
-        stamp, seen = self._rx.getTimestamp(), 0
+        rx = self._receive()
+        stamp, seen = rx.getTimestamp(), 0
         while seen < packages:
-            now_stamp = self._rx.getTimestamp()
+            now_stamp = rx.getTimestamp()
             if now_stamp != stamp:
                 stamp, seen = now_stamp, seen + 1
             elif time.monotonic() > deadline:
@@ -412,8 +434,9 @@ class URRobot:
         accel = _limited(accel, cfg.joint_accel, cfg.max_joint_accel, "joint acceleration (rad/s^2)")
         self._check()
         distance = float(np.max(np.abs(q - self.joints())))
-        op_before = self._ctrl.getAsyncOperationProgressEx().operationId()
-        if not self._ctrl.moveJ(q.tolist(), speed, accel, True):
+        ctrl = self._control()
+        op_before = ctrl.getAsyncOperationProgressEx().operationId()
+        if not ctrl.moveJ(q.tolist(), speed, accel, True):
             self._check()
             raise RobotError("the controller refused moveJ", "check the target and the controller log")
         self._supervise_async(op_before, _trapezoid_time(distance, speed, accel), "moveJ")
@@ -429,7 +452,7 @@ class URRobot:
         socket that may lag) shows the arm at rest on the target; a move that really ended short fails.
         `left_of(target_q, T_base_flange_target)` gives the distance left and whether it is arrived."""
         deadline = time.monotonic() + self.config.stream_sync_timeout_s
-        rx = self._rx
+        rx = self._receive()
         while True:
             self._check()
             target_q, target_qd, target_pose = self._read_consistent(
@@ -461,8 +484,9 @@ class URRobot:
             float(np.linalg.norm(target[:3, 3] - current[:3, 3])),
             _rotation_angle(current[:3, :3].T @ target[:3, :3]),
         )
-        op_before = self._ctrl.getAsyncOperationProgressEx().operationId()
-        if not self._ctrl.moveL(pose.tolist(), speed, accel, True):
+        ctrl = self._control()
+        op_before = ctrl.getAsyncOperationProgressEx().operationId()
+        if not ctrl.moveL(pose.tolist(), speed, accel, True):
             self._check()
             raise RobotError("the controller refused moveL", "check that the pose is reachable")
         self._supervise_async(op_before, _trapezoid_time(distance, speed, accel), "moveL")
@@ -485,11 +509,11 @@ class URRobot:
     # ------------------------------------------------------------------ reading
     def joints(self) -> np.ndarray:
         self._check_stream()
-        return np.array(self._rx.getActualQ(), float)
+        return np.array(self._receive().getActualQ(), float)
 
     def flange_pose(self) -> np.ndarray:
         self._check_stream()
-        return pose_to_transform(np.array(self._rx.getActualTCPPose(), float))
+        return pose_to_transform(np.array(self._receive().getActualTCPPose(), float))
 
     def _check_stream(self) -> None:
         """Readings need only a live, advancing data stream (not a running program)."""
@@ -508,7 +532,7 @@ class URRobot:
     def wait_settled(self, dwell_s: float | None = None, timeout_s: float | None = None) -> None:
         dwell_s = self.config.settle_dwell_s if dwell_s is None else dwell_s
         deadline = time.monotonic() + (self.config.settle_timeout_s if timeout_s is None else timeout_s)
-        rx = self._rx
+        rx = self._receive()
         while True:
             self._check()
             # At rest by the receive stream alone: ur-rtde's isSteady() is a command to the control script, and
@@ -545,7 +569,7 @@ class URRobot:
         cfg = self.config
         deadline = time.monotonic() + cfg.recover_timeout_s
         self._ensure_dashboard()
-        dash = self._dash
+        dash = self._dashboard()
         mode = dash.safetystatus() if self.version.startswith("5") else dash.safetymode()
         if "EMERGENCY" in mode:
             raise EmergencyStopError(f"cannot recover: {mode.strip()}")
@@ -586,8 +610,8 @@ class URRobot:
         import dashboard_client
 
         probe_controller(self.config.host, self.config.connect_timeout_s)
-        self._dash = dashboard_client.DashboardClient(self.config.host)
-        self._dash.connect(int(self.config.connect_timeout_s * 1000))
+        self._dash = dash = dashboard_client.DashboardClient(self.config.host)
+        dash.connect(int(self.config.connect_timeout_s * 1000))
 
     def close(self) -> None:
         """Stop any motion, then disconnect control, receive and dashboard (in that order)."""

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 
 from fakes.control_client import ControlClient
 
-EXIT_ADDRESS_IN_USE = 3
+EXIT_ADDRESS_IN_USE = 3  # exit status of `python -m fakes.sim` when its address is taken: try another
 _ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 

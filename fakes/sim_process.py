@@ -26,11 +26,11 @@ import numpy as np
 from fakes.cell import EffectFlags, SimCellConfig, SimulatedCell, SmrLocation
 from fakes.control_channel import ControlChannel
 from fakes.emscon_server import EmsconServer, EmsconServerConfig
+from fakes.launch import EXIT_ADDRESS_IN_USE
 from fakes.ur_controller import UrController
 
 log = logging.getLogger(__name__)
 
-EXIT_ADDRESS_IN_USE = 3
 _WAKE_EARLY_S = 0.0006
 
 

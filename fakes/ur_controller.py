@@ -575,7 +575,9 @@ class UrController(ScriptRuntime):
             if not conn.streaming or self.tick_count % conn.output_every_n_ticks:
                 continue
             if conn.getters is None:
-                conn.getters = [self.getter(name) for name in conn.output_recipe.names]
+                recipe = conn.output_recipe
+                assert recipe is not None  # a connection streams only once it has an output recipe
+                conn.getters = [self.getter(name) for name in recipe.names]
             values = [getter() for getter in conn.getters]
             if holding:
                 self._held.append((conn, values))

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import logging
 import time
+from collections import deque
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -21,21 +23,76 @@ from hil.ik import solve_ik
 from hil.kinematics import forward_kinematics, geometric_jacobian
 from hil.se3 import invert, pose_to_transform, transform_to_pose
 
+if TYPE_CHECKING:
+    from fakes.cell import SimulatedCell
+    from fakes.fast_kinematics import ArmKinematics
+    from fakes.ur_script import ControlProgram
+    from hil.kinematics import KinematicModel
+
 log = logging.getLogger("fakes.ur_controller")
 
 
 class ScriptRuntime:
     """Register handshake and commands of the uploaded control program (see the module docstring)."""
 
+    # The host's state this mixin reads and writes (`UrController.__init__` sets every one of them).
+    cell: SimulatedCell
+    model: KinematicModel  # the nominal model: the controller's beliefs
+    kin: ArmKinematics
+    period_s: float
+    robot_mode: int
+    safety_mode: int
+    runtime_state: int
+    in_int: list[int]
+    in_double: list[float]
+    out_int: list[int]
+    out_double: list[float]
+    speed_slider: float
+    payload: tuple[float, tuple[float, ...]]  # mass (kg), centre of gravity (m)
+    _last_ii0_write: float
+    _watchdog_period_s: float
+    program: ControlProgram | None
+    _executing: bool
+    _blocking: str | None  # the sync command waiting for its motion to end
+    motion: Motion | None
+    _motion_fresh: bool
+    _motion_is_async: bool
+    _async_op_id: int
+    _async_counter: int
+    q_cmd: np.ndarray
+    qd_cmd: np.ndarray
+    actual_q: np.ndarray
+    _q_history: deque[np.ndarray]
+    T_flange_tcp: np.ndarray
+    moves_started: int
+    last_move: dict[str, Any]
+    _move_started_at: float
+    _still_ticks: int
+
+    if TYPE_CHECKING:  # the host's methods this mixin calls
+
+        def _halt_program(self, new_state: int) -> None: ...
+
+        def _fire_planned_faults(self, motion: Motion) -> None: ...
+
+        def trigger_protective_stop(self, why: str) -> None: ...
+
     # ---------------------------------------------------------------- registers
+    def _loaded(self) -> ControlProgram:
+        """The control program whose commands run: the host runs the script cycle only once one is loaded."""
+        program = self.program
+        if program is None:
+            raise RuntimeError("the control script ran with no program loaded")
+        return program
+
     def _ii(self, k: int) -> int:
-        return self.in_int[self.program.offset + k]
+        return self.in_int[self._loaded().offset + k]
 
     def _id(self, k: int) -> float:
-        return self.in_double[self.program.offset + k]
+        return self.in_double[self._loaded().offset + k]
 
     def _ids(self, start: int, count: int = 6) -> np.ndarray:
-        base = self.program.offset + start
+        base = self._loaded().offset + start
         return np.array(self.in_double[base : base + count], float)
 
     def _oi(self, k: int, value: int) -> None:
@@ -99,7 +156,7 @@ class ScriptRuntime:
         if self._blocking:
             return
         cmd = self._ii(0)
-        program = self.program
+        program = self._loaded()
         if cmd in program.realtime_commands:
             self._realtime(cmd)
             self._oi(0, 1)
@@ -229,24 +286,25 @@ class ScriptRuntime:
         return not is_async
 
     def _path_move(self) -> bool:
-        segments = self.program.path
+        segments = self._loaded().path
         if not segments:
             return False
-        self._start_motion(PathMove(segments, self.q_cmd, self._path_segment), bool(self._ii(1)))
+        self._start_motion(PathMove(list(segments), self.q_cmd, self._path_segment), bool(self._ii(1)))
         return not bool(self._ii(1))
 
     def _path_segment(self, segment: tuple, q_start: np.ndarray) -> Motion:
         kind, target, v, a, _r, _index = segment
         target = np.asarray(target, float)
+        q: np.ndarray | None
         if kind.endswith("_joints"):
             q = self._checked_joints(target)
             T = forward_kinematics(self.model, q[None])[0]
         else:
             T = pose_to_transform(target) @ invert(self.T_flange_tcp)
             q = self._ik(T, q_start)
-            if q is None and kind.startswith("movej"):
-                raise ValueError(f"path waypoint {np.round(target, 4)} has no inverse kinematics solution")
         if kind.startswith("movej"):
+            if q is None:
+                raise ValueError(f"path waypoint {np.round(target, 4)} has no inverse kinematics solution")
             return JointMove(q_start, q, v, a)
         return LinearMove(self.model, q_start, T, v, a)
 
@@ -304,7 +362,7 @@ class ScriptRuntime:
             return tool_decel
         return tool_decel * joint_speed / tool_speed
 
-    def _target_waypoint(self) -> np.ndarray:
+    def _target_waypoint(self) -> list[float] | np.ndarray:
         motion = self.motion
         if isinstance(motion, JointMove):
             return self._tcp_pose(motion.q_end, self.T_flange_tcp)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import gc
 import time
 
 import numpy as np
@@ -111,6 +110,7 @@ FAULTS = [
     ("stall", {"duration_s": 1.0}, StaleDataError),
     ("latency", {"duration_s": 1.0}, StaleDataError),
 ]
+STOPS = ("protective_stop", "emergency_stop", "stop_script")  # faults that halt the controller's motion
 
 
 @pytest.mark.timeout(40)
@@ -120,11 +120,18 @@ def test_fault_gives_typed_error_then_recovers(ready_robot, cell, kind, options,
     robot.move_joints(HOME)
     far = HOME + [1.2, 0, 0, 0, 0, 0]
     cell.control.call("robot.fault", kind=kind, at_move=1, fraction=0.3, **options)
-    started = time.monotonic()
     with pytest.raises(error) as info:
         robot.move_joints(far, speed=0.5)
-    assert time.monotonic() - started < 3.0
+    # The error names the fault, not the supervision deadline (that is RobotTimeoutError), and it came while the
+    # fault lasted: a driver that waited out the 1 s stall or latency would see the move end normally. A hang is
+    # caught by the test's timeout; how fast each fault surfaces is measured in benchmarks/ur_fake.py.
     assert "next:" in str(info.value)
+    controller = cell.control.call("robot.state")
+    fault = controller["faults"][-1]
+    assert (fault["kind"], fault["move"]) == (kind, controller["moves_started"])  # it fired during this move
+    if kind in STOPS:  # the stop cut the move short: the controller never finished it
+        assert controller["last_move"]["finished_s"] is None
+        assert controller["commanded_q"][0] < far[0] - 0.1
     if kind == "emergency_stop":
         with pytest.raises(EmergencyStopError):
             robot.recover()  # the button is still pressed
@@ -148,11 +155,10 @@ def test_close_leaves_the_robot_stopped_and_disconnected(robot, cell):
 
 @pytest.mark.timeout(20)
 def test_connect_to_nothing_fails_fast():
-    gc.collect()  # leftover ur-rtde objects sleep 500 ms in their destructors; not part of this timing
-    started = time.monotonic()
-    with pytest.raises(RobotConnectionError, match="could not connect"):
+    # The socket probe (with timeouts) gave up, so ur-rtde's constructors (which wait without a timeout) never
+    # ran; a hang is caught by the test's timeout, and the time to fail is in benchmarks/ur_fake.py.
+    with pytest.raises(RobotConnectionError, match="could not connect .*does not answer"):
         URRobot(URConfig(random_loopback_host(), connect_timeout_s=0.5, connect_attempts=2))
-    assert time.monotonic() - started < 5.0
 
 
 def test_config_from_mapping_checks_keys_and_limits():
@@ -180,13 +186,15 @@ def test_short_latency_spike_is_ridden_through(sole_cell):
 @pytest.mark.timeout(60)
 def test_powered_off_arm_is_reported_or_powered_on_when_allowed():
     with sim_cell(robot="ur10", time_scale=10.0, extra_args=("--powered-off",)) as off:
-        started = time.monotonic()
         with pytest.raises(RobotNotReadyError, match="POWER_OFF"):
             URRobot(URConfig(off.host))
-        assert time.monotonic() - started < 5.0
+        # refused before uploading the control program, which a powered-off controller would not start (ur-rtde
+        # then waits 5 s for it): the fake received none
+        assert off.control.call("robot.state")["programs_received"] == 0
         robot = URRobot(URConfig(off.host, power_on_at_connect=True))
         try:
             robot.move_joints(HOME + [0.2, 0, 0, 0, 0, 0])
             assert robot.state().robot_mode == "RUNNING"
+            assert off.control.call("robot.state")["refused_programs"] == []  # uploaded once powered
         finally:
             robot.close()

@@ -276,12 +276,16 @@ def test_uploaded_program_is_parsed_from_its_text(rig):
 @pytest.mark.timeout(30)
 def test_unmodelled_commands_still_signal_done(rig):
     rig.ensure_running()
-    started = time.monotonic()
+    # ur-rtde returns True only once the script signalled done, and waits 3 s for "ready" before the next
+    # command (then returns False): each True says the previous command handed the handshake back. A command
+    # that never signals done hangs the client (300 s), caught by the test's timeout. Handshake latencies are
+    # in benchmarks/ur_fake.py.
     assert rig.ctrl.setPayload(1.0, [0, 0, 0.05])
     assert rig.ctrl.zeroFtSensor()
     assert rig.ctrl.teachMode() and rig.ctrl.endTeachMode()
     assert rig.ctrl.isJointsWithinSafetyLimits([0, -1.5, 1.5, -1.5, -1.5, 0])
-    assert time.monotonic() - started < 2.0
+    rig.settle_stream()
+    assert rig.rx.getPayload() == 1.0  # and the script ran them: the modelled one took effect
 
 
 @pytest.mark.timeout(30)
