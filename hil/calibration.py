@@ -338,7 +338,7 @@ def solve_ridge_igg3(
     dev = np.zeros(int(free.sum()))  # accumulated change of the free parameters since the start
     warm = 0
     it = 0
-    sigma_robust: float | None = None
+    sigma_robust: np.ndarray | None = None
     for it in range(1, max_iter + 1):  # noqa: B007
         if frozen_jacobian:
             r, Jf = (r0v - J0f @ dev).reshape(N_pts, d), J0f
@@ -381,10 +381,10 @@ def solve_ridge_igg3(
         Minv = np.linalg.pinv(M)
         red = _redundancy(Js, Minv)
         # Robust scale, fixed once from the least-squares solution (1.4826 x median absolute residual of
-        # all coordinates): a weighted sigma0 re-estimated each step shrinks as points are rejected and
-        # lets the re-weighting reject ever more points.
+        # all coordinates; positions and a probe's rotations each their own): a weighted sigma0 re-estimated
+        # each step shrinks as points are rejected and lets the re-weighting reject ever more points.
         if sigma_robust is None:
-            sigma_robust = max(1.4826 * float(np.median(np.abs(r_new))), 1e-12)
+            sigma_robust = np.tile(robust_scales(r_new.reshape(N_pts, d), centred=False), N_pts)
         t_rows = r_new / (sigma_robust * np.sqrt(red))
         t_pts = np.sqrt(np.mean(t_rows.reshape(N_pts, d) ** 2, axis=1))
         w_new = igg3_weight(t_pts, k0, k1)
@@ -419,6 +419,18 @@ def solve_ridge_igg3(
         iterations=it,
         residual_rot_rad=_rotation_part(problem, r),
     )
+
+
+def robust_scales(r: np.ndarray, centred: bool) -> np.ndarray:
+    """Robust sigma (1.4826 x median absolute deviation, about the median if `centred`, else about 0) per
+    column of a (N, 3|6) residual, pooled over the position columns and over the rotation columns: a
+    probe's rotations and the positions carry different model errors, so each is judged by its own."""
+    out = np.empty(r.shape[1])
+    for cols in (slice(0, 3), slice(3, r.shape[1])):
+        x = r[:, cols].ravel()
+        if x.size:
+            out[cols] = max(1.4826 * float(np.median(np.abs(x - (np.median(x) if centred else 0.0)))), 1e-12)
+    return out
 
 
 def _rotation_part(problem: Problem, r: np.ndarray) -> np.ndarray | None:
@@ -464,8 +476,8 @@ def solve_lm(
 
     x0 = np.zeros(int(free.sum()))
     first = least_squares(fun, x0, jac=jac, x_scale="jac", method="trf", max_nfev=30, xtol=1e-12, ftol=1e-12)
-    sigma = 1.4826 * np.median(np.abs(first.fun - np.median(first.fun)))
-    sigma = max(float(sigma), 1e-9)
+    sigmas = np.maximum(robust_scales(first.fun.reshape(-1, problem.n_obs), centred=True), 1e-9)
+    sigma = float(sigmas[0])  # the positions' scale sets the loss (a probe's rows are flagged on their own)
     sol = least_squares(
         fun,
         first.x,
@@ -480,7 +492,7 @@ def solve_lm(
     fitted = at(sol.x)
     r, J = problem.evaluate(fitted)
     Jf = flatten_jacobian(J)[:, free]
-    t_pts = np.sqrt(np.mean((r / sigma) ** 2, axis=1))
+    t_pts = np.sqrt(np.mean((r / sigmas) ** 2, axis=1))
     outliers = t_pts > k1
     w_rows = np.repeat((~outliers).astype(float), problem.n_obs)
     dof = max(int(w_rows.sum()) - int(free.sum()), 1)
