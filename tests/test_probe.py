@@ -3,10 +3,12 @@
 Model-only: campaigns of the simulated cell (fakes.campaign, batch physics, no sockets), a few seconds.
 """
 
+import json
 import warnings
 from dataclasses import replace
 
 import numpy as np
+import pandas as pd
 import pytest
 from scipy.spatial.transform import Rotation
 from sim_campaigns import grid_joints, held_out_joints
@@ -230,7 +232,8 @@ def test_cli_reads_the_convention_and_reports_orientation(probe_campaign, tmp_pa
     data[list(ORIENTATION_COLUMNS)] = np.rad2deg(Rotation.from_matrix(orientations(df)).as_euler("XYZ"))
     data.to_csv(tmp_path / "probe.csv", index=False)
     args = ["calibrate", str(tmp_path / "probe.csv"), "-o", str(tmp_path / "m.json")]
-    assert main([*args, "--orientation-convention", "xyz-intrinsic"]) == 0
+    assert main([*args, "--orientation-convention", "xyz-intrinsic", "--residuals", str(tmp_path / "r.csv")]) == 0
+    assert pd.read_csv(tmp_path / "r.csv")["rot_deg"].median() < 0.03
     out = capsys.readouterr().out
     rms = [float(line.split("orientation RMS ")[1].split()[0]) for line in out.splitlines() if "ridge-igg3:" in line]
     assert rms and rms[0] < 0.03  # read in its own convention, the probe agrees with the arm
@@ -246,8 +249,6 @@ def test_cli_reads_the_convention_and_reports_orientation(probe_campaign, tmp_pa
 
 
 def test_diagnose_with_a_probe_finds_compliance_and_reports_orientation(tmp_path, capsys):
-    import json
-
     from hil.cli import main
 
     cell = SimulatedCell(SimCellConfig(robot="ur10", seed=2))  # gravity compliance on

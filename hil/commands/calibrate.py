@@ -138,7 +138,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"tool point SMR {smr}: " + ", ".join(f"{v * 1000:.4f}" for v in tool_m) + " mm (flange frame)")
     if args.residuals:
         r_mm = chosen.residual_m * 1000.0
-        pd.DataFrame(
+        table = pd.DataFrame(
             {
                 "row": chosen.row_numbers,
                 "dx_mm": r_mm[:, 0],
@@ -148,7 +148,10 @@ def run(args: argparse.Namespace) -> int:
                 "weight": chosen.weights,
                 "outlier": chosen.outliers,
             }
-        ).to_csv(args.residuals, index=False, float_format="%.6g")
+        )
+        if chosen.residual_rot_rad is not None:  # a 6-DoF probe: the angle of log(R_measured R_predicted^T)
+            table.insert(5, "rot_deg", np.rad2deg(np.linalg.norm(chosen.residual_rot_rad, axis=1)))
+        table.to_csv(args.residuals, index=False, float_format="%.6g")
         print(f"residuals written to {args.residuals}")
     chosen.model.info["run"] = run_record(nominal, {"training": df})  # what the model was made from
     chosen.model.save(args.output)
