@@ -95,7 +95,10 @@ class Problem:
         if R is not None:
             if angle_noise_rad <= 0:
                 raise ValueError(f"probe angle noise must be > 0 rad, got {angle_noise_rad}")
-            scale = (position_noise or position_noise_m(measured)) / angle_noise_rad
+            sigma_p = position_noise_m(measured) if position_noise is None else position_noise
+            if sigma_p <= 0:
+                raise ValueError(f"position noise must be > 0 m, got {sigma_p}")
+            scale = sigma_p / angle_noise_rad
         return cls(ctx, smr_ids(df), measured, pose_ids(df), R, scale)
 
     @property
@@ -535,8 +538,10 @@ def calibrate(
     `df.attrs["probe_angle_noise_rad"]` / `df.attrs["position_noise_m"]` when set (how `hil diagnose`
     passes its options through).
     """
-    angle = probe_angle_noise_rad or df.attrs.get("probe_angle_noise_rad") or PROBE_ANGLE_NOISE_RAD
-    pos = position_noise or df.attrs.get("position_noise_m")
+    angle = probe_angle_noise_rad
+    if angle is None:
+        angle = df.attrs.get("probe_angle_noise_rad", PROBE_ANGLE_NOISE_RAD)
+    pos = position_noise if position_noise is not None else df.attrs.get("position_noise_m")
     with threadpool_limits(1):  # small dense problems: BLAS threads only contend
         return _calibrate(df, robot, solver, tol, tool_guess_m, ridge, float(angle), pos)
 
