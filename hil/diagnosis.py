@@ -39,6 +39,7 @@ from hil.calibration import (
 from hil.calibration import reregister as reregister_model
 from hil.dataset import drop_duplicate_rows, joints_rad
 from hil.effects import PHYSICAL_RANK, Effect, candidate_effects, make_effect, tool_points_rows
+from hil.folds import kfold, spatial_folds  # noqa: F401  (folds now come from Problem; kept as before)
 from hil.identifiability import IdentifiabilityReport, analyse, scale_columns
 from hil.kinematics import KinematicModel
 from hil.noise_floor import NoiseFloor, estimate_noise_floor
