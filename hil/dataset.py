@@ -27,7 +27,7 @@ ORIENTATION_CONVENTIONS: dict[str, str] = {
     "xyz-intrinsic": "XYZ",  # about the moving axes x, then y', then z'': R = Rx(rx) Ry(ry) Rz(rz)
 }
 DEFAULT_ORIENTATION_CONVENTION = "xyz-extrinsic"
-# Consecutive rows whose joints agree within this (rad) were measured at one robot pose (several SMRs).
+# Rows whose joints all agree within this (rad) were measured at one robot pose (several SMRs, or revisits).
 SAME_POSE_RAD = 2e-4
 UNIT_SUFFIX = re.compile(r"_(mm|m|um|rad|deg|s|ms|c|k|kg|n|nm|hpa|pa|pct|mps|bool|id|count)$", re.IGNORECASE)
 
@@ -295,20 +295,24 @@ def convert_orientation_convention(df: pd.DataFrame, convention: str) -> pd.Data
 def pose_ids(df: pd.DataFrame) -> np.ndarray:
     """Which robot pose each row was measured at (N,) ints from 0, in order of first appearance.
 
-    A `pose` column says it; otherwise consecutive rows whose joints agree within SAME_POSE_RAD are one
-    pose (several SMRs read in turn while the robot stood still). Rows of one pose share the robot's
-    error, so cross-validation must keep them in one fold.
+    A `pose` column says it; otherwise rows whose joints all agree within SAME_POSE_RAD are one pose
+    (several SMRs read while the robot stood still, or the same joints visited again). Rows of one pose
+    share the robot's systematic error, so cross-validation must keep them in one fold.
     """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
     if "pose" in df.columns:
-        _, first, inverse = np.unique(
-            df["pose"].astype(str).to_numpy(), return_index=True, return_inverse=True
-        )
-        order = np.argsort(first)
-        rank = np.empty_like(order)
-        rank[order] = np.arange(len(order))
-        return rank[inverse.ravel()]
-    q = df[[c for c in df.columns if re.fullmatch(r"q\d+_rad", str(c))]].to_numpy(float)
-    if len(q) == 0:
-        return np.zeros(0, int)
-    new = np.r_[True, np.max(np.abs(np.diff(q, axis=0)), axis=1) > SAME_POSE_RAD]
-    return np.cumsum(new) - 1
+        label = np.unique(df["pose"].astype(str).to_numpy(), return_inverse=True)[1].ravel()
+    else:
+        q = df[[c for c in df.columns if re.fullmatch(r"q\d+_rad", str(c))]].to_numpy(float)
+        if len(q) == 0:
+            return np.zeros(0, int)
+        pairs = cKDTree(q).query_pairs(SAME_POSE_RAD, p=np.inf, output_type="ndarray")
+        graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(q), len(q)))
+        label = connected_components(graph, directed=False)[1]
+    _, first = np.unique(label, return_index=True)
+    rank = np.empty(len(first), int)
+    rank[np.argsort(first)] = np.arange(len(first))
+    return rank[label]

@@ -142,6 +142,10 @@ def test_folds_keep_every_smr_of_a_pose_together(three_smr):
     for i, f in enumerate(spatial_folds(prob.measured, 5, 0)):
         naive[f] = i
     assert sum(len(set(naive[poses == p])) > 1 for p in range(len(q))) > 0
+    # Nest by nest in separate passes over the grid: the same joints are still one pose.
+    passes = df.sort_values("smr", kind="stable").reset_index(drop=True)
+    by_pass = pose_ids(passes)
+    assert by_pass.max() + 1 == len(q) and np.all(np.bincount(by_pass) == 3)
     # A subset (as the diagnosis screens on inliers) keeps its poses together too.
     sub = prob.subset(np.flatnonzero(poses % 4 != 1))
     assert sum(len(f) for f in sub.spatial_folds(5, 0)) == len(sub.measured)
