@@ -181,22 +181,26 @@ class CalibratedModel:
                 J[:, :, sl] = reg[:, :1, None] * np.eye(3)[None]
         return self.predict_ctx(ctx), J
 
-    def rotation_jacobian_ctx(self, ctx: EffectContext, smr: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Predicted probe orientations R_tracker_probe (N, 3, 3) and their angular derivative (N, 3, P)
-        in the tracker frame, full parameter order: a change dx turns the prediction by Rot(J dx) on the
-        left. Kinematic columns are the turning axes (`kinematic_rotation_jacobian`), base rotation turns
-        it about the base axes, a probe's own parameters about the flange axes; lengths, tool points,
-        thermal growth and drift do not turn it; a joint effect turns it like its joint."""
+    def _row_probes(self, smr: np.ndarray) -> np.ndarray:
+        """R_flange_probe of every row (N, 3, 3); a nest without one is named."""
         missing = sorted(set(np.unique(smr).tolist()) - set(self.probes))
         if missing:
             raise ValueError(
                 f"the model knows probe orientations for SMR nests {sorted(self.probes)}, the data uses "
                 f"{missing}; calibrate with orientation data (rx_deg, ry_deg, rz_deg) of those nests"
             )
+        return np.array([self.probes[int(s)] for s in smr]).reshape(-1, 3, 3)
+
+    def rotation_jacobian_ctx(self, ctx: EffectContext, smr: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Predicted probe orientations R_tracker_probe (N, 3, 3) and their angular derivative (N, 3, P)
+        in the tracker frame, full parameter order: a change dx turns the prediction by Rot(J dx) on the
+        left. Kinematic columns are the turning axes (`kinematic_rotation_jacobian`), base rotation turns
+        it about the base axes, a probe's own parameters about the flange axes; lengths, tool points,
+        thermal growth and drift do not turn it; a joint effect turns it like its joint."""
+        R_FP = self._row_probes(smr)
         q_eff = ctx.q + self.joint_offsets(ctx)
         R_BF, J_kin = kinematic_rotation_jacobian(self.kinematic, q_eff)
         R_LB = self.T_tracker_base[:3, :3]
-        R_FP = np.array([self.probes[int(s)] for s in smr]).reshape(-1, 3, 3)
         R_LF = np.einsum("ij,njk->nik", R_LB, R_BF)
         N, nk, P = ctx.n, len(self.kinematic.param_names), len(self.param_names)
         J = np.zeros((N, 3, P))
@@ -214,9 +218,9 @@ class CalibratedModel:
 
     def predict_rotation_ctx(self, ctx: EffectContext, smr: np.ndarray) -> np.ndarray:
         """Predicted probe orientations R_tracker_probe (N, 3, 3)."""
+        R_FP = self._row_probes(smr)
         q_eff = ctx.q + self.joint_offsets(ctx)
         R_BF = forward_kinematics(self.kinematic, q_eff)[:, :3, :3]
-        R_FP = np.array([self.probes[int(s)] for s in smr]).reshape(-1, 3, 3)
         return np.einsum("ij,njk->nik", self.T_tracker_base[:3, :3], R_BF) @ R_FP
 
     def predict_rotation(self, df: pd.DataFrame) -> np.ndarray:

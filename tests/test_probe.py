@@ -222,6 +222,9 @@ def test_model_file_keeps_the_probe(probe_campaign, tmp_path):
     back = CalibratedModel.load(tmp_path / "m.json")
     np.testing.assert_allclose(back.predict_rotation(df), model.predict_rotation(df), atol=1e-12)
     assert back.param_names == model.param_names and back.info["orientation"]["angle_noise_deg"] == 0.01
+    positions_only = calibrate(df.drop(columns=list(ORIENTATION_COLUMNS)), "ur10").model
+    with pytest.raises(ValueError, match="calibrate with orientation data"):
+        positions_only.predict_rotation(df)
 
 
 def test_cli_reads_the_convention_and_reports_orientation(probe_campaign, tmp_path, capsys):
