@@ -260,7 +260,7 @@ def test_diagnose_with_a_probe_finds_compliance_and_reports_orientation(tmp_path
     argv = ["diagnose", str(tmp_path / "probe.csv"), "--json", str(tmp_path / "r.json")]
     assert main([*argv, "--families", "gravity_compliance", "--probe-angle-noise-deg", "0.01"]) == 0
     out = capsys.readouterr().out
-    assert "6-DoF probe, ridge_igg3 fit" in out and "orientation RMS" in out
+    assert "6-DoF probe, geometric ridge_igg3 fit" in out and "6-DoF probe, final model" in out
     report = json.loads((tmp_path / "r.json").read_text())
     assert {(e["name"], e["joint"]) for e in report["effects_added"]} == {
         ("gravity_compliance", 2),

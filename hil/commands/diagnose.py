@@ -159,7 +159,10 @@ def _print_and_write(args: argparse.Namespace, report: DiagnosisReport) -> None:
     print(report.table())
     for name, res in report.calibration.items():
         if res.get("orientation_rms_deg") is not None:
-            print(f"6-DoF probe, {name} fit: position RMS {res['rms_mm']:.4f} mm{orientation_summary(res)}")
+            print(f"6-DoF probe, geometric {name} fit: position RMS {res['rms_mm']:.4f} mm{orientation_summary(res)}")
+    final = report.model.info.get("orientation")
+    if final and report.model.effects:
+        print(f"6-DoF probe, final model (effects included): orientation RMS {final['rms_deg']:.4f} deg")
     print(report.conclusion)
     for step in report.steps:
         j = step.effect["joint"]
