@@ -15,31 +15,37 @@ time of one ridge + IGG3 calibration.
 from __future__ import annotations
 
 import argparse
-import sys
 import time
-from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-
-from sim_campaigns import grid_joints, held_out_joints  # noqa: E402
-
-from fakes.campaign import Probe, simulate_campaign  # noqa: E402
-from fakes.cell import SimCellConfig, SimulatedCell  # noqa: E402
-from hil.calibration import calibrate  # noqa: E402
-from hil.dataset import ORIENTATION_COLUMNS, orientations  # noqa: E402
+from fakes.campaign import Probe, simulate_campaign
+from fakes.cell import SimCellConfig, SimulatedCell
+from hil.calibration import calibrate
+from hil.dataset import ORIENTATION_COLUMNS, orientations
+from hil.planners import facing_poses, grid_points, plan_joints, random_points, workspace_box
 
 WRIST = ("theta5", "d5", "a5", "alpha5")
 WAYS = ("1 SMR", "3 SMRs", "1 SMR + probe", "3 SMRs + probe")
+
+
+def planned_joints(cell: SimulatedCell, points_in_box, seed: int) -> np.ndarray:
+    """Usable joints for the points `points_in_box(box, rng)` of the default box, facing the tracker."""
+    rng = np.random.default_rng(seed)
+    p_base_tracker = np.linalg.inv(cell.T_tracker_base)[:3, 3]
+    points = points_in_box(workspace_box(cell.nominal, p_base_tracker), rng)
+    poses = facing_poses(points, p_base_tracker, rng, tilt_deg=20.0)
+    p_nest = np.asarray(cell.config.tool_nests_flange_m[0])
+    plan = plan_joints(cell.nominal, poses, p_nest, np.asarray(cell.config.q_home_rad), singular_sigma_m=0.0)
+    return plan.q[plan.usable]
 
 
 def one_seed(seed: int, step_m: float) -> dict[str, dict]:
     cell = SimulatedCell(SimCellConfig(robot="ur10", seed=seed, compliance=False))
     truth = cell.ground_truth()["parameter_errors"]
     probe = Probe.drawn(seed)
-    q = grid_joints(cell, step_m=step_m, seed=seed)
+    q = planned_joints(cell, lambda box, rng: grid_points(box, step_m), seed)
     both = simulate_campaign(cell, q, nests=[1, 2, 3], probe=probe)
     frames = {
         "3 SMRs + probe": both,
@@ -47,7 +53,8 @@ def one_seed(seed: int, step_m: float) -> dict[str, dict]:
     }
     frames["3 SMRs"] = both.drop(columns=list(ORIENTATION_COLUMNS))
     frames["1 SMR"] = frames["1 SMR + probe"].drop(columns=list(ORIENTATION_COLUMNS))
-    val = simulate_campaign(cell, held_out_joints(cell, 30, seed=seed + 7), probe=Probe(probe.R_flange_probe, 0.0))
+    q_val = planned_joints(cell, lambda box, rng: random_points(box, 60, rng), seed + 7)[:30]
+    val = simulate_campaign(cell, q_val, probe=Probe(probe.R_flange_probe, 0.0))
     out = {}
     for way in WAYS:
         t0 = time.perf_counter()
