@@ -433,7 +433,8 @@ class SimulatedCell:
         """Visit joint sets q_cmd (N, 6) in order, measure SMR `smr_id` after each; batch physics.
 
         Returns arrays: q_encoder (N,6), p_tracker_measured (N,3), p_tracker_true (N,3), t_s (N,),
-        temperature_c (N,), q_true (N,6). Leaves the cell at the last pose, its clock moved on.
+        temperature_c (N,), q_true (N,6), T_base_flange_true (N,4,4) (where the flange physically was: other
+        nests and a 6-DoF probe read at the same poses). Leaves the cell at the last pose, its clock moved on.
         """
         q_cmd = self.nominal.check_joints(q_cmd)
         loc = self._smr_locations[smr_id]
@@ -467,6 +468,7 @@ class SimulatedCell:
             "p_tracker_true": p_true,
             "t_s": t_s,
             "temperature_c": np.asarray(self.structure_temperature_c(t_s)) + 0.0 * t_s,
+            "T_base_flange_true": T_flange,
         }
 
     # ----- ground truth -------------------------------------------------------------------------

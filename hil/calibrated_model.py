@@ -2,7 +2,9 @@
 
 The full parameter vector is the kinematic parameters (`KinematicModel.param_names`), the six base
 parameters (tracker <- robot base, see `hil.kinematics.perturb_base`), three tool coordinates per SMR
-nest, then every effect's coefficients. `predict` applies all of it; `jacobian` differentiates it.
+nest, three orientation parameters per 6-DoF probe (a small rotation of R_flange_probe about the flange
+axes: R <- Rot(d) R), then every effect's coefficients. `predict` applies all of it; `jacobian_ctx`
+differentiates it; `rotation_jacobian_ctx` does the same for the probe's orientation.
 """
 
 from __future__ import annotations
@@ -13,15 +15,18 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+from scipy.spatial.transform import Rotation
 
-from hil.dataset import joints_rad, points_m, smr_ids
+from hil.dataset import joints_rad, orientations, points_m, smr_ids
 from hil.effects import Effect, EffectContext, effect_from_dict, growth_direction, tool_points_rows
 from hil.ik import solve_ik
 from hil.jsonable import to_jsonable
 from hil.kinematics import (
     BASE_PARAM_NAMES,
     KinematicModel,
+    forward_kinematics,
     identification_jacobian,
+    kinematic_rotation_jacobian,
     perturb_base,
 )
 from hil.residual_maps import map_from_dict
@@ -43,6 +48,7 @@ class CalibratedModel:
     effects: list[Effect] = field(default_factory=list)
     info: dict = field(default_factory=dict)  # solver report: std errors, dropped parameters, outliers...
     residual_map: dict | None = None  # fallback residual map (hil.residual_maps), applied by `predict`
+    probes: dict[int, np.ndarray] = field(default_factory=dict)  # SMR nest id -> R_flange_probe (3, 3)
 
     # ----- parameter vector ---------------------------------------------------------------------
     @property
@@ -50,13 +56,15 @@ class CalibratedModel:
         names = list(self.kinematic.param_names) + list(BASE_PARAM_NAMES)
         for smr in sorted(self.tools):
             names += [f"tool{smr}_x", f"tool{smr}_y", f"tool{smr}_z"]
+        for smr in sorted(self.probes):
+            names += [f"probe{smr}_rx", f"probe{smr}_ry", f"probe{smr}_rz"]
         for eff in self.effects:
             names += eff.param_names
         return names
 
     def effect_slices(self) -> list[slice]:
         """Where each effect's coefficients sit in the parameter vector."""
-        start = len(self.kinematic.param_names) + 6 + 3 * len(self.tools)
+        start = len(self.kinematic.param_names) + 6 + 3 * len(self.tools) + 3 * len(self.probes)
         out = []
         for eff in self.effects:
             out.append(slice(start, start + len(eff.params)))
@@ -74,11 +82,15 @@ class CalibratedModel:
         for smr in sorted(self.tools):
             tools[smr] = self.tools[smr] + dx[pos : pos + 3]
             pos += 3
+        probes = {}
+        for smr in sorted(self.probes):
+            probes[smr] = Rotation.from_rotvec(dx[pos : pos + 3]).as_matrix() @ self.probes[smr]
+            pos += 3
         effects = []
         for eff, sl in zip(self.effects, self.effect_slices(), strict=True):
             new = type(eff)(joint=eff.joint, params=eff.params + dx[sl], state=eff.state)
             effects.append(new)
-        return replace(self, kinematic=kin, T_tracker_base=T, tools=tools, effects=effects)
+        return replace(self, kinematic=kin, T_tracker_base=T, tools=tools, effects=effects, probes=probes)
 
     def with_effect(self, effect: Effect) -> CalibratedModel:
         return replace(self, effects=[*self.effects, effect])
@@ -169,6 +181,53 @@ class CalibratedModel:
                 J[:, :, sl] = reg[:, :1, None] * np.eye(3)[None]
         return self.predict_ctx(ctx), J
 
+    def _row_probes(self, smr: np.ndarray) -> np.ndarray:
+        """R_flange_probe of every row (N, 3, 3); a nest without one is named."""
+        missing = sorted(set(np.unique(smr).tolist()) - set(self.probes))
+        if missing:
+            raise ValueError(
+                f"the model knows probe orientations for SMR nests {sorted(self.probes)}, the data uses "
+                f"{missing}; calibrate with orientation data (rx_deg, ry_deg, rz_deg) of those nests"
+            )
+        return np.array([self.probes[int(s)] for s in smr]).reshape(-1, 3, 3)
+
+    def rotation_jacobian_ctx(self, ctx: EffectContext, smr: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Predicted probe orientations R_tracker_probe (N, 3, 3) and their angular derivative (N, 3, P)
+        in the tracker frame, full parameter order: a change dx turns the prediction by Rot(J dx) on the
+        left. Kinematic columns are the turning axes (`kinematic_rotation_jacobian`), base rotation turns
+        it about the base axes, a probe's own parameters about the flange axes; lengths, tool points,
+        thermal growth and drift do not turn it; a joint effect turns it like its joint."""
+        R_FP = self._row_probes(smr)
+        q_eff = ctx.q + self.joint_offsets(ctx)
+        R_BF, J_kin = kinematic_rotation_jacobian(self.kinematic, q_eff)
+        R_LB = self.T_tracker_base[:3, :3]
+        R_LF = np.einsum("ij,njk->nik", R_LB, R_BF)
+        N, nk, P = ctx.n, len(self.kinematic.param_names), len(self.param_names)
+        J = np.zeros((N, 3, P))
+        J[:, :, :nk] = np.einsum("ij,njk->nik", R_LB, J_kin)
+        J[:, :, nk + 3 : nk + 6] = R_LB
+        start = nk + 6 + 3 * len(self.tools)
+        for k, sid in enumerate(sorted(self.probes)):
+            rows = np.flatnonzero(smr == sid)
+            J[np.ix_(rows, np.arange(3), np.arange(start + 3 * k, start + 3 * k + 3))] = R_LF[rows]
+        for eff, sl in zip(self.effects, self.effect_slices(), strict=True):
+            if eff.kind == "joint":
+                col = J[:, :, self.kinematic.param_names.index(f"theta{eff.joint_index + 1}")]
+                J[:, :, sl] = col[:, :, None] * eff.cached_regressors(ctx, self.nominal)[:, None, :]
+        return R_LF @ R_FP, J
+
+    def predict_rotation_ctx(self, ctx: EffectContext, smr: np.ndarray) -> np.ndarray:
+        """Predicted probe orientations R_tracker_probe (N, 3, 3)."""
+        R_FP = self._row_probes(smr)
+        q_eff = ctx.q + self.joint_offsets(ctx)
+        R_BF = forward_kinematics(self.kinematic, q_eff)[:, :3, :3]
+        return np.einsum("ij,njk->nik", self.T_tracker_base[:3, :3], R_BF) @ R_FP
+
+    def predict_rotation(self, df: pd.DataFrame) -> np.ndarray:
+        """Predicted probe orientations R_tracker_probe (N, 3, 3) for the joints (and drivers) in df."""
+        ctx, _ = self.context(df)
+        return self.predict_rotation_ctx(ctx, smr_ids(df))
+
     # ----- compensation -------------------------------------------------------------------------
     def corrected_joints(
         self,
@@ -220,6 +279,7 @@ class CalibratedModel:
             "T_tracker_base": self.T_tracker_base.tolist(),
             "tools_m": {str(k): v.tolist() for k, v in sorted(self.tools.items())},
             "effects": [e.to_dict() for e in self.effects],
+            "probes_flange": {str(k): v.tolist() for k, v in sorted(self.probes.items())},
             "residual_map": self.residual_map,
             "info": self.info,
         }
@@ -242,6 +302,7 @@ class CalibratedModel:
             effects=[effect_from_dict(e) for e in data.get("effects", [])],
             info=data.get("info", {}),
             residual_map=data.get("residual_map"),
+            probes={int(k): np.asarray(v, float) for k, v in data.get("probes_flange", {}).items()},
         )
 
     @classmethod
@@ -323,4 +384,22 @@ def initial_model(
     ctx, _ = model.context(df)
     p_base = model.predict_ctx(ctx)
     T, _ = fit_rigid(p_base, points_m(df))
-    return replace(model, T_tracker_base=T)
+    return with_initial_probes(replace(model, T_tracker_base=T), df)
+
+
+def with_initial_probes(model: CalibratedModel, df: pd.DataFrame) -> CalibratedModel:
+    """The model with a probe orientation for every nest of a frame with orientation columns that it
+    lacks one for: the rotation nearest the mean of R_flange_probe seen from each row (model geometry)."""
+    R_meas = orientations(df)
+    ids = smr_ids(df)
+    lacking = sorted(set(np.unique(ids).tolist()) - set(model.probes))
+    if R_meas is None or not lacking:
+        return model
+    ctx, _ = model.context(df)
+    R_BF = forward_kinematics(model.kinematic, ctx.q + model.joint_offsets(ctx))[:, :3, :3]
+    seen = np.swapaxes(R_BF, 1, 2) @ model.T_tracker_base[:3, :3].T @ R_meas
+    probes = dict(model.probes)
+    for s in lacking:
+        U, _, Vt = np.linalg.svd(seen[ids == s].mean(axis=0))
+        probes[int(s)] = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    return replace(model, probes=probes)

@@ -29,12 +29,13 @@ from scipy.optimize import least_squares
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 from threadpoolctl import threadpool_limits
 
-from hil.calibrated_model import CalibratedModel, initial_model
-from hil.dataset import data_rows, joints_rad, points_m, smr_ids
+from hil.calibrated_model import CalibratedModel, initial_model, with_initial_probes
+from hil.dataset import data_rows, joints_rad, orientations, points_m, pose_ids, smr_ids
 from hil.effects import EffectContext
-from hil.folds import location_spacing, spatial_folds
+from hil.folds import kfold, location_spacing, spatial_folds
 from hil.identifiability import IdentifiabilityReport, analyse, scale_columns
 from hil.kinematics import KinematicModel
 from hil.se3 import fit_rigid
@@ -47,31 +48,127 @@ CONVERGE_ROWS = 10000
 FINISH_ITERS = 30
 
 
+# Default 1-sigma noise of a 6-DoF probe's orientation reading (T-Mac class: about 0.01 deg per axis).
+PROBE_ANGLE_NOISE_RAD = float(np.deg2rad(0.01))
+
+
+def position_noise_m(
+    points: np.ndarray, mpe_m: tuple[float, float] = (15e-6, 6e-6), sigmas: float = 2.0
+) -> float:
+    """1-sigma tracker noise per axis at the median distance of the points (MPE = a + b * distance)."""
+    return (mpe_m[0] + mpe_m[1] * float(np.median(np.linalg.norm(points, axis=1)))) / sigmas
+
+
 @dataclass
 class Problem:
-    """A dataset prepared for fitting: context, nest ids, measured points."""
+    """A dataset prepared for fitting: context, nest ids, measured points, which pose each row is and,
+    from a 6-DoF probe, measured orientations.
+
+    Each row is one observation: its position residual (3, m) and, with orientations, its rotation
+    residual log(R_measured R_predicted^T) (the SO(3) log vector in the tracker frame, rad: the same angle as
+    log(R_measured^T R_predicted)) times `rot_scale` = position sigma / angle sigma (m/rad), so that the
+    unweighted least squares over the (N, 6) residual is the maximum-likelihood fit.
+    """
 
     ctx: EffectContext
     smr: np.ndarray
     measured: np.ndarray  # (N, 3) m
+    pose: np.ndarray | None = None  # (N,) pose id of each row (rows of one pose share a fold)
+    R_measured: np.ndarray | None = None  # (N, 3, 3) probe orientation in the tracker frame
+    rot_scale: float = 0.0  # m per rad: weight of the rotation residual against the position one
 
     @classmethod
-    def from_frame(cls, model: CalibratedModel, df: pd.DataFrame) -> Problem:
+    def from_frame(
+        cls,
+        model: CalibratedModel,
+        df: pd.DataFrame,
+        orientation: bool = False,
+        angle_noise_rad: float = PROBE_ANGLE_NOISE_RAD,
+        position_noise: float | None = None,
+    ) -> Problem:
+        """`orientation`: add the probe's rotation equations when the frame has rx/ry/rz_deg, weighted by
+        `position_noise` (m, default the tracker's at these distances) over `angle_noise_rad`."""
         ctx, _ = model.context(df)
-        return cls(ctx, smr_ids(df), points_m(df))
+        measured = points_m(df)
+        R = orientations(df) if orientation else None
+        scale = 0.0
+        if R is not None:
+            if angle_noise_rad <= 0:
+                raise ValueError(f"probe angle noise must be > 0 rad, got {angle_noise_rad}")
+            sigma_p = position_noise_m(measured) if position_noise is None else position_noise
+            if sigma_p <= 0:
+                raise ValueError(f"position noise must be > 0 m, got {sigma_p}")
+            scale = sigma_p / angle_noise_rad
+        return cls(ctx, smr_ids(df), measured, pose_ids(df), R, scale)
+
+    @property
+    def n_obs(self) -> int:
+        """Coordinates per row: 3 (position) or 6 (position and scaled rotation)."""
+        return 3 if self.R_measured is None else 6
 
     def subset(self, rows: np.ndarray) -> Problem:
-        return Problem(self.ctx.subset(rows), self.smr[rows], self.measured[rows])
+        return Problem(
+            self.ctx.subset(rows),
+            self.smr[rows],
+            self.measured[rows],
+            None if self.pose is None else self.pose[rows],
+            None if self.R_measured is None else self.R_measured[rows],
+            self.rot_scale,
+        )
 
     def evaluate(self, model: CalibratedModel) -> tuple[np.ndarray, np.ndarray]:
-        """Residuals measured - predicted (N, 3) and the Jacobian (N, 3, P) at `model`."""
+        """Residuals measured - predicted (N, 3|6) and the Jacobian (N, 3|6, P) at `model`."""
         self.ctx.p_flange_tool = model._row_tools(self.smr)
         p, J = model.jacobian_ctx(self.ctx, self.smr)
-        return self.measured - p, J
+        r = self.measured - p
+        if self.R_measured is None:
+            return r, J
+        R_pred, J_rot = model.rotation_jacobian_ctx(self.ctx, self.smr)
+        r_rot = rotation_log(self.R_measured @ np.swapaxes(R_pred, 1, 2))
+        return (
+            np.concatenate([r, self.rot_scale * r_rot], axis=1),
+            np.concatenate([J, self.rot_scale * J_rot], axis=1),
+        )
 
     def residuals(self, model: CalibratedModel) -> np.ndarray:
+        """Residuals measured - predicted (N, 3|6), as `evaluate` without the Jacobian."""
         self.ctx.p_flange_tool = model._row_tools(self.smr)
-        return self.measured - model.predict_ctx(self.ctx)
+        r = self.measured - model.predict_ctx(self.ctx)
+        if self.R_measured is None:
+            return r
+        R_pred = model.predict_rotation_ctx(self.ctx, self.smr)
+        r_rot = rotation_log(self.R_measured @ np.swapaxes(R_pred, 1, 2))
+        return np.concatenate([r, self.rot_scale * r_rot], axis=1)
+
+    def spatial_folds(self, k: int, seed: int) -> list[np.ndarray]:
+        """k folds that are blocks of the measured volume, every row of one pose in the same fold (its
+        SMRs share the robot's error: split, a held-out row would be predicted from its own pose)."""
+        pose, n_pose = self._compact_poses()
+        if n_pose == len(pose):
+            return spatial_folds(self.measured, k, seed)
+        centres = np.zeros((n_pose, 3))
+        np.add.at(centres, pose, self.measured)
+        centres /= np.bincount(pose, minlength=n_pose)[:, None]
+        return [np.flatnonzero(np.isin(pose, f)) for f in spatial_folds(centres, k, seed)]
+
+    def _compact_poses(self) -> tuple[np.ndarray, int]:
+        """Pose ids renumbered 0..n-1 over this problem's rows (a subset keeps the full set's ids)."""
+        if self.pose is None:
+            return np.arange(len(self.measured)), len(self.measured)
+        ids, pose = np.unique(self.pose, return_inverse=True)
+        return pose.ravel(), len(ids)
+
+    def random_folds(self, k: int, seed: int) -> list[np.ndarray]:
+        """k random folds of whole poses (interpolation)."""
+        pose, n_pose = self._compact_poses()
+        if n_pose == len(pose):
+            return kfold(len(pose), k, seed)
+        return [np.flatnonzero(np.isin(pose, f)) for f in kfold(n_pose, k, seed)]
+
+
+def rotation_log(R: np.ndarray) -> np.ndarray:
+    """SO(3) log vectors (N, 3), rad, of rotations (N, 3, 3)."""
+    return Rotation.from_matrix(R).as_rotvec()
 
 
 @dataclass
@@ -90,6 +187,15 @@ class CalibrationResult:
     row_numbers: np.ndarray | None = None  # data row (from 1) in the source file of each point
     std_folds: dict[str, float] = field(default_factory=dict)  # spread over spatial folds (jackknife)
     outlier_regions: list[dict] = field(default_factory=list)  # flagged rows that cluster in space
+    residual_rot_rad: np.ndarray | None = None  # (N, 3) log(R_measured R_predicted^T), 6-DoF probe rows
+
+    @property
+    def orientation_rms_deg(self) -> float | None:
+        """RMS of the inliers' rotation residual angles (deg), None without orientation data."""
+        if self.residual_rot_rad is None:
+            return None
+        ok = ~self.outliers
+        return float(np.rad2deg(np.sqrt(np.mean(np.sum(self.residual_rot_rad[ok] ** 2, axis=1)))))
 
     @property
     def outlier_rows(self) -> list[int]:
@@ -134,6 +240,7 @@ class CalibrationResult:
             "solver": self.solver,
             "sigma0_mm": self.sigma0_m * 1000,
             "rms_mm": self.rms_mm,
+            "orientation_rms_deg": self.orientation_rms_deg,
             "iterations": self.iterations,
             "parameters": self.parameter_table(),
             "outlier_rows": self.outlier_rows,
@@ -150,7 +257,11 @@ class CalibrationResult:
 
 def unit_of(name: str) -> str:
     kind = name.rstrip("0123456789")
-    if kind in ("theta", "alpha", "beta") or name in ("base_rx", "base_ry", "base_rz"):
+    if (
+        kind in ("theta", "alpha", "beta")
+        or name in ("base_rx", "base_ry", "base_rz")
+        or name.startswith("probe")
+    ):
         return "rad"
     if kind in ("a", "d") or name.startswith(("base_t", "tool")):
         return "m"
@@ -158,22 +269,23 @@ def unit_of(name: str) -> str:
 
 
 def full_values(model: CalibratedModel) -> np.ndarray:
-    """Current values in the full parameter order (base: translation and rotation vector of T)."""
-    from scipy.spatial.transform import Rotation
-
+    """Current values in the full parameter order (base: translation and rotation vector of T; a probe:
+    the rotation vector of R_flange_probe)."""
     vals = list(model.kinematic.params)
     vals += list(model.T_tracker_base[:3, 3]) + list(
         Rotation.from_matrix(model.T_tracker_base[:3, :3]).as_rotvec()
     )
     for smr in sorted(model.tools):
         vals += list(model.tools[smr])
+    for smr in sorted(model.probes):
+        vals += list(Rotation.from_matrix(model.probes[smr]).as_rotvec())
     for eff in model.effects:
         vals += list(eff.params)
     return np.asarray(vals, float)
 
 
 def flatten_jacobian(J: np.ndarray) -> np.ndarray:
-    """(N, 3, P) point Jacobian -> (3N, P) rows in the order of the flattened (N, 3) residual."""
+    """(N, d, P) point Jacobian -> (dN, P) rows in the order of the flattened (N, d) residual."""
     return J.reshape(-1, J.shape[-1])
 
 
@@ -224,20 +336,21 @@ def solve_ridge_igg3(
         del J0
     prior_mask = np.array([not (n.startswith("base_") or n.startswith("tool")) for n in names])[free]
     N_pts = problem.measured.shape[0]
+    d = problem.n_obs  # coordinates per point: position, and a probe's scaled rotation
     w_pts = np.ones(N_pts)
     dev = np.zeros(int(free.sum()))  # accumulated change of the free parameters since the start
     warm = 0
     it = 0
-    sigma_robust: float | None = None
+    sigma_robust: np.ndarray | None = None
     for it in range(1, max_iter + 1):  # noqa: B007
         if frozen_jacobian:
-            r, Jf = (r0v - J0f @ dev).reshape(-1, 3), J0f
+            r, Jf = (r0v - J0f @ dev).reshape(N_pts, d), J0f
         else:
             r, J = problem.evaluate(model)
             Jf = flatten_jacobian(J)[:, free]
         Js, norms = scale_columns(Jf)
         rv = r.reshape(-1)
-        w_rows = np.repeat(w_pts, 3)
+        w_rows = np.repeat(w_pts, d)
         Nm = (Js * w_rows[:, None]).T @ Js
         mu = ridge * np.linalg.eigvalsh(Nm)[-1]
         M = Nm + mu * np.diag(prior_mask.astype(float))
@@ -271,12 +384,12 @@ def solve_ridge_igg3(
         Minv = np.linalg.pinv(M)
         red = _redundancy(Js, Minv)
         # Robust scale, fixed once from the least-squares solution (1.4826 x median absolute residual of
-        # all coordinates): a weighted sigma0 re-estimated each step shrinks as points are rejected and
-        # lets the re-weighting reject ever more points.
+        # all coordinates; positions and a probe's rotations each their own): a weighted sigma0 re-estimated
+        # each step shrinks as points are rejected and lets the re-weighting reject ever more points.
         if sigma_robust is None:
-            sigma_robust = max(1.4826 * float(np.median(np.abs(r_new))), 1e-12)
+            sigma_robust = np.tile(robust_scales(r_new.reshape(N_pts, d), centred=False), N_pts)
         t_rows = r_new / (sigma_robust * np.sqrt(red))
-        t_pts = np.sqrt(np.mean(t_rows.reshape(-1, 3) ** 2, axis=1))
+        t_pts = np.sqrt(np.mean(t_rows.reshape(N_pts, d) ** 2, axis=1))
         w_new = igg3_weight(t_pts, k0, k1)
         changed = np.max(np.abs(w_new - w_pts)) > 1e-6
         w_pts = w_new
@@ -289,7 +402,7 @@ def solve_ridge_igg3(
     r, J = problem.evaluate(model)
     Jf = flatten_jacobian(J)[:, free]
     Js, norms = scale_columns(Jf)
-    w_rows = np.repeat(w_pts, 3)
+    w_rows = np.repeat(w_pts, d)
     Nm = (Js * w_rows[:, None]).T @ Js
     mu = ridge * np.linalg.eigvalsh(Nm)[-1]
     dof = max(int(np.count_nonzero(w_rows)) - int(free.sum()), 1)
@@ -305,9 +418,27 @@ def solve_ridge_igg3(
         sigma0_m=sigma0,
         weights=w_pts,
         outliers=w_pts == 0,
-        residual_m=r,
+        residual_m=r[:, :3],
         iterations=it,
+        residual_rot_rad=_rotation_part(problem, r),
     )
+
+
+def robust_scales(r: np.ndarray, centred: bool) -> np.ndarray:
+    """Robust sigma (1.4826 x median absolute deviation, about the median if `centred`, else about 0) per
+    column of a (N, 3|6) residual, pooled over the position columns and over the rotation columns: a
+    probe's rotations and the positions carry different model errors, so each is judged by its own."""
+    out = np.empty(r.shape[1])
+    for cols in (slice(0, 3), slice(3, r.shape[1])):
+        x = r[:, cols].ravel()
+        if x.size:
+            out[cols] = max(1.4826 * float(np.median(np.abs(x - (np.median(x) if centred else 0.0)))), 1e-12)
+    return out
+
+
+def _rotation_part(problem: Problem, r: np.ndarray) -> np.ndarray | None:
+    """The rotation residual (N, 3) rad out of a (N, 6) residual, None for position-only problems."""
+    return r[:, 3:] / problem.rot_scale if problem.R_measured is not None else None
 
 
 def solve_lm(
@@ -348,8 +479,8 @@ def solve_lm(
 
     x0 = np.zeros(int(free.sum()))
     first = least_squares(fun, x0, jac=jac, x_scale="jac", method="trf", max_nfev=30, xtol=1e-12, ftol=1e-12)
-    sigma = 1.4826 * np.median(np.abs(first.fun - np.median(first.fun)))
-    sigma = max(float(sigma), 1e-9)
+    sigmas = np.maximum(robust_scales(first.fun.reshape(-1, problem.n_obs), centred=True), 1e-9)
+    sigma = float(sigmas[0])  # the positions' scale sets the loss (a probe's rows are flagged on their own)
     sol = least_squares(
         fun,
         first.x,
@@ -364,9 +495,9 @@ def solve_lm(
     fitted = at(sol.x)
     r, J = problem.evaluate(fitted)
     Jf = flatten_jacobian(J)[:, free]
-    t_pts = np.sqrt(np.mean((r / sigma) ** 2, axis=1))
+    t_pts = np.sqrt(np.mean((r / sigmas) ** 2, axis=1))
     outliers = t_pts > k1
-    w_rows = np.repeat((~outliers).astype(float), 3)
+    w_rows = np.repeat((~outliers).astype(float), problem.n_obs)
     dof = max(int(w_rows.sum()) - int(free.sum()), 1)
     sigma0 = float(np.sqrt(np.sum(w_rows * r.reshape(-1) ** 2) / dof))
     Js, norms = scale_columns(Jf)
@@ -381,8 +512,9 @@ def solve_lm(
         sigma0_m=sigma0,
         weights=(~outliers).astype(float),
         outliers=outliers,
-        residual_m=r,
+        residual_m=r[:, :3],
         iterations=int(first.nfev + sol.nfev),
+        residual_rot_rad=_rotation_part(problem, r),
     )
 
 
@@ -393,14 +525,25 @@ def calibrate(
     tol: float = 1e-3,
     tool_guess_m: np.ndarray | None = None,
     ridge: float = 1e-7,
+    probe_angle_noise_rad: float | None = None,
+    position_noise: float | None = None,
 ) -> CalibrationResult:
     """Full calibration of a dataset: initial registration, identifiability, robust solve.
 
     `robot` is a catalogue name, a nominal KinematicModel, or a CalibratedModel to start from (its
     effects are refitted together with the geometry). `solver` is "ridge" (IGG3) or "lm".
+    Rows with a 6-DoF probe's orientation (rx_deg, ry_deg, rz_deg) add three rotation equations each and
+    a probe orientation per nest, weighted by `position_noise` (m, default: the tracker's MPE model at the
+    data's distances) over `probe_angle_noise_rad` (default 0.01 deg); None takes them from
+    `df.attrs["probe_angle_noise_rad"]` / `df.attrs["position_noise_m"]` when set (how `hil diagnose`
+    passes its options through).
     """
+    angle = probe_angle_noise_rad
+    if angle is None:
+        angle = df.attrs.get("probe_angle_noise_rad", PROBE_ANGLE_NOISE_RAD)
+    pos = position_noise if position_noise is not None else df.attrs.get("position_noise_m")
     with threadpool_limits(1):  # small dense problems: BLAS threads only contend
-        return _calibrate(df, robot, solver, tol, tool_guess_m, ridge)
+        return _calibrate(df, robot, solver, tol, tool_guess_m, ridge, float(angle), pos)
 
 
 def _calibrate(
@@ -410,23 +553,29 @@ def _calibrate(
     tol: float,
     tool_guess_m: np.ndarray | None,
     ridge: float,
+    angle_noise_rad: float = PROBE_ANGLE_NOISE_RAD,
+    position_noise: float | None = None,
 ) -> CalibrationResult:
     model = robot if isinstance(robot, CalibratedModel) else initial_model(robot, df, tool_guess_m)
+    model = with_initial_probes(model, df)
     check_joint_limits(df, model.nominal)
-    full = Problem.from_frame(model, df)
+    full = Problem.from_frame(
+        model, df, orientation=True, angle_noise_rad=angle_noise_rad, position_noise=position_noise
+    )
     # A big campaign converges on a fixed random subset first, then finishes on every row (below).
     big = len(df) > CONVERGE_ROWS
     problem = (
         full.subset(np.sort(np.random.default_rng(0).permutation(len(df))[:CONVERGE_ROWS])) if big else full
     )
     # Tool points first (the registration assumed a guess), so the identifiability sees a sane model.
-    pre_free = np.array([n.startswith(("base_", "tool")) for n in model.param_names])
+    pre_free = np.array([n.startswith(("base_", "tool", "probe")) for n in model.param_names])
     model = solve_ridge_igg3(model, problem, pre_free, robust=False, max_iter=10).model
     report = identify(model, problem, tol)
     n_free = int(report.keep_mask.sum())
-    if 3 * len(df) < 2 * n_free + 10:
+    n_eq = problem.n_obs * len(df)
+    if n_eq < 2 * n_free + 10:
         raise ValueError(
-            f"{len(df)} points give {3 * len(df)} equations for {n_free} identifiable parameters; measure at "
+            f"{len(df)} points give {n_eq} equations for {n_free} identifiable parameters; measure at "
             f"least {int(np.ceil((2 * n_free + 10) / 3))} well-spread poses (a 100-200 mm grid gives hundreds)"
         )
     if solver not in ("ridge", "lm"):
@@ -457,6 +606,12 @@ def _calibrate(
         "outlier_rows": result.outlier_rows,
         "training_joint_range_rad": [q.min(axis=0).tolist(), q.max(axis=0).tolist()],
     }
+    if full.R_measured is not None:
+        result.model.info["orientation"] = {
+            "rms_deg": result.orientation_rms_deg,
+            "angle_noise_deg": float(np.rad2deg(angle_noise_rad)),
+            "position_noise_mm": full.rot_scale * angle_noise_rad * 1000,
+        }
     result.notes += implausible_changes(result)
     _honest_numbers(result, problem)
     return result
@@ -468,7 +623,7 @@ def _honest_numbers(result: CalibrationResult, problem: Problem, k: int = 5) -> 
     inliers = problem.subset(rows)
     evaluated = inliers.evaluate(result.model)  # one Jacobian for both figures
     if len(rows) >= 4 * k:
-        folds = spatial_folds(problem.measured[rows], k, 0)
+        folds = inliers.spatial_folds(k, 0)
         result.std_folds = fold_spread_std(result, inliers, folds, evaluated)
     pairs = confounded_pairs(result, inliers, evaluated=evaluated)
     for a, b, c in pairs:
@@ -506,7 +661,7 @@ def fold_spread_std(
     est = np.array(
         [
             np.linalg.lstsq(N - Js[t].T @ Js[t], g - Js[t].T @ rv[t], rcond=None)[0] / norms
-            for t in ((3 * f[:, None] + np.arange(3)).ravel() for f in folds)
+            for t in ((r.shape[1] * f[:, None] + np.arange(r.shape[1])).ravel() for f in folds)
         ]
     )
     kf = len(folds)

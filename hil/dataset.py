@@ -2,7 +2,9 @@
 
 Required: ``q1_rad .. q6_rad`` (joints the robot reported) and ``x_mm, y_mm, z_mm`` (SMR centre in the
 tracker frame). Optional: ``t_s`` (seconds since the campaign started), ``temperature_c``, ``smr``
-(nest id, integer; default 1), ``payload_kg``, and any further column whose name ends in its unit.
+(nest id, integer; default 1), ``payload_kg``, ``pose`` (which rows share one robot pose), ``rx_deg, ry_deg,
+rz_deg`` (a 6-DoF probe's orientation in the tracker frame, extrinsic x-y-z: R = Rz(rz) Ry(ry) Rx(rx)), and any
+further column whose name ends in its unit.
 """
 
 from __future__ import annotations
@@ -16,7 +18,17 @@ import numpy as np
 import pandas as pd
 
 POSITION_COLUMNS: tuple[str, ...] = ("x_mm", "y_mm", "z_mm")
-OPTIONAL_COLUMNS: tuple[str, ...] = ("t_s", "temperature_c", "smr", "payload_kg")
+OPTIONAL_COLUMNS: tuple[str, ...] = ("t_s", "temperature_c", "smr", "payload_kg", "pose")
+ORIENTATION_COLUMNS: tuple[str, ...] = ("rx_deg", "ry_deg", "rz_deg")
+# Conventions of the three orientation angles, as scipy's Euler sequences (lower case = extrinsic axes).
+# Inside hil the angles always follow the default; another convention is converted when the data is read.
+ORIENTATION_CONVENTIONS: dict[str, str] = {
+    "xyz-extrinsic": "xyz",  # about the fixed tracker axes x, then y, then z: R = Rz(rz) Ry(ry) Rx(rx)
+    "xyz-intrinsic": "XYZ",  # about the moving axes x, then y', then z'': R = Rx(rx) Ry(ry) Rz(rz)
+}
+DEFAULT_ORIENTATION_CONVENTION = "xyz-extrinsic"
+# Rows whose joints all agree within this (rad) were measured at one robot pose (several SMRs, or revisits).
+SAME_POSE_RAD = 2e-4
 UNIT_SUFFIX = re.compile(r"_(mm|m|um|rad|deg|s|ms|c|k|kg|n|nm|hpa|pa|pct|mps|bool|id|count)$", re.IGNORECASE)
 
 
@@ -49,7 +61,13 @@ def validate_dataset(
     if len(df) == 0:
         raise DatasetError(f"{source}: no rows")
     out = df.copy()
-    numeric = required + [c for c in ("t_s", "temperature_c", "payload_kg") if c in df.columns]
+    present = [c for c in ORIENTATION_COLUMNS if c in df.columns]
+    if present and len(present) < 3:
+        raise DatasetError(
+            f"{source}: orientation needs all of {', '.join(ORIENTATION_COLUMNS)} (found only "
+            f"{', '.join(present)}); give the probe's three angles or none"
+        )
+    numeric = required + [c for c in ("t_s", "temperature_c", "payload_kg", *present) if c in df.columns]
     for col in numeric:
         values = pd.to_numeric(out[col], errors="coerce")
         bad = np.flatnonzero(~np.isfinite(values.to_numpy(float)))
@@ -123,10 +141,11 @@ def _check_positions_are_mm(df: pd.DataFrame, source: str) -> None:
 
 
 def drop_duplicate_rows(df: pd.DataFrame, source: str = "dataset") -> pd.DataFrame:
-    """Exact copies of a row (same joints, positions and SMR) counted once, reported by data row."""
+    """Exact copies of a row (same joints, positions, SMR and orientation) counted once, reported by data
+    row. Several SMRs read at one pose differ in `smr` and position, so they are all kept."""
     rows = data_rows(df)
     subset = [c for c in df.columns if re.fullmatch(r"q\d+_rad", str(c))]
-    subset += [c for c in (*POSITION_COLUMNS, "smr") if c in df.columns]
+    subset += [c for c in (*POSITION_COLUMNS, "smr", *ORIENTATION_COLUMNS) if c in df.columns]
     dup = df.duplicated(subset=subset, keep="first").to_numpy()
     out = df
     if dup.any():
@@ -193,8 +212,9 @@ def make_dataset(
     t_s: np.ndarray | None = None,
     temperature_c: np.ndarray | None = None,
     smr: np.ndarray | int | None = None,
+    R_tracker_probe: np.ndarray | None = None,
 ) -> pd.DataFrame:
-    """Build a contract frame from arrays in SI units."""
+    """Build a contract frame from arrays in SI units (probe orientations (N, 3, 3) become rx/ry/rz_deg)."""
     q = np.atleast_2d(q)
     data: dict[str, np.ndarray] = {c: q[:, i] for i, c in enumerate(joint_columns(q.shape[1]))}
     p_mm = np.atleast_2d(p_tracker_m) * 1000.0
@@ -206,6 +226,8 @@ def make_dataset(
         data["temperature_c"] = np.asarray(temperature_c, float)
     if smr is not None:
         data["smr"] = np.broadcast_to(np.asarray(smr, int), (q.shape[0],)).copy()
+    if R_tracker_probe is not None:
+        data.update(orientation_columns(R_tracker_probe))
     return pd.DataFrame(data)
 
 
@@ -219,3 +241,78 @@ def points_m(df: pd.DataFrame) -> np.ndarray:
 
 def smr_ids(df: pd.DataFrame) -> np.ndarray:
     return df["smr"].to_numpy(int) if "smr" in df.columns else np.ones(len(df), int)
+
+
+def has_orientation(df: pd.DataFrame) -> bool:
+    """Whether the rows carry a 6-DoF probe's orientation (rx_deg, ry_deg, rz_deg)."""
+    return all(c in df.columns for c in ORIENTATION_COLUMNS)
+
+
+def check_orientation_convention(name: str) -> str:
+    """The convention's scipy sequence; ValueError naming the known ones for anything else."""
+    if name not in ORIENTATION_CONVENTIONS:
+        raise ValueError(
+            f"unknown orientation convention '{name}'; choose {' or '.join(ORIENTATION_CONVENTIONS)}"
+        )
+    return ORIENTATION_CONVENTIONS[name]
+
+
+def orientations(df: pd.DataFrame) -> np.ndarray | None:
+    """Probe orientations R_tracker_probe (N, 3, 3) from rx_deg, ry_deg, rz_deg (default convention),
+    or None when the frame has no orientation columns."""
+    from scipy.spatial.transform import Rotation
+
+    if not has_orientation(df):
+        return None
+    angles = np.deg2rad(df[list(ORIENTATION_COLUMNS)].to_numpy(float))
+    return Rotation.from_euler(ORIENTATION_CONVENTIONS[DEFAULT_ORIENTATION_CONVENTION], angles).as_matrix()
+
+
+def orientation_columns(R_tracker_probe: np.ndarray) -> dict[str, np.ndarray]:
+    """rx_deg, ry_deg, rz_deg (default convention) of rotations (N, 3, 3)."""
+    from scipy.spatial.transform import Rotation
+
+    seq = ORIENTATION_CONVENTIONS[DEFAULT_ORIENTATION_CONVENTION]
+    angles = np.rad2deg(Rotation.from_matrix(np.asarray(R_tracker_probe, float)).as_euler(seq))
+    return dict(zip(ORIENTATION_COLUMNS, angles.T, strict=True))
+
+
+def convert_orientation_convention(df: pd.DataFrame, convention: str) -> pd.DataFrame:
+    """The frame with rx_deg, ry_deg, rz_deg re-expressed from `convention` in the default one (the
+    convention hil uses inside); unchanged without orientation columns or in the default convention."""
+    from scipy.spatial.transform import Rotation
+
+    seq = check_orientation_convention(convention)
+    if not has_orientation(df) or convention == DEFAULT_ORIENTATION_CONVENTION:
+        return df
+    R = Rotation.from_euler(seq, np.deg2rad(df[list(ORIENTATION_COLUMNS)].to_numpy(float))).as_matrix()
+    out = df.copy()
+    for col, values in orientation_columns(R).items():
+        out[col] = values
+    return out
+
+
+def pose_ids(df: pd.DataFrame) -> np.ndarray:
+    """Which robot pose each row was measured at (N,) ints from 0, in order of first appearance.
+
+    A `pose` column says it; otherwise rows whose joints all agree within SAME_POSE_RAD are one pose
+    (several SMRs read while the robot stood still, or the same joints visited again). Rows of one pose
+    share the robot's systematic error, so cross-validation must keep them in one fold.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    if "pose" in df.columns:
+        label = np.unique(df["pose"].astype(str).to_numpy(), return_inverse=True)[1].ravel()
+    else:
+        q = df[[c for c in df.columns if re.fullmatch(r"q\d+_rad", str(c))]].to_numpy(float)
+        if len(q) == 0:
+            return np.zeros(0, int)
+        pairs = cKDTree(q).query_pairs(SAME_POSE_RAD, p=np.inf, output_type="ndarray")
+        graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(q), len(q)))
+        label = connected_components(graph, directed=False)[1]
+    _, first = np.unique(label, return_index=True)
+    rank = np.empty(len(first), int)
+    rank[np.argsort(first)] = np.arange(len(first))
+    return rank[label]

@@ -39,7 +39,7 @@ from hil.calibration import (
 from hil.calibration import reregister as reregister_model
 from hil.dataset import drop_duplicate_rows, joints_rad
 from hil.effects import PHYSICAL_RANK, Effect, candidate_effects, make_effect, tool_points_rows
-from hil.folds import kfold, spatial_folds
+from hil.folds import kfold, spatial_folds  # noqa: F401  (folds now come from Problem; kept as before)
 from hil.identifiability import IdentifiabilityReport, analyse, scale_columns
 from hil.kinematics import KinematicModel
 from hil.noise_floor import NoiseFloor, estimate_noise_floor
@@ -491,7 +491,8 @@ class _Baseline:
             rank[order] = np.arange(len(order))  # the same rows whatever the outlier set
             rows = rows[np.argsort(rank[rows])[:SCREEN_MAX_ROWS]]
             rows.sort()
-        return self.full.subset(rows), spatial_folds(self.full.measured[rows], self.n_folds, self.seed)
+        prob = self.full.subset(rows)  # folds keep every SMR of one pose together
+        return prob, prob.spatial_folds(self.n_folds, self.seed)
 
 
 def _baseline_fit(
@@ -740,7 +741,7 @@ def _verdict(
     p_excess = float(stats.chi2.sf(np.sum(r_fit**2) / base.sigma2, dof))
     if (p_excess < alpha and ratio > 1.1) or compare_maps:
         # A map interpolates (it warns outside the measured volume): judge it on random folds.
-        rfolds = kfold(len(r_fit), base.n_folds, base.seed)
+        rfolds = prob.random_folds(base.n_folds, base.seed)
         cv_random = cv_residuals(final_model, free, prob, rfolds)
         map_report = _try_residual_maps(final_model, prob, cv_random, rfolds, base.noise, alpha)
     else:  # at the noise floor: nothing for a map to find

@@ -52,7 +52,7 @@ class IdentifiabilityReport:
 def _priority(name: str) -> int:
     if name.startswith("base_"):
         return 0
-    if name.startswith("tool"):
+    if name.startswith(("tool", "probe")):  # a probe's orientation, like its position, before the joints
         return 1
     if "." in name:  # effect coefficients: family_jN.coef
         return 3

@@ -342,3 +342,33 @@ def perturb_base(T_tracker_base: np.ndarray, delta: np.ndarray) -> np.ndarray:
     T_r = np.eye(4)
     T_r[:3, :3] = Rotation.from_rotvec(delta[3:6]).as_matrix()
     return T_t @ T_tracker_base @ T_r
+
+
+def kinematic_rotation_jacobian(model: KinematicModel, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Flange rotations R_base_flange (N, 3, 3) and the angular part of their derivative w.r.t. every
+    identifiable parameter, (N, 3, len(param_names)), base frame.
+
+    A parameter that turns the chain (theta, alpha, beta) turns the flange about that factor's axis in
+    the base frame, so its column is the axis: z of the previous joint frame for theta, the x axis after
+    Rz(theta) for alpha, the y axis after Rx(alpha) for beta. Lengths (d, a) do not turn it: zero.
+    """
+    q = model.check_joints(q)
+    frames = link_frames(model, q)
+    R_flange = frames[:, -1, :3, :3] @ np.asarray(model.T_last_flange, float)[:3, :3]
+    N = q.shape[0]
+    zero = np.zeros((N, 3))
+    th = q + model.theta
+    cols = []
+    for i in range(model.n_joints):
+        R_prev = frames[:, i, :3, :3]
+        x_prev, y_prev, z_prev = R_prev[:, :, 0], R_prev[:, :, 1], R_prev[:, :, 2]
+        c, s = np.cos(th[:, i])[:, None], np.sin(th[:, i])[:, None]
+        x_mid = c * x_prev + s * y_prev
+        if model.uses_beta[i]:
+            y_mid = -s * x_prev + c * y_prev
+            ca, sa = np.cos(model.alpha[i]), np.sin(model.alpha[i])
+            cols.extend([z_prev, zero, x_mid, ca * y_mid + sa * z_prev])
+        else:
+            cols.extend([z_prev, zero, zero, x_mid])
+    J = np.stack(cols, axis=2) if cols else np.zeros((N, 3, 0))
+    return R_flange, J

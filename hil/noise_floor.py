@@ -1,7 +1,7 @@
 """How well could a perfect model predict these measurements? The measurement noise floor.
 
 Two estimates, the better one wins:
-- repeated poses (rows whose reported joints agree within `repeat_tol_rad`, at least 5 groups): the
+- repeated poses (rows of one SMR whose reported joints agree within `repeat_tol_rad`, at least 5 groups): the
   pooled scatter of their measured positions;
 - otherwise the tracker's noise model at each point's distance (MPE = a + b * distance, taken as
   `mpe_sigmas` sigma per axis; defaults: AT901/AT960 class, 15 um + 6 um/m, MPE = 2 sigma), divided by
@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from hil.dataset import joints_rad, points_m
+from hil.dataset import joints_rad, points_m, smr_ids
 
 
 @dataclass
@@ -52,7 +52,7 @@ def estimate_noise_floor(
         + (f", averaged over {np.median(shots):g} shots per point" if np.any(shots > 1) else "")
         + (f", plus robot repeatability {repeatability_mm} mm" if repeatability_mm else "")
     )
-    groups = _repeat_groups(joints_rad(df), repeat_tol_rad)
+    groups = _repeat_groups(joints_rad(df), repeat_tol_rad, smr_ids(df))
     if len(groups) >= 5:
         ss, dof = 0.0, 0
         for g in groups:
@@ -66,8 +66,11 @@ def estimate_noise_floor(
     return NoiseFloor(floor, sigma, method)
 
 
-def _repeat_groups(q: np.ndarray, tol: float) -> list[np.ndarray]:
-    """Index groups (size >= 2) of rows whose joints agree within tol."""
+def _repeat_groups(q: np.ndarray, tol: float, smr: np.ndarray | None = None) -> list[np.ndarray]:
+    """Index groups (size >= 2) of rows of one SMR whose joints agree within tol (several SMRs read at one
+    pose are no repeats: their positions differ by the nest layout)."""
     key = np.round(q / tol).astype(np.int64)
+    if smr is not None:
+        key = np.column_stack([key, smr])
     _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
     return [np.flatnonzero(inverse.ravel() == k) for k in np.flatnonzero(counts >= 2)]

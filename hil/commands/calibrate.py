@@ -9,11 +9,17 @@ import numpy as np
 import pandas as pd
 
 from hil.calibration import calibrate
-from hil.commands.arg_checks import InputError, check_paths, float_list
+from hil.commands.arg_checks import InputError, check_paths, float_in, float_list
 from hil.commands.errors import CliError
 from hil.commands.inputs import read_measurements
 from hil.commands.progress import cli_progress
-from hil.dataset import DatasetError
+from hil.dataset import (
+    DEFAULT_ORIENTATION_CONVENTION,
+    ORIENTATION_CONVENTIONS,
+    DatasetError,
+    convert_orientation_convention,
+    orientation_columns,
+)
 from hil.diagnosis import run_record
 from hil.robots import ROBOT_NAMES, get_robot, robot_arg
 
@@ -26,6 +32,30 @@ def parse_mm_vector(text: str | None) -> np.ndarray | None:
     if np.linalg.norm(v) > 1.0:
         raise argparse.ArgumentTypeError(f"'{text}' lies more than 1 m from the flange: give millimetres")
     return v
+
+
+def add_probe_options(p: argparse.ArgumentParser) -> None:
+    """--orientation-convention and --probe-angle-noise-deg: how a 6-DoF probe's rx/ry/rz_deg are read."""
+    p.add_argument(
+        "--orientation-convention",
+        default=DEFAULT_ORIENTATION_CONVENTION,
+        choices=tuple(ORIENTATION_CONVENTIONS),
+        help="convention of a 6-DoF probe's rx_deg, ry_deg, rz_deg (tracker frame): xyz-extrinsic = "
+        "Rz(rz) Ry(ry) Rx(rx), xyz-intrinsic = Rx(rx) Ry(ry) Rz(rz)",
+    )
+    p.add_argument(
+        "--probe-angle-noise-deg",
+        type=float_in(0.0, 10.0, lo_open=True),
+        default=0.01,
+        help="1-sigma noise per axis of a 6-DoF probe's orientation, deg, in (0, 10]: weighs the rotation "
+        "equations against the positions (tracker noise)",
+    )
+
+
+def orientation_summary(res_dict: dict) -> str:
+    """' orientation RMS x deg' for a solver that had 6-DoF probe rows, else ''."""
+    rms = res_dict.get("orientation_rms_deg")
+    return "" if rms is None else f", orientation RMS {rms:.4f} deg"
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -59,23 +89,25 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default=None,
         help="CSV to write per row: residual dx/dy/dz/norm (mm), IGG3 weight and outlier flag of the chosen solver",
     )
+    add_probe_options(p)
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     try:
         check_paths({"DATA": args.data}, {"--output": args.output, "--residuals": args.residuals})
-        df = read_measurements(args.data)
+        df = convert_orientation_convention(read_measurements(args.data), args.orientation_convention)
         tool = args.tool_mm
     except (InputError, DatasetError, ValueError) as exc:
         raise CliError.from_text(str(exc)) from exc
     nominal = get_robot(args.robot, use_beta=not args.no_beta)
+    angle_noise = float(np.deg2rad(args.probe_angle_noise_deg))
     try:
         results = {}
         with cli_progress() as progress:
             for i, s in enumerate(("ridge", "lm")):
                 progress(f"calibrating {len(df)} poses", i, 2)
-                results[s] = calibrate(df, nominal, solver=s, tool_guess_m=tool)
+                results[s] = calibrate(df, nominal, solver=s, tool_guess_m=tool, probe_angle_noise_rad=angle_noise)
             progress(f"calibrating {len(df)} poses", 2, 2)
     except ValueError as exc:
         raise CliError.from_text(str(exc)) from exc
@@ -86,7 +118,7 @@ def run(args: argparse.Namespace) -> int:
         flagged = res.outlier_rows
         print(
             f"{res.solver:>12}: RMS {res.rms_mm:.4f} mm over {int((~res.outliers).sum())} points, "
-            f"sigma0 {res.sigma0_m * 1000:.4f} mm, outliers flagged: "
+            f"sigma0 {res.sigma0_m * 1000:.4f} mm{orientation_summary(res.to_dict())}, outliers flagged: "
             + (", ".join(f"row {r}" for r in flagged) if flagged else "none")
         )
     for note in results[args.solver].notes:
@@ -99,11 +131,14 @@ def run(args: argparse.Namespace) -> int:
         if row["delta"] is None:
             continue
         print(f"{row['name']:<16}{row['delta']:14.3e}{row['std']:12.2e}{row['std_ls']:12.2e}  {row['unit']}")
+    for smr, R in sorted(chosen.model.probes.items()):
+        angles = ", ".join(f"{k} {float(v[0]):.4f}" for k, v in orientation_columns(R[None]).items())
+        print(f"probe orientation SMR {smr} in the flange: {angles} ({DEFAULT_ORIENTATION_CONVENTION})")
     for smr, tool_m in sorted(chosen.model.tools.items()):
         print(f"tool point SMR {smr}: " + ", ".join(f"{v * 1000:.4f}" for v in tool_m) + " mm (flange frame)")
     if args.residuals:
         r_mm = chosen.residual_m * 1000.0
-        pd.DataFrame(
+        table = pd.DataFrame(
             {
                 "row": chosen.row_numbers,
                 "dx_mm": r_mm[:, 0],
@@ -113,7 +148,10 @@ def run(args: argparse.Namespace) -> int:
                 "weight": chosen.weights,
                 "outlier": chosen.outliers,
             }
-        ).to_csv(args.residuals, index=False, float_format="%.6g")
+        )
+        if chosen.residual_rot_rad is not None:  # a 6-DoF probe: the angle of log(R_measured R_predicted^T)
+            table.insert(5, "rot_deg", np.rad2deg(np.linalg.norm(chosen.residual_rot_rad, axis=1)))
+        table.to_csv(args.residuals, index=False, float_format="%.6g")
         print(f"residuals written to {args.residuals}")
     chosen.model.info["run"] = run_record(nominal, {"training": df})  # what the model was made from
     chosen.model.save(args.output)

@@ -7,12 +7,13 @@ import argparse
 import numpy as np
 import pandas as pd
 
+from hil.calibration import position_noise_m
 from hil.commands.arg_checks import InputError, check_paths, float_in, float_list, int_in
-from hil.commands.calibrate import parse_mm_vector
+from hil.commands.calibrate import add_probe_options, orientation_summary, parse_mm_vector
 from hil.commands.errors import CliError
 from hil.commands.inputs import read_training_and_validation
 from hil.commands.progress import cli_progress
-from hil.dataset import DatasetError
+from hil.dataset import DatasetError, convert_orientation_convention, points_m
 from hil.diagnosis import DiagnosisReport, run_diagnosis
 from hil.effects import EFFECT_FAMILIES
 from hil.robots import ROBOT_NAMES, get_robot, robot_arg
@@ -81,6 +82,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         action="store_true",
         help="always compare the residual maps (IDW, SVR, GP) by k-fold, even at the noise floor",
     )
+    add_probe_options(p)
     p.set_defaults(func=run)
 
 
@@ -101,6 +103,11 @@ def run(args: argparse.Namespace) -> int:
             )
         mpe = tuple(v * 1e-6 for v in args.tracker_mpe_um)
         df, val = read_training_and_validation(args.data, args.validate)
+        df = convert_orientation_convention(df, args.orientation_convention)
+        val = None if val is None else convert_orientation_convention(val, args.orientation_convention)
+        # A 6-DoF probe's rotation equations, weighted by its angle noise against the tracker's noise.
+        df.attrs["probe_angle_noise_rad"] = float(np.deg2rad(args.probe_angle_noise_deg))
+        df.attrs["position_noise_m"] = position_noise_m(points_m(df), mpe)
         tool = args.tool_mm
     except (InputError, DatasetError, ValueError) as exc:
         raise CliError.from_text(str(exc)) from exc
@@ -150,6 +157,12 @@ def _print_and_write(args: argparse.Namespace, report: DiagnosisReport) -> None:
     from hil.report import write_html, write_json
 
     print(report.table())
+    for name, res in report.calibration.items():
+        if res.get("orientation_rms_deg") is not None:
+            print(f"6-DoF probe, geometric {name} fit: position RMS {res['rms_mm']:.4f} mm{orientation_summary(res)}")
+    final = report.model.info.get("orientation")
+    if final and report.model.effects:
+        print(f"6-DoF probe, final model (effects included): orientation RMS {final['rms_deg']:.4f} deg")
     print(report.conclusion)
     for step in report.steps:
         j = step.effect["joint"]
