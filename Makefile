@@ -27,6 +27,7 @@ bench: $(VENV)/.installed
 	$(PY) benchmarks/tracker.py
 	$(PY) benchmarks/ur_fake.py
 	$(PY) benchmarks/runner.py
+	$(PY) benchmarks/probe.py
 
 clean:
 	rm -rf $(VENV)
