@@ -287,7 +287,7 @@ class DiagnosisReport:
     stages: list[dict]
     steps: list[Step]
     unexplained_structure: bool
-    verdict: dict  # what the conclusion says, as data (see `conclusion`)
+    verdict: dict  # residual ("floor" | "excess" | "structured"), ratio, map, cautions: hil.report words it
     residual_map: dict | None = None
     histograms: dict = field(default_factory=dict)  # stage -> held-out error norms (mm)
     final_round: list[Candidate] = field(default_factory=list)
@@ -303,26 +303,6 @@ class DiagnosisReport:
     def noise_floor_mm(self) -> float:
         return self.noise.floor_mm
 
-    @property
-    def conclusion(self) -> str:
-        """The verdict in words: what was added, what is left, and every caution."""
-        v = self.verdict
-        added = ", ".join(_effect_label(e["name"], e["joint"]) for e in self.effects_added) or "nothing"
-        if v["residual"] == "structured":
-            text = (
-                f"Added: {added}. Structured residual remains that no candidate effect explains (residual "
-                f"sigma {v['ratio']:.2f}x the noise floor; a {v['map']} residual map predicts it on held-out "
-                "points), so a residual map is used as the fallback."
-            )
-        elif v["residual"] == "excess":
-            text = (
-                f"Added: {added}. The residual is {v['ratio']:.2f}x the noise floor but shows no structure a "
-                "residual map can predict: the noise floor is probably underestimated (robot repeatability?)."
-            )
-        else:
-            text = f"Added: {added}. The residual is at the noise floor ({v['ratio']:.2f}x)."
-        return "\n".join([text, *(f"Caution: {c}" for c in v["cautions"])])  # one caution a line
-
     def to_dict(self) -> dict:
         return {
             "effects_added": self.effects_added,
@@ -330,7 +310,6 @@ class DiagnosisReport:
             "unexplained_structure": self.unexplained_structure,
             "noise_floor_mm": self.noise.floor_mm,
             "noise_floor_method": self.noise.method,
-            "conclusion": self.conclusion,
             "verdict": self.verdict,
             "steps": [s.to_dict() for s in self.steps],
             "final_round_candidates": [c.to_dict() for c in self.final_round],
@@ -436,8 +415,12 @@ def run_diagnosis(
             other = _forward_selection(base, df, alpha, families, max_effects, banned={*path.banned, first})
             if other.cv_rms_mm < 0.95 * path.cv_rms_mm:
                 other.cautions.append(
-                    f"a first choice of {_effect_label(*first)} led to a worse final model "
-                    f"({path.cv_rms_mm:.4f} vs {other.cv_rms_mm:.4f} mm held-out); it was set aside"
+                    caution(
+                        "first_choice_set_aside",
+                        effect={"name": first[0], "joint": first[1]},
+                        heldout_rms_mm=path.cv_rms_mm,
+                        heldout_rms_without_mm=other.cv_rms_mm,
+                    )
                 )
                 path = other
             else:
@@ -457,7 +440,8 @@ def _quiet(phase: str, done: int, total: int) -> None:
     return None
 
 
-def _effect_label(name: str, joint: int | None) -> str:
+def effect_label(name: str, joint: int | None) -> str:
+    """'gravity_compliance (joint 2)': how stages and reports name an effect."""
     return name + (f" (joint {joint})" if joint else "")
 
 
@@ -539,7 +523,7 @@ class _Path:
     ambiguities: list[dict]
     final_round: list[Candidate]
     banned: set
-    cautions: list[str] = field(default_factory=list)
+    cautions: list[dict] = field(default_factory=list)  # see `caution`
     cv_final: np.ndarray | None = None  # held-out residuals of the last stage (step 3)
 
     @property
@@ -622,7 +606,7 @@ def _forward_selection(
         rep = refit(calibrate(df, best_model, "ridge"))
         if close:
             path.ambiguities += _confounded(base, path, best, close, alpha)
-        path.stage_models.append(("+ " + _effect_label(best.name, best.joint), path.current.model))
+        path.stage_models.append(("+ " + effect_label(best.name, best.joint), path.current.model))
         eff_index = len(path.current.model.effects) - 1
         eff = path.current.model.effects[eff_index]
         path.pending.append(
@@ -646,7 +630,7 @@ def _forward_selection(
                 path.current.model, effects=[e for k, e in enumerate(path.current.model.effects) if k != idx]
             )
             refit(calibrate(df, reduced, "ridge"))
-            label = "- " + _effect_label(gone.family, gone.joint) + " (no longer needed)"
+            label = "- " + effect_label(gone.family, gone.joint) + " (no longer needed)"
             path.stage_models.append((label, path.current.model))
             path.pending.append(
                 {
@@ -764,18 +748,10 @@ def _verdict(
     cautions = list(path.cautions)
     for st in stages:
         if st.get("worse_than_previous"):
-            cautions.append(
-                f"stage '{st['stage']}' predicts held-out points worse than the stage before it "
-                f"({st['rms_mm']:.4f} mm)"
-            )
+            cautions.append(caution("stage_worse_than_previous", stage=st["stage"], rms_mm=st["rms_mm"]))
     for amb in path.ambiguities:
-        a, b = amb["chosen"], amb["confounded_with"]
-        cautions.append(
-            f"on this data {_effect_label(a['name'], a['joint'])} and {_effect_label(b['name'], b['joint'])} "
-            "explain the same residual; the choice between them is not reliable (measure poses or approach "
-            "directions that separate them, e.g. a random visiting order)."
-        )
-    cautions += base.ridge.notes
+        cautions.append(caution("ambiguous_effects", chosen=amb["chosen"], confounded_with=amb["confounded_with"]))
+    cautions += [caution("calibration_note", text=note) for note in base.ridge.notes]
     final_model.info["diagnosis"] = {
         "effects_added": [s.effect for s in steps],
         "noise_floor_mm": base.noise.floor_mm,
@@ -823,40 +799,43 @@ def _validate(
     valid = [st["rms_mm"] for st in report.stages if st["on"] == "validate"]
     if valid and valid[-1] > 1.5 * held[-1]:
         cautions.append(
-            f"the validation campaign's RMS ({valid[-1]:.4f} mm) is {valid[-1] / held[-1]:.1f}x the "
-            "held-out one: the training campaign does not represent it (poses, visiting order, time, tracker "
-            "placement), so an effect may be hidden in the training data by another one; measure a campaign "
-            "in a random order" + ("" if reregister != "none" else ", or re-register the base on it")
+            caution(
+                "validation_unrepresented",
+                validate_rms_mm=valid[-1],
+                heldout_rms_mm=held[-1],
+                reregistered=reregister != "none",
+            )
         )
     geo = [st["rms_mm"] for st in report.stages if st["on"] == "validate" and st["stage"] == "kinematic"]
     if valid and geo and valid[-1] > geo[0] * 1.02:
         cautions.append(
-            f"on the validation campaign the final model ({valid[-1]:.4f} mm) predicts worse than the geometric "
-            f"one ({geo[0]:.4f} mm): use the geometric model there"
+            caution("validation_worse_than_geometric", final_rms_mm=valid[-1], geometric_rms_mm=geo[0])
         )
     cautions += extrapolation_warnings(df, df_val)
 
 
-def extrapolation_warnings(df: pd.DataFrame, df_val: pd.DataFrame) -> list[str]:
-    """Validation temperatures or joint ranges outside the training's: the model extrapolates there."""
+def caution(kind: str, **data: Any) -> dict:
+    """One caution of the verdict, as data: `kind` names it, hil.report words it."""
+    return {"kind": kind, **data}
+
+
+def extrapolation_warnings(df: pd.DataFrame, df_val: pd.DataFrame) -> list[dict]:
+    """Validation temperatures or joint ranges outside the training's (cautions): the model extrapolates."""
     out = []
     if "temperature_c" in df.columns and "temperature_c" in df_val.columns:
-        lo, hi = df["temperature_c"].min(), df["temperature_c"].max()
-        vlo, vhi = df_val["temperature_c"].min(), df_val["temperature_c"].max()
+        lo, hi = float(df["temperature_c"].min()), float(df["temperature_c"].max())
+        vlo, vhi = float(df_val["temperature_c"].min()), float(df_val["temperature_c"].max())
         if vlo < lo - 0.5 or vhi > hi + 0.5:
-            out.append(
-                f"validation temperatures {vlo:.1f}..{vhi:.1f} C lie outside the training's {lo:.1f}..{hi:.1f} C: "
-                "the model extrapolates thermal effects (measure the training over the working temperatures)"
-            )
+            out.append(caution("validation_temperatures_outside", validate_c=[vlo, vhi], training_c=[lo, hi]))
     q, qv = joints_rad(df), joints_rad(df_val)
-    margin = np.deg2rad(5.0)
+    margin_deg = 5.0
+    margin = np.deg2rad(margin_deg)
     outside = np.flatnonzero(
         (qv.min(axis=0) < q.min(axis=0) - margin) | (qv.max(axis=0) > q.max(axis=0) + margin)
     )
     if outside.size:
         out.append(
-            f"validation joint(s) {', '.join(str(j + 1) for j in outside)} leave the training's range by more "
-            "than 5 deg: the model extrapolates there"
+            caution("validation_joints_outside", joints=[int(j + 1) for j in outside], margin_deg=margin_deg)
         )
     return out
 

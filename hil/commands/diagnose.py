@@ -147,10 +147,10 @@ def _run(args, df, val, tool, families, mpe, progress) -> DiagnosisReport:
 
 
 def _print_and_write(args: argparse.Namespace, report: DiagnosisReport) -> None:
-    from hil.report import write_html, write_json
+    from hil.report import conclusion, write_html, write_json
 
     print(report.table())
-    print(report.conclusion)
+    print(conclusion(report))
     for step in report.steps:
         j = step.effect["joint"]
         verb = "removed " if step.action == "removed" else ""
