@@ -34,6 +34,13 @@ def spatial_folds(points: np.ndarray, k: int, seed: int, iters: int = 25) -> lis
     return [f for f in folds if len(f) > 0]
 
 
+def repeated_spatial_folds(points: np.ndarray, k: int, seed: int, repeats: int) -> list[list[np.ndarray]]:
+    """`repeats` different partitions into k spatial blocks (k-means from different seeds). One partition
+    is a draw: which block boundaries fall where moves a small effect's held-out gain by a factor of
+    several (a pose more or less re-draws the seeding); averaging over partitions removes that lottery."""
+    return [spatial_folds(points, k, seed + r) for r in range(repeats)]
+
+
 # Points closer than this are one location (several orientations measured at one grid node).
 SAME_LOCATION_M = 5e-3
 
