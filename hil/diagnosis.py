@@ -39,7 +39,15 @@ from hil.calibration import (
 )
 from hil.calibration import reregister as reregister_model
 from hil.dataset import drop_duplicate_rows, joints_rad
-from hil.effects import PHYSICAL_RANK, Effect, candidate_effects, make_effect, tool_points_rows
+from hil.effects import (
+    PHYSICAL_RANK,
+    THERMAL_FAMILIES,
+    Effect,
+    candidate_effects,
+    make_effect,
+    temperature_driven,
+    tool_points_rows,
+)
 from hil.folds import kfold, repeated_spatial_folds
 from hil.identifiability import IdentifiabilityReport, analyse, scale_columns
 from hil.kinematics import KinematicModel
@@ -213,7 +221,48 @@ def pick_winner(winners: list[tuple[Candidate, CalibratedModel]]) -> tuple[Candi
         best[0].note = (
             best[0].note + "; " if best[0].note else ""
         ) + "chosen in a near-tie: simpler / physically expected"
-    return best
+    thermal = _thermal_preferred(best, winners)
+    return thermal or best
+
+
+def _per_param(c: Candidate) -> float:
+    return c.gain_mm2 / max(c.n_params, 1)
+
+
+def _thermal_preferred(
+    best: tuple[Candidate, CalibratedModel], winners: list[tuple[Candidate, CalibratedModel]]
+) -> tuple[Candidate, CalibratedModel] | None:
+    """A passing thermal candidate driven by the recorded temperature that explains as much per parameter
+    as a pose effect with more parameters goes first. A warm-up measured in raster order makes temperature
+    collinear with one axis of the grid: the pose effect's extra coefficients then imitate the warm-up as a
+    function of the pose, and once it is in, the temperature has too little left to pass, so the model
+    extrapolates in temperature as badly as a model without it. Taken first, the thermal term leaves the
+    pose effect its own share. (Time alone is no such cause: it orders the poses too.)"""
+    if best[0].name in THERMAL_FAMILIES:
+        return None
+    fits = [
+        cm
+        for cm in winners
+        if temperature_driven(cm[1].effects[-1])
+        and cm[0].n_params < best[0].n_params
+        and _per_param(cm[0]) >= _per_param(best[0])
+    ]
+    if not fits:
+        return None
+    chosen = max(fits, key=lambda cm: cm[0].gain_mm2)
+    label = effect_label(best[0].name, best[0].joint)
+    chosen[0].note = (chosen[0].note + "; " if chosen[0].note else "") + (
+        f"preferred to {label}: the temperature explains as much per parameter with fewer parameters"
+    )
+    return chosen
+
+
+# A thermal effect driven by the recorded temperature stays in the model while removing it costs held-out
+# error at this level (or `alpha`, if looser): a looser level to remove than to enter. The spatial folds cannot score what a thermal term is
+# for (a warmer day than any training row), and a pose effect added after it imitates part of a raster-order
+# warm-up, which would otherwise remove the (preferred, see `_thermal_preferred`) thermal term again.
+# Pose effects are removed at `alpha`.
+ALPHA_TO_REMOVE_THERMAL = 0.05
 
 
 def _weakest_effect(
@@ -239,7 +288,8 @@ def _weakest_effect(
         se = float(np.std(d, ddof=1) / np.sqrt(len(d)))
         gain = float(np.mean(d))
         p_cv = float(stats.t.sf(gain / se, len(d) - 1)) if se > 0 else 1.0
-        if gain > 0 and p_cv < alpha and p_chi2 < alpha:
+        level = max(alpha, ALPHA_TO_REMOVE_THERMAL) if temperature_driven(eff) else alpha
+        if gain > 0 and p_cv < level and p_chi2 < level:
             continue
         cand = Candidate(
             eff.family,

@@ -53,6 +53,19 @@ def test_thermal_growth_with_a_warmer_validation_is_named_and_extrapolates():
     assert "validation temperatures" in conclusion(report)  # the extrapolation is said
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_thermal_growth_is_named_on_a_small_grid_measured_in_raster_order(seed):
+    # 150 mm grid (96 poses) visited in raster order while the cell warms up: temperature and one axis of the
+    # grid are collinear, and the gravity compliance of joint 3 imitates the warm-up as a function of the pose.
+    # The thermal term (one parameter, as much held-out gain per parameter) goes first and stays.
+    train, val = _campaigns(seed=seed, pause_s=3600.0, step_m=0.15, thermal=True)
+    assert len(train) < 100
+    report = run_diagnosis(train, "ur10", df_validate=val)
+    assert "thermal_expansion" in {e["name"] for e in report.effects_added}
+    truth = true_effect_model(train, "ur10", ("gravity_compliance", "thermal_expansion"))
+    assert _validate(report) <= 1.1 * _rms_mm(truth, val)
+
+
 def test_gravity_compliance_within_10_percent_of_the_true_effect_model():
     train, val = _campaigns(seed=3)
     report = run_diagnosis(train, "ur10", df_validate=val)
