@@ -10,7 +10,8 @@ Selection rule for each round (every candidate from `hil.effects` the data could
    model (one-sided t-test, p < alpha), and (b) explain more than measurement noise on the full fit:
    (SSE_before - SSE_after) / sigma^2 ~ chi2(k) with sigma the larger of the noise-floor sigma and the
    residual sigma after, p < alpha / number of candidates;
-4. the passing candidate with the largest held-out gain is added and the whole model refitted robustly.
+4. the passing candidate with the largest held-out gain is added (near-ties and temperature: `pick_winner`)
+   and the whole model refitted robustly; an earlier effect that no longer earns its place is removed.
 The loop stops when nothing passes. The residual left is then tested against the noise floor; if it is
 larger and a residual map predicts it on held-out points, the report says structure remains that no
 candidate explains and adds the map as a fallback stage.
@@ -213,7 +214,8 @@ NEAR_TIE = 0.9  # candidates within 10 % of the best held-out gain are a near-ti
 
 def pick_winner(winners: list[tuple[Candidate, CalibratedModel]]) -> tuple[Candidate, CalibratedModel]:
     """The largest held-out gain, except that a near-tie goes to the simpler effect (fewer parameters),
-    then to the more physically expected family (the data cannot tell them apart; parsimony can)."""
+    then to the more physically expected family (the data cannot tell them apart; parsimony can), and a
+    temperature-driven thermal effect as good per parameter goes first (`_thermal_preferred`)."""
     top = max(c.gain_mm2 for c, _ in winners)
     tied = [cm for cm in winners if cm[0].gain_mm2 >= NEAR_TIE * top]
     best = min(tied, key=lambda cm: (cm[0].n_params, PHYSICAL_RANK.get(cm[0].name, 9), -cm[0].gain_mm2))
