@@ -219,3 +219,26 @@ def test_the_verdict_is_data_and_the_report_words_it():
             caution_text({"kind": kind})
     with pytest.raises(ValueError, match="no wording"):
         caution_text({"kind": "made_up"})
+
+
+def test_a_temperature_driven_thermal_candidate_goes_before_a_pose_effect_it_matches_per_parameter():
+    from types import SimpleNamespace
+
+    from hil.diagnosis import Candidate, pick_winner
+    from hil.effects import make_effect
+
+    def winner(name, joint, k, gain_mm2, driver=None):
+        eff = make_effect(name, joint)
+        if driver:
+            eff.state = {"driver": driver, "reference": 0.0}
+        cand = Candidate(name, joint, k, 0.03, gain_mm2, 1e-6, 1e-9, True)
+        return cand, SimpleNamespace(effects=[eff])  # the candidate's fitted model: only its effect is read
+
+    pose = winner("gravity_compliance", 3, 4, 1.8e-3)
+    by_temperature = winner("thermal_expansion", None, 1, 1.2e-3, "temperature_c")
+    by_time = winner("thermal_expansion", None, 1, 1.2e-3, "t_s")
+    assert pick_winner([pose, by_temperature])[0].name == "thermal_expansion"
+    assert "preferred to gravity_compliance (joint 3)" in by_temperature[0].note
+    assert pick_winner([pose, by_time])[0].name == "gravity_compliance"  # time also orders the poses
+    weak = winner("thermal_expansion", None, 1, 0.3e-3, "temperature_c")  # less per parameter
+    assert pick_winner([pose, weak])[0].name == "gravity_compliance"
