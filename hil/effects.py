@@ -420,6 +420,12 @@ _CLASSES: dict[str, type[Effect]] = {
     c.family: c for c in (GravityCompliance, Cyclic, Backlash, JointScale, ThermalExpansion, ThermalDrift)
 }
 JOINT_FAMILIES = ("gravity_compliance", "cyclic", "backlash", "joint_scale")
+THERMAL_FAMILIES = ("thermal_expansion", "thermal_drift")  # driven by a measured temperature (or time)
+
+
+def temperature_driven(eff: Effect) -> bool:
+    """A thermal effect driven by a recorded temperature (not by time: time also orders the poses)."""
+    return eff.family in THERMAL_FAMILIES and eff.state.get("driver") == "temperature_c"
 
 
 def make_effect(family: str, joint: int | None = None) -> Effect:

@@ -1,4 +1,5 @@
-"""Diagnosis report as JSON (machine-readable) and as one self-contained HTML page with embedded plots."""
+"""Diagnosis report in words: the conclusion for the terminal, JSON (machine-readable) and one
+self-contained HTML page with embedded plots. The diagnosis returns its verdict as data; the wording is here."""
 
 from __future__ import annotations
 
@@ -10,16 +11,103 @@ from pathlib import Path
 
 import numpy as np
 
-from hil.diagnosis import DiagnosisReport
+from hil.diagnosis import DiagnosisReport, effect_label
 from hil.jsonable import to_jsonable
 
 
+def _effect(e: dict) -> str:
+    return effect_label(e["name"], e["joint"])
+
+
+def caution_text(c: dict) -> str:
+    """One caution of the verdict (`hil.diagnosis.caution`) in words."""
+    kind = c["kind"]
+    if kind == "calibration_note":
+        return c["text"]
+    if kind == "first_choice_set_aside":
+        return (
+            f"a first choice of {_effect(c['effect'])} led to a worse final model ({c['heldout_rms_mm']:.4f} vs "
+            f"{c['heldout_rms_without_mm']:.4f} mm held-out); it was set aside"
+        )
+    if kind == "stage_worse_than_previous":
+        return (
+            f"stage '{c['stage']}' predicts held-out points worse than the stage before it ({c['rms_mm']:.4f} mm)"
+        )
+    if kind == "ambiguous_effects":
+        return (
+            f"on this data {_effect(c['chosen'])} and {_effect(c['confounded_with'])} explain the same residual; "
+            "the choice between them is not reliable (measure poses or approach directions that separate them, "
+            "e.g. a random visiting order)."
+        )
+    if kind == "validation_unrepresented":
+        v, h = c["validate_rms_mm"], c["heldout_rms_mm"]
+        return (
+            f"the validation campaign's RMS ({v:.4f} mm) is {v / h:.1f}x the held-out one: the training campaign "
+            "does not represent it (poses, visiting order, time, tracker placement), so an effect may be hidden "
+            "in the training data by another one; measure a campaign in a random order"
+            + ("" if c["reregistered"] else ", or re-register the base on it")
+        )
+    if kind == "validation_worse_than_geometric":
+        return (
+            f"on the validation campaign the final model ({c['final_rms_mm']:.4f} mm) predicts worse than the "
+            f"geometric one ({c['geometric_rms_mm']:.4f} mm): use the geometric model there"
+        )
+    if kind == "validation_temperatures_outside":
+        (vlo, vhi), (lo, hi) = c["validate_c"], c["training_c"]
+        return (
+            f"validation temperatures {vlo:.1f}..{vhi:.1f} C lie outside the training's {lo:.1f}..{hi:.1f} C: "
+            "the model extrapolates thermal effects (measure the training over the working temperatures)"
+        )
+    if kind == "validation_joints_outside":
+        return (
+            f"validation joint(s) {', '.join(map(str, c['joints']))} leave the training's range by more than "
+            f"{c['margin_deg']:g} deg: the model extrapolates there"
+        )
+    raise ValueError(f"no wording for the caution kind '{kind}'")
+
+
+def conclusion(report: DiagnosisReport) -> str:
+    """The verdict in words: what was added, what is left, then one caution a line."""
+    return conclusion_text(report.verdict, report.effects_added)
+
+
+def conclusion_text(v: dict, effects_added: list[dict]) -> str:
+    """`conclusion` from the verdict data and the effects ({name, joint}) the final model holds."""
+    added = ", ".join(_effect(e) for e in effects_added) or "nothing"
+    if v["residual"] == "structured":
+        text = (
+            f"Added: {added}. Structured residual remains that no candidate effect explains (residual sigma "
+            f"{v['ratio']:.2f}x the noise floor; a {v['map']} residual map predicts it on held-out points), so a "
+            "residual map is used as the fallback."
+        )
+    elif v["residual"] == "excess":
+        text = (
+            f"Added: {added}. The residual is {v['ratio']:.2f}x the noise floor but shows no structure a residual "
+            "map can predict: the noise floor is probably underestimated (robot repeatability?)."
+        )
+    else:
+        text = f"Added: {added}. The residual is at the noise floor ({v['ratio']:.2f}x)."
+    return "\n".join([text, *(f"Caution: {caution_text(c)}" for c in v["cautions"])])
+
+
+def report_dict(report: DiagnosisReport) -> dict:
+    """The report's data with the conclusion and each caution's words added (what the JSON holds)."""
+    out = {}
+    for key, value in report.to_dict().items():
+        if key == "verdict":
+            out["conclusion"] = conclusion(report)
+            value = {**value, "cautions": [{**c, "text": caution_text(c)} for c in value["cautions"]]}
+        out[key] = value
+    return out
+
+
 def write_json(report: DiagnosisReport, path: str | Path) -> None:
-    """The report's JSON: effects_added, stages, unexplained_structure, noise_floor_mm and the details.
+    """The report's JSON: effects_added, stages, unexplained_structure, noise_floor_mm, the conclusion and
+    the details.
 
     Strict JSON: NaN and infinities (e.g. a candidate that was never cross-validated) become null.
     """
-    text = json.dumps(to_jsonable(report.to_dict()), indent=1, allow_nan=False)
+    text = json.dumps(to_jsonable(report_dict(report)), indent=1, allow_nan=False)
     Path(path).write_text(text)
 
 
@@ -88,14 +176,14 @@ def _table(rows: list[dict], columns: list[str], fmt: dict | None = None) -> str
 
 def render_html(report: DiagnosisReport, compensation: dict | None = None) -> str:
     """The report page; `compensation` (procedures.pseudo_target's summary) adds the measured loop's table."""
-    d = report.to_dict()
+    d = report_dict(report)
     parts = [
         "<!doctype html><html><head><meta charset='utf-8'><title>hil calibration report</title>",
         "<style>body{font-family:sans-serif;max-width:1000px;margin:2em auto}table{border-collapse:collapse;"
         "margin:0.5em 0}td,th{border:1px solid #bbb;padding:2px 8px;text-align:right}th{background:#eee}"
         "h2{border-bottom:1px solid #888}</style></head><body>",
         "<h1>Calibration and diagnosis</h1>",
-        "<p><b>" + "<br>".join(html.escape(line) for line in report.conclusion.splitlines()) + "</b></p>",
+        "<p><b>" + "<br>".join(html.escape(line) for line in d["conclusion"].splitlines()) + "</b></p>",
         f"<p>Noise floor: {report.noise_floor_mm:.4f} mm RMS ({html.escape(report.noise.method)}).</p>",
         "<h2>Error at each stage (mm)</h2>",
         _table(

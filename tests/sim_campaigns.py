@@ -24,22 +24,29 @@ def sampling_box(cell: SimulatedCell) -> Box:
 
 
 def facing_joints(
-    cell: SimulatedCell, points_base_m: np.ndarray, rng: np.random.Generator, nest: int = 1
+    cell: SimulatedCell,
+    points_base_m: np.ndarray,
+    rng: np.random.Generator,
+    nest: int = 1,
+    keep_singular: bool = True,
 ) -> np.ndarray:
     """Nominal-IK joints (M, 6) reaching the points with the SMR in `nest` facing the tracker. Near-singular
-    poses are kept (singular_sigma_m=0): the simulated cell is safe to drive there, and the calibration tests'
-    campaigns have always held them; a procedure on a real arm drops them."""
+    poses are kept by default (singular_sigma_m=0): the simulated cell is safe to drive there, and the
+    calibration tests' campaigns have always held them; a procedure on a real arm drops them, as
+    `keep_singular=False` does."""
     T_base_tool = facing_poses(points_base_m, tracker_position_base_m(cell), rng, tilt_deg=20.0)
     p_nest = np.asarray(cell.config.tool_nests_flange_m[nest - 1])  # the drawing, not the truth
-    plan = plan_joints(
-        cell.nominal, T_base_tool, p_nest, q_near=np.asarray(cell.config.q_home_rad), singular_sigma_m=0.0
-    )
+    sigma = {} if not keep_singular else {"singular_sigma_m": 0.0}  # else the planner's own threshold
+    plan = plan_joints(cell.nominal, T_base_tool, p_nest, q_near=np.asarray(cell.config.q_home_rad), **sigma)
     return plan.q[plan.usable]
 
 
-def grid_joints(cell: SimulatedCell, step_m: float = 0.2, seed: int = 0) -> np.ndarray:
-    """Joints for every usable vertex of a grid of `step_m` in the default box."""
-    return facing_joints(cell, grid_points(sampling_box(cell), step_m), np.random.default_rng(seed))
+def grid_joints(
+    cell: SimulatedCell, step_m: float = 0.2, seed: int = 0, keep_singular: bool = True
+) -> np.ndarray:
+    """Joints for every usable vertex of a grid of `step_m` in the default box (raster order)."""
+    points = grid_points(sampling_box(cell), step_m)
+    return facing_joints(cell, points, np.random.default_rng(seed), keep_singular=keep_singular)
 
 
 def held_out_joints(cell: SimulatedCell, count: int, seed: int = 1) -> np.ndarray:

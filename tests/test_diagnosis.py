@@ -185,3 +185,60 @@ def test_one_name_per_effect_in_the_simulator_and_the_diagnosis():
         SimCellConfig(**flags)  # every flag is a field of the cell
     with pytest.raises(ValueError, match="unknown effect"):
         parse_effect_flags("compliance")
+
+
+def test_the_verdict_is_data_and_the_report_words_it():
+    # hil.diagnosis returns the verdict as data; hil.report words it, one caution a line.
+    from hil.report import caution_text, conclusion_text
+
+    verdict = {
+        "residual": "floor",
+        "ratio": 1.04,
+        "map": None,
+        "cautions": [
+            {"kind": "validation_temperatures_outside", "validate_c": [29.6, 29.7], "training_c": [20.0, 22.7]},
+            {"kind": "ambiguous_effects", "chosen": {"name": "cyclic", "joint": 4},
+             "confounded_with": {"name": "backlash", "joint": 4}},
+        ],
+    }
+    lines = conclusion_text(verdict, [{"name": "gravity_compliance", "joint": 2}]).splitlines()
+    assert lines[0] == "Added: gravity_compliance (joint 2). The residual is at the noise floor (1.04x)."
+    assert lines[1].startswith("Caution: validation temperatures 29.6..29.7 C lie outside the training's 20.0..22.7 C")
+    assert "cyclic (joint 4) and backlash (joint 4) explain the same residual" in lines[2]
+    assert len(lines) == 3
+    # every caution the diagnosis can raise has its words
+    source = (pathlib.Path(__file__).resolve().parents[1] / "hil" / "diagnosis.py").read_text()
+    kinds = {
+        node.args[0].value
+        for node in ast.walk(ast.parse(source))
+        if isinstance(node, ast.Call) and getattr(node.func, "id", "") == "caution" and node.args
+    }
+    assert len(kinds) >= 8
+    for kind in kinds:
+        with pytest.raises(KeyError):  # worded: it reads its data (none given here)
+            caution_text({"kind": kind})
+    with pytest.raises(ValueError, match="no wording"):
+        caution_text({"kind": "made_up"})
+
+
+def test_a_temperature_driven_thermal_candidate_goes_before_a_pose_effect_it_matches_per_parameter():
+    from types import SimpleNamespace
+
+    from hil.diagnosis import Candidate, pick_winner
+    from hil.effects import make_effect
+
+    def winner(name, joint, k, gain_mm2, driver=None):
+        eff = make_effect(name, joint)
+        if driver:
+            eff.state = {"driver": driver, "reference": 0.0}
+        cand = Candidate(name, joint, k, 0.03, gain_mm2, 1e-6, 1e-9, True)
+        return cand, SimpleNamespace(effects=[eff])  # the candidate's fitted model: only its effect is read
+
+    pose = winner("gravity_compliance", 3, 4, 1.8e-3)
+    by_temperature = winner("thermal_expansion", None, 1, 1.2e-3, "temperature_c")
+    by_time = winner("thermal_expansion", None, 1, 1.2e-3, "t_s")
+    assert pick_winner([pose, by_temperature])[0].name == "thermal_expansion"
+    assert "preferred to gravity_compliance (joint 3)" in by_temperature[0].note
+    assert pick_winner([pose, by_time])[0].name == "gravity_compliance"  # time also orders the poses
+    weak = winner("thermal_expansion", None, 1, 0.3e-3, "temperature_c")  # less per parameter
+    assert pick_winner([pose, weak])[0].name == "gravity_compliance"

@@ -154,7 +154,7 @@ def analyse(args: argparse.Namespace, out: Path, campaign: Path):
 
     from hil.dataset import write_dataset
     from hil.diagnosis import run_diagnosis
-    from hil.report import write_json
+    from hil.report import conclusion, write_json
     from hil.robots import get_robot
     from hil.store import CampaignStore, campaign_dataset
 
@@ -173,7 +173,7 @@ def analyse(args: argparse.Namespace, out: Path, campaign: Path):
         f"{e['name']}" + (f" (joint {e['joint']})" if e["joint"] else "") for e in report.effects_added
     )
     print(f"effects added: {added or 'none'}")
-    print(report.conclusion)
+    print(conclusion(report))
     write_json(report, out / "report.json")
     report.model.save(out / "model.json")
     return report

@@ -154,7 +154,7 @@ def _run(args, df, val, tool, families, mpe, progress) -> DiagnosisReport:
 
 
 def _print_and_write(args: argparse.Namespace, report: DiagnosisReport) -> None:
-    from hil.report import write_html, write_json
+    from hil.report import conclusion, write_html, write_json
 
     print(report.table())
     for name, res in report.calibration.items():
@@ -163,7 +163,7 @@ def _print_and_write(args: argparse.Namespace, report: DiagnosisReport) -> None:
     final = report.model.info.get("orientation")
     if final and report.model.effects:
         print(f"6-DoF probe, final model (effects included): orientation RMS {final['rms_deg']:.4f} deg")
-    print(report.conclusion)
+    print(conclusion(report))
     for step in report.steps:
         j = step.effect["joint"]
         verb = "removed " if step.action == "removed" else ""

@@ -1,0 +1,105 @@
+"""Diagnosis goals over many seeds: how often an effect is named, and the validation RMS against the model a
+user who knew the cell's effects would fit (the goal tests check seeds 0..2; this shows the spread beyond).
+
+Run:  PYTHONPATH=. python benchmarks/diagnosis_goals.py [--seeds 0-7] [--cases thermal150,gravity_cyclic100]
+
+- thermal150: gravity compliance + thermal growth, a 150 mm grid (~96 poses) visited in raster order while
+  the cell warms up, validation measured an hour later (warmer than any training row).
+- gravity_cyclic100: gravity compliance + a cyclic error of joint 1, a 100 mm grid with the near-singular
+  poses left out (as a procedure on a real arm does), random validation poses.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+
+CASES = {
+    "thermal150": {
+        "config": {"thermal": True},
+        "step_m": 0.15,
+        "pause_s": 3600.0,
+        "keep_singular": True,
+        "families": ("gravity_compliance", "thermal_expansion"),
+        "named": {"thermal_expansion"},
+    },
+    "gravity_cyclic100": {
+        "config": {"cyclic": True, "cyclic_joints": (1,)},
+        "step_m": 0.10,
+        "pause_s": 0.0,
+        "keep_singular": False,
+        "families": ("gravity_compliance", "cyclic"),
+        "named": {"gravity_compliance", "cyclic"},
+    },
+}
+
+
+def _rms_mm(model, df) -> float:
+    err = model.predict(df) - df[["x_mm", "y_mm", "z_mm"]].to_numpy() / 1000.0
+    return float(np.sqrt(np.mean(np.sum(err**2, axis=1))) * 1000)
+
+
+def run_case(name: str, seed: int) -> dict:
+    from calib_data import true_effect_model
+    from sim_campaigns import grid_joints, held_out_joints
+
+    from fakes.campaign import simulate_campaign
+    from fakes.cell import SimCellConfig, SimulatedCell
+    from hil.diagnosis import run_diagnosis
+
+    case = CASES[name]
+    cell = SimulatedCell(SimCellConfig(robot="ur10", seed=seed, **case["config"]))
+    q = grid_joints(cell, step_m=case["step_m"], seed=seed, keep_singular=case["keep_singular"])
+    train = simulate_campaign(cell, q)
+    cell.advance_time(case["pause_s"])
+    val = simulate_campaign(cell, held_out_joints(cell, 100, seed=seed + 1))
+    t0 = time.perf_counter()
+    report = run_diagnosis(train, "ur10", df_validate=val)
+    dt = time.perf_counter() - t0
+    truth = true_effect_model(train, "ur10", case["families"])
+    validate = [s for s in report.stages if s["on"] == "validate"][-1]["rms_mm"]
+    found = [(e["name"], e["joint"]) for e in report.effects_added]
+    return {
+        "poses": len(train),
+        "named": case["named"] <= {n for n, _ in found},
+        "found": ", ".join(n + (f" j{j}" if j else "") for n, j in found) or "none",
+        "validate_mm": validate,
+        "truth_mm": _rms_mm(truth, val),
+        "time_s": dt,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seeds", default="0-7", help="a range 'a-b' or a list '0,3,5'")
+    parser.add_argument("--cases", default=",".join(CASES))
+    args = parser.parse_args()
+    if "-" in args.seeds:
+        lo, hi = map(int, args.seeds.split("-"))
+        seeds = list(range(lo, hi + 1))
+    else:
+        seeds = [int(s) for s in args.seeds.split(",")]
+    for name in args.cases.split(","):
+        print(f"\n{name}: {CASES[name]['named']} named? validation RMS vs the true-effect model's")
+        print(f"{'seed':>4} {'poses':>5} {'named':>5} {'val mm':>7} {'truth mm':>8} {'ratio':>6} {'time s':>6}  effects")
+        rows = []
+        for seed in seeds:
+            r = run_case(name, seed)
+            rows.append(r)
+            ratio = r["validate_mm"] / r["truth_mm"]
+            print(
+                f"{seed:4d} {r['poses']:5d} {'yes' if r['named'] else 'no':>5} {r['validate_mm']:7.4f} "
+                f"{r['truth_mm']:8.4f} {ratio:6.2f} {r['time_s']:6.1f}  {r['found']}"
+            )
+        ok = sum(r["named"] and r["validate_mm"] <= 1.1 * r["truth_mm"] for r in rows)
+        print(f"named and within 1.1x: {ok} of {len(rows)}")
+
+
+if __name__ == "__main__":
+    main()
