@@ -20,6 +20,7 @@ from hil.kinematics import forward_kinematics
 from hil.robots import get_robot
 from hil.se3 import make_transform, transform_points
 from hil.store import CampaignStore, MeasurementRecord
+from tests.cli_in_process import hil_in_process
 
 pytestmark = pytest.mark.timeout(120)
 NESTS_MM = np.array([[30.0, -20.0, 110.0], [-40.0, 25.0, 95.0], [10.0, 45.0, 120.0]])  # the drawing
@@ -113,19 +114,7 @@ def predicted(model: CalibratedModel, q: np.ndarray, smr: np.ndarray) -> np.ndar
     return model.predict(make_dataset(q, np.zeros((len(q), 3)), smr=smr))
 
 
-def _hil(*args, cwd, capsys):
-    import os
 
-    from hil.cli import main
-
-    here = os.getcwd()
-    os.chdir(cwd)
-    try:
-        code = main(list(args))
-    finally:
-        os.chdir(here)
-    out = capsys.readouterr()
-    return code, out.out, out.err
 
 
 @pytest.fixture(scope="module")
@@ -136,13 +125,13 @@ def model():
 def test_grid_and_validation_targets_are_the_commanded_points_compensated_per_nest(model, tmp_path, capsys):
     model.save(tmp_path / "model.json")
     layout = write_campaign(tmp_path / "job.sqlite", model)
-    code, out, err = _hil("compensate", "model.json", "job.sqlite", "-o", "val.csv", cwd=tmp_path, capsys=capsys)
+    code, out, err = hil_in_process("compensate", "model.json", "job.sqlite", "-o", "val.csv", cwd=tmp_path, capsys=capsys)
     assert code == 0, err
     assert "5 validation targets" in err  # no loop in the campaign: the validation step is the default
     df = pd.read_csv(tmp_path / "val.csv")
     assert list(df["point_id"]) == layout["validation"]["ids"] and set(df["step_id"]) == {"validation"}
 
-    code, out, err = _hil(
+    code, out, err = hil_in_process(
         "compensate", "model.json", "job.sqlite", "-o", "grid.csv", "--step", "grid", "--threshold-mm", "0.001",
         cwd=tmp_path, capsys=capsys,
     )  # fmt: skip
@@ -171,7 +160,7 @@ def test_loop_targets_are_poses_by_default_and_unreachable_ones_stay_marked(mode
     T[:, :3, :3] = model.T_tracker_base[:3, :3] @ T[:, :3, :3]  # near the model's reach, orientation kept
     T[3, :3, 3] = transform_points(model.T_tracker_base, np.array([[4.0, 0.0, 0.5]]))[0]
     write_campaign(tmp_path / "job.sqlite", model, loop_targets=T)
-    code, out, err = _hil(
+    code, out, err = hil_in_process(
         "compensate", "model.json", "job.sqlite", "-o", "loop.csv", "--threshold-mm", "0.002",
         cwd=tmp_path, capsys=capsys,
     )  # fmt: skip
@@ -208,9 +197,9 @@ def test_bad_campaign_input_exits_2_with_what_to_do(model, tmp_path, capsys):
         (["t.csv", "--step", "grid"], "--step picks the targets of a campaign file"),
     ]
     for args, message in cases:
-        code, out, err = _hil("compensate", "model.json", *args, "-o", "j.csv", cwd=tmp_path, capsys=capsys)
+        code, out, err = hil_in_process("compensate", "model.json", *args, "-o", "j.csv", cwd=tmp_path, capsys=capsys)
         assert code == 2, (args, err)
         assert message in err and "what to do: " in err, err
     assert not (tmp_path / "j.csv").exists()
-    code, out, err = _hil("compensate", "model.json", "job.sqlite", "-o", "job.sqlite", cwd=tmp_path, capsys=capsys)
+    code, out, err = hil_in_process("compensate", "model.json", "job.sqlite", "-o", "job.sqlite", cwd=tmp_path, capsys=capsys)
     assert code == 2 and "would be overwritten" in err

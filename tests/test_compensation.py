@@ -22,6 +22,7 @@ from hil.pseudo_targets import GENERATORS, pose_errors, update_pseudo_target
 from hil.residual_maps import make_map
 from hil.robots import get_robot
 from hil.se3 import make_transform, transform_points
+from tests.cli_in_process import hil_in_process
 
 pytestmark = pytest.mark.timeout(120)
 TOOL = np.array([0.03, -0.02, 0.11])
@@ -211,20 +212,7 @@ def test_bad_targets_are_rejected(model):
         compensate(model, np.zeros((1, 4, 4)) + np.eye(4), generator="best")
 
 
-def _hil(*args, cwd, capsys):
-    """Run the CLI in-process (fast) from `cwd`; returns (exit code, stdout, stderr)."""
-    import os
-
-    from hil.cli import main
-
-    here = os.getcwd()
-    os.chdir(cwd)
-    try:
-        code = main(list(args))
-    finally:
-        os.chdir(here)
-    out = capsys.readouterr()
-    return code, out.out, out.err
+_hil = hil_in_process
 
 
 def test_cli(model, tmp_path, capsys):
