@@ -62,3 +62,25 @@ def test_ctrl_c_leaves_when_clean_up_blocks_holding_the_gil_and_says_where():
     assert code == 1, stderr  # faulthandler's watchdog: it needs no GIL
     assert "Timeout" in stderr and "pthread_mutex_lock" not in stderr  # a Python stack dump, not a crash
     assert "<string>" in stderr  # ... pointing at the stuck line
+
+
+def test_an_interrupt_handled_inside_the_guard_leaves_no_deadline_behind():
+    """A caller that catches the KeyboardInterrupt and carries on is not killed by the exit deadline."""
+    program = textwrap.dedent(
+        """
+        import os, signal, time
+        from hil.commands import interrupts
+        interrupts.INTERRUPT_GRACE_S = 0.5
+        interrupts.BACKSTOP_S = 0.5
+        with interrupts.interrupt_guard():
+            try:
+                os.kill(os.getpid(), signal.SIGINT)
+                time.sleep(60)
+            except KeyboardInterrupt:
+                pass
+        time.sleep(2.0)  # past both deadlines
+        print("still here", flush=True)
+        """
+    )
+    done = subprocess.run([sys.executable, "-c", program], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0 and "still here" in done.stdout, done.stderr

@@ -39,14 +39,18 @@ def interrupt_guard() -> Iterator[None]:
     watcher = threading.Thread(target=_watch, args=(read_fd, stop), name="hil-interrupt-watcher", daemon=True)
     watcher.start()
     signal.signal(signal.SIGINT, _raise_keyboard_interrupt)
+    leaving_on_error = True
     try:
         yield
+        leaving_on_error = False
     finally:
         signal.signal(signal.SIGINT, previous_handler)
         signal.set_wakeup_fd(previous_wakeup)
         stop.set()
         os.write(write_fd, b"\0")  # wake the watcher so it sees `stop`
         os.close(write_fd)
+        if not leaving_on_error:  # an interrupt handled inside, and the work went on: no deadline any more
+            _disarm_deadlines()
 
 
 def _raise_keyboard_interrupt(signum: int, frame: Any) -> None:
@@ -54,19 +58,29 @@ def _raise_keyboard_interrupt(signum: int, frame: Any) -> None:
     raise KeyboardInterrupt
 
 
-_armed: list[bool] = []
+_deadline_lock = threading.RLock()  # re-entrant: the signal handler may run while the main thread holds it
+_deadline: list[threading.Timer] = []  # the armed exit timer, if any
 
 
 def _arm_deadlines() -> None:
-    """Once per process: leave with 130 after INTERRUPT_GRACE_S; faulthandler's C thread, behind it, dumps every
-    thread's stack and exits 1 even if the GIL is never released again."""
-    if _armed:
-        return
-    _armed.append(True)
-    faulthandler.dump_traceback_later(INTERRUPT_GRACE_S + BACKSTOP_S, exit=True, file=2)
-    deadline = threading.Timer(INTERRUPT_GRACE_S, _leave_now)
-    deadline.daemon = True
-    deadline.start()
+    """Leave with 130 after INTERRUPT_GRACE_S; faulthandler's C thread, behind it, dumps every thread's stack
+    and exits 1 even if the GIL is never released again. Arming twice keeps the first deadline."""
+    with _deadline_lock:
+        if _deadline:
+            return
+        faulthandler.dump_traceback_later(INTERRUPT_GRACE_S + BACKSTOP_S, exit=True, file=2)
+        timer = threading.Timer(INTERRUPT_GRACE_S, _leave_now)
+        timer.daemon = True
+        timer.start()
+        _deadline.append(timer)
+
+
+def _disarm_deadlines() -> None:
+    with _deadline_lock:
+        for timer in _deadline:
+            timer.cancel()
+        _deadline.clear()
+        faulthandler.cancel_dump_traceback_later()
 
 
 def _watch(read_fd: int, stop: threading.Event) -> None:
