@@ -143,6 +143,18 @@ def geometry_correlation(J: np.ndarray, n_effect: int) -> float:
     return float(np.sqrt(max(0.0, 1.0 - float(np.max(sines)) ** 2)))
 
 
+def held_out_gain(d: np.ndarray, pose: np.ndarray | None) -> tuple[float, float]:
+    """Mean held-out gain per row and its one-sided p-value, with the rows of one pose as one sample: the
+    SMRs of a pose share its error, so counting them as independent would make p too small."""
+    clusters = d if pose is None else np.bincount(np.unique(pose, return_inverse=True)[1], weights=d)
+    gain = float(np.sum(clusters) / len(d))
+    m = len(clusters)
+    se = float(np.std(clusters, ddof=1) * np.sqrt(m) / len(d)) if m > 1 else np.inf
+    if se == 0.0:  # every pose gains exactly the same
+        return gain, 0.0 if gain > 0 else 1.0
+    return gain, float(stats.t.sf(gain / se, m - 1)) if np.isfinite(se) else 1.0
+
+
 class _Screen:
     """Linearised test of candidate effects against a base model (see the module docstring)."""
 
@@ -184,10 +196,7 @@ class _Screen:
         sse = float(np.sum(fit**2))
         s2 = max(self.sigma2, sse / max(fit.size - int(tfree.sum()), 1))
         p_chi2 = float(stats.chi2.sf((self.sse0 - sse) / s2, n_new)) if self.sse0 > sse else 1.0
-        d = self.e0 - e
-        se = float(np.std(d, ddof=1) / np.sqrt(len(d))) if len(d) > 1 else np.inf
-        gain = float(np.mean(d))
-        p_cv = float(stats.t.sf(gain / se, len(d) - 1)) if se > 0 else (0.0 if gain > 0 else 1.0)
+        gain, p_cv = held_out_gain(self.e0 - e, self.prob.pose)
         passed = gain > 0 and p_cv < self.alpha_cv and p_chi2 < self.alpha_chi2
         dx = np.zeros(len(trial.param_names))
         dx[tfree] = step[0]
@@ -285,10 +294,7 @@ def _weakest_effect(
         fit_r, e_r = linear_fit_heldout(Jrf[:, kr], rr, partitions)
         k = max(int(keep.sum() - kr.sum()), 1)
         p_chi2 = float(stats.chi2.sf((float(np.sum(fit_r**2)) - sse) / s2, k))
-        d = e_r - e  # what removing it costs on held-out points
-        se = float(np.std(d, ddof=1) / np.sqrt(len(d)))
-        gain = float(np.mean(d))
-        p_cv = float(stats.t.sf(gain / se, len(d) - 1)) if se > 0 else 1.0
+        gain, p_cv = held_out_gain(e_r - e, prob.pose)  # what removing it costs on held-out points
         level = max(alpha, ALPHA_TO_REMOVE_THERMAL) if temperature_driven(eff) else alpha
         if gain > 0 and p_cv < level and p_chi2 < level:
             continue
@@ -976,9 +982,7 @@ def _try_residual_maps(
         except Exception as exc:  # a map that cannot be built on this data (e.g. no grid) is skipped
             table[kind] = {"error": str(exc)}
             continue
-        d = e0 - np.sum(res**2, axis=1)
-        se = float(np.std(d, ddof=1) / np.sqrt(len(d)))
-        p = float(stats.t.sf(np.mean(d) / se, len(d) - 1)) if se > 0 else 1.0
+        p = held_out_gain(e0 - np.sum(res**2, axis=1), prob.pose)[1]
         table[kind] = {**error_stats(res), "p_value": p}
         if best is None or table[kind]["rms_mm"] < table[best]["rms_mm"]:
             best = kind

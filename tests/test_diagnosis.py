@@ -242,3 +242,21 @@ def test_a_temperature_driven_thermal_candidate_goes_before_a_pose_effect_it_mat
     assert pick_winner([pose, by_time])[0].name == "gravity_compliance"  # time also orders the poses
     weak = winner("thermal_expansion", None, 1, 0.3e-3, "temperature_c")  # less per parameter
     assert pick_winner([pose, weak])[0].name == "gravity_compliance"
+
+
+def test_held_out_gain_counts_the_rows_of_one_pose_as_one_sample():
+    """Three SMR rows per pose that share the pose's gain: the p-value is that of 40 samples, not 120."""
+    from scipy import stats
+
+    from hil.diagnosis import held_out_gain
+
+    rng = np.random.default_rng(0)
+    pose = np.repeat(np.arange(40), 3)
+    per_pose = rng.normal(0.2, 1.0, 40)
+    d = np.repeat(per_pose, 3) + rng.normal(0.0, 0.05, 120)
+    gain, p = held_out_gain(d, pose)
+    sums = np.bincount(pose, weights=d)
+    expected = stats.t.sf(sums.mean() / (sums.std(ddof=1) / np.sqrt(40)), 39)
+    assert np.isclose(gain, d.mean()) and np.isclose(p, expected)
+    assert p > 4 * held_out_gain(d, None)[1]  # rows taken as independent: far too confident
+    assert held_out_gain(d, np.arange(120))[1] == held_out_gain(d, None)[1]  # one row per pose: unchanged
