@@ -30,7 +30,7 @@ from hil.ik import (
     solve_ik,
     ur_branch_index,
 )
-from hil.kinematics import KinematicModel, forward_kinematics
+from hil.kinematics import KinematicModel, forward_kinematics, pose_and_jacobian
 from hil.pseudo_targets import (
     GENERATORS,
     check_generator,
@@ -355,37 +355,41 @@ class PseudoTargetIK:
         """IK of pseudo targets T_tracker_tool (N, 4, 4) seeded with q_prev (N, n): Newton, then `solve_ik`
         on what Newton left (or `ik_solver`). `project`: rotation blocks are not rotations ("add").
         Returns (q, reason (N,) str: 'ok', hil.ik's failure reason, or no_ik_solution)."""
+        q, reason, _ = self._solve(T_pseudo, q_prev, project)
+        return q, reason
+
+    def _solve(
+        self,
+        T_pseudo: np.ndarray,
+        q_prev: np.ndarray,
+        project: bool = False,
+        start: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray] | None]:
+        """`solve`, warm-started with the flange pose and Jacobian at q_prev when given (hil's Newton
+        only); also returns them at the answer (None with an `ik_solver`) for the next call."""
         if self.full_pose:
             target = self.to_flange(ik_pose(T_pseudo) if project else T_pseudo)
         else:
             target = T_pseudo[:, :3, 3] @ self.T_bt[:3, :3].T + self.T_bt[:3, 3]
         if self.ik_solver is not None:
             q, ok = self.ik_solver(target, q_prev)
-            return np.array(q, float), np.where(ok, REASON_OK, STATUS_NO_IK).astype(str)
-        if self.full_pose:
-            res = newton_ik(
-                self.kin,
-                target,
-                q_prev,
-                tol_position=self.tol_m,
-                tol_rotation=self.tol_rad,
-                max_steps=NEWTON_STEPS,
-                validate=False,
-            )
-        else:
-            res = newton_ik(
-                self.kin,
-                target,
-                q_prev,
-                "position",
-                self.tool,
-                tol_position=self.tol_m,
-                max_steps=NEWTON_STEPS,
-                validate=False,
-            )
+            return np.array(q, float), np.where(ok, REASON_OK, STATUS_NO_IK).astype(str), None
+        res = newton_ik(
+            self.kin,
+            target,
+            q_prev,
+            "pose" if self.full_pose else "position",
+            None if self.full_pose else self.tool,
+            NEWTON_STEPS,
+            tol_position=self.tol_m,
+            tol_rotation=self.tol_rad,
+            validate=False,
+            start=start,
+        )
         q = res.q
         reason = np.full(len(q), REASON_OK, dtype=object)
         bad = np.flatnonzero(~res.converged)
+        state = (res.pose, res.jacobian)
         if bad.size:
             kw = {"mode": "pose"} if self.full_pose else {"mode": "position", "p_flange_tool": self.tool}
             slow = solve_ik(
@@ -393,7 +397,11 @@ class PseudoTargetIK:
             )
             q[bad] = slow.q
             reason[bad] = np.where(slow.reason == REASON_MAX_ITER, STATUS_NO_IK, slow.reason)
-        return q, reason.astype(str)
+            rescued = bad[slow.reason == REASON_OK]
+            if rescued.size:  # the state at the joints solve_ik found
+                pose, J = pose_and_jacobian(self.kin, q[rescued], None if self.full_pose else self.tool)
+                state[0][rescued], state[1][rescued] = pose, J
+        return q, reason.astype(str), state
 
 
 class _Setup(PseudoTargetIK):
@@ -420,15 +428,17 @@ class _Setup(PseudoTargetIK):
             ref = q_seed if q_seed is not None else np.broadcast_to(q_ref, (N, n))
             self.T_d = self.from_flange(forward_kinematics(self.kin, ref))
             self.T_d[:, :3, 3] = targets
+        # state0: flange poses and Jacobians at q0 (hil's Newton), the warm start of the first update.
+        self.state0: tuple[np.ndarray, np.ndarray] | None = None
         self.q0, self.reason0 = self._first_ik(q_seed, q_ref)
 
     def _first_ik(self, q_seed, q_ref) -> tuple[np.ndarray, np.ndarray]:
         T_f = self.to_flange(self.T_d)
         if q_seed is not None:
-            q, reason = self.solve(self.T_d, q_seed)
+            q, reason, self.state0 = self._solve(self.T_d, q_seed)
         elif is_ur_like(self.kin):
-            seed, reachable = same_branch_seed(self.kin, T_f, q_ref)
-            q, reason = self.solve(self.T_d, seed)
+            seed, reachable = same_branch_seed(self.kin, T_f, q_ref, validate=False)  # checked targets
+            q, reason, self.state0 = self._solve(self.T_d, seed)
             if self.full_pose:
                 reason = np.where(~reachable & (reason != REASON_OK), REASON_UNREACHABLE, reason)
         else:
@@ -459,6 +469,7 @@ def _run(
     since_best = np.zeros(N, int)
     iters = np.zeros(N, int)
     history = np.full((max_iter + 1, N), np.nan)
+    state = None if s.state0 is None else (s.state0[0].copy(), s.state0[1].copy())
     active = np.flatnonzero(ok0)
     for k in range(max_iter + 1):
         if active.size == 0:
@@ -489,7 +500,10 @@ def _run(
             T_p[active, :3, 3] = update_pseudo_position(
                 s.T_d[active, :3, 3], T_a[:, :3, 3], T_p[active, :3, 3]
             )
-        q_new, reason = s.solve(T_p[active], q[active], project=generator == "add")
+        start = None if state is None else (state[0][active], state[1][active])
+        q_new, reason, got = s._solve(T_p[active], q[active], generator == "add", start)
+        if state is not None and got is not None:
+            state[0][active], state[1][active] = got
         iters[active] += 1
         failed = reason != REASON_OK
         status[active[failed]] = reason[failed]  # best joints so far stay

@@ -30,7 +30,7 @@ import numpy as np
 import pandas as pd
 
 from hil.jsonable import to_jsonable
-from hil.kinematics import KinematicModel, forward_kinematics, link_frames, tool_points
+from hil.kinematics import KinematicModel, chain_axes, forward_kinematics, tool_points
 
 # Names used in reports and model files (the documented vocabulary).
 EFFECT_FAMILIES: tuple[str, ...] = (
@@ -203,23 +203,26 @@ class GravityCompliance(Effect):
 
     def _levers(self, ctx: EffectContext, nominal: KinematicModel) -> np.ndarray:
         """Lever arms (N, K) in metres about joint `joint`'s axis of gravity on each downstream point."""
-        j = self.joint_index
-        key = ("link_frames", id(nominal))  # shared by every gravity effect of the model
-        frames = ctx.cache.get(key)
-        if frames is None:
-            frames = ctx.cache[key] = link_frames(nominal, ctx.q)
-        z = frames[:, j, :3, 2]
-        o = frames[:, j, :3, 3]
-        points = [frames[:, k, :3, 3] for k in range(j + 1, nominal.n_joints + 1)]
-        T_flange = frames[:, -1] @ nominal.T_last_flange
-        if ctx.p_flange_tool is not None:
-            points.append(
-                np.einsum("nij,nj->ni", T_flange[:, :3, :3], ctx.p_flange_tool) + T_flange[:, :3, 3]
-            )
-        levers = [np.einsum("ni,ni->n", z, np.cross(p - o, GRAVITY_DIRECTION_BASE)) for p in points]
-        if ctx.payload_kg is not None and len(points) > 0:
-            levers.append(levers[-1] * ctx.payload_kg)
-        return np.stack(levers, axis=1)
+        j, n = self.joint_index, nominal.n_joints
+        key = ("gravity_axes_points", id(nominal))  # one chain shared by every gravity effect of the model
+        packed = ctx.cache.get(key)
+        if packed is None:  # (N, 3, M), row for row like every cache entry: n axes, n + 1 origins, tool
+            T_flange, Z, O = chain_axes(nominal, ctx.q)
+            parts = [Z, O]
+            if ctx.p_flange_tool is not None:
+                tip = np.einsum("nij,nj->ni", T_flange[:, :3, :3], ctx.p_flange_tool) + T_flange[:, :3, 3]
+                parts.append(tip.T[None])
+            packed = ctx.cache[key] = np.concatenate(parts).transpose(2, 1, 0)
+        cols = packed.transpose(2, 1, 0)  # (M, 3, N)
+        z, o = cols[j], cols[n + j]
+        points = cols[n + j + 1 :]  # (K, 3, N): the downstream link origins, then the tool point
+        # z . ((p - o) x g) = (g x z) . (p - o): one cross product per joint, not per point.
+        g = GRAVITY_DIRECTION_BASE
+        u = np.stack([g[1] * z[2] - g[2] * z[1], g[2] * z[0] - g[0] * z[2], g[0] * z[1] - g[1] * z[0]])
+        L = ((points - o) * u).sum(axis=1).T
+        if ctx.payload_kg is not None and L.shape[1] > 0:
+            L = np.column_stack([L, L[:, -1] * ctx.payload_kg])
+        return L
 
     def prepare(self, ctx: EffectContext, nominal: KinematicModel) -> bool:
         L = self._levers(ctx, nominal)

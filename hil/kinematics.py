@@ -222,11 +222,11 @@ def geometric_jacobian(
     return pose_and_jacobian(model, q, p_flange_tool)[1]
 
 
-def pose_and_jacobian(
-    model: KinematicModel, q: np.ndarray, p_flange_tool: np.ndarray | None = None
-) -> tuple[np.ndarray, np.ndarray]:
-    """Flange poses T_base_flange (N, 4, 4) and the geometric Jacobian (N, 6, n) at the tool point, in one
-    pass over the chain (the Newton step of the IK needs both)."""
+def chain_axes(model: KinematicModel, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Flange poses T_base_flange (N, 4, 4), joint axes Z (n, 3, N) and link origins O (n + 1, 3, N) in
+    the base frame, in one pass over the chain: joint i + 1 turns about Z[i] through O[i] (frame i's z
+    axis and origin); O[n] is the last link's origin. What Jacobians and lever arms need, without
+    filling every (4, 4) link frame."""
     q = model.check_joints(q)
     axes: list = []
     R, p = _chain(model, q, None, axes)
@@ -237,23 +237,27 @@ def pose_and_jacobian(
     L = np.asarray(model.T_last_flange, dtype=float)
     if not np.array_equal(L, np.eye(4)):
         T = T @ L
-    tip = (
-        T[:, :3, 3]
-        if p_flange_tool is None
-        else T[:, :3, :3] @ np.asarray(p_flange_tool, float) + T[:, :3, 3]
-    )
-    Z = np.stack([z for z, _ in axes])  # (n, 3, N): joint axes
-    r = tip.T[None] - np.stack([o for _, o in axes])  # (n, 3, N): from a point on each axis to the tip
-    v = np.stack(
-        [
-            Z[:, 1] * r[:, 2] - Z[:, 2] * r[:, 1],
-            Z[:, 2] * r[:, 0] - Z[:, 0] * r[:, 2],
-            Z[:, 0] * r[:, 1] - Z[:, 1] * r[:, 0],
-        ],
-        axis=1,
-    )  # v_i = z_i x (tip - o_i), omega_i = z_i
-    J = np.concatenate([v, Z], axis=1).transpose(2, 1, 0)  # (N, 6, n)
-    return T, J
+    return T, np.stack([z for z, _ in axes]), np.stack([o for _, o in axes] + [p.T])
+
+
+def pose_and_jacobian(
+    model: KinematicModel, q: np.ndarray, p_flange_tool: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Flange poses T_base_flange (N, 4, 4) and the geometric Jacobian (N, 6, n) at the tool point, in one
+    pass over the chain (the Newton step of the IK needs both)."""
+    T, Z, O = chain_axes(model, q)
+    n, _, N = Z.shape
+    tip = T[:, :3, 3] if p_flange_tool is None else T[:, :3, :3] @ np.asarray(p_flange_tool, float) + T[:, :3, 3]
+    r = tip.T - O[:n]  # (n, 3, N): from a point on each axis to the tip
+    # Rows [v; omega], v_i = z_i x (tip - o_i), omega_i = z_i, filled as (6, n, N) and returned as a view.
+    Jt = np.empty((6, n, N))
+    Zx, Zy, Zz = Z[:, 0], Z[:, 1], Z[:, 2]
+    rx, ry, rz = r[:, 0], r[:, 1], r[:, 2]
+    np.subtract(Zy * rz, Zz * ry, out=Jt[0])
+    np.subtract(Zz * rx, Zx * rz, out=Jt[1])
+    np.subtract(Zx * ry, Zy * rx, out=Jt[2])
+    Jt[3:] = Z.transpose(1, 0, 2)
+    return T, Jt.transpose(2, 0, 1)
 
 
 def kinematic_point_jacobian(
