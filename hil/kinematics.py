@@ -166,33 +166,50 @@ def forward_kinematics(model: KinematicModel, q: np.ndarray) -> np.ndarray:
 
 
 def _chain(
-    model: KinematicModel, q: np.ndarray, frames: np.ndarray | None, axes: list | None = None
+    model: KinematicModel,
+    q: np.ndarray,
+    frames: np.ndarray | None,
+    axes: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Last-link rotation (N, 3, 3) and origin (N, 3), optionally filling every link frame into `frames`
-    and appending each joint's axis and a point on it, ((3, N), (3, N)), to `axes`.
+    and every frame's z axis and origin into `axes` = (Z (n, 3, N), O (n + 1, 3, N)), base frame.
 
-    Same product as `joint_transforms` chained, written column by column on (N, 3) axis arrays: a
-    batched 4x4 matmul per joint costs an order of magnitude more for small matrices.
+    Same product as `joint_transforms` chained, written column by column on (3, N) axis arrays: a
+    batched 4x4 matmul per joint costs an order of magnitude more for small matrices. The constant
+    factors are Python floats and zero lengths are skipped: the loop's cost is its number of numpy calls.
     Rz(th) turns x, y about z; Tz(d) Tx(a) moves the origin by d z + a x'; Rx(alpha), Ry(beta) turn again.
     """
     N, n = q.shape
     th = (q + model.theta).T  # (n, N): every axis array below is (3, N), contiguous per component
     ct, st = np.cos(th), np.sin(th)
+    d, a = np.asarray(model.d, float).tolist(), np.asarray(model.a, float).tolist()
+    alpha, beta = np.asarray(model.alpha, float), np.asarray(model.beta, float)
+    cal, sal = np.cos(alpha).tolist(), np.sin(alpha).tolist()
+    cbe, sbe = np.cos(beta).tolist(), np.sin(beta).tolist()
+    has_beta = (beta != 0).tolist()
     x, y, z = np.zeros((3, N)), np.zeros((3, N)), np.zeros((3, N))
     x[0] = y[1] = z[2] = 1.0
     p = np.zeros((3, N))
     for i in range(n):
         if axes is not None:
-            axes.append((z, p))
+            axes[0][i] = z
+            axes[1][i] = p
         c, s = ct[i], st[i]
-        x1 = c * x + s * y
-        y1 = c * y - s * x
-        p = p + model.d[i] * z + model.a[i] * x1
-        ca, sa = np.cos(model.alpha[i]), np.sin(model.alpha[i])
-        y = ca * y1 + sa * z
-        z2 = ca * z - sa * y1
-        if model.beta[i] != 0:
-            cb, sb = np.cos(model.beta[i]), np.sin(model.beta[i])
+        x1 = c * x
+        x1 += s * y
+        y1 = c * y
+        y1 -= s * x
+        if d[i] != 0.0:
+            p = p + d[i] * z
+        if a[i] != 0.0:
+            p = p + a[i] * x1
+        ca, sa = cal[i], sal[i]
+        y = ca * y1
+        y += sa * z
+        z2 = ca * z
+        z2 -= sa * y1
+        if has_beta[i]:
+            cb, sb = cbe[i], sbe[i]
             x, z = cb * x1 - sb * z2, sb * x1 + cb * z2
         else:
             x, z = x1, z2
@@ -201,6 +218,8 @@ def _chain(
             frames[:, i + 1, :3, 1] = y.T
             frames[:, i + 1, :3, 2] = z.T
             frames[:, i + 1, :3, 3] = p.T
+    if axes is not None:
+        axes[1][n] = p
     return np.stack([x, y, z], axis=1).transpose(2, 0, 1), p.T
 
 
@@ -228,16 +247,17 @@ def chain_axes(model: KinematicModel, q: np.ndarray) -> tuple[np.ndarray, np.nda
     axis and origin); O[n] is the last link's origin. What Jacobians and lever arms need, without
     filling every (4, 4) link frame."""
     q = model.check_joints(q)
-    axes: list = []
-    R, p = _chain(model, q, None, axes)
-    T = np.zeros((q.shape[0], 4, 4))
+    N, n = q.shape
+    Z, O = np.empty((n, 3, N)), np.empty((n + 1, 3, N))
+    R, p = _chain(model, q, None, (Z, O))
+    T = np.zeros((N, 4, 4))
     T[:, :3, :3] = R
     T[:, :3, 3] = p
     T[:, 3, 3] = 1.0
     L = np.asarray(model.T_last_flange, dtype=float)
     if not np.array_equal(L, np.eye(4)):
         T = T @ L
-    return T, np.stack([z for z, _ in axes]), np.stack([o for _, o in axes] + [p.T])
+    return T, Z, O
 
 
 def pose_and_jacobian(
