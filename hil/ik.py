@@ -667,8 +667,10 @@ class NewtonResult:
     rotation_error: np.ndarray  # (N,) rad, NaN in position mode
     converged: np.ndarray  # (N,) bool
     steps: np.ndarray  # (N,) int
-    pose: np.ndarray  # (N, 4, 4) T_base_flange at q
-    jacobian: np.ndarray  # (N, 6, n) geometric Jacobian at q (at the tool point in position mode)
+    # (N, 4, 4) T_base_flange and (N, 6, n) geometric Jacobian (at the tool point in position mode) at q;
+    # NaN rows where the last step was certified by its bound (see `newton_ik`), not evaluated.
+    pose: np.ndarray
+    jacobian: np.ndarray
 
 
 def newton_ik(
@@ -693,8 +695,16 @@ def newton_ik(
     typically 2-3 steps; targets leave the batch as they converge. No globalisation: a target that
     does not converge is reported, for the caller to fall back to `solve_ik`. Joints stay within the
     limits (wrapped by 2 pi or clamped). `validate=False` skips the input checks (hot loops).
+
+    A step that solves the linearised error exactly leaves only the chain's second-order term, which
+    the arm's size bounds: |dp| <= L (sum |dq_i|)^2 / 2 with L the largest distance from a joint axis
+    to the tip, and |d angle| <= (sum |dq_i|)^2 (rotations compose, the error's log map bends). A row
+    whose step makes twice that bound (plus the solve's rounding) fall below a tenth of the tolerances,
+    inside the limits, has converged without another evaluation (the cheap convergence test): its
+    error is reported as that bound and its `pose` and `jacobian` rows are NaN.
     `start`: (pose, jacobian) already evaluated at the seeds (within the limits), e.g. a previous
-    result's `pose` and `jacobian` when the targets moved: the first evaluation is then skipped.
+    result's `pose` and `jacobian` when the targets moved: the first evaluation is then skipped for
+    every row that is not NaN there.
     """
     pose = mode == "pose"
     if validate:
@@ -708,36 +718,51 @@ def newton_ik(
     target = np.asarray(targets, float)
     if start is not None and (np.shape(start[0]) != (N, 4, 4) or np.shape(start[1]) != (N, 6, n)):
         raise ValueError(f"start must be poses ({N}, 4, 4) and Jacobians ({N}, 6, {n}) at the seeds")
-    m = 6 if pose else 3
-    err = np.zeros((N, m))
+    lo, hi = model.joint_limits[:, 0], model.joint_limits[:, 1]
+    # Twice the second-order bound of a step, |p(q + dq) - p(q) - J dq| <= L (sum |dq|)^2 / 2 with L
+    # bounding the distance from any joint axis to the tip (both lie within the reach of the base).
+    L = 2.0 * reach_bound(model, 0.0 if tool is None else float(np.linalg.norm(tool)))
+    cert_p, cert_r = 0.1 * tol_position, 0.1 * tol_rotation
+    pos_err, rot_err = np.zeros(N), np.full(N, np.nan)
     steps = np.zeros(N, int)
     pose_out, J_out = np.empty((N, 4, 4)), np.empty((N, 6, n))
-    eye = np.eye(m if not pose else n)
+    eye = np.eye(3 if not pose else n)
     # The active rows live in their own compact arrays (idx: their rows in the batch); they are
-    # compressed only when some rows converge, and written back when they leave.
+    # compressed only when some rows leave, and written back when they do.
     idx, qa, tgt = np.arange(N), q.copy(), target
     for step in range(max_steps + 1):
         if step == 0 and start is not None:
             end, J = np.asarray(start[0], float), np.asarray(start[1], float)
+            missing = np.flatnonzero(np.isnan(end[:, 0, 0]) | np.isnan(J[:, 0, 0]))
+            if missing.size:  # rows certified without an evaluation last time
+                end, J = end.copy(), J.copy()
+                end[missing], J[missing] = pose_and_jacobian(model, qa[missing], tool)
         else:
             end, J = pose_and_jacobian(model, qa, tool)
         if pose:
             e = _frame_error(tgt, end)
             e2 = e * e
-            done = (e2[:, :3].sum(1) < tol_position**2) & (e2[:, 3:].sum(1) < tol_rotation**2)
+            p2, r2 = e2[:, :3].sum(1), e2[:, 3:].sum(1)
+            done = (p2 < tol_position**2) & (r2 < tol_rotation**2)
         else:
             e = tgt - (end[:, :3, :3] @ tool + end[:, :3, 3])
-            done = np.einsum("ki,ki->k", e, e) < tol_position**2
+            p2 = np.einsum("ki,ki->k", e, e)
+            done = p2 < tol_position**2
         if step == max_steps:
             done[:] = True
         if done.any():
             rows = idx[done]
-            q[rows], err[rows], steps[rows] = qa[done], e[done], step
+            q[rows], steps[rows], pos_err[rows] = qa[done], step, np.sqrt(p2[done])
+            if pose:
+                rot_err[rows] = np.sqrt(r2[done])
             pose_out[rows], J_out[rows] = end[done], J[done]
             if done.all():
                 break
             keep = ~done
             idx, qa, tgt, J, e = idx[keep], qa[keep], tgt[keep], J[keep], e[keep]
+            p2 = p2[keep]
+            if pose:
+                r2 = r2[keep]
         if pose:  # square: solve J dq = e; damped normal equations only if a J is exactly singular
             try:
                 dq = np.linalg.solve(J, e[..., None])[..., 0]
@@ -750,11 +775,27 @@ def newton_ik(
             Jv = J[:, :3]
             A = Jv @ np.swapaxes(Jv, 1, 2) + damping * eye
             dq = np.einsum("kmi,km->ki", Jv, np.linalg.solve(A, e[..., None])[..., 0])
-        qa = project_to_limits(model, qa + dq)
-    pos = np.linalg.norm(err[:, :3], axis=1)
-    rot = np.linalg.norm(err[:, 3:], axis=1) if pose else np.full(N, np.nan)
-    conv = (pos < tol_position) & ((rot < tol_rotation) if pose else True)
-    return NewtonResult(q, pos, rot, conv, steps, pose_out, J_out)
+        q_step = qa + dq
+        qa = project_to_limits(model, q_step)
+        # Certified rows: the step stayed inside the limits and its bound is far below the tolerances.
+        s2 = np.abs(dq).sum(1) ** 2
+        bound_p = L * s2 + 1e-6 * np.sqrt(p2)  # + what the solve's rounding may leave of the old error
+        cert = (bound_p < cert_p) & np.all((q_step >= lo) & (q_step <= hi), axis=1)
+        if pose:
+            bound_r = 2.0 * s2 + 1e-6 * np.sqrt(r2)
+            cert &= bound_r < cert_r
+        if cert.any():
+            rows = idx[cert]
+            q[rows], steps[rows], pos_err[rows] = qa[cert], step + 1, bound_p[cert]
+            if pose:
+                rot_err[rows] = bound_r[cert]
+            pose_out[rows], J_out[rows] = np.nan, np.nan
+            if cert.all():
+                break
+            keep = ~cert
+            idx, qa, tgt = idx[keep], qa[keep], tgt[keep]
+    conv = (pos_err < tol_position) & ((rot_err < tol_rotation) if pose else True)
+    return NewtonResult(q, pos_err, rot_err if pose else np.full(N, np.nan), conv, steps, pose_out, J_out)
 
 
 def _frame_error(target: np.ndarray, current: np.ndarray) -> np.ndarray:
