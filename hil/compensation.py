@@ -555,7 +555,7 @@ def _run(
 
 def _concatenate(blocks: list[CompensationResult]) -> CompensationResult:
     """One result from the results of consecutive blocks of targets (history: targets on axis 1)."""
-    out = {}
+    out: dict = {}
     for name in CompensationResult.__dataclass_fields__:
         values = [getattr(b, name) for b in blocks]
         if name == "history":
