@@ -495,7 +495,7 @@ def _run(
     since_best = np.zeros(N, int)
     iters = np.zeros(N, int)
     history = np.full((max_iter + 1, N), np.nan)
-    state = None if s.state0 is None else (s.state0[0].copy(), s.state0[1].copy())
+    state = s.state0  # never modified in place: the ensemble's generators all start from it
     active = np.flatnonzero(ok0)
     for k in range(max_iter + 1):
         if active.size == 0:
@@ -526,10 +526,15 @@ def _run(
             T_p[active, :3, 3] = update_pseudo_position(
                 s.T_d[active, :3, 3], T_a[:, :3, 3], T_p[active, :3, 3]
             )
-        start = None if state is None else (state[0][active], state[1][active])
+        everyone = active.size == N  # active is sorted: all rows, in order
+        start = state if state is None or everyone else (state[0][active], state[1][active])
         q_new, reason, got = s._solve(T_p[active], q[active], generator == "add", start)
         if state is not None and got is not None:
-            state[0][active], state[1][active] = got
+            if everyone:
+                state = got
+            else:
+                state = (state[0].copy(), state[1].copy())
+                state[0][active], state[1][active] = got
         iters[active] += 1
         failed = reason != REASON_OK
         status[active[failed]] = reason[failed]  # best joints so far stay

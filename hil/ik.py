@@ -750,6 +750,12 @@ def newton_ik(
             done = p2 < tol_position**2
         if step == max_steps:
             done[:] = True
+        if done.all() and len(idx) == N:  # every row leaves at once: no gathers
+            q, steps[:], pos_err = qa, step, np.sqrt(p2)
+            if pose:
+                rot_err = np.sqrt(r2)
+            pose_out, J_out = (end.copy(), J.copy()) if step == 0 and start is not None else (end, J)
+            break
         if done.any():
             rows = idx[done]
             q[rows], steps[rows], pos_err[rows] = qa[done], step, np.sqrt(p2[done])
@@ -784,6 +790,12 @@ def newton_ik(
         if pose:
             bound_r = 2.0 * s2 + 1e-6 * np.sqrt(r2)
             cert &= bound_r < cert_r
+        if cert.all() and len(idx) == N:
+            q, steps[:], pos_err = qa, step + 1, bound_p
+            if pose:
+                rot_err = bound_r
+            pose_out[:], J_out[:] = np.nan, np.nan
+            break
         if cert.any():
             rows = idx[cert]
             q[rows], steps[rows], pos_err[rows] = qa[cert], step + 1, bound_p[cert]

@@ -15,6 +15,7 @@ from scipy.spatial.transform import Rotation
 
 from hil.se3 import rot_y
 
+SMALL_BATCH = 24  # up to this many rows the chain is built from (4, 4) matmuls (fewer numpy calls)
 PARAM_KINDS_DH: tuple[str, ...] = ("theta", "d", "a", "alpha")
 PARAM_KINDS_MDH: tuple[str, ...] = ("theta", "a", "alpha", "beta")
 
@@ -180,6 +181,8 @@ def _chain(
     Rz(th) turns x, y about z; Tz(d) Tx(a) moves the origin by d z + a x'; Rx(alpha), Ry(beta) turn again.
     """
     N, n = q.shape
+    if N <= SMALL_BATCH and frames is None:
+        return _chain_small(model, q, axes)
     th = (q + model.theta).T  # (n, N): every axis array below is (3, N), contiguous per component
     ct, st = np.cos(th), np.sin(th)
     d, a = np.asarray(model.d, float).tolist(), np.asarray(model.a, float).tolist()
@@ -204,10 +207,13 @@ def _chain(
         if a[i] != 0.0:
             p = p + a[i] * x1
         ca, sa = cal[i], sal[i]
-        y = ca * y1
-        y += sa * z
-        z2 = ca * z
-        z2 -= sa * y1
+        if sa == 0.0 and ca == 1.0:  # alpha = 0 (a nominal parallel axis): no turn about x
+            y, z2 = y1, z
+        else:
+            y = ca * y1
+            y += sa * z
+            z2 = ca * z
+            z2 -= sa * y1
         if has_beta[i]:
             cb, sb = cbe[i], sbe[i]
             x, z = cb * x1 - sb * z2, sb * x1 + cb * z2
@@ -221,6 +227,41 @@ def _chain(
     if axes is not None:
         axes[1][n] = p
     return np.stack([x, y, z], axis=1).transpose(2, 0, 1), p.T
+
+
+def _chain_small(
+    model: KinematicModel, q: np.ndarray, axes: tuple[np.ndarray, np.ndarray] | None
+) -> tuple[np.ndarray, np.ndarray]:
+    """`_chain` for a few rows: every joint's (4, 4) transform built at once, then n - 1 batched matmuls.
+    Fewer numpy calls than the column-wise loop, which wins from a few dozen rows on."""
+    N, n = q.shape
+    th = q + model.theta
+    ct, st = np.cos(th)[..., None], np.sin(th)[..., None]  # (N, n, 1)
+    alpha, beta = np.asarray(model.alpha, float), np.asarray(model.beta, float)
+    ca, sa, cb, sb = np.cos(alpha), np.sin(alpha), np.cos(beta), np.sin(beta)
+    # Rows of Rx(alpha) Ry(beta) per joint; the joint's rotation is Rz(th) times it.
+    c0 = np.stack([cb, np.zeros(n), sb], 1)
+    c1 = np.stack([sa * sb, ca, -sa * cb], 1)
+    A = np.zeros((N, n, 4, 4))
+    A[..., 0, :3] = ct * c0 - st * c1
+    A[..., 1, :3] = st * c0 + ct * c1
+    A[..., 2, :3] = np.stack([-ca * sb, sa, ca * cb], 1)
+    A[..., 0, 3] = ct[..., 0] * model.a
+    A[..., 1, 3] = st[..., 0] * model.a
+    A[..., 2, 3] = model.d
+    A[..., 3, 3] = 1.0
+    T = A[:, 0]
+    if axes is not None:
+        axes[0][0] = np.array([[0.0], [0.0], [1.0]])
+        axes[1][0] = 0.0
+    for i in range(1, n):
+        if axes is not None:
+            axes[0][i] = T[:, :3, 2].T
+            axes[1][i] = T[:, :3, 3].T
+        T = T @ A[:, i]
+    if axes is not None:
+        axes[1][n] = T[:, :3, 3].T
+    return T[:, :3, :3], T[:, :3, 3]
 
 
 def tool_points(model: KinematicModel, q: np.ndarray, p_flange_tool: np.ndarray) -> np.ndarray:
