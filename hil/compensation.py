@@ -328,7 +328,9 @@ def _check_targets(targets: np.ndarray) -> tuple[bool, np.ndarray]:
         return False, t
     if t.ndim == 3 and t.shape[1:] == (4, 4):
         R = t[:, :3, :3]
-        if np.abs(np.swapaxes(R, 1, 2) @ R - np.eye(3)).max(initial=0) > 1e-6 or np.any(np.linalg.det(R) < 0):
+        # Orthonormal columns, right-handed: z . (x cross y) = det R > 0.
+        handed = np.einsum("ni,ni->n", np.cross(R[:, :, 0], R[:, :, 1]), R[:, :, 2])
+        if np.abs(np.swapaxes(R, 1, 2) @ R - np.eye(3)).max(initial=0) > 1e-6 or np.any(handed < 0):
             raise ValueError("target poses must have proper rotation matrices")
         return True, t
     raise ValueError(f"targets must be points (N, 3) or poses (N, 4, 4) in metres, got shape {t.shape}")
@@ -390,10 +392,14 @@ class PseudoTargetIK:
         q_prev: np.ndarray,
         project: bool = False,
         start: tuple[np.ndarray, np.ndarray] | None = None,
+        T_flange: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray] | None]:
         """`solve`, warm-started with the flange pose and Jacobian at q_prev when given (hil's Newton
-        only); also returns them at the answer (None with an `ik_solver`) for the next call."""
-        if self.full_pose:
+        only); also returns them at the answer (None with an `ik_solver`) for the next call.
+        `T_flange`: the full-pose targets already as flange poses (`to_flange`)."""
+        if T_flange is not None:
+            target = T_flange
+        elif self.full_pose:
             target = self.to_flange(ik_pose(T_pseudo) if project else T_pseudo)
         else:
             target = T_pseudo[:, :3, 3] @ self.T_bt[:3, :3].T + self.T_bt[:3, 3]
@@ -464,7 +470,7 @@ class _Setup(PseudoTargetIK):
             q, reason, self.state0 = self._solve(self.T_d, q_seed)
         elif is_ur_like(self.kin):
             seed, reachable = same_branch_seed(self.kin, T_f, q_ref, validate=False)  # checked targets
-            q, reason, self.state0 = self._solve(self.T_d, seed)
+            q, reason, self.state0 = self._solve(self.T_d, seed, T_flange=T_f if self.full_pose else None)
             if self.full_pose:
                 reason = np.where(~reachable & (reason != REASON_OK), REASON_UNREACHABLE, reason)
         else:

@@ -734,7 +734,9 @@ def newton_ik(
         if step == 0 and start is not None:
             end, J = np.asarray(start[0], float), np.asarray(start[1], float)
             missing = np.flatnonzero(np.isnan(end[:, 0, 0]) | np.isnan(J[:, 0, 0]))
-            if missing.size:  # rows certified without an evaluation last time
+            if 2 * missing.size > N:  # most rows were certified without an evaluation last time
+                end, J = pose_and_jacobian(model, qa, tool)
+            elif missing.size:
                 end, J = end.copy(), J.copy()
                 end[missing], J[missing] = pose_and_jacobian(model, qa[missing], tool)
         else:
