@@ -16,7 +16,7 @@ from hil.calibrated_model import CalibratedModel
 from hil.compensation import ENSEMBLE, STATUSES, PosePredictor, PseudoTargetIK, compensate, compensate_path
 from hil.dataset import make_dataset
 from hil.effects import EffectContext, make_effect
-from hil.ik import default_home, same_branch_seed, ur_branch_index
+from hil.ik import default_home, newton_ik, same_branch_seed, ur_branch_index
 from hil.kinematics import forward_kinematics
 from hil.pseudo_targets import GENERATORS, pose_errors, update_pseudo_target
 from hil.residual_maps import make_map
@@ -280,3 +280,70 @@ def test_the_update_and_ik_steps_work_on_poses_from_elsewhere(model):
         q, reason = ik.solve(T_p, q)
         assert np.all(reason == "ok")
     assert errors[0] > 1e-3 and errors[-1] < 1e-7
+
+
+@pytest.mark.parametrize("mode", ["pose", "position"])
+def test_newton_rows_ended_by_the_convergence_bound_are_converged(model, mode):
+    """Rows that Newton ends by its second-order bound, without evaluating them again, are within the
+    tolerance when evaluated, and their reported error bounds the true one."""
+    kin = model.kinematic
+    rng = np.random.default_rng(21)
+    q_true = ur10_joints(rng, 400)
+    T = forward_kinematics(kin, q_true)
+    target = T if mode == "pose" else T[:, :3, :3] @ TOOL + T[:, :3, 3]
+    tool = None if mode == "pose" else TOOL
+    for noise in (1e-2, 1e-3):
+        seed = q_true + rng.normal(0.0, noise, q_true.shape)
+        res = newton_ik(kin, target, seed, mode, tool, 16, tol_position=1e-8, tol_rotation=1e-7)
+        assert res.converged.all()
+        ended_by_bound = np.isnan(res.pose[:, 0, 0])
+        assert 0 < ended_by_bound.sum() < len(seed)  # both ways of ending occur
+        T_q = forward_kinematics(kin, res.q)
+        if mode == "pose":
+            dp = np.linalg.norm(T_q[:, :3, 3] - T[:, :3, 3], axis=1)
+            dr = pose_errors(T_q, T)[1]
+            assert np.all(dr <= res.rotation_error + 1e-15) and dr.max() < 1e-7
+        else:
+            dp = np.linalg.norm(T_q[:, :3, :3] @ TOOL + T_q[:, :3, 3] - target, axis=1)
+        assert np.all(dp <= res.error + 1e-15) and dp.max() < 1e-8
+        evaluated = ~ended_by_bound
+        np.testing.assert_allclose(res.pose[evaluated], T_q[evaluated], atol=1e-14)
+
+
+def test_newton_warm_start_is_the_cold_start_without_its_first_evaluation(model):
+    kin = model.kinematic
+    q = ur10_joints(np.random.default_rng(22), 300)
+    T = forward_kinematics(kin, q)
+    first = newton_ik(kin, T, q + 1e-3, max_steps=16, tol_position=1e-8, tol_rotation=1e-7)
+    moved = T.copy()
+    moved[:, :3, 3] += 2e-4  # the next pseudo targets, a little away
+    cold = newton_ik(kin, moved, first.q, max_steps=16, tol_position=1e-8, tol_rotation=1e-7)
+    warm = newton_ik(
+        kin, moved, first.q, max_steps=16, tol_position=1e-8, tol_rotation=1e-7, start=(first.pose, first.jacobian)
+    )
+    assert np.isnan(first.pose[:, 0, 0]).any()  # rows without a pose at the seed are evaluated then
+    np.testing.assert_allclose(warm.q, cold.q, atol=1e-13)
+    assert np.array_equal(warm.converged, cold.converged) and np.array_equal(warm.steps, cold.steps)
+
+
+def test_large_batches_run_in_blocks_with_the_same_answer(model, monkeypatch):
+    """compensate splits large batches into blocks; per-target drivers (backlash approach signs) and
+    seeds follow their targets, the result is the one of a single batch."""
+    backlash = make_effect("backlash", 2)
+    backlash.params = np.array([3e-4])
+    with_backlash = model.with_effect(backlash)
+    rng = np.random.default_rng(23)
+    q = ur10_joints(rng, 45)
+    approach = rng.choice([-1.0, 1.0], size=q.shape)
+    T_target = model.predict_poses(q)
+    for generator in ("yin", ENSEMBLE):
+        kw = {"generator": generator, "approach": approach, "q_seed": q + 0.01}
+        monkeypatch.setattr("hil.compensation.BLOCK_TARGETS", 2048)
+        whole = compensate(with_backlash, T_target, **kw)
+        monkeypatch.setattr("hil.compensation.BLOCK_TARGETS", 16)
+        blocks = compensate(with_backlash, T_target, **kw)
+        assert np.all(whole.status == "ok") and np.array_equal(blocks.status, whole.status)
+        for name in ("q", "error_m", "rotation_error_rad", "cost_m", "history", "initial_error_m"):
+            np.testing.assert_allclose(getattr(blocks, name), getattr(whole, name), atol=1e-12, equal_nan=True)
+        if generator == "yin":  # (an ensemble's near-ties between generators may fall either way)
+            assert np.array_equal(blocks.iterations, whole.iterations)
