@@ -506,46 +506,48 @@ def _run(
     for k in range(max_iter + 1):
         if active.size == 0:
             break
-        T_a = s.predictor(q[active], active)
-        cost, dp, dr = pose_cost(T_a, s.T_d[active], s.full_pose, length_scale)
-        history[k, active] = cost
+        # While every row is active (active is sorted), index with a slice: views, not gathered copies.
+        sel = slice(None) if active.size == N else active
+        T_a = s.predictor(q[sel], active)
+        cost, dp, dr = pose_cost(T_a, s.T_d[sel], s.full_pose, length_scale)
+        history[k, sel] = cost
         if k == 0:
-            pos0[active], rot0[active] = dp, dr
-        better = cost < cost_best[active]
+            pos0[sel], rot0[sel] = dp, dr
+        better = cost < cost_best[sel]
         b = active[better]
         q_best[b], cost_best[b], pos_best[b], rot_best[b] = q[b], cost[better], dp[better], dr[better]
-        since_best[active] = np.where(better, 0, since_best[active] + 1)
-        done = cost_best[active] < threshold
+        since_best[sel] = np.where(better, 0, since_best[sel] + 1)
+        done = cost_best[sel] < threshold
         status[active[done]] = STATUS_OK
-        stalled = ~done & (since_best[active] >= patience)
+        stalled = ~done & (since_best[sel] >= patience)
         status[active[stalled]] = STATUS_STALLED
         if k == max_iter:
             status[active[~done & ~stalled]] = STATUS_MAX_ITER
             break
         keep = ~done & ~stalled
-        active, T_a = active[keep], T_a[keep]
+        if not keep.all():
+            active, T_a = active[keep], T_a[keep]
         if active.size == 0:
             break
+        sel = slice(None) if active.size == N else active
         if s.full_pose:
-            T_p[active] = update_pseudo_target(generator, s.T_d[active], T_a, T_p[active])
+            T_p[sel] = update_pseudo_target(generator, s.T_d[sel], T_a, T_p[sel])
         else:
-            T_p[active, :3, 3] = update_pseudo_position(
-                s.T_d[active, :3, 3], T_a[:, :3, 3], T_p[active, :3, 3]
-            )
-        everyone = active.size == N  # active is sorted: all rows, in order
-        start = state if state is None or everyone else (state[0][active], state[1][active])
-        q_new, reason, got = s._solve(T_p[active], q[active], generator == "add", start)
+            T_p[sel, :3, 3] = update_pseudo_position(s.T_d[sel, :3, 3], T_a[:, :3, 3], T_p[sel, :3, 3])
+        start = state if state is None or active.size == N else (state[0][active], state[1][active])
+        q_new, reason, got = s._solve(T_p[sel], q[sel], generator == "add", start)
         if state is not None and got is not None:
-            if everyone:
+            if active.size == N:
                 state = got
             else:
                 state = (state[0].copy(), state[1].copy())
                 state[0][active], state[1][active] = got
-        iters[active] += 1
+        iters[sel] += 1
         failed = reason != REASON_OK
         status[active[failed]] = reason[failed]  # best joints so far stay
-        q[active] = q_new
-        active = active[~failed]
+        q[sel] = q_new
+        if failed.any():
+            active = active[~failed]
     status = status.astype(str)
     status[(status != STATUS_OK) & ok0 & (cost_best < threshold)] = STATUS_OK
     return CompensationResult(

@@ -697,9 +697,9 @@ def newton_ik(
     limits (wrapped by 2 pi or clamped). `validate=False` skips the input checks (hot loops).
 
     A step that solves the linearised error exactly leaves only the chain's second-order term, which
-    the arm's size bounds: |dp| <= L (sum |dq_i|)^2 / 2 with L the largest distance from a joint axis
-    to the tip, and |d angle| <= (sum |dq_i|)^2 (rotations compose, the error's log map bends). A row
-    whose step makes twice that bound (plus the solve's rounding) fall below a tenth of the tolerances,
+    the Jacobian bounds: |dp| <= V (sum |dq_i|)^2 / 2 with V the largest norm of a linear column along
+    the step, and |d angle| <= (sum |dq_i|)^2 (rotations compose, the error's log map bends). A row
+    whose step makes twice that bound (plus the solve's rounding) fall below half the tolerances,
     inside the limits, has converged without another evaluation (the cheap convergence test): its
     error is reported as that bound and its `pose` and `jacobian` rows are NaN.
     `start`: (pose, jacobian) already evaluated at the seeds (within the limits), e.g. a previous
@@ -719,10 +719,10 @@ def newton_ik(
     if start is not None and (np.shape(start[0]) != (N, 4, 4) or np.shape(start[1]) != (N, 6, n)):
         raise ValueError(f"start must be poses ({N}, 4, 4) and Jacobians ({N}, 6, {n}) at the seeds")
     lo, hi = model.joint_limits[:, 0], model.joint_limits[:, 1]
-    # Twice the second-order bound of a step, |p(q + dq) - p(q) - J dq| <= L (sum |dq|)^2 / 2 with L
-    # bounding the distance from any joint axis to the tip (both lie within the reach of the base).
+    # L bounds every second derivative of the tip, |z_i x (z_j x (p - o_j))| <= |p - o_j|: the joint
+    # axes and the tip lie within the reach of the base.
     L = 2.0 * reach_bound(model, 0.0 if tool is None else float(np.linalg.norm(tool)))
-    cert_p, cert_r = 0.1 * tol_position, 0.1 * tol_rotation
+    cert_p, cert_r = 0.5 * tol_position, 0.5 * tol_rotation
     pos_err, rot_err = np.zeros(N), np.full(N, np.nan)
     steps = np.zeros(N, int)
     pose_out, J_out = np.empty((N, 4, 4)), np.empty((N, 6, n))
@@ -786,8 +786,12 @@ def newton_ik(
         q_step = qa + dq
         qa = project_to_limits(model, q_step)
         # Certified rows: the step stayed inside the limits and its bound is far below the tolerances.
-        s2 = np.abs(dq).sum(1) ** 2
-        bound_p = L * s2 + 1e-6 * np.sqrt(p2)  # + what the solve's rounding may leave of the old error
+        # The tip's second derivatives z_i x v_j are bounded by the largest |v_j| (the Jacobian's linear
+        # columns here), which moves by at most L sum |dq| along the step.
+        s1 = np.abs(dq).sum(1)
+        s2 = s1 * s1
+        v_max = np.sqrt((J[:, :3] ** 2).sum(1).max(1))
+        bound_p = (v_max + L * s1) * s2 + 1e-6 * np.sqrt(p2)  # + the solve's rounding of the old error
         cert = (bound_p < cert_p) & np.all((q_step >= lo) & (q_step <= hi), axis=1)
         if pose:
             bound_r = 2.0 * s2 + 1e-6 * np.sqrt(r2)
