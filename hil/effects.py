@@ -153,9 +153,13 @@ class Effect:
 
     def cached_regressors(self, ctx: EffectContext, nominal: KinematicModel) -> np.ndarray:
         """`regressors`, memoised in the context (tool points rounded to 0.1 mm: lever arms do not care)."""
-        tool = (
-            b"" if ctx.p_flange_tool is None else np.round(ctx.p_flange_tool * 1e4).astype(np.int64).tobytes()
-        )
+        tools = ctx.p_flange_tool
+        if tools is None:
+            tool: object = b""
+        elif tools.ndim == 2 and tools.strides[0] == 0:  # one tool point broadcast to every row
+            tool = ("every row", len(tools), np.round(tools[0] * 1e4).astype(np.int64).tobytes())
+        else:
+            tool = np.round(tools * 1e4).astype(np.int64).tobytes()
         drivers = (self.state.get("mix"), self.state.get("driver"), self.state.get("harmonics"))
         key = (self.label, repr(drivers), hash(tool))
         if key not in ctx.cache:

@@ -784,7 +784,8 @@ def newton_ik(
             A = Jv @ np.swapaxes(Jv, 1, 2) + damping * eye
             dq = np.einsum("kmi,km->ki", Jv, np.linalg.solve(A, e[..., None])[..., 0])
         q_step = qa + dq
-        qa = project_to_limits(model, q_step)
+        inside = np.all((q_step >= lo) & (q_step <= hi), axis=1)
+        qa = q_step if inside.all() else project_to_limits(model, q_step)
         # Certified rows: the step stayed inside the limits and its bound is far below the tolerances.
         # The tip's second derivatives z_i x v_j are bounded by the largest |v_j| (the Jacobian's linear
         # columns here), which moves by at most L sum |dq| along the step.
@@ -792,7 +793,7 @@ def newton_ik(
         s2 = s1 * s1
         v_max = np.sqrt((J[:, :3] ** 2).sum(1).max(1))
         bound_p = (v_max + L * s1) * s2 + 1e-6 * np.sqrt(p2)  # + the solve's rounding of the old error
-        cert = (bound_p < cert_p) & np.all((q_step >= lo) & (q_step <= hi), axis=1)
+        cert = (bound_p < cert_p) & inside
         if pose:
             bound_r = 2.0 * s2 + 1e-6 * np.sqrt(r2)
             cert &= bound_r < cert_r
