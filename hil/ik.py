@@ -699,7 +699,7 @@ def newton_ik(
     A step that solves the linearised error exactly leaves only the chain's second-order term, which
     the Jacobian bounds: |dp| <= V (sum |dq_i|)^2 / 2 with V the largest norm of a linear column along
     the step, and |d angle| <= (sum |dq_i|)^2 (rotations compose, the error's log map bends). A row
-    whose step makes twice that bound (plus the solve's rounding) fall below half the tolerances,
+    whose step makes twice that bound (plus what it leaves of the linear error) fall below half the tolerances,
     inside the limits, has converged without another evaluation (the cheap convergence test): its
     error is reported as that bound and its `pose` and `jacobian` rows are NaN.
     `start`: (pose, jacobian) already evaluated at the seeds (within the limits), e.g. a previous
@@ -768,9 +768,6 @@ def newton_ik(
                 break
             keep = ~done
             idx, qa, tgt, J, e = idx[keep], qa[keep], tgt[keep], J[keep], e[keep]
-            p2 = p2[keep]
-            if pose:
-                r2 = r2[keep]
         if pose:  # square: solve J dq = e; damped normal equations only if a J is exactly singular
             try:
                 dq = np.linalg.solve(J, e[..., None])[..., 0]
@@ -789,13 +786,16 @@ def newton_ik(
         # Certified rows: the step stayed inside the limits and its bound is far below the tolerances.
         # The tip's second derivatives z_i x v_j are bounded by the largest |v_j| (the Jacobian's linear
         # columns here), which moves by at most L sum |dq| along the step.
+        # What the step leaves of the linearised error itself (rounding; damping at a singularity,
+        # where a tiny step may leave most of the error) adds to the bound as it is.
         s1 = np.abs(dq).sum(1)
         s2 = s1 * s1
         v_max = np.sqrt((J[:, :3] ** 2).sum(1).max(1))
-        bound_p = (v_max + L * s1) * s2 + 1e-6 * np.sqrt(p2)  # + the solve's rounding of the old error
+        left = e - np.einsum("kmi,ki->km", J if pose else J[:, :3], dq)
+        bound_p = (v_max + L * s1) * s2 + np.sqrt((left[:, :3] ** 2).sum(1))
         cert = (bound_p < cert_p) & inside
         if pose:
-            bound_r = 2.0 * s2 + 1e-6 * np.sqrt(r2)
+            bound_r = 2.0 * s2 + np.sqrt((left[:, 3:] ** 2).sum(1))
             cert &= bound_r < cert_r
         if cert.all() and len(idx) == N:
             q, steps[:], pos_err = qa, step + 1, bound_p
