@@ -791,7 +791,7 @@ def newton_ik(
         s1 = np.abs(dq).sum(1)
         s2 = s1 * s1
         v_max = np.sqrt((J[:, :3] ** 2).sum(1).max(1))
-        left = e - np.einsum("kmi,ki->km", J if pose else J[:, :3], dq)
+        left = e - ((J if pose else J[:, :3]) @ dq[..., None])[..., 0]
         bound_p = (v_max + L * s1) * s2 + np.sqrt((left[:, :3] ** 2).sum(1))
         cert = (bound_p < cert_p) & inside
         if pose:
