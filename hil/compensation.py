@@ -59,6 +59,7 @@ STATUSES: tuple[str, ...] = (
     "joint_limits",
     STATUS_NO_IK,
 )
+STATUS_DTYPE = "<U16"  # fixed-width strings hold every status (object arrays cost a conversion each time)
 ENSEMBLE = "ensemble"
 IK_TOL_FRACTION = 1e-3  # pseudo targets are solved to this fraction of the threshold (m; rad: / length scale)
 NEWTON_STEPS = 16  # Newton steps before a target goes to solve_ik (slow seeds converge linearly at first)
@@ -419,7 +420,7 @@ class PseudoTargetIK:
             start=start,
         )
         q = res.q
-        reason = np.full(len(q), REASON_OK, dtype=object)
+        reason = np.full(len(q), REASON_OK, dtype=STATUS_DTYPE)
         bad = np.flatnonzero(~res.converged)
         state = (res.pose, res.jacobian)
         if bad.size:
@@ -433,7 +434,7 @@ class PseudoTargetIK:
             if rescued.size:  # the state at the joints solve_ik found
                 pose, J = pose_and_jacobian(self.kin, q[rescued], None if self.full_pose else self.tool)
                 state[0][rescued], state[1][rescued] = pose, J
-        return q, reason.astype(str), state
+        return q, reason, state
 
 
 class _Setup(PseudoTargetIK):
@@ -491,7 +492,7 @@ def _run(
     ok0 = s.reason0 == REASON_OK
     q = s.q0.copy()
     T_p = s.T_d.copy()
-    status = s.reason0.astype(object).copy()
+    status = np.array(s.reason0, dtype=STATUS_DTYPE)
     q_best = np.full_like(q, np.nan)
     cost_best = np.full(N, np.inf)
     pos_best = np.full(N, np.nan)
@@ -548,7 +549,6 @@ def _run(
         q[sel] = q_new
         if failed.any():
             active = active[~failed]
-    status = status.astype(str)
     status[(status != STATUS_OK) & ok0 & (cost_best < threshold)] = STATUS_OK
     return CompensationResult(
         q=q_best,
@@ -557,7 +557,7 @@ def _run(
         cost_m=np.where(np.isfinite(cost_best), cost_best, np.nan),
         iterations=iters,
         status=status,
-        generator=np.full(N, generator, dtype=object).astype(str),
+        generator=np.full(N, generator),
         initial_error_m=pos0,
         initial_rotation_error_rad=rot0,
         outside_volume=np.zeros(N, bool),
