@@ -185,11 +185,7 @@ def _chain(
         return _chain_small(model, q, axes)
     th = (q + model.theta).T  # (n, N): every axis array below is (3, N), contiguous per component
     ct, st = np.cos(th), np.sin(th)
-    d, a = np.asarray(model.d, float).tolist(), np.asarray(model.a, float).tolist()
-    alpha, beta = np.asarray(model.alpha, float), np.asarray(model.beta, float)
-    cal, sal = np.cos(alpha).tolist(), np.sin(alpha).tolist()
-    cbe, sbe = np.cos(beta).tolist(), np.sin(beta).tolist()
-    has_beta = (beta != 0).tolist()
+    d, a, cal, sal, cbe, sbe, has_beta, _ = _chain_constants(model)
     x, y, z = np.zeros((3, N)), np.zeros((3, N)), np.zeros((3, N))
     x[0] = y[1] = z[2] = 1.0
     p = np.zeros((3, N))
@@ -229,6 +225,33 @@ def _chain(
     return np.stack([x, y, z], axis=1).transpose(2, 0, 1), p.T
 
 
+_CONSTANTS: dict[tuple[bytes, ...], tuple] = {}
+
+
+def _chain_constants(model: KinematicModel) -> tuple:
+    """A model's constant chain factors, computed once per geometry (the arrays are read-only):
+    d, a, cos/sin alpha, cos/sin beta and which joints use beta as Python floats/bools, and the rows
+    (c0, c1, c2) of every joint's Rx(alpha) Ry(beta), (n, 3) each."""
+    arrays = [np.asarray(v, float) for v in (model.d, model.a, model.alpha, model.beta)]
+    key = tuple(v.tobytes() for v in arrays)
+    got = _CONSTANTS.get(key)
+    if got is None:
+        d, a, alpha, beta = arrays
+        ca, sa, cb, sb = np.cos(alpha), np.sin(alpha), np.cos(beta), np.sin(beta)
+        rows = (
+            np.stack([cb, np.zeros(len(cb)), sb], 1),
+            np.stack([sa * sb, ca, -sa * cb], 1),
+            np.stack([-ca * sb, sa, ca * cb], 1),
+        )
+        for r in rows:
+            r.flags.writeable = False
+        got = (d.tolist(), a.tolist(), ca.tolist(), sa.tolist(), cb.tolist(), sb.tolist(), (beta != 0).tolist(), rows)
+        if len(_CONSTANTS) > 256:  # many models in one process (calibration sweeps): start again
+            _CONSTANTS.clear()
+        _CONSTANTS[key] = got
+    return got
+
+
 def _chain_small(
     model: KinematicModel, q: np.ndarray, axes: tuple[np.ndarray, np.ndarray] | None
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -237,15 +260,11 @@ def _chain_small(
     N, n = q.shape
     th = q + model.theta
     ct, st = np.cos(th)[..., None], np.sin(th)[..., None]  # (N, n, 1)
-    alpha, beta = np.asarray(model.alpha, float), np.asarray(model.beta, float)
-    ca, sa, cb, sb = np.cos(alpha), np.sin(alpha), np.cos(beta), np.sin(beta)
-    # Rows of Rx(alpha) Ry(beta) per joint; the joint's rotation is Rz(th) times it.
-    c0 = np.stack([cb, np.zeros(n), sb], 1)
-    c1 = np.stack([sa * sb, ca, -sa * cb], 1)
+    c0, c1, c2 = _chain_constants(model)[-1]  # rows of Rx(alpha) Ry(beta); the joint turns Rz(th) times it
     A = np.zeros((N, n, 4, 4))
     A[..., 0, :3] = ct * c0 - st * c1
     A[..., 1, :3] = st * c0 + ct * c1
-    A[..., 2, :3] = np.stack([-ca * sb, sa, ca * cb], 1)
+    A[..., 2, :3] = c2
     A[..., 0, 3] = ct[..., 0] * model.a
     A[..., 1, 3] = st[..., 0] * model.a
     A[..., 2, 3] = model.d
