@@ -7,8 +7,9 @@ and 3 of about the size the PT paper simulates). Targets: poses and points the m
 random joints, so a perfect answer exists. Goals (issue "pseudo-target compensation"): >= 20 000 targets/s
 at 1 000 and 10 000 targets, and >= 3x faster per target than the same pseudo-target loop built on
 roboticstoolbox's fastest IK path (C++ `ets().ik_LM`, one call per target, seeded like ours with the same
-closed-form branch and then the previous joints). Both are judged by hil's own forward model: the public
-`CalibratedModel.predict` of the answer's joints against the target, success = below the threshold.
+closed-form branch and then the previous joints), at every size (the rtb loop's cost per target hardly
+depends on it; hil's does). Both are judged by hil's own forward model: `CalibratedModel.predict_poses`
+(the public `predict`) of the answer's joints against the target, success = below the threshold.
 """
 
 from __future__ import annotations
