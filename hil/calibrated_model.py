@@ -17,7 +17,7 @@ import numpy as np
 import pandas as pd
 from scipy.spatial.transform import Rotation
 
-from hil.dataset import joints_rad, orientations, points_m, smr_ids
+from hil.dataset import joints_rad, make_dataset, orientations, points_m, smr_ids
 from hil.effects import Effect, EffectContext, effect_from_dict, growth_direction, tool_points_rows
 from hil.ik import solve_ik
 from hil.jsonable import to_jsonable
@@ -31,7 +31,7 @@ from hil.kinematics import (
 )
 from hil.residual_maps import map_from_dict
 from hil.robots import get_robot
-from hil.se3 import fit_rigid, invert, transform_points
+from hil.se3 import fit_rigid, invert, make_transform, transform_points
 
 FORMAT = "hil-calibrated-model/1"
 
@@ -148,6 +148,19 @@ class CalibratedModel:
             p_base = tool_points_rows(self.kinematic, q_eff, _context_tools(ctx))
             p = p + map_from_dict(self.residual_map).predict(ctx.q, p_base)
         return p
+
+    def predict_poses(self, q: np.ndarray, smr: int | None = None) -> np.ndarray:
+        """Poses T_tracker_tool (N, 4, 4) the model predicts for commanded joints q (N, n): the SMR centre of
+        `predict` (every effect and the residual map) with the flange's orientation through the joint
+        effects. Built on the public dataset path, it judges compensated joints independently of
+        `hil.compensation`'s own predictor."""
+        q = self.kinematic.check_joints(q)
+        sid = sorted(self.tools)[0] if smr is None else int(smr)
+        df = make_dataset(q, np.zeros((len(q), 3)), smr=sid)
+        p = self.predict(df)
+        ctx, _ = self.context(df)
+        R_base_flange = forward_kinematics(self.kinematic, q + self.joint_offsets(ctx))[:, :3, :3]
+        return make_transform(self.T_tracker_base[:3, :3] @ R_base_flange, p)
 
     def jacobian_ctx(self, ctx: EffectContext, smr: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Predicted points (N, 3) and d(points)/d(parameters) (N, 3, P) in the full parameter order."""

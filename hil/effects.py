@@ -30,7 +30,7 @@ import numpy as np
 import pandas as pd
 
 from hil.jsonable import to_jsonable
-from hil.kinematics import KinematicModel, forward_kinematics, link_frames, tool_points
+from hil.kinematics import KinematicModel, chain_axes, forward_kinematics, tool_points
 
 # Names used in reports and model files (the documented vocabulary).
 EFFECT_FAMILIES: tuple[str, ...] = (
@@ -153,9 +153,13 @@ class Effect:
 
     def cached_regressors(self, ctx: EffectContext, nominal: KinematicModel) -> np.ndarray:
         """`regressors`, memoised in the context (tool points rounded to 0.1 mm: lever arms do not care)."""
-        tool = (
-            b"" if ctx.p_flange_tool is None else np.round(ctx.p_flange_tool * 1e4).astype(np.int64).tobytes()
-        )
+        tools = ctx.p_flange_tool
+        if tools is None:
+            tool: object = b""
+        elif tools.ndim == 2 and tools.strides[0] == 0:  # one tool point broadcast to every row
+            tool = ("every row", len(tools), np.round(tools[0] * 1e4).astype(np.int64).tobytes())
+        else:
+            tool = np.round(tools * 1e4).astype(np.int64).tobytes()
         drivers = (self.state.get("mix"), self.state.get("driver"), self.state.get("harmonics"))
         key = (self.label, repr(drivers), hash(tool))
         if key not in ctx.cache:
@@ -203,23 +207,26 @@ class GravityCompliance(Effect):
 
     def _levers(self, ctx: EffectContext, nominal: KinematicModel) -> np.ndarray:
         """Lever arms (N, K) in metres about joint `joint`'s axis of gravity on each downstream point."""
-        j = self.joint_index
-        key = ("link_frames", id(nominal))  # shared by every gravity effect of the model
-        frames = ctx.cache.get(key)
-        if frames is None:
-            frames = ctx.cache[key] = link_frames(nominal, ctx.q)
-        z = frames[:, j, :3, 2]
-        o = frames[:, j, :3, 3]
-        points = [frames[:, k, :3, 3] for k in range(j + 1, nominal.n_joints + 1)]
-        T_flange = frames[:, -1] @ nominal.T_last_flange
-        if ctx.p_flange_tool is not None:
-            points.append(
-                np.einsum("nij,nj->ni", T_flange[:, :3, :3], ctx.p_flange_tool) + T_flange[:, :3, 3]
-            )
-        levers = [np.einsum("ni,ni->n", z, np.cross(p - o, GRAVITY_DIRECTION_BASE)) for p in points]
-        if ctx.payload_kg is not None and len(points) > 0:
-            levers.append(levers[-1] * ctx.payload_kg)
-        return np.stack(levers, axis=1)
+        j, n = self.joint_index, nominal.n_joints
+        key = ("gravity_axes_points", id(nominal))  # one chain shared by every gravity effect of the model
+        packed = ctx.cache.get(key)
+        if packed is None:  # (N, 3, M), row for row like every cache entry: n axes, n + 1 origins, tool
+            T_flange, Z, O = chain_axes(nominal, ctx.q)
+            parts = [Z, O]
+            if ctx.p_flange_tool is not None:
+                tip = np.einsum("nij,nj->ni", T_flange[:, :3, :3], ctx.p_flange_tool) + T_flange[:, :3, 3]
+                parts.append(tip.T[None])
+            packed = ctx.cache[key] = np.concatenate(parts).transpose(2, 1, 0)
+        cols = packed.transpose(2, 1, 0)  # (M, 3, N)
+        z, o = cols[j], cols[n + j]
+        points = cols[n + j + 1 :]  # (K, 3, N): the downstream link origins, then the tool point
+        # z . ((p - o) x g) = (g x z) . (p - o): one cross product per joint, not per point.
+        g = GRAVITY_DIRECTION_BASE
+        u = np.stack([g[1] * z[2] - g[2] * z[1], g[2] * z[0] - g[0] * z[2], g[0] * z[1] - g[1] * z[0]])
+        L = ((points - o) * u).sum(axis=1).T
+        if ctx.payload_kg is not None and L.shape[1] > 0:
+            L = np.column_stack([L, L[:, -1] * ctx.payload_kg])
+        return L
 
     def prepare(self, ctx: EffectContext, nominal: KinematicModel) -> bool:
         L = self._levers(ctx, nominal)

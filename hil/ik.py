@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from hil.kinematics import KinematicModel, forward_kinematics, geometric_jacobian, pose_and_jacobian
-from hil.se3 import invert, rot_x, rot_z
+from hil.se3 import invert
 
 # Failure vocabulary of IKResult.reason.
 REASON_OK = "ok"  # converged below tolerance, within joint limits
@@ -120,60 +120,59 @@ def ur_analytic_ik(
     return q, valid
 
 
-def _ur_branches(model: KinematicModel, T_base_flange: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _ur_branches(
+    model: KinematicModel, T_base_flange: np.ndarray, validate: bool = True
+) -> tuple[np.ndarray, np.ndarray]:
     """Closed-form branches, stretched where out of reach: (q (N, 8, 6), overshoot (N, 8) >= 0, 0 = exact)."""
-    T = _ur_wrist_frames(model, T_base_flange)
+    T = _ur_wrist_frames(model, T_base_flange, validate)
     N = T.shape[0]
     q, overshoot = _ur_branch(model, np.repeat(T, 8, axis=0), np.tile(np.arange(8), N))  # one pass, 8N rows
     return q.reshape(N, 8, 6), overshoot.reshape(N, 8)
 
 
-def _ur_wrist_frames(model: KinematicModel, T_base_flange: np.ndarray) -> np.ndarray:
+def _ur_wrist_frames(model: KinematicModel, T_base_flange: np.ndarray, validate: bool = True) -> np.ndarray:
     if not is_ur_like(model):
         raise ValueError(f"{model.name} is not a UR-shaped arm (standard DH alphas pi/2,0,0,pi/2,-pi/2,0)")
-    return _as_transforms(T_base_flange, "T_base_flange") @ invert(np.asarray(model.T_last_flange, float))
+    T = _as_transforms(T_base_flange, "T_base_flange") if validate else np.asarray(T_base_flange, float)
+    L = np.asarray(model.T_last_flange, float)
+    return T if np.array_equal(L, np.eye(4)) else T @ invert(L)
 
 
 def _ur_branch(model: KinematicModel, T: np.ndarray, branch: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """One closed-form branch per target (index 4*shoulder + 2*wrist + elbow, (N,)) of last-link poses T:
-    (q (N, 6) in (-pi, pi], overshoot (N,) >= 0, 0 = exact; stretched where out of reach)."""
-    N = T.shape[0]
+    (q (N, 6) in (-pi, pi], overshoot (N,) >= 0, 0 = exact; stretched where out of reach).
+
+    Written on (N,) components: the rotation products below are the few entries the angles need."""
     d1, d4, d5, d6 = model.d[0], model.d[3], model.d[4], model.d[5]
     a2, a3 = model.a[1], model.a[2]
     sh, wr, el = branch // 4, (branch // 2) % 2, branch % 2
-    R, p = T[:, :3, :3], T[:, :3, 3]
-    z6 = R[:, :, 2]
-    p5 = p - d6 * z6  # origin of frame 5, which lies at offset d4 along the joint-2 axis z1
-    r2 = p5[:, 0] ** 2 + p5[:, 1] ** 2
+    x6, y6, z6 = T[:, :3, 0].T, T[:, :3, 1].T, T[:, :3, 2].T  # (3, N) columns of the last link's rotation
+    p5 = T[:, :3, 3].T - d6 * z6  # origin of frame 5, which lies at offset d4 along the joint-2 axis z1
+    r2 = p5[0] ** 2 + p5[1] ** 2
     # Shoulder: z1 = (sin q1, -cos q1, 0) and p5 . z1 = d4  =>  r sin(q1 - phi) = d4.
     shoulder_over = np.maximum(1.0 - np.sqrt(r2) / abs(d4), 0.0)
     asin = np.arcsin(np.clip(d4 / np.sqrt(np.maximum(r2, 1e-300)), -1.0, 1.0))
-    q1 = np.arctan2(p5[:, 1], p5[:, 0]) + np.where(sh == 0, asin, np.pi - asin)
-    c1, s1 = np.cos(q1), np.sin(q1)
-    zero = np.zeros(N)
-    x1 = np.stack([c1, s1, zero], 1)
-    y1 = np.broadcast_to([0.0, 0.0, 1.0], (N, 3))
-    z1 = np.stack([s1, -c1, zero], 1)
-    # Wrist: z6 . z1 = cos q5.
-    q5 = np.arccos(np.clip(np.einsum("ni,ni->n", z6, z1), -1.0, 1.0)) * np.where(wr == 0, 1.0, -1.0)
-    s5 = np.sin(q5)
-    # x6 . z1 = cos q6 sin q5 and y6 . z1 = -sin q6 sin q5.
-    xz = np.einsum("ni,ni->n", R[:, :, 0], z1)
-    yz = np.einsum("ni,ni->n", R[:, :, 1], z1)
+    q1 = np.arctan2(p5[1], p5[0]) + np.where(sh == 0, asin, np.pi - asin)
+    c1, s1 = np.cos(q1), np.sin(q1)  # x1 = (c1, s1, 0), y1 = (0, 0, 1), z1 = (s1, -c1, 0)
+    # Wrist: z6 . z1 = cos q5; x6 . z1 = cos q6 sin q5 and y6 . z1 = -sin q6 sin q5.
+    q5 = np.arccos(np.clip(z6[0] * s1 - z6[1] * c1, -1.0, 1.0)) * np.where(wr == 0, 1.0, -1.0)
+    c5, s5 = np.cos(q5), np.sin(q5)
+    xz = x6[0] * s1 - x6[1] * c1
+    yz = y6[0] * s1 - y6[1] * c1
     singular = np.abs(s5) < 1e-12
     s5_safe = np.where(singular, 1.0, s5)
     q6 = np.where(singular, 0.0, np.arctan2(-yz / s5_safe, xz / s5_safe))
-    # Rotation of frame 4: R04 = R06 (Rz(q5) Rx(-pi/2) Rz(q6))^T; R04 = R01 Rz(q234) Rx(pi/2).
-    R46 = rot_z(q5) @ rot_x(-np.pi / 2) @ rot_z(q6)
-    R04 = R @ np.swapaxes(R46, 1, 2)
-    R01 = np.stack([x1, y1, z1], axis=2)
-    M = np.swapaxes(R01, 1, 2) @ R04 @ rot_x(-np.pi / 2)
-    q234 = np.arctan2(M[:, 1, 0], M[:, 0, 0])
+    c6, s6 = np.cos(q6), np.sin(q6)
+    # R04 = R06 (Rz(q5) Rx(-pi/2) Rz(q6))^T; its columns 0 and 2 are R06 times rows 0 and 2 of that
+    # product, (c5 c6, -c5 s6, -s5) and (-s6, -c6, 0). R04 = R01 Rz(q234) Rx(pi/2) then gives
+    # q234 from column 0: x1 . col0 = cos q234, y1 . col0 = sin q234.
+    col0 = (c5 * c6) * x6 - (c5 * s6) * y6 - s5 * z6
+    col2 = -s6 * x6 - c6 * y6
+    q234 = np.arctan2(col0[2], c1 * col0[0] + s1 * col0[1])
     # Planar 2-link problem for joints 2, 3 in the arm plane (x1, y1).
-    p4 = p5 - d5 * R04[:, :, 2]
-    w = p4 - np.array([0.0, 0.0, d1]) - d4 * z1
-    u = np.einsum("ni,ni->n", w, x1)
-    v = w[:, 2]
+    p4 = p5 - d5 * col2
+    u = (p4[0] - d4 * s1) * c1 + (p4[1] + d4 * c1) * s1
+    v = p4[2] - d1
     c3 = (u**2 + v**2 - a2**2 - a3**2) / (2.0 * a2 * a3)
     elbow_over = np.maximum(np.abs(c3) - 1.0, 0.0)
     q3 = np.arccos(np.clip(c3, -1.0, 1.0)) * np.where(el == 0, 1.0, -1.0)
@@ -199,6 +198,9 @@ def nearest_equivalent(
     q_ref = np.broadcast_to(np.asarray(q_ref, dtype=float), q.shape)
     lo, hi = model.joint_limits[:, 0], model.joint_limits[:, 1]
     k0 = np.round((q_ref - q) / TWO_PI)
+    nearest = q + TWO_PI * k0  # the equivalent nearest q_ref: the answer wherever it lies inside the limits
+    if np.all((nearest >= lo - 1e-12) & (nearest <= hi + 1e-12)):
+        return np.clip(nearest, lo, hi), np.ones(q.shape[:-1], bool)
     cands = q[..., None] + TWO_PI * (k0[..., None] + np.array([-1.0, 0.0, 1.0]))  # (..., n, 3)
     inside = (cands >= lo[:, None] - 1e-12) & (cands <= hi[:, None] + 1e-12)
     dist = np.where(inside, np.abs(cands - q_ref[..., None]), np.inf)
@@ -657,13 +659,18 @@ def _diagnose(
 
 @dataclass(frozen=True)
 class NewtonResult:
-    """Outcome of `newton_ik` per target: joints, final errors, convergence and steps taken."""
+    """Outcome of `newton_ik` per target: joints, final errors, convergence and steps taken, and the
+    flange pose and Jacobian at the returned joints (the last evaluation, for a warm `start`)."""
 
     q: np.ndarray  # (N, n) rad
     error: np.ndarray  # (N,) position error, m (flange in pose mode, tool point in position mode)
     rotation_error: np.ndarray  # (N,) rad, NaN in position mode
     converged: np.ndarray  # (N,) bool
     steps: np.ndarray  # (N,) int
+    # (N, 4, 4) T_base_flange and (N, 6, n) geometric Jacobian (at the tool point in position mode) at q;
+    # NaN rows where the last step was certified by its bound (see `newton_ik`), not evaluated.
+    pose: np.ndarray
+    jacobian: np.ndarray
 
 
 def newton_ik(
@@ -677,6 +684,7 @@ def newton_ik(
     tol_rotation: float = 1e-10,
     damping: float = 1e-12,
     validate: bool = True,
+    start: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> NewtonResult:
     """Finish IK from nearby seeds (N, n) with batched Gauss-Newton steps and the analytic Jacobian.
 
@@ -687,6 +695,16 @@ def newton_ik(
     typically 2-3 steps; targets leave the batch as they converge. No globalisation: a target that
     does not converge is reported, for the caller to fall back to `solve_ik`. Joints stay within the
     limits (wrapped by 2 pi or clamped). `validate=False` skips the input checks (hot loops).
+
+    A step that solves the linearised error exactly leaves only the chain's second-order term, which
+    the Jacobian bounds: |dp| <= V (sum |dq_i|)^2 / 2 with V the largest norm of a linear column along
+    the step, and |d angle| <= (sum |dq_i|)^2 (rotations compose, the error's log map bends). A row
+    whose step makes twice that bound (plus what it leaves of the linear error) fall below half the tolerances,
+    inside the limits, has converged without another evaluation (the cheap convergence test): its
+    error is reported as that bound and its `pose` and `jacobian` rows are NaN.
+    `start`: (pose, jacobian) already evaluated at the seeds (within the limits), e.g. a previous
+    result's `pose` and `jacobian` when the targets moved: the first evaluation is then skipped for
+    every row that is not NaN there.
     """
     pose = mode == "pose"
     if validate:
@@ -696,27 +714,60 @@ def newton_ik(
             raise ValueError(f"{len(q_seed)} seeds for {len(targets)} targets")
     q = project_to_limits(model, q_seed)
     N, n = q.shape
-    tool = np.zeros(3) if p_flange_tool is None else np.asarray(p_flange_tool, dtype=float)
+    tool = None if pose else (np.zeros(3) if p_flange_tool is None else np.asarray(p_flange_tool, float))
     target = np.asarray(targets, float)
-    m = 6 if pose else 3
-    err = np.zeros((N, m))
+    if start is not None and (np.shape(start[0]) != (N, 4, 4) or np.shape(start[1]) != (N, 6, n)):
+        raise ValueError(f"start must be poses ({N}, 4, 4) and Jacobians ({N}, 6, {n}) at the seeds")
+    lo, hi = model.joint_limits[:, 0], model.joint_limits[:, 1]
+    # L bounds every second derivative of the tip, |z_i x (z_j x (p - o_j))| <= |p - o_j|: the joint
+    # axes and the tip lie within the reach of the base.
+    L = 2.0 * reach_bound(model, 0.0 if tool is None else float(np.linalg.norm(tool)))
+    cert_p, cert_r = 0.5 * tol_position, 0.5 * tol_rotation
+    pos_err, rot_err = np.zeros(N), np.full(N, np.nan)
     steps = np.zeros(N, int)
-    active = np.arange(N)
-    eye = np.eye(m if not pose else n)
+    pose_out, J_out = np.empty((N, 4, 4)), np.empty((N, 6, n))
+    eye = np.eye(3 if not pose else n)
+    # The active rows live in their own compact arrays (idx: their rows in the batch); they are
+    # compressed only when some rows leave, and written back when they do.
+    idx, qa, tgt = np.arange(N), q.copy(), target
     for step in range(max_steps + 1):
-        end, J = pose_and_jacobian(model, q[active], None if pose else tool)
-        if pose:
-            e = _frame_error(target[active], end)
-            e2 = e * e
-            done = (e2[:, :3].sum(1) < tol_position**2) & (e2[:, 3:].sum(1) < tol_rotation**2)
+        if step == 0 and start is not None:
+            end, J = np.asarray(start[0], float), np.asarray(start[1], float)
+            missing = np.flatnonzero(np.isnan(end[:, 0, 0]) | np.isnan(J[:, 0, 0]))
+            if 2 * missing.size > N:  # most rows were certified without an evaluation last time
+                end, J = pose_and_jacobian(model, qa, tool)
+            elif missing.size:
+                end, J = end.copy(), J.copy()
+                end[missing], J[missing] = pose_and_jacobian(model, qa[missing], tool)
         else:
-            e = target[active] - (end[:, :3, :3] @ tool + end[:, :3, 3])
-            done = np.einsum("ki,ki->k", e, e) < tol_position**2
-        err[active] = e
-        keep = ~done
-        if step == max_steps or not np.any(keep):
+            end, J = pose_and_jacobian(model, qa, tool)
+        if pose:
+            e = _frame_error(tgt, end)
+            e2 = e * e
+            p2, r2 = e2[:, :3].sum(1), e2[:, 3:].sum(1)
+            done = (p2 < tol_position**2) & (r2 < tol_rotation**2)
+        else:
+            e = tgt - (end[:, :3, :3] @ tool + end[:, :3, 3])
+            p2 = np.einsum("ki,ki->k", e, e)
+            done = p2 < tol_position**2
+        if step == max_steps:
+            done[:] = True
+        if done.all() and len(idx) == N:  # every row leaves at once: no gathers
+            q, steps[:], pos_err = qa, step, np.sqrt(p2)
+            if pose:
+                rot_err = np.sqrt(r2)
+            pose_out, J_out = (end.copy(), J.copy()) if step == 0 and start is not None else (end, J)
             break
-        active, J, e = active[keep], J[keep], e[keep]
+        if done.any():
+            rows = idx[done]
+            q[rows], steps[rows], pos_err[rows] = qa[done], step, np.sqrt(p2[done])
+            if pose:
+                rot_err[rows] = np.sqrt(r2[done])
+            pose_out[rows], J_out[rows] = end[done], J[done]
+            if done.all():
+                break
+            keep = ~done
+            idx, qa, tgt, J, e = idx[keep], qa[keep], tgt[keep], J[keep], e[keep]
         if pose:  # square: solve J dq = e; damped normal equations only if a J is exactly singular
             try:
                 dq = np.linalg.solve(J, e[..., None])[..., 0]
@@ -729,12 +780,41 @@ def newton_ik(
             Jv = J[:, :3]
             A = Jv @ np.swapaxes(Jv, 1, 2) + damping * eye
             dq = np.einsum("kmi,km->ki", Jv, np.linalg.solve(A, e[..., None])[..., 0])
-        q[active] = project_to_limits(model, q[active] + dq)
-        steps[active] += 1
-    pos = np.linalg.norm(err[:, :3], axis=1)
-    rot = np.linalg.norm(err[:, 3:], axis=1) if pose else np.full(N, np.nan)
-    conv = (pos < tol_position) & ((rot < tol_rotation) if pose else True)
-    return NewtonResult(q, pos, rot, conv, steps)
+        q_step = qa + dq
+        inside = np.all((q_step >= lo) & (q_step <= hi), axis=1)
+        qa = q_step if inside.all() else project_to_limits(model, q_step)
+        # Certified rows: the step stayed inside the limits and its bound is far below the tolerances.
+        # The tip's second derivatives z_i x v_j are bounded by the largest |v_j| (the Jacobian's linear
+        # columns here), which moves by at most L sum |dq| along the step.
+        # What the step leaves of the linearised error itself (rounding; damping at a singularity,
+        # where a tiny step may leave most of the error) adds to the bound as it is.
+        s1 = np.abs(dq).sum(1)
+        s2 = s1 * s1
+        v_max = np.sqrt((J[:, :3] ** 2).sum(1).max(1))
+        left = e - ((J if pose else J[:, :3]) @ dq[..., None])[..., 0]
+        bound_p = (v_max + L * s1) * s2 + np.sqrt((left[:, :3] ** 2).sum(1))
+        cert = (bound_p < cert_p) & inside
+        if pose:
+            bound_r = 2.0 * s2 + np.sqrt((left[:, 3:] ** 2).sum(1))
+            cert &= bound_r < cert_r
+        if cert.all() and len(idx) == N:
+            q, steps[:], pos_err = qa, step + 1, bound_p
+            if pose:
+                rot_err = bound_r
+            pose_out[:], J_out[:] = np.nan, np.nan
+            break
+        if cert.any():
+            rows = idx[cert]
+            q[rows], steps[rows], pos_err[rows] = qa[cert], step + 1, bound_p[cert]
+            if pose:
+                rot_err[rows] = bound_r[cert]
+            pose_out[rows], J_out[rows] = np.nan, np.nan
+            if cert.all():
+                break
+            keep = ~cert
+            idx, qa, tgt = idx[keep], qa[keep], tgt[keep]
+    conv = (pos_err < tol_position) & ((rot_err < tol_rotation) if pose else True)
+    return NewtonResult(q, pos_err, rot_err if pose else np.full(N, np.nan), conv, steps, pose_out, J_out)
 
 
 def _frame_error(target: np.ndarray, current: np.ndarray) -> np.ndarray:
@@ -744,14 +824,15 @@ def _frame_error(target: np.ndarray, current: np.ndarray) -> np.ndarray:
 
 
 def nearest_branch_seed(
-    model: KinematicModel, T_base_flange: np.ndarray, q_ref: np.ndarray
+    model: KinematicModel, T_base_flange: np.ndarray, q_ref: np.ndarray, validate: bool = True
 ) -> tuple[np.ndarray, np.ndarray]:
     """Per target, the closed-form branch (within the limits, 2 pi-shifted) nearest q_ref (N, n) or (n,).
 
     Exact branches are preferred; a stretched one is taken only if no exact one exists. Returns
     (q (N, n), reachable (N,)): reachable is False where no branch is exact within REACH_SLACK.
+    `validate=False` skips the checks of T_base_flange (callers that checked them already).
     """
-    qb, overshoot = _ur_branches(model, _as_transforms(T_base_flange, "T_base_flange"))
+    qb, overshoot = _ur_branches(model, T_base_flange, validate)
     N, B, n = qb.shape
     ref = np.broadcast_to(np.asarray(q_ref, dtype=float), (N, n))
     # Rank by the 2 pi-wrapped distance first (cheap), then shift only the pick into the limits.
@@ -774,12 +855,13 @@ def nearest_branch_seed(
 
 
 def same_branch_seed(
-    model: KinematicModel, T_base_flange: np.ndarray, q_ref: np.ndarray
+    model: KinematicModel, T_base_flange: np.ndarray, q_ref: np.ndarray, validate: bool = True
 ) -> tuple[np.ndarray, np.ndarray]:
     """Per target, the closed-form solution on the branch (shoulder, wrist, elbow) of the reference
     posture q_ref ((n,) or (N, n)), 2 pi-shifted nearest it: one branch instead of eight. Targets where
-    that branch is out of reach or outside the limits get `nearest_branch_seed`. Same returns as it."""
-    T = _ur_wrist_frames(model, T_base_flange)
+    that branch is out of reach or outside the limits get `nearest_branch_seed`. Same returns as it.
+    `validate=False` skips the checks of T_base_flange (callers that checked them already)."""
+    T = _ur_wrist_frames(model, T_base_flange, validate)
     N, n = T.shape[0], model.n_joints
     q_ref = np.asarray(q_ref, dtype=float)
     branch = ur_branch_index(model, q_ref[None] if q_ref.ndim == 1 else q_ref)
@@ -789,7 +871,7 @@ def same_branch_seed(
     reachable = np.ones(N, bool)
     other = np.flatnonzero(~ok | (over > 1e-9))
     if other.size:
-        q[other], reachable[other] = nearest_branch_seed(model, T_base_flange[other], ref[other])
+        q[other], reachable[other] = nearest_branch_seed(model, T_base_flange[other], ref[other], False)
     return q, reachable
 
 

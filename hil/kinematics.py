@@ -15,6 +15,7 @@ from scipy.spatial.transform import Rotation
 
 from hil.se3 import rot_y
 
+SMALL_BATCH = 24  # up to this many rows the chain is built from (4, 4) matmuls (fewer numpy calls)
 PARAM_KINDS_DH: tuple[str, ...] = ("theta", "d", "a", "alpha")
 PARAM_KINDS_MDH: tuple[str, ...] = ("theta", "a", "alpha", "beta")
 
@@ -166,33 +167,51 @@ def forward_kinematics(model: KinematicModel, q: np.ndarray) -> np.ndarray:
 
 
 def _chain(
-    model: KinematicModel, q: np.ndarray, frames: np.ndarray | None, axes: list | None = None
+    model: KinematicModel,
+    q: np.ndarray,
+    frames: np.ndarray | None,
+    axes: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Last-link rotation (N, 3, 3) and origin (N, 3), optionally filling every link frame into `frames`
-    and appending each joint's axis and a point on it, ((3, N), (3, N)), to `axes`.
+    and every frame's z axis and origin into `axes` = (Z (n, 3, N), O (n + 1, 3, N)), base frame.
 
-    Same product as `joint_transforms` chained, written column by column on (N, 3) axis arrays: a
-    batched 4x4 matmul per joint costs an order of magnitude more for small matrices.
+    Same product as `joint_transforms` chained, written column by column on (3, N) axis arrays: a
+    batched 4x4 matmul per joint costs an order of magnitude more for small matrices. The constant
+    factors are Python floats and zero lengths are skipped: the loop's cost is its number of numpy calls.
     Rz(th) turns x, y about z; Tz(d) Tx(a) moves the origin by d z + a x'; Rx(alpha), Ry(beta) turn again.
     """
     N, n = q.shape
+    if N <= SMALL_BATCH and frames is None:
+        return _chain_small(model, q, axes)
     th = (q + model.theta).T  # (n, N): every axis array below is (3, N), contiguous per component
     ct, st = np.cos(th), np.sin(th)
+    d, a, cal, sal, cbe, sbe, has_beta, _ = _chain_constants(model)
     x, y, z = np.zeros((3, N)), np.zeros((3, N)), np.zeros((3, N))
     x[0] = y[1] = z[2] = 1.0
     p = np.zeros((3, N))
     for i in range(n):
         if axes is not None:
-            axes.append((z, p))
+            axes[0][i] = z
+            axes[1][i] = p
         c, s = ct[i], st[i]
-        x1 = c * x + s * y
-        y1 = c * y - s * x
-        p = p + model.d[i] * z + model.a[i] * x1
-        ca, sa = np.cos(model.alpha[i]), np.sin(model.alpha[i])
-        y = ca * y1 + sa * z
-        z2 = ca * z - sa * y1
-        if model.beta[i] != 0:
-            cb, sb = np.cos(model.beta[i]), np.sin(model.beta[i])
+        x1 = c * x
+        x1 += s * y
+        y1 = c * y
+        y1 -= s * x
+        if d[i] != 0.0:
+            p = p + d[i] * z
+        if a[i] != 0.0:
+            p = p + a[i] * x1
+        ca, sa = cal[i], sal[i]
+        if sa == 0.0 and ca == 1.0:  # alpha = 0 (a nominal parallel axis): no turn about x
+            y, z2 = y1, z
+        else:
+            y = ca * y1
+            y += sa * z
+            z2 = ca * z
+            z2 -= sa * y1
+        if has_beta[i]:
+            cb, sb = cbe[i], sbe[i]
             x, z = cb * x1 - sb * z2, sb * x1 + cb * z2
         else:
             x, z = x1, z2
@@ -201,7 +220,67 @@ def _chain(
             frames[:, i + 1, :3, 1] = y.T
             frames[:, i + 1, :3, 2] = z.T
             frames[:, i + 1, :3, 3] = p.T
+    if axes is not None:
+        axes[1][n] = p
     return np.stack([x, y, z], axis=1).transpose(2, 0, 1), p.T
+
+
+_CONSTANTS: dict[tuple[bytes, ...], tuple] = {}
+
+
+def _chain_constants(model: KinematicModel) -> tuple:
+    """A model's constant chain factors, computed once per geometry (the arrays are read-only):
+    d, a, cos/sin alpha, cos/sin beta and which joints use beta as Python floats/bools, and the rows
+    (c0, c1, c2) of every joint's Rx(alpha) Ry(beta), (n, 3) each."""
+    arrays = [np.asarray(v, float) for v in (model.d, model.a, model.alpha, model.beta)]
+    key = tuple(v.tobytes() for v in arrays)
+    got = _CONSTANTS.get(key)
+    if got is None:
+        d, a, alpha, beta = arrays
+        ca, sa, cb, sb = np.cos(alpha), np.sin(alpha), np.cos(beta), np.sin(beta)
+        rows = (
+            np.stack([cb, np.zeros(len(cb)), sb], 1),
+            np.stack([sa * sb, ca, -sa * cb], 1),
+            np.stack([-ca * sb, sa, ca * cb], 1),
+        )
+        for r in rows:
+            r.flags.writeable = False
+        got = (d.tolist(), a.tolist(), ca.tolist(), sa.tolist(), cb.tolist(), sb.tolist(), (beta != 0).tolist(), rows)
+        if len(_CONSTANTS) > 256:  # many models in one process (calibration sweeps): start again
+            _CONSTANTS.clear()
+        _CONSTANTS[key] = got
+    return got
+
+
+def _chain_small(
+    model: KinematicModel, q: np.ndarray, axes: tuple[np.ndarray, np.ndarray] | None
+) -> tuple[np.ndarray, np.ndarray]:
+    """`_chain` for a few rows: every joint's (4, 4) transform built at once, then n - 1 batched matmuls.
+    Fewer numpy calls than the column-wise loop, which wins from a few dozen rows on."""
+    N, n = q.shape
+    th = q + model.theta
+    ct, st = np.cos(th)[..., None], np.sin(th)[..., None]  # (N, n, 1)
+    c0, c1, c2 = _chain_constants(model)[-1]  # rows of Rx(alpha) Ry(beta); the joint turns Rz(th) times it
+    A = np.zeros((N, n, 4, 4))
+    A[..., 0, :3] = ct * c0 - st * c1
+    A[..., 1, :3] = st * c0 + ct * c1
+    A[..., 2, :3] = c2
+    A[..., 0, 3] = ct[..., 0] * model.a
+    A[..., 1, 3] = st[..., 0] * model.a
+    A[..., 2, 3] = model.d
+    A[..., 3, 3] = 1.0
+    T = A[:, 0]
+    if axes is not None:
+        axes[0][0] = np.array([[0.0], [0.0], [1.0]])
+        axes[1][0] = 0.0
+    for i in range(1, n):
+        if axes is not None:
+            axes[0][i] = T[:, :3, 2].T
+            axes[1][i] = T[:, :3, 3].T
+        T = T @ A[:, i]
+    if axes is not None:
+        axes[1][n] = T[:, :3, 3].T
+    return T[:, :3, :3], T[:, :3, 3]
 
 
 def tool_points(model: KinematicModel, q: np.ndarray, p_flange_tool: np.ndarray) -> np.ndarray:
@@ -222,38 +301,43 @@ def geometric_jacobian(
     return pose_and_jacobian(model, q, p_flange_tool)[1]
 
 
-def pose_and_jacobian(
-    model: KinematicModel, q: np.ndarray, p_flange_tool: np.ndarray | None = None
-) -> tuple[np.ndarray, np.ndarray]:
-    """Flange poses T_base_flange (N, 4, 4) and the geometric Jacobian (N, 6, n) at the tool point, in one
-    pass over the chain (the Newton step of the IK needs both)."""
+def chain_axes(model: KinematicModel, q: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Flange poses T_base_flange (N, 4, 4), joint axes Z (n, 3, N) and link origins O (n + 1, 3, N) in
+    the base frame, in one pass over the chain: joint i + 1 turns about Z[i] through O[i] (frame i's z
+    axis and origin); O[n] is the last link's origin. What Jacobians and lever arms need, without
+    filling every (4, 4) link frame."""
     q = model.check_joints(q)
-    axes: list = []
-    R, p = _chain(model, q, None, axes)
-    T = np.zeros((q.shape[0], 4, 4))
+    N, n = q.shape
+    Z, O = np.empty((n, 3, N)), np.empty((n + 1, 3, N))
+    R, p = _chain(model, q, None, (Z, O))
+    T = np.zeros((N, 4, 4))
     T[:, :3, :3] = R
     T[:, :3, 3] = p
     T[:, 3, 3] = 1.0
     L = np.asarray(model.T_last_flange, dtype=float)
     if not np.array_equal(L, np.eye(4)):
         T = T @ L
-    tip = (
-        T[:, :3, 3]
-        if p_flange_tool is None
-        else T[:, :3, :3] @ np.asarray(p_flange_tool, float) + T[:, :3, 3]
-    )
-    Z = np.stack([z for z, _ in axes])  # (n, 3, N): joint axes
-    r = tip.T[None] - np.stack([o for _, o in axes])  # (n, 3, N): from a point on each axis to the tip
-    v = np.stack(
-        [
-            Z[:, 1] * r[:, 2] - Z[:, 2] * r[:, 1],
-            Z[:, 2] * r[:, 0] - Z[:, 0] * r[:, 2],
-            Z[:, 0] * r[:, 1] - Z[:, 1] * r[:, 0],
-        ],
-        axis=1,
-    )  # v_i = z_i x (tip - o_i), omega_i = z_i
-    J = np.concatenate([v, Z], axis=1).transpose(2, 1, 0)  # (N, 6, n)
-    return T, J
+    return T, Z, O
+
+
+def pose_and_jacobian(
+    model: KinematicModel, q: np.ndarray, p_flange_tool: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Flange poses T_base_flange (N, 4, 4) and the geometric Jacobian (N, 6, n) at the tool point, in one
+    pass over the chain (the Newton step of the IK needs both)."""
+    T, Z, O = chain_axes(model, q)
+    n, _, N = Z.shape
+    tip = T[:, :3, 3] if p_flange_tool is None else T[:, :3, :3] @ np.asarray(p_flange_tool, float) + T[:, :3, 3]
+    r = tip.T - O[:n]  # (n, 3, N): from a point on each axis to the tip
+    # Rows [v; omega], v_i = z_i x (tip - o_i), omega_i = z_i, filled as (6, n, N) and returned as a view.
+    Jt = np.empty((6, n, N))
+    Zx, Zy, Zz = Z[:, 0], Z[:, 1], Z[:, 2]
+    rx, ry, rz = r[:, 0], r[:, 1], r[:, 2]
+    np.subtract(Zy * rz, Zz * ry, out=Jt[0])
+    np.subtract(Zz * rx, Zx * rz, out=Jt[1])
+    np.subtract(Zx * ry, Zy * rx, out=Jt[2])
+    Jt[3:] = Z.transpose(1, 0, 2)
+    return T, Jt.transpose(2, 0, 1)
 
 
 def kinematic_point_jacobian(

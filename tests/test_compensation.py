@@ -1,7 +1,7 @@
 """Model-based pseudo-target compensation: the model is the truth here, so what is left is the loop's own error.
 
-The remaining error of every answer is re-checked through the public `CalibratedModel.predict` on a dataset
-frame (not the compensation's own predictor), and its orientation through the model's joint offsets.
+The remaining error of every answer is re-checked through `CalibratedModel.predict_poses` (the public
+`predict` on a dataset frame, orientation through the joint offsets), not the compensation's own predictor.
 """
 
 from dataclasses import replace
@@ -16,7 +16,7 @@ from hil.calibrated_model import CalibratedModel
 from hil.compensation import ENSEMBLE, STATUSES, PosePredictor, PseudoTargetIK, compensate, compensate_path
 from hil.dataset import make_dataset
 from hil.effects import EffectContext, make_effect
-from hil.ik import default_home, same_branch_seed, ur_branch_index
+from hil.ik import default_home, newton_ik, same_branch_seed, ur_branch_index
 from hil.kinematics import forward_kinematics
 from hil.pseudo_targets import GENERATORS, pose_errors, update_pseudo_target
 from hil.residual_maps import make_map
@@ -50,20 +50,8 @@ def model():
     return ur10_model()
 
 
-def actual_poses(model: CalibratedModel, q: np.ndarray) -> np.ndarray:
-    """The model's SMR position (public predict) and flange orientation in the tracker frame."""
-    df = make_dataset(q, np.zeros((len(q), 3)), smr=1)
-    p = model.predict(df)
-    ctx, _ = model.context(df)
-    R = (
-        model.T_tracker_base[:3, :3]
-        @ forward_kinematics(model.kinematic, q + model.joint_offsets(ctx))[:, :3, :3]
-    )
-    return make_transform(R, p)
-
-
 def reachable_targets(model: CalibratedModel, n: int, seed: int) -> np.ndarray:
-    return actual_poses(model, ur10_joints(np.random.default_rng(seed), n))
+    return model.predict_poses(ur10_joints(np.random.default_rng(seed), n))
 
 
 @pytest.mark.parametrize("ik_model", ["kinematic", "nominal"])
@@ -72,7 +60,7 @@ def test_true_model_leaves_under_a_micrometre(model, ik_model):
     for targets in (T_target[:, :3, 3], T_target):
         res = compensate(model, targets, threshold_m=1e-7, ik_model=ik_model)
         assert np.all(res.status == "ok"), res.summary()
-        reached = actual_poses(model, res.q)
+        reached = model.predict_poses(res.q)
         dp, dr = pose_errors(reached, T_target)
         assert dp.max() < 1e-6
         assert np.mean(res.initial_error_m) > 2e-4  # there was something to compensate
@@ -88,7 +76,7 @@ def test_true_model_leaves_under_a_micrometre(model, ik_model):
 def test_every_generator_converges(model, generator):
     T_target = reachable_targets(model, 200, seed=2)
     res = compensate(model, T_target, generator=generator, threshold_m=1e-6, max_iter=15)
-    reached = actual_poses(model, res.q)
+    reached = model.predict_poses(res.q)
     dp, dr = pose_errors(reached, T_target)
     assert dp.max() < 1e-6
     if generator == "fixed":  # keeps the target's orientation: the orientation error is never corrected
@@ -106,7 +94,7 @@ def test_ensemble_is_never_worse_than_the_best_single_generator(model):
     ens = compensate(model, T_target, generator=ENSEMBLE, **kw)
     assert np.all(ens.cost_m <= singles.min(axis=0) * (1 + 1e-12))
     assert len(set(ens.generator)) > 1  # different generators win on different targets
-    dp, dr = pose_errors(actual_poses(model, ens.q), T_target)
+    dp, dr = pose_errors(model.predict_poses(ens.q), T_target)
     np.testing.assert_allclose(np.hypot(dp, 0.1 * dr), ens.cost_m, rtol=1e-6, atol=1e-12)
 
 
@@ -119,7 +107,7 @@ def test_a_2000_point_circle_stays_on_one_branch(model):
     assert not res.branch_jump.any()
     assert len(np.unique(ur_branch_index(model.kinematic, res.q))) == 1
     assert np.abs(np.diff(res.q, axis=0)).max() < 0.01  # neighbours' joints stay close: no flips
-    dp, _ = pose_errors(actual_poses(model, res.q), make_transform(np.eye(3), targets))
+    dp, _ = pose_errors(model.predict_poses(res.q), make_transform(np.eye(3), targets))
     assert dp.max() < 1e-6
 
 
@@ -143,7 +131,7 @@ def test_no_answer_is_silently_wrong_near_singularities(model):
     # every target is either below the threshold for real, or marked with what went wrong and the error
     # its joints really leave (NaN joints when no IK answer exists at all).
     q = np.array([[0.3, -1.2, 1.5, -1.0, 0.0, 0.4], [0.2, -0.6, 0.0, -1.0, -1.2, 0.1]])
-    T_target = actual_poses(model, q)
+    T_target = model.predict_poses(q)
     beyond = transform_points(model.T_tracker_base, np.array([[1.45 * np.cos(0.3), 1.45 * np.sin(0.3), 0.2]]))
     for targets in (T_target, np.concatenate([T_target[:, :3, 3], beyond])):
         res = compensate(model, targets, threshold_m=1e-7)
@@ -154,7 +142,7 @@ def test_no_answer_is_silently_wrong_near_singularities(model):
             else targets
         )
         has_q = np.all(np.isfinite(res.q), axis=1)
-        dp, _ = pose_errors(actual_poses(model, res.q[has_q]), poses[has_q])
+        dp, _ = pose_errors(model.predict_poses(res.q[has_q]), poses[has_q])
         np.testing.assert_allclose(res.error_m[has_q], dp, atol=1e-9)
         assert np.all((res.status[has_q] == "ok") == (res.cost_m[has_q] < 1e-7))
         assert np.all(res.status[~has_q] != "ok") and np.all(np.isnan(res.error_m[~has_q]))
@@ -171,7 +159,7 @@ def test_residual_map_is_compensated_and_its_volume_warns(model):
     residual = 2e-4 * np.stack([np.sin(3 * p_base[:, 0]), np.cos(2 * p_base[:, 1]), p_base[:, 2]], 1)
     gp = make_map("gp").fit(q, p_base, residual, 5e-6)
     with_map = replace(model, residual_map=gp.to_dict())
-    targets = actual_poses(with_map, q[:40])[:, :3, 3]  # inside the volume the map was fitted in
+    targets = with_map.predict_poses(q[:40])[:, :3, 3]  # inside the volume the map was fitted in
     res = compensate(with_map, targets, threshold_m=1e-7)
     assert np.all(res.status == "ok")
     assert np.abs(with_map.predict(make_dataset(res.q, targets, smr=1)) - targets).max() < 1e-6
@@ -200,7 +188,7 @@ def test_a_perfect_move_makes_the_target_the_next_pseudo_target(generator):
 def test_predictor_matches_the_public_prediction(model):
     q = ur10_joints(np.random.default_rng(8), 50)
     T = PosePredictor(model)(q)
-    np.testing.assert_allclose(T, actual_poses(model, q), atol=1e-12)
+    np.testing.assert_allclose(T, model.predict_poses(q), atol=1e-12)
 
 
 def test_bad_targets_are_rejected(model):
@@ -229,7 +217,7 @@ def test_cli(model, tmp_path, capsys):
     assert df.loc[20, ["q1_rad", "q6_rad"]].isna().all()
     assert (df["error_mm"][:20] < 0.01).all() and (df["iterations"][:20] >= 1).all()
     q = df[[f"q{i}_rad" for i in range(1, 7)]].to_numpy()[:20]
-    assert np.abs(actual_poses(model, q)[:, :3, 3] * 1000.0 - points[:20]).max() < 0.01
+    assert np.abs(model.predict_poses(q)[:, :3, 3] * 1000.0 - points[:20]).max() < 0.01
 
     rv = np.rad2deg(Rotation.from_matrix(T_target[:, :3, :3]).as_rotvec())
     poses = pd.DataFrame(
@@ -274,9 +262,76 @@ def test_the_update_and_ik_steps_work_on_poses_from_elsewhere(model):
     T_p = T_target.copy()
     errors = []
     for _ in range(6):
-        T_reached = actual_poses(cell, q)
+        T_reached = cell.predict_poses(q)
         errors.append(pose_errors(T_reached, T_target)[0].max())
         T_p = update_pseudo_target("quaternion", T_target, T_reached, T_p)
         q, reason = ik.solve(T_p, q)
         assert np.all(reason == "ok")
     assert errors[0] > 1e-3 and errors[-1] < 1e-7
+
+
+@pytest.mark.parametrize("mode", ["pose", "position"])
+def test_newton_rows_ended_by_the_convergence_bound_are_converged(model, mode):
+    """Rows that Newton ends by its second-order bound, without evaluating them again, are within the
+    tolerance when evaluated, and their reported error bounds the true one."""
+    kin = model.kinematic
+    rng = np.random.default_rng(21)
+    q_true = ur10_joints(rng, 400)
+    T = forward_kinematics(kin, q_true)
+    target = T if mode == "pose" else T[:, :3, :3] @ TOOL + T[:, :3, 3]
+    tool = None if mode == "pose" else TOOL
+    for noise in (1e-2, 1e-3):
+        seed = q_true + rng.normal(0.0, noise, q_true.shape)
+        res = newton_ik(kin, target, seed, mode, tool, 16, tol_position=1e-8, tol_rotation=1e-7)
+        assert res.converged.all()
+        ended_by_bound = np.isnan(res.pose[:, 0, 0])
+        assert 0 < ended_by_bound.sum() < len(seed)  # both ways of ending occur
+        T_q = forward_kinematics(kin, res.q)
+        if mode == "pose":
+            dp = np.linalg.norm(T_q[:, :3, 3] - T[:, :3, 3], axis=1)
+            dr = pose_errors(T_q, T)[1]
+            assert np.all(dr <= res.rotation_error + 1e-15) and dr.max() < 1e-7
+        else:
+            dp = np.linalg.norm(T_q[:, :3, :3] @ TOOL + T_q[:, :3, 3] - target, axis=1)
+        assert np.all(dp <= res.error + 1e-15) and dp.max() < 1e-8
+        evaluated = ~ended_by_bound
+        np.testing.assert_allclose(res.pose[evaluated], T_q[evaluated], atol=1e-14)
+
+
+def test_newton_warm_start_is_the_cold_start_without_its_first_evaluation(model):
+    kin = model.kinematic
+    q = ur10_joints(np.random.default_rng(22), 300)
+    T = forward_kinematics(kin, q)
+    first = newton_ik(kin, T, q + 1e-3, max_steps=16, tol_position=1e-8, tol_rotation=1e-7)
+    moved = T.copy()
+    moved[:, :3, 3] += 2e-4  # the next pseudo targets, a little away
+    cold = newton_ik(kin, moved, first.q, max_steps=16, tol_position=1e-8, tol_rotation=1e-7)
+    warm = newton_ik(
+        kin, moved, first.q, max_steps=16, tol_position=1e-8, tol_rotation=1e-7, start=(first.pose, first.jacobian)
+    )
+    assert np.isnan(first.pose[:, 0, 0]).any()  # rows without a pose at the seed are evaluated then
+    np.testing.assert_allclose(warm.q, cold.q, atol=1e-13)
+    assert np.array_equal(warm.converged, cold.converged) and np.array_equal(warm.steps, cold.steps)
+
+
+def test_large_batches_run_in_blocks_with_the_same_answer(model, monkeypatch):
+    """compensate splits large batches into blocks; per-target drivers (backlash approach signs) and
+    seeds follow their targets, the result is the one of a single batch."""
+    backlash = make_effect("backlash", 2)
+    backlash.params = np.array([3e-4])
+    with_backlash = model.with_effect(backlash)
+    rng = np.random.default_rng(23)
+    q = ur10_joints(rng, 45)
+    approach = rng.choice([-1.0, 1.0], size=q.shape)
+    T_target = model.predict_poses(q)
+    for generator in ("yin", ENSEMBLE):
+        kw = {"generator": generator, "approach": approach, "q_seed": q + 0.01}
+        monkeypatch.setattr("hil.compensation.BLOCK_TARGETS", 2048)
+        whole = compensate(with_backlash, T_target, **kw)
+        monkeypatch.setattr("hil.compensation.BLOCK_TARGETS", 16)
+        blocks = compensate(with_backlash, T_target, **kw)
+        assert np.all(whole.status == "ok") and np.array_equal(blocks.status, whole.status)
+        for name in ("q", "error_m", "rotation_error_rad", "cost_m", "history", "initial_error_m"):
+            np.testing.assert_allclose(getattr(blocks, name), getattr(whole, name), atol=1e-12, equal_nan=True)
+        if generator == "yin":  # (an ensemble's near-ties between generators may fall either way)
+            assert np.array_equal(blocks.iterations, whole.iterations)

@@ -11,11 +11,14 @@ from hil import se3
 from hil.kinematics import (
     BASE_PARAM_NAMES,
     TOOL_PARAM_NAMES,
+    chain_axes,
     forward_kinematics,
     geometric_jacobian,
     identification_jacobian,
+    link_frames,
     measured_point,
     perturb_base,
+    pose_and_jacobian,
     tool_points,
 )
 from hil.robots import ROBOT_NAMES, get_robot
@@ -148,12 +151,13 @@ def test_identification_jacobian_matches_central_differences(name, use_beta):
 
 
 @pytest.mark.parametrize("name", ["ur5e", "irb2600"])
-def test_geometric_jacobian_matches_central_differences(name):
+@pytest.mark.parametrize("n", [5, 60])  # small batches take a (4, 4) matmul chain, larger ones the column loop
+def test_geometric_jacobian_matches_central_differences(name, n):
     m = get_robot(name).with_errors({"beta2": 2e-3})
-    q = random_joints(m, 5, seed=7)
+    q = random_joints(m, n, seed=7)
     p_tool = np.array([0.01, 0.05, 0.2])
     J = geometric_jacobian(m, q, p_tool)
-    assert J.shape == (5, 6, 6)
+    assert J.shape == (n, 6, 6)
     h = 1e-6
     for j in range(6):
         dq = np.zeros(6)
@@ -165,6 +169,24 @@ def test_geometric_jacobian_matches_central_differences(name):
         omega = Rotation.from_matrix(R_rel).as_rotvec() / (2 * h)
         np.testing.assert_allclose(J[:, :3, j], dp, atol=1e-8)
         np.testing.assert_allclose(J[:, 3:, j], omega, atol=1e-8)
+
+
+def test_small_and_large_batches_give_the_same_chain():
+    m = get_robot("ur10").with_errors({"beta2": 2e-3, "alpha3": 1e-3, "d4": 1e-4})
+    q = random_joints(m, 60, seed=8)
+    tool = np.array([0.01, 0.05, 0.2])
+    T, J = pose_and_jacobian(m, q, tool)
+    _, Z, O = chain_axes(m, q)
+    for rows in (slice(0, 1), slice(1, 9), slice(9, 60)):
+        T_r, J_r = pose_and_jacobian(m, q[rows], tool)
+        _, Z_r, O_r = chain_axes(m, q[rows])
+        np.testing.assert_allclose(T_r, T[rows], atol=1e-14)
+        np.testing.assert_allclose(J_r, J[rows], atol=1e-14)
+        np.testing.assert_allclose(Z_r, Z[:, :, rows], atol=1e-14)
+        np.testing.assert_allclose(O_r, O[:, :, rows], atol=1e-14)
+    frames = link_frames(m, q)  # the axes are the link frames' z columns and origins
+    np.testing.assert_allclose(Z, frames[:, :-1, :3, 2].transpose(1, 2, 0), atol=1e-14)
+    np.testing.assert_allclose(O, frames[:, :, :3, 3].transpose(1, 2, 0), atol=1e-14)
 
 
 # ------------------------------------------------------------------------------------------ SE(3)
