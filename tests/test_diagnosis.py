@@ -224,8 +224,8 @@ def test_the_verdict_is_data_and_the_report_words_it():
 def test_a_temperature_driven_thermal_candidate_goes_before_a_pose_effect_it_matches_per_parameter():
     from types import SimpleNamespace
 
-    from hil.diagnosis import Candidate, pick_winner
     from hil.effects import make_effect
+    from hil.screening import Candidate, pick_winner
 
     def winner(name, joint, k, gain_mm2, driver=None):
         eff = make_effect(name, joint)
@@ -248,7 +248,7 @@ def test_held_out_gain_counts_the_rows_of_one_pose_as_one_sample():
     """Three SMR rows per pose that share the pose's gain: the p-value is that of 40 samples, not 120."""
     from scipy import stats
 
-    from hil.diagnosis import held_out_gain
+    from hil.screening import held_out_gain
 
     rng = np.random.default_rng(0)
     pose = np.repeat(np.arange(40), 3)

@@ -122,9 +122,9 @@ def test_on_a_campaign_from_another_tracker_placement_never_worse_than_geometric
 
 
 def test_fakes_of_geometry_are_rejected_with_the_reason():
-    from hil.diagnosis import MAX_GEOMETRY_CORRELATION, geometry_correlation
     from hil.effects import EffectContext, make_effect
     from hil.robots import get_robot
+    from hil.screening import MAX_GEOMETRY_CORRELATION, geometry_correlation
 
     rng = np.random.default_rng(0)
     G = rng.normal(size=(300, 5))
