@@ -102,7 +102,7 @@ class TargetResult:
         }
 
 
-def error_stats(values: np.ndarray) -> dict[str, float]:
+def scalar_error_stats(values: np.ndarray) -> dict[str, float]:
     """mean / RMS / max / 95th percentile of errors (NaN rows ignored), in the input's unit."""
     v = np.asarray(values, float)
     v = v[np.isfinite(v)]
@@ -138,16 +138,16 @@ class LoopResult:
             },
             "iterations_mean": float(np.mean([t.iterations for t in v])) if v else np.nan,
             "position_mm": {
-                "uncompensated": error_stats(np.array([t.uncompensated_error_m for t in v]) * 1e3),
-                "start": error_stats(np.array([t.errors_m[0] for t in v]) * 1e3),
-                "final": error_stats(np.array([t.error_m for t in v]) * 1e3),
+                "uncompensated": scalar_error_stats(np.array([t.uncompensated_error_m for t in v]) * 1e3),
+                "start": scalar_error_stats(np.array([t.errors_m[0] for t in v]) * 1e3),
+                "final": scalar_error_stats(np.array([t.error_m for t in v]) * 1e3),
             },
         }
         if self.smrs == 3:
             out["orientation_deg"] = {
-                "uncompensated": error_stats(np.rad2deg([t.uncompensated_rotation_rad for t in v])),
-                "start": error_stats(np.rad2deg([t.rotation_errors_rad[0] for t in v])),
-                "final": error_stats(np.rad2deg([t.rotation_error_rad for t in v])),
+                "uncompensated": scalar_error_stats(np.rad2deg([t.uncompensated_rotation_rad for t in v])),
+                "start": scalar_error_stats(np.rad2deg([t.rotation_errors_rad[0] for t in v])),
+                "final": scalar_error_stats(np.rad2deg([t.rotation_error_rad for t in v])),
             }
         return out
 
