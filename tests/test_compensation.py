@@ -14,7 +14,7 @@ from scipy.spatial.transform import Rotation
 
 from hil.calibrated_model import CalibratedModel
 from hil.compensation import ENSEMBLE, STATUSES, PosePredictor, PseudoTargetIK, compensate, compensate_path
-from hil.dataset import make_dataset
+from hil.dataset import make_dataset, orientation_columns
 from hil.effects import EffectContext, make_effect
 from hil.ik import default_home, same_branch_seed, ur_branch_index
 from hil.kinematics import forward_kinematics
@@ -231,9 +231,9 @@ def test_cli(model, tmp_path, capsys):
     q = df[[f"q{i}_rad" for i in range(1, 7)]].to_numpy()[:20]
     assert np.abs(actual_poses(model, q)[:, :3, 3] * 1000.0 - points[:20]).max() < 0.01
 
-    rv = np.rad2deg(Rotation.from_matrix(T_target[:, :3, :3]).as_rotvec())
-    poses = pd.DataFrame(
-        np.hstack([points[:20], rv]), columns=["x_mm", "y_mm", "z_mm", "rx_deg", "ry_deg", "rz_deg"]
+    # rx/ry/rz_deg as in a dataset: the targeted frame's orientation in the tracker frame, xyz-extrinsic Euler
+    poses = pd.DataFrame(points[:20], columns=["x_mm", "y_mm", "z_mm"]).assign(
+        **orientation_columns(T_target[:, :3, :3])
     )
     poses.to_csv(tmp_path / "poses.csv", index=False)
     out = _hil(
@@ -253,6 +253,18 @@ def test_cli(model, tmp_path, capsys):
     df = pd.read_csv(tmp_path / "j2.csv")
     assert (df["status"] == "ok").all() and (df["error_mm"] < 0.001).all()
     assert (df["rotation_error_deg"] < 1e-3).all()
+    reached = actual_poses(model, df[[f"q{i}_rad" for i in range(1, 7)]].to_numpy())
+    assert pose_errors(reached, T_target)[1].max() < np.deg2rad(1e-3)  # the orientation the file meant
+
+    intrinsic = poses.copy()  # the same targets in the other convention, named by the option
+    intrinsic[["rx_deg", "ry_deg", "rz_deg"]] = Rotation.from_matrix(T_target[:, :3, :3]).as_euler("XYZ", True)
+    intrinsic.to_csv(tmp_path / "intrinsic.csv", index=False)
+    args = ("intrinsic.csv", "-o", "j4.csv", "--orientation-convention", "xyz-intrinsic", "--threshold-mm", "0.001")
+    out = _hil("compensate", "model.json", *args, cwd=tmp_path, capsys=capsys)
+    assert out[0] == 0, out[2]
+    df = pd.read_csv(tmp_path / "j4.csv")
+    reached = actual_poses(model, df[[f"q{i}_rad" for i in range(1, 7)]].to_numpy())
+    assert pose_errors(reached, T_target)[1].max() < np.deg2rad(1e-3)
 
     poses.drop(columns="rz_deg").to_csv(tmp_path / "bad.csv", index=False)
     out = _hil("compensate", "model.json", "bad.csv", "-o", "j3.csv", cwd=tmp_path, capsys=capsys)
