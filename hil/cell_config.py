@@ -82,8 +82,7 @@ class CellConfig:
         if self.robot_file_text is None:
             robot: dict[str, str] = {"model": self.robot_model}
         else:
-            path = str(Path(self.robot_model).resolve())
-            robot = {"model": path, "file": path, "file_text": self.robot_file_text}
+            robot = {"model": self.robot_model, "file": self.robot_model, "file_text": self.robot_file_text}
         return {"source": self.source, "cell": self.raw, "robot_definition": robot}
 
 
@@ -186,7 +185,7 @@ def _robot_model(r: _Reader, model: str | None, source: str) -> tuple[str | None
         except ValueError as exc:
             r.problems.append(f"robot.model: {exc}")
             return None, None
-        return str(path), text
+        return str(path.resolve()), text  # resolved now: the snapshot must not depend on a later cwd
     if model.lower() not in ROBOT_NAMES:
         r.problems.append(
             f"robot.model: unknown robot {model!r}; choose one of {', '.join(ROBOT_NAMES)} or give a robot file (.toml)"

@@ -305,6 +305,7 @@ def thermal_model(model: CalibratedModel, driver: str) -> CalibratedModel:
 
 
 def test_thermal_models_take_the_cell_temperature_and_refuse_time_from_another_clock(model, tmp_path, capsys):
+    model.save(tmp_path / "model.json")
     hot = thermal_model(model, "temperature_c")
     hot.save(tmp_path / "hot.json")
     thermal_model(model, "t_s").save(tmp_path / "drift.json")
@@ -345,9 +346,22 @@ def test_thermal_models_take_the_cell_temperature_and_refuse_time_from_another_c
     at = predicted(hot, df[Q_COLS].to_numpy(), grid["smr"], expected)
     assert np.linalg.norm(at - commanded_points(model, grid["q"], grid["smr"]), axis=1).max() < 2e-6
 
+    code, out, err = run("model.json", "job.sqlite", "--temperature-c", "25")
+    assert code == 0 and "--temperature-c changes nothing" in err, err
+
     for step in ("grid", "loop"):  # t_s of a campaign counts from its own start, not from the model's data
         code, out, err = run("drift.json", "job.sqlite", "--step", step)
         assert code == 2 and "thermal_drift effect is driven by time" in err and "not on that clock" in err, err
+
+    points = pd.DataFrame(T[:, :3, 3] * 1e3, columns=["x_mm", "y_mm", "z_mm"])
+    points.to_csv(tmp_path / "p.csv", index=False)
+    code, out, err = run("hot.json", "p.csv")
+    assert code == 2 and "TARGETS has no temperature_c value there" in err and "--temperature-c" in err, err
+    assert run("hot.json", "p.csv", "--temperature-c", "21")[0] == 0
+    code, out, err = run("drift.json", "p.csv")  # a CSV's t_s is on the model's clock: it must be there
+    assert code == 2 and "every target needs t_s" in err, err
+    points.assign(t_s=[100.0, 200.0, 300.0]).to_csv(tmp_path / "p.csv", index=False)
+    assert run("drift.json", "p.csv")[0] == 0
 
 
 def test_a_path_stays_in_one_nest(model, tmp_path, capsys):

@@ -29,7 +29,7 @@ from hil.dataset import (
     joint_columns,
     orientations,
 )
-from hil.effects import THERMAL_FAMILIES
+from hil.effects import THERMAL_FAMILIES, temperature_driven
 from hil.pseudo_targets import GENERATORS
 from hil.store import is_campaign_file
 
@@ -101,7 +101,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default=DEFAULT_ORIENTATION_CONVENTION,
         choices=tuple(ORIENTATION_CONVENTIONS),
         help="convention of the targets' rx_deg, ry_deg, rz_deg (tracker frame), read and written: "
-        "xyz-extrinsic = Rz(rz) Ry(ry) Rx(rx), xyz-intrinsic = Rx(rx) Ry(ry) Rz(rz)",
+        "xyz-extrinsic = Rz(rz) Ry(ry) Rx(rx) (default), xyz-intrinsic = Rx(rx) Ry(ry) Rz(rz)",
     )
     lo, hi = TEMPERATURE_RANGE_C
     p.add_argument(
@@ -111,7 +111,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         metavar="C",
         help=f"cell temperature to compensate for, degC in [{lo:g}, {hi:g}]: used for every target without "
         "its own temperature_c (loop targets have none) when the model has a temperature-driven thermal "
-        "effect",
+        "effect (default: none; such targets are refused)",
     )
     p.set_defaults(func=run)
 
@@ -175,7 +175,7 @@ def thermal_drivers(
     for eff in model.effects:
         if eff.family not in THERMAL_FAMILIES:
             continue
-        if eff.state.get("driver") == "temperature_c":
+        if temperature_driven(eff):
             missing = int(np.sum(~np.isfinite(temp)))
             if missing:
                 if campaign is not None and campaign[1] == "loop":
@@ -205,6 +205,8 @@ def thermal_drivers(
                 "the start of the data the model was calibrated on",
                 "add a t_s column to TARGETS, or calibrate without the time-driven effect",
             )
+    if temperature_c is not None and not any(temperature_driven(e) for e in model.effects):
+        print("warning: --temperature-c changes nothing: the model has no temperature-driven effect", file=sys.stderr)
     return drivers
 
 
