@@ -17,7 +17,7 @@ import numpy as np
 
 from hil.envelope import Envelope
 from hil.kinematics import KinematicModel
-from hil.robots import ROBOT_NAMES, get_robot, is_robot_file
+from hil.robots import ROBOT_NAMES, get_robot, is_robot_file, robot_from_text
 
 SMR_RADIUS_MM = 19.05  # 1.5" sphere
 
@@ -60,12 +60,15 @@ class CellConfig:
     settle_s: float
     q_home_rad: np.ndarray
     simulator_control: str | None = None  # control channel of a simulated cell (scripted operator)
+    robot_file_text: str | None = None  # the robot definition file's text when robot_model is a file
     source: str = "cell.toml"
     raw: dict = field(default_factory=dict)
 
     @cached_property
     def nominal(self) -> KinematicModel:
         """The nominal model of the configured robot (read once: planners and path checks ask per pose)."""
+        if self.robot_file_text is not None:
+            return robot_from_text(self.robot_file_text, self.robot_model)
         return get_robot(self.robot_model)
 
     def robot_mapping(self) -> dict[str, Any]:
@@ -73,8 +76,14 @@ class CellConfig:
         return {"host": self.robot_host, **self.robot_driver}
 
     def snapshot(self) -> dict:
-        """The configuration as read, for the campaign's station snapshot."""
-        return {"source": self.source, "cell": self.raw}
+        """The configuration as read, for the campaign's station snapshot; `robot_definition` holds what
+        rebuilds the nominal robot without the cell's files: the built-in name, or the robot file's
+        resolved path and text (so the campaign describes itself)."""
+        if self.robot_file_text is None:
+            robot: dict[str, str] = {"model": self.robot_model}
+        else:
+            robot = {"model": self.robot_model, "file": self.robot_model, "file_text": self.robot_file_text}
+        return {"source": self.source, "cell": self.raw, "robot_definition": robot}
 
 
 class _Reader:
@@ -156,31 +165,39 @@ def _numbers(value: Any) -> np.ndarray | None:
     return arr if np.all(np.isfinite(arr)) else None
 
 
-def _robot_model(r: _Reader, model: str | None, source: str) -> str | None:
-    """A built-in name (lower case) or a robot definition file, relative to the cell file's folder; None with
-    the problem noted when it is neither."""
+def _robot_model(r: _Reader, model: str | None, source: str) -> tuple[str | None, str | None]:
+    """A built-in name (lower case), or a robot definition file relative to the cell file's folder and its
+    text; None with the problem noted when it is neither."""
     if model is None:
-        return None
+        return None, None
     if is_robot_file(model):
         path = Path(model) if Path(model).is_absolute() else Path(source).parent / model
         try:
-            get_robot(str(path))
+            text = path.read_text()
+        except FileNotFoundError:
+            r.problems.append(f"robot.model: robot file not found: {path}; check the path")
+            return None, None
+        except (OSError, UnicodeDecodeError) as exc:
+            r.problems.append(f"robot.model: cannot read robot file {path} ({exc}); give a readable TOML file")
+            return None, None
+        try:
+            robot_from_text(text, path)
         except ValueError as exc:
             r.problems.append(f"robot.model: {exc}")
-            return None
-        return str(path)
+            return None, None
+        return str(path.resolve()), text  # resolved now: the snapshot must not depend on a later cwd
     if model.lower() not in ROBOT_NAMES:
         r.problems.append(
             f"robot.model: unknown robot {model!r}; choose one of {', '.join(ROBOT_NAMES)} or give a robot file (.toml)"
         )
-        return None
-    return model.lower()
+        return None, None
+    return model.lower(), None
 
 
 def parse_cell_config(data: dict, source: str = "cell.toml") -> CellConfig:
     """Build and check a CellConfig from parsed TOML; raises CellConfigError listing every problem."""
     r = _Reader(data)
-    model = _robot_model(r, r.get("robot", "model", "str", required=True), source)
+    model, robot_file_text = _robot_model(r, r.get("robot", "model", "str", required=True), source)
     host = r.get("robot", "host", "str", required=True)
     driver = {k: v for k, v in r.table("robot").items() if k in ROBOT_DRIVER_KEYS}
     for key, value in driver.items():
@@ -188,7 +205,7 @@ def parse_cell_config(data: dict, source: str = "cell.toml") -> CellConfig:
             r.problems.append(f"robot.{key}: must be a number, got {value!r}")
         elif key != "power_on_at_connect" and value <= 0:
             r.problems.append(f"robot.{key}: must be positive, got {value!r}")
-    nominal = get_robot(model) if model else None
+    nominal = (robot_from_text(robot_file_text, model) if robot_file_text else get_robot(model)) if model else None
     n = nominal.n_joints if nominal else 6
 
     url = r.get("tracker", "url", "str", required=True)
@@ -245,10 +262,10 @@ def parse_cell_config(data: dict, source: str = "cell.toml") -> CellConfig:
     r.unknown_keys({"robot": ROBOT_DRIVER_KEYS})
     if r.problems:
         raise CellConfigError(source, r.problems)
-    assert nests_arr is not None and model is not None  # a missing or malformed one is one of r.problems
+    assert nests_arr is not None and model is not None and nominal is not None  # a missing or malformed one is one of r.problems
     envelope = Envelope(box_min / 1e3, box_max / 1e3, np.deg2rad(jmin), np.deg2rad(jmax))
     home = np.deg2rad(home_deg)
-    problem = envelope.pose_problems(get_robot(model), home[None], nests_arr)[0]
+    problem = envelope.pose_problems(nominal, home[None], nests_arr)[0]
     if problem:
         raise CellConfigError(
             source, [f"motion.home_deg: the home pose leaves the envelope ({problem}); it is the safe detour of moves"]
@@ -271,6 +288,7 @@ def parse_cell_config(data: dict, source: str = "cell.toml") -> CellConfig:
         settle_s=settle_s,
         q_home_rad=home,
         simulator_control=simulator_control,
+        robot_file_text=robot_file_text,
         source=source,
         raw=data,
     )

@@ -67,10 +67,21 @@ def load_robot_file(path: str | Path, use_beta: bool = True) -> KinematicModel:
     """Read and check a robot definition file (raises ValueError naming the file, the key and what to fix)."""
     path = Path(path)
     try:
-        data = tomllib.loads(path.read_text())
+        text = path.read_text()
     except FileNotFoundError:
         raise ValueError(f"robot file not found: {path}; check the path") from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"{path}: not a valid TOML robot file ({exc}); fix its syntax") from None
+    return robot_from_text(text, path, use_beta)
+
+
+def robot_from_text(text: str, source: str | Path, use_beta: bool = True) -> KinematicModel:
+    """A robot definition file's text, checked and read (e.g. the copy a campaign keeps); `source` names it
+    in errors and gives the model's name when the text has none."""
+    path = Path(source)
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
         raise ValueError(f"{path}: not a valid TOML robot file ({exc}); fix its syntax") from None
     unknown = set(data) - _FILE_KEYS
     if unknown:

@@ -14,7 +14,7 @@ from scipy.spatial.transform import Rotation
 
 from hil.calibrated_model import CalibratedModel
 from hil.compensation import ENSEMBLE, STATUSES, PosePredictor, PseudoTargetIK, compensate, compensate_path
-from hil.dataset import make_dataset
+from hil.dataset import make_dataset, orientation_columns
 from hil.effects import EffectContext, make_effect
 from hil.ik import default_home, newton_ik, same_branch_seed, ur_branch_index
 from hil.kinematics import forward_kinematics
@@ -203,6 +203,14 @@ def test_bad_targets_are_rejected(model):
 _hil = hil_in_process
 
 
+def orientation_errors(model: CalibratedModel, q: np.ndarray, T_target: np.ndarray) -> np.ndarray:
+    """Angle (N,) rad between the flange orientation the model predicts at joints q (its public context and
+    geometry, not hil.compensation's predictor) and the targets' orientations."""
+    ctx, _ = model.context(make_dataset(q, np.zeros((len(q), 3)), smr=1))
+    R = model.T_tracker_base[:3, :3] @ forward_kinematics(model.kinematic, q + model.joint_offsets(ctx))[:, :3, :3]
+    return Rotation.from_matrix(np.swapaxes(T_target[:, :3, :3], 1, 2) @ R).magnitude()
+
+
 def test_cli(model, tmp_path, capsys):
     model.save(tmp_path / "model.json")
     T_target = reachable_targets(model, 20, seed=9)
@@ -219,9 +227,9 @@ def test_cli(model, tmp_path, capsys):
     q = df[[f"q{i}_rad" for i in range(1, 7)]].to_numpy()[:20]
     assert np.abs(model.predict_poses(q)[:, :3, 3] * 1000.0 - points[:20]).max() < 0.01
 
-    rv = np.rad2deg(Rotation.from_matrix(T_target[:, :3, :3]).as_rotvec())
-    poses = pd.DataFrame(
-        np.hstack([points[:20], rv]), columns=["x_mm", "y_mm", "z_mm", "rx_deg", "ry_deg", "rz_deg"]
+    # rx/ry/rz_deg as in a dataset: the targeted frame's orientation in the tracker frame, xyz-extrinsic Euler
+    poses = pd.DataFrame(points[:20], columns=["x_mm", "y_mm", "z_mm"]).assign(
+        **orientation_columns(T_target[:, :3, :3])
     )
     poses.to_csv(tmp_path / "poses.csv", index=False)
     out = _hil(
@@ -241,6 +249,18 @@ def test_cli(model, tmp_path, capsys):
     df = pd.read_csv(tmp_path / "j2.csv")
     assert (df["status"] == "ok").all() and (df["error_mm"] < 0.001).all()
     assert (df["rotation_error_deg"] < 1e-3).all()
+    q = df[[f"q{i}_rad" for i in range(1, 7)]].to_numpy()
+    assert orientation_errors(model, q, T_target).max() < np.deg2rad(1e-3)  # the orientation the file meant
+
+    intrinsic = poses.copy()  # the same targets in the other convention, named by the option
+    intrinsic[["rx_deg", "ry_deg", "rz_deg"]] = Rotation.from_matrix(T_target[:, :3, :3]).as_euler("XYZ", True)
+    intrinsic.to_csv(tmp_path / "intrinsic.csv", index=False)
+    args = ("intrinsic.csv", "-o", "j4.csv", "--orientation-convention", "xyz-intrinsic", "--threshold-mm", "0.001")
+    out = _hil("compensate", "model.json", *args, cwd=tmp_path, capsys=capsys)
+    assert out[0] == 0, out[2]
+    df = pd.read_csv(tmp_path / "j4.csv")
+    q = df[[f"q{i}_rad" for i in range(1, 7)]].to_numpy()
+    assert orientation_errors(model, q, T_target).max() < np.deg2rad(1e-3)
 
     poses.drop(columns="rz_deg").to_csv(tmp_path / "bad.csv", index=False)
     out = _hil("compensate", "model.json", "bad.csv", "-o", "j3.csv", cwd=tmp_path, capsys=capsys)

@@ -5,7 +5,11 @@
   (tool fit when the campaign has one, else the drawing) and the campaign's registration; one SMR, so
   point targets. Each keeps its point id, its nest and the time / temperature it was measured at, and the
   commanded joints seed its compensation (same posture and branch, the SMR still facing the tracker).
-- `loop` (pseudo_target): the loop's own targets (SMR 1 in nest 1), poses when it ran with three SMRs.
+- `loop` (pseudo_target): the loop's own targets (SMR 1 in nest 1), poses when it ran with three SMRs; their
+  orientation is written as rx_deg, ry_deg, rz_deg in the dataset's convention (hil.dataset).
+
+The nominal robot is rebuilt from the campaign's station snapshot: the robot file's text it keeps (hil.cell_config
+`CellConfig.snapshot`), else a built-in name; never from the current directory.
 """
 
 from __future__ import annotations
@@ -18,8 +22,9 @@ import pandas as pd
 from scipy.spatial.transform import Rotation
 
 from hil.commands.errors import CliError
-from hil.kinematics import forward_kinematics
-from hil.robots import get_robot
+from hil.dataset import ORIENTATION_COLUMNS, check_orientation_convention
+from hil.kinematics import KinematicModel, forward_kinematics
+from hil.robots import get_robot, is_robot_file, robot_from_text
 from hil.store import CampaignError, CampaignStore
 
 # --step NAME -> (procedure, step) in the campaign; the default is the first of DEFAULT_ORDER it holds
@@ -34,7 +39,8 @@ DEFAULT_ORDER: tuple[str, ...] = ("loop", "validation", "grid")
 @dataclass
 class CampaignTargets:
     """Targets (tracker frame, m): points (N, 3) or poses (N, 4, 4); `frame` holds the columns the output
-    starts with (point_id, step_id, smr, x_mm.. [rx_deg..] [t_s, temperature_c]); `smr` the nest per target."""
+    starts with (point_id, step_id, smr, x_mm.. [rx_deg..] [t_s, temperature_c]); `smr` the nest per target;
+    `robot` the name of the campaign's nominal robot."""
 
     step: str
     targets: np.ndarray
@@ -58,8 +64,11 @@ def available_steps(store: CampaignStore) -> dict[str, int]:
     return out
 
 
-def read_campaign_targets(path: str | Path, step: str | None = None) -> CampaignTargets:
-    """The targets of one step of a campaign (default: loop, else validation, else grid); CliError on bad input."""
+def read_campaign_targets(
+    path: str | Path, step: str | None = None, orientation_convention: str = "xyz-extrinsic"
+) -> CampaignTargets:
+    """The targets of one step of a campaign (default: loop, else validation, else grid); pose targets get
+    rx_deg, ry_deg, rz_deg in `orientation_convention` (hil.dataset's names). CliError on bad input."""
     if step is not None and step not in SOURCES:
         raise CliError(f"--step {step!r} is not a target source", f"give --step {' | '.join(SOURCES)}")
     try:
@@ -82,21 +91,49 @@ def read_campaign_targets(path: str | Path, step: str | None = None) -> Campaign
                 f"campaign {path} has no {step} targets; it has: {listing}",
                 f"give --step {' | '.join(have)}",
             )
-        robot = _robot_name(store, path)
         if step == "loop":
-            return _loop_targets(store, robot)
-        return _commanded_points(store, path, step, robot)
+            return _loop_targets(store, campaign_robot(store, path).name, orientation_convention)
+        return _commanded_points(store, path, step, campaign_robot(store, path))
 
 
-def _robot_name(store: CampaignStore, path: str | Path) -> str:
+def campaign_robot(store: CampaignStore, path: str | Path) -> KinematicModel:
+    """The campaign's nominal robot from its newest station snapshot naming one: the robot file's text the
+    snapshot keeps, else the built-in name; an older snapshot's robot file is looked for beside its cell file."""
     for snapshot in reversed(store.snapshots()):
-        model = snapshot.get("cell", {}).get("robot", {}).get("model")
-        if isinstance(model, str):
-            return model.lower()
+        definition = snapshot.get("robot_definition")
+        cell_robot = snapshot.get("cell", {}).get("robot", {})
+        try:
+            if isinstance(definition, dict) and isinstance(definition.get("file_text"), str):
+                return robot_from_text(definition["file_text"], str(definition.get("file", "robot file")))
+            model = definition.get("model") if isinstance(definition, dict) else cell_robot.get("model")
+            if not isinstance(model, str):
+                continue
+            if not is_robot_file(model):
+                return get_robot(model)
+            return _robot_file_beside_cell(model, snapshot.get("source"), path)
+        except ValueError as exc:
+            raise CliError(
+                f"campaign {path}: its robot cannot be rebuilt: {exc}",
+                "give the targets as a CSV (hil campaign export, then x_mm, y_mm, z_mm)",
+            ) from exc
     raise CliError(
         f"campaign {path} has no station snapshot naming the robot ([robot] model)",
         "give the targets as a CSV (hil campaign export, then x_mm, y_mm, z_mm)",
     )
+
+
+def _robot_file_beside_cell(model: str, cell_source: object, path: str | Path) -> KinematicModel:
+    """A robot file named by a snapshot that keeps no copy of it (older campaigns): the path as written in the
+    cell file, relative to that file's folder."""
+    file = Path(model)
+    if not file.is_absolute() and isinstance(cell_source, str):
+        file = Path(cell_source).parent / file
+    if not file.is_file():
+        raise CliError(
+            f"campaign {path} names the robot file {model!r} but keeps no copy of it, and it is not at {file}",
+            f"put the robot file back at {file}, or give the targets as a CSV (hil campaign export)",
+        )
+    return robot_from_text(file.read_text(), file)
 
 
 def _drawing_nests_m(store: CampaignStore) -> dict[int, np.ndarray]:
@@ -107,7 +144,7 @@ def _drawing_nests_m(store: CampaignStore) -> dict[int, np.ndarray]:
     return {}
 
 
-def _commanded_points(store: CampaignStore, path: str | Path, step: str, robot: str) -> CampaignTargets:
+def _commanded_points(store: CampaignStore, path: str | Path, step: str, robot: KinematicModel) -> CampaignTargets:
     """SMR centres the commanded joints aimed at, by nominal kinematics + nest + registration (tracker frame)."""
     procedure, step_name = SOURCES[step]
     reg = store.step_result("registration", "fit")
@@ -132,7 +169,7 @@ def _commanded_points(store: CampaignStore, path: str | Path, step: str, robot: 
             "run `hil run tool_fit` on the campaign, or give the targets as a CSV",
         )
     q = np.stack(m["q_target_rad"].to_numpy()).astype(float)
-    T = forward_kinematics(get_robot(robot), q)
+    T = forward_kinematics(robot, q)
     p_flange = np.array([nests[s] for s in smr])
     p_base = np.einsum("nij,nj->ni", T[:, :3, :3], p_flange) + T[:, :3, 3]
     p = p_base @ T_tracker_base[:3, :3].T + T_tracker_base[:3, 3]
@@ -140,14 +177,13 @@ def _commanded_points(store: CampaignStore, path: str | Path, step: str, robot: 
     for i, axis in enumerate("xyz"):
         frame[f"{axis}_mm"] = p[:, i] * 1e3
     frame["t_s"] = m["timestamp_s"].to_numpy(float) - store.started_s
-    temperature = m["temperature_c"].to_numpy(float)
-    if np.all(np.isfinite(temperature)):
-        frame["temperature_c"] = temperature
-    return CampaignTargets(step, p, frame, smr, robot, q_seed=q)
+    frame["temperature_c"] = m["temperature_c"].to_numpy(float)  # NaN where no sensor read it
+    return CampaignTargets(step, p, frame, smr, robot.name, q_seed=q)
 
 
-def _loop_targets(store: CampaignStore, robot: str) -> CampaignTargets:
-    """The pseudo-target loop's targets (SMR 1 in nest 1): points, or poses when it ran with three SMRs."""
+def _loop_targets(store: CampaignStore, robot: str, orientation_convention: str) -> CampaignTargets:
+    """The pseudo-target loop's targets (SMR 1 in nest 1): points, or poses when it ran with three SMRs (no
+    time or temperature: the loop pinned where, not when)."""
     pinned = store.step_result(*SOURCES["loop"])
     assert pinned is not None  # available_steps found it
     targets = np.asarray(pinned["targets_m"], float)
@@ -156,8 +192,9 @@ def _loop_targets(store: CampaignStore, robot: str) -> CampaignTargets:
     p = targets[:, :3, 3] if targets.ndim == 3 else targets
     for i, axis in enumerate("xyz"):
         frame[f"{axis}_mm"] = p[:, i] * 1e3
-    if targets.ndim == 3:
-        rotvec = np.rad2deg(Rotation.from_matrix(targets[:, :3, :3]).as_rotvec())
-        for i, axis in enumerate("xyz"):
-            frame[f"r{axis}_deg"] = rotvec[:, i]
+    if targets.ndim == 3:  # the targeted frame's orientation in the tracker frame, as the dataset writes it
+        seq = check_orientation_convention(orientation_convention)
+        angles = Rotation.from_matrix(targets[:, :3, :3]).as_euler(seq, degrees=True)
+        for col, values in zip(ORIENTATION_COLUMNS, angles.T, strict=True):
+            frame[col] = values
     return CampaignTargets("loop", targets, frame, np.ones(len(targets), int), robot)

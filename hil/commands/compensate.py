@@ -1,6 +1,8 @@
 """`hil compensate model.json TARGETS -o JOINTS.csv`: joints that put the SMR on the targets, by the model.
 
-TARGETS is a CSV of points / poses or a campaign file (hil.commands.campaign_targets says which targets).
+TARGETS is a CSV of points / poses or a campaign file (hil.commands.campaign_targets says which targets). A pose's
+rx_deg, ry_deg, rz_deg mean what they mean in a dataset (hil.dataset): the orientation of the targeted frame (the
+flange's axes at the SMR) in the tracker frame, xyz-extrinsic Euler unless --orientation-convention says otherwise.
 """
 
 from __future__ import annotations
@@ -12,19 +14,26 @@ from dataclasses import fields
 
 import numpy as np
 import pandas as pd
-from scipy.spatial.transform import Rotation
 
 from hil.calibrated_model import CalibratedModel
-from hil.commands.arg_checks import InputError, check_paths
+from hil.commands.arg_checks import InputError, check_paths, float_in
 from hil.commands.campaign_targets import DEFAULT_ORDER, SOURCES, read_campaign_targets
 from hil.commands.errors import CliError
 from hil.compensation import ENSEMBLE, CompensationResult, compensate, compensate_path
-from hil.dataset import POSITION_COLUMNS, joint_columns
+from hil.dataset import (
+    DEFAULT_ORIENTATION_CONVENTION,
+    ORIENTATION_COLUMNS,
+    ORIENTATION_CONVENTIONS,
+    POSITION_COLUMNS,
+    convert_orientation_convention,
+    joint_columns,
+    orientations,
+)
+from hil.effects import THERMAL_FAMILIES, temperature_driven
 from hil.pseudo_targets import GENERATORS
 from hil.store import is_campaign_file
 
-ORIENTATION_COLUMNS: tuple[str, ...] = ("rx_deg", "ry_deg", "rz_deg")
-DRIVER_COLUMNS: tuple[str, ...] = ("t_s", "temperature_c")
+TEMPERATURE_RANGE_C = (-20.0, 60.0)  # --temperature-c: a cell's air, not a typo in kelvin or fahrenheit
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -32,12 +41,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "compensate",
         help="joints that make a calibrated model put the SMR on target points or poses (pseudo-target loop)",
         description="Model-based pseudo-target compensation. Targets: x_mm, y_mm, z_mm of the SMR in the "
-        "tracker frame, optionally rx_deg, ry_deg, rz_deg (flange orientation in the tracker frame as a "
-        "rotation vector in degrees, like a UR pose) for full-pose targets, and t_s / temperature_c when "
-        "the model has thermal effects. Or a campaign file (hil run / hil demo): the targets of one of its "
-        "steps (--step), each with its point id and SMR nest. Writes one row per target: q1_rad..q6_rad, "
-        "the predicted remaining error, the iterations used and a status; targets that cannot be "
-        "compensated are kept and marked.",
+        "tracker frame, optionally rx_deg, ry_deg, rz_deg for full-pose targets (the orientation of the "
+        "targeted frame, i.e. the flange's axes at the SMR, in the tracker frame: Euler angles in degrees "
+        "as in a dataset, xyz-extrinsic unless --orientation-convention says otherwise), and "
+        "temperature_c (or --temperature-c) / t_s when the model has thermal effects. Or a campaign file "
+        "(hil run / hil demo): the targets of one of its steps (--step), each with its point id and SMR "
+        "nest. Writes one row per target: q1_rad..q6_rad, the predicted remaining error, the iterations "
+        "used and a status; targets that cannot be compensated are kept and marked.",
     )
     p.add_argument("model", help="model JSON written by 'hil calibrate' or 'hil diagnose -o'")
     p.add_argument("targets", help="CSV of targets (see above), or a campaign file")
@@ -83,7 +93,25 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--path",
         action="store_true",
-        help="targets are an ordered path: keep one IK branch, flag branch jumps (UR arms)",
+        help="targets are an ordered path of one SMR nest: keep one IK branch, flag branch jumps (UR arms); "
+        "targets in several nests are refused (give --smr, or one file per nest)",
+    )
+    p.add_argument(
+        "--orientation-convention",
+        default=DEFAULT_ORIENTATION_CONVENTION,
+        choices=tuple(ORIENTATION_CONVENTIONS),
+        help="convention of the targets' rx_deg, ry_deg, rz_deg (tracker frame), read and written: "
+        "xyz-extrinsic = Rz(rz) Ry(ry) Rx(rx) (default), xyz-intrinsic = Rx(rx) Ry(ry) Rz(rz)",
+    )
+    lo, hi = TEMPERATURE_RANGE_C
+    p.add_argument(
+        "--temperature-c",
+        type=float_in(lo, hi),
+        default=None,
+        metavar="C",
+        help=f"cell temperature to compensate for, degC in [{lo:g}, {hi:g}]: used for every target without "
+        "its own temperature_c (loop targets have none) when the model has a temperature-driven thermal "
+        "effect (default: none; such targets are refused)",
     )
     p.set_defaults(func=run)
 
@@ -125,8 +153,66 @@ def compensate_per_smr(
     return CompensationResult(**merged)
 
 
-def read_targets(path: str) -> tuple[np.ndarray, pd.DataFrame]:
-    """Targets (N, 3) points or (N, 4, 4) poses in metres from a CSV; ValueError says what to fix."""
+def thermal_drivers(
+    model: CalibratedModel, df: pd.DataFrame, temperature_c: float | None, campaign: tuple[str, str] | None
+) -> dict[str, np.ndarray]:
+    """t_s / temperature_c per target for the model's thermal effects, `temperature_c` (--temperature-c) filling
+    the targets without one. CliError when a temperature-driven effect lacks temperatures (names the option),
+    or when a time-driven one meets campaign targets (`campaign` = (file, step)): their t_s counts from that
+    campaign's start, which the model cannot tie to the start of the data it was calibrated on."""
+    n = len(df)
+    drivers: dict[str, np.ndarray] = {}
+    if "t_s" in df.columns:
+        drivers["t_s"] = pd.to_numeric(df["t_s"], errors="coerce").to_numpy(float)
+    if "temperature_c" in df.columns:
+        temp = pd.to_numeric(df["temperature_c"], errors="coerce").to_numpy(float)
+    else:
+        temp = np.full(n, np.nan)
+    if temperature_c is not None:
+        temp = np.where(np.isfinite(temp), temp, temperature_c)
+    if np.isfinite(temp).any():
+        drivers["temperature_c"] = temp
+    for eff in model.effects:
+        if eff.family not in THERMAL_FAMILIES:
+            continue
+        if temperature_driven(eff):
+            missing = int(np.sum(~np.isfinite(temp)))
+            if missing:
+                if campaign is not None and campaign[1] == "loop":
+                    why = "the pseudo-target loop's targets carry no temperature"
+                elif campaign is not None:
+                    why = f"no temperature was read at those points of {campaign[0]}"
+                else:
+                    why = "TARGETS has no temperature_c value there"
+                lo, hi = TEMPERATURE_RANGE_C
+                raise CliError(
+                    f"the model's {eff.family} effect is driven by the temperature, and {missing} of {n} "
+                    f"targets have none ({why})",
+                    f"give --temperature-c C, the cell temperature to compensate for ({lo:g} to {hi:g} degC)",
+                )
+        elif campaign is not None:  # driven by time since the start of the model's training data
+            raise CliError(
+                f"the model's {eff.family} effect is driven by time (t_s since the start of the data it was "
+                f"calibrated on), and the targets of campaign {campaign[0]} are not on that clock: a "
+                "campaign's t_s counts from its own start, and the model does not record which campaign "
+                "it came from",
+                "calibrate on data with temperature_c (a temperature-driven effect takes --temperature-c), "
+                "or without the thermal effect, or give the targets as a CSV with t_s on the model's clock",
+            )
+        elif not np.all(np.isfinite(drivers.get("t_s", np.full(n, np.nan)))):
+            raise CliError(
+                f"the model's {eff.family} effect is driven by time: every target needs t_s, seconds since "
+                "the start of the data the model was calibrated on",
+                "add a t_s column to TARGETS, or calibrate without the time-driven effect",
+            )
+    if temperature_c is not None and not any(temperature_driven(e) for e in model.effects):
+        print("warning: --temperature-c changes nothing: the model has no temperature-driven effect", file=sys.stderr)
+    return drivers
+
+
+def read_targets(path: str, orientation_convention: str = DEFAULT_ORIENTATION_CONVENTION) -> tuple[np.ndarray, pd.DataFrame]:
+    """Targets (N, 3) points or (N, 4, 4) poses T_tracker_tool in metres from a CSV, rx/ry/rz_deg read as in a
+    dataset (hil.dataset, in `orientation_convention`); ValueError says what to fix."""
     try:
         df = pd.read_csv(path)
     except (OSError, pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
@@ -143,15 +229,17 @@ def read_targets(path: str) -> tuple[np.ndarray, pd.DataFrame]:
     if have_rot and len(have_rot) != 3:
         raise ValueError(f"{path}: give all of rx_deg, ry_deg, rz_deg for full-pose targets, or none")
     cols = list(POSITION_COLUMNS) + have_rot
-    values = df[cols].apply(pd.to_numeric, errors="coerce").to_numpy(float)
+    numeric = df[cols].apply(pd.to_numeric, errors="coerce")
+    values = numeric.to_numpy(float)
     bad = np.flatnonzero(~np.all(np.isfinite(values), axis=1))
     if bad.size:
         raise ValueError(f"{path}: row {bad[0] + 1} has a missing or non-numeric value in {', '.join(cols)}")
     p = values[:, :3] / 1000.0
-    if not have_rot:
+    R = orientations(convert_orientation_convention(numeric, orientation_convention))
+    if R is None:
         return p, df
     T = np.zeros((len(df), 4, 4))
-    T[:, :3, :3] = Rotation.from_rotvec(np.deg2rad(values[:, 3:])).as_matrix()
+    T[:, :3, :3] = R
     T[:, :3, 3] = p
     T[:, 3, 3] = 1.0
     return T, df
@@ -173,11 +261,11 @@ def run(args: argparse.Namespace) -> int:
     try:
         model = CalibratedModel.load(args.model)
         if campaign:
-            source = read_campaign_targets(args.targets, args.step)
+            source = read_campaign_targets(args.targets, args.step, args.orientation_convention)
             targets, df, q_seed = source.targets, source.frame, source.q_seed
             smr = source.smr if args.smr is None else np.full(len(df), args.smr)
             print(f"{len(df)} {source.step} targets of campaign {args.targets}", file=sys.stderr)
-            if source.robot != model.robot.lower():
+            if source.robot.lower() != model.robot.lower():
                 print(
                     f"warning: the campaign's robot is {source.robot}, the model's {model.robot}",
                     file=sys.stderr,
@@ -189,10 +277,19 @@ def run(args: argparse.Namespace) -> int:
                     f"calibrate with measurements of those nests, or give --smr {sorted(model.tools)[0]}",
                 )
         else:
-            targets, df = read_targets(args.targets)
+            targets, df = read_targets(args.targets, args.orientation_convention)
             q_seed = None
             smr = np.full(len(df), sorted(model.tools)[0] if args.smr is None else args.smr)
-        drivers = {c: df[c].to_numpy(float) for c in DRIVER_COLUMNS if c in df.columns}
+        nests = sorted(set(smr.tolist()))
+        if args.path and len(nests) > 1:
+            raise CliError(
+                f"--path keeps one IK branch along the targets of one SMR nest; these are in nests {nests}",
+                f"give --smr {nests[0]} to put one nest on every target, or one path per nest "
+                "(split the targets by their smr column)",
+            )
+        drivers = thermal_drivers(
+            model, df, args.temperature_c, (args.targets, source.step) if campaign else None
+        )
         kwargs = dict(
             generator=args.generator,
             threshold_m=args.threshold_mm / 1000.0,
@@ -210,6 +307,10 @@ def run(args: argparse.Namespace) -> int:
     for w in caught:
         print(f"warning: {w.message}", file=sys.stderr)
     out = df.copy()
+    if campaign:
+        out["smr"] = smr  # the nest each target was compensated for (--smr overrides the campaign's)
+    if "temperature_c" in drivers:
+        out["temperature_c"] = drivers["temperature_c"]  # what each target was compensated for
     for i, col in enumerate(joint_columns(res.q.shape[1])):
         out[col] = res.q[:, i]
     out["error_mm"] = res.error_m * 1000.0
