@@ -26,11 +26,11 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-from scipy.spatial.transform import Rotation
 
 from hil.calibrated_model import CalibratedModel
 from hil.cell_config import CellConfig
 from hil.compensation import PosePredictor, PseudoTargetIK, compensate, pose_cost
+from hil.dataset import ORIENTATION_COLUMNS, orientations
 from hil.kinematics import forward_kinematics
 from hil.operator import OperatorStep
 from hil.plan import Plan, PlannedPose
@@ -237,7 +237,8 @@ def random_targets(config: CellConfig, model: CalibratedModel, count: int, seed:
 
 def read_targets_csv(path: str | Path) -> np.ndarray:
     """Targets from a CSV: x_mm, y_mm, z_mm (SMR 1 in the tracker frame), optionally rx_deg, ry_deg, rz_deg
-    (flange orientation, tracker frame, rotation vector) for full-pose targets."""
+    (flange orientation in the tracker frame, the dataset's convention: hil.dataset.orientations) for full-pose
+    targets."""
     try:
         df = pd.read_csv(path)
     except (OSError, pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:
@@ -256,7 +257,7 @@ def read_targets_csv(path: str | Path) -> np.ndarray:
     if not rot:
         return values / 1e3
     T = np.tile(np.eye(4), (len(values), 1, 1))
-    T[:, :3, :3] = Rotation.from_rotvec(np.deg2rad(values[:, 3:])).as_matrix()
+    T[:, :3, :3] = orientations(pd.DataFrame(values[:, 3:], columns=list(ORIENTATION_COLUMNS)))
     T[:, :3, 3] = values[:, :3] / 1e3
     return T
 
