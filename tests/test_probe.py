@@ -352,7 +352,7 @@ def test_spatial_folds_of_fewer_distinct_points_than_folds():
 
 def test_one_orientation_copied_onto_every_smr_row_of_a_pose_counts_once():
     cell = _cell(2)
-    q = grid_joints(cell, step_m=0.3, seed=2)
+    q = grid_joints(cell, step_m=0.2, seed=2)
     df = simulate_campaign(cell, q, nests=[1, 2, 3], probe=Probe.drawn(2))
     pose = pose_ids(df)
     copied = df.copy()  # a single-probe export: the pose's one reading on each of its SMR rows
