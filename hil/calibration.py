@@ -13,7 +13,8 @@ Two solvers over the same model and the same identifiable parameter set:
   are recomputed from the standardised residuals at every step, so a point rejected while the model was
   still far off can come back.
 - ``lm``: scipy ``least_squares`` (trust-region, Levenberg-Marquardt-like) with a robust loss (soft L1,
-  scale 1.5 sigma, sigma from a first least-squares pass by the median absolute deviation).
+  scale 1.5 sigma, sigma from a first least-squares pass by the median absolute deviation: the positions'
+  for position coordinates, a probe's rotations' for rotation coordinates, as IGG3 judges them).
 
 Both report parameter standard errors (sigma0^2 times the inverse of the normal matrix) and flag a point
 as an outlier when its standardised residual exceeds k1.
@@ -21,6 +22,7 @@ as an outlier when its standardised residual exceeds k1.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -33,7 +35,16 @@ from scipy.spatial.transform import Rotation
 from threadpoolctl import threadpool_limits
 
 from hil.calibrated_model import CalibratedModel, initial_model, with_initial_probes
-from hil.dataset import data_rows, joints_rad, orientations, points_m, pose_ids, smr_ids
+from hil.dataset import (
+    ORIENTATION_COLUMNS,
+    data_rows,
+    joints_rad,
+    orientations,
+    points_m,
+    pose_ids,
+    repeated_orientation_counts,
+    smr_ids,
+)
 from hil.effects import EffectContext
 from hil.folds import kfold, location_spacing, spatial_folds
 from hil.identifiability import IdentifiabilityReport, analyse, scale_columns
@@ -67,7 +78,9 @@ class Problem:
     Each row is one observation: its position residual (3, m) and, with orientations, its rotation
     residual log(R_measured R_predicted^T) (the SO(3) log vector in the tracker frame, rad: the same angle as
     log(R_measured^T R_predicted)) times `rot_scale` = position sigma / angle sigma (m/rad), so that the
-    unweighted least squares over the (N, 6) residual is the maximum-likelihood fit.
+    unweighted least squares over the (N, 6) residual is the maximum-likelihood fit. A reading copied onto
+    n rows of one pose (a single-probe export repeats it on every SMR row) is one measurement: each copy's
+    rotation equations get weight 1/sqrt(n) (`rot_weight`), so together they count once.
     """
 
     ctx: EffectContext
@@ -76,6 +89,7 @@ class Problem:
     pose: np.ndarray | None = None  # (N,) pose id of each row (rows of one pose share a fold)
     R_measured: np.ndarray | None = None  # (N, 3, 3) probe orientation in the tracker frame
     rot_scale: float = 0.0  # m per rad: weight of the rotation residual against the position one
+    rot_weight: np.ndarray | None = None  # (N,) 1/sqrt(copies of the row's orientation reading in its pose)
 
     @classmethod
     def from_frame(
@@ -92,14 +106,39 @@ class Problem:
         measured = points_m(df)
         R = orientations(df) if orientation else None
         scale = 0.0
+        pose = pose_ids(df)
+        weight = None
         if R is not None:
+            weight = 1.0 / np.sqrt(repeated_orientation_counts(df, pose))
             if angle_noise_rad <= 0:
                 raise ValueError(f"probe angle noise must be > 0 rad, got {angle_noise_rad}")
             sigma_p = position_noise_m(measured) if position_noise is None else position_noise
             if sigma_p <= 0:
                 raise ValueError(f"position noise must be > 0 m, got {sigma_p}")
             scale = sigma_p / angle_noise_rad
-        return cls(ctx, smr_ids(df), measured, pose_ids(df), R, scale)
+        return cls(ctx, smr_ids(df), measured, pose, R, scale, weight)
+
+    @property
+    def rot_factor(self) -> np.ndarray:
+        """(N, 1) factor from a rotation log vector (rad) to its weighted residual (m)."""
+        w = np.ones(len(self.measured)) if self.rot_weight is None else self.rot_weight
+        return (self.rot_scale * w)[:, None]
+
+    @property
+    def copy_weight(self) -> np.ndarray:
+        """(N, 3|6) weight of each residual coordinate for copied readings (1, or a rotation's 1/sqrt(n)):
+        a residual over it is on the scale of one reading, so robust scales and outlier tests use that."""
+        if self.R_measured is None:
+            return np.ones((len(self.measured), 3))
+        w = np.ones(len(self.measured)) if self.rot_weight is None else self.rot_weight
+        return np.concatenate([np.ones((len(w), 3)), np.repeat(w[:, None], 3, axis=1)], axis=1)
+
+    @property
+    def n_rotation_readings(self) -> float:
+        """Independent orientation readings (copies within a pose counted once), 0 without orientation."""
+        if self.R_measured is None:
+            return 0.0
+        return float(len(self.measured) if self.rot_weight is None else np.sum(self.rot_weight**2))
 
     @property
     def n_obs(self) -> int:
@@ -114,6 +153,7 @@ class Problem:
             None if self.pose is None else self.pose[rows],
             None if self.R_measured is None else self.R_measured[rows],
             self.rot_scale,
+            None if self.rot_weight is None else self.rot_weight[rows],
         )
 
     def evaluate(self, model: CalibratedModel) -> tuple[np.ndarray, np.ndarray]:
@@ -125,9 +165,10 @@ class Problem:
             return r, J
         R_pred, J_rot = model.rotation_jacobian_ctx(self.ctx, self.smr)
         r_rot = rotation_log(self.R_measured @ np.swapaxes(R_pred, 1, 2))
+        f = self.rot_factor
         return (
-            np.concatenate([r, self.rot_scale * r_rot], axis=1),
-            np.concatenate([J, self.rot_scale * J_rot], axis=1),
+            np.concatenate([r, f * r_rot], axis=1),
+            np.concatenate([J, f[:, :, None] * J_rot], axis=1),
         )
 
     def residuals(self, model: CalibratedModel) -> np.ndarray:
@@ -138,7 +179,7 @@ class Problem:
             return r
         R_pred = model.predict_rotation_ctx(self.ctx, self.smr)
         r_rot = rotation_log(self.R_measured @ np.swapaxes(R_pred, 1, 2))
-        return np.concatenate([r, self.rot_scale * r_rot], axis=1)
+        return np.concatenate([r, self.rot_factor * r_rot], axis=1)
 
     def spatial_folds(self, k: int, seed: int) -> list[np.ndarray]:
         """k folds that are blocks of the measured volume, every row of one pose in the same fold (its
@@ -150,6 +191,11 @@ class Problem:
         np.add.at(centres, pose, self.measured)
         centres /= np.bincount(pose, minlength=n_pose)[:, None]
         return [np.flatnonzero(np.isin(pose, f)) for f in spatial_folds(centres, k, seed)]
+
+    @property
+    def n_poses(self) -> int:
+        """Distinct robot poses among the rows (spatial folds are made of whole poses)."""
+        return self._compact_poses()[1]
 
     def _compact_poses(self) -> tuple[np.ndarray, int]:
         """Pose ids renumbered 0..n-1 over this problem's rows (a subset keeps the full set's ids)."""
@@ -334,7 +380,8 @@ def solve_ridge_igg3(
         r0, J0 = problem.evaluate(model)
         r0v, J0f = r0.reshape(-1), flatten_jacobian(J0)[:, free]
         del J0
-    prior_mask = np.array([not (n.startswith("base_") or n.startswith("tool")) for n in names])[free]
+    # The prior holds the robot's geometry and effects, not the set-up (base frame, tool points, probes).
+    prior_mask = np.array([not n.startswith(("base_", "tool", "probe")) for n in names])[free]
     N_pts = problem.measured.shape[0]
     d = problem.n_obs  # coordinates per point: position, and a probe's scaled rotation
     w_pts = np.ones(N_pts)
@@ -387,7 +434,8 @@ def solve_ridge_igg3(
         # all coordinates; positions and a probe's rotations each their own): a weighted sigma0 re-estimated
         # each step shrinks as points are rejected and lets the re-weighting reject ever more points.
         if sigma_robust is None:
-            sigma_robust = np.tile(robust_scales(r_new.reshape(N_pts, d), centred=False), N_pts)
+            cw = problem.copy_weight
+            sigma_robust = (robust_scales(r_new.reshape(N_pts, d) / cw, centred=False) * cw).reshape(-1)
         t_rows = r_new / (sigma_robust * np.sqrt(red))
         t_pts = np.sqrt(np.mean(t_rows.reshape(N_pts, d) ** 2, axis=1))
         w_new = igg3_weight(t_pts, k0, k1)
@@ -438,7 +486,23 @@ def robust_scales(r: np.ndarray, centred: bool) -> np.ndarray:
 
 def _rotation_part(problem: Problem, r: np.ndarray) -> np.ndarray | None:
     """The rotation residual (N, 3) rad out of a (N, 6) residual, None for position-only problems."""
-    return r[:, 3:] / problem.rot_scale if problem.R_measured is not None else None
+    return r[:, 3:] / problem.rot_factor if problem.R_measured is not None else None
+
+
+def _scaled_loss(loss: str, scale: np.ndarray) -> str | Callable[[np.ndarray], np.ndarray]:
+    """`loss` ("soft_l1" or "linear") with a scale per residual coordinate, as a scipy least_squares
+    callable (f_scale 1): rho_i(z) = c_i^2 rho(z / c_i^2), quadratic where |f_i| << c_i."""
+    if loss == "linear":
+        return "linear"
+    if loss != "soft_l1":
+        raise ValueError(f"unknown robust loss '{loss}'; choose 'soft_l1' or 'linear'")
+    c2 = scale**2
+
+    def soft_l1(z: np.ndarray) -> np.ndarray:
+        u = 1.0 + z / c2
+        return np.stack([2.0 * c2 * (np.sqrt(u) - 1.0), u**-0.5, -0.5 * u**-1.5 / c2])
+
+    return soft_l1
 
 
 def solve_lm(
@@ -479,16 +543,18 @@ def solve_lm(
 
     x0 = np.zeros(int(free.sum()))
     first = least_squares(fun, x0, jac=jac, x_scale="jac", method="trf", max_nfev=30, xtol=1e-12, ftol=1e-12)
-    sigmas = np.maximum(robust_scales(first.fun.reshape(-1, problem.n_obs), centred=True), 1e-9)
-    sigma = float(sigmas[0])  # the positions' scale sets the loss (a probe's rows are flagged on their own)
+    cw = problem.copy_weight
+    sigmas = np.maximum(robust_scales(first.fun.reshape(cw.shape) / cw, centred=True), 1e-9) * cw  # (N, d)
+    # Each coordinate leaves the quadratic part of the loss at K0 times its own robust scale (positions,
+    # and a probe's rotations, as IGG3 judges them): one scale for all would treat every rotation as an
+    # outlier (or none) whenever the angle noise setting is off.
     sol = least_squares(
         fun,
         first.x,
         jac=jac,
         x_scale="jac",
         method="trf",
-        loss=loss,
-        f_scale=K0 * sigma,
+        loss=_scaled_loss(loss, K0 * sigmas.reshape(-1)),
         max_nfev=60,
         xtol=1e-12,
     )
@@ -562,6 +628,7 @@ def _calibrate(
     full = Problem.from_frame(
         model, df, orientation=True, angle_noise_rad=angle_noise_rad, position_noise=position_noise
     )
+    check_orientation_readings(model, full)
     # A big campaign converges on a fixed random subset first, then finishes on every row (below).
     big = len(df) > CONVERGE_ROWS
     problem = (
@@ -572,11 +639,14 @@ def _calibrate(
     model = solve_ridge_igg3(model, problem, pre_free, robust=False, max_iter=10).model
     report = identify(model, problem, tol)
     n_free = int(report.keep_mask.sum())
-    n_eq = problem.n_obs * len(df)
-    if n_eq < 2 * n_free + 10:
+    n_eq = 3 * len(df) + int(round(3 * full.n_rotation_readings))
+    need = 2 * n_free + 10
+    if n_eq < need:
+        n_pose = full.n_poses
         raise ValueError(
-            f"{len(df)} points give {n_eq} equations for {n_free} identifiable parameters; measure at "
-            f"least {int(np.ceil((2 * n_free + 10) / 3))} well-spread poses (a 100-200 mm grid gives hundreds)"
+            f"{len(df)} rows at {n_pose} distinct poses give {n_eq} equations for {n_free} identifiable "
+            f"parameters (at least {need} needed); measure at least {int(np.ceil(need * n_pose / n_eq))} "
+            "well-spread poses (a 100-200 mm grid gives hundreds)"
         )
     if solver not in ("ridge", "lm"):
         raise ValueError(f"unknown solver '{solver}'; choose 'ridge' or 'lm'")
@@ -612,7 +682,7 @@ def _calibrate(
             "angle_noise_deg": float(np.rad2deg(angle_noise_rad)),
             "position_noise_mm": full.rot_scale * angle_noise_rad * 1000,
         }
-    result.notes += implausible_changes(result)
+    result.notes += implausible_changes(result) + orientation_notes(result, angle_noise_rad)
     _honest_numbers(result, problem)
     return result
 
@@ -622,7 +692,7 @@ def _honest_numbers(result: CalibrationResult, problem: Problem, k: int = 5) -> 
     rows = np.flatnonzero(~result.outliers)
     inliers = problem.subset(rows)
     evaluated = inliers.evaluate(result.model)  # one Jacobian for both figures
-    if len(rows) >= 4 * k:
+    if inliers.n_poses >= 2 * k:  # distinct poses: the rows of one pose share a fold
         folds = inliers.spatial_folds(k, 0)
         result.std_folds = fold_spread_std(result, inliers, folds, evaluated)
     pairs = confounded_pairs(result, inliers, evaluated=evaluated)
@@ -739,6 +809,47 @@ def implausible_changes(result: CalibrationResult) -> list[str]:
             "model right (data of another robot?), are the joints in radians and the positions in mm?"
         )
     return out
+
+
+# A probe reading right, in the right convention and units, agrees with the nominal arm, registered on the
+# positions, within about a degree (median 0.5 deg on a simulated UR10); the wrong Euler convention gives
+# tens of degrees, radians in the _deg columns some 45.
+ORIENTATION_PLAUSIBLE_DEG = 5.0
+# After the fit, an orientation RMS beyond this many times the probe's stated noise gets a note.
+ORIENTATION_NOISE_FACTOR = 3.0
+
+
+def check_orientation_readings(model: CalibratedModel, problem: Problem) -> None:
+    """Refuse orientation readings that the nominal model (initial base registration and probe-in-flange
+    estimate) misses by more than ORIENTATION_PLAUSIBLE_DEG in the median row: a wrong convention or unit
+    would otherwise drag the position calibration off by millimetres."""
+    if problem.R_measured is None:
+        return
+    rot = _rotation_part(problem, problem.residuals(model))
+    assert rot is not None
+    median = float(np.rad2deg(np.median(np.linalg.norm(rot, axis=1))))
+    if median > ORIENTATION_PLAUSIBLE_DEG:
+        raise ValueError(
+            f"the probe orientation columns {', '.join(ORIENTATION_COLUMNS)} disagree with the nominal "
+            f"{model.nominal.name} by {median:.1f} deg in the median row (readings that fit agree within "
+            f"about {ORIENTATION_PLAUSIBLE_DEG:g} deg): are they in the convention given with "
+            "--orientation-convention (xyz-extrinsic or xyz-intrinsic) and in degrees, not radians? "
+            "Drop the three columns to calibrate on positions only"
+        )
+
+
+def orientation_notes(result: CalibrationResult, angle_noise_rad: float) -> list[str]:
+    """A note when the fitted orientation residual is far above the probe's stated noise."""
+    rms = result.orientation_rms_deg
+    expected = float(np.rad2deg(np.sqrt(3) * angle_noise_rad))  # 3-D RMS of the per-axis noise
+    if rms is None or rms <= ORIENTATION_NOISE_FACTOR * expected:
+        return []
+    return [
+        f"orientation: the probe's rotation residual RMS is {rms:.3g} deg, {rms / expected:.0f}x what its "
+        f"stated noise ({np.rad2deg(angle_noise_rad):.3g} deg per axis) gives: the rotation equations weigh "
+        "too much; check the angle noise (--probe-angle-noise-deg), the probe's mounting, and the "
+        "orientation convention"
+    ]
 
 
 def check_joint_limits(df: pd.DataFrame, nominal: KinematicModel, source: str = "dataset") -> None:

@@ -86,6 +86,15 @@ def validate_dataset(
                 f"{source}: column 'smr' must hold integer nest ids (bad value in data row {row})"
             )
         out["smr"] = smr.astype(int)
+    if "pose" in out.columns:
+        blank = (out["pose"].isna() | (out["pose"].astype(str).str.strip() == "")).to_numpy()
+        if blank.any():
+            rows = ", ".join(str(r + 1) for r in np.flatnonzero(blank)[:5])
+            raise DatasetError(
+                f"{source}: column 'pose' is blank in data row(s) {rows}{' ...' if blank.sum() > 5 else ''} "
+                "(row 1 = first line after the header); give every row its pose id, or drop the column to "
+                "group rows by their joints"
+            )
     q = out[joint_columns(n_joints)].to_numpy()
     if np.any(np.abs(q) > 4 * np.pi):
         row = int(np.flatnonzero(np.any(np.abs(q) > 4 * np.pi, axis=1))[0]) + 1
@@ -299,20 +308,70 @@ def pose_ids(df: pd.DataFrame) -> np.ndarray:
     (several SMRs read while the robot stood still, or the same joints visited again). Rows of one pose
     share the robot's systematic error, so cross-validation must keep them in one fold.
     """
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-    from scipy.spatial import cKDTree
-
     if "pose" in df.columns:
         label = np.unique(df["pose"].astype(str).to_numpy(), return_inverse=True)[1].ravel()
     else:
         q = df[[c for c in df.columns if re.fullmatch(r"q\d+_rad", str(c))]].to_numpy(float)
         if len(q) == 0:
             return np.zeros(0, int)
-        pairs = cKDTree(q).query_pairs(SAME_POSE_RAD, p=np.inf, output_type="ndarray")
-        graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(q), len(q)))
-        label = connected_components(graph, directed=False)[1]
+        label = _near_groups(q, SAME_POSE_RAD)
     _, first = np.unique(label, return_index=True)
     rank = np.empty(len(first), int)
     rank[np.argsort(first)] = np.arange(len(first))
     return rank[label]
+
+
+def _near_groups(q: np.ndarray, tol: float) -> np.ndarray:
+    """Connected components (N,) of the rows of `q` linked when all coordinates agree within `tol`.
+
+    Rows are first collapsed to the grid cells of size `tol` they fall in (rows of one cell all agree
+    within `tol`), then only cells next to each other are compared row by row: memory and time grow with
+    the rows, not with the pairs of rows (thousands of rows at one pose, a drift log, stay cheap).
+    """
+    from scipy.spatial import cKDTree
+
+    cells, cell_of = np.unique(np.floor(q / tol).astype(np.int64), axis=0, return_inverse=True)
+    cell_of = cell_of.ravel()
+    n_cells = len(cells)
+    order = np.argsort(cell_of, kind="stable")
+    bounds = np.searchsorted(cell_of[order], np.arange(n_cells + 1))
+    # Cells whose indices differ by at most 1 in every joint may hold rows within tol of each other.
+    near = cKDTree(cells.astype(float)).query_pairs(1.0, p=np.inf, output_type="ndarray")
+    reach = np.nextafter(tol, np.inf)  # query's bound is strict; rows exactly tol apart are one pose
+    parent = np.arange(n_cells)
+
+    def root(c: int) -> int:
+        while parent[c] != c:
+            parent[c] = parent[parent[c]]
+            c = int(parent[c])
+        return c
+
+    trees: dict[int, cKDTree] = {}
+    for a, b in near:
+        ra, rb = root(int(a)), root(int(b))
+        if ra == rb:
+            continue  # already one pose through other cells
+        rows_a, rows_b = (order[bounds[c] : bounds[c + 1]] for c in (a, b))
+        if len(rows_a) > len(rows_b):
+            a, b, rows_a, rows_b = b, a, rows_b, rows_a
+        tree = trees.get(int(b))
+        if tree is None:
+            tree = trees[int(b)] = cKDTree(q[rows_b])
+        if np.isfinite(tree.query(q[rows_a], k=1, p=np.inf, distance_upper_bound=reach)[0]).any():
+            parent[ra] = rb
+    roots = np.array([root(c) for c in range(n_cells)], int)
+    return np.unique(roots, return_inverse=True)[1].ravel()[cell_of]
+
+
+def repeated_orientation_counts(df: pd.DataFrame, pose: np.ndarray) -> np.ndarray:
+    """How many rows of each row's pose carry exactly its rx/ry/rz_deg (N,), ones without orientation.
+
+    A single-probe export writes the pose's one orientation reading on every SMR row of that pose: the
+    copies are one measurement, not several.
+    """
+    if not has_orientation(df) or len(df) == 0:
+        return np.ones(len(df), int)
+    key = pd.DataFrame({"pose": np.asarray(pose)}).join(
+        df[list(ORIENTATION_COLUMNS)].reset_index(drop=True).astype(float)
+    )
+    return key.groupby(list(key.columns), sort=False)["pose"].transform("size").to_numpy(int)

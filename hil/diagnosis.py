@@ -298,6 +298,13 @@ class _Baseline:
             rows = rows[np.argsort(rank[rows])[:SCREEN_MAX_ROWS]]
             rows.sort()
         prob = self.full.subset(rows)  # folds keep every SMR of one pose together
+        n_pose = prob.n_poses  # folds are made of poses: count them, not rows
+        if n_pose < 2 * self.n_folds:
+            raise ValueError(
+                f"{n_pose} distinct robot poses (of {len(rows)} inlier rows) are too few for "
+                f"{self.n_folds}-fold spatial cross-validation; measure at least {2 * self.n_folds} "
+                "well-spread poses (several SMRs or revisits at one pose count once) or lower --folds"
+            )
         return prob, [prob.spatial_folds(self.n_folds, self.seed + r) for r in range(CV_REPEATS)]
 
 

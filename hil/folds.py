@@ -17,13 +17,18 @@ def spatial_folds(points: np.ndarray, k: int, seed: int, iters: int = 25) -> lis
     score extrapolation to a region the fit has not seen, as a model is used beyond its grid.
 
     A grid visited in raster order makes the blocks also blocks of time (a warm-up shows as a drift).
+    Fewer distinct points than k give one fold per distinct point.
     """
     rng = np.random.default_rng(seed)
     x = (points - points.mean(axis=0)) / (points.std(axis=0) + 1e-12)
+    k = max(1, min(k, len(np.unique(x, axis=0))))
     centres = x[[rng.integers(len(x))]]
     for _ in range(1, k):  # k-means++ seeding: spread the first centres
         d2 = np.min(((x[:, None, :] - centres[None]) ** 2).sum(axis=2), axis=1)
+        if d2.sum() <= 0:  # every point sits on a centre already
+            break
         centres = np.vstack([centres, x[rng.choice(len(x), p=d2 / d2.sum())]])
+    k = len(centres)
     for _ in range(iters):
         label = np.argmin(((x[:, None, :] - centres[None]) ** 2).sum(axis=2), axis=1)
         new = np.array([x[label == c].mean(axis=0) if np.any(label == c) else centres[c] for c in range(k)])

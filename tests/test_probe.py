@@ -245,10 +245,13 @@ def test_cli_reads_the_convention_and_reports_orientation(probe_campaign, tmp_pa
         with pytest.raises(SystemExit) as exit_:  # refused by the option parser, before any work
             main([*args, *bad])
         assert exit_.value.code == 2 and bad[0] in capsys.readouterr().err
-    # Read in the wrong (default) convention, the probe disagrees with the arm by degrees.
-    assert main(args) == 0
-    wrong = [line for line in capsys.readouterr().out.splitlines() if "ridge-igg3:" in line][0]
-    assert float(wrong.split("orientation RMS ")[1].split()[0]) > 0.5
+    # Read in the wrong (default) convention, the probe disagrees with the arm by tens of degrees: refused
+    # before any fit (it would drag the positions off by millimetres), naming the columns and the option.
+    wrong = ["calibrate", str(tmp_path / "probe.csv"), "-o", str(tmp_path / "wrong.json")]
+    assert main(wrong) == 2
+    err = capsys.readouterr().err
+    assert "rx_deg, ry_deg, rz_deg" in err and "--orientation-convention" in err and "radians" in err
+    assert not (tmp_path / "wrong.json").exists()
 
 
 def test_diagnose_with_a_probe_finds_compliance_and_reports_orientation(tmp_path, capsys):
@@ -268,5 +271,118 @@ def test_diagnose_with_a_probe_finds_compliance_and_reports_orientation(tmp_path
     }
     assert report["verdict"]["residual"] == "floor"
     assert report["calibration"]["ridge_igg3"]["orientation_rms_deg"] < 0.03
-    # Joint 5's pairs that positions alone confound (theta5/a5, d5/alpha5) are separated by the probe.
-    assert not [c for c in report["verdict"]["cautions"] if c.startswith("confounded")]
+    # Joint 5's pairs that positions alone confound (theta5/a5, d5/alpha5) are separated by the probe: the
+    # calibration's "confounded" notes, which the verdict carries as calibration_note cautions, are gone.
+    cautions = report["verdict"]["cautions"]
+    notes = [c["text"] for c in cautions if c["kind"] == "calibration_note"]
+    assert all(isinstance(c, dict) and "kind" in c for c in cautions)  # records, as hil.report reads them
+    assert not [t for t in notes if t.startswith("confounded")]
+    positions_only = calibrate(df.drop(columns=list(ORIENTATION_COLUMNS)), "ur10")
+    assert [n for n in positions_only.notes if n.startswith("confounded: theta5 and a5")]
+
+
+def test_wrong_orientation_readings_are_refused_before_any_fit(probe_campaign):
+    _, _, df = probe_campaign
+    wrong_convention = convert_orientation_convention(df, "xyz-intrinsic")
+    radians = df.assign(**{c: np.deg2rad(df[c]) for c in ORIENTATION_COLUMNS})
+    for bad in (wrong_convention, radians):
+        for solver in ("ridge", "lm"):
+            with pytest.raises(ValueError, match=r"rx_deg, ry_deg, rz_deg.*--orientation-convention.*radians"):
+                calibrate(bad, "ur10", solver)
+    # Right readings pass; a probe far noisier than its stated noise gets a note after the fit.
+    assert not [n for n in calibrate(df, "ur10").notes if n.startswith("orientation")]
+    stated_too_sharp = calibrate(df, "ur10", probe_angle_noise_rad=np.deg2rad(0.001))
+    assert [n for n in stated_too_sharp.notes if n.startswith("orientation") and "--probe-angle-noise-deg" in n]
+
+
+def test_lm_judges_rotations_by_their_own_scale(probe_campaign):
+    """With the angle noise set 10x too small the scaled rotation residuals are 10x the positions': IGG3
+    keeps them (their own robust scale), and so must LM's robust loss, or the two solvers disagree."""
+    _, _, df = probe_campaign
+    angle = np.deg2rad(0.001)
+    ridge = calibrate(df, "ur10", "ridge", probe_angle_noise_rad=angle)
+    lm = calibrate(df, "ur10", "lm", probe_angle_noise_rad=angle)
+    a = {r["name"]: r for r in ridge.parameter_table()}
+    b = {r["name"]: r for r in lm.parameter_table()}
+    # The solvers differ by ~0.5 standard errors at the right noise setting (prior, IGG3 vs soft L1) and
+    # stay so; a loss with the positions' scale would push every rotation into its linear part (1.6 on theta5).
+    for n in WRIST:
+        assert abs(a[n]["value"] - b[n]["value"]) < 1.0 * a[n]["std_ls"], n
+    assert not lm.outliers.any()
+
+
+def test_ridge_prior_leaves_the_probe_orientation_free(probe_campaign):
+    """The ridge prior holds the robot's geometry; the set-up (base, tools, probe) is fitted freely."""
+    from hil.calibration import full_values, solve_ridge_igg3
+
+    _, _, df = probe_campaign
+    model = initial_model("ur10", df)
+    prob = Problem.from_frame(model, df, orientation=True)
+    setup = np.array([n.startswith(("base_", "tool", "probe")) for n in model.param_names])
+    plain = solve_ridge_igg3(model, prob, setup, ridge=0.0, robust=False, max_iter=20).model
+    held = solve_ridge_igg3(model, prob, setup, ridge=1e3, robust=False, max_iter=20).model
+    probe = np.array([n.startswith("probe") for n in model.param_names])
+    start = full_values(model)[probe]
+    assert np.abs(full_values(plain)[probe] - start).max() > 1e-4  # the initial probe estimate is refined
+    # A prior that (wrongly) held the probe would keep it near the start however strong the data.
+    np.testing.assert_allclose(full_values(held)[probe], full_values(plain)[probe], atol=1e-9)
+
+
+def test_few_distinct_poses_give_no_fold_figures_instead_of_a_crash():
+    """4 poses x 3 nests x 6 revisits: 72 rows but only 4 poses for the 5 spatial folds."""
+    from hil.diagnosis import run_diagnosis
+
+    cell = _cell(1)
+    q = np.tile(grid_joints(cell, step_m=0.3, seed=1)[:4], (6, 1))
+    df = simulate_campaign(cell, q, nests=[1, 2, 3])
+    assert len(df) == 72 and len(set(pose_ids(df))) == 4
+    res = calibrate(df, "ur10")
+    assert res.std_folds == {}  # too few poses for a spread over 5 folds of poses
+    folds = Problem.from_frame(res.model, df).spatial_folds(5, 0)
+    assert len(folds) == 4 and sorted(np.concatenate(folds).tolist()) == list(range(72))
+    with pytest.raises(ValueError, match="4 distinct robot poses .* too few for 5-fold"):
+        run_diagnosis(df, "ur10", families=("cyclic",))
+
+
+def test_spatial_folds_of_fewer_distinct_points_than_folds():
+    pts = np.repeat(np.random.default_rng(0).normal(size=(3, 3)), 10, axis=0)
+    assert sorted(len(f) for f in spatial_folds(pts, 5, 0)) == [10, 10, 10]
+    assert [len(f) for f in spatial_folds(pts[:1], 5, 0)] == [1]
+
+
+def test_one_orientation_copied_onto_every_smr_row_of_a_pose_counts_once():
+    cell = _cell(2)
+    q = grid_joints(cell, step_m=0.2, seed=2)
+    df = simulate_campaign(cell, q, nests=[1, 2, 3], probe=Probe.drawn(2))
+    pose = pose_ids(df)
+    copied = df.copy()  # a single-probe export: the pose's one reading on each of its SMR rows
+    copied[list(ORIENTATION_COLUMNS)] = df.groupby(pose)[list(ORIENTATION_COLUMNS)].transform("first")
+    first = copied[copied["smr"] == 1].reset_index(drop=True)  # each reading once
+    model = initial_model("ur10", copied)
+    kin = np.arange(len(model.nominal.param_names))
+
+    def rotation_information(frame: pd.DataFrame) -> tuple[np.ndarray, float]:
+        prob = Problem.from_frame(model, frame, orientation=True, position_noise=1e-5)
+        J_rot = prob.evaluate(model)[1][:, 3:, kin].reshape(-1, len(kin))
+        return J_rot.T @ J_rot, prob.n_rotation_readings
+
+    info_copied, n_copied = rotation_information(copied)
+    info_first, n_first = rotation_information(first)
+    np.testing.assert_allclose(info_copied, info_first, rtol=1e-9, atol=1e-9 * np.abs(info_first).max())
+    assert n_copied == pytest.approx(len(q)) and n_first == pytest.approx(len(q))
+    # Independent readings of each row (as simulated) each count.
+    assert rotation_information(df)[1] == pytest.approx(len(df))
+    # The residual angles reported are the readings', not the weighted ones.
+    res = calibrate(copied, "ur10")
+    assert not res.outliers.any()  # copies judged on the scale of one reading
+    R_err = orientations(copied) @ np.swapaxes(res.model.predict_rotation(copied), 1, 2)
+    np.testing.assert_allclose(res.residual_rot_rad, Rotation.from_matrix(R_err).as_rotvec(), atol=1e-12)
+
+
+def test_equation_count_message_counts_rotations_once_and_poses():
+    cell = _cell(2)
+    q = grid_joints(cell, step_m=0.3, seed=2)[:5]
+    df = simulate_campaign(cell, q, nests=[1, 2, 3], probe=Probe.drawn(2))
+    df[list(ORIENTATION_COLUMNS)] = df.groupby(pose_ids(df))[list(ORIENTATION_COLUMNS)].transform("first")
+    with pytest.raises(ValueError, match=r"15 rows at 5 distinct poses give 60 equations"):
+        calibrate(df, "ur10")
