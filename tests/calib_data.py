@@ -5,7 +5,9 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from hil.calibrated_model import CalibratedModel
 from hil.dataset import make_dataset
+from hil.effects import EffectContext, make_effect
 from hil.kinematics import measured_point
 from hil.robots import get_robot
 from hil.se3 import make_transform
@@ -69,3 +71,23 @@ def true_effect_model(train, robot: str, families: tuple[str, ...]):
     for eff in candidate_effects(ctx, model.nominal, [], families):
         model = model.with_effect(eff)
     return calibrate(train, model, "ridge").model
+
+
+def compliant_ur10(
+    seed: int, tools_m: dict[int, np.ndarray], context_tool_m: np.ndarray, n_poses: int
+) -> CalibratedModel:
+    """A calibrated UR10 for compensation tests: geometric errors, a tracker 2 m away, gravity compliance on
+    joints 2 and 3 (prepared on `n_poses` random poses carrying `context_tool_m`) and the given tool points."""
+    rng = np.random.default_rng(seed)
+    nominal = get_robot("ur10")
+    kin = nominal.with_errors({n: rng.normal(0, 3e-4 if n[0] in "ad" else 5e-4) for n in nominal.param_names})
+    T = make_transform(Rotation.from_rotvec([0.05, -0.1, 2.0]).as_matrix(), [2.0, 0.5, -0.3])
+    q = ur10_joints(rng, n_poses)
+    ctx = EffectContext(q, p_flange_tool=np.tile(context_tool_m, (len(q), 1)))
+    effects = []
+    for j in (2, 3):
+        eff = make_effect("gravity_compliance", j)
+        assert eff.prepare(ctx, nominal)
+        eff.params = rng.normal(0.0, 1e-3, len(eff.params))
+        effects.append(eff)
+    return CalibratedModel("ur10", nominal, kin, T, tools_m, effects)

@@ -12,14 +12,14 @@ from dataclasses import replace
 import numpy as np
 import pandas as pd
 import pytest
-from calib_data import ur10_joints
+from calib_data import compliant_ur10, ur10_joints
 from scipy.spatial.transform import Rotation
 
 from hil.calibrated_model import CalibratedModel
 from hil.cell_config import load_cell_config
 from hil.commands.compensate import read_targets
 from hil.dataset import make_dataset, orientations
-from hil.effects import EffectContext, make_effect
+from hil.effects import make_effect
 from hil.kinematics import KinematicModel, forward_kinematics
 from hil.robots import ROBOT_DIR, get_robot
 from hil.se3 import make_transform, transform_points
@@ -35,20 +35,8 @@ Q_COLS = [f"q{i}_rad" for i in range(1, 7)]
 
 def true_model(seed: int = 0) -> CalibratedModel:
     """A calibrated UR10 with geometric errors, gravity compliance on joints 2 and 3 and two nests' tool points."""
-    rng = np.random.default_rng(seed)
-    nominal = get_robot("ur10")
-    kin = nominal.with_errors({n: rng.normal(0, 3e-4 if n[0] in "ad" else 5e-4) for n in nominal.param_names})
-    T = make_transform(Rotation.from_rotvec([0.05, -0.1, 2.0]).as_matrix(), [2.0, 0.5, -0.3])
-    q = ur10_joints(rng, 100)
-    ctx = EffectContext(q, p_flange_tool=np.tile(FIT_MM[0] / 1e3, (len(q), 1)))
-    effects = []
-    for j in (2, 3):
-        eff = make_effect("gravity_compliance", j)
-        assert eff.prepare(ctx, nominal)
-        eff.params = rng.normal(0.0, 1e-3, len(eff.params))
-        effects.append(eff)
     tools = {1: FIT_MM[0] / 1e3 + 1e-4, 2: FIT_MM[1] / 1e3 - 1e-4}
-    return CalibratedModel("ur10", nominal, kin, T, tools, effects)
+    return compliant_ur10(seed, tools, FIT_MM[0] / 1e3, n_poses=100)
 
 
 def registration(model: CalibratedModel) -> np.ndarray:

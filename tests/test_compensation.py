@@ -9,18 +9,17 @@ from dataclasses import replace
 import numpy as np
 import pandas as pd
 import pytest
-from calib_data import ur10_joints
+from calib_data import compliant_ur10, ur10_joints
 from scipy.spatial.transform import Rotation
 
 from hil.calibrated_model import CalibratedModel
 from hil.compensation import ENSEMBLE, STATUSES, PosePredictor, PseudoTargetIK, compensate, compensate_path
 from hil.dataset import make_dataset, orientation_columns
-from hil.effects import EffectContext, make_effect
+from hil.effects import make_effect
 from hil.ik import default_home, newton_ik, same_branch_seed, ur_branch_index
 from hil.kinematics import forward_kinematics
 from hil.pseudo_targets import GENERATORS, pose_errors, update_pseudo_target
 from hil.residual_maps import make_map
-from hil.robots import get_robot
 from hil.se3 import make_transform, transform_points
 from tests.cli_in_process import hil_in_process
 
@@ -30,19 +29,7 @@ TOOL = np.array([0.03, -0.02, 0.11])
 
 def ur10_model(seed: int = 0) -> CalibratedModel:
     """A calibrated UR10: geometric errors, a tracker 2 m away and gravity compliance on joints 2 and 3."""
-    rng = np.random.default_rng(seed)
-    nominal = get_robot("ur10")
-    kin = nominal.with_errors({n: rng.normal(0, 3e-4 if n[0] in "ad" else 5e-4) for n in nominal.param_names})
-    T = make_transform(Rotation.from_rotvec([0.05, -0.1, 2.0]).as_matrix(), [2.0, 0.5, -0.3])
-    q = ur10_joints(rng, 200)
-    ctx = EffectContext(q, p_flange_tool=np.tile(TOOL, (len(q), 1)))
-    effects = []
-    for j in (2, 3):
-        eff = make_effect("gravity_compliance", j)
-        assert eff.prepare(ctx, nominal)
-        eff.params = rng.normal(0.0, 1e-3, len(eff.params))
-        effects.append(eff)
-    return CalibratedModel("ur10", nominal, kin, T, {1: TOOL}, effects)
+    return compliant_ur10(seed, {1: TOOL}, TOOL, n_poses=200)
 
 
 @pytest.fixture(scope="module")
