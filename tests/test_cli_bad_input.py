@@ -32,6 +32,8 @@ def files(tmp_path_factory):
     metres = df.copy()
     metres[["x_mm", "y_mm", "z_mm"]] /= 1000.0
     metres.to_csv(d / "metres.csv", index=False)
+    three = pd.concat([df.head(20).assign(smr=k, x_mm=df.head(20)["x_mm"] + 50.0 * k) for k in (1, 2, 3)])
+    three.to_csv(d / "three_smrs.csv", index=False)  # 60 rows, but only 20 poses
     return d
 
 
@@ -57,6 +59,7 @@ CASES = [
     ("diagnose data.csv --json r.json --alpha nan", "--alpha"),
     ("diagnose data.csv --json r.json --alpha 2", "--alpha"),
     ("diagnose data.csv --json r.json --folds 1", "--folds"),
+    ("diagnose three_smrs.csv --json r.json", "20 distinct poses (60 rows) are too few for 5-fold"),
     ("diagnose data.csv --json r.json --folds five", "--folds"),
     ("diagnose data.csv --json r.json --repeatability-mm -0.5", "--repeatability-mm"),
     ("diagnose data.csv --json r.json --tracker-mpe-um=0,0", "--tracker-mpe-um"),

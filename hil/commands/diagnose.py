@@ -13,7 +13,7 @@ from hil.commands.calibrate import add_probe_options, orientation_summary, parse
 from hil.commands.errors import CliError
 from hil.commands.inputs import read_training_and_validation
 from hil.commands.progress import cli_progress
-from hil.dataset import DatasetError, convert_orientation_convention, points_m
+from hil.dataset import DatasetError, convert_orientation_convention, points_m, pose_ids
 from hil.diagnosis import DiagnosisReport, run_diagnosis
 from hil.effects import EFFECT_FAMILIES
 from hil.robots import ROBOT_NAMES, get_robot, robot_arg
@@ -111,9 +111,10 @@ def run(args: argparse.Namespace) -> int:
         tool = args.tool_mm
     except (InputError, DatasetError, ValueError) as exc:
         raise CliError.from_text(str(exc)) from exc
-    if len(df) < 8 * args.folds:
+    n_poses = int(pose_ids(df).max()) + 1 if len(df) else 0  # several SMRs at one pose are one sample
+    if n_poses < 8 * args.folds:
         raise CliError(
-            f"{len(df)} points are too few for {args.folds}-fold cross-validation",
+            f"{n_poses} distinct poses ({len(df)} rows) are too few for {args.folds}-fold cross-validation",
             f"measure at least {8 * args.folds} poses or lower --folds",
         )
     try:
