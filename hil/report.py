@@ -248,12 +248,20 @@ def render_html(report: DiagnosisReport, compensation: dict | None = None) -> st
     parts.append("<h2>Plots</h2>")
     for title, img in _plots(report):
         parts.append(f"<h3>{html.escape(title)}</h3>{img}")
+    final_orientation = report.model.info.get("orientation")
+    if final_orientation and report.model.effects:
+        parts.append(
+            f"<p>6-DoF probe: the final model (effects included) leaves an orientation RMS of "
+            f"{final_orientation['rms_deg']:.4f} deg.</p>"
+        )
     parts.append("<h2>Geometric calibration: both solvers</h2>")
     for name, cal in d["calibration"].items():
         parts.append(
             f"<h3>{html.escape(name)}</h3><p>sigma0 {cal['sigma0_mm']:.4f} mm, RMS {cal['rms_mm']:.4f} mm, "
-            f"outlier rows {cal['outlier_rows']}</p>"
-        )
+            + (f"orientation RMS {cal['orientation_rms_deg']:.4f} deg (6-DoF probe), "
+               if cal.get("orientation_rms_deg") is not None else "")
+            + f"outlier rows {cal['outlier_rows']}</p>"
+        )  # fmt: skip
         ident = cal.get("identifiability") or {}
         if ident:
             parts.append(

@@ -260,10 +260,12 @@ def test_diagnose_with_a_probe_finds_compliance_and_reports_orientation(tmp_path
     cell = SimulatedCell(SimCellConfig(robot="ur10", seed=2))  # gravity compliance on
     df = simulate_campaign(cell, grid_joints(cell, step_m=0.15, seed=2), probe=Probe.drawn(2))
     df.to_csv(tmp_path / "probe.csv", index=False)
-    argv = ["diagnose", str(tmp_path / "probe.csv"), "--json", str(tmp_path / "r.json")]
+    argv = ["diagnose", str(tmp_path / "probe.csv"), "--json", str(tmp_path / "r.json"), "--html", str(tmp_path / "r.html")]
     assert main([*argv, "--families", "gravity_compliance", "--probe-angle-noise-deg", "0.01"]) == 0
     out = capsys.readouterr().out
     assert "6-DoF probe, geometric ridge_igg3 fit" in out and "6-DoF probe, final model" in out
+    page = (tmp_path / "r.html").read_text()
+    assert "deg (6-DoF probe)" in page and "6-DoF probe: the final model (effects included)" in page
     report = json.loads((tmp_path / "r.json").read_text())
     assert {(e["name"], e["joint"]) for e in report["effects_added"]} == {
         ("gravity_compliance", 2),
