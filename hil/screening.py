@@ -66,7 +66,7 @@ def linear_fit_cv(
 def linear_fit_heldout(
     J: np.ndarray, r: np.ndarray, partitions: list[list[np.ndarray]], step: list | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
-    """`linear_fit_cv` over several partitions: full-fit residuals (N, 3) and each point's held-out squared
+    """`linear_fit_cv` over several partitions: full-fit residuals (N, 3|6) and each point's held-out squared
     error (N,) averaged over the partitions (what the selection tests compare, point by point)."""
     fit, cvs = _linear_fit_partitions(J, r, partitions, step)
     return fit, np.mean([np.sum(cv**2, axis=1) for cv in cvs], axis=0)
@@ -82,16 +82,16 @@ def _linear_fit_partitions(
     dx_s = np.linalg.solve(N, g)
     if step is not None:
         step.append(dx_s / norms)
-    fit = (rv - Js @ dx_s).reshape(-1, 3)
-    n = r.shape[0]
+    n, m = r.shape  # m coordinates per row: 3 (position) or 6 (and a probe's weighted rotation)
+    fit = (rv - Js @ dx_s).reshape(n, m)
     cvs = []
     for folds in partitions:
-        cv = np.zeros((n, 3))
+        cv = np.zeros((n, m))
         for test in folds:
-            trows = (3 * test[:, None] + np.arange(3)).ravel()
+            trows = (m * test[:, None] + np.arange(m)).ravel()
             Jt, rt = Js[trows], rv[trows]
             dxf = np.linalg.solve(N - Jt.T @ Jt, g - Jt.T @ rt)  # fit without the held-out fold
-            cv[test] = (rt - Jt @ dxf).reshape(-1, 3)
+            cv[test] = (rt - Jt @ dxf).reshape(-1, m)
         cvs.append(cv)
     return fit, cvs
 

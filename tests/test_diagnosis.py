@@ -260,3 +260,23 @@ def test_held_out_gain_counts_the_rows_of_one_pose_as_one_sample():
     assert np.isclose(gain, d.mean()) and np.isclose(p, expected)
     assert p > 4 * held_out_gain(d, None)[1]  # rows taken as independent: far too confident
     assert held_out_gain(d, np.arange(120))[1] == held_out_gain(d, None)[1]  # one row per pose: unchanged
+
+
+def test_held_out_fit_holds_out_every_coordinate_of_a_row_position_and_rotation():
+    """Rows of 6 coordinates (a probe's rotation beside the position): a fold leaves out all 6 of its rows."""
+    from hil.screening import linear_fit_heldout
+
+    rng = np.random.default_rng(1)
+    n, m, p = 40, 6, 5
+    J = rng.normal(size=(n * m, p))
+    r = rng.normal(size=(n, m))
+    folds = [np.arange(0, 20), np.arange(20, 40)]
+    _, e = linear_fit_heldout(J, r, [folds])
+    expected = np.zeros(n)
+    for test in folds:
+        train = np.setdiff1d(np.arange(n), test)
+        rows = (m * train[:, None] + np.arange(m)).ravel()
+        x = np.linalg.lstsq(J[rows], r.reshape(-1)[rows], rcond=None)[0]
+        held = (r.reshape(-1) - J @ x).reshape(n, m)
+        expected[test] = np.sum(held[test] ** 2, axis=1)
+    assert np.allclose(e, expected)
