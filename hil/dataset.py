@@ -277,11 +277,13 @@ def orientations(df: pd.DataFrame) -> np.ndarray | None:
     return Rotation.from_euler(ORIENTATION_CONVENTIONS[DEFAULT_ORIENTATION_CONVENTION], angles).as_matrix()
 
 
-def orientation_columns(R_tracker_probe: np.ndarray) -> dict[str, np.ndarray]:
-    """rx_deg, ry_deg, rz_deg (default convention) of rotations (N, 3, 3)."""
+def orientation_columns(
+    R_tracker_probe: np.ndarray, convention: str = DEFAULT_ORIENTATION_CONVENTION
+) -> dict[str, np.ndarray]:
+    """rx_deg, ry_deg, rz_deg of rotations (N, 3, 3), in `convention` (the default one inside hil)."""
     from scipy.spatial.transform import Rotation
 
-    seq = ORIENTATION_CONVENTIONS[DEFAULT_ORIENTATION_CONVENTION]
+    seq = check_orientation_convention(convention)
     angles = np.rad2deg(Rotation.from_matrix(np.asarray(R_tracker_probe, float)).as_euler(seq))
     return dict(zip(ORIENTATION_COLUMNS, angles.T, strict=True))
 

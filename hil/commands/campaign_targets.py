@@ -19,10 +19,9 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-from scipy.spatial.transform import Rotation
 
 from hil.commands.errors import CliError
-from hil.dataset import ORIENTATION_COLUMNS, check_orientation_convention
+from hil.dataset import orientation_columns
 from hil.kinematics import KinematicModel, forward_kinematics
 from hil.robots import get_robot, is_robot_file, robot_from_text
 from hil.store import CampaignError, CampaignStore
@@ -193,8 +192,6 @@ def _loop_targets(store: CampaignStore, robot: str, orientation_convention: str)
     for i, axis in enumerate("xyz"):
         frame[f"{axis}_mm"] = p[:, i] * 1e3
     if targets.ndim == 3:  # the targeted frame's orientation in the tracker frame, as the dataset writes it
-        seq = check_orientation_convention(orientation_convention)
-        angles = Rotation.from_matrix(targets[:, :3, :3]).as_euler(seq, degrees=True)
-        for col, values in zip(ORIENTATION_COLUMNS, angles.T, strict=True):
+        for col, values in orientation_columns(targets[:, :3, :3], orientation_convention).items():
             frame[col] = values
     return CampaignTargets("loop", targets, frame, np.ones(len(targets), int), robot)
