@@ -119,10 +119,14 @@ class Problem:
         return cls(ctx, smr_ids(df), measured, pose, R, scale, weight)
 
     @property
+    def _copy_weight_rows(self) -> np.ndarray:
+        """(N,) weight of each row's rotation equations: 1/sqrt(copies of its reading), 1 by default."""
+        return np.ones(len(self.measured)) if self.rot_weight is None else self.rot_weight
+
+    @property
     def rot_factor(self) -> np.ndarray:
         """(N, 1) factor from a rotation log vector (rad) to its weighted residual (m)."""
-        w = np.ones(len(self.measured)) if self.rot_weight is None else self.rot_weight
-        return (self.rot_scale * w)[:, None]
+        return (self.rot_scale * self._copy_weight_rows)[:, None]
 
     @property
     def copy_weight(self) -> np.ndarray:
@@ -130,7 +134,7 @@ class Problem:
         a residual over it is on the scale of one reading, so robust scales and outlier tests use that."""
         if self.R_measured is None:
             return np.ones((len(self.measured), 3))
-        w = np.ones(len(self.measured)) if self.rot_weight is None else self.rot_weight
+        w = self._copy_weight_rows
         return np.concatenate([np.ones((len(w), 3)), np.repeat(w[:, None], 3, axis=1)], axis=1)
 
     @property
@@ -138,7 +142,7 @@ class Problem:
         """Independent orientation readings (copies within a pose counted once), 0 without orientation."""
         if self.R_measured is None:
             return 0.0
-        return float(len(self.measured) if self.rot_weight is None else np.sum(self.rot_weight**2))
+        return float(np.sum(self._copy_weight_rows**2))
 
     @property
     def n_obs(self) -> int:
@@ -164,10 +168,9 @@ class Problem:
         if self.R_measured is None:
             return r, J
         R_pred, J_rot = model.rotation_jacobian_ctx(self.ctx, self.smr)
-        r_rot = rotation_log(self.R_measured @ np.swapaxes(R_pred, 1, 2))
         f = self.rot_factor
         return (
-            np.concatenate([r, f * r_rot], axis=1),
+            np.concatenate([r, self._weighted_rotation_residual(R_pred)], axis=1),
             np.concatenate([J, f[:, :, None] * J_rot], axis=1),
         )
 
@@ -178,8 +181,12 @@ class Problem:
         if self.R_measured is None:
             return r
         R_pred = model.predict_rotation_ctx(self.ctx, self.smr)
-        r_rot = rotation_log(self.R_measured @ np.swapaxes(R_pred, 1, 2))
-        return np.concatenate([r, self.rot_factor * r_rot], axis=1)
+        return np.concatenate([r, self._weighted_rotation_residual(R_pred)], axis=1)
+
+    def _weighted_rotation_residual(self, R_pred: np.ndarray) -> np.ndarray:
+        """log(R_measured R_pred^T) (N, 3) rad, scaled and weighted into metres like the position residual."""
+        assert self.R_measured is not None
+        return self.rot_factor * rotation_log(self.R_measured @ np.swapaxes(R_pred, 1, 2))
 
     def spatial_folds(self, k: int, seed: int) -> list[np.ndarray]:
         """k folds that are blocks of the measured volume, every row of one pose in the same fold (its
