@@ -266,15 +266,16 @@ def check_orientation_convention(name: str) -> str:
     return ORIENTATION_CONVENTIONS[name]
 
 
-def orientations(df: pd.DataFrame) -> np.ndarray | None:
-    """Probe orientations R_tracker_probe (N, 3, 3) from rx_deg, ry_deg, rz_deg (default convention),
-    or None when the frame has no orientation columns."""
+def orientations(df: pd.DataFrame, convention: str = DEFAULT_ORIENTATION_CONVENTION) -> np.ndarray | None:
+    """Probe orientations R_tracker_probe (N, 3, 3) from rx_deg, ry_deg, rz_deg in `convention` (the
+    default one inside hil), or None when the frame has no orientation columns."""
     from scipy.spatial.transform import Rotation
 
+    seq = check_orientation_convention(convention)
     if not has_orientation(df):
         return None
     angles = np.deg2rad(df[list(ORIENTATION_COLUMNS)].to_numpy(float))
-    return Rotation.from_euler(ORIENTATION_CONVENTIONS[DEFAULT_ORIENTATION_CONVENTION], angles).as_matrix()
+    return Rotation.from_euler(seq, angles).as_matrix()
 
 
 def orientation_columns(
@@ -291,12 +292,9 @@ def orientation_columns(
 def convert_orientation_convention(df: pd.DataFrame, convention: str) -> pd.DataFrame:
     """The frame with rx_deg, ry_deg, rz_deg re-expressed from `convention` in the default one (the
     convention hil uses inside); unchanged without orientation columns or in the default convention."""
-    from scipy.spatial.transform import Rotation
-
-    seq = check_orientation_convention(convention)
-    if not has_orientation(df) or convention == DEFAULT_ORIENTATION_CONVENTION:
+    R = orientations(df, convention)
+    if R is None or convention == DEFAULT_ORIENTATION_CONVENTION:
         return df
-    R = Rotation.from_euler(seq, np.deg2rad(df[list(ORIENTATION_COLUMNS)].to_numpy(float))).as_matrix()
     out = df.copy()
     for col, values in orientation_columns(R).items():
         out[col] = values

@@ -25,7 +25,6 @@ from hil.dataset import (
     ORIENTATION_COLUMNS,
     ORIENTATION_CONVENTIONS,
     POSITION_COLUMNS,
-    convert_orientation_convention,
     joint_columns,
     orientations,
 )
@@ -235,7 +234,7 @@ def read_targets(path: str, orientation_convention: str = DEFAULT_ORIENTATION_CO
     if bad.size:
         raise ValueError(f"{path}: row {bad[0] + 1} has a missing or non-numeric value in {', '.join(cols)}")
     p = values[:, :3] / 1000.0
-    R = orientations(convert_orientation_convention(numeric, orientation_convention))
+    R = orientations(numeric, orientation_convention)
     if R is None:
         return p, df
     T = np.zeros((len(df), 4, 4))
