@@ -13,7 +13,7 @@ from __future__ import annotations
 import copy
 import warnings
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 
@@ -248,7 +248,7 @@ def compensate(
             stacklevel=2,
         )
     tol_m = IK_TOL_FRACTION * threshold_m
-    blocks = []
+    blocks: list[tuple[np.ndarray, CompensationResult]] = []
     n_blocks = -(-N // BLOCK_TARGETS)
     for rows in np.array_split(np.arange(N), n_blocks):
         sl = slice(int(rows[0]), int(rows[-1]) + 1)
@@ -270,8 +270,8 @@ def compensate(
             best = res if best is None else _pick_better(best, res)
         if best is None:
             raise ValueError("no pseudo-target generator to run")
-        blocks.append(best)
-    best = blocks[0] if len(blocks) == 1 else _concatenate(blocks)
+        blocks.append((rows, best))
+    best = blocks[0][1] if len(blocks) == 1 else merge_results(blocks, N)
     best.outside_volume = outside
     return best
 
@@ -566,17 +566,26 @@ def _run(
     )
 
 
-def _concatenate(blocks: list[CompensationResult]) -> CompensationResult:
-    """One result from the results of consecutive blocks of targets (history: targets on axis 1)."""
+def merge_results(parts: list[tuple[np.ndarray, CompensationResult]], n: int) -> CompensationResult:
+    """One result for `n` targets from results of disjoint groups of them, each given with its target rows
+    (blocks of consecutive targets, or the targets of one SMR nest): per-target arrays are scattered back
+    into target order, histories NaN-padded to the deepest."""
     out: dict = {}
-    for name in CompensationResult.__dataclass_fields__:
-        values = [getattr(b, name) for b in blocks]
-        if name == "history":
-            out[name] = np.concatenate(values, axis=1)
-        elif isinstance(values[0], np.ndarray):
-            out[name] = np.concatenate(values)
-        else:
-            out[name] = values[0]
+    for f in fields(CompensationResult):
+        values = [getattr(r, f.name) for _, r in parts]
+        if f.name == "history":
+            merged = np.full((max(v.shape[0] for v in values), n), np.nan)
+            for (rows, _), v in zip(parts, values, strict=True):
+                merged[: v.shape[0], rows] = v
+        elif isinstance(values[0], np.ndarray) and all(
+            len(v) == len(rows) for (rows, _), v in zip(parts, values, strict=True)
+        ):
+            merged = np.empty((n, *values[0].shape[1:]), dtype=np.result_type(*values))
+            for (rows, _), v in zip(parts, values, strict=True):
+                merged[rows] = v
+        else:  # the same for every part (full_pose), or not per target (branch_jump outside paths)
+            merged = values[0]
+        out[f.name] = merged
     return CompensationResult(**out)
 
 

@@ -10,7 +10,6 @@ from __future__ import annotations
 import argparse
 import sys
 import warnings
-from dataclasses import fields
 
 import numpy as np
 import pandas as pd
@@ -19,7 +18,7 @@ from hil.calibrated_model import CalibratedModel
 from hil.commands.arg_checks import InputError, check_paths, float_in
 from hil.commands.campaign_targets import DEFAULT_ORDER, SOURCES, read_campaign_targets
 from hil.commands.errors import CliError
-from hil.compensation import ENSEMBLE, CompensationResult, compensate, compensate_path
+from hil.compensation import ENSEMBLE, CompensationResult, compensate, compensate_path, merge_results
 from hil.dataset import (
     DEFAULT_ORIENTATION_CONVENTION,
     ORIENTATION_COLUMNS,
@@ -127,29 +126,7 @@ def compensate_per_smr(
         d = {k: v[rows] for k, v in drivers.items()}
         options = {k: v[rows] if k == "q_seed" else v for k, v in kwargs.items()}
         results.append((rows, run_one(model, targets[rows], smr=int(nest), **d, **options)))
-    if len(results) == 1:
-        return results[0][1]
-    n = len(smr)
-    merged: dict = {"full_pose": results[0][1].full_pose}
-    depth = max(r.history.shape[0] for _, r in results)
-    history = np.full((depth, n), np.nan)
-    for rows, r in results:
-        history[: r.history.shape[0], rows] = r.history
-    merged["history"] = history
-    for f in fields(CompensationResult):
-        if f.name in merged:
-            continue
-        first = getattr(results[0][1], f.name)
-        if f.name == "branch_jump" and not path:
-            merged[f.name] = first[:0]
-            continue
-        out = np.empty((n, *first.shape[1:]), dtype=first.dtype if first.dtype != object else object)
-        if out.dtype.kind in "US":
-            out = out.astype(object)
-        for rows, r in results:
-            out[rows] = getattr(r, f.name)
-        merged[f.name] = out
-    return CompensationResult(**merged)
+    return results[0][1] if len(results) == 1 else merge_results(results, len(smr))
 
 
 def thermal_drivers(
