@@ -67,9 +67,7 @@ class CellConfig:
     @cached_property
     def nominal(self) -> KinematicModel:
         """The nominal model of the configured robot (read once: planners and path checks ask per pose)."""
-        if self.robot_file_text is not None:
-            return robot_from_text(self.robot_file_text, self.robot_model)
-        return get_robot(self.robot_model)
+        return _nominal(self.robot_model, self.robot_file_text)
 
     def robot_mapping(self) -> dict[str, Any]:
         """Settings for drivers.ur.URConfig.from_mapping: the host and the driver keys."""
@@ -165,39 +163,46 @@ def _numbers(value: Any) -> np.ndarray | None:
     return arr if np.all(np.isfinite(arr)) else None
 
 
-def _robot_model(r: _Reader, model: str | None, source: str) -> tuple[str | None, str | None]:
+def _robot_model(
+    r: _Reader, model: str | None, source: str
+) -> tuple[str | None, str | None, KinematicModel | None]:
     """A built-in name (lower case), or a robot definition file relative to the cell file's folder and its
-    text; None with the problem noted when it is neither."""
+    text, with the nominal model read from it; Nones with the problem noted when it is neither."""
     if model is None:
-        return None, None
+        return None, None, None
     if is_robot_file(model):
         path = Path(model) if Path(model).is_absolute() else Path(source).parent / model
         try:
             text = path.read_text()
         except FileNotFoundError:
             r.problems.append(f"robot.model: robot file not found: {path}; check the path")
-            return None, None
+            return None, None, None
         except (OSError, UnicodeDecodeError) as exc:
             r.problems.append(f"robot.model: cannot read robot file {path} ({exc}); give a readable TOML file")
-            return None, None
+            return None, None, None
+        resolved = str(path.resolve())  # resolved now: the snapshot must not depend on a later cwd
         try:
-            robot_from_text(text, path)
+            return resolved, text, _nominal(resolved, text)
         except ValueError as exc:
             r.problems.append(f"robot.model: {exc}")
-            return None, None
-        return str(path.resolve()), text  # resolved now: the snapshot must not depend on a later cwd
+            return None, None, None
     if model.lower() not in ROBOT_NAMES:
         r.problems.append(
             f"robot.model: unknown robot {model!r}; choose one of {', '.join(ROBOT_NAMES)} or give a robot file (.toml)"
         )
-        return None, None
-    return model.lower(), None
+        return None, None, None
+    return model.lower(), None, _nominal(model.lower(), None)
+
+
+def _nominal(robot_model: str, robot_file_text: str | None) -> KinematicModel:
+    """The nominal model: from the robot file's text when the cell names a file, else the built-in."""
+    return get_robot(robot_model) if robot_file_text is None else robot_from_text(robot_file_text, robot_model)
 
 
 def parse_cell_config(data: dict, source: str = "cell.toml") -> CellConfig:
     """Build and check a CellConfig from parsed TOML; raises CellConfigError listing every problem."""
     r = _Reader(data)
-    model, robot_file_text = _robot_model(r, r.get("robot", "model", "str", required=True), source)
+    model, robot_file_text, nominal = _robot_model(r, r.get("robot", "model", "str", required=True), source)
     host = r.get("robot", "host", "str", required=True)
     driver = {k: v for k, v in r.table("robot").items() if k in ROBOT_DRIVER_KEYS}
     for key, value in driver.items():
@@ -205,7 +210,6 @@ def parse_cell_config(data: dict, source: str = "cell.toml") -> CellConfig:
             r.problems.append(f"robot.{key}: must be a number, got {value!r}")
         elif key != "power_on_at_connect" and value <= 0:
             r.problems.append(f"robot.{key}: must be positive, got {value!r}")
-    nominal = (robot_from_text(robot_file_text, model) if robot_file_text else get_robot(model)) if model else None
     n = nominal.n_joints if nominal else 6
 
     url = r.get("tracker", "url", "str", required=True)
