@@ -49,6 +49,7 @@ from hil.effects import EffectContext
 from hil.folds import kfold, location_spacing, spatial_folds
 from hil.identifiability import IdentifiabilityReport, analyse, scale_columns
 from hil.kinematics import KinematicModel
+from hil.noise_floor import TRACKER_MPE_M, TRACKER_MPE_SIGMAS, tracker_sigma_m
 from hil.se3 import fit_rigid
 
 K0, K1 = 1.5, 2.5  # IGG3 thresholds of the grid paper
@@ -64,10 +65,10 @@ PROBE_ANGLE_NOISE_RAD = float(np.deg2rad(0.01))
 
 
 def position_noise_m(
-    points: np.ndarray, mpe_m: tuple[float, float] = (15e-6, 6e-6), sigmas: float = 2.0
+    points: np.ndarray, mpe_m: tuple[float, float] = TRACKER_MPE_M, sigmas: float = TRACKER_MPE_SIGMAS
 ) -> float:
-    """1-sigma tracker noise per axis at the median distance of the points (MPE = a + b * distance)."""
-    return (mpe_m[0] + mpe_m[1] * float(np.median(np.linalg.norm(points, axis=1)))) / sigmas
+    """1-sigma tracker noise per axis at the median distance of the points (hil.noise_floor's model)."""
+    return float(tracker_sigma_m(float(np.median(np.linalg.norm(points, axis=1))), mpe_m, sigmas))
 
 
 @dataclass

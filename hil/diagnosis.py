@@ -48,7 +48,7 @@ from hil.effects import (
 )
 from hil.identifiability import IdentifiabilityReport
 from hil.kinematics import KinematicModel
-from hil.noise_floor import NoiseFloor, estimate_noise_floor
+from hil.noise_floor import TRACKER_MPE_M, NoiseFloor, estimate_noise_floor
 from hil.residual_maps import MAP_KINDS, kfold_map_errors, make_map, map_from_dict
 from hil.screening import (
     Candidate,
@@ -206,7 +206,7 @@ def run_diagnosis(
     max_effects: int = 15,
     repeatability_mm: float = 0.0,
     tool_guess_m: np.ndarray | None = None,
-    tracker_mpe_m: tuple[float, float] = (15e-6, 6e-6),
+    tracker_mpe_m: tuple[float, float] = TRACKER_MPE_M,
     compare_maps: bool = False,
     reregister_validation: str = "none",
     progress: Progress | None = None,

@@ -19,6 +19,15 @@ import pandas as pd
 
 from hil.dataset import joints_rad, points_m, smr_ids
 
+# The tracker's noise model (AT901 / AT960 class): MPE = 15 um + 6 um/m of distance, taken as 2 sigma per axis.
+TRACKER_MPE_M: tuple[float, float] = (15e-6, 6e-6)
+TRACKER_MPE_SIGMAS = 2.0
+
+
+def tracker_sigma_m(distance_m, mpe_m: tuple[float, float] = TRACKER_MPE_M, sigmas: float = TRACKER_MPE_SIGMAS):
+    """Per-axis 1-sigma of one tracker shot at `distance_m` (m, scalar or array) by the MPE = a + b * d model."""
+    return (mpe_m[0] + mpe_m[1] * np.asarray(distance_m, float)) / sigmas
+
 
 @dataclass
 class NoiseFloor:
@@ -32,16 +41,16 @@ class NoiseFloor:
 
 def estimate_noise_floor(
     df: pd.DataFrame,
-    mpe_const_m: float = 15e-6,
-    mpe_per_m: float = 6e-6,
-    mpe_sigmas: float = 2.0,
+    mpe_const_m: float = TRACKER_MPE_M[0],
+    mpe_per_m: float = TRACKER_MPE_M[1],
+    mpe_sigmas: float = TRACKER_MPE_SIGMAS,
     repeatability_mm: float = 0.0,
     repeat_tol_rad: float = 2e-5,
 ) -> NoiseFloor:
     """Noise floor of a dataset (see module docstring)."""
     p = points_m(df)
     dist = np.linalg.norm(p, axis=1)
-    sigma_tracker = (mpe_const_m + mpe_per_m * dist) / mpe_sigmas
+    sigma_tracker = tracker_sigma_m(dist, (mpe_const_m, mpe_per_m), mpe_sigmas)
     shots = df["shots_count"].to_numpy(float) if "shots_count" in df.columns else np.ones(len(p))
     sigma_tracker = sigma_tracker / np.sqrt(np.clip(shots, 1.0, None))  # each row averages its shots
     rep_axis = repeatability_mm / 1000.0 / np.sqrt(3.0)

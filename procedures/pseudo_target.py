@@ -32,6 +32,7 @@ from hil.cell_config import CellConfig
 from hil.compensation import PosePredictor, PseudoTargetIK, compensate, pose_cost
 from hil.dataset import ORIENTATION_COLUMNS, orientations
 from hil.kinematics import forward_kinematics
+from hil.noise_floor import tracker_sigma_m
 from hil.operator import OperatorStep
 from hil.plan import Plan, PlannedPose
 from hil.planners import (
@@ -54,9 +55,8 @@ SMR_MODES = (1, 3)
 PATIENCE = 2  # corrections without a gain beyond the noise margin before a target stops (0: never)
 # Noise margin: a correction counts as a gain when it beats the best error so far by more than
 # GAIN_SIGMAS x the per-axis 1-sigma noise of the measured point: the larger of the tracker's noise model
-# (MPE = 15 um + 6 um/m taken as 2 sigma, as hil.noise_floor) and the recorded shot spread, each / sqrt(shots).
+# (hil.noise_floor.tracker_sigma_m) and the recorded shot spread, each / sqrt(shots).
 GAIN_SIGMAS = 1.0
-TRACKER_MPE_CONST_M, TRACKER_MPE_PER_M, TRACKER_MPE_SIGMAS = 15e-6, 6e-6, 2.0
 
 
 @dataclass
@@ -343,7 +343,7 @@ def measurement_sigma_m(p_tracker_m: np.ndarray, spread_m: np.ndarray, shots: in
     """Per-axis 1-sigma noise of one measured (mean) point: the larger of the tracker's noise model at its
     distance and the RMS spread of its kept shots, each divided by sqrt(shots)."""
     distance = float(np.linalg.norm(p_tracker_m))
-    model = (TRACKER_MPE_CONST_M + TRACKER_MPE_PER_M * distance) / TRACKER_MPE_SIGMAS
+    model = float(tracker_sigma_m(distance))
     spread = np.asarray(spread_m, float)
     seen = float(np.sqrt(np.mean(spread**2))) if np.all(np.isfinite(spread)) else 0.0
     return max(model, seen) / np.sqrt(max(int(shots), 1))
