@@ -90,6 +90,15 @@ def conclusion_text(v: dict, effects_added: list[dict]) -> str:
     return "\n".join([text, *(f"Caution: {caution_text(c)}" for c in v["cautions"])])
 
 
+def final_orientation_text(report: DiagnosisReport) -> str | None:
+    """The final model's orientation residual in words, when a 6-DoF probe was fitted and effects were added
+    (without effects the geometric fits' figures say it)."""
+    final = report.model.info.get("orientation")
+    if not final or not report.model.effects:
+        return None
+    return f"6-DoF probe, final model (effects included): orientation RMS {final['rms_deg']:.4f} deg"
+
+
 def report_dict(report: DiagnosisReport) -> dict:
     """The report's data with the conclusion and each caution's words added (what the JSON holds)."""
     out = {}
@@ -248,12 +257,9 @@ def render_html(report: DiagnosisReport, compensation: dict | None = None) -> st
     parts.append("<h2>Plots</h2>")
     for title, img in _plots(report):
         parts.append(f"<h3>{html.escape(title)}</h3>{img}")
-    final_orientation = report.model.info.get("orientation")
-    if final_orientation and report.model.effects:
-        parts.append(
-            f"<p>6-DoF probe: the final model (effects included) leaves an orientation RMS of "
-            f"{final_orientation['rms_deg']:.4f} deg.</p>"
-        )
+    final_orientation = final_orientation_text(report)
+    if final_orientation:
+        parts.append(f"<p>{html.escape(final_orientation)}</p>")
     parts.append("<h2>Geometric calibration: both solvers</h2>")
     for name, cal in d["calibration"].items():
         parts.append(

@@ -265,7 +265,7 @@ def test_diagnose_with_a_probe_finds_compliance_and_reports_orientation(tmp_path
     out = capsys.readouterr().out
     assert "6-DoF probe, geometric ridge_igg3 fit" in out and "6-DoF probe, final model" in out
     page = (tmp_path / "r.html").read_text()
-    assert "deg (6-DoF probe)" in page and "6-DoF probe: the final model (effects included)" in page
+    assert "deg (6-DoF probe)" in page and "6-DoF probe, final model (effects included)" in page
     report = json.loads((tmp_path / "r.json").read_text())
     assert {(e["name"], e["joint"]) for e in report["effects_added"]} == {
         ("gravity_compliance", 2),

@@ -155,15 +155,15 @@ def _run(args, df, val, tool, families, mpe, progress) -> DiagnosisReport:
 
 
 def _print_and_write(args: argparse.Namespace, report: DiagnosisReport) -> None:
-    from hil.report import conclusion, write_html, write_json
+    from hil.report import conclusion, final_orientation_text, write_html, write_json
 
     print(report.table())
     for name, res in report.calibration.items():
         if res.get("orientation_rms_deg") is not None:
             print(f"6-DoF probe, geometric {name} fit: position RMS {res['rms_mm']:.4f} mm{orientation_summary(res)}")
-    final = report.model.info.get("orientation")
-    if final and report.model.effects:
-        print(f"6-DoF probe, final model (effects included): orientation RMS {final['rms_deg']:.4f} deg")
+    final_orientation = final_orientation_text(report)
+    if final_orientation:
+        print(final_orientation)
     print(conclusion(report))
     for step in report.steps:
         j = step.effect["joint"]
