@@ -28,16 +28,16 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from fakes.physics import chain_frames, gravity_torques
-from hil.calibrated_model import initial_model
-from hil.calibration import Problem, calibrate, solve_ridge_igg3
-from hil.dataset import make_dataset
-from hil.diagnosis import error_stats
-from hil.effects import tool_points_rows
-from hil.ik import solve_ik
-from hil.kinematics import KinematicModel, measured_point
-from hil.residual_maps import MAP_KINDS, IDWGridMap, kfold_map_errors, make_map
-from hil.robots import get_robot
-from hil.se3 import make_transform
+from hil.analysis.calibrated_model import initial_model
+from hil.analysis.calibration import Problem, calibrate, solve_ridge_igg3
+from hil.analysis.diagnosis import error_stats
+from hil.analysis.effects import tool_points_rows
+from hil.analysis.residual_maps import MAP_KINDS, IDWGridMap, kfold_map_errors, make_map
+from hil.data.dataset import make_dataset
+from hil.geometry.ik import solve_ik
+from hil.geometry.kinematics import KinematicModel, measured_point
+from hil.geometry.robots import get_robot
+from hil.geometry.se3 import make_transform
 
 # methods.md 2d: (d_alpha deg, d_a mm, d_d mm, d_theta deg) per joint.
 PAPER_ERRORS = np.array(
@@ -203,7 +203,7 @@ def planned_joints(cell, points_in_box, seed: int) -> np.ndarray:
     """Usable joints on the simulated cell for the points `points_in_box(box, rng)` of the default sampling
     box, planned from the tracker's position, the tool drawing and the nominal model (near-singular poses kept,
     as in the tests' campaigns)."""
-    from hil.planners import facing_poses, plan_joints, workspace_box
+    from hil.runner.planners import facing_poses, plan_joints, workspace_box
 
     rng = np.random.default_rng(seed)
     p_base_tracker = np.linalg.inv(cell.T_tracker_base)[:3, 3]
@@ -218,8 +218,8 @@ def diagnosis_timing(seed: int) -> None:
     """The whole diagnosis loop on the simulated UR10 cell (compliance + backlash) at three grid steps."""
     from fakes.campaign import simulate_campaign
     from fakes.cell import SimCellConfig, SimulatedCell
-    from hil.diagnosis import run_diagnosis
-    from hil.planners import grid_points
+    from hil.analysis.diagnosis import run_diagnosis
+    from hil.runner.planners import grid_points
 
     print("\nDiagnosis loop on the simulated UR10 (gravity compliance + backlash), grid campaigns")
     print(f"{'grid mm':>8} {'points':>7} {'time s':>7}  effects found")
@@ -240,8 +240,8 @@ def big_campaigns(seed: int, diagnose_poses: int = 12000, calibrate_poses: int =
 
     from fakes.campaign import simulate_campaign
     from fakes.cell import SimCellConfig, SimulatedCell
-    from hil.diagnosis import run_diagnosis
-    from hil.planners import random_points
+    from hil.analysis.diagnosis import run_diagnosis
+    from hil.runner.planners import random_points
 
     def peak_mb() -> float:
         return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024

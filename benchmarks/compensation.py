@@ -21,13 +21,13 @@ import numpy as np
 from kinematics import Table, best_time, rtb_ets  # benchmarks/kinematics.py (same directory)
 from scipy.spatial.transform import Rotation
 
-from hil.calibrated_model import CalibratedModel
-from hil.compensation import IK_TOL_FRACTION, compensate
-from hil.effects import EffectContext, make_effect
-from hil.kinematics import forward_kinematics
-from hil.pseudo_targets import pose_errors
-from hil.robots import get_robot
-from hil.se3 import make_transform
+from hil.analysis.calibrated_model import CalibratedModel
+from hil.analysis.effects import EffectContext, make_effect
+from hil.compensation.model_based import IK_TOL_FRACTION, compensate
+from hil.compensation.target_update import pose_errors
+from hil.geometry.kinematics import forward_kinematics
+from hil.geometry.robots import get_robot
+from hil.geometry.se3 import make_transform
 
 THRESHOLD_M = 1e-5  # the CLI default, 0.01 mm
 MAX_ITER = 10

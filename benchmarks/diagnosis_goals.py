@@ -51,7 +51,7 @@ def run_case(name: str, seed: int) -> dict:
 
     from fakes.campaign import simulate_campaign
     from fakes.cell import SimCellConfig, SimulatedCell
-    from hil.diagnosis import run_diagnosis
+    from hil.analysis.diagnosis import run_diagnosis
 
     case = CASES[name]
     cell = SimulatedCell(SimCellConfig(robot="ur10", seed=seed, **case["config"]))

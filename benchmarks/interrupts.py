@@ -26,7 +26,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from hil.store import CampaignStore  # noqa: E402
+from hil.data.store import CampaignStore  # noqa: E402
 
 
 def recorded(campaign: Path) -> int:

@@ -16,10 +16,10 @@ from collections.abc import Callable
 
 import numpy as np
 
-from hil import ik
-from hil.kinematics import KinematicModel, forward_kinematics
-from hil.robots import get_robot
-from hil.se3 import pose_error
+from hil.geometry import ik
+from hil.geometry.kinematics import KinematicModel, forward_kinematics
+from hil.geometry.robots import get_robot
+from hil.geometry.se3 import pose_error
 
 TOL_POSITION = 1e-10  # m
 TOL_ROTATION = 1e-9  # rad

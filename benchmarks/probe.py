@@ -22,9 +22,9 @@ from scipy.spatial.transform import Rotation
 
 from fakes.campaign import Probe, simulate_campaign
 from fakes.cell import SimCellConfig, SimulatedCell
-from hil.calibration import calibrate
-from hil.dataset import ORIENTATION_COLUMNS, orientations
-from hil.planners import facing_poses, grid_points, plan_joints, random_points, workspace_box
+from hil.analysis.calibration import calibrate
+from hil.data.dataset import ORIENTATION_COLUMNS, orientations
+from hil.runner.planners import facing_poses, grid_points, plan_joints, random_points, workspace_box
 
 WRIST = ("theta5", "d5", "a5", "alpha5")
 WAYS = ("1 SMR", "3 SMRs", "1 SMR + probe", "3 SMRs + probe")

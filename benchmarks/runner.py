@@ -24,7 +24,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from hil.store import CampaignStore, MeasurementRecord, campaign_dataset  # noqa: E402
+from hil.data.store import CampaignStore, MeasurementRecord, campaign_dataset  # noqa: E402
 
 
 def make_records(n: int, seed: int = 0) -> list[MeasurementRecord]:
@@ -103,7 +103,7 @@ class InstantRobot:
         return self.q.copy()
 
     def flange_pose(self):
-        from hil.kinematics import forward_kinematics
+        from hil.geometry.kinematics import forward_kinematics
 
         return forward_kinematics(self.nominal, self.q[None])[0]
 
@@ -124,7 +124,7 @@ class InstantTracker:
     """A Tracker that answers at once with a fixed point."""
 
     def measure(self, shots: int = 1):
-        from drivers.tracker import TrackerMeasurement
+        from hil.instruments.tracker import TrackerMeasurement
 
         zero = np.zeros(3)
         return TrackerMeasurement(np.ones(3), zero, zero, 0.0, np.ones((shots, 3)), (), 20.0, 1013.0, 40.0, time.time(), 1)
@@ -141,9 +141,9 @@ def runner_alone(step_mm: float, validation: int) -> dict:
     path, resume check, durable commit, aiming prediction, progress), per point, planning excluded."""
     import tomllib
 
-    from hil.cell_config import parse_cell_config
-    from hil.operator import ScriptedOperator
-    from hil.session import Session
+    from hil.runner.cell_config import parse_cell_config
+    from hil.runner.operator import ScriptedOperator
+    from hil.runner.session import Session
     from procedures import grid_sampling
     from tests.cell_fixtures import sim_cell_toml
 

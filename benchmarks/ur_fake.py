@@ -28,10 +28,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from drivers.robot import RobotError  # noqa: E402
 from drivers.ur import URConfig, URRobot  # noqa: E402
 from fakes.launch import random_loopback_host, sim_cell  # noqa: E402
 from fakes.rtde_wire import frame  # noqa: E402
+from hil.instruments.robot import RobotError  # noqa: E402
 
 HOME = [0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0]
 FAULTS = {  # kind -> options, as in tests/test_ur_driver.py

@@ -26,7 +26,7 @@ import serial
 
 from drivers import emscon_codec as codec
 from drivers.emscon_codec import Command, CoordinateSystem, Status, StatusChange
-from drivers.tracker import (
+from hil.instruments.tracker import (
     MeteoOutOfRangeError,
     NoTargetError,
     NotInitializedError,
@@ -150,7 +150,7 @@ class EmsconConfig:
 
 
 class EmsconTracker:
-    """Leica emScon tracker driver implementing drivers.tracker.Tracker."""
+    """Leica emScon tracker driver implementing hil.instruments.tracker.Tracker."""
 
     def __init__(self, config: EmsconConfig):
         self.config = config

@@ -23,7 +23,8 @@ from typing import Any
 
 import numpy as np
 
-from drivers.robot import (
+from hil.geometry.se3 import pose_to_transform, transform_to_pose
+from hil.instruments.robot import (
     EmergencyStopError,
     ProgramNotRunningError,
     ProtectiveStopError,
@@ -35,7 +36,6 @@ from drivers.robot import (
     RobotTimeoutError,
     StaleDataError,
 )
-from hil.se3 import pose_to_transform, transform_to_pose
 
 log = logging.getLogger(__name__)
 

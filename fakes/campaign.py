@@ -1,6 +1,6 @@
 """Visit planned joints on the simulated cell and return what the tracker measured, in the dataset contract.
 
-Planning the joints is the planners' job (hil.planners, as the procedures do); visiting them on the
+Planning the joints is the planners' job (hil.runner.planners, as the procedures do); visiting them on the
 simulated cell, as a real cell would, is the fake's. At each pose one SMR is read, or several (SMRs seated
 in tool nests, read in turn while the robot stands still: one row each, same joints and time), and
 optionally a 6-DoF probe's orientation (T-Mac style) with angular noise.
@@ -16,7 +16,7 @@ import pandas as pd
 from scipy.spatial.transform import Rotation
 
 from fakes.cell import SimulatedCell, SmrLocation
-from hil.dataset import make_dataset
+from hil.data.dataset import make_dataset
 
 
 @dataclass(frozen=True)

@@ -16,9 +16,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from fakes.physics import chain_frames, gravity_torques
-from hil.jsonable import to_jsonable
-from hil.kinematics import KinematicModel
-from hil.robots import get_robot
+from hil.data.jsonable import to_jsonable
+from hil.geometry.kinematics import KinematicModel
+from hil.geometry.robots import get_robot
 
 SMR_RADIUS_M = 0.01905  # 1.5" sphere
 
@@ -51,7 +51,7 @@ class EffectFlags(TypedDict, total=False):
     thermal: bool
 
 
-# Each effect named as the diagnosis names its effect family (hil.effects.EFFECT_FAMILIES), with the
+# Each effect named as the diagnosis names its effect family (hil.analysis.effects.EFFECT_FAMILIES), with the
 # SimCellConfig flag that switches it on: one name per effect across the simulator and the diagnosis.
 EFFECT_FLAGS: dict[str, str] = {
     "gravity_compliance": "compliance",

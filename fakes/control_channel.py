@@ -13,7 +13,7 @@ import json
 import logging
 from collections.abc import Callable, Mapping
 
-from hil.jsonable import to_jsonable
+from hil.data.jsonable import to_jsonable
 
 log = logging.getLogger(__name__)
 

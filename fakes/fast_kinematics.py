@@ -1,6 +1,6 @@
 """Single-configuration FK, Jacobian and rotation-vector helpers for the controller's 500 Hz loop.
 
-`hil.kinematics` is batched and general; per tick the fake needs one pose at a time in microseconds.
+`hil.geometry.kinematics` is batched and general; per tick the fake needs one pose at a time in microseconds.
 Same joint convention: Rz(q + theta) Tz(d) Tx(a) Rx(alpha) Ry(beta), then T_last_flange.
 """
 
@@ -10,7 +10,7 @@ import math
 
 import numpy as np
 
-from hil.kinematics import KinematicModel
+from hil.geometry.kinematics import KinematicModel
 
 
 class ArmKinematics:

@@ -13,7 +13,7 @@ import sys
 from fakes.cell import CELL_EFFECTS, EffectFlags, parse_effect_flags
 from fakes.launch import is_loopback_host
 from fakes.sim_process import SimOptions, run_cell
-from hil.robots import ROBOT_NAMES
+from hil.geometry.robots import ROBOT_NAMES
 
 DESCRIPTION = (
     "Start the simulated cell; prints one JSON line (hosts, ports, control channel) once every server "

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from fakes.fast_kinematics import ArmKinematics, rotvec_from_matrix
-from hil.kinematics import KinematicModel
+from hil.geometry.kinematics import KinematicModel
 
 
 @dataclass(frozen=True)

@@ -19,15 +19,15 @@ import numpy as np
 from fakes.fast_kinematics import pose_from_transform
 from fakes.ur_modes import NORMAL, PLAYING, RUNNING, STOPPED
 from fakes.ur_motion import JointMove, LinearMove, Motion, PathMove, SpeedMove, StopMove, track_pose
-from hil.ik import solve_ik
-from hil.kinematics import forward_kinematics, geometric_jacobian
-from hil.se3 import invert, pose_to_transform, transform_to_pose
+from hil.geometry.ik import solve_ik
+from hil.geometry.kinematics import forward_kinematics, geometric_jacobian
+from hil.geometry.se3 import invert, pose_to_transform, transform_to_pose
 
 if TYPE_CHECKING:
     from fakes.cell import SimulatedCell
     from fakes.fast_kinematics import ArmKinematics
     from fakes.ur_script import ControlProgram
-    from hil.kinematics import KinematicModel
+    from hil.geometry.kinematics import KinematicModel
 
 log = logging.getLogger("fakes.ur_controller")
 

@@ -73,7 +73,7 @@ def main(argv: list[str] | None = None) -> int:
 def _exit_after_interrupt() -> int:
     """130; but if a driver's clean-up is still stuck (its controller is gone), leave at once instead of
     letting the interpreter wait for it at exit: the campaign is already closed."""
-    from hil.session import abandoned_cleanups
+    from hil.runner.session import abandoned_cleanups
 
     if abandoned_cleanups():
         sys.stdout.flush()

@@ -18,10 +18,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hil.cell_config import CellConfig
-from hil.operator import OperatorStep
-from hil.plan import Plan, PlannedPose
-from hil.planners import (
+from hil.runner.cell_config import CellConfig
+from hil.runner.operator import OperatorStep
+from hil.runner.plan import Plan, PlannedPose
+from hil.runner.planners import (
     Box,
     facing_poses,
     grid_points,
@@ -31,7 +31,7 @@ from hil.planners import (
     travel_order,
     workspace_box,
 )
-from hil.session import Session
+from hil.runner.session import Session
 
 PROCEDURE = "grid_sampling"
 APPROACH_RAD = np.deg2rad(2.0)  # pre-position offset on every joint for a known approach direction

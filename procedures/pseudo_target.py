@@ -27,15 +27,17 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from hil.calibrated_model import CalibratedModel
-from hil.cell_config import CellConfig
-from hil.compensation import PosePredictor, PseudoTargetIK, compensate, pose_cost
-from hil.dataset import ORIENTATION_COLUMNS, orientations
-from hil.kinematics import forward_kinematics
-from hil.noise_floor import tracker_sigma_m
-from hil.operator import OperatorStep
-from hil.plan import Plan, PlannedPose
-from hil.planners import (
+from hil.analysis.calibrated_model import CalibratedModel
+from hil.analysis.noise_floor import tracker_sigma_m
+from hil.compensation.model_based import PosePredictor, PseudoTargetIK, compensate, pose_cost
+from hil.compensation.target_update import check_generator, update_pseudo_position, update_pseudo_target
+from hil.data.dataset import ORIENTATION_COLUMNS, orientations
+from hil.geometry.kinematics import forward_kinematics
+from hil.geometry.se3 import fit_rigid
+from hil.runner.cell_config import CellConfig
+from hil.runner.operator import OperatorStep
+from hil.runner.plan import Plan, PlannedPose
+from hil.runner.planners import (
     SINGULAR_SIGMA_M,
     facing_poses,
     plan_joints,
@@ -43,19 +45,17 @@ from hil.planners import (
     random_points,
     workspace_box,
 )
-from hil.pseudo_targets import check_generator, update_pseudo_position, update_pseudo_target
-from hil.se3 import fit_rigid
-from hil.session import CampaignStopped, Session
+from hil.runner.session import CampaignStopped, Session
 
 PROCEDURE = "pseudo_target"
 STEP = "loop"
-LENGTH_SCALE_M = 0.1  # pose error measure: sqrt(dp^2 + (L * angle)^2), as hil.compensation
+LENGTH_SCALE_M = 0.1  # pose error measure: sqrt(dp^2 + (L * angle)^2), as hil.compensation.model_based
 USABLE_START = ("ok", "max_iter", "stalled")  # compensation statuses whose joints are worth measuring
 SMR_MODES = (1, 3)
 PATIENCE = 2  # corrections without a gain beyond the noise margin before a target stops (0: never)
 # Noise margin: a correction counts as a gain when it beats the best error so far by more than
 # GAIN_SIGMAS x the per-axis 1-sigma noise of the measured point: the larger of the tracker's noise model
-# (hil.noise_floor.tracker_sigma_m) and the recorded shot spread, each / sqrt(shots).
+# (hil.analysis.noise_floor.tracker_sigma_m) and the recorded shot spread, each / sqrt(shots).
 GAIN_SIGMAS = 1.0
 
 
@@ -237,7 +237,7 @@ def random_targets(config: CellConfig, model: CalibratedModel, count: int, seed:
 
 def read_targets_csv(path: str | Path) -> np.ndarray:
     """Targets from a CSV: x_mm, y_mm, z_mm (SMR 1 in the tracker frame), optionally rx_deg, ry_deg, rz_deg
-    (flange orientation in the tracker frame, the dataset's convention: hil.dataset.orientations) for full-pose
+    (flange orientation in the tracker frame, the dataset's convention: hil.data.dataset.orientations) for full-pose
     targets."""
     try:
         df = pd.read_csv(path)

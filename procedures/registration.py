@@ -13,14 +13,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hil.cell_config import CellConfig
-from hil.kinematics import tool_points
-from hil.operator import OperatorStep
-from hil.plan import Plan, PlannedPose
-from hil.planners import Box, facing_poses, plan_joints, workspace_box
-from hil.registration import RigidFit, ransac_rigid
-from hil.se3 import fit_rigid, transform_points
-from hil.session import CampaignStopped, Session
+from hil.geometry.kinematics import tool_points
+from hil.geometry.rigid_fit import RigidFit, ransac_rigid
+from hil.geometry.se3 import fit_rigid, transform_points
+from hil.runner.cell_config import CellConfig
+from hil.runner.operator import OperatorStep
+from hil.runner.plan import Plan, PlannedPose
+from hil.runner.planners import Box, facing_poses, plan_joints, workspace_box
+from hil.runner.session import CampaignStopped, Session
 
 PROCEDURE = "registration"
 

@@ -21,12 +21,12 @@ from typing import Any
 
 import numpy as np
 
-from hil.cell_config import CellConfig
-from hil.operator import OperatorStep
-from hil.plan import Plan, PlannedPose
-from hil.planners import Box, facing_poses, plan_joints, workspace_box
-from hil.session import CampaignStopped, Session
-from hil.toolfit import fit_flange_frame, tool_point_by_distances, tool_point_in_flange
+from hil.analysis.flange_geometry import fit_flange_frame, tool_point_by_distances, tool_point_in_flange
+from hil.runner.cell_config import CellConfig
+from hil.runner.operator import OperatorStep
+from hil.runner.plan import Plan, PlannedPose
+from hil.runner.planners import Box, facing_poses, plan_joints, workspace_box
+from hil.runner.session import CampaignStopped, Session
 
 PROCEDURE = "tool_fit"
 HOLES = tuple(range(1, 8))

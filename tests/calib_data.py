@@ -1,16 +1,16 @@
-"""Datasets for the calibration tests: synthetic (from hil.kinematics only) and from the simulated cell."""
+"""Datasets for the calibration tests: synthetic (from hil.geometry.kinematics only) and from the simulated cell."""
 
 from __future__ import annotations
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from hil.calibrated_model import CalibratedModel
-from hil.dataset import make_dataset
-from hil.effects import EffectContext, make_effect
-from hil.kinematics import measured_point
-from hil.robots import get_robot
-from hil.se3 import make_transform
+from hil.analysis.calibrated_model import CalibratedModel
+from hil.analysis.effects import EffectContext, make_effect
+from hil.data.dataset import make_dataset
+from hil.geometry.kinematics import measured_point
+from hil.geometry.robots import get_robot
+from hil.geometry.se3 import make_transform
 
 
 def ur10_joints(rng: np.random.Generator, n: int) -> np.ndarray:
@@ -61,10 +61,10 @@ def cell_datasets(step_m: float = 0.1, n_val: int = 100, seed: int = 0, **config
 def true_effect_model(train, robot: str, families: tuple[str, ...]):
     """The model a user who knew the cell's effects would fit: geometry plus every candidate of those
     families the data can show (the yardstick of the diagnosis goals)."""
-    from hil.calibrated_model import initial_model
-    from hil.calibration import calibrate
-    from hil.dataset import joints_rad
-    from hil.effects import EffectContext, candidate_effects
+    from hil.analysis.calibrated_model import initial_model
+    from hil.analysis.calibration import calibrate
+    from hil.analysis.effects import EffectContext, candidate_effects
+    from hil.data.dataset import joints_rad
 
     model = initial_model(robot, train)
     ctx = EffectContext.from_frame(train, joints_rad(train))

@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 from fakes.cell import SimCellConfig, SimulatedCell
-from hil.cell_config import format_cell_toml
 from hil.commands.sim_cell import sim_cell_values
+from hil.runner.cell_config import format_cell_toml
 
 ANNOUNCEMENT = {
     "robot": {"model": "ur10", "host": "127.0.0.9"},

@@ -1,4 +1,4 @@
-"""Campaigns on the simulated cell for tests, planned with hil.planners as a procedure plans them.
+"""Campaigns on the simulated cell for tests, planned with hil.runner.planners as a procedure plans them.
 
 The planners see what an engineer knows of a cell: the nominal model, where the tracker stands (here the
 simulated cell's own placement), the tool drawing and the home posture; `fakes.campaign.simulate_campaign`
@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from fakes.cell import SimulatedCell
-from hil.planners import Box, facing_poses, grid_points, plan_joints, random_points, workspace_box
+from hil.runner.planners import Box, facing_poses, grid_points, plan_joints, random_points, workspace_box
 
 
 def tracker_position_base_m(cell: SimulatedCell) -> np.ndarray:

@@ -4,7 +4,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from hil.dataset import DatasetError, load_dataset, make_dataset, validate_dataset, write_dataset
+from hil.data.dataset import DatasetError, load_dataset, make_dataset, validate_dataset, write_dataset
 
 
 def _frame(n=5):
@@ -71,7 +71,7 @@ def _pose_groups_brute_force(q: np.ndarray, tol: float) -> np.ndarray:
 
 
 def test_pose_ids_group_rows_whose_joints_agree_within_tolerance():
-    from hil.dataset import SAME_POSE_RAD, pose_ids
+    from hil.data.dataset import SAME_POSE_RAD, pose_ids
 
     rng = np.random.default_rng(3)
     cols = [f"q{i}_rad" for i in range(1, 7)]
@@ -94,7 +94,7 @@ def test_pose_ids_of_a_long_log_at_one_pose_stay_small():
     grow with the pairs (the pairwise search took 10 GB)."""
     import tracemalloc
 
-    from hil.dataset import pose_ids
+    from hil.data.dataset import pose_ids
 
     rng = np.random.default_rng(0)
     q = np.array([0.1, -1.2, 1.5, -1.8, -1.57, 0.3]) + rng.normal(0, 2e-5, (20000, 6))

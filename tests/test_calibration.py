@@ -1,16 +1,16 @@
-"""Geometric calibration on synthetic data made from hil.kinematics: recovery, identifiability, outliers, JSON."""
+"""Geometric calibration on synthetic data made from hil.geometry.kinematics: recovery, identifiability, outliers, JSON."""
 
 import numpy as np
 import pandas as pd
 import pytest
 from calib_data import synthetic
 
-from hil.calibrated_model import CalibratedModel
-from hil.calibration import calibrate
-from hil.dataset import make_dataset
-from hil.kinematics import measured_point
-from hil.noise_floor import estimate_noise_floor
-from hil.residual_maps import IDWGridMap
+from hil.analysis.calibrated_model import CalibratedModel
+from hil.analysis.calibration import calibrate
+from hil.analysis.noise_floor import estimate_noise_floor
+from hil.analysis.residual_maps import IDWGridMap
+from hil.data.dataset import make_dataset
+from hil.geometry.kinematics import measured_point
 
 
 @pytest.fixture(scope="module")
@@ -126,7 +126,7 @@ def test_residual_map_warns_outside_the_measured_volume():
 
 
 def test_approach_signs_follow_the_row_order():
-    from hil.effects import approach_signs
+    from hil.analysis.effects import approach_signs
 
     q = np.array([[0, 0], [1, 0], [1, 0], [0.5, 1e-9], [0.5, 2], [0.7, 2]], float)
     expected = [[0, 0], [1, 0], [1, 0], [-1, 0], [-1, 1], [1, 1]]  # a joint at rest keeps its side

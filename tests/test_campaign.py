@@ -1,4 +1,4 @@
-"""Campaigns on the simulated cell: joints planned by hil.planners, visited by fakes.campaign, in the CSV
+"""Campaigns on the simulated cell: joints planned by hil.runner.planners, visited by fakes.campaign, in the CSV
 dataset contract."""
 
 import numpy as np
@@ -7,7 +7,7 @@ from sim_campaigns import grid_joints, held_out_joints, sampling_box
 
 from fakes.campaign import simulate_campaign
 from fakes.cell import SimCellConfig, SimulatedCell
-from hil.kinematics import forward_kinematics
+from hil.geometry.kinematics import forward_kinematics
 
 CONTRACT_COLUMNS = [f"q{i}_rad" for i in range(1, 7)] + [
     "x_mm",

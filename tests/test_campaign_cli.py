@@ -7,8 +7,8 @@ from calib_data import synthetic
 
 from hil.cli import main
 from hil.commands.inputs import read_measurements, read_training_and_validation
-from hil.dataset import joint_columns, load_dataset
-from hil.store import CampaignStore, MeasurementRecord
+from hil.data.dataset import joint_columns, load_dataset
+from hil.data.store import CampaignStore, MeasurementRecord
 
 
 def store_dataset(store: CampaignStore, df: pd.DataFrame, step: str, t0: float, procedure="grid_sampling"):
@@ -50,7 +50,7 @@ def files(tmp_path_factory):
     train.to_csv(d / "train.csv", index=False)
     with CampaignStore(d / "c.hilc") as store:
         store.add_snapshot({"robot": {"model": "ur5"}})  # an earlier session start
-        store.add_snapshot(  # the shape hil.session writes: cell.toml as read + what the instruments said
+        store.add_snapshot(  # the shape hil.runner.session writes: cell.toml as read + what the instruments said
             {
                 "source": "cell.toml",
                 "cell": {
@@ -72,7 +72,7 @@ def files(tmp_path_factory):
         store.record_event("fault", "target lost", procedure="grid_sampling", step="grid", point_id="grid050")
         store.finish_step("registration", "nest_check", {"ok": True})
         store.finish_step("grid_sampling", "grid", {"points": len(train)})
-        store.log("WARNING", "SMR dirty?", "hil.session")
+        store.log("WARNING", "SMR dirty?", "hil.runner.session")
     return d, train, val
 
 

@@ -13,7 +13,7 @@ import warnings
 
 import pytest
 
-from hil.store import CampaignStore
+from hil.data.store import CampaignStore
 from procedures import grid_sampling, registration
 from tests.sim_session import running_cell, session_on
 

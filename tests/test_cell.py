@@ -7,7 +7,7 @@ import pytest
 
 from fakes.cell import SMR_RADIUS_M, SimCellConfig, SimulatedCell, SmrLocation
 from fakes.physics import chain_frames
-from hil.kinematics import forward_kinematics
+from hil.geometry.kinematics import forward_kinematics
 
 RNG = np.random.default_rng(7)
 Q_RANDOM = RNG.uniform(-2.5, 2.5, (300, 6))

@@ -9,7 +9,7 @@ import tomllib
 import numpy as np
 import pytest
 
-from hil.cell_config import CellConfigError, format_cell_toml, load_cell_config, parse_cell_config
+from hil.runner.cell_config import CellConfigError, format_cell_toml, load_cell_config, parse_cell_config
 from tests.cell_fixtures import sim_cell_toml
 
 
@@ -30,7 +30,7 @@ def test_simulated_cell_config_loads_in_si_units(tmp_path):
 
 def test_the_robot_may_be_a_robot_file_beside_the_cell_file(tmp_path):
     """A cell's own robot definition (here the UR10's file with d1 1 mm longer), relative to cell.toml."""
-    from hil.robots import ROBOT_DIR, get_robot
+    from hil.geometry.robots import ROBOT_DIR, get_robot
 
     text = (ROBOT_DIR / "ur10.toml").read_text()
     (tmp_path / "our_ur10.toml").write_text(text.replace('name = "ur10"', 'name = "our_ur10"').replace("d_mm = 127.3", "d_mm = 128.3", 1))

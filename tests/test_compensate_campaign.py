@@ -15,15 +15,15 @@ import pytest
 from calib_data import compliant_ur10, ur10_joints
 from scipy.spatial.transform import Rotation
 
-from hil.calibrated_model import CalibratedModel
-from hil.cell_config import load_cell_config
+from hil.analysis.calibrated_model import CalibratedModel
+from hil.analysis.effects import make_effect
 from hil.commands.compensate import read_targets
-from hil.dataset import make_dataset, orientations
-from hil.effects import make_effect
-from hil.kinematics import KinematicModel, forward_kinematics
-from hil.robots import ROBOT_DIR, get_robot
-from hil.se3 import make_transform, transform_points
-from hil.store import CampaignStore, MeasurementRecord
+from hil.data.dataset import make_dataset, orientations
+from hil.data.store import CampaignStore, MeasurementRecord
+from hil.geometry.kinematics import KinematicModel, forward_kinematics
+from hil.geometry.robots import ROBOT_DIR, get_robot
+from hil.geometry.se3 import make_transform, transform_points
+from hil.runner.cell_config import load_cell_config
 from tests.cell_fixtures import sim_cell_toml
 from tests.cli_in_process import hil_in_process
 

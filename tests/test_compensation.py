@@ -12,15 +12,22 @@ import pytest
 from calib_data import compliant_ur10, ur10_joints
 from scipy.spatial.transform import Rotation
 
-from hil.calibrated_model import CalibratedModel
-from hil.compensation import ENSEMBLE, STATUSES, PosePredictor, PseudoTargetIK, compensate, compensate_path
-from hil.dataset import make_dataset, orientation_columns
-from hil.effects import make_effect
-from hil.ik import default_home, newton_ik, same_branch_seed, ur_branch_index
-from hil.kinematics import forward_kinematics
-from hil.pseudo_targets import GENERATORS, pose_errors, update_pseudo_target
-from hil.residual_maps import make_map
-from hil.se3 import make_transform, transform_points
+from hil.analysis.calibrated_model import CalibratedModel
+from hil.analysis.effects import make_effect
+from hil.analysis.residual_maps import make_map
+from hil.compensation.model_based import (
+    ENSEMBLE,
+    STATUSES,
+    PosePredictor,
+    PseudoTargetIK,
+    compensate,
+    compensate_path,
+)
+from hil.compensation.target_update import GENERATORS, pose_errors, update_pseudo_target
+from hil.data.dataset import make_dataset, orientation_columns
+from hil.geometry.ik import default_home, newton_ik, same_branch_seed, ur_branch_index
+from hil.geometry.kinematics import forward_kinematics
+from hil.geometry.se3 import make_transform, transform_points
 from tests.cli_in_process import hil_in_process
 
 pytestmark = pytest.mark.timeout(120)
@@ -192,7 +199,7 @@ _hil = hil_in_process
 
 def orientation_errors(model: CalibratedModel, q: np.ndarray, T_target: np.ndarray) -> np.ndarray:
     """Angle (N,) rad between the flange orientation the model predicts at joints q (its public context and
-    geometry, not hil.compensation's predictor) and the targets' orientations."""
+    geometry, not hil.compensation.model_based's predictor) and the targets' orientations."""
     ctx, _ = model.context(make_dataset(q, np.zeros((len(q), 3)), smr=1))
     R = model.T_tracker_base[:3, :3] @ forward_kinematics(model.kinematic, q + model.joint_offsets(ctx))[:, :3, :3]
     return Rotation.from_matrix(np.swapaxes(T_target[:, :3, :3], 1, 2) @ R).magnitude()
@@ -333,9 +340,9 @@ def test_large_batches_run_in_blocks_with_the_same_answer(model, monkeypatch):
     T_target = model.predict_poses(q)
     for generator in ("yin", ENSEMBLE):
         kw = {"generator": generator, "approach": approach, "q_seed": q + 0.01}
-        monkeypatch.setattr("hil.compensation.BLOCK_TARGETS", 2048)
+        monkeypatch.setattr("hil.compensation.model_based.BLOCK_TARGETS", 2048)
         whole = compensate(with_backlash, T_target, **kw)
-        monkeypatch.setattr("hil.compensation.BLOCK_TARGETS", 16)
+        monkeypatch.setattr("hil.compensation.model_based.BLOCK_TARGETS", 16)
         blocks = compensate(with_backlash, T_target, **kw)
         assert np.all(whole.status == "ok") and np.array_equal(blocks.status, whole.status)
         for name in ("q", "error_m", "rotation_error_rad", "cost_m", "history", "initial_error_m"):

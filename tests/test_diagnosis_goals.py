@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from calib_data import true_effect_model
 
-from hil.diagnosis import run_diagnosis
-from hil.report import conclusion
+from hil.analysis.diagnosis import run_diagnosis
+from hil.analysis.report import conclusion
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -122,9 +122,9 @@ def test_on_a_campaign_from_another_tracker_placement_never_worse_than_geometric
 
 
 def test_fakes_of_geometry_are_rejected_with_the_reason():
-    from hil.effects import EffectContext, make_effect
-    from hil.robots import get_robot
-    from hil.screening import MAX_GEOMETRY_CORRELATION, geometry_correlation
+    from hil.analysis.effects import EffectContext, make_effect
+    from hil.analysis.screening import MAX_GEOMETRY_CORRELATION, geometry_correlation
+    from hil.geometry.robots import get_robot
 
     rng = np.random.default_rng(0)
     G = rng.normal(size=(300, 5))
@@ -146,7 +146,7 @@ def test_fakes_of_geometry_are_rejected_with_the_reason():
 
 
 def test_cross_validation_folds_are_blocks_of_the_workspace():
-    from hil.folds import kfold, spatial_folds
+    from hil.analysis.folds import kfold, spatial_folds
 
     rng = np.random.default_rng(1)
     p = rng.uniform(-1, 1, (600, 3))
@@ -163,7 +163,7 @@ def test_duplicated_rows_count_once_and_progress_is_reported(capsys):
     import pandas as pd
     from calib_data import cell_datasets
 
-    from hil.commands.progress import cli_progress
+    from hil.commands.cli_progress import cli_progress
 
     _, train, _ = cell_datasets(seed=2)
     doubled = pd.concat([train, train.iloc[10:60]], ignore_index=True)  # an export that repeated rows

@@ -10,7 +10,9 @@ from rfc2217_bridge import Rfc2217Bridge
 
 from drivers import emscon_codec as codec
 from drivers.emscon import EmsconConfig, EmsconTracker
-from drivers.tracker import (
+from fakes.cell import SimCellConfig, SimulatedCell, SmrLocation
+from fakes.emscon_server import EmsconServer, EmsconServerConfig, ServerThread
+from hil.instruments.tracker import (
     MeteoOutOfRangeError,
     NoTargetError,
     NotInitializedError,
@@ -20,8 +22,6 @@ from drivers.tracker import (
     TrackerProtocolError,
     TrackerTimeoutError,
 )
-from fakes.cell import SimCellConfig, SimulatedCell, SmrLocation
-from fakes.emscon_server import EmsconServer, EmsconServerConfig, ServerThread
 
 pytestmark = pytest.mark.sim  # starts a simulated cell or a fake server over sockets
 

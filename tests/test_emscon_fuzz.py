@@ -10,15 +10,15 @@ from hypothesis import strategies as st
 
 from drivers import emscon_codec as codec
 from drivers.emscon import EmsconConfig, EmsconTracker
-from drivers.tracker import (
+from fakes.cell import SimCellConfig, SimulatedCell
+from fakes.emscon_server import EmsconServer, EmsconServerConfig, ServerThread
+from hil.instruments.tracker import (
     TrackerConnectionError,
     TrackerError,
     TrackerMeasurement,
     TrackerProtocolError,
     TrackerTimeoutError,
 )
-from fakes.cell import SimCellConfig, SimulatedCell
-from fakes.emscon_server import EmsconServer, EmsconServerConfig, ServerThread
 
 pytestmark = pytest.mark.sim  # starts a simulated cell or a fake server over sockets
 

@@ -10,16 +10,16 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from drivers.robot import RobotState
-from hil.cell_config import parse_cell_config
-from hil.envelope import Envelope, EnvelopeError
-from hil.ik import default_home
-from hil.kinematics import forward_kinematics
-from hil.operator import ScriptedOperator
-from hil.planners import wrist_points
-from hil.robots import get_robot
-from hil.session import Session
-from hil.store import CampaignStore
+from hil.data.store import CampaignStore
+from hil.geometry.ik import default_home
+from hil.geometry.kinematics import forward_kinematics
+from hil.geometry.robots import get_robot
+from hil.instruments.robot import RobotState
+from hil.runner.cell_config import parse_cell_config
+from hil.runner.envelope import Envelope, EnvelopeError
+from hil.runner.operator import ScriptedOperator
+from hil.runner.planners import wrist_points
+from hil.runner.session import Session
 from tests.cell_fixtures import sim_cell_toml
 
 UR10 = get_robot("ur10")

@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from hil import ik
-from hil.kinematics import forward_kinematics, tool_points
-from hil.robots import get_robot
-from hil.se3 import make_transform, pose_error
+from hil.geometry import ik
+from hil.geometry.kinematics import forward_kinematics, tool_points
+from hil.geometry.robots import get_robot
+from hil.geometry.se3 import make_transform, pose_error
 
 UR_NAMES = ("ur5", "ur10", "ur5e", "ur10e")
 

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from hil import se3
-from hil.kinematics import (
+from hil.geometry import se3
+from hil.geometry.kinematics import (
     BASE_PARAM_NAMES,
     TOOL_PARAM_NAMES,
     chain_axes,
@@ -21,7 +21,7 @@ from hil.kinematics import (
     pose_and_jacobian,
     tool_points,
 )
-from hil.robots import ROBOT_NAMES, get_robot
+from hil.geometry.robots import ROBOT_NAMES, get_robot
 
 UR_NAMES = ("ur5", "ur10", "ur5e", "ur10e")
 

@@ -6,7 +6,7 @@ import io
 
 import pytest
 
-from hil.operator import ConsoleOperator, OperatorAbortError, OperatorStep, ScriptedOperator
+from hil.runner.operator import ConsoleOperator, OperatorAbortError, OperatorStep, ScriptedOperator
 
 STEP = OperatorStep("Seat SMR 1 in flange hole 3.", "place_smr", smr=1, location="hole3")
 

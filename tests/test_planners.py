@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hil.planners import (
+from hil.geometry.robots import get_robot
+from hil.runner.planners import (
     Box,
     facing_poses,
     grid_points,
@@ -15,7 +16,6 @@ from hil.planners import (
     travel_order,
     workspace_box,
 )
-from hil.robots import get_robot
 
 UR10 = get_robot("ur10")
 TRACKER = np.array([1.0, 2.3, 0.2])
@@ -51,7 +51,7 @@ def test_plan_joints_reaches_the_targets_and_names_unreachable_ones():
     plan = plan_joints(UR10, T, NEST)
     assert plan.reason[-1] == "unreachable" and not plan.usable[-1]
     assert plan.usable.mean() > 0.9
-    from hil.kinematics import tool_points
+    from hil.geometry.kinematics import tool_points
 
     reached = tool_points(UR10, plan.q[plan.usable], NEST)
     assert np.max(np.linalg.norm(reached - points[plan.usable], axis=1)) < 1e-6

@@ -15,9 +15,12 @@ from sim_campaigns import grid_joints, held_out_joints
 
 from fakes.campaign import Probe, simulate_campaign
 from fakes.cell import SimCellConfig, SimulatedCell
-from hil.calibrated_model import CalibratedModel, initial_model
-from hil.calibration import Problem, calibrate
-from hil.dataset import (
+from hil.analysis.calibrated_model import CalibratedModel, initial_model
+from hil.analysis.calibration import Problem, calibrate
+from hil.analysis.effects import EffectContext, make_effect
+from hil.analysis.folds import spatial_folds
+from hil.analysis.noise_floor import estimate_noise_floor
+from hil.data.dataset import (
     ORIENTATION_COLUMNS,
     DatasetError,
     convert_orientation_convention,
@@ -25,11 +28,8 @@ from hil.dataset import (
     pose_ids,
     validate_dataset,
 )
-from hil.effects import EffectContext, make_effect
-from hil.folds import spatial_folds
-from hil.kinematics import forward_kinematics, kinematic_rotation_jacobian
-from hil.noise_floor import estimate_noise_floor
-from hil.robots import get_robot
+from hil.geometry.kinematics import forward_kinematics, kinematic_rotation_jacobian
+from hil.geometry.robots import get_robot
 
 WRIST = ("theta5", "d5", "a5", "alpha5")  # joint 5: positions see it only through the short tool lever
 
@@ -277,7 +277,7 @@ def test_diagnose_with_a_probe_finds_compliance_and_reports_orientation(tmp_path
     # calibration's "confounded" notes, which the verdict carries as calibration_note cautions, are gone.
     cautions = report["verdict"]["cautions"]
     notes = [c["text"] for c in cautions if c["kind"] == "calibration_note"]
-    assert all(isinstance(c, dict) and "kind" in c for c in cautions)  # records, as hil.report reads them
+    assert all(isinstance(c, dict) and "kind" in c for c in cautions)  # records, as hil.analysis.report reads them
     assert not [t for t in notes if t.startswith("confounded")]
     positions_only = calibrate(df.drop(columns=list(ORIENTATION_COLUMNS)), "ur10")
     assert [n for n in positions_only.notes if n.startswith("confounded: theta5 and a5")]
@@ -315,7 +315,7 @@ def test_lm_judges_rotations_by_their_own_scale(probe_campaign):
 
 def test_ridge_prior_leaves_the_probe_orientation_free(probe_campaign):
     """The ridge prior holds the robot's geometry; the set-up (base, tools, probe) is fitted freely."""
-    from hil.calibration import full_values, solve_ridge_igg3
+    from hil.analysis.calibration import full_values, solve_ridge_igg3
 
     _, _, df = probe_campaign
     model = initial_model("ur10", df)
@@ -332,7 +332,7 @@ def test_ridge_prior_leaves_the_probe_orientation_free(probe_campaign):
 
 def test_few_distinct_poses_give_no_fold_figures_instead_of_a_crash():
     """4 poses x 3 nests x 6 revisits: 72 rows but only 4 poses for the 5 spatial folds."""
-    from hil.diagnosis import run_diagnosis
+    from hil.analysis.diagnosis import run_diagnosis
 
     cell = _cell(1)
     q = np.tile(grid_joints(cell, step_m=0.3, seed=1)[:4], (6, 1))

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from fakes.cell import SimCellConfig, SimulatedCell
-from hil.kinematics import tool_points
-from hil.se3 import fit_rigid, transform_points
-from hil.store import CampaignStore
+from hil.data.store import CampaignStore
+from hil.geometry.kinematics import tool_points
+from hil.geometry.se3 import fit_rigid, transform_points
 from procedures import grid_sampling, registration, tool_fit
 from tests.sim_session import running_cell, session_on
 
@@ -102,7 +102,7 @@ def test_the_export_is_a_dataset_diagnose_reads(campaign):
         capture_output=True, text=True,
     )
     assert done.returncode == 0, done.stderr
-    from hil.dataset import load_dataset
+    from hil.data.dataset import load_dataset
 
     df = load_dataset(out)
     assert len(df) == campaign["grid"].recorded + campaign["grid"].validation_recorded

@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 
 from fakes.cell import SimCellConfig, SimulatedCell
-from hil.compensation import PosePredictor
-from hil.pseudo_targets import pose_errors
-from hil.se3 import fit_rigid, transform_points
+from hil.compensation.model_based import PosePredictor
+from hil.compensation.target_update import pose_errors
+from hil.geometry.se3 import fit_rigid, transform_points
 from procedures import pseudo_target, registration, tool_fit
 from tests.sim_session import running_cell, session_on
 
@@ -112,7 +112,7 @@ def test_one_smr_brings_the_mean_error_to_the_noise_floor_in_three_iterations(ce
 
 
 def session_row_q(cell, name: str, target_id: str) -> np.ndarray:
-    from hil.store import CampaignStore
+    from hil.data.store import CampaignStore
 
     with CampaignStore(cell["folder"] / f"{name}.sqlite") as store:
         rows = store.measurements("pseudo_target", "loop")

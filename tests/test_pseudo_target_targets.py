@@ -7,7 +7,7 @@ import pandas as pd
 import pytest
 from scipy.spatial.transform import Rotation
 
-from hil.dataset import orientation_columns
+from hil.data.dataset import orientation_columns
 from procedures.pseudo_target import read_targets_csv
 
 

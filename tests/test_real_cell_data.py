@@ -7,9 +7,9 @@ import pandas as pd
 import pytest
 from calib_data import synthetic
 
-from hil.calibration import calibrate
+from hil.analysis.calibration import calibrate
 from hil.cli import main
-from hil.dataset import DatasetError, load_dataset
+from hil.data.dataset import DatasetError, load_dataset
 
 pytestmark = pytest.mark.timeout(120)
 

@@ -9,13 +9,13 @@ import pandas as pd
 import pytest
 from scipy.spatial.transform import Rotation
 
-from hil.calibrated_model import CalibratedModel
-from hil.calibration import calibrate
-from hil.dataset import make_dataset
-from hil.ik import random_joints
-from hil.kinematics import forward_kinematics, measured_point, tool_points
-from hil.robots import ROBOT_DIR, ROBOT_NAMES, get_robot, load_robot_file
-from hil.se3 import make_transform
+from hil.analysis.calibrated_model import CalibratedModel
+from hil.analysis.calibration import calibrate
+from hil.data.dataset import make_dataset
+from hil.geometry.ik import random_joints
+from hil.geometry.kinematics import forward_kinematics, measured_point, tool_points
+from hil.geometry.robots import ROBOT_DIR, ROBOT_NAMES, get_robot, load_robot_file
+from hil.geometry.se3 import make_transform
 
 
 def test_every_builtin_is_a_robot_file():
@@ -138,7 +138,7 @@ def _rot(R):
 def craig_tool_point(rows, q, p_tool, beta=None):
     """Tool point by Craig's product written out: Rx(alpha_{i-1}) Tx(a_{i-1}) Ry(beta_{i-1}) Rz(q_i + theta_i)
     Tz(d_i) per row; rows (n, 4) = (alpha, a, theta, d) in SI, beta (n,) on the rows' prefix."""
-    from hil.se3 import rot_x, rot_y, rot_z
+    from hil.geometry.se3 import rot_x, rot_y, rot_z
 
     beta = np.zeros(len(rows)) if beta is None else beta
     out = []

@@ -9,7 +9,7 @@ import tomllib
 
 import numpy as np
 
-from hil.cell_config import format_cell_toml, parse_cell_config
+from hil.runner.cell_config import format_cell_toml, parse_cell_config
 from procedures import grid_sampling
 from tests.cell_fixtures import sim_cell_toml
 

@@ -15,8 +15,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from hil.dataset import load_dataset
-from hil.store import (
+from hil.data.dataset import load_dataset
+from hil.data.store import (
     CampaignError,
     CampaignStore,
     DuplicateMeasurementError,
@@ -255,7 +255,7 @@ def test_dataset_export_csv_and_parquet(tmp_path):
 
     csv = tmp_path / "grid.csv"
     with warnings.catch_warnings():
-        warnings.simplefilter("error")  # hil.dataset warns about unit-less columns
+        warnings.simplefilter("error")  # hil.data.dataset warns about unit-less columns
         assert export_csv(path, csv, step="grid") == 12
         back = load_dataset(csv)
     assert list(back["point_id"]) == [f"p{i:04d}" for i in range(12)]
@@ -281,7 +281,7 @@ WRITER = textwrap.dedent(
     """
     import sys, time
     import numpy as np
-    from hil.store import CampaignStore, MeasurementRecord
+    from hil.data.store import CampaignStore, MeasurementRecord
 
     print("open", flush=True)
     store = CampaignStore(sys.argv[1])

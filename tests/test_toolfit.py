@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from fakes.cell import SimCellConfig, SimulatedCell, SmrLocation
-from hil.kinematics import forward_kinematics
-from hil.toolfit import fit_flange_frame, tool_point_by_distances, tool_point_in_flange
+from hil.analysis.flange_geometry import fit_flange_frame, tool_point_by_distances, tool_point_in_flange
+from hil.geometry.kinematics import forward_kinematics
 
 Q_FACING = np.array([0.0, -1.3, 1.6, -1.9, -1.57, 0.0])
 

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from drivers.emscon import EmsconConfig, EmsconTracker
-from drivers.tracker import NoTargetError
 from fakes import launch
+from hil.instruments.tracker import NoTargetError
 
 pytestmark = pytest.mark.sim  # starts a simulated cell or a fake server over sockets
 

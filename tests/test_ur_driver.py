@@ -7,7 +7,11 @@ import time
 import numpy as np
 import pytest
 
-from drivers.robot import (
+from drivers.ur import URConfig, URRobot
+from fakes.launch import random_loopback_host, sim_cell
+from hil.geometry.kinematics import forward_kinematics
+from hil.geometry.robots import get_robot
+from hil.instruments.robot import (
     EmergencyStopError,
     ProgramNotRunningError,
     ProtectiveStopError,
@@ -17,10 +21,6 @@ from drivers.robot import (
     RobotNotReadyError,
     StaleDataError,
 )
-from drivers.ur import URConfig, URRobot
-from fakes.launch import random_loopback_host, sim_cell
-from hil.kinematics import forward_kinematics
-from hil.robots import get_robot
 
 pytestmark = pytest.mark.sim  # starts a simulated cell or a fake server over sockets
 

@@ -9,9 +9,9 @@ import pytest
 
 from fakes.launch import sim_cell
 from fakes.ur_script import ControlProgram, UnknownProgramError, parse_path
-from hil.kinematics import forward_kinematics
-from hil.robots import get_robot
-from hil.se3 import pose_to_transform, transform_to_pose
+from hil.geometry.kinematics import forward_kinematics
+from hil.geometry.robots import get_robot
+from hil.geometry.se3 import pose_to_transform, transform_to_pose
 
 pytestmark = pytest.mark.sim  # starts a simulated cell or a fake server over sockets
 

@@ -12,9 +12,9 @@ from fakes.ur_controller import UrController
 from fakes.ur_dashboard import NOT_REMOTE, handle_command
 from fakes.ur_motion import JointMove, LinearMove, SpeedMove, StopMove, Trapezoid
 from fakes.ur_script import ControlProgram, UnknownProgramError, split_programs
-from hil.kinematics import forward_kinematics, geometric_jacobian
-from hil.robots import get_robot
-from hil.se3 import transform_to_pose
+from hil.geometry.kinematics import forward_kinematics, geometric_jacobian
+from hil.geometry.robots import get_robot
+from hil.geometry.se3 import transform_to_pose
 
 
 def test_variable_table_types():

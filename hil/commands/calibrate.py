@@ -8,20 +8,20 @@ import sys
 import numpy as np
 import pandas as pd
 
-from hil.calibration import calibrate
+from hil.analysis.calibration import calibrate
+from hil.analysis.diagnosis import run_record
 from hil.commands.arg_checks import InputError, check_paths, float_in, float_list
+from hil.commands.cli_progress import cli_progress
 from hil.commands.errors import CliError
 from hil.commands.inputs import read_measurements
-from hil.commands.progress import cli_progress
-from hil.dataset import (
+from hil.data.dataset import (
     DEFAULT_ORIENTATION_CONVENTION,
     ORIENTATION_CONVENTIONS,
     DatasetError,
     convert_orientation_convention,
     orientation_columns,
 )
-from hil.diagnosis import run_record
-from hil.robots import ROBOT_NAMES, get_robot, robot_arg
+from hil.geometry.robots import ROBOT_NAMES, get_robot, robot_arg
 
 
 def parse_mm_vector(text: str | None) -> np.ndarray | None:
@@ -73,7 +73,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--robot",
         default="ur10",
         type=robot_arg,
-        help=f"nominal robot: {', '.join(ROBOT_NAMES)} or a robot definition file (.toml, see hil/robot_models)",
+        help=f"nominal robot: {', '.join(ROBOT_NAMES)} or a robot definition file (.toml, see hil/geometry/robot_models)",
     )
     p.add_argument("-o", "--output", required=True, help="model JSON to write")
     p.add_argument("--solver", default="ridge", choices=("ridge", "lm"), help="solver whose model is written")

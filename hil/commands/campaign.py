@@ -10,8 +10,8 @@ from pathlib import Path
 import pandas as pd
 
 from hil.commands.errors import CliError
-from hil.dataset import DatasetError
-from hil.store import CampaignError, CampaignStore, export_csv, export_parquet, is_campaign_file
+from hil.data.dataset import DatasetError
+from hil.data.store import CampaignError, CampaignStore, export_csv, export_parquet, is_campaign_file
 
 SNAPSHOT_SECTIONS = ("cell", "robot", "tracker", "software")
 

@@ -6,9 +6,9 @@
   point targets. Each keeps its point id, its nest and the time / temperature it was measured at, and the
   commanded joints seed its compensation (same posture and branch, the SMR still facing the tracker).
 - `loop` (pseudo_target): the loop's own targets (SMR 1 in nest 1), poses when it ran with three SMRs; their
-  orientation is written as rx_deg, ry_deg, rz_deg in the dataset's convention (hil.dataset).
+  orientation is written as rx_deg, ry_deg, rz_deg in the dataset's convention (hil.data.dataset).
 
-The nominal robot is rebuilt from the campaign's station snapshot: the robot file's text it keeps (hil.cell_config
+The nominal robot is rebuilt from the campaign's station snapshot: the robot file's text it keeps (hil.runner.cell_config
 `CellConfig.snapshot`), else a built-in name; never from the current directory.
 """
 
@@ -21,10 +21,10 @@ import numpy as np
 import pandas as pd
 
 from hil.commands.errors import CliError
-from hil.dataset import orientation_columns
-from hil.kinematics import KinematicModel, forward_kinematics
-from hil.robots import get_robot, is_robot_file, robot_from_text
-from hil.store import CampaignError, CampaignStore
+from hil.data.dataset import orientation_columns
+from hil.data.store import CampaignError, CampaignStore
+from hil.geometry.kinematics import KinematicModel, forward_kinematics
+from hil.geometry.robots import get_robot, is_robot_file, robot_from_text
 
 # --step NAME -> (procedure, step) in the campaign; the default is the first of DEFAULT_ORDER it holds
 SOURCES: dict[str, tuple[str, str]] = {
@@ -67,7 +67,7 @@ def read_campaign_targets(
     path: str | Path, step: str | None = None, orientation_convention: str = "xyz-extrinsic"
 ) -> CampaignTargets:
     """The targets of one step of a campaign (default: loop, else validation, else grid); pose targets get
-    rx_deg, ry_deg, rz_deg in `orientation_convention` (hil.dataset's names). CliError on bad input."""
+    rx_deg, ry_deg, rz_deg in `orientation_convention` (hil.data.dataset's names). CliError on bad input."""
     if step is not None and step not in SOURCES:
         raise CliError(f"--step {step!r} is not a target source", f"give --step {' | '.join(SOURCES)}")
     try:

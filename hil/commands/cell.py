@@ -11,8 +11,8 @@ import sys
 
 import numpy as np
 
-from hil.cell_config import CellConfig, CellConfigError, load_cell_config
 from hil.commands.errors import CliError
+from hil.runner.cell_config import CellConfig, CellConfigError, load_cell_config
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -52,9 +52,9 @@ def run_check(args: argparse.Namespace) -> int:
     if not args.connect:
         return 0
     from drivers.emscon import EmsconConfig, EmsconTracker
-    from drivers.robot import RobotError
-    from drivers.tracker import TrackerError
     from drivers.ur import URConfig, URRobot
+    from hil.instruments.robot import RobotError
+    from hil.instruments.tracker import TrackerError
 
     failures = 0
     try:

@@ -1,7 +1,7 @@
 """`hil compensate model.json TARGETS -o JOINTS.csv`: joints that put the SMR on the targets, by the model.
 
 TARGETS is a CSV of points / poses or a campaign file (hil.commands.campaign_targets says which targets). A pose's
-rx_deg, ry_deg, rz_deg mean what they mean in a dataset (hil.dataset): the orientation of the targeted frame (the
+rx_deg, ry_deg, rz_deg mean what they mean in a dataset (hil.data.dataset): the orientation of the targeted frame (the
 flange's axes at the SMR) in the tracker frame, xyz-extrinsic Euler unless --orientation-convention says otherwise.
 """
 
@@ -14,12 +14,20 @@ import warnings
 import numpy as np
 import pandas as pd
 
-from hil.calibrated_model import CalibratedModel
+from hil.analysis.calibrated_model import CalibratedModel
+from hil.analysis.effects import THERMAL_FAMILIES, temperature_driven
 from hil.commands.arg_checks import InputError, check_paths, float_in
 from hil.commands.campaign_targets import DEFAULT_ORDER, SOURCES, read_campaign_targets
 from hil.commands.errors import CliError
-from hil.compensation import ENSEMBLE, CompensationResult, compensate, compensate_path, merge_results
-from hil.dataset import (
+from hil.compensation.model_based import (
+    ENSEMBLE,
+    CompensationResult,
+    compensate,
+    compensate_path,
+    merge_results,
+)
+from hil.compensation.target_update import GENERATORS
+from hil.data.dataset import (
     DEFAULT_ORIENTATION_CONVENTION,
     ORIENTATION_COLUMNS,
     ORIENTATION_CONVENTIONS,
@@ -27,9 +35,7 @@ from hil.dataset import (
     joint_columns,
     orientations,
 )
-from hil.effects import THERMAL_FAMILIES, temperature_driven
-from hil.pseudo_targets import GENERATORS
-from hil.store import is_campaign_file
+from hil.data.store import is_campaign_file
 
 TEMPERATURE_RANGE_C = (-20.0, 60.0)  # --temperature-c: a cell's air, not a typo in kelvin or fahrenheit
 
@@ -188,7 +194,7 @@ def thermal_drivers(
 
 def read_targets(path: str, orientation_convention: str = DEFAULT_ORIENTATION_CONVENTION) -> tuple[np.ndarray, pd.DataFrame]:
     """Targets (N, 3) points or (N, 4, 4) poses T_tracker_tool in metres from a CSV, rx/ry/rz_deg read as in a
-    dataset (hil.dataset, in `orientation_convention`); ValueError says what to fix."""
+    dataset (hil.data.dataset, in `orientation_convention`); ValueError says what to fix."""
     try:
         df = pd.read_csv(path)
     except (OSError, pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError) as exc:

@@ -26,10 +26,10 @@ from typing import TYPE_CHECKING
 
 from hil.commands.cell_options import add_effects_argument, effect_flags
 from hil.commands.errors import CliError
-from hil.robots import ROBOT_NAMES
+from hil.geometry.robots import ROBOT_NAMES
 
 if TYPE_CHECKING:
-    from hil.session import Session
+    from hil.runner.session import Session
 
 UR_ROBOTS = [name for name in ROBOT_NAMES if name.startswith("ur")]
 
@@ -76,7 +76,7 @@ def run(args: argparse.Namespace) -> int:
         f"campaign {campaign}{' (resuming)' if resumed else ''}"
     )
     from hil.commands.interrupts import interrupt_guard
-    from hil.session import CampaignStopped
+    from hil.runner.session import CampaignStopped
 
     started = time.monotonic()
     with interrupt_guard():
@@ -93,7 +93,7 @@ def run(args: argparse.Namespace) -> int:
                 loop = measured_loop(args, out, campaign, report.model)
             except CampaignStopped as exc:
                 raise CliError(exc.message, exc.remedy + " (run hil demo again to resume)") from exc
-    from hil.report import write_html
+    from hil.analysis.report import write_html
 
     write_html(report, out / "report.html", compensation=loop)
     print(f"\nwrote {out}/campaign.sqlite, cell.toml, grid.csv, validate.csv, report.json, report.html, model.json")
@@ -105,9 +105,9 @@ def simulated_session(args: argparse.Namespace, out: Path, campaign: Path) -> It
     """Start the simulated cell, write its cell.toml (as for a real cell) and open a Session on it through
     ur-rtde and emScon, the scripted operator moving the simulated SMRs; the cell stops on leaving."""
     from fakes.launch import sim_cell
-    from hil.cell_config import load_cell_config
     from hil.commands.instruments import open_session, simulated_operator
     from hil.commands.sim_cell import write_sim_cell
+    from hil.runner.cell_config import load_cell_config
 
     cell_path = out / "cell.toml"
     with sim_cell(
@@ -152,11 +152,11 @@ def analyse(args: argparse.Namespace, out: Path, campaign: Path):
     """Diagnose the grid against the validation set and write the JSON report and the model."""
     import numpy as np
 
-    from hil.dataset import write_dataset
-    from hil.diagnosis import run_diagnosis
-    from hil.report import conclusion, write_json
-    from hil.robots import get_robot
-    from hil.store import CampaignStore, campaign_dataset
+    from hil.analysis.diagnosis import run_diagnosis
+    from hil.analysis.report import conclusion, write_json
+    from hil.data.dataset import write_dataset
+    from hil.data.store import CampaignStore, campaign_dataset
+    from hil.geometry.robots import get_robot
 
     with CampaignStore(campaign) as store:
         train = campaign_dataset(store, "grid_sampling", step="grid")

@@ -7,16 +7,16 @@ import argparse
 import numpy as np
 import pandas as pd
 
-from hil.calibration import position_noise_m
+from hil.analysis.calibration import position_noise_m
+from hil.analysis.diagnosis import DiagnosisReport, run_diagnosis
+from hil.analysis.effects import EFFECT_FAMILIES
 from hil.commands.arg_checks import InputError, check_paths, float_in, float_list, int_in
 from hil.commands.calibrate import add_probe_options, orientation_summary, parse_mm_vector
+from hil.commands.cli_progress import cli_progress
 from hil.commands.errors import CliError
 from hil.commands.inputs import read_training_and_validation
-from hil.commands.progress import cli_progress
-from hil.dataset import DatasetError, convert_orientation_convention, points_m, pose_ids
-from hil.diagnosis import DiagnosisReport, run_diagnosis
-from hil.effects import EFFECT_FAMILIES
-from hil.robots import ROBOT_NAMES, get_robot, robot_arg
+from hil.data.dataset import DatasetError, convert_orientation_convention, points_m, pose_ids
+from hil.geometry.robots import ROBOT_NAMES, get_robot, robot_arg
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -33,7 +33,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--robot",
         default="ur10",
         type=robot_arg,
-        help=f"nominal robot: {', '.join(ROBOT_NAMES)} or a robot definition file (.toml, see hil/robot_models)",
+        help=f"nominal robot: {', '.join(ROBOT_NAMES)} or a robot definition file (.toml, see hil/geometry/robot_models)",
     )
     p.add_argument("--validate", default=None, help="a separate dataset CSV never used for fitting")
     p.add_argument(
@@ -155,7 +155,7 @@ def _run(args, df, val, tool, families, mpe, progress) -> DiagnosisReport:
 
 
 def _print_and_write(args: argparse.Namespace, report: DiagnosisReport) -> None:
-    from hil.report import conclusion, final_orientation_text, write_html, write_json
+    from hil.analysis.report import conclusion, final_orientation_text, write_html, write_json
 
     print(report.table())
     for name, res in report.calibration.items():

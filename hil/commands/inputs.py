@@ -6,8 +6,8 @@ from pathlib import Path
 
 import pandas as pd
 
-from hil.dataset import load_dataset
-from hil.store import CampaignStore, campaign_dataset, is_campaign_file
+from hil.data.dataset import load_dataset
+from hil.data.store import CampaignStore, campaign_dataset, is_campaign_file
 
 CAMPAIGN_PROCEDURE = "grid_sampling"  # the procedure whose measurements the analysis commands read
 TRAINING_STEP = "grid"
@@ -18,7 +18,7 @@ def read_measurements(
     path: str | Path, step: str | None = None, *, require_positions: bool = True
 ) -> pd.DataFrame:
     """The dataset-contract frame of `path`: a campaign file (its grid_sampling measurements, one step or
-    all of them) or a dataset CSV (hil.dataset.load_dataset). Raises DatasetError/ValueError on bad input."""
+    all of them) or a dataset CSV (hil.data.dataset.load_dataset). Raises DatasetError/ValueError on bad input."""
     if is_campaign_file(path):
         return campaign_dataset(path, CAMPAIGN_PROCEDURE, step)
     return load_dataset(path, require_positions=require_positions)

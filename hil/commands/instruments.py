@@ -11,11 +11,11 @@ import sys
 from contextlib import ExitStack
 from pathlib import Path
 
-from hil.cell_config import CellConfig
-from hil.operator import ConsoleOperator, Operator, OperatorStep, ScriptedOperator
-from hil.progress import Progress
-from hil.session import Session
-from hil.store import CampaignStore
+from hil.data.store import CampaignStore
+from hil.runner.cell_config import CellConfig
+from hil.runner.operator import ConsoleOperator, Operator, OperatorStep, ScriptedOperator
+from hil.runner.progress import Progress
+from hil.runner.session import Session
 
 
 def simulated_operator(control_address: str | None) -> ScriptedOperator:

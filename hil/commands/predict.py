@@ -9,11 +9,11 @@ import warnings
 import numpy as np
 import pandas as pd
 
-from hil.calibrated_model import CalibratedModel
+from hil.analysis.calibrated_model import CalibratedModel
 from hil.commands.arg_checks import InputError, check_paths
 from hil.commands.errors import CliError
 from hil.commands.inputs import read_measurements
-from hil.dataset import POSITION_COLUMNS, DatasetError, joints_rad
+from hil.data.dataset import POSITION_COLUMNS, DatasetError, joints_rad
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

@@ -12,13 +12,13 @@ from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
 
-from hil.cell_config import CellConfigError, load_cell_config
 from hil.commands.errors import CliError
 from hil.commands.interrupts import interrupt_guard
-from hil.envelope import EnvelopeError
-from hil.operator import OperatorAbortError
-from hil.pseudo_targets import GENERATORS
-from hil.session import CampaignStopped
+from hil.compensation.target_update import GENERATORS
+from hil.runner.cell_config import CellConfigError, load_cell_config
+from hil.runner.envelope import EnvelopeError
+from hil.runner.operator import OperatorAbortError
+from hil.runner.session import CampaignStopped
 
 # name -> (module, options: list of (flag, kwargs for argparse))
 PROCEDURE_OPTIONS: dict[str, list[tuple[str, dict[str, Any]]]] = {
@@ -117,8 +117,8 @@ def run(args: argparse.Namespace) -> int:
         operator = choose_operator(config, args.operator)
     except ValueError as exc:
         raise CliError(str(exc), "pick another --operator") from exc
-    from drivers.robot import RobotError
-    from drivers.tracker import TrackerError
+    from hil.instruments.robot import RobotError
+    from hil.instruments.tracker import TrackerError
 
     with interrupt_guard(), ExitStack() as stack:
         try:

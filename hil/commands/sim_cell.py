@@ -12,9 +12,9 @@ from pathlib import Path
 
 import numpy as np
 
-from hil.cell_config import SMR_RADIUS_MM, format_cell_toml
-from hil.ik import reach_bound
-from hil.robots import get_robot
+from hil.geometry.ik import reach_bound
+from hil.geometry.robots import get_robot
+from hil.runner.cell_config import SMR_RADIUS_MM, format_cell_toml
 
 
 def sim_cell_values(info: dict, truth: dict, time_scale: float) -> dict[str, dict]:

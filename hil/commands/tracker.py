@@ -38,7 +38,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from drivers.emscon import EmsconConfig, EmsconTracker
-    from drivers.tracker import TrackerError
+    from hil.instruments.tracker import TrackerError
 
     if args.shots < 0:
         raise CliError(f"--shots {args.shots} is negative", "give 0 (no measurement) or more shots")

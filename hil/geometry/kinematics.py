@@ -13,7 +13,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from hil.se3 import rot_y
+from hil.geometry.se3 import rot_y
 
 SMALL_BATCH = 24  # up to this many rows the chain is built from (4, 4) matmuls (fewer numpy calls)
 PARAM_KINDS_DH: tuple[str, ...] = ("theta", "d", "a", "alpha")

@@ -13,7 +13,7 @@ import warnings
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from hil.se3 import invert
+from hil.geometry.se3 import invert
 
 GENERATORS: tuple[str, ...] = ("yin", "fixed", "add", "multiply", "zyz", "rpy", "quaternion")
 DESCRIPTIONS: dict[str, str] = {

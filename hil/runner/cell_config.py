@@ -15,9 +15,9 @@ from typing import Any
 
 import numpy as np
 
-from hil.envelope import Envelope
-from hil.kinematics import KinematicModel
-from hil.robots import ROBOT_NAMES, get_robot, is_robot_file, robot_from_text
+from hil.geometry.kinematics import KinematicModel
+from hil.geometry.robots import ROBOT_NAMES, get_robot, is_robot_file, robot_from_text
+from hil.runner.envelope import Envelope
 
 SMR_RADIUS_MM = 19.05  # 1.5" sphere
 
@@ -299,7 +299,7 @@ def parse_cell_config(data: dict, source: str = "cell.toml") -> CellConfig:
 
 
 def _default_home(nominal: KinematicModel | None, n: int) -> np.ndarray:
-    from hil.ik import default_home
+    from hil.geometry.ik import default_home
 
     return default_home(nominal) if nominal is not None else np.zeros(n)
 

@@ -10,10 +10,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from hil.cell_config import CellConfig
-from hil.envelope import EnvelopeError
-from hil.kinematics import forward_kinematics
-from hil.planners import sequence_duration_s
+from hil.geometry.kinematics import forward_kinematics
+from hil.runner.cell_config import CellConfig
+from hil.runner.envelope import EnvelopeError
+from hil.runner.planners import sequence_duration_s
 
 
 @dataclass(frozen=True)

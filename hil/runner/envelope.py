@@ -8,8 +8,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hil.kinematics import KinematicModel, forward_kinematics, link_frames
-from hil.planners import wrist_points
+from hil.geometry.kinematics import KinematicModel, forward_kinematics, link_frames
+from hil.runner.planners import wrist_points
 
 # Samples per joint move when checking its path: moveJ interpolates linearly in joint space, so the
 # tool sweeps a smooth curve; 1 degree of the largest joint travel per sample, at least 8.

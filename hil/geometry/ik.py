@@ -15,8 +15,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hil.kinematics import KinematicModel, forward_kinematics, geometric_jacobian, pose_and_jacobian
-from hil.se3 import invert
+from hil.geometry.kinematics import KinematicModel, forward_kinematics, geometric_jacobian, pose_and_jacobian
+from hil.geometry.se3 import invert
 
 # Failure vocabulary of IKResult.reason.
 REASON_OK = "ok"  # converged below tolerance, within joint limits

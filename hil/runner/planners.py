@@ -13,8 +13,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from hil.ik import default_home, solve_ik
-from hil.kinematics import KinematicModel, geometric_jacobian, link_frames
+from hil.geometry.ik import default_home, solve_ik
+from hil.geometry.kinematics import KinematicModel, geometric_jacobian, link_frames
 
 # Smallest singular value of the position Jacobian (m/rad) below which a pose counts as near-singular:
 # a joint error of 1e-5 rad would then move the tool by less than ~0.5 um in some direction, and

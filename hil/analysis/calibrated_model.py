@@ -1,7 +1,7 @@
 """A calibrated robot model: geometry, base frame, tool points, effects; predicts, corrects, saves as JSON.
 
 The full parameter vector is the kinematic parameters (`KinematicModel.param_names`), the six base
-parameters (tracker <- robot base, see `hil.kinematics.perturb_base`), three tool coordinates per SMR
+parameters (tracker <- robot base, see `hil.geometry.kinematics.perturb_base`), three tool coordinates per SMR
 nest, three orientation parameters per 6-DoF probe (a small rotation of R_flange_probe about the flange
 axes: R <- Rot(d) R), then every effect's coefficients. `predict` applies all of it; `jacobian_ctx`
 differentiates it; `rotation_jacobian_ctx` does the same for the probe's orientation.
@@ -17,11 +17,12 @@ import numpy as np
 import pandas as pd
 from scipy.spatial.transform import Rotation
 
-from hil.dataset import joints_rad, make_dataset, orientations, points_m, smr_ids
-from hil.effects import Effect, EffectContext, effect_from_dict, growth_direction, tool_points_rows
-from hil.ik import solve_ik
-from hil.jsonable import to_jsonable
-from hil.kinematics import (
+from hil.analysis.effects import Effect, EffectContext, effect_from_dict, growth_direction, tool_points_rows
+from hil.analysis.residual_maps import map_from_dict
+from hil.data.dataset import joints_rad, make_dataset, orientations, points_m, smr_ids
+from hil.data.jsonable import to_jsonable
+from hil.geometry.ik import solve_ik
+from hil.geometry.kinematics import (
     BASE_PARAM_NAMES,
     KinematicModel,
     forward_kinematics,
@@ -29,9 +30,8 @@ from hil.kinematics import (
     kinematic_rotation_jacobian,
     perturb_base,
 )
-from hil.residual_maps import map_from_dict
-from hil.robots import get_robot
-from hil.se3 import fit_rigid, invert, make_transform, transform_points
+from hil.geometry.robots import get_robot
+from hil.geometry.se3 import fit_rigid, invert, make_transform, transform_points
 
 FORMAT = "hil-calibrated-model/1"
 
@@ -47,7 +47,7 @@ class CalibratedModel:
     tools: dict[int, np.ndarray]  # SMR nest id -> tool point in the flange (m)
     effects: list[Effect] = field(default_factory=list)
     info: dict = field(default_factory=dict)  # solver report: std errors, dropped parameters, outliers...
-    residual_map: dict | None = None  # fallback residual map (hil.residual_maps), applied by `predict`
+    residual_map: dict | None = None  # fallback residual map (hil.analysis.residual_maps), applied by `predict`
     probes: dict[int, np.ndarray] = field(default_factory=dict)  # SMR nest id -> R_flange_probe (3, 3)
 
     # ----- parameter vector ---------------------------------------------------------------------
@@ -153,7 +153,7 @@ class CalibratedModel:
         """Poses T_tracker_tool (N, 4, 4) the model predicts for commanded joints q (N, n): the SMR centre of
         `predict` (every effect and the residual map) with the flange's orientation through the joint
         effects. Built on the public dataset path, it judges compensated joints independently of
-        `hil.compensation`'s own predictor."""
+        `hil.compensation.model_based`'s own predictor."""
         q = self.kinematic.check_joints(q)
         sid = sorted(self.tools)[0] if smr is None else int(smr)
         df = make_dataset(q, np.zeros((len(q), 3)), smr=sid)
@@ -255,7 +255,7 @@ class CalibratedModel:
         """Joints to command so that the model puts the SMR at the targets (tracker frame, m).
 
         Gauss-Newton on the joints from a seed (N, n): the joints the controller would use for the target
-        (e.g. its IK of a pose), or by default the calibrated geometry's position IK (`hil.ik.solve_ik`).
+        (e.g. its IK of a pose), or by default the calibrated geometry's position IK (`hil.geometry.ik.solve_ik`).
         Position only: 3 equations in 6 joints, so the minimum-norm joint step is taken and the seed's
         orientation is kept to first order. Thermal effects need `t_s` / `temperature_c` (N,) at the
         time of the move; backlash needs `approach` (N, n) signs of the final motion of each joint (0 =

@@ -29,8 +29,8 @@ from typing import ClassVar
 import numpy as np
 import pandas as pd
 
-from hil.jsonable import to_jsonable
-from hil.kinematics import KinematicModel, chain_axes, forward_kinematics, tool_points
+from hil.data.jsonable import to_jsonable
+from hil.geometry.kinematics import KinematicModel, chain_axes, forward_kinematics, tool_points
 
 # Names used in reports and model files (the documented vocabulary).
 EFFECT_FAMILIES: tuple[str, ...] = (

@@ -1,6 +1,6 @@
 """Close the loop: calibrate, look at the residual, test candidate effects, add the one that helps, repeat.
 
-Selection rule for each round (every candidate from `hil.effects` the data could reveal):
+Selection rule for each round (every candidate from `hil.analysis.effects` the data could reveal):
 1. add the candidate to the current model and re-run the identifiability analysis on the joint
    (geometry + effects) Jacobian, so coefficients the data cannot separate from the geometry are merged;
 2. k-fold cross-validation on blocks of the workspace (default 5 folds, the same for every candidate;
@@ -29,8 +29,8 @@ import pandas as pd
 from scipy import stats
 from threadpoolctl import threadpool_limits
 
-from hil.calibrated_model import CalibratedModel, initial_model
-from hil.calibration import (
+from hil.analysis.calibrated_model import CalibratedModel, initial_model
+from hil.analysis.calibration import (
     CalibrationResult,
     Problem,
     calibrate,
@@ -38,19 +38,17 @@ from hil.calibration import (
     identify,
     solve_ridge_igg3,
 )
-from hil.calibration import reregister as reregister_model
-from hil.dataset import drop_duplicate_rows, joints_rad
-from hil.effects import (
+from hil.analysis.calibration import reregister as reregister_model
+from hil.analysis.effects import (
     Effect,
     candidate_effects,
     make_effect,
     tool_points_rows,
 )
-from hil.identifiability import IdentifiabilityReport
-from hil.kinematics import KinematicModel
-from hil.noise_floor import TRACKER_MPE_M, NoiseFloor, estimate_noise_floor
-from hil.residual_maps import MAP_KINDS, kfold_map_errors, make_map, map_from_dict
-from hil.screening import (
+from hil.analysis.identifiability import IdentifiabilityReport
+from hil.analysis.noise_floor import TRACKER_MPE_M, NoiseFloor, estimate_noise_floor
+from hil.analysis.residual_maps import MAP_KINDS, kfold_map_errors, make_map, map_from_dict
+from hil.analysis.screening import (
     Candidate,
     Screen,
     cv_residuals,
@@ -59,6 +57,8 @@ from hil.screening import (
     pick_winner,
     weakest_effect,
 )
+from hil.data.dataset import drop_duplicate_rows, joints_rad
+from hil.geometry.kinematics import KinematicModel
 
 
 def error_stats(err_m: np.ndarray) -> dict[str, float]:
@@ -108,7 +108,7 @@ class DiagnosisReport:
     stages: list[dict]
     steps: list[Step]
     unexplained_structure: bool
-    verdict: dict  # residual ("floor" | "excess" | "structured"), ratio, map, cautions: hil.report words it
+    verdict: dict  # residual ("floor" | "excess" | "structured"), ratio, map, cautions: hil.analysis.report words it
     residual_map: dict | None = None
     histograms: dict = field(default_factory=dict)  # stage -> held-out error norms (mm)
     final_round: list[Candidate] = field(default_factory=list)
@@ -650,7 +650,7 @@ def _validate(
 
 
 def caution(kind: str, **data: Any) -> dict:
-    """One caution of the verdict, as data: `kind` names it, hil.report words it."""
+    """One caution of the verdict, as data: `kind` names it, hil.analysis.report words it."""
     return {"kind": kind, **data}
 
 

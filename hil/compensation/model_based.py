@@ -17,9 +17,18 @@ from dataclasses import dataclass, field, fields
 
 import numpy as np
 
-from hil.calibrated_model import CalibratedModel
-from hil.effects import EffectContext
-from hil.ik import (
+from hil.analysis.calibrated_model import CalibratedModel
+from hil.analysis.effects import EffectContext
+from hil.analysis.residual_maps import map_from_dict
+from hil.compensation.target_update import (
+    GENERATORS,
+    check_generator,
+    ik_pose,
+    pose_errors,
+    update_pseudo_position,
+    update_pseudo_target,
+)
+from hil.geometry.ik import (
     REASON_MAX_ITER,
     REASON_OK,
     REASON_UNREACHABLE,
@@ -31,23 +40,14 @@ from hil.ik import (
     solve_ik,
     ur_branch_index,
 )
-from hil.kinematics import KinematicModel, forward_kinematics, pose_and_jacobian
-from hil.pseudo_targets import (
-    GENERATORS,
-    check_generator,
-    ik_pose,
-    pose_errors,
-    update_pseudo_position,
-    update_pseudo_target,
-)
-from hil.residual_maps import map_from_dict
-from hil.se3 import invert
+from hil.geometry.kinematics import KinematicModel, forward_kinematics, pose_and_jacobian
+from hil.geometry.se3 import invert
 
 STATUS_OK = "ok"  # predicted error below the threshold
 STATUS_MAX_ITER = "max_iter"  # iteration cap reached above the threshold (best joints kept)
 STATUS_STALLED = "stalled"  # no improvement for `patience` iterations (best joints kept)
 STATUS_NO_IK = "no_ik_solution"  # the IK found no joints for the (pseudo) target, cause not proven
-# The IK reasons of hil.ik (unreachable, singular, joint_limits; its max_iter becomes no_ik_solution)
+# The IK reasons of hil.geometry.ik (unreachable, singular, joint_limits; its max_iter becomes no_ik_solution)
 # mark targets whose first IK failed: their joints are NaN. A later IK failure keeps the best joints
 # found and that reason.
 STATUSES: tuple[str, ...] = (
@@ -216,11 +216,11 @@ def compensate(
     """Joints that make the model put the SMR on the targets (tracker frame, m): points (N, 3) or poses.
 
     Full-pose targets are T_tracker_tool (N, 4, 4): SMR centre and flange orientation; `generator` is
-    one of `hil.pseudo_targets.GENERATORS` (default "yin") or "ensemble" (all of them, best joints per
+    one of `hil.compensation.target_update.GENERATORS` (default "yin") or "ensemble" (all of them, best joints per
     target). Point targets (N, 3) leave the orientation free: the pseudo target is a point
     (P_p <- P_p + P_d - P_a, the part all generators share). The first IK starts from `q_seed` (per
     target) if given, else from the closed-form solution on the branch of `q_near` (default
-    `hil.ik.default_home`), for points in that posture's tool orientation. Stops per target below `threshold_m` of the error measure (position, or the
+    `hil.geometry.ik.default_home`), for points in that posture's tool orientation. Stops per target below `threshold_m` of the error measure (position, or the
     mm-equivalent pose error with `length_scale_m` per radian), after `max_iter` updates, or after
     `patience` updates without improvement. `ik_model`: "kinematic" (the calibrated geometry) or
     "nominal": the model the pseudo targets are solved with. `ik_solver` replaces hil's IK (closed-form
@@ -342,7 +342,7 @@ class PseudoTargetIK:
 
     Pose targets: the IK solves flange poses. Point targets: the orientation is free, the IK solves the
     tool point with minimum-norm steps from the previous joints (the orientation drifts only as needed).
-    The measured loop uses it with `hil.pseudo_targets.update_pseudo_target` on measured poses:
+    The measured loop uses it with `hil.compensation.target_update.update_pseudo_target` on measured poses:
     T_p = update_pseudo_target(gen, T_d, T_measured, T_p); q, reason = ik.solve(T_p, q).
     """
 
@@ -383,7 +383,7 @@ class PseudoTargetIK:
     ) -> tuple[np.ndarray, np.ndarray]:
         """IK of pseudo targets T_tracker_tool (N, 4, 4) seeded with q_prev (N, n): Newton, then `solve_ik`
         on what Newton left (or `ik_solver`). `project`: rotation blocks are not rotations ("add").
-        Returns (q, reason (N,) str: 'ok', hil.ik's failure reason, or no_ik_solution)."""
+        Returns (q, reason (N,) str: 'ok', hil.geometry.ik's failure reason, or no_ik_solution)."""
         q, reason, _ = self._solve(T_pseudo, q_prev, project)
         return q, reason
 

@@ -21,7 +21,7 @@ import warnings
 import numpy as np
 from scipy.spatial import cKDTree
 
-from hil.folds import location_spacing
+from hil.analysis.folds import location_spacing
 
 MAP_KINDS: tuple[str, ...] = ("idw", "svr", "gp")
 

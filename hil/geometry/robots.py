@@ -1,4 +1,4 @@
-"""Nominal robot models from robot definition files (TOML): the built-ins live in hil/robot_models/
+"""Nominal robot models from robot definition files (TOML): the built-ins live in hil/geometry/robot_models/
 (UR5, UR10, UR5e, UR10e, ABB IRB2600, KUKA KR 6 R900 in standard DH; FANUC LR Mate 200iD and ABB IRB 4600
 in modified DH), and any other serial arm is one more such file.
 
@@ -7,7 +7,7 @@ data sheet: `d_mm`, `a_mm`, `alpha_deg`, optional `theta_offset_deg` (0), `hayat
 `limits_deg` ([-360, 360]). Optional `mass_kg` per joint (the link that joint moves) is checked and kept
 for the reader only: no module uses it yet (the simulator has its own mass table per built-in name).
 
-`convention = "dh"` (standard Denavit-Hartenberg, the internal form of hil.kinematics): joint i is
+`convention = "dh"` (standard Denavit-Hartenberg, the internal form of hil.geometry.kinematics): joint i is
 Rz(θ_i) Tz(d_i) Tx(a_i) Rx(α_i) [Ry(β_i)], `hayati_beta` on a joint whose axis is parallel to the next.
 `convention = "mdh"` (modified DH after Craig; "modified_dh" and "craig" are the same): row i is
 Rx(α_{i-1}) Tx(a_{i-1}) [Ry(β_{i-1})] Rz(θ_i) Tz(d_i), so its `a_mm`, `alpha_deg` describe the link that
@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from hil.kinematics import KinematicModel
+from hil.geometry.kinematics import KinematicModel
 
 ROBOT_DIR = Path(__file__).with_name("robot_models")
 ROBOT_NAMES: tuple[str, ...] = (

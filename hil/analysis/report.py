@@ -11,8 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
-from hil.diagnosis import DiagnosisReport, effect_label
-from hil.jsonable import to_jsonable
+from hil.analysis.diagnosis import DiagnosisReport, effect_label
+from hil.data.jsonable import to_jsonable
 
 
 def _effect(e: dict) -> str:
@@ -20,7 +20,7 @@ def _effect(e: dict) -> str:
 
 
 def caution_text(c: dict) -> str:
-    """One caution of the verdict (`hil.diagnosis.caution`) in words."""
+    """One caution of the verdict (`hil.analysis.diagnosis.caution`) in words."""
     kind = c["kind"]
     if kind == "calibration_note":
         return c["text"]

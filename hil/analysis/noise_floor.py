@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from hil.dataset import joints_rad, points_m, smr_ids
+from hil.data.dataset import joints_rad, points_m, smr_ids
 
 # The tracker's noise model (AT901 / AT960 class): MPE = 15 um + 6 um/m of distance, taken as 2 sigma per axis.
 TRACKER_MPE_M: tuple[float, float] = (15e-6, 6e-6)

@@ -34,8 +34,12 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 from threadpoolctl import threadpool_limits
 
-from hil.calibrated_model import CalibratedModel, initial_model, with_initial_probes
-from hil.dataset import (
+from hil.analysis.calibrated_model import CalibratedModel, initial_model, with_initial_probes
+from hil.analysis.effects import EffectContext
+from hil.analysis.folds import kfold, location_spacing, spatial_folds
+from hil.analysis.identifiability import IdentifiabilityReport, analyse, scale_columns
+from hil.analysis.noise_floor import TRACKER_MPE_M, TRACKER_MPE_SIGMAS, tracker_sigma_m
+from hil.data.dataset import (
     ORIENTATION_COLUMNS,
     data_rows,
     joints_rad,
@@ -45,12 +49,8 @@ from hil.dataset import (
     repeated_orientation_counts,
     smr_ids,
 )
-from hil.effects import EffectContext
-from hil.folds import kfold, location_spacing, spatial_folds
-from hil.identifiability import IdentifiabilityReport, analyse, scale_columns
-from hil.kinematics import KinematicModel
-from hil.noise_floor import TRACKER_MPE_M, TRACKER_MPE_SIGMAS, tracker_sigma_m
-from hil.se3 import fit_rigid
+from hil.geometry.kinematics import KinematicModel
+from hil.geometry.se3 import fit_rigid
 
 K0, K1 = 1.5, 2.5  # IGG3 thresholds of the grid paper
 # Beyond this many rows the solvers converge on a fixed random subset of them, then finish on every row
@@ -67,7 +67,7 @@ PROBE_ANGLE_NOISE_RAD = float(np.deg2rad(0.01))
 def position_noise_m(
     points: np.ndarray, mpe_m: tuple[float, float] = TRACKER_MPE_M, sigmas: float = TRACKER_MPE_SIGMAS
 ) -> float:
-    """1-sigma tracker noise per axis at the median distance of the points (hil.noise_floor's model)."""
+    """1-sigma tracker noise per axis at the median distance of the points (hil.analysis.noise_floor's model)."""
     return float(tracker_sigma_m(float(np.median(np.linalg.norm(points, axis=1))), mpe_m, sigmas))
 
 

@@ -20,8 +20,11 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from drivers.robot import Robot, RobotError
-from drivers.tracker import (
+from hil.data.store import P_COLUMNS, Q_COLUMNS, T_COLUMNS, CampaignStore, MeasurementRecord, StoreLogHandler
+from hil.geometry.kinematics import KinematicModel, forward_kinematics
+from hil.geometry.se3 import transform_points
+from hil.instruments.robot import Robot, RobotError
+from hil.instruments.tracker import (
     NoTargetError,
     OutlierError,
     Tracker,
@@ -29,14 +32,11 @@ from drivers.tracker import (
     TrackerError,
     TrackerTimeoutError,
 )
-from hil.cell_config import CellConfig
-from hil.envelope import Envelope, EnvelopeError
-from hil.kinematics import KinematicModel, forward_kinematics
-from hil.operator import Operator, OperatorStep
-from hil.plan import Plan
-from hil.progress import Progress
-from hil.se3 import transform_points
-from hil.store import P_COLUMNS, Q_COLUMNS, T_COLUMNS, CampaignStore, MeasurementRecord, StoreLogHandler
+from hil.runner.cell_config import CellConfig
+from hil.runner.envelope import Envelope, EnvelopeError
+from hil.runner.operator import Operator, OperatorStep
+from hil.runner.plan import Plan
+from hil.runner.progress import Progress
 
 log = logging.getLogger("hil")
 

@@ -1,6 +1,6 @@
 """Candidate screening for the diagnosis: linearised held-out (cross-validated) fits, the tests a candidate
 effect must pass to be added, near-ties and the thermal preference, and the test that removes an earlier
-effect a later one made redundant. The selection rule itself is told in hil/diagnosis.py's docstring."""
+effect a later one made redundant. The selection rule itself is told in hil/analysis/diagnosis.py's docstring."""
 
 from __future__ import annotations
 
@@ -9,10 +9,10 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy import stats
 
-from hil.calibrated_model import CalibratedModel
-from hil.calibration import Problem, flatten_jacobian
-from hil.effects import PHYSICAL_RANK, THERMAL_FAMILIES, Effect, temperature_driven
-from hil.identifiability import analyse, scale_columns
+from hil.analysis.calibrated_model import CalibratedModel
+from hil.analysis.calibration import Problem, flatten_jacobian
+from hil.analysis.effects import PHYSICAL_RANK, THERMAL_FAMILIES, Effect, temperature_driven
+from hil.analysis.identifiability import analyse, scale_columns
 
 
 def effect_label(name: str, joint: int | None) -> str:

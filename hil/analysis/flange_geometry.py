@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
-from hil.se3 import fit_circle_3d, make_transform
+from hil.geometry.se3 import fit_circle_3d, make_transform
 
 SMR_RADIUS_M = 0.01905
 

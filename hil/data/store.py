@@ -23,8 +23,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from hil.dataset import DatasetError, validate_dataset, write_dataset
-from hil.jsonable import to_jsonable
+from hil.data.dataset import DatasetError, validate_dataset, write_dataset
+from hil.data.jsonable import to_jsonable
 
 SCHEMA_VERSION = 1
 APPLICATION_ID = 0x48494C43  # "HILC" in the SQLite header (offset 68): marks the file as a hil campaign
@@ -592,7 +592,7 @@ def campaign_dataset(
     procedure: str = "grid_sampling",
     step: str | Sequence[str] | None = None,
 ) -> pd.DataFrame:
-    """The measurements of one procedure (one or several steps) in the hil.dataset contract, validated."""
+    """The measurements of one procedure (one or several steps) in the hil.data.dataset contract, validated."""
     if isinstance(path_or_store, CampaignStore):
         store, own = path_or_store, False
     else:

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hil.se3 import fit_rigid, transform_points
+from hil.geometry.se3 import fit_rigid, transform_points
 
 
 @dataclass(frozen=True)

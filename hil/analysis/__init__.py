@@ -1,0 +1,1 @@
+"""Analysis of measured data: calibration, diagnosis of missing effects, residual maps, noise, reports."""

@@ -1,0 +1,1 @@
+"""The data contract: the dataset columns and units, JSON conversion, and the campaign store."""

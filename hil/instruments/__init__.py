@@ -1,0 +1,1 @@
+"""What hil expects of a robot and a tracker: the Protocols, their state records and typed errors."""
