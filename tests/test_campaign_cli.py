@@ -123,6 +123,17 @@ def test_export_csv_and_parquet(files, capsys, tmp_path):
     assert len(load_dataset(tmp_path / "reg.csv")) == 3
 
 
+def test_export_never_overwrites_a_file_silently(files, capsys, tmp_path):
+    d, train, _ = files
+    out = tmp_path / "grid.csv"
+    out.write_text("keep me\n")
+    assert main(["campaign", "export", str(d / "c.hilc"), "--csv", str(out), "--step", "grid"]) == 2
+    err = capsys.readouterr().err
+    assert out.read_text() == "keep me\n" and "exists" in err and "--force" in err
+    assert main(["campaign", "export", str(d / "c.hilc"), "--csv", str(out), "--step", "grid", "--force"]) == 0
+    assert len(load_dataset(out)) == len(train)
+
+
 @pytest.mark.parametrize(
     "argv, message",
     [

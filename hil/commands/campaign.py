@@ -36,6 +36,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--procedure", default="grid_sampling", help="procedure to export (default grid_sampling)"
     )
     export.add_argument("--step", default=None, help="export only this step (default: all of them)")
+    export.add_argument("--force", action="store_true", help="overwrite the output file if it exists")
     export.set_defaults(func=run_export)
     parser.set_defaults(func=lambda args: _usage(parser))
 
@@ -156,6 +157,8 @@ def run_export(args: argparse.Namespace) -> int:
         raise CliError.from_text(f"output folder {out.parent} does not exist; create it or choose another path")
     if out.exists() and out.resolve() == Path(args.file).resolve():
         raise CliError.from_text("the output would overwrite the campaign file itself; choose another output path")
+    if out.exists() and not args.force:
+        raise CliError.from_text(f"{out} exists; choose another output path, or give --force to overwrite it")
     write = export_csv if args.csv else export_parquet
     try:
         rows = write(args.file, out, args.procedure, args.step)
