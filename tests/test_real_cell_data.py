@@ -91,3 +91,33 @@ def test_predict_warns_for_a_model_of_another_robot(campaign, tmp_path, capsys):
     assert code == 0
     assert "mm RMS off the positions in the file" in err and "model is for ur5" in err
     assert "joint(s) 1" in err and "leave the range the model was trained on" in err
+
+
+def test_a_model_fitted_with_the_wrong_robot_is_refused_unless_forced(campaign, tmp_path, capsys):
+    campaign.to_csv(tmp_path / "ur10.csv", index=False)
+    model = tmp_path / "ur5.json"
+    code = main(["calibrate", str(tmp_path / "ur10.csv"), "--robot", "ur5", "-o", str(model)])
+    err = capsys.readouterr().err
+    assert code == 2 and not model.exists()
+    assert "error: implausible: a2 moved" in err and "no model written" in err and "--force" in err
+    code = main(["calibrate", str(tmp_path / "ur10.csv"), "--robot", "ur5", "-o", str(model), "--force"])
+    err = capsys.readouterr().err
+    assert code == 0 and model.exists() and "warning: implausible: a2 moved" in err
+
+
+def test_calibrate_prints_changes_in_mm_and_degrees(campaign, tmp_path, capsys):
+    campaign.to_csv(tmp_path / "ur10.csv", index=False)
+    assert main(["calibrate", str(tmp_path / "ur10.csv"), "-o", str(tmp_path / "m.json")]) == 0
+    rows = {line.split()[0]: line.split() for line in capsys.readouterr().out.splitlines() if line[:2] in ("a2", "al")}
+    table = {r["name"]: r for r in calibrate(campaign, "ur10").parameter_table()}
+    assert rows["a2"][-1] == "mm" and float(rows["a2"][1]) == pytest.approx(table["a2"]["delta"] * 1e3, abs=2e-5)
+    assert rows["alpha1"][-1] == "deg"
+    assert float(rows["alpha1"][1]) == pytest.approx(np.rad2deg(table["alpha1"]["delta"]), abs=2e-5)
+
+
+def test_help_shows_no_default_for_required_or_empty_options(capsys):
+    with pytest.raises(SystemExit):
+        main(["calibrate", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "(default: None)" not in text and "(default: False)" not in text
+    assert "(default: ridge)" in text

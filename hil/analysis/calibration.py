@@ -309,6 +309,14 @@ class CalibrationResult:
         }
 
 
+USER_UNITS = {"m": ("mm", 1e3), "rad": ("deg", float(np.rad2deg(1.0))), "coef": ("coef", 1.0)}
+
+
+def in_user_units(value: float | None, unit: str) -> float | None:
+    """A parameter value or change from SI (m, rad) into the units the reports use (mm, deg)."""
+    return None if value is None else value * USER_UNITS[unit][1]
+
+
 def unit_of(name: str) -> str:
     kind = name.rstrip("0123456789")
     if (
@@ -801,7 +809,8 @@ TOLERANCE_ANGLE_RAD = np.deg2rad(1.0)
 
 
 def implausible_changes(result: CalibrationResult) -> list[str]:
-    """One message per geometric parameter that moved further than a manufacturing tolerance."""
+    """One message per geometric parameter that moved further than a manufacturing tolerance (a length
+    beyond TOLERANCE_LENGTH_M or an angle beyond TOLERANCE_ANGLE_RAD): the commands refuse such a model."""
     out = []
     for row in result.parameter_table():
         if row["delta"] is None or row["name"] not in result.model.nominal.param_names:

@@ -8,11 +8,20 @@ import sys
 import numpy as np
 import pandas as pd
 
-from hil.analysis.calibration import calibrate
+from hil.analysis.calibration import (
+    TOLERANCE_ANGLE_RAD,
+    TOLERANCE_LENGTH_M,
+    USER_UNITS,
+    CalibrationResult,
+    calibrate,
+    implausible_changes,
+    in_user_units,
+)
 from hil.analysis.diagnosis import run_record
 from hil.commands.arg_checks import InputError, check_paths, float_in, float_list
 from hil.commands.cli_progress import cli_progress
 from hil.commands.errors import CliError
+from hil.commands.help_format import DefaultsHelpFormatter
 from hil.commands.inputs import read_measurements
 from hil.data.dataset import (
     DEFAULT_ORIENTATION_CONVENTION,
@@ -64,7 +73,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="identify base frame, tool point(s) and kinematic errors from a measurement dataset",
         description="Robust kinematic calibration. Runs both solvers (ridge + IGG3, and Levenberg-Marquardt "
         "with a robust loss), prints both, and writes the chosen one as a model file.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        formatter_class=DefaultsHelpFormatter,
     )
     p.add_argument(
         "data", help="dataset CSV (q1_rad..q6_rad, x_mm, y_mm, z_mm, optional t_s, temperature_c, smr)"
@@ -85,12 +94,44 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--no-beta", action="store_true", help="plain DH on every joint (no Hayati beta)")
     p.add_argument(
+        "--force",
+        action="store_true",
+        help="write the model even when a parameter moved beyond a manufacturing tolerance (wrong robot or units?)",
+    )
+    p.add_argument(
         "--residuals",
         default=None,
         help="CSV to write per row: residual dx/dy/dz/norm (mm), IGG3 weight and outlier flag of the chosen solver",
     )
     add_probe_options(p)
     p.set_defaults(func=run)
+
+
+def print_parameter_table(result: CalibrationResult) -> None:
+    """The change of every free parameter from the nominal, in mm and degrees, with its standard errors."""
+    print(f"{'parameter':<16}{'change':>12}{'std':>11}{'std LS':>11}  unit  (std: larger of LS and spatial folds)")
+    for row in result.parameter_table():
+        if row["delta"] is None:
+            continue
+        unit = USER_UNITS[row["unit"]][0]
+        delta, std, std_ls = (in_user_units(row[k], row["unit"]) for k in ("delta", "std", "std_ls"))
+        std_ls_text = f"{std_ls:11.5f}" if std_ls is not None else f"{'-':>11}"
+        print(f"{row['name']:<16}{delta:+12.5f}{std:11.5f}{std_ls_text}  {unit}")
+
+
+def refuse_implausible(implausible: list[str], force: bool) -> None:
+    """A fit that moves a length or an angle beyond a manufacturing tolerance is another robot's data, wrong
+    units or a wrong model: refuse to write it unless the user insists (--force)."""
+    if not implausible:
+        return
+    for message in implausible:
+        print(("warning: " if force else "error: ") + message, file=sys.stderr)
+    if not force:
+        raise CliError.from_text(
+            f"no model written: {len(implausible)} parameter(s) moved beyond a manufacturing tolerance "
+            f"({TOLERANCE_LENGTH_M * 1e3:g} mm, {np.rad2deg(TOLERANCE_ANGLE_RAD):g} deg); check --robot and the "
+            "units of the data, or give --force to write the model anyway"
+        )
 
 
 def run(args: argparse.Namespace) -> int:
@@ -121,16 +162,13 @@ def run(args: argparse.Namespace) -> int:
             f"sigma0 {res.sigma0_m * 1000:.4f} mm{orientation_summary(res.to_dict())}, outliers flagged: "
             + (", ".join(f"row {r}" for r in flagged) if flagged else "none")
         )
-    for note in results[args.solver].notes:
-        print(f"warning: {note}", file=sys.stderr)
     chosen = results[args.solver]
-    print(
-        f"{'parameter':<16}{'change':>14}{'std':>12}{'std LS':>12}  unit   (std: larger of LS and spatial folds)"
-    )
-    for row in chosen.parameter_table():
-        if row["delta"] is None:
-            continue
-        print(f"{row['name']:<16}{row['delta']:14.3e}{row['std']:12.2e}{row['std_ls']:12.2e}  {row['unit']}")
+    implausible = implausible_changes(chosen)
+    for note in chosen.notes:
+        if note not in implausible:
+            print(f"warning: {note}", file=sys.stderr)
+    print_parameter_table(chosen)
+    refuse_implausible(implausible, args.force)
     for smr, R in sorted(chosen.model.probes.items()):
         angles = ", ".join(f"{k} {float(v[0]):.4f}" for k, v in orientation_columns(R[None]).items())
         print(f"probe orientation SMR {smr} in the flange: {angles} ({DEFAULT_ORIENTATION_CONVENTION})")

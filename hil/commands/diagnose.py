@@ -14,6 +14,7 @@ from hil.commands.arg_checks import InputError, check_paths, float_in, float_lis
 from hil.commands.calibrate import add_probe_options, orientation_summary, parse_mm_vector
 from hil.commands.cli_progress import cli_progress
 from hil.commands.errors import CliError
+from hil.commands.help_format import DefaultsHelpFormatter
 from hil.commands.inputs import read_training_and_validation
 from hil.data.dataset import DatasetError, convert_orientation_convention, points_m, pose_ids
 from hil.geometry.robots import ROBOT_NAMES, get_robot, robot_arg
@@ -26,7 +27,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Calibrate, then test candidate effects the model lacks (gravity compliance, cyclic joint "
         "errors, backlash, thermal expansion/drift) by k-fold held-out improvement and a significance test "
         "against the measurement noise; add the winner, refit, repeat.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        formatter_class=DefaultsHelpFormatter,
     )
     p.add_argument("data", help="training dataset CSV")
     p.add_argument(

@@ -12,6 +12,7 @@ import pandas as pd
 from hil.analysis.calibrated_model import CalibratedModel
 from hil.commands.arg_checks import InputError, check_paths
 from hil.commands.errors import CliError
+from hil.commands.help_format import DefaultsHelpFormatter
 from hil.commands.inputs import read_measurements
 from hil.data.dataset import POSITION_COLUMNS, DatasetError, joints_rad
 
@@ -20,7 +21,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "predict",
         help="predict x_mm, y_mm, z_mm (tracker frame) for the joints in a CSV with a calibrated model",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        formatter_class=DefaultsHelpFormatter,
     )
     p.add_argument("model", help="model JSON written by 'hil calibrate' or 'hil diagnose -o'")
     p.add_argument(
