@@ -115,6 +115,7 @@ class DiagnosisReport:
     final_round: list[Candidate] = field(default_factory=list)
     ambiguities: list[dict] = field(default_factory=list)  # effects this data could not tell apart
     undecided: list[dict] = field(default_factory=list)  # open questions (hil.analysis.undecided)
+    plan: dict | None = None  # the proposed measurements' groups (hil.analysis.discrimination.Plan.to_dict)
     run: dict = field(default_factory=dict)  # robot, input files (hash, rows), date, software version
 
     @property
@@ -138,6 +139,7 @@ class DiagnosisReport:
             "final_round_candidates": [c.to_dict() for c in self.final_round],
             "ambiguities": self.ambiguities,
             "undecided": self.undecided,
+            "plan": self.plan,
             "calibration": self.calibration,
             "residual_map": self.residual_map,
             "run": self.run,
