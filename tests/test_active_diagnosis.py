@@ -174,3 +174,13 @@ def test_a_cell_of_another_robot_is_refused(campaign_csv, tmp_path, capsys):
     )  # fmt: skip
     assert code == 2 and "ur5" in err
     assert not (tmp_path / "r.json").exists()
+
+
+def test_settled_says_which_questions_a_longer_campaign_decided():
+    from hil.analysis.undecided import settled
+
+    a = {"kind": "period_not_covered", "plannable": True, "effect": {"name": "cyclic", "joint": 1}}
+    b = {"kind": "confounded_parameters", "plannable": True, "parameters": ["theta5", "a5"], "correlation": 0.99}
+    out = settled([a, b], [dict(b, correlation=0.97)], [{"name": "cyclic", "joint": 1}])
+    assert out[0]["decided"] and out[0]["present"]
+    assert not out[1]["decided"] and out[1]["now"]["correlation"] == 0.97

@@ -183,3 +183,23 @@ def question_key(q: dict) -> tuple:
         rival.get("joint"),
         tuple(q.get("parameters", ())),
     )
+
+
+def settled(before: list[dict], after: list[dict], effects_after: list[dict]) -> list[dict]:
+    """Each question of an earlier diagnosis judged on the longer campaign's diagnosis: `decided` (it is no
+    longer open) with `present` when its effect is now in the model, or still open with its new evidence."""
+    open_now = {question_key(q): q for q in after}
+    named = {(e["name"], e["joint"]) for e in effects_after}
+    out = []
+    for q in before:
+        now = open_now.get(question_key(q))
+        eff = q.get("effect") or {}
+        out.append(
+            {
+                "question": q,
+                "decided": now is None,
+                "present": (eff.get("name"), eff.get("joint")) in named if eff else None,
+                "now": now,
+            }
+        )
+    return out
