@@ -34,6 +34,7 @@ from hil.analysis.calibration import (
     CalibrationResult,
     Problem,
     calibrate,
+    confounded_pairs,
     flatten_jacobian,
     identify,
     solve_ridge_igg3,
@@ -113,6 +114,8 @@ class DiagnosisReport:
     histograms: dict = field(default_factory=dict)  # stage -> held-out error norms (mm)
     final_round: list[Candidate] = field(default_factory=list)
     ambiguities: list[dict] = field(default_factory=list)  # effects this data could not tell apart
+    undecided: list[dict] = field(default_factory=list)  # open questions (hil.analysis.undecided)
+    plan: dict | None = None  # the proposed measurements' groups (hil.analysis.discrimination.Plan.to_dict)
     run: dict = field(default_factory=dict)  # robot, input files (hash, rows), date, software version
 
     @property
@@ -135,6 +138,8 @@ class DiagnosisReport:
             "steps": [s.to_dict() for s in self.steps],
             "final_round_candidates": [c.to_dict() for c in self.final_round],
             "ambiguities": self.ambiguities,
+            "undecided": self.undecided,
+            "plan": self.plan,
             "calibration": self.calibration,
             "residual_map": self.residual_map,
             "run": self.run,
@@ -251,10 +256,28 @@ def run_diagnosis(
         if df_validate is not None:
             _validate(report, path, df, df_validate, reregister_validation)
         report.run = run_record(base.nominal.nominal, {"training": df, "validation": df_validate})
+        report.undecided = undecided_questions(df, path, alpha, float(np.sqrt(base.sigma2)))
         return report
 
 
 Progress = Callable[[str, int, int], None]  # (phase, done, total)
+
+
+def undecided_questions(df: pd.DataFrame, path: _Path, alpha: float, sigma_m: float) -> list[dict]:
+    """What the campaign leaves undecided (hil.analysis.undecided); a statistical question whose evidence
+    already passes hil.analysis.discrimination's threshold is decided and left out."""
+    from hil.analysis.discrimination import evidence
+    from hil.analysis.undecided import open_questions
+
+    pairs = confounded_pairs(path.current, path.prob)
+    found = open_questions(df, path.final_round, path.ambiguities, pairs, alpha)
+    decided = set()
+    for ev in evidence(df, path.current.model, found, sigma_m):
+        ev["question"]["evidence_z"] = ev["evidence_z"]
+        ev["question"]["decisive_z"] = ev["decisive_z"]
+        if ev["evidence_z"] is not None and ev["evidence_z"] >= ev["decisive_z"]:
+            decided.add(id(ev["question"]))
+    return [q for q in found if id(q) not in decided]
 
 
 def _quiet(phase: str, done: int, total: int) -> None:

@@ -284,6 +284,7 @@ def render_html(report: DiagnosisReport, compensation: dict | None = None) -> st
         parts.append("<details><summary>parameters</summary>")
         parts.append(_table(cal["parameters"], ["name", "value", "delta", "std", "unit"]))
         parts.append("</details>")
+    parts.append(_undecided_html(report))
     if compensation:
         parts.append(_compensation_html(compensation))
     parts.append("</body></html>")
@@ -339,3 +340,87 @@ def _run_html(run: dict) -> str:
 def write_html(report: DiagnosisReport, path: str | Path, compensation: dict | None = None) -> None:
     """Write the self-contained HTML report (tables + PNG plots embedded as base64)."""
     Path(path).write_text(render_html(report, compensation))
+
+
+def question_text(q: dict) -> str:
+    """One open question of the diagnosis (hil.analysis.undecided) in words: what is undecided and why."""
+    kind = q["kind"]
+    eff = q.get("effect") or {}
+    if kind == "period_not_covered":
+        return (
+            f"a once-per-turn error of joint {eff['joint']}: its sampled range covers {q['range_deg']:.0f} deg, "
+            f"a test needs {q['needs_deg']:.0f} (over a shorter arc it looks like geometry)"
+        )
+    if kind == "one_approach_direction":
+        return (
+            f"backlash of joint {eff['joint']}: {q['rows_up']} rows approached it from below, {q['rows_down']} "
+            f"from above; a test needs {q['needs_rows']} each way"
+        )
+    if kind == "drift_unmonitored":
+        return (
+            f"drift of the cell over time: {q['revisited_poses']} poses were measured again late in the campaign, "
+            f"{q['needs_poses']} are needed"
+        )
+    if kind == "temperature_not_spanned":
+        if not q["recorded"]:
+            return "thermal growth: the campaign records no temperature; poses cannot decide it"
+        return (
+            f"thermal growth: the temperature spans {q['span_k']:.2f} K (needs {q['needs_k']:.0f} K); poses cannot "
+            "decide it, a run at another temperature can"
+        )
+    z = q.get("evidence_z")
+    ev = "" if z is None else f" (evidence z {z:.2g}, decided at {q['decisive_z']:.2g})"
+    if kind == "marginal":
+        return f"{_effect(eff)}: marginal, held-out p = {q['p_cv']:.2g}{ev}"
+    if kind == "confounded_with_geometry":
+        return f"{_effect(eff)}: the geometry imitates it on these poses{ev}"
+    if kind == "ambiguous_effects":
+        return f"{_effect(eff)} or {_effect(q['rival'])}: both explain the same residual{ev}"
+    if kind == "confounded_parameters":
+        a, b = q["parameters"]
+        return f"{a} and {b} correlate {q['correlation']:+.3f}: each alone is unreliable{ev}"
+    return kind
+
+
+def undecided_text(report: DiagnosisReport) -> str:
+    """The open questions in words, one a line (or a line that says nothing is undecided)."""
+    if not report.undecided:
+        return "undecided: nothing; the campaign decides every question the diagnosis asks"
+    lines = ["undecided:"]
+    lines += [f"  - {question_text(q)}" for q in report.undecided]
+    return "\n".join(lines)
+
+
+def group_text(group: dict) -> str:
+    """What one group of a plan's rows should decide."""
+    q = group["question"]
+    what = question_text(q).split(":")[0]
+    if q["kind"] == "period_not_covered":
+        extra = f", joint range {group['range_after_deg']:.0f} deg after" + (
+            " (and back down: backlash)" if group.get("also") else ""
+        )
+    elif "evidence_z_after" in group:
+        extra = f", evidence z {group['evidence_z_before']:.2g} -> {group['evidence_z_after']:.2g} (decided at {group['decisive_z']:.2g})"
+    else:
+        extra = ""
+    return f"  {group['purpose']:<28} {group['rows']:>3} rows: decides {what}{extra}"
+
+
+def plan_text(plan: dict) -> str:
+    """The plan's groups in words (terminal and HTML); a line that says so when nothing is to be measured."""
+    if plan["rows"] == 0:
+        lines = ["plan: nothing undecided that poses can decide; the plan holds the header only"]
+    else:
+        lines = [f"plan: {plan['rows']} poses, in this order:"]
+        lines += [group_text(g) for g in plan["groups"]]
+    for skipped in plan["not_planned"]:
+        lines.append(f"  not planned: {question_text(skipped['question']).split(':')[0]}: {skipped['why']}")
+    return "\n".join(lines)
+
+
+def _undecided_html(report: DiagnosisReport) -> str:
+    """The open questions and, when one was made, the plan that decides them."""
+    parts = ["<h2>What this campaign leaves undecided</h2>", "<pre>" + html.escape(undecided_text(report)) + "</pre>"]
+    if report.plan is not None:
+        parts.append("<pre>" + html.escape(plan_text(report.plan)) + "</pre>")
+    return "\n".join(parts)

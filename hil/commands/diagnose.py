@@ -83,6 +83,24 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         action="store_true",
         help="always compare the residual maps (IDW, SVR, GP) by k-fold, even at the noise floor",
     )
+    p.add_argument(
+        "--propose",
+        type=int_in(1),
+        default=None,
+        metavar="N",
+        help="design at most N poses that decide what this campaign leaves undecided (needs --plan)",
+    )
+    p.add_argument(
+        "--plan",
+        default=None,
+        help="write the proposed poses here as CSV: q1_rad..q6_rad in measurement order and purpose; measure "
+        "them, append the rows to the campaign and diagnose again",
+    )
+    p.add_argument(
+        "--cell",
+        default=None,
+        help="cell.toml: proposed poses stay inside its envelope and face its tracker (the SMR's acceptance cone)",
+    )
     add_probe_options(p)
     p.set_defaults(func=run)
 
@@ -91,10 +109,15 @@ def run(args: argparse.Namespace) -> int:
     try:
         if args.validate_reregister != "none" and not args.validate:
             raise InputError("--validate-reregister needs --validate VAL.csv; give the validation campaign")
+        if (args.propose is None) != (args.plan is None):
+            raise InputError(
+                "--propose N and --plan PLAN.csv go together: give both to get a plan of at most N poses"
+            )
         check_paths(
-            {"DATA": args.data, "--validate": args.validate},
-            {"--output": args.output, "--json": args.json_path, "--html": args.html},
+            {"DATA": args.data, "--validate": args.validate, "--cell": args.cell},
+            {"--output": args.output, "--json": args.json_path, "--html": args.html, "--plan": args.plan},
         )
+        cell = _plan_cell(args)
         families = tuple(f.strip() for f in args.families.split(",") if f.strip())
         unknown = [f for f in families if f not in EFFECT_FAMILIES]
         if unknown or not families:
@@ -120,10 +143,71 @@ def run(args: argparse.Namespace) -> int:
         )
     try:
         report = _diagnose(args, df, val, tool, families, mpe)
+        plan = None if args.propose is None else _propose(args, df, report, cell)
     except ValueError as exc:
         raise CliError.from_text(str(exc)) from exc
+    if plan is not None:
+        report.plan = plan.to_dict()
     _print_and_write(args, report)
+    if plan is not None:
+        plan.frame().to_csv(args.plan, index=False)
+        print(f"plan of {len(plan.purpose)} poses written to {args.plan}")
     return 0
+
+
+def _plan_cell(args: argparse.Namespace):
+    """The cell a plan is for (None without --cell), checked against --robot and the campaign's robot."""
+    from hil.data.store import CampaignStore, is_campaign_file
+    from hil.runner.cell_config import load_cell_config
+
+    robot = get_robot(args.robot).name
+    if args.plan and is_campaign_file(args.data):
+        with CampaignStore(args.data, create=False) as store:
+            recorded = [s.get("robot_definition", {}).get("model") for s in store.snapshots()]
+        recorded = [r for r in recorded if r]
+        if recorded and get_robot(recorded[-1]).name != robot:
+            raise InputError(
+                f"--plan: the campaign was measured on a {recorded[-1]}, --robot says {args.robot}; "
+                "a plan for another robot would send it to wrong poses: give the campaign's robot"
+            )
+    if args.cell is None:
+        return None
+    if not args.plan:
+        raise InputError("--cell only shapes a plan: give --propose N --plan PLAN.csv with it")
+    cell = load_cell_config(args.cell)
+    if cell.nominal.name != robot:
+        raise InputError(
+            f"--cell: {args.cell} configures a {cell.robot_model}, the campaign is diagnosed as {args.robot}; "
+            "a plan must be made for the robot that measured the campaign"
+        )
+    return cell
+
+
+def _propose(args: argparse.Namespace, df: pd.DataFrame, report: DiagnosisReport, cell):
+    from hil.analysis.discrimination import propose
+
+    admissible = None if cell is None else _cell_admissible(cell)
+    sigma = float(np.sqrt(np.mean(report.noise.sigma_axis_m**2)))
+    return propose(df, report.model, report.undecided, args.propose, sigma, admissible=admissible)
+
+
+# The SMR is seen while the line to the tracker stays within its acceptance cone about the tool's axis.
+SMR_ACCEPTANCE_DEG = 30.0
+
+
+def _cell_admissible(cell):
+    """Poses inside the cell's envelope (whole tool and wrist) with nest 1's SMR facing the tracker."""
+    from hil.geometry.kinematics import forward_kinematics
+
+    def ok(q: np.ndarray) -> np.ndarray:
+        inside = ~cell.envelope.outside(cell.nominal, q, cell.nests_flange_m)
+        T = forward_kinematics(cell.nominal, q)
+        p = np.einsum("nij,j->ni", T[:, :3, :3], cell.nests_flange_m[0]) + T[:, :3, 3]
+        to_tracker = cell.p_base_tracker_m - p
+        cos = np.einsum("ni,ni->n", T[:, :3, 2], to_tracker) / np.linalg.norm(to_tracker, axis=1)
+        return inside & (cos >= np.cos(np.deg2rad(SMR_ACCEPTANCE_DEG)))
+
+    return ok
 
 
 def _diagnose(
@@ -156,7 +240,14 @@ def _run(args, df, val, tool, families, mpe, progress) -> DiagnosisReport:
 
 
 def _print_and_write(args: argparse.Namespace, report: DiagnosisReport) -> None:
-    from hil.analysis.report import conclusion, final_orientation_text, write_html, write_json
+    from hil.analysis.report import (
+        conclusion,
+        final_orientation_text,
+        plan_text,
+        undecided_text,
+        write_html,
+        write_json,
+    )
 
     print(report.table())
     for name, res in report.calibration.items():
@@ -174,6 +265,9 @@ def _print_and_write(args: argparse.Namespace, report: DiagnosisReport) -> None:
         for p in step.parameters:
             std = "merged" if p["std"] is None else f"+- {p['std']:.2e}"
             print(f"    {p['name']:<34} {p['value']: .4e} {std}")
+    print(undecided_text(report))
+    if report.plan is not None:
+        print(plan_text(report.plan))
     write_json(report, args.json_path)
     print(f"report written to {args.json_path}")
     if args.html:

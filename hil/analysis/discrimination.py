@@ -1,0 +1,429 @@
+"""The next measurements: joint configurations that decide a diagnosis' open questions (hil.analysis.undecided).
+
+Two kinds of rows, in the order to measure them:
+
+1. What physics asks for, built directly: a single-joint sweep over most of a turn where a once-per-turn
+   error is uncovered; the joint moved up then down through the same range where backlash has one
+   approach direction (row order is motion order, as the campaign reads it); the campaign's first poses
+   measured again at the end of the plan where drift has no evidence.
+2. Poses that separate rival models, chosen greedily from a pool of reachable configurations by a
+   Bayesian T-optimal criterion. T-optimality (Atkinson & Fedorov) maximises the lack of fit of one model
+   when its rival is true; linearised about the fitted model, the lack of fit a rival coefficient of size
+   delta leaves after every other parameter is refitted is delta^2 / Cov_cc (its Schur complement). The
+   rival's size is unknown (the question is open because it is small or hidden), so instead of a point
+   estimate each coefficient is taken at its *smallest relevant size* (the size that moves the SMR by
+   `RELEVANT_LENGTH_M` RMS on the campaign's poses): the Bayesian variant with that prior. Its evidence
+   z = size / (sigma * sqrt(Cov_cc)) is the signal-to-noise the diagnosis' test sees; a question is
+   decided when every rival coefficient reaches `DECISIVE_Z` (a two-sided test at 1e-3 with power 0.9
+   against an effect of that size). The greedy gain saturates at that threshold, so poses go to the
+   questions still short of it: the plan stops for each question when its evidence passes, not at a count.
+   Why not D-optimality: it shrinks the variance of one model fixed in advance, spending poses on
+   parameters no question is about; the rival columns here are what the next test needs.
+
+Reachability and line of sight are the caller's: `admissible(q) -> bool mask` (joint limits of the robot
+file are always applied here). hil.runner knows the cell's envelope and tracker; this layer does not.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import pandas as pd
+
+from hil.analysis.calibrated_model import CalibratedModel
+from hil.analysis.calibration import Problem, flatten_jacobian, identify
+from hil.analysis.effects import CYCLIC_MIN_PERIODS, EffectContext, approach_signs, make_effect
+from hil.analysis.undecided import MIN_REVISITS, MIN_ROWS_PER_DIRECTION
+from hil.data.dataset import joints_rad, pose_ids, smr_ids
+
+RELEVANT_LENGTH_M = 20e-6  # smallest RMS displacement of the SMR worth deciding (about the tracker's noise)
+DECISIVE_Z = 4.6  # z_(1e-3/2) + z_(0.9): a test at 1e-3 that finds an effect of the relevant size 9 times in 10
+
+SWEEP_SPAN = 0.95 * 2 * np.pi  # a sweep covers this much of a turn where the limits allow
+SWEEP_POINTS = 12
+APPROACH_STEP_RAD = float(np.deg2rad(3.0))
+POOL_SIZE = 1500
+POOL_PERTURB_RAD = float(np.deg2rad(30.0))
+
+Admissible = Callable[[np.ndarray], np.ndarray]  # (M, n) joints -> (M,) bool: reachable and measurable
+
+
+@dataclass
+class Plan:
+    """Rows to measure in order, the question each serves, and each group's expected evidence."""
+
+    q: np.ndarray  # (M, n) rad
+    purpose: list[str]
+    groups: list[dict] = field(default_factory=list)  # {purpose, rows, question, evidence_before/after, ...}
+    not_planned: list[dict] = field(default_factory=list)  # questions this plan does not serve, and why
+
+    def frame(self) -> pd.DataFrame:
+        """The plan in the contract: q1_rad .. qn_rad in measurement order, then `purpose`."""
+        n = self.q.shape[1] if self.q.ndim == 2 and self.q.size else 6
+        df = pd.DataFrame(np.reshape(self.q, (-1, n)), columns=[f"q{j + 1}_rad" for j in range(n)])
+        df["purpose"] = pd.Series(self.purpose, dtype=object)
+        return df
+
+    def to_dict(self) -> dict:
+        return {"rows": len(self.purpose), "groups": self.groups, "not_planned": self.not_planned}
+
+
+def propose(
+    df: pd.DataFrame,
+    model: CalibratedModel,
+    questions: list[dict],
+    max_rows: int,
+    sigma_m: float,
+    admissible: Admissible | None = None,
+    seed: int = 0,
+) -> Plan:
+    """At most `max_rows` joint configurations, in measurement order, that decide `questions` on `df`.
+
+    `sigma_m`: 1-sigma tracker noise per axis; `admissible`: which configurations the cell can reach and
+    the tracker can see (joint limits are applied here in any case).
+    """
+    if max_rows < 1:
+        raise ValueError(f"a plan needs at least 1 row, got {max_rows}")
+    q_camp = joints_rad(df)
+    limits = np.asarray(model.nominal.joint_limits, float)
+
+    def ok(q: np.ndarray) -> np.ndarray:
+        inside = np.all((q >= limits[:, 0]) & (q <= limits[:, 1]), axis=1)
+        return inside & (np.ones(len(q), bool) if admissible is None else np.asarray(admissible(q), bool))
+
+    rng = np.random.default_rng(seed)
+    plannable = [qu for qu in questions if qu["plannable"]]
+    plan = Plan(np.zeros((0, q_camp.shape[1])), [])
+    plan.not_planned = [{"question": qu, "why": "poses cannot decide it"} for qu in questions if not qu["plannable"]]
+    if not plannable:
+        return plan
+    budget = max_rows
+    drift = [qu for qu in plannable if qu["kind"] == "drift_unmonitored"]
+    reserve = min(MIN_REVISITS, budget // 2 if len(plannable) > len(drift) else budget) if drift else 0
+    budget -= reserve
+    rows: list[tuple[np.ndarray, str]] = []
+    groups: list[dict] = []
+    centre = _central_pose(q_camp)
+    backlash_joints = {qu["effect"]["joint"] for qu in plannable if qu["kind"] == "one_approach_direction"}
+    for qu in [qu for qu in plannable if qu["kind"] == "period_not_covered"]:
+        j = qu["effect"]["joint"] - 1
+        both = (j + 1) in backlash_joints
+        sweep = _sweep(q_camp, centre, j, limits, ok, both, rng)
+        if sweep is None:
+            plan.not_planned.append({"question": qu, "why": "no reachable, visible sweep covers enough of a turn"})
+            continue
+        if len(sweep) > budget:
+            plan.not_planned.append({"question": qu, "why": f"the budget leaves {budget} rows, a sweep needs {len(sweep)}"})
+            continue
+        purpose = f"sweep_j{j + 1}"
+        rows += [(q, purpose) for q in sweep]
+        budget -= len(sweep)
+        span = float(np.rad2deg(np.ptp(np.concatenate([q_camp[:, j], sweep[:, j]]))))
+        groups.append({"purpose": purpose, "rows": len(sweep), "question": qu, "range_after_deg": span})
+        if both:
+            backlash_joints.discard(j + 1)
+            groups[-1]["also"] = f"backlash_j{j + 1}"
+    for qu in [qu for qu in plannable if qu["kind"] == "one_approach_direction"]:
+        j = qu["effect"]["joint"] - 1
+        if (j + 1) not in backlash_joints:
+            continue
+        there = _back_and_forth(centre, j, limits, ok)
+        if there is None or len(there) > budget:
+            plan.not_planned.append({"question": qu, "why": "no room (limits, envelope or budget) to move it both ways"})
+            continue
+        purpose = f"backlash_j{j + 1}"
+        rows += [(q, purpose) for q in there]
+        budget -= len(there)
+        groups.append({"purpose": purpose, "rows": len(there), "question": qu})
+    physics_q = np.array([r[0] for r in rows]).reshape(-1, q_camp.shape[1])
+    stat = [qu for qu in plannable if qu["kind"] not in ("period_not_covered", "one_approach_direction", "drift_unmonitored")]
+    if stat:
+        design_rows, design_groups, skipped = _separate(
+            df, model, stat, physics_q, budget, sigma_m, ok, rng
+        )
+        rows += design_rows
+        groups += design_groups
+        plan.not_planned += skipped
+    if drift:
+        first = _first_poses(df, q_camp, reserve, ok)
+        rows += [(q, "revisit") for q in first]
+        groups.append({"purpose": "revisit", "rows": len(first), "question": drift[0]})
+    plan.q = np.array([r[0] for r in rows]).reshape(-1, q_camp.shape[1])
+    plan.purpose = [r[1] for r in rows]
+    plan.groups = groups
+    return plan
+
+
+def _central_pose(q: np.ndarray) -> np.ndarray:
+    """The campaign pose nearest its joint-wise median: a posture the cell is known to reach and see."""
+    return q[int(np.argmin(np.sum((q - np.median(q, axis=0)) ** 2, axis=1)))]
+
+
+def _sweep(q_camp, centre, j, limits, ok, both, rng) -> np.ndarray | None:
+    """Joint j swept up over most of a turn (then down again when `both`) from a campaign posture; the
+    posture whose admissible sweep covers the most of a turn wins (None if none covers enough)."""
+    need = CYCLIC_MIN_PERIODS * 2 * np.pi
+    postures = [centre, *q_camp[rng.choice(len(q_camp), min(8, len(q_camp)), replace=False)]]
+    best, best_span = None, 0.0
+    lo_lim, hi_lim = limits[j]
+    for base in postures:
+        span = min(SWEEP_SPAN, hi_lim - lo_lim)
+        lo = float(np.clip(base[j] - span / 2, lo_lim, hi_lim - span))
+        values = np.linspace(lo, lo + span, SWEEP_POINTS)
+        q = np.tile(base, (SWEEP_POINTS, 1))
+        q[:, j] = values
+        q = q[ok(q)]
+        covered = float(np.ptp(q[:, j])) if len(q) else 0.0
+        if covered > best_span:
+            best, best_span = q, covered
+    if best is None or best_span < need:
+        return None
+    if both:  # back down through the gaps: every row approached from above, the same range
+        down = 0.5 * (best[1:] + best[:-1])[::-1]
+        best = np.vstack([best, down[ok(down)]])
+    return best
+
+
+def _back_and_forth(centre, j, limits, ok) -> np.ndarray | None:
+    """Joint j moved up through a few steps, then down through the gaps: MIN_ROWS_PER_DIRECTION each way."""
+    k = MIN_ROWS_PER_DIRECTION + 1
+    offsets = (np.arange(k) - (k - 1) / 2) * APPROACH_STEP_RAD
+    up = np.tile(centre, (k, 1))
+    up[:, j] = np.clip(centre[j] + offsets, *limits[j])
+    down = 0.5 * (up[1:] + up[:-1])[::-1]
+    down = np.vstack([down, up[:1] - [APPROACH_STEP_RAD / 2 if i == j else 0.0 for i in range(len(centre))]])
+    q = np.vstack([up, down])
+    keep = ok(q)
+    if np.sum(keep[:k]) < MIN_ROWS_PER_DIRECTION or np.sum(keep[k:]) < MIN_ROWS_PER_DIRECTION:
+        return None
+    return q[keep]
+
+
+def _first_poses(df: pd.DataFrame, q_camp: np.ndarray, count: int, ok) -> np.ndarray:
+    """The campaign's first `count` admissible poses, measured again at the end of the plan."""
+    pose = pose_ids(df)
+    _, first_row = np.unique(pose, return_index=True)
+    q = q_camp[np.sort(first_row)]
+    return q[ok(q)][:count]
+
+
+# ---- the Bayesian T-optimal design of rows that separate rivals ----------------------------------------
+
+
+@dataclass
+class _Rival:
+    """One statistical question: the model's Jacobian with the rival's columns and their evidence."""
+
+    question: dict
+    label: str
+    cols: np.ndarray  # indices of the rival's columns in the scaled Jacobian
+    size: np.ndarray  # smallest relevant size of each rival coefficient, scaled units
+    cov: np.ndarray  # inverse information (scaled) of the campaign plus the rows chosen so far
+    trial: CalibratedModel
+    keep: np.ndarray  # columns of trial used
+    norms: np.ndarray
+
+    def z(self, diag: np.ndarray, sigma_m: float) -> np.ndarray:
+        """Evidence: the smallest size / standard error over the rival's coefficients (per candidate row)."""
+        return np.min(self.size / (sigma_m * np.sqrt(np.clip(diag, 1e-300, None))), axis=-1)
+
+
+def _context(model: CalibratedModel, df: pd.DataFrame, q: np.ndarray) -> Problem:
+    """A Problem at joints `q` measured nowhere yet: the campaign's main SMR, its last time and temperature."""
+    sid = int(np.bincount(smr_ids(df)).argmax())
+    n = len(q)
+
+    def last(col: str) -> np.ndarray | None:
+        return np.full(n, float(df[col].iloc[-1])) if col in df.columns and len(df) else None
+
+    ctx = EffectContext(q=q, t_s=last("t_s"), temperature_c=last("temperature_c"), approach=approach_signs(q))
+    return Problem(ctx, np.full(n, sid), np.zeros((n, 3)))
+
+
+def _scaled_rows(trial: CalibratedModel, prob: Problem, keep: np.ndarray, norms: np.ndarray) -> np.ndarray:
+    """(M, 3, p) position Jacobian rows at the problem's joints, in the design's scaled columns."""
+    _, J = prob.evaluate(trial)
+    return J[:, :3, keep] / norms
+
+
+def _rival(df, model, camp: Problem, qu: dict) -> _Rival | None:
+    """The rival model of a question prepared on the campaign (None when its columns cannot be built)."""
+    if qu["kind"] == "confounded_parameters":
+        trial = model
+        names = list(qu["parameters"])
+        label = f"{names[0]}/{names[1]}"
+    else:
+        eff = make_effect(qu["rival"]["name"], qu["rival"]["joint"]) if qu["kind"] == "ambiguous_effects" else make_effect(qu["effect"]["name"], qu["effect"]["joint"])
+        camp.ctx.p_flange_tool = model._row_tools(camp.smr)
+        if not eff.prepare(camp.ctx, model.nominal):
+            return None
+        trial = model.with_effect(eff)
+        names = eff.param_names
+        label = eff.label
+    _, J = camp.evaluate(trial)
+    Jf = flatten_jacobian(J[:, :3])
+    keep = identify(model, camp).keep_mask
+    keep = np.concatenate([keep, np.ones(len(trial.param_names) - len(keep), bool)])
+    all_names = trial.param_names
+    for nm in names:
+        keep[all_names.index(nm)] = True
+    kept = [n for n, k in zip(all_names, keep, strict=True) if k]
+    norms = np.linalg.norm(Jf[:, keep], axis=0)
+    norms = np.where(norms > 0, norms, 1.0)
+    Js = Jf[:, keep] / norms
+    cols = np.array([kept.index(nm) for nm in names])
+    info = Js.T @ Js + 1e-9 * np.eye(Js.shape[1])
+    size = np.array([_relevant_size(nm, Jf[:, all_names.index(nm)], trial, camp) for nm in names]) * norms[cols]
+    return _Rival(qu, label, cols, size, np.linalg.inv(info), trial, keep, norms)
+
+
+def _relevant_size(name: str, column: np.ndarray, trial: CalibratedModel, camp: Problem) -> float:
+    """Smallest size of a coefficient worth deciding, in its own unit: the size that moves the SMR by
+    RELEVANT_LENGTH_M (RMS over the campaign's poses), whatever the parameter (geometry or effect)."""
+    del trial, camp
+    return RELEVANT_LENGTH_M / max(float(np.sqrt(3.0 * np.mean(column**2))), 1e-12)
+
+
+def _woodbury_diag(cov: np.ndarray, A: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """diag of (C^-1 + A^T A)^-1 on `cols` for every candidate block A (M, 3, p), batched."""
+    U = A @ cov  # (M, 3, p)
+    W = np.linalg.inv(np.eye(3) + U @ A.transpose(0, 2, 1))  # (M, 3, 3)
+    Uc = U[:, :, cols]  # (M, 3, k)
+    return np.diag(cov)[cols] - np.einsum("mik,mij,mjk->mk", Uc, W, Uc)
+
+
+def _woodbury_update(cov: np.ndarray, A: np.ndarray) -> np.ndarray:
+    """(C^-1 + A^T A)^-1 for rows A (r, p)."""
+    U = A @ cov
+    return cov - U.T @ np.linalg.solve(np.eye(len(A)) + U @ A.T, U)
+
+
+def _pool(q_camp: np.ndarray, limits: np.ndarray, ok, rng) -> np.ndarray:
+    """Candidate configurations near and around the campaign's (a campaign pose with every joint moved
+    up to POOL_PERTURB_RAD, and uniform draws over its joint ranges widened by that), admissible only."""
+    n = q_camp.shape[1]
+    base = q_camp[rng.integers(0, len(q_camp), POOL_SIZE)]
+    near = base + rng.uniform(-POOL_PERTURB_RAD, POOL_PERTURB_RAD, (POOL_SIZE, n))
+    lo, hi = q_camp.min(axis=0) - POOL_PERTURB_RAD, q_camp.max(axis=0) + POOL_PERTURB_RAD
+    wide = rng.uniform(lo, hi, (POOL_SIZE // 2, n))
+    q = np.clip(np.vstack([near, wide]), limits[:, 0], limits[:, 1])
+    return q[ok(q)]
+
+
+def _separate(df, model, questions, physics_q, budget, sigma_m, ok, rng):
+    """Greedy Bayesian T-optimal rows for the statistical questions (see the module docstring)."""
+    q_camp = joints_rad(df)
+    camp = Problem.from_frame(model, df)
+    rivals, skipped = [], []
+    for qu in questions:
+        r = _rival(df, model, camp, qu)
+        if r is None:
+            skipped.append({"question": qu, "why": "its rival cannot be built on this campaign"})
+        else:
+            rivals.append(r)
+    if not rivals:
+        return [], [], skipped
+    limits = np.asarray(model.nominal.joint_limits, float)
+    pool = _pool(q_camp, limits, ok, rng)
+    if len(physics_q):  # the physics rows are measured too: count their information
+        for r in rivals:
+            r.cov = _woodbury_update(r.cov, _scaled_rows(r.trial, _context(model, df, physics_q), r.keep, r.norms).reshape(-1, r.cov.shape[0]))
+    blocks = [_scaled_rows(r.trial, _context(model, df, pool), r.keep, r.norms) for r in rivals]
+    z_before = [float(r.z(np.diag(r.cov)[r.cols], sigma_m)) for r in rivals]
+    reach = [_solo_reach(r, A, budget, sigma_m) for r, A in zip(rivals, blocks, strict=True)]
+    for k in [k for k, z in enumerate(reach) if z < DECISIVE_Z]:  # the whole budget would not decide it
+        skipped.append(
+            {
+                "question": rivals[k].question,
+                "why": f"{budget} reachable rows would raise its evidence only to z {reach[k]:.2g} of {DECISIVE_Z}",
+                "evidence_z": z_before[k],
+            }
+        )
+    keep_k = [k for k, z in enumerate(reach) if z >= DECISIVE_Z]
+    rivals, blocks, z_before = [rivals[k] for k in keep_k], [blocks[k] for k in keep_k], [z_before[k] for k in keep_k]
+    chosen: list[int] = []
+    serves: list[int] = []
+    available = np.ones(len(pool), bool)
+    for _ in range(budget):
+        z_now = np.array([float(r.z(np.diag(r.cov)[r.cols], sigma_m)) for r in rivals])
+        if np.all(z_now >= DECISIVE_Z) or not available.any():
+            break
+        gains = np.zeros((len(rivals), len(pool)))
+        for k, (r, A) in enumerate(zip(rivals, blocks, strict=True)):
+            if z_now[k] >= DECISIVE_Z:
+                continue
+            z_new = r.z(_woodbury_diag(r.cov, A, r.cols), sigma_m)
+            gains[k] = np.minimum(z_new, DECISIVE_Z) - min(z_now[k], DECISIVE_Z)
+        total = np.where(available, gains.sum(axis=0), -np.inf)
+        best = int(np.argmax(total))
+        if total[best] <= 1e-6:  # nothing in the pool moves any open question: poses cannot decide them
+            break
+        chosen.append(best)
+        serves.append(int(np.argmax(gains[:, best])))
+        available[best] = False
+        for r, A in zip(rivals, blocks, strict=True):
+            r.cov = _woodbury_update(r.cov, A[best])
+    order = _nearest_neighbour_order(pool[chosen], physics_q[-1] if len(physics_q) else q_camp[-1])
+    rows = [(pool[chosen[i]], f"separate_{rivals[serves[i]].label}") for i in order]
+    groups = []
+    for k, r in enumerate(rivals):
+        count = int(np.sum(np.asarray(serves) == k))
+        z_after = float(r.z(np.diag(r.cov)[r.cols], sigma_m))
+        if count == 0 and z_after < DECISIVE_Z:
+            skipped.append({"question": r.question, "why": "no reachable pose adds evidence", "evidence_z": z_after})
+            continue
+        groups.append(
+            {
+                "purpose": f"separate_{r.label}",
+                "rows": count,
+                "question": r.question,
+                "evidence_z_before": z_before[k],
+                "evidence_z_after": z_after,
+                "decisive_z": DECISIVE_Z,
+            }
+        )
+    return rows, groups, skipped
+
+
+def _solo_reach(r: _Rival, A: np.ndarray, budget: int, sigma_m: float) -> float:
+    """The evidence z one question reaches if the whole budget went to it (greedy, stops at DECISIVE_Z)."""
+    cov = r.cov
+    used = np.zeros(len(A), bool)
+    z = float(r.z(np.diag(cov)[r.cols], sigma_m))
+    for _ in range(budget):
+        if z >= DECISIVE_Z:
+            break
+        z_new = np.where(used, -np.inf, r.z(_woodbury_diag(cov, A, r.cols), sigma_m))
+        best = int(np.argmax(z_new))
+        used[best] = True
+        cov = _woodbury_update(cov, A[best])
+        z = float(z_new[best])
+    return z
+
+
+def _nearest_neighbour_order(q: np.ndarray, start: np.ndarray) -> list[int]:
+    """A short joint-space tour through `q` from `start` (greedy nearest neighbour, largest joint move)."""
+    left = list(range(len(q)))
+    out: list[int] = []
+    here = start
+    while left:
+        k = min(left, key=lambda i: float(np.max(np.abs(q[i] - here))))
+        out.append(k)
+        left.remove(k)
+        here = q[k]
+    return out
+
+
+def evidence(df: pd.DataFrame, model: CalibratedModel, questions: list[dict], sigma_m: float) -> list[dict]:
+    """Each statistical question's evidence z on the campaign alone (decided at DECISIVE_Z)."""
+    camp = Problem.from_frame(model, df)
+    out = []
+    for qu in questions:
+        if qu["kind"] not in ("marginal", "confounded_with_geometry", "ambiguous_effects", "confounded_parameters"):
+            continue
+        r = _rival(df, model, camp, qu)
+        z = None if r is None else float(r.z(np.diag(r.cov)[r.cols], sigma_m))
+        out.append({"question": qu, "evidence_z": z, "decisive_z": DECISIVE_Z})
+    return out

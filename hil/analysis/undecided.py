@@ -1,0 +1,205 @@
+"""What a diagnosis could not decide on its campaign, as data: the questions the next measurements must answer.
+
+After selection a campaign can leave an effect undecided for reasons no test on it can fix:
+
+- ``period_not_covered`` (joint j): the joint's sampled range covers less than `CYCLIC_MIN_PERIODS` of a
+  turn, so a once-per-turn error of it is not even a candidate (over a short arc it looks like geometry);
+  decided once the range covers that much (the candidate is then tested like any other).
+- ``one_approach_direction`` (joint j): fewer than `MIN_ROWS_PER_DIRECTION` rows approached from one side,
+  so backlash cannot be told from geometry; decided once both sides hold that many rows.
+- ``drift_unmonitored``: no pose was measured again later, so drift and slow thermal change of the cell
+  have no direct evidence; decided once `MIN_REVISITS` poses were measured again at least `REVISIT_GAP`
+  of the campaign's duration after their first visit.
+- ``temperature_not_spanned``: the recorded temperature spans less than `MIN_TEMPERATURE_SPAN_K`; poses
+  cannot decide it (a run at another temperature can), so it is reported but never planned.
+- ``marginal``: a candidate that lowered the held-out error with alpha <= p < `MARGINAL_P`;
+- ``confounded_with_geometry``: a candidate the geometry imitates on these poses (refitted with every
+  geometric parameter free, it was rejected as collinear or inseparable);
+- ``ambiguous_effects``: two candidates that explain the same residual (the winner, refitted, took the
+  rival's gain);
+- ``confounded_parameters``: two geometric parameters whose estimates correlate beyond 0.95.
+The last four are decided when the campaign separates the rivals: hil.analysis.discrimination's evidence
+(every rival coefficient's smallest relevant size at `DECISIVE_Z` standard errors or more) passes.
+
+Thermal questions are kinds like the others, so a later physical treatment of temperature adds its own
+rivals (arm growth against the tracker's air-temperature scale) without changing this contract.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+
+from hil.analysis.effects import CYCLIC_MIN_PERIODS, approach_signs
+from hil.data.dataset import joints_rad, pose_ids
+
+MARGINAL_P = 0.01  # held-out p-value below this but not below alpha: the data leans, it does not decide
+MIN_ROWS_PER_DIRECTION = 5  # the backlash candidate's own requirement (hil.analysis.effects.Backlash)
+MIN_REVISITS = 4
+REVISIT_GAP = 0.5  # fraction of the campaign's duration (time, else rows) between a pose's first and last visit
+MIN_TEMPERATURE_SPAN_K = 1.0
+CONFOUNDED_CORRELATION = 0.95  # hil.analysis.calibration.confounded_pairs' limit
+
+# Kinds that measurements at other poses can decide (the plan serves them); the rest need another run.
+PLANNABLE = (
+    "period_not_covered",
+    "one_approach_direction",
+    "drift_unmonitored",
+    "marginal",
+    "confounded_with_geometry",
+    "ambiguous_effects",
+    "confounded_parameters",
+)
+
+
+def question(kind: str, **data) -> dict:
+    """One open question as data: `kind`, what it is about, its evidence; hil.analysis.report words it."""
+    return {"kind": kind, "plannable": kind in PLANNABLE, **data}
+
+
+def coverage_questions(df: pd.DataFrame) -> list[dict]:
+    """Questions the campaign's extent leaves open: joint ranges, approach directions, revisits, temperature."""
+    q = joints_rad(df)
+    out = []
+    need = CYCLIC_MIN_PERIODS * 2 * np.pi
+    for j, span in enumerate(np.ptp(q, axis=0)):
+        if span < need:
+            out.append(
+                question(
+                    "period_not_covered",
+                    effect={"name": "cyclic", "joint": j + 1},
+                    range_deg=float(np.rad2deg(span)),
+                    needs_deg=float(np.rad2deg(need)),
+                )
+            )
+    signs = approach_signs(q)
+    for j in range(q.shape[1]):
+        up, down = int(np.sum(signs[:, j] > 0)), int(np.sum(signs[:, j] < 0))
+        if min(up, down) < MIN_ROWS_PER_DIRECTION:
+            out.append(
+                question(
+                    "one_approach_direction",
+                    effect={"name": "backlash", "joint": j + 1},
+                    rows_up=up,
+                    rows_down=down,
+                    needs_rows=MIN_ROWS_PER_DIRECTION,
+                )
+            )
+    revisits, gap = revisited_poses(df)
+    if revisits < MIN_REVISITS:
+        out.append(
+            question(
+                "drift_unmonitored",
+                effect={"name": "thermal_drift", "joint": None},
+                revisited_poses=revisits,
+                needs_poses=MIN_REVISITS,
+                gap=gap,
+            )
+        )
+    if "temperature_c" in df.columns:
+        span_k = float(np.ptp(df["temperature_c"].to_numpy(float))) if len(df) else 0.0
+    else:
+        span_k = 0.0
+    if span_k < MIN_TEMPERATURE_SPAN_K:
+        out.append(
+            question(
+                "temperature_not_spanned",
+                effect={"name": "thermal_expansion", "joint": None},
+                span_k=span_k,
+                needs_k=MIN_TEMPERATURE_SPAN_K,
+                recorded="temperature_c" in df.columns,
+            )
+        )
+    return out
+
+
+def revisited_poses(df: pd.DataFrame) -> tuple[int, str]:
+    """Poses measured again at least REVISIT_GAP of the campaign's duration after their first visit, and
+    what the gap is measured in ('t_s' or 'rows')."""
+    if len(df) == 0:
+        return 0, "rows"
+    pose = pose_ids(df)
+    if "t_s" in df.columns and np.ptp(df["t_s"].to_numpy(float)) > 0:
+        clock, unit = df["t_s"].to_numpy(float), "t_s"
+    else:
+        clock, unit = np.arange(len(df), dtype=float), "rows"
+    n = int(pose.max()) + 1
+    first = np.full(n, np.inf)
+    last = np.full(n, -np.inf)
+    np.minimum.at(first, pose, clock)
+    np.maximum.at(last, pose, clock)
+    duration = float(np.ptp(clock))
+    return int(np.sum(last - first >= REVISIT_GAP * duration)) if duration > 0 else 0, unit
+
+
+def selection_questions(
+    final_round: list, ambiguities: list[dict], alpha: float
+) -> list[dict]:
+    """Questions the last screening round left open: marginal candidates, candidates the geometry imitates,
+    candidates that explain the same residual."""
+    out = []
+    for c in final_round:
+        effect = {"name": c.name, "joint": c.joint}
+        if c.note.startswith(("collinear", "inseparable")):
+            corr = c.geometry_correlation
+            out.append(
+                question(
+                    "confounded_with_geometry",
+                    effect=effect,
+                    correlation=None if not np.isfinite(corr) else float(corr),
+                    note=c.note,
+                )
+            )
+        elif not c.passed and c.gain_mm2 > 0 and alpha <= c.p_cv < MARGINAL_P and not c.note:
+            out.append(question("marginal", effect=effect, p_cv=float(c.p_cv), p_chi2=float(c.p_chi2)))
+    for amb in ambiguities:
+        out.append(question("ambiguous_effects", effect=amb["chosen"], rival=amb["confounded_with"]))
+    return out
+
+
+def parameter_questions(pairs: list[tuple]) -> list[dict]:
+    """Geometric parameters reported as confounded (hil.analysis.calibration.confounded_pairs)."""
+    return [question("confounded_parameters", parameters=[a, b], correlation=float(c)) for a, b, c in pairs]
+
+
+def open_questions(
+    df: pd.DataFrame, final_round: list, ambiguities: list[dict], pairs: list[tuple], alpha: float
+) -> list[dict]:
+    """Every undecided question of a diagnosis on `df`, plannable ones first."""
+    found = coverage_questions(df) + selection_questions(final_round, ambiguities, alpha)
+    found += parameter_questions(pairs)
+    return sorted(found, key=lambda x: not x["plannable"])
+
+
+def question_key(q: dict) -> tuple:
+    """What identifies a question across rounds (kind and subject)."""
+    eff = q.get("effect") or {}
+    rival = q.get("rival") or {}
+    return (
+        q["kind"],
+        eff.get("name"),
+        eff.get("joint"),
+        rival.get("name"),
+        rival.get("joint"),
+        tuple(q.get("parameters", ())),
+    )
+
+
+def settled(before: list[dict], after: list[dict], effects_after: list[dict]) -> list[dict]:
+    """Each question of an earlier diagnosis judged on the longer campaign's diagnosis: `decided` (it is no
+    longer open) with `present` when its effect is now in the model, or still open with its new evidence."""
+    open_now = {question_key(q): q for q in after}
+    named = {(e["name"], e["joint"]) for e in effects_after}
+    out = []
+    for q in before:
+        now = open_now.get(question_key(q))
+        eff = q.get("effect") or {}
+        out.append(
+            {
+                "question": q,
+                "decided": now is None,
+                "present": (eff.get("name"), eff.get("joint")) in named if eff else None,
+                "now": now,
+            }
+        )
+    return out

@@ -1,0 +1,186 @@
+"""Diagnosis that asks for the measurements that decide: the open questions, the plan and the --propose contract."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+from cli_in_process import hil_in_process
+from sim_campaigns import grid_joints
+
+from fakes.campaign import simulate_campaign
+from fakes.cell import SimCellConfig, SimulatedCell
+from hil.analysis.diagnosis import run_diagnosis
+from hil.analysis.discrimination import propose
+from hil.analysis.undecided import coverage_questions
+
+JOINT_COLUMNS = [f"q{j}_rad" for j in range(1, 7)]
+
+
+def _first_campaign(seed: int = 2):
+    """A cell with gravity sag and a once-per-turn error of joint 1; a 150 mm grid that covers only part of
+    joint 1's turn (seed 2: about 110 deg), so the first diagnosis cannot test that error."""
+    cell = SimulatedCell(SimCellConfig(robot="ur10", seed=seed, cyclic=True, cyclic_joints=(1,)))
+    return cell, simulate_campaign(cell, grid_joints(cell, step_m=0.15, seed=seed, keep_singular=False))
+
+
+@pytest.fixture(scope="module")
+def first():
+    return _first_campaign()
+
+
+def _named(report) -> set:
+    return {(e["name"], e["joint"]) for e in report.effects_added}
+
+
+def test_loop_decides_the_once_per_turn_error_the_first_campaign_could_not(first):
+    cell, train = first
+    report = run_diagnosis(train, "ur10")
+    assert ("cyclic", 1) not in _named(report)
+    kinds = {(q["kind"], (q.get("effect") or {}).get("joint")) for q in report.undecided}
+    assert ("period_not_covered", 1) in kinds
+    sigma = float(np.sqrt(np.mean(report.noise.sigma_axis_m**2)))
+    plan = propose(train, report.model, report.undecided, 100, sigma)
+    assert 0 < len(plan.purpose) <= 100
+    assert "sweep_j1" in plan.purpose
+    more = simulate_campaign(cell, plan.q)  # measured on the same cell, later: its own t_s and temperature
+    assert more["t_s"].min() > train["t_s"].max()
+    longer = pd.concat([train, more], ignore_index=True)
+    again = run_diagnosis(longer, "ur10")
+    assert ("cyclic", 1) in _named(again)
+    assert ("gravity_compliance", 2) in _named(again)
+    still = {(q["kind"], (q.get("effect") or {}).get("joint")) for q in again.undecided}
+    assert ("period_not_covered", 1) not in still
+    assert ("drift_unmonitored", None) not in still  # the plan's revisits settle it
+
+
+def test_sweep_rows_are_in_motion_order_and_revisits_come_last(first):
+    _, train = first
+    questions = coverage_questions(train)
+    plan = propose(train, _model(train), questions, 60, 1e-5)
+    df = plan.frame()
+    sweep = df[df["purpose"] == "sweep_j1"]["q1_rad"].to_numpy()
+    assert len(sweep) >= 8 and np.all(np.diff(sweep) > 0)  # one direction: up
+    assert np.ptp(np.concatenate([sweep, train["q1_rad"].to_numpy()])) >= np.deg2rad(288)
+    assert list(df["purpose"].iloc[-4:]) == ["revisit"] * 4
+    first_poses = train[JOINT_COLUMNS].to_numpy()[:4]
+    assert np.allclose(df[JOINT_COLUMNS].to_numpy()[-4:], first_poses)
+
+
+def test_backlash_rows_approach_from_both_sides(first):
+    _, train = first
+    q = {"kind": "one_approach_direction", "plannable": True, "effect": {"name": "backlash", "joint": 2},
+         "rows_up": 0, "rows_down": 40, "needs_rows": 5}  # fmt: skip
+    plan = propose(train, _model(train), [q], 20, 1e-5)
+    j2 = plan.frame()["q2_rad"].to_numpy()
+    step = np.diff(j2)
+    assert np.sum(step > 0) >= 5 and np.sum(step < 0) >= 5
+
+
+def test_plan_respects_the_budget_and_the_admissible_set(first):
+    _, train = first
+    limit = float(np.median(train["q1_rad"]))
+    plan = propose(train, _model(train), coverage_questions(train), 7, 1e-5, admissible=lambda q: q[:, 0] <= limit)
+    assert len(plan.purpose) <= 7
+    assert np.all(plan.q[:, 0] <= limit)
+
+
+def test_nothing_plannable_gives_a_header_only_plan(first):
+    _, train = first
+    only = [q for q in coverage_questions(train) if not q["plannable"]]
+    plan = propose(train, _model(train), only, 10, 1e-5)
+    df = plan.frame()
+    assert list(df.columns) == [*JOINT_COLUMNS, "purpose"] and len(df) == 0
+
+
+def _model(train):
+    from hil.analysis.calibration import calibrate
+
+    return calibrate(train, "ur10", "ridge").model
+
+
+# ---- the CLI contract --------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def campaign_csv(first, tmp_path_factory):
+    path = tmp_path_factory.mktemp("active") / "campaign.csv"
+    first[1].to_csv(path, index=False)
+    return path
+
+
+def test_propose_writes_at_most_n_rows_with_purposes(campaign_csv, tmp_path, capsys):
+    code, out, _ = hil_in_process(
+        "diagnose", str(campaign_csv), "--json", "r.json", "--propose", "30", "--plan", "plan.csv",
+        cwd=tmp_path, capsys=capsys,
+    )  # fmt: skip
+    assert code == 0
+    plan = pd.read_csv(tmp_path / "plan.csv")
+    assert list(plan.columns) == [*JOINT_COLUMNS, "purpose"]
+    assert 0 < len(plan) <= 30
+    assert plan["purpose"].notna().all()
+    report = json.loads((tmp_path / "r.json").read_text())
+    assert report["undecided"] and report["plan"]["rows"] == len(plan)
+    assert {g["purpose"] for g in report["plan"]["groups"] if g["rows"]} == set(plan["purpose"])
+    assert "undecided:" in out and "decides" in out
+
+
+def test_nothing_undecided_writes_the_header_and_says_so(campaign_csv, tmp_path, capsys, monkeypatch):
+    import hil.analysis.diagnosis as diagnosis
+
+    monkeypatch.setattr(diagnosis, "undecided_questions", lambda *a, **k: [])
+    code, out, _ = hil_in_process(
+        "diagnose", str(campaign_csv), "--json", "r.json", "--propose", "30", "--plan", "plan.csv",
+        cwd=tmp_path, capsys=capsys,
+    )  # fmt: skip
+    assert code == 0
+    assert (tmp_path / "plan.csv").read_text().strip() == ",".join([*JOINT_COLUMNS, "purpose"])
+    assert "nothing undecided" in out
+
+
+@pytest.mark.parametrize(
+    "extra, says",
+    [
+        (["--propose", "10"], "--plan"),
+        (["--plan", "p.csv"], "--propose"),
+        (["--propose", "0", "--plan", "p.csv"], "--propose"),
+        (["--propose", "10", "--plan", "CAMPAIGN"], "overwritten"),
+    ],
+)
+def test_bad_propose_input_is_refused_before_any_work(campaign_csv, tmp_path, capsys, extra, says):
+    extra = [str(campaign_csv) if e == "CAMPAIGN" else e for e in extra]
+    try:
+        code, out, err = hil_in_process(
+            "diagnose", str(campaign_csv), "--json", "r.json", *extra, cwd=tmp_path, capsys=capsys
+        )
+    except SystemExit as exc:  # argparse refuses a value out of range
+        code, err = int(exc.code or 0), capsys.readouterr().err
+    assert code == 2
+    assert says in err
+    assert not (tmp_path / "r.json").exists()
+
+
+def test_a_cell_of_another_robot_is_refused(campaign_csv, tmp_path, capsys):
+    from cell_fixtures import sim_cell_toml
+
+    text = sim_cell_toml().replace('model = "ur10"', 'model = "ur5"')
+    assert 'model = "ur5"' in text
+    (tmp_path / "cell.toml").write_text(text)
+    code, _, err = hil_in_process(
+        "diagnose", str(campaign_csv), "--json", "r.json", "--propose", "10", "--plan", "p.csv",
+        "--cell", "cell.toml", cwd=tmp_path, capsys=capsys,
+    )  # fmt: skip
+    assert code == 2 and "ur5" in err
+    assert not (tmp_path / "r.json").exists()
+
+
+def test_settled_says_which_questions_a_longer_campaign_decided():
+    from hil.analysis.undecided import settled
+
+    a = {"kind": "period_not_covered", "plannable": True, "effect": {"name": "cyclic", "joint": 1}}
+    b = {"kind": "confounded_parameters", "plannable": True, "parameters": ["theta5", "a5"], "correlation": 0.99}
+    out = settled([a, b], [dict(b, correlation=0.97)], [{"name": "cyclic", "joint": 1}])
+    assert out[0]["decided"] and out[0]["present"]
+    assert not out[1]["decided"] and out[1]["now"]["correlation"] == 0.97
