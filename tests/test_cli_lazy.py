@@ -15,7 +15,11 @@ from calib_data import synthetic
 from hil.cli import COMMANDS, build_parser
 
 ROOT = Path(__file__).resolve().parents[1]
-NEVER_AT_START = ("fakes", "drivers", "procedures", "matplotlib", "ur_rtde", "rtde_control", "rtde_receive", "serial")
+# the plug-ins, the procedures, plotting, and the hardware libraries (ur-rtde's modules, pyserial)
+NEVER_AT_START = (
+    "fakes", "drivers", "procedures", "matplotlib",
+    "ur_rtde", "rtde_control", "rtde_receive", "rtde_io", "dashboard_client", "script_client", "serial",
+)  # fmt: skip
 
 # Runs `hil ARGS` in a fresh interpreter, then prints the top-level packages it imported, as JSON.
 PROBE = """
