@@ -19,7 +19,9 @@ import math
 import threading
 import time
 from collections import deque
+from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import serial
@@ -663,3 +665,24 @@ class EmsconTracker:
         """Run the tracker's initialization (the head moves; can take tens of seconds)."""
         self._call(Command.INITIALIZE, timeout=self.config.initialize_timeout_s)
         self.initialized = True
+
+
+class EmsconDriver:
+    """The `emscon` instrument plug-in (entry point in pyproject.toml): Leica trackers through emScon TPI."""
+
+    kind = "tracker"
+    summary = "Leica laser trackers through emScon TPI over a pyserial URL"
+
+    def open(self, settings: Mapping[str, Any]) -> EmsconTracker:
+        """Connect with the tracker settings (`url`, `meas_time_s`, `reflector` and EmsconConfig's keys);
+        a failed connect leaves nothing open."""
+        tracker = EmsconTracker(EmsconConfig.from_mapping(dict(settings)))
+        try:
+            tracker.connect()
+        except BaseException:
+            tracker.close()
+            raise
+        return tracker
+
+
+plugin = EmsconDriver()

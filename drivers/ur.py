@@ -18,6 +18,7 @@ import socket
 import struct
 import time
 import weakref
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -625,6 +626,21 @@ class URRobot:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+
+class URDriver:
+    """The `ur` instrument plug-in (entry point in pyproject.toml): UR arms through ur-rtde."""
+
+    kind = "robot"
+    summary = "Universal Robots CB3 and e-Series arms through ur-rtde"
+
+    def open(self, settings: Mapping[str, Any]) -> URRobot:
+        """Connect with the cell's robot settings (`host` and URConfig's keys)."""
+        return URRobot(URConfig.from_mapping(dict(settings)))
+
+
+plugin = URDriver()
 
 
 def _vector(value, n: int, what: str) -> np.ndarray:

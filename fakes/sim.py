@@ -14,6 +14,7 @@ from fakes.cell import CELL_EFFECTS, EffectFlags, parse_effect_flags
 from fakes.launch import is_loopback_host
 from fakes.sim_process import SimOptions, run_cell
 from hil.geometry.robots import ROBOT_NAMES
+from hil.instruments.plugins import PluginOptionError
 
 DESCRIPTION = (
     "Start the simulated cell; prints one JSON line (hosts, ports, control channel) once every server "
@@ -21,13 +22,8 @@ DESCRIPTION = (
 )
 
 
-class SimOptionError(ValueError):
+class SimOptionError(PluginOptionError):
     """An option the simulated cell cannot start with: `message` (what is wrong) and `remedy` (what to give)."""
-
-    def __init__(self, message: str, remedy: str):
-        super().__init__(f"{message}; {remedy}")
-        self.message = message
-        self.remedy = remedy
 
 
 def add_effects_argument(parser: argparse.ArgumentParser) -> None:

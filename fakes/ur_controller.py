@@ -26,6 +26,7 @@ from fakes.ur_modes import (
     IDLE,
     NORMAL,
     PAUSED,
+    PERSONALITIES,
     PLAYING,
     POWER_OFF,
     PROTECTIVE_STOP,
@@ -48,30 +49,6 @@ log = logging.getLogger(__name__)
 RTDE_PORT, DASHBOARD_PORT, PRIMARY_PORT, SECONDARY_PORT, REALTIME_PORT = 30004, 29999, 30001, 30002, 30003
 
 PROTECTIVE_STOP_UNLOCK_DELAY_S = 5.0  # simulated seconds before a protective stop may be unlocked
-
-
-@dataclass(frozen=True)
-class Personality:
-    """Controller generation: version replies, control frequency and remote-control gating."""
-
-    name: str
-    version: tuple[int, int, int, int]
-    frequency_hz: float
-    release_date: str
-
-    @property
-    def is_eseries(self) -> bool:
-        return self.version[0] >= 5
-
-    @property
-    def polyscope_reply(self) -> str:
-        return f"URSoftware {'.'.join(map(str, self.version))} ({self.release_date})"
-
-
-PERSONALITIES: dict[str, Personality] = {
-    "cb3": Personality("cb3", (3, 15, 7, 106331), 125.0, "Sep 29 2021"),
-    "eseries": Personality("eseries", (5, 11, 1, 108318), 500.0, "Mar 22 2021"),
-}
 
 
 def default_personality(robot: str) -> str:

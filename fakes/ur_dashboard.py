@@ -9,10 +9,9 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
-from typing import TYPE_CHECKING
+from typing import Protocol
 
-if TYPE_CHECKING:
-    from fakes.ur_controller import UrController
+from fakes.ur_modes import Personality
 
 log = logging.getLogger(__name__)
 
@@ -36,8 +35,49 @@ _REMOTE_ONLY = {
 NOT_REMOTE = "Command is not allowed due to safety reasons"  # [A] wording
 
 
+class DashboardController(Protocol):
+    """What the dashboard reads and commands on the controller (fakes.ur_controller.UrController plays it)."""
+
+    personality: Personality
+    remote_control: bool
+    serial_number: str
+    robot_model_name: str
+    loaded_program: str
+
+    @property
+    def robot_mode_name(self) -> str: ...
+
+    @property
+    def safety_mode_name(self) -> str: ...
+
+    @property
+    def program_running(self) -> bool: ...
+
+    @property
+    def program_state_name(self) -> str: ...
+
+    @property
+    def program_name(self) -> str: ...
+
+    def dashboard_power_on(self) -> str: ...
+
+    def dashboard_power_off(self) -> None: ...
+
+    def dashboard_brake_release(self) -> str: ...
+
+    def dashboard_unlock_protective_stop(self) -> str: ...
+
+    def dashboard_restart_safety(self) -> str: ...
+
+    def dashboard_play(self) -> str: ...
+
+    def dashboard_stop(self) -> None: ...
+
+    def dashboard_pause(self) -> str: ...
+
+
 async def serve_dashboard(
-    controller: UrController, reader: asyncio.StreamReader, writer: asyncio.StreamWriter
+    controller: DashboardController, reader: asyncio.StreamReader, writer: asyncio.StreamWriter
 ) -> None:
     """Serve one dashboard client until it quits or disconnects."""
     try:
@@ -64,7 +104,7 @@ async def serve_dashboard(
             writer.close()
 
 
-def handle_command(c: UrController, line: str) -> str:
+def handle_command(c: DashboardController, line: str) -> str:
     """The reply line for one dashboard request."""
     lower = line.lower()
     verb = "load" if lower.startswith("load ") else lower

@@ -11,22 +11,34 @@ import asyncio
 import contextlib
 import logging
 import struct
-from typing import TYPE_CHECKING
+from typing import Any, Protocol
 
 from fakes import rtde_wire as w
-
-if TYPE_CHECKING:
-    from fakes.ur_controller import UrController
+from fakes.ur_modes import Personality
 
 log = logging.getLogger(__name__)
 
 MAX_BACKLOG_BYTES = 4 * 1024 * 1024  # a client that does not drain its socket gets dropped
 
 
+class RtdeController(Protocol):
+    """What an RTDE connection asks of the controller (fakes.ur_controller.UrController plays it)."""
+
+    personality: Personality
+
+    def next_output_recipe_id(self) -> int: ...
+
+    def claim_inputs(self, conn: RtdeConnection, names: list[str]) -> set[str]: ...
+
+    def rtde_disconnected(self, conn: RtdeConnection) -> None: ...
+
+    def apply_inputs(self, values: dict[str, Any]) -> None: ...
+
+
 class RtdeConnection:
     """State of one RTDE client: its recipes, whether it streams, and its writer."""
 
-    def __init__(self, controller: UrController, reader: asyncio.StreamReader, writer: asyncio.StreamWriter):
+    def __init__(self, controller: RtdeController, reader: asyncio.StreamReader, writer: asyncio.StreamWriter):
         self.controller = controller
         self.reader = reader
         self.writer = writer

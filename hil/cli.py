@@ -4,25 +4,27 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import importlib.metadata
 import os
 import sys
+from collections.abc import Iterable
 
 from hil.commands.errors import EXIT_USAGE, CliError
 
-# Each module defines `register(subparsers)`, which adds its parser and sets `func(args) -> int`.
-COMMAND_MODULES: tuple[str, ...] = (
-    "hil.commands.demo",
-    "hil.commands.calibrate",
-    "hil.commands.compensate",
-    "hil.commands.diagnose",
-    "hil.commands.predict",
-    "hil.commands.sim",
-    "hil.commands.tracker",
-    "hil.commands.cell",
-    "hil.commands.run",
-    "hil.commands.campaign",
-)
+# Every command: its module and its one-line help. A module defines `register(subparsers)`, which adds its
+# parser (with the same help) and sets `func(args) -> int`; it is imported only when its command runs or
+# its own --help is asked, so `hil --help` starts at once (no simulator, plotting or data libraries).
+COMMANDS: dict[str, tuple[str, str]] = {
+    "demo": ("hil.commands.demo", "run the main job on a simulated cell: procedures through the drivers, diagnosis, report"),
+    "calibrate": ("hil.commands.calibrate", "identify base frame, tool point(s) and kinematic errors from a measurement dataset"),
+    "compensate": ("hil.commands.compensate", "joints that make a calibrated model put the SMR on target points or poses (pseudo-target loop)"),
+    "diagnose": ("hil.commands.diagnose", "calibrate, trace the residual to missing effects, add them, report before/after"),
+    "predict": ("hil.commands.predict", "predict x_mm, y_mm, z_mm (tracker frame) for the joints in a CSV with a calibrated model"),
+    "sim": ("hil.commands.sim", "run a simulated robot cell on a loopback address"),
+    "tracker": ("hil.commands.tracker", "laser tracker: state, aim and measure (Leica emScon)"),
+    "cell": ("hil.commands.cell", "check a cell configuration (and optionally its instruments)"),
+    "run": ("hil.commands.run", "run a measurement procedure on a cell"),
+    "campaign": ("hil.commands.campaign", "inspect or export a campaign file (the SQLite store a measurement session writes)"),
+}  # fmt: skip
 
 
 class OneLineErrorParser(argparse.ArgumentParser):
@@ -33,29 +35,59 @@ class OneLineErrorParser(argparse.ArgumentParser):
         raise SystemExit(EXIT_USAGE)
 
 
+class _VersionAction(argparse.Action):
+    """`--version`: reads the installed version only when asked (importlib.metadata is slow to import)."""
+
+    def __init__(self, option_strings: list[str], dest: str = argparse.SUPPRESS, help: str | None = None):
+        super().__init__(option_strings, dest=dest, default=argparse.SUPPRESS, nargs=0, help=help)
+
+    def __call__(self, parser, namespace, values, option_string=None) -> None:
+        print(f"hil {_version()}")
+        parser.exit()
+
+
 def _version() -> str:
+    import importlib.metadata
+
     try:
         return importlib.metadata.version("hil")
     except importlib.metadata.PackageNotFoundError:
         return "unknown"
 
 
-def build_parser() -> argparse.ArgumentParser:
-    """Build the top-level parser with every registered subcommand."""
+def build_parser(load: Iterable[str] | None = None) -> argparse.ArgumentParser:
+    """Build the top-level parser; the commands in `load` (default: all) get their full parsers, the others
+    are listed with their one-line help only, without importing their modules."""
+    loaded = set(COMMANDS if load is None else load)
     parser = OneLineErrorParser(
         prog="hil",
         description="Hardware-in-the-loop measurement runner for industrial-robot accuracy.",
     )
-    parser.add_argument("--version", action="version", version=f"hil {_version()}")
+    parser.add_argument("--version", action=_VersionAction, help="show the version of hil and exit")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for module_name in COMMAND_MODULES:
-        importlib.import_module(module_name).register(subparsers)
+    for name, (module_name, help_line) in COMMANDS.items():
+        if name in loaded:
+            importlib.import_module(module_name).register(subparsers)
+        else:
+            subparsers.add_parser(name, help=help_line)
     return parser
+
+
+def _command_of(argv: list[str]) -> str | None:
+    """The command named on the line: the first word that is not an option (the top level takes no values)."""
+    word = next((a for a in argv if not a.startswith("-")), None)
+    return word if word in COMMANDS else None
 
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the console script; returns the process exit code."""
-    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    command = _command_of(argv)
+    try:
+        parser = build_parser(load=[command] if command else [])
+    except CliError as exc:  # a command whose options come from a plug-in that is missing
+        print(exc.render(command or ""), file=sys.stderr)
+        return EXIT_USAGE
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):
         parser.print_help()

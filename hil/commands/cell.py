@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from contextlib import closing
 
 import numpy as np
 
@@ -51,16 +52,16 @@ def run_check(args: argparse.Namespace) -> int:
     print(describe(config))
     if not args.connect:
         return 0
-    from drivers.emscon import EmsconConfig, EmsconTracker
-    from drivers.ur import URConfig, URRobot
+    from hil.commands.instruments import drivers_of
     from hil.instruments.robot import RobotError
     from hil.instruments.tracker import TrackerError
 
+    robots, trackers = drivers_of(config)
     failures = 0
     try:
-        with URRobot(URConfig.from_mapping(config.robot_mapping())) as robot:
+        with closing(robots.open(config.robot_mapping())) as robot:
             state = robot.state()
-            print(f"  robot connected: controller {robot.version}, mode {state.robot_mode}, safety {state.safety_mode}, ready {state.ready}")
+            print(f"  robot connected: controller {getattr(robot, 'version', '?')}, mode {state.robot_mode}, safety {state.safety_mode}, ready {state.ready}")
             if not config.envelope.joint_violations(robot.joints())[0]:
                 print("  robot joints inside the envelope's limits")
             else:
@@ -70,9 +71,12 @@ def run_check(args: argparse.Namespace) -> int:
         print(f"  robot: {exc}", file=sys.stderr)
         failures += 1
     try:
-        with EmsconTracker(EmsconConfig(url=config.tracker_url, meas_time_s=config.meas_time_s, reflector=config.tracker_reflector)) as tracker:
-            state = tracker.state()
-            print(f"  tracker connected: initialized {state.initialized}, target locked {state.target_locked}, reflector {state.reflector_id}")
+        with closing(trackers.open(config.tracker_mapping())) as tracker:
+            tracker_state = tracker.state()
+            print(
+                f"  tracker connected: initialized {tracker_state.initialized}, target locked "
+                f"{tracker_state.target_locked}, reflector {tracker_state.reflector_id}"
+            )
     except (TrackerError, OSError, ValueError) as exc:
         print(f"  tracker: {exc}", file=sys.stderr)
         failures += 1

@@ -1,22 +1,34 @@
 """The `--effects` option of the commands that build a simulated cell (`hil sim`, `hil demo`), as CLI errors.
 
-The option itself belongs to the simulated cell (`fakes.sim`); here its bad values become a CliError.
+The option itself belongs to the simulated cell plug-in; here its bad values become a CliError.
 """
 
 from __future__ import annotations
 
 import argparse
 
-from fakes.cell import EffectFlags
-from fakes.sim import SimOptionError, add_effects_argument, effects_from_args
 from hil.commands.errors import CliError
+from hil.instruments.plugins import CellSimulator, PluginError, PluginOptionError, cell_simulator
 
-__all__ = ["add_effects_argument", "effect_flags"]
+__all__ = ["add_effects_argument", "effect_flags", "simulator"]
 
 
-def effect_flags(args: argparse.Namespace) -> EffectFlags:
-    """SimCellConfig flags from `--effects`; an unknown name ends the command with the list of known ones."""
+def simulator() -> CellSimulator:
+    """The simulated cell plug-in; a missing one ends the command with what to install."""
     try:
-        return effects_from_args(args)
-    except SimOptionError as exc:
+        return cell_simulator()
+    except PluginError as exc:
+        raise CliError(exc.message, exc.remedy) from exc
+
+
+def add_effects_argument(parser: argparse.ArgumentParser) -> None:
+    """Add the simulated cell's `--effects` option."""
+    simulator().add_effects_argument(parser)
+
+
+def effect_flags(args: argparse.Namespace) -> dict[str, bool]:
+    """The cell's effect flags from `--effects`; an unknown name ends the command with the list of known ones."""
+    try:
+        return simulator().check_effects(args)
+    except PluginOptionError as exc:
         raise CliError(exc.message, exc.remedy) from exc

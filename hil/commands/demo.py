@@ -24,7 +24,7 @@ from contextlib import ExitStack, contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from hil.commands.cell_options import add_effects_argument, effect_flags
+from hil.commands.cell_options import add_effects_argument, effect_flags, simulator
 from hil.commands.errors import CliError
 from hil.geometry.robots import ROBOT_NAMES
 
@@ -104,15 +104,12 @@ def run(args: argparse.Namespace) -> int:
 def simulated_session(args: argparse.Namespace, out: Path, campaign: Path) -> Iterator[Session]:
     """Start the simulated cell, write its cell.toml (as for a real cell) and open a Session on it through
     ur-rtde and emScon, the scripted operator moving the simulated SMRs; the cell stops on leaving."""
-    from fakes.launch import sim_cell
     from hil.commands.instruments import open_session, simulated_operator
     from hil.commands.sim_cell import write_sim_cell
     from hil.runner.cell_config import load_cell_config
 
     cell_path = out / "cell.toml"
-    with sim_cell(
-        robot=args.robot, seed=args.seed, time_scale=args.time_scale, extra_args=("--effects", args.effects)
-    ) as cell:
+    with simulator().launch(robot=args.robot, seed=args.seed, time_scale=args.time_scale, effects=args.effects) as cell:
         write_sim_cell(cell_path, cell.info, cell.control.call("ground_truth"), args.time_scale)
         config = load_cell_config(cell_path)
         print(f"cell: {cell.info['robot']['personality']} controller at {cell.host}, tracker {config.tracker_url}; wrote {cell_path}")

@@ -1,8 +1,9 @@
-"""Wiring real or simulated instruments into a Session: the one place that knows which drivers exist.
+"""Wiring real or simulated instruments into a Session.
 
-Procedures see only the Robot and Tracker protocols; this module builds the UR driver (ur-rtde) and the
-emScon driver from the cell configuration, opens the campaign store and picks the operator: a person at
-the console, or, on a simulated cell, a script that moves the simulated SMR through its control channel.
+Procedures see only the Robot and Tracker protocols; this module opens the robot and tracker driver plug-ins
+the cell configuration names (`robot.driver`, `tracker.driver`; by default the UR driver on ur-rtde and the
+emScon driver), opens the campaign store and picks the operator: a person at the console, or, on a simulated
+cell, a script that moves the simulated SMR through the simulated cell plug-in's control channel.
 """
 
 from __future__ import annotations
@@ -11,7 +12,16 @@ import sys
 from contextlib import ExitStack
 from pathlib import Path
 
+from hil.commands.errors import CliError
 from hil.data.store import CampaignStore
+from hil.instruments.plugins import (
+    PluginError,
+    RobotDriver,
+    TrackerDriver,
+    cell_simulator,
+    robot_driver,
+    tracker_driver,
+)
 from hil.runner.cell_config import CellConfig
 from hil.runner.operator import ConsoleOperator, Operator, OperatorStep, ScriptedOperator
 from hil.runner.progress import Progress
@@ -21,12 +31,13 @@ from hil.runner.session import Session
 def simulated_operator(control_address: str | None) -> ScriptedOperator:
     """An operator whose hands are the simulated cell's control channel (place_smr, tracker.guide_beam),
     at the cell config's [simulator] control address."""
-    from fakes.control_client import ControlClient
-
     if not control_address:
         raise ValueError("the simulated operator needs [simulator] control in the cell config (hil sim --write-cell writes it)")
 
-    control = ControlClient(control_address)
+    try:
+        control = cell_simulator().connect_control(control_address)
+    except PluginError as exc:
+        raise CliError(exc.message, exc.remedy) from exc
 
     def place_smr(step: OperatorStep) -> None:
         location = step.location or ""
@@ -55,21 +66,28 @@ def choose_operator(config: CellConfig, kind: str) -> Operator:
     return ConsoleOperator()
 
 
+def drivers_of(config: CellConfig) -> tuple[RobotDriver, TrackerDriver]:
+    """The robot and tracker driver plug-ins the cell configuration names; a missing one is a CliError
+    that names it, before anything connects."""
+    try:
+        return robot_driver(config.robot_driver_name), tracker_driver(config.tracker_driver_name)
+    except PluginError as exc:
+        raise CliError(exc.message, f"{exc.remedy} (robot.driver / tracker.driver in {config.source})") from exc
+
+
 def open_session(config: CellConfig, campaign: str | Path, operator: Operator, stack: ExitStack, progress: bool | None = None) -> Session:
-    """Connect the robot (ur-rtde) and the tracker (emScon), open the campaign store, and build the Session.
+    """Connect the robot and the tracker through their driver plug-ins, open the campaign store, and build
+    the Session.
 
     The Session's close is registered on `stack`; a failure half-way leaves nothing connected."""
-    from drivers.emscon import EmsconConfig, EmsconTracker
-    from drivers.ur import URConfig, URRobot
-
+    robots, trackers = drivers_of(config)
     with ExitStack() as opening:  # a failure half-way closes what was opened so far
         store = CampaignStore(campaign)
         opening.callback(store.close)
-        robot = URRobot(URConfig.from_mapping(config.robot_mapping()))
+        robot = robots.open(config.robot_mapping())
         opening.callback(robot.close)
-        tracker = EmsconTracker(EmsconConfig(url=config.tracker_url, meas_time_s=config.meas_time_s, reflector=config.tracker_reflector))
+        tracker = trackers.open(config.tracker_mapping())
         opening.callback(tracker.close)
-        tracker.connect()
         station = {"robot_controller_version": getattr(robot, "version", None), "tracker": getattr(tracker, "tracker_info", {})}
         session = Session(config, robot, tracker, store, operator, Progress(enabled=progress), station=station)
         opening.pop_all()  # from here on the Session owns and releases them

@@ -1,19 +1,22 @@
-"""`hil sim`: run one simulated cell as a process (`python -m fakes.sim` under the `hil` CLI, plus --write-cell)."""
+"""`hil sim`: run one simulated cell as a process (the simulated cell plug-in under the `hil` CLI, plus --write-cell)."""
 
 from __future__ import annotations
 
 import argparse
+from collections.abc import Callable
 from pathlib import Path
 
-from fakes.sim import DESCRIPTION, SimOptionError, add_sim_arguments, sim_options
+from hil.commands.cell_options import simulator
 from hil.commands.errors import CliError
+from hil.instruments.plugins import PluginOptionError
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
+    cell = simulator()
     parser = subparsers.add_parser(
-        "sim", help="run a simulated robot cell on a loopback address", description=DESCRIPTION
+        "sim", help="run a simulated robot cell on a loopback address", description=cell.description
     )
-    add_sim_arguments(parser)
+    cell.add_arguments(parser)
     parser.add_argument(
         "--write-cell",
         metavar="FILE",
@@ -24,20 +27,21 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    cell = simulator()
     try:
-        options = sim_options(args)
-    except SimOptionError as exc:
+        cell.check_arguments(args)
+    except PluginOptionError as exc:
         raise CliError(exc.message, exc.remedy) from exc
+    on_ready: Callable[[dict, dict], None] | None = None
     if args.write_cell:
         from hil.commands.sim_cell import write_sim_cell
 
         if not Path(args.write_cell).resolve().parent.is_dir():
             raise CliError(f"--write-cell: the folder of {args.write_cell} does not exist", "create it first")
 
-        def on_ready(info: dict, truth: dict) -> None:
+        def write_cell(info: dict, truth: dict) -> None:
             write_sim_cell(args.write_cell, info, truth, args.time_scale)
 
-        options.on_ready = on_ready
-    from fakes.sim_process import run_cell
+        on_ready = write_cell
 
-    return run_cell(options)
+    return cell.serve(args, on_ready)

@@ -37,27 +37,31 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from drivers.emscon import EmsconConfig, EmsconTracker
+    from contextlib import closing
+
+    from hil.instruments.plugins import PluginError, tracker_driver
     from hil.instruments.tracker import TrackerError
 
     if args.shots < 0:
         raise CliError(f"--shots {args.shots} is negative", "give 0 (no measurement) or more shots")
     if not 0 < args.meas_time <= 3600:
         raise CliError(f"--meas-time {args.meas_time:g} s is outside (0, 3600] s", "give a time in seconds, e.g. 1")
-    tracker = EmsconTracker(
-        EmsconConfig(
-            url=args.url,
-            meas_time_s=args.meas_time,
-            reflector=args.reflector,
-            length_unit=args.wire_units,
-            angle_unit=args.wire_angles,
-            coordinate_system=args.coordinates,
-            command_timeout_s=args.timeout,
-        )
-    )
+    try:
+        emscon = tracker_driver("emscon")
+    except PluginError as exc:
+        raise CliError(exc.message, exc.remedy) from exc
+    settings = {
+        "url": args.url,
+        "meas_time_s": args.meas_time,
+        "reflector": args.reflector,
+        "length_unit": args.wire_units,
+        "angle_unit": args.wire_angles,
+        "coordinate_system": args.coordinates,
+        "command_timeout_s": args.timeout,
+    }
     out: dict = {}
     try:
-        with tracker:
+        with closing(emscon.open(settings)) as tracker:
             if args.aim:
                 tracker.point_at(args.aim)
             if args.find:

@@ -17,6 +17,7 @@ import numpy as np
 
 from hil.geometry.kinematics import KinematicModel
 from hil.geometry.robots import ROBOT_NAMES, get_robot, is_robot_file, robot_from_text
+from hil.instruments.plugins import DEFAULT_ROBOT_DRIVER, DEFAULT_TRACKER_DRIVER
 from hil.runner.envelope import Envelope
 
 SMR_RADIUS_MM = 19.05  # 1.5" sphere
@@ -61,6 +62,8 @@ class CellConfig:
     q_home_rad: np.ndarray
     simulator_control: str | None = None  # control channel of a simulated cell (scripted operator)
     robot_file_text: str | None = None  # the robot definition file's text when robot_model is a file
+    robot_driver_name: str = DEFAULT_ROBOT_DRIVER  # robot.driver: the instrument plug-in that drives the robot
+    tracker_driver_name: str = DEFAULT_TRACKER_DRIVER  # tracker.driver: the plug-in that drives the tracker
     source: str = "cell.toml"
     raw: dict = field(default_factory=dict)
 
@@ -72,6 +75,10 @@ class CellConfig:
     def robot_mapping(self) -> dict[str, Any]:
         """Settings for drivers.ur.URConfig.from_mapping: the host and the driver keys."""
         return {"host": self.robot_host, **self.robot_driver}
+
+    def tracker_mapping(self) -> dict[str, Any]:
+        """Settings for the tracker driver: its URL, measuring time and reflector."""
+        return {"url": self.tracker_url, "meas_time_s": self.meas_time_s, "reflector": self.tracker_reflector}
 
     def snapshot(self) -> dict:
         """The configuration as read, for the campaign's station snapshot; `robot_definition` holds what
@@ -204,6 +211,7 @@ def parse_cell_config(data: dict, source: str = "cell.toml") -> CellConfig:
     r = _Reader(data)
     model, robot_file_text, nominal = _robot_model(r, r.get("robot", "model", "str", required=True), source)
     host = r.get("robot", "host", "str", required=True)
+    robot_driver_name = r.get("robot", "driver", "str", default=DEFAULT_ROBOT_DRIVER)
     driver = {k: v for k, v in r.table("robot").items() if k in ROBOT_DRIVER_KEYS}
     for key, value in driver.items():
         if key != "power_on_at_connect" and (isinstance(value, bool) or not isinstance(value, int | float)):
@@ -218,6 +226,7 @@ def parse_cell_config(data: dict, source: str = "cell.toml") -> CellConfig:
             f"tracker.url: {url!r} is not a pyserial URL; use socket://HOST:PORT, rfc2217://HOST:PORT or /dev/tty..."
         )
     reflector = r.get("tracker", "reflector", "str")
+    tracker_driver_name = r.get("tracker", "driver", "str", default=DEFAULT_TRACKER_DRIVER)
     meas_time_s = r.get("tracker", "meas_time_s", "positive", default=1.0)
     shots = r.get("tracker", "shots_per_point", "int", default=3)
     p_tracker_mm = r.vector("tracker", "position_base_mm", 3, required=True)
@@ -293,6 +302,8 @@ def parse_cell_config(data: dict, source: str = "cell.toml") -> CellConfig:
         q_home_rad=home,
         simulator_control=simulator_control,
         robot_file_text=robot_file_text,
+        robot_driver_name=robot_driver_name,
+        tracker_driver_name=tracker_driver_name,
         source=source,
         raw=data,
     )
