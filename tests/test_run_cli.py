@@ -56,12 +56,12 @@ def test_bad_procedure_options_are_refused(tmp_path):
 
 def test_random_order_and_both_directions():
     config = parse_cell_config(tomllib.loads(sim_cell_toml()))
-    travel = grid_sampling.plan(config, step_mm=200, validation=0)
-    shuffled = grid_sampling.plan(config, step_mm=200, validation=0, order="random")
+    travel = grid_sampling.PROCEDURE.make_plan(config, step_m=0.2, validation=0)
+    shuffled = grid_sampling.PROCEDURE.make_plan(config, step_m=0.2, validation=0, order="random")
     assert sorted(p.point_id for p in travel.poses) == sorted(p.point_id for p in shuffled.poses)
     assert [p.point_id for p in travel.poses] != [p.point_id for p in shuffled.poses]
     assert shuffled.estimated_duration_s() > travel.estimated_duration_s()
-    both = grid_sampling.plan(config, step_mm=200, validation=0, both_directions=True)
+    both = grid_sampling.PROCEDURE.make_plan(config, step_m=0.2, validation=0, both_directions=True)
     assert len(both.poses) == 2 * len(travel.poses)
     pose = both.poses[0]
     below = grid_sampling.approach_pose(pose.point_id, pose.q_rad)
