@@ -49,9 +49,30 @@ def test_an_unreachable_robot_is_a_clear_error(tmp_path):
 
 def test_bad_procedure_options_are_refused(tmp_path):
     done = _run(tmp_path, sim_cell_toml(), "grid_sampling", "--step-mm", "5")
-    assert done.returncode == 2 and "--step-mm" in done.stderr
+    assert done.returncode == 2 and "--step-mm 5" in done.stderr and "20..500 mm" in done.stderr
     done = _run(tmp_path, sim_cell_toml(), "tool_fit", "--poses", "1")
-    assert done.returncode == 2 and "--poses" in done.stderr
+    assert done.returncode == 2 and "--poses 1" in done.stderr and "at least 2" in done.stderr
+    assert not (tmp_path / "c.sqlite").exists()
+
+
+def test_a_flag_in_another_unit_or_an_unknown_procedure_is_refused(tmp_path):
+    done = _run(tmp_path, sim_cell_toml(), "grid_sampling", "--step-m", "0.1")  # metres, not millimetres
+    assert done.returncode == 2 and "use --step-mm" in done.stderr and "20..500 mm" in done.stderr
+    done = _run(tmp_path, sim_cell_toml(), "grid_sampling", "--tilt-rad", "0.2")
+    assert done.returncode == 2 and "use --tilt-deg" in done.stderr
+    done = _run(tmp_path, sim_cell_toml(), "no_such_procedure")
+    assert done.returncode == 2 and "registration" in done.stderr and "grid_sampling" in done.stderr
+    assert not (tmp_path / "c.sqlite").exists()
+
+
+def test_help_lists_every_procedure_and_its_declared_parameters():
+    listing = subprocess.run([sys.executable, "-m", "hil", "run", "--help"], capture_output=True, text=True, timeout=60)
+    for name in ("registration", "tool_fit", "grid_sampling", "pseudo_target"):
+        assert name in listing.stdout
+    assert "flange frame" in listing.stdout  # tool_fit's purpose
+    own = subprocess.run([sys.executable, "-m", "hil", "run", "grid_sampling", "--help"], capture_output=True, text=True, timeout=60)
+    assert "--step-mm MM" in own.stdout and "20..500 mm; default 100" in own.stdout
+    assert "--tilt-deg DEG" in own.stdout
 
 
 def test_random_order_and_both_directions():
