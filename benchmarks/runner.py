@@ -155,10 +155,10 @@ def runner_alone(step_mm: float, validation: int) -> dict:
         with session:
             session.finish_step("registration", "fit", {"T_tracker_base": np.eye(4).tolist(), "rms_mm": 1.0})
             t0 = time.perf_counter()
-            grid_sampling.plan(config, step_mm=step_mm, validation=validation)
+            grid_sampling.PROCEDURE.make_plan(config, step_m=step_mm / 1e3, validation=validation)
             plan_s = time.perf_counter() - t0
             t0 = time.perf_counter()
-            result = grid_sampling.run(session, step_mm=step_mm, validation=validation)
+            result = grid_sampling.PROCEDURE(session, step_m=step_mm / 1e3, validation=validation)
             wall = time.perf_counter() - t0
     points = result.recorded + result.validation_recorded
     return {"points": points, "per_point_ms": 1e3 * (wall - plan_s) / points}
@@ -180,16 +180,16 @@ def grid_on_sim(step_mm: float, validation: int, time_scale: float) -> dict:
         operator = simulated_operator(config.simulator_control)
         session = open_session(config, Path(folder) / "campaign.sqlite", operator, stack, progress=False)
         with session:
-            registration.run(session)
+            registration.PROCEDURE(session)
             totals = {"robot": 0.0, "tracker": 0.0, "store": 0.0}
             session.robot = timed_proxy(session.robot, totals, "robot")
             session.tracker = timed_proxy(session.tracker, totals, "tracker")
             session.store = timed_proxy(session.store, totals, "store")
             t0 = time.perf_counter()
-            grid_sampling.plan(config, step_mm=step_mm, validation=validation)  # what run() plans first
+            grid_sampling.PROCEDURE.make_plan(config, step_m=step_mm / 1e3, validation=validation)  # what run() plans first
             plan_s = time.perf_counter() - t0
             t0 = time.perf_counter()
-            result = grid_sampling.run(session, step_mm=step_mm, validation=validation)
+            result = grid_sampling.PROCEDURE(session, step_m=step_mm / 1e3, validation=validation)
             wall = time.perf_counter() - t0
             totals = dict(totals)  # closing the session below calls the drivers again
     points = result.recorded + result.validation_recorded

@@ -14,6 +14,7 @@ from below and once from above on every joint.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -31,9 +32,10 @@ from hil.runner.planners import (
     travel_order,
     workspace_box,
 )
+from hil.runner.procedure import Parameter, Procedure
 from hil.runner.session import Session
 
-PROCEDURE = "grid_sampling"
+NAME = "grid_sampling"
 APPROACH_RAD = np.deg2rad(2.0)  # pre-position offset on every joint for a known approach direction
 ORDERS = ("travel", "random")
 
@@ -47,47 +49,39 @@ class GridResult:
     validation_recorded: int
 
 
-def sampling_box(config: CellConfig, box_min_mm: tuple[float, float, float] | None, box_max_mm: tuple[float, float, float] | None) -> Box:
+def sampling_box(config: CellConfig, box_min_m: Sequence[float] | None, box_max_m: Sequence[float] | None) -> Box:
     """The box to sample (robot base frame): the one given, else a reachable box in front of the tracker."""
-    if (box_min_mm is None) != (box_max_mm is None):
+    if (box_min_m is None) != (box_max_m is None):
         raise ValueError("give both --box-min-mm and --box-max-mm, or neither (default box in front of the tracker)")
-    if box_min_mm is None:
+    if box_min_m is None or box_max_m is None:
         return workspace_box(config.nominal, config.p_base_tracker_m)
-    return Box.from_limits(np.asarray(box_min_mm, float) / 1e3, np.asarray(box_max_mm, float) / 1e3)
+    return Box.from_limits(np.asarray(box_min_m, float), np.asarray(box_max_m, float))
 
 
 def plan(
     config: CellConfig,
     *,
-    step_mm: float = 100.0,
-    box_min_mm: tuple[float, float, float] | None = None,
-    box_max_mm: tuple[float, float, float] | None = None,
-    orientations: int = 1,
-    order: str = "travel",
-    both_directions: bool = False,
-    validation: int = 50,
-    nest: int = 1,
-    tilt_deg: float = 20.0,
-    seed: int = 0,
+    step_m: float,
+    box_min_m: Sequence[float] | None,
+    box_max_m: Sequence[float] | None,
+    orientations: int,
+    order: str,
+    both_directions: bool,
+    validation: int,
+    nest: int,
+    tilt_rad: float,
+    seed: int,
 ) -> Plan:
     """The grid and validation poses, filtered for reachability, singularity and the envelope, in order."""
-    if not 20.0 <= step_mm <= 500.0:
-        raise ValueError(f"--step-mm {step_mm:g} is outside 20..500 mm (the papers use 100-200 mm)")
-    if order not in ORDERS:
-        raise ValueError(f"--order {order!r}: choose one of {', '.join(ORDERS)}")
-    if orientations < 1 or validation < 0:
-        raise ValueError("--orientations must be >= 1 and --validation >= 0")
     if not 1 <= nest <= len(config.nests_flange_m):
         raise ValueError(f"--nest {nest}: the tool has nests 1..{len(config.nests_flange_m)}")
-    if not 0.0 <= tilt_deg <= 30.0:
-        raise ValueError("--tilt-deg must lie in 0..30: beyond 30 deg the SMR turns out of the beam")
     rng = np.random.default_rng(seed)
-    box = sampling_box(config, box_min_mm, box_max_mm)
+    box = sampling_box(config, box_min_m, box_max_m)
     p_nest = config.nests_flange_m[nest - 1]
     dropped: dict[str, int] = {}
 
     def usable_joints(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        T = facing_poses(points, config.p_base_tracker_m, rng, tilt_deg=tilt_deg)
+        T = facing_poses(points, config.p_base_tracker_m, rng, tilt_deg=float(np.rad2deg(tilt_rad)))
         joints = plan_joints(config.nominal, T, p_nest, q_near=config.q_home_rad)
         reason = joints.reason.copy()
         reason[joints.usable & config.envelope.outside(config.nominal, joints.q, config.nests_flange_m)] = "envelope"
@@ -96,7 +90,7 @@ def plan(
         keep = reason == "ok"
         return joints.q[keep], np.flatnonzero(keep)
 
-    grid = grid_points(box, step_mm / 1e3)
+    grid = grid_points(box, step_m)
     q_list, ids = [], []
     for k in range(orientations):
         q, kept = usable_joints(grid)
@@ -104,20 +98,20 @@ def plan(
         ids += [f"g{k + 1}-{i:04d}" for i in kept]
     q_grid = np.vstack(q_list) if q_list else np.zeros((0, 6))
     visit = travel_order(q_grid, config.q_home_rad) if order == "travel" else random_order(len(q_grid), rng)
-    poses = []
-    for i in visit:
-        if both_directions:
-            poses.append(PlannedPose(ids[i] + "+", PROCEDURE, "grid", q_grid[i], f"nest{nest}"))
-            poses.append(PlannedPose(ids[i] + "-", PROCEDURE, "grid", q_grid[i], f"nest{nest}"))
-        else:
-            poses.append(PlannedPose(ids[i], PROCEDURE, "grid", q_grid[i], f"nest{nest}"))
+    location = f"nest{nest}"
+    setup = (OperatorStep(f"Put SMR 1 in tool nest {nest}.", "place_smr", smr=1, location=location),)
+
+    def pose(point_id: str, step: str, q: np.ndarray) -> PlannedPose:
+        return PlannedPose(point_id, NAME, step, q, location, smr=nest, approach_q_rad=approach_pose(point_id, q), setup=setup)
+
+    suffixes = ("+", "-") if both_directions else ("",)
+    poses = [pose(ids[i] + s, "grid", q_grid[i]) for i in visit for s in suffixes]
     if validation:
         q_val, _ = usable_joints(random_points(box, 3 * validation, rng))
-        for k, q in enumerate(q_val[:validation]):
-            poses.append(PlannedPose(f"v{k + 1:04d}", PROCEDURE, "validation", q, f"nest{nest}"))
+        poses += [pose(f"v{k + 1:04d}", "validation", q) for k, q in enumerate(q_val[:validation])]
     if not poses:
         raise ValueError("no grid vertex is reachable inside the envelope: move the box or widen [envelope]")
-    return Plan(PROCEDURE, poses, config, operator_steps=1, dropped=dropped)
+    return Plan(NAME, poses, config, operator_steps=1, dropped=dropped)
 
 
 def approach_pose(point_id: str, q: np.ndarray) -> np.ndarray | None:
@@ -129,30 +123,13 @@ def approach_pose(point_id: str, q: np.ndarray) -> np.ndarray | None:
     return None
 
 
-def run(session: Session, *, nest: int = 1, shots: int | None = None, **options) -> GridResult:
-    """Measure the grid and the held-out validation poses (see the module docstring); resumable."""
-    the_plan = plan(session.config, nest=nest, **options)
-    session.check_poses(the_plan.joints(), [p.point_id for p in the_plan.poses])
-    approaches = [approach_pose(p.point_id, p.q_rad) for p in the_plan.poses]
-    if any(a is not None for a in approaches):
-        session.check_poses(np.array([a for a in approaches if a is not None]))
+def sample(session: Session, *, order: str, shots: int | None = None, **options) -> GridResult:
+    """Measure the grid, then the held-out validation poses, on a registered cell; resumable."""
     session.require_registration()
-    session.pin_plan(the_plan)
-    p_nest = session.nest_flange_m(nest)
-    pending = [(p, a) for p, a in zip(the_plan.poses, approaches, strict=True) if not session.recorded(PROCEDURE, p.step, p.point_id)]
-    if pending:
-        session.ask(OperatorStep(f"Put SMR 1 in tool nest {nest}.", "place_smr", smr=1, location=f"nest{nest}"))
-    with session.progress.task("grid sampling", total=len(the_plan.poses), done=len(the_plan.poses) - len(pending)) as advance:
-        for pose, approach in pending:
-            if approach is not None:
-                session.move_joints(approach, label=pose.point_id + " approach")
-            session.measure_point(
-                PROCEDURE, pose.step, pose.point_id, pose.q_rad, smr=nest, location=pose.location,
-                p_flange_m=p_nest, shots=shots, extra={"order": options.get("order", "travel")},
-            )
-            advance()
+    the_plan = plan(session.config, order=order, **options)
+    session.visit(the_plan, shots=shots, extra={"order": order}, pin=True)
     steps = [p.step for p in the_plan.poses]
-    recorded = session.store.measurements(PROCEDURE)
+    recorded = session.store.measurements(NAME)
     counts = recorded["step"].value_counts().to_dict() if len(recorded) else {}
     return GridResult(
         planned=steps.count("grid"),
@@ -161,3 +138,35 @@ def run(session: Session, *, nest: int = 1, shots: int | None = None, **options)
         validation_planned=steps.count("validation"),
         validation_recorded=int(counts.get("validation", 0)),
     )
+
+
+def summary(result: GridResult) -> str:
+    dropped = ", ".join(f"{n} {r}" for r, n in sorted(result.dropped.items())) or "none"
+    return (
+        f"grid sampling: {result.recorded}/{result.planned} grid points and {result.validation_recorded}/"
+        f"{result.validation_planned} validation points recorded; left out when planning: {dropped}"
+    )
+
+
+PROCEDURE = Procedure(
+    name=NAME,
+    purpose="measure the robot over its working volume: a grid (100-200 mm step) and held-out validation poses",
+    instruction=__doc__ or "",
+    parameters=(
+        Parameter("step", "grid step (the papers use 100-200)", 100.0, float, unit="mm", minimum=20.0, maximum=500.0),
+        Parameter("box_min", "sampling box corner x y z, base frame (default: a box facing the tracker)", None, float, unit="mm", count=3),
+        Parameter("box_max", "opposite box corner x y z", None, float, unit="mm", count=3),
+        Parameter("orientations", "tool orientations per grid vertex", 1, int, minimum=1),
+        Parameter("order", "visiting order", "travel", str, choices=ORDERS),
+        Parameter("both_directions", "approach each vertex from below and from above", False, bool),
+        Parameter("validation", "random held-out validation poses", 50, int, minimum=0),
+        Parameter("nest", "tool nest holding the SMR", 1, int, minimum=1),
+        Parameter("tilt", "max tilt of the SMR from the tracker line (beyond 30 the SMR turns out of the beam)", 20.0, float, unit="deg", minimum=0.0, maximum=30.0),
+        Parameter("seed", "seed of the orientations and validation poses", 0, int, minimum=0),
+        Parameter("shots", "tracker shots per point (default: the cell's tracker.shots_per_point)", None, int, minimum=1),
+    ),
+    plan=plan,
+    body=sample,
+    steps=("plan", "grid", "validation"),
+    summary=summary,
+)

@@ -30,7 +30,7 @@ import pandas as pd
 from hil.analysis.calibrated_model import CalibratedModel
 from hil.analysis.noise_floor import tracker_sigma_m
 from hil.compensation.model_based import PosePredictor, PseudoTargetIK, compensate, pose_cost
-from hil.compensation.target_update import check_generator, update_pseudo_position, update_pseudo_target
+from hil.compensation.target_update import GENERATORS, update_pseudo_position, update_pseudo_target
 from hil.data.dataset import ORIENTATION_COLUMNS, orientations
 from hil.geometry.kinematics import forward_kinematics
 from hil.geometry.se3 import fit_rigid
@@ -45,9 +45,10 @@ from hil.runner.planners import (
     random_points,
     workspace_box,
 )
+from hil.runner.procedure import Parameter, Procedure
 from hil.runner.session import CampaignStopped, Session
 
-PROCEDURE = "pseudo_target"
+NAME = "pseudo_target"
 STEP = "loop"
 LENGTH_SCALE_M = 0.1  # pose error measure: sqrt(dp^2 + (L * angle)^2), as hil.compensation.model_based
 USABLE_START = ("ok", "max_iter", "stalled")  # compensation statuses whose joints are worth measuring
@@ -150,6 +151,10 @@ class LoopResult:
                 "final": scalar_error_stats(np.rad2deg([t.rotation_error_rad for t in v])),
             }
         return out
+
+    def stage_table(self) -> str:
+        """The before / after table alone (uncompensated -> start -> measured loop)."""
+        return stage_table(self.summary())
 
     def table(self) -> str:
         """Per-target lines and the before / after table, for the console."""
@@ -353,11 +358,9 @@ def target_ids(count: int) -> list[str]:
     return [f"t{k + 1:03d}" for k in range(count)]
 
 
-def plan(config: CellConfig, *, model: CalibratedModel | str | None = None, targets: int | str = 20, generator: str = "yin",
-         threshold_mm: float = 0.01, max_iter: int = 3, smrs: int = 1, seed: int = 0,
-         patience: int = PATIENCE) -> Plan:  # fmt: skip
+def plan(config: CellConfig, *, model: CalibratedModel | str | None, targets: int | str, generator: str,
+         threshold_m: float, max_iter: int, smrs: int, seed: int) -> Plan:  # fmt: skip
     """The first pose of every usable target (model-based start), for --dry-run and the envelope check."""
-    check_options(generator, threshold_mm, max_iter, patience)
     the_model = load_model(model)
     if the_model is None:
         raise ValueError(
@@ -367,10 +370,10 @@ def plan(config: CellConfig, *, model: CalibratedModel | str | None = None, targ
     ik_model = nominal_model(
         config, the_model.T_tracker_base, the_model.tools.get(1, config.nests_flange_m[0])
     )
-    start = start_joints(config, ik_model, the_model, T_d, generator, threshold_mm / 1e3)
+    start = start_joints(config, ik_model, the_model, T_d, generator, threshold_m)
     ids = target_ids(len(T_d))
     poses = [
-        PlannedPose(f"{i}/i0", PROCEDURE, STEP, q, "nest1")
+        PlannedPose(f"{i}/i0", NAME, STEP, q, "nest1")
         for i, q, s in zip(ids, start.q, start.status, strict=True)
         if s == "ok"
     ]
@@ -378,23 +381,13 @@ def plan(config: CellConfig, *, model: CalibratedModel | str | None = None, targ
         raise ValueError("no target is usable (see the statuses): give targets inside the calibrated volume")
     dropped = {str(s): int(np.sum(start.status == s)) for s in np.unique(start.status) if s != "ok"}
     per_point = smrs * (config.settle_s + config.shots_per_point * config.meas_time_s + 0.5) * (max_iter + 1)
-    return Plan(PROCEDURE, poses, config, operator_steps=smrs, dropped=dropped, per_point_s=per_point)
-
-
-def check_options(generator: str, threshold_mm: float, max_iter: int, patience: int = PATIENCE) -> None:
-    check_generator(generator)
-    if not 0.0005 <= threshold_mm <= 10.0:
-        raise ValueError(f"--threshold-mm {threshold_mm:g} is outside 0.0005..10 mm")
-    if not 0 <= max_iter <= 20:
-        raise ValueError(f"--max-iter {max_iter} is outside 0..20")
-    if not 0 <= patience <= 20:
-        raise ValueError(f"--patience {patience} is outside 0..20 (0 turns the no-improvement stop off)")
+    return Plan(NAME, poses, config, operator_steps=smrs, dropped=dropped, per_point_s=per_point)
 
 
 # ------------------------------------------------------------------------------------------ the loop
-def run(session: Session, *, model: CalibratedModel | str | None = None, targets: int | str | np.ndarray = 20,
-        generator: str = "yin", threshold_mm: float = 0.01, max_iter: int = 3, smrs: int = 1, seed: int = 0,
-        shots: int | None = None, measure_uncompensated: bool = False, patience: int = PATIENCE) -> LoopResult:  # fmt: skip
+def close_the_loop(session: Session, *, model: CalibratedModel | str | None, targets: int | str | np.ndarray,
+                   generator: str, threshold_m: float, max_iter: int, smrs: int, seed: int, shots: int | None,
+                   measure_uncompensated: bool, patience: int) -> LoopResult:  # fmt: skip
     """Run the measured pseudo-target loop on every target (see the module docstring); resumable.
 
     `targets`: a count of random held-out targets in the sampled volume, a CSV path, or an array (tracker
@@ -402,7 +395,6 @@ def run(session: Session, *, model: CalibratedModel | str | None = None, targets
     many corrections in a row without a gain beyond the noise margin (0: off). `measure_uncompensated` also
     measures each target's plain nominal IK once (`t007/u`), the "uncompensated" row of the before / after table.
     """
-    check_options(generator, threshold_mm, max_iter, patience)
     the_model = load_model(model)
     reg = session.require_registration()
     T_tb = the_model.T_tracker_base if the_model is not None else reg.T_tracker_base
@@ -410,8 +402,7 @@ def run(session: Session, *, model: CalibratedModel | str | None = None, targets
         the_model if the_model is not None else nominal_model(session.config, T_tb, session.nest_flange_m(1))
     )
     T_d = resolve_targets(targets, session.config, ik_model, seed, smrs)
-    _pin_targets(session, T_d, generator, threshold_mm, max_iter, smrs, the_model is not None, patience)
-    threshold_m = threshold_mm / 1e3
+    _pin_targets(session, T_d, generator, round(threshold_m * 1e3, 12), max_iter, smrs, the_model is not None, patience)
     nominal_ik = nominal_model(session.config, T_tb, ik_model.tools[1])
     start = start_joints(session.config, nominal_ik, the_model, T_d, generator, threshold_m)
     loop = _Loop(session, ik_model, T_d, generator, threshold_m, max_iter, smrs, shots, patience)
@@ -430,7 +421,7 @@ def run(session: Session, *, model: CalibratedModel | str | None = None, targets
             advance()
     result = LoopResult(results, smrs, generator, the_model is not None)
     session.finish_step(
-        PROCEDURE, "summary", {"summary": result.summary(), "targets": [r.to_dict() for r in results]}
+        NAME, "summary", {"summary": result.summary(), "targets": [r.to_dict() for r in results]}
     )
     return result
 
@@ -447,7 +438,7 @@ def _pin_targets(
 ) -> None:
     """Record the targets and options on the first run; a resume with other ones would mix two jobs.
     (A loop pinned before `patience` existed resumes with any patience.)"""
-    pinned = session.step_result(PROCEDURE, "targets")
+    pinned = session.step_result(NAME, "targets")
     options = {
         "generator": generator,
         "threshold_mm": threshold_mm,
@@ -457,7 +448,7 @@ def _pin_targets(
         "patience": patience,
     }
     if pinned is None:
-        session.finish_step(PROCEDURE, "targets", {"targets_m": np.round(T_d, 12).tolist(), **options})
+        session.finish_step(NAME, "targets", {"targets_m": np.round(T_d, 12).tolist(), **options})
         return
     same = np.shape(pinned["targets_m"]) == T_d.shape and np.allclose(pinned["targets_m"], T_d, atol=1e-9)
     if not same or any(pinned.get(k, v if k == "patience" else None) != v for k, v in options.items()):
@@ -482,12 +473,6 @@ class _Loop:
             self.T_d4 = np.tile(np.eye(4), (len(T_d), 1, 1))
             self.T_d4[:, :3, 3] = T_d
         self.nests = np.array([session.nest_flange_m(k) for k in range(1, smrs + 1)])
-        rows = session.store.measurements(PROCEDURE, STEP)
-        self.recorded = {
-            pid: (np.array(p, float), np.array(q, float), measurement_sigma_m(p, spread, shots))
-            for pid, p, q, spread, shots in zip(rows["point_id"], rows["p_tracker_m"], rows["q_target_rad"],
-                                                rows["spread_m"], rows["shots"], strict=True)
-        } if len(rows) else {}  # fmt: skip
         self.sigma_m = 0.0  # per-axis noise of the last measure(): the largest of its points'
 
     def ask_operator(self) -> None:
@@ -497,31 +482,10 @@ class _Loop:
             )
 
     def _point(self, point_id: str, q: np.ndarray, nest: int) -> np.ndarray:
-        if point_id in self.recorded:
-            p, q_rec, sigma = self.recorded[point_id]
-            if not np.allclose(q_rec, q, atol=1e-6):
-                raise CampaignStopped(
-                    f"{point_id} was recorded at other joints than this run would command",
-                    "re-run with the same model and options, or use a new --campaign file",
-                )
-            self.sigma_m = max(self.sigma_m, sigma)
-            return p
-        record = self.session.measure_point(
-            PROCEDURE,
-            STEP,
-            point_id,
-            q,
-            smr=nest,
-            location=f"nest{nest}",
-            p_flange_m=self.nests[nest - 1],
-            shots=self.shots,
-            extra={"target": point_id.split("/")[0]},
-        )
-        if record is None:  # recorded between our read and now (not expected): read it back
-            rows = self.session.store.measurements(PROCEDURE, STEP)
-            row = rows.loc[rows["point_id"] == point_id].iloc[0]
-            self.sigma_m = max(self.sigma_m, measurement_sigma_m(row["p_tracker_m"], row["spread_m"], row["shots"]))
-            return np.array(row["p_tracker_m"], float)
+        record = self.session.recall_or_measure(
+            NAME, STEP, point_id, q, smr=nest, location=f"nest{nest}", p_flange_m=self.nests[nest - 1],
+            shots=self.shots, extra={"target": point_id.split("/")[0]},
+        )  # fmt: skip
         self.sigma_m = max(self.sigma_m, measurement_sigma_m(record.p_tracker_m, record.spread_m, record.shots))
         return np.asarray(record.p_tracker_m, float)
 
@@ -576,3 +540,30 @@ class _Loop:
                 out.status = "envelope"
                 return
             q = q_new[0]
+
+
+def summary(result: LoopResult) -> str:
+    return result.table()
+
+
+PROCEDURE = Procedure(
+    name=NAME,
+    purpose="put the SMR on targets, measured: model-based start, then pseudo-target corrections",
+    instruction=__doc__ or "",
+    parameters=(
+        Parameter("model", "calibrated model (model.json from hil calibrate / hil diagnose)", None, str, required=True),
+        Parameter("targets", "N random held-out targets in the sampled volume, or a CSV: x_mm, y_mm, z_mm (tracker frame) [, rx_deg, ry_deg, rz_deg]", "20", str),
+        Parameter("generator", "pseudo-target generator", "yin", str, choices=tuple(GENERATORS)),
+        Parameter("threshold", "stop below this measured error", 0.01, float, unit="mm", minimum=0.0005, maximum=10.0),
+        Parameter("max_iter", "measured corrections per target", 3, int, minimum=0, maximum=20),
+        Parameter("patience", "stop a target after this many corrections in a row that do not beat its best error by more than the measurement noise (1 sigma of the tracker's noise model or the shot spread, whichever is larger); status no_improvement, best joints kept; 0 = off", PATIENCE, int, minimum=0, maximum=20),
+        Parameter("smrs", "1: position (SMR in nest 1); 3: pose (SMRs in nests 1-3)", 1, int, choices=SMR_MODES),
+        Parameter("seed", "seed of the random targets", 0, int, minimum=0),
+        Parameter("shots", "tracker shots per point (default: the cell's tracker.shots_per_point)", None, int, minimum=1),
+        Parameter("measure_uncompensated", "also measure each target's plain nominal IK once (the uncompensated row)", False, bool),
+    ),
+    plan=plan,
+    body=close_the_loop,
+    steps=("targets", "loop", "summary"),
+    summary=summary,
+)

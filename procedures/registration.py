@@ -20,9 +20,10 @@ from hil.runner.cell_config import CellConfig
 from hil.runner.operator import OperatorStep
 from hil.runner.plan import Plan, PlannedPose
 from hil.runner.planners import Box, facing_poses, plan_joints, workspace_box
+from hil.runner.procedure import Parameter, Procedure
 from hil.runner.session import CampaignStopped, Session
 
-PROCEDURE = "registration"
+NAME = "registration"
 
 
 @dataclass(frozen=True)
@@ -31,11 +32,9 @@ class RegistrationResult:
     poses_measured: int
 
 
-def plan(config: CellConfig, *, poses: int = 12, nest: int = 1, seed: int = 0) -> Plan:
+def plan(config: CellConfig, *, poses: int, nest: int, seed: int) -> Plan:
     """The registration poses: the corners and centre of the working box, then random points in it,
     each with the SMR in `nest` facing the tracker; unreachable, singular or out-of-envelope ones dropped."""
-    if poses < 6:
-        raise ValueError("registration needs at least 6 poses (--poses): 3 fix the transform, the rest check it")
     if not 1 <= nest <= len(config.nests_flange_m):
         raise ValueError(f"--nest {nest}: the tool has nests 1..{len(config.nests_flange_m)}")
     rng = np.random.default_rng(seed)
@@ -51,48 +50,65 @@ def plan(config: CellConfig, *, poses: int = 12, nest: int = 1, seed: int = 0) -
             f"only {len(q)} registration poses are reachable inside the envelope; widen [envelope] or check "
             "tracker.position_base_mm"
         )
-    steps = [PlannedPose(f"r{k + 1:02d}", PROCEDURE, "poses", qk, f"nest{nest}") for k, qk in enumerate(q)]
-    return Plan(PROCEDURE, steps, config, operator_steps=2)
+    place = OperatorStep(f"Put SMR 1 in tool nest {nest}.", "place_smr", smr=1, location=f"nest{nest}")
+    lock = OperatorStep("Guide the tracker's beam onto SMR 1 on the tool until it locks.", "lock_beam", smr=1)
+    steps = [
+        PlannedPose(f"r{k + 1:02d}", NAME, "poses", qk, f"nest{nest}", setup=(place,), at_pose=(lock,))
+        for k, qk in enumerate(q)
+    ]
+    return Plan(NAME, steps, config, operator_steps=2)
 
 
-def run(session: Session, *, poses: int = 12, nest: int = 1, seed: int = 0, inlier_mm: float = 3.0) -> RegistrationResult:
-    """Register the tracker to the robot base (see the module docstring for the shop-floor steps)."""
+def register(session: Session, *, poses: int, nest: int, seed: int, inlier_m: float) -> RegistrationResult:
+    """Measure the poses with the SMR in its nest, then fit the tracker-to-base transform with RANSAC."""
     the_plan = plan(session.config, poses=poses, nest=nest, seed=seed)
-    session.check_poses(np.array([p.q_rad for p in the_plan.poses]), [p.point_id for p in the_plan.poses])
     p_nest = session.config.nests_flange_m[nest - 1]
-    pending = [p for p in the_plan.poses if not session.recorded(PROCEDURE, "poses", p.point_id)]
-    if pending:
-        session.ask(OperatorStep(f"Put SMR 1 in tool nest {nest}.", "place_smr", smr=1, location=f"nest{nest}"))
-        session.move_joints(pending[0].q_rad, label=pending[0].point_id)
-        session.settle()
 
-        def lock_beam() -> None:
-            session.ask(OperatorStep("Guide the tracker's beam onto SMR 1 on the tool until it locks.", "lock_beam", smr=1))
+    def reaim() -> None:
+        """Aim where an interim fit of the points so far puts the SMR; ask the operator before there are 4."""
+        so_far = session.recorded_points(NAME, "poses")
+        if len(so_far.point_id) < 4:
+            for step in the_plan.poses[0].at_pose:
+                session.ask(step)
+            return
+        T, _ = fit_rigid(tool_points(session.nominal, so_far.q_rad, p_nest), so_far.p_tracker_m)
+        q_now = session.robot.joints()
+        session.tracker.point_at(transform_points(T, tool_points(session.nominal, q_now[None], p_nest))[0])
 
-        def reaim() -> None:
-            """Aim where an interim fit of the points so far puts the SMR; ask the operator before there are 4."""
-            so_far = session.recorded_points(PROCEDURE, "poses")
-            if len(so_far.point_id) < 4:
-                lock_beam()
-                return
-            T, _ = fit_rigid(tool_points(session.nominal, so_far.q_rad, p_nest), so_far.p_tracker_m)
-            q_now = session.robot.joints()
-            session.tracker.point_at(transform_points(T, tool_points(session.nominal, q_now[None], p_nest))[0])
-
-        lock_beam()
-        total, done = len(the_plan.poses), len(the_plan.poses) - len(pending)
-        with session.progress.task("registration", total=total, done=done) as advance:
-            for pose in pending:
-                session.measure_point(PROCEDURE, "poses", pose.point_id, pose.q_rad, smr=1, location=f"nest{nest}", reaim=reaim)
-                advance()
-    records = session.recorded_points(PROCEDURE, "poses")
+    session.visit(the_plan, aim=False, reaim=reaim)
+    records = session.recorded_points(NAME, "poses")
     if len(records.point_id) < 6:
         raise CampaignStopped(f"only {len(records.point_id)} registration points recorded", "re-run registration to measure the rest")
     p_base = tool_points(session.nominal, records.q_rad, p_nest)
-    fit = ransac_rigid(p_base, records.p_tracker_m, inlier_m=inlier_mm / 1e3, seed=seed)
-    session.finish_step(PROCEDURE, "fit", fit.as_result(records.point_id))
+    fit = ransac_rigid(p_base, records.p_tracker_m, inlier_m=inlier_m, seed=seed)
+    session.finish_step(NAME, "fit", fit.as_result(records.point_id))
     session.log.info(
         "registration: %d of %d points fit, RMS %.3f mm, max %.3f mm",
         int(fit.inliers.sum()), len(fit.inliers), fit.rms_m * 1e3, fit.max_m * 1e3,
     )
     return RegistrationResult(fit, len(records.point_id))
+
+
+def summary(result: RegistrationResult) -> str:
+    fit = result.fit
+    return (
+        f"registration: {int(fit.inliers.sum())} of {len(fit.inliers)} points agree; RMS {fit.rms_m * 1e3:.3f} mm, "
+        f"max {fit.max_m * 1e3:.3f} mm (the robot's uncompensated error)"
+    )
+
+
+PROCEDURE = Procedure(
+    name=NAME,
+    purpose="where is the robot's base in the tracker's frame (SMR in a tool nest, a dozen poses, RANSAC fit)",
+    instruction=__doc__ or "",
+    parameters=(
+        Parameter("poses", "poses to measure (3 fix the transform, the rest check it)", 12, int, minimum=6),
+        Parameter("nest", "tool nest holding the SMR", 1, int, minimum=1),
+        Parameter("inlier", "RANSAC inlier distance", 3.0, float, unit="mm", minimum=0.01, maximum=100.0),
+        Parameter("seed", "seed of the random poses", 0, int, minimum=0),
+    ),
+    plan=plan,
+    body=register,
+    steps=("poses", "fit"),
+    summary=summary,
+)

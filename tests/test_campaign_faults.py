@@ -28,7 +28,7 @@ def _hil_run(procedure: str, cell_toml, campaign, *extra: str) -> list[str]:
 def test_beam_breaks_protective_stop_dropped_tracker_and_latency_spike_are_ridden_through(tmp_path):
     campaign = tmp_path / "campaign.sqlite"
     with running_cell(tmp_path, seed=5) as (cell, config), session_on(config, campaign) as session:
-        registration.run(session)
+        registration.PROCEDURE(session)
         control = cell.control
         control.call("tracker.fault", kind="beam_break", rate=0.05)
         control.call("robot.fault", kind="protective_stop", at_move=4, fraction=0.5)
@@ -38,7 +38,7 @@ def test_beam_breaks_protective_stop_dropped_tracker_and_latency_spike_are_ridde
             if _ == 1:
                 control.call("tracker.fault", kind="drop", when="now")
             try:
-                result = grid_sampling.run(session, step_mm=200, validation=6)
+                result = grid_sampling.PROCEDURE(session, step_m=0.2, validation=6)
                 break
             except Exception as exc:  # noqa: BLE001 - CampaignStopped names what to do; resume
                 assert "next:" in str(exc), exc
@@ -72,7 +72,7 @@ def test_sigkill_at_20_random_moments_loses_and_duplicates_nothing(tmp_path):
                 kills += 1
         final = subprocess.run(args, capture_output=True, text=True, timeout=300)
         assert final.returncode == 0, final.stderr
-    plan = grid_sampling.plan(config, step_mm=200, validation=6)
+    plan = grid_sampling.PROCEDURE.make_plan(config, step_m=0.2, validation=6)
     planned = {(p.step, p.point_id) for p in plan.poses}
     with CampaignStore(campaign) as store:
         rows = store.measurements("grid_sampling")

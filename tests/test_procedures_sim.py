@@ -27,13 +27,13 @@ def campaign(tmp_path_factory):
     with running_cell(folder, seed=3) as (cell, config):
         truth = cell.control.call("ground_truth")
         with session_on(config, path) as session:
-            reg = registration.run(session)
-            fit = tool_fit.run(session)
-            grid = grid_sampling.run(session, step_mm=200, validation=8)
-            plan = grid_sampling.plan(config, step_mm=200, validation=8)
+            reg = registration.PROCEDURE(session)
+            fit = tool_fit.PROCEDURE(session)
+            grid = grid_sampling.PROCEDURE(session, step_m=0.2, validation=8)
+            plan = grid_sampling.PROCEDURE.make_plan(config, step_m=0.2, validation=8)
             measured = len(session.store.measurements())
         with session_on(config, path) as session:  # the same job again: a resume with nothing left to do
-            again = grid_sampling.run(session, step_mm=200, validation=8)
+            again = grid_sampling.PROCEDURE(session, step_m=0.2, validation=8)
             measured_again = len(session.store.measurements())
         yield {
             "truth": truth, "config": config, "registration": reg, "tool_fit": fit, "grid": grid, "plan": plan,

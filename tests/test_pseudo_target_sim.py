@@ -36,8 +36,8 @@ def cell(tmp_path_factory):
     with running_cell(folder, seed=SEED) as (running, config):
         base = folder / "registered.sqlite"
         with session_on(config, base) as session:
-            registration.run(session)
-            tool_fit.run(session, poses=2, check_poses=4)
+            registration.PROCEDURE(session)
+            tool_fit.PROCEDURE(session, poses=2, check_poses=4)
         yield {"config": config, "model": model, "base": base, "folder": folder}
 
 
@@ -90,7 +90,7 @@ def noise_floor_m(p_tracker: np.ndarray, shots: int) -> float:
 def test_one_smr_brings_the_mean_error_to_the_noise_floor_in_three_iterations(cell):
     config, model = cell["config"], cell["model"]
     with session_on(config, campaign(cell, "one")) as session:
-        result = pseudo_target.run(
+        result = pseudo_target.PROCEDURE(
             session, model=model, targets=20, smrs=1, max_iter=3, seed=1, measure_uncompensated=True
         )
         targets = np.array(session.step_result("pseudo_target", "targets")["targets_m"])
@@ -122,7 +122,7 @@ def session_row_q(cell, name: str, target_id: str) -> np.ndarray:
 def test_three_smrs_correct_the_orientation(cell):
     config, model = cell["config"], cell["model"]
     with session_on(config, campaign(cell, "three")) as session:
-        result = pseudo_target.run(session, model=model, targets=6, smrs=3, max_iter=2, seed=2, shots=10)
+        result = pseudo_target.PROCEDURE(session, model=model, targets=6, smrs=3, max_iter=2, seed=2, shots=10)
         targets = np.array(session.step_result("pseudo_target", "targets")["targets_m"])
         nests = {int(r[-1]) for r in session.store.measurements("pseudo_target", "loop")["point_id"]}
         layout = np.array([session.nest_flange_m(k) for k in (1, 2, 3)])
@@ -153,12 +153,12 @@ def test_a_killed_loop_resumes_without_measuring_twice(cell):
 
         session.measure_point = limited  # type: ignore[method-assign]
         with pytest.raises(KilledError):
-            pseudo_target.run(session, model=model, targets=4, smrs=1, max_iter=2, seed=3, threshold_mm=0.001)
+            pseudo_target.PROCEDURE(session, model=model, targets=4, smrs=1, max_iter=2, seed=3, threshold_m=1e-6)
         first = session.store.measurements("pseudo_target", "loop")
     assert len(first) == 5
     with session_on(config, path) as session:
-        result = pseudo_target.run(
-            session, model=model, targets=4, smrs=1, max_iter=2, seed=3, threshold_mm=0.001
+        result = pseudo_target.PROCEDURE(
+            session, model=model, targets=4, smrs=1, max_iter=2, seed=3, threshold_m=1e-6
         )
         rows = session.store.measurements("pseudo_target", "loop")
     assert rows["point_id"].is_unique
@@ -168,7 +168,7 @@ def test_a_killed_loop_resumes_without_measuring_twice(cell):
     assert all(t.status in ("ok", "max_iter", "no_improvement") for t in result.visited)
     assert len(rows) == sum(len(t.errors_m) for t in result.visited)  # every iteration measured exactly once
     with session_on(config, path) as session:  # a finished loop re-run measures nothing
-        pseudo_target.run(session, model=model, targets=4, smrs=1, max_iter=2, seed=3, threshold_mm=0.001)
+        pseudo_target.PROCEDURE(session, model=model, targets=4, smrs=1, max_iter=2, seed=3, threshold_m=1e-6)
         assert len(session.store.measurements("pseudo_target", "loop")) == len(rows)
 
 
@@ -177,9 +177,9 @@ def test_below_the_noise_floor_each_target_stops_for_no_improvement_and_keeps_it
     eight corrections; with it each stops once two corrections in a row gain nothing beyond the noise."""
     config, model = cell["config"], cell["model"]
     path = campaign(cell, "stall")
-    options = dict(model=model, targets=3, smrs=1, max_iter=8, seed=5, threshold_mm=0.0005, patience=2)
+    options = dict(model=model, targets=3, smrs=1, max_iter=8, seed=5, threshold_m=5e-7, patience=2)
     with session_on(config, path) as session:
-        result = pseudo_target.run(session, **options)
+        result = pseudo_target.PROCEDURE(session, **options)
         rows = session.store.measurements("pseudo_target", "loop")
         stored = session.step_result("pseudo_target", "summary")
     assert len(result.visited) == 3
@@ -198,7 +198,7 @@ def test_below_the_noise_floor_each_target_stops_for_no_improvement_and_keeps_it
     assert [s["status"] for s in stored["targets"]] == ["no_improvement"] * 3
     assert len(rows) == sum(len(t.errors_m) for t in result.visited)
     with session_on(config, path) as session:  # the replay of what is recorded stops at the same place
-        again = pseudo_target.run(session, **options)
+        again = pseudo_target.PROCEDURE(session, **options)
         assert len(session.store.measurements("pseudo_target", "loop")) == len(rows)
     for t, u in zip(result.targets, again.targets, strict=True):
         assert (u.status, u.errors_m, u.best_iteration, u.noise_m) == (t.status, t.errors_m, t.best_iteration, t.noise_m)
@@ -215,7 +215,7 @@ def test_unreachable_and_singular_targets_are_reported_and_not_visited(cell):
     singular = PosePredictor(model, smr=1)(q_singular[None])
     targets = np.concatenate([far, singular, good])
     with session_on(config, campaign(cell, "bad")) as session:
-        result = pseudo_target.run(session, model=model, targets=targets, smrs=3, max_iter=1)
+        result = pseudo_target.PROCEDURE(session, model=model, targets=targets, smrs=3, max_iter=1)
         rows = session.store.measurements("pseudo_target", "loop")
     status = [t.status for t in result.targets]
     assert status[0] == "unreachable" and status[1] == "singular", status

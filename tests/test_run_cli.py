@@ -49,19 +49,40 @@ def test_an_unreachable_robot_is_a_clear_error(tmp_path):
 
 def test_bad_procedure_options_are_refused(tmp_path):
     done = _run(tmp_path, sim_cell_toml(), "grid_sampling", "--step-mm", "5")
-    assert done.returncode == 2 and "--step-mm" in done.stderr
+    assert done.returncode == 2 and "--step-mm 5" in done.stderr and "20..500 mm" in done.stderr
     done = _run(tmp_path, sim_cell_toml(), "tool_fit", "--poses", "1")
-    assert done.returncode == 2 and "--poses" in done.stderr
+    assert done.returncode == 2 and "--poses 1" in done.stderr and "at least 2" in done.stderr
+    assert not (tmp_path / "c.sqlite").exists()
+
+
+def test_a_flag_in_another_unit_or_an_unknown_procedure_is_refused(tmp_path):
+    done = _run(tmp_path, sim_cell_toml(), "grid_sampling", "--step-m", "0.1")  # metres, not millimetres
+    assert done.returncode == 2 and "use --step-mm" in done.stderr and "20..500 mm" in done.stderr
+    done = _run(tmp_path, sim_cell_toml(), "grid_sampling", "--tilt-rad", "0.2")
+    assert done.returncode == 2 and "use --tilt-deg" in done.stderr
+    done = _run(tmp_path, sim_cell_toml(), "no_such_procedure")
+    assert done.returncode == 2 and "registration" in done.stderr and "grid_sampling" in done.stderr
+    assert not (tmp_path / "c.sqlite").exists()
+
+
+def test_help_lists_every_procedure_and_its_declared_parameters():
+    listing = subprocess.run([sys.executable, "-m", "hil", "run", "--help"], capture_output=True, text=True, timeout=60)
+    for name in ("registration", "tool_fit", "grid_sampling", "pseudo_target"):
+        assert name in listing.stdout
+    assert "flange frame" in listing.stdout  # tool_fit's purpose
+    own = subprocess.run([sys.executable, "-m", "hil", "run", "grid_sampling", "--help"], capture_output=True, text=True, timeout=60)
+    assert "--step-mm MM" in own.stdout and "20..500 mm; default 100" in own.stdout
+    assert "--tilt-deg DEG" in own.stdout
 
 
 def test_random_order_and_both_directions():
     config = parse_cell_config(tomllib.loads(sim_cell_toml()))
-    travel = grid_sampling.plan(config, step_mm=200, validation=0)
-    shuffled = grid_sampling.plan(config, step_mm=200, validation=0, order="random")
+    travel = grid_sampling.PROCEDURE.make_plan(config, step_m=0.2, validation=0)
+    shuffled = grid_sampling.PROCEDURE.make_plan(config, step_m=0.2, validation=0, order="random")
     assert sorted(p.point_id for p in travel.poses) == sorted(p.point_id for p in shuffled.poses)
     assert [p.point_id for p in travel.poses] != [p.point_id for p in shuffled.poses]
     assert shuffled.estimated_duration_s() > travel.estimated_duration_s()
-    both = grid_sampling.plan(config, step_mm=200, validation=0, both_directions=True)
+    both = grid_sampling.PROCEDURE.make_plan(config, step_m=0.2, validation=0, both_directions=True)
     assert len(both.poses) == 2 * len(travel.poses)
     pose = both.poses[0]
     below = grid_sampling.approach_pose(pose.point_id, pose.q_rad)

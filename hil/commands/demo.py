@@ -121,27 +121,28 @@ def simulated_session(args: argparse.Namespace, out: Path, campaign: Path) -> It
 
 def measure(args: argparse.Namespace, out: Path, campaign: Path) -> None:
     """Run the procedures into the campaign: registration, tool fit, grid with held-out validation."""
-    from hil.commands.run import summarise
-    from procedures import grid_sampling, registration, tool_fit
+    from hil.runner.registry import load
 
+    registration, tool_fit, grid_sampling = (load(n) for n in ("registration", "tool_fit", "grid_sampling"))
     with simulated_session(args, out, campaign) as session:
-        print(summarise("registration", registration.run(session)))
-        print(summarise("tool_fit", tool_fit.run(session)))
-        result = grid_sampling.run(session, step_mm=args.step_mm, validation=args.validate, seed=args.seed)
-        print(summarise("grid_sampling", result))
+        print(registration.summary(registration(session)))
+        print(tool_fit.summary(tool_fit(session)))
+        result = grid_sampling(session, step_m=args.step_mm / 1e3, validation=args.validate, seed=args.seed)
+        print(grid_sampling.summary(result))
 
 
 def measured_loop(args: argparse.Namespace, out: Path, campaign: Path, model) -> dict:
     """Start the cell again and run the measured pseudo-target loop on held-out targets; its summary."""
-    from procedures import pseudo_target
+    from hil.runner.registry import load
 
+    pseudo_target = load("pseudo_target")
     print(f"\nmeasured pseudo-target loop on {args.loop_targets} held-out targets (model-based start):")
     with simulated_session(args, out, campaign) as session:
-        result = pseudo_target.run(
+        result = pseudo_target(
             session, model=model, targets=args.loop_targets, max_iter=2, seed=args.seed + 1000,
             measure_uncompensated=True,
         )  # fmt: skip
-    print(pseudo_target.stage_table(result.summary()))
+    print(result.stage_table())
     return result.summary()
 
 

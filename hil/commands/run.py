@@ -3,6 +3,9 @@
 Re-running the same procedure on the same campaign resumes it: recorded points are skipped, nothing is
 measured twice. `--dry-run` prints the plan (poses, order, estimated duration, bounding box) and connects to
 nothing. Ctrl-C stops the robot, closes the campaign and exits; a second Ctrl-C exits at once.
+
+The procedures are those registered in the `hil.procedures` entry-point group; each one's options come from
+its declaration (`hil run NAME --help`), in the units their names carry.
 """
 
 from __future__ import annotations
@@ -14,86 +17,123 @@ from typing import Any
 
 from hil.commands.errors import CliError
 from hil.commands.interrupts import interrupt_guard
-from hil.compensation.target_update import GENERATORS
 from hil.runner.cell_config import CellConfigError, load_cell_config
 from hil.runner.envelope import EnvelopeError
 from hil.runner.operator import OperatorAbortError
+from hil.runner.procedure import WRONG_UNITS, Parameter, ParameterError, Procedure, from_user_values
+from hil.runner.registry import UnknownProcedureError, load, registered
 from hil.runner.session import CampaignStopped
-
-# name -> (module, options: list of (flag, kwargs for argparse))
-PROCEDURE_OPTIONS: dict[str, list[tuple[str, dict[str, Any]]]] = {
-    "registration": [
-        ("--poses", {"type": int, "default": 12, "help": "poses to measure (default 12)"}),
-        ("--nest", {"type": int, "default": 1, "help": "tool nest holding the SMR (default 1)"}),
-        ("--inlier-mm", {"type": float, "default": 3.0, "help": "RANSAC inlier distance, mm (default 3)"}),
-        ("--seed", {"type": int, "default": 0, "help": "seed of the random poses (default 0)"}),
-    ],
-    "tool_fit": [
-        ("--poses", {"type": int, "default": 3, "help": "flange poses, each with all holes, the face and the nests (default 3)"}),
-        ("--check-poses", {"type": int, "default": 12, "help": "poses of the distance-constraint cross-check (default 12)"}),
-        ("--shots", {"type": int, "default": 10, "help": "tracker shots per point (default 10)"}),
-        ("--seed", {"type": int, "default": 0, "help": "seed of the poses (default 0)"}),
-    ],
-    "grid_sampling": [
-        ("--step-mm", {"type": float, "default": 100.0, "help": "grid step, mm (default 100; the papers use 100-200)"}),
-        ("--box-min-mm", {"type": float, "nargs": 3, "default": None, "help": "sampling box corner x y z, mm, base frame (default: a box facing the tracker)"}),
-        ("--box-max-mm", {"type": float, "nargs": 3, "default": None, "help": "opposite box corner x y z, mm"}),
-        ("--orientations", {"type": int, "default": 1, "help": "tool orientations per grid vertex (default 1)"}),
-        ("--order", {"choices": ["travel", "random"], "default": "travel", "help": "visiting order (default travel)"}),
-        ("--both-directions", {"action": "store_true", "help": "approach each vertex from below and from above"}),
-        ("--validation", {"type": int, "default": 50, "help": "random held-out validation poses (default 50)"}),
-        ("--nest", {"type": int, "default": 1, "help": "tool nest holding the SMR (default 1)"}),
-        ("--tilt-deg", {"type": float, "default": 20.0, "help": "max tilt of the SMR from the tracker line, deg (default 20)"}),
-        ("--seed", {"type": int, "default": 0, "help": "seed of the orientations and validation poses (default 0)"}),
-    ],
-    "pseudo_target": [
-        ("--model", {"required": True, "help": "calibrated model (model.json from hil calibrate / hil diagnose)"}),
-        ("--targets", {"default": "20", "help": "N random held-out targets in the sampled volume, or a CSV: x_mm, y_mm, z_mm (tracker frame) [, rx_deg, ry_deg, rz_deg] (default 20)"}),
-        ("--generator", {"choices": list(GENERATORS), "default": "yin", "help": "pseudo-target generator (default yin)"}),
-        ("--threshold-mm", {"type": float, "default": 0.01, "help": "stop below this measured error, mm (default 0.01)"}),
-        ("--max-iter", {"type": int, "default": 3, "help": "measured corrections per target (default 3)"}),
-        ("--patience", {"type": int, "default": 2, "help": "stop a target after this many corrections in a row that do not beat its best error by more than the measurement noise (1 sigma of the tracker's noise model or the shot spread, whichever is larger); status no_improvement, best joints kept; 0 = off (default 2)"}),
-        ("--smrs", {"type": int, "choices": [1, 3], "default": 1, "help": "1: position (SMR in nest 1); 3: pose (SMRs in nests 1-3) (default 1)"}),
-        ("--seed", {"type": int, "default": 0, "help": "seed of the random targets (default 0)"}),
-    ],
-}
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    parser = subparsers.add_parser("run", help="run a measurement procedure on a cell", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    procedures = parser.add_subparsers(dest="procedure", metavar="PROCEDURE", required=True)
-    for name, options in PROCEDURE_OPTIONS.items():
-        doc = _procedure_module(name).__doc__ or ""
-        sub = procedures.add_parser(name, help=doc.splitlines()[0], description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
-        sub.add_argument("--cell", required=True, help="cell configuration (TOML)")
-        sub.add_argument("--campaign", required=True, help="campaign file (SQLite); created if missing, resumed if present")
-        sub.add_argument("--dry-run", action="store_true", help="print the plan and move nothing")
-        sub.add_argument("--operator", choices=["auto", "console", "sim"], default="auto", help="who does the manual steps (default auto: sim on a simulated cell, else console)")
-        for flag, kwargs in options:
-            sub.add_argument(flag, **kwargs)
-        sub.set_defaults(func=run)
+    parser = subparsers.add_parser(
+        "run", help="run a measurement procedure on a cell", description=__doc__, add_help=False,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )  # fmt: skip
+    parser.add_argument("-h", "--help", action=_HelpWithPurposes, help="show the registered procedures and exit")
+    lazy = type("ProcedureParser", (_DeclaredOptions, type(parser)), {})
+    procedures = parser.add_subparsers(dest="procedure", metavar="PROCEDURE", required=True, parser_class=lazy)
+    for name in registered():
+        procedures.add_parser(name, help="", formatter_class=argparse.RawDescriptionHelpFormatter)
 
 
-def _procedure_module(name: str):
-    import importlib
+class _DeclaredOptions(argparse.ArgumentParser):
+    """A procedure's parser whose options are read from its declaration the first time it parses or helps,
+    so that listing the commands imports no procedure."""
 
-    return importlib.import_module(f"procedures.{name}")
+    declaration: Procedure | None = None
+
+    def load(self) -> Procedure:
+        if self.declaration is None:
+            name = self.prog.split()[-1]
+            self.declaration = load(name)
+            add_procedure_arguments(self, self.declaration)
+        return self.declaration
+
+    def parse_known_args(self, args=None, namespace=None):  # type: ignore[override]
+        self.load()
+        return super().parse_known_args(args, namespace)
+
+    def format_help(self) -> str:
+        self.load()
+        return super().format_help()
 
 
-def procedure_kwargs(args: argparse.Namespace) -> dict[str, Any]:
-    """The procedure's own options from the parsed arguments (flag --step-mm -> keyword step_mm)."""
-    return {flag.lstrip("-").replace("-", "_"): getattr(args, flag.lstrip("-").replace("-", "_")) for flag, _ in PROCEDURE_OPTIONS[args.procedure]}
+class _HelpWithPurposes(argparse.Action):
+    """`hil run --help`: load every registered declaration to list each procedure with its purpose."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS, help=None):
+        super().__init__(option_strings, dest, nargs=0, default=default, help=help)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        action = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+        for choice in action._choices_actions:
+            try:
+                choice.help = action.choices[choice.dest].load().purpose
+            except Exception as exc:  # noqa: BLE001 - a broken plug-in must not hide the others
+                choice.help = f"(cannot load: {exc})"
+        parser.print_help()
+        parser.exit()
 
 
-def plan_kwargs(name: str, kwargs: dict[str, Any]) -> dict[str, Any]:
-    """The subset of options the procedure's plan() takes."""
-    import inspect
+def add_procedure_arguments(parser: argparse.ArgumentParser, procedure: Procedure) -> None:
+    """The common options and the procedure's declared parameters (flags in the user's units)."""
+    parser.description = procedure.describe()
+    parser.add_argument("--cell", required=True, help="cell configuration (TOML)")
+    parser.add_argument("--campaign", required=True, help="campaign file (SQLite); created if missing, resumed if present")
+    parser.add_argument("--dry-run", action="store_true", help="print the plan and move nothing")
+    parser.add_argument("--operator", choices=["auto", "console", "sim"], default="auto", help="who does the manual steps (default auto: sim on a simulated cell, else console)")
+    for p in procedure.parameters:
+        parser.add_argument(p.flag, dest=p.keyword, **_argparse_options(p))
+        for wrong in WRONG_UNITS.get(p.unit, ()):
+            flag = p.flag.removesuffix(p.unit) + wrong
+            parser.add_argument(flag, nargs="?", action=_WrongUnit, help=argparse.SUPPRESS, parameter=p)
+    parser.set_defaults(func=run)
 
-    accepted = inspect.signature(_procedure_module(name).plan).parameters
-    return {k: v for k, v in kwargs.items() if k in accepted}
+
+def _argparse_options(p: Parameter) -> dict[str, Any]:
+    """argparse keywords for a declared parameter; the help says its unit, range and default."""
+    if p.type is bool:
+        return {"action": "store_true", "help": p.help}
+    default = "required" if p.required else f"default {_shown(p.default)}" if p.default is not None else None
+    allowed = p.allowed() if (p.choices or p.minimum is not None or p.maximum is not None) else None
+    unit = f", {p.unit}" if p.unit else ""
+    notes = "; ".join(s for s in (allowed and f"allowed {allowed}", default) if s)
+    options: dict[str, Any] = {"type": p.type, "default": p.default, "help": f"{p.help}{unit} ({notes})" if notes else f"{p.help}{unit}"}
+    if p.choices:
+        options["choices"] = list(p.choices)
+    if p.unit:
+        options["metavar"] = p.unit.upper()
+    if p.count > 1:
+        options["nargs"] = p.count
+        options["metavar"] = ("X", "Y", "Z") if p.count == 3 else None
+    if p.required:
+        options["required"] = True
+    return options
+
+
+def _shown(value: Any) -> str:
+    return " ".join(map(str, value)) if isinstance(value, tuple) else str(value)
+
+
+class _WrongUnit(argparse.Action):
+    """A flag in another unit than the declared one (--step-m for --step-mm): refused with the right flag."""
+
+    def __init__(self, option_strings, dest, parameter: Parameter, **kwargs):
+        self.parameter = parameter
+        super().__init__(option_strings, dest, **kwargs)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        p = self.parameter
+        parser.error(f"{option_string}: {p.help} is given in {p.unit}: use {p.flag} (allowed {p.allowed()})")
 
 
 def run(args: argparse.Namespace) -> int:
+    try:
+        procedure = load(args.procedure)
+        values = from_user_values(procedure, {p.keyword: getattr(args, p.keyword) for p in procedure.parameters})
+    except (UnknownProcedureError, ParameterError) as exc:
+        raise CliError(str(exc), f"see 'hil run {args.procedure} --help'; nothing moved") from exc
     try:
         config = load_cell_config(args.cell)
     except CellConfigError as exc:
@@ -101,10 +141,8 @@ def run(args: argparse.Namespace) -> int:
     campaign = Path(args.campaign)
     if not campaign.parent.exists():
         raise CliError(f"campaign folder {campaign.parent} does not exist", "create it or choose another --campaign path")
-    module = _procedure_module(args.procedure)
-    kwargs = procedure_kwargs(args)
     try:
-        the_plan = module.plan(config, **plan_kwargs(args.procedure, kwargs))
+        the_plan = procedure.make_plan(config, **values)
         config.envelope.check_poses(config.nominal, the_plan.joints(), config.nests_flange_m, [p.point_id for p in the_plan.poses])
     except (ValueError, EnvelopeError) as exc:
         raise CliError(str(exc), "change the options or the cell config; nothing moved") from exc
@@ -129,37 +167,12 @@ def run(args: argparse.Namespace) -> int:
             raise CliError(f"cannot connect to the tracker at {config.tracker_url}: {exc}", "check the tracker, its URL and the network") from exc
         try:
             with session:
-                result = module.run(session, **kwargs)
+                result = procedure(session, **values)
         except CampaignStopped as exc:
             raise CliError(exc.message, exc.remedy) from exc
         except OperatorAbortError as exc:
             raise CliError(str(exc), "re-run the same command to resume; recorded points are kept") from exc
         except EnvelopeError as exc:
             raise CliError(str(exc), "nothing moved") from exc
-    print(summarise(args.procedure, result))
+    print(procedure.summary(result))
     return 0
-
-
-def summarise(name: str, result: Any) -> str:
-    """One readable paragraph per procedure result."""
-    if name == "registration":
-        fit = result.fit
-        return (
-            f"registration: {int(fit.inliers.sum())} of {len(fit.inliers)} points agree; RMS {fit.rms_m * 1e3:.3f} mm, "
-            f"max {fit.max_m * 1e3:.3f} mm (the robot's uncompensated error)"
-        )
-    if name == "tool_fit":
-        lines = ["tool fit (flange frame, mm):"]
-        for j, p in result.nests_flange_m.items():
-            lines.append(f"  nest {j}: {p[0] * 1e3:9.4f} {p[1] * 1e3:9.4f} {p[2] * 1e3:9.4f}  +- {result.uncertainty_m[j] * 1e3:.4f}")
-        lines.append(f"  worst circle residual {result.circle_residual_m * 1e3:.4f} mm; distance-method check {result.distance_check_m * 1e3:.3f} mm")
-        return "\n".join(lines)
-    if name == "grid_sampling":
-        dropped = ", ".join(f"{n} {r}" for r, n in sorted(result.dropped.items())) or "none"
-        return (
-            f"grid sampling: {result.recorded}/{result.planned} grid points and {result.validation_recorded}/"
-            f"{result.validation_planned} validation points recorded; left out when planning: {dropped}"
-        )
-    if name == "pseudo_target":
-        return result.table()
-    return str(result)

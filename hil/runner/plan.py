@@ -13,18 +13,31 @@ import numpy as np
 from hil.geometry.kinematics import forward_kinematics
 from hil.runner.cell_config import CellConfig
 from hil.runner.envelope import EnvelopeError
+from hil.runner.operator import OperatorStep
 from hil.runner.planners import sequence_duration_s
 
 
 @dataclass(frozen=True)
 class PlannedPose:
-    """One pose of a plan: its point id, procedure step, commanded joints and where the SMR sits."""
+    """One pose of a plan: its point id, procedure step, commanded joints and where the SMR sits.
+
+    `smr`: the SMR's number in the record; `p_flange_m`: its nominal centre in the flange frame, where the
+    tracker is aimed (None: the nest's, when `location` is a nest); `approach_q_rad`: a pre-position to pass
+    through first (a known approach direction); `setup`: the manual steps that put the SMR where this pose
+    needs it, asked before the first pose of each new setup; `at_pose`: those asked once the robot stands
+    at that first pose (guiding the beam onto the SMR).
+    """
 
     point_id: str
     procedure: str
     step: str
     q_rad: np.ndarray
     location: str
+    smr: int = 1
+    p_flange_m: np.ndarray | None = None
+    approach_q_rad: np.ndarray | None = None
+    setup: tuple[OperatorStep, ...] = ()
+    at_pose: tuple[OperatorStep, ...] = ()
 
 
 @dataclass

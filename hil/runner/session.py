@@ -35,7 +35,7 @@ from hil.instruments.tracker import (
 from hil.runner.cell_config import CellConfig
 from hil.runner.envelope import Envelope, EnvelopeError
 from hil.runner.operator import Operator, OperatorStep
-from hil.runner.plan import Plan
+from hil.runner.plan import Plan, PlannedPose
 from hil.runner.progress import Progress
 
 log = logging.getLogger("hil")
@@ -112,6 +112,7 @@ class Session:
         self._log_handler = StoreLogHandler(store)
         self._closed = False
         self._step_cache: dict[tuple[str, str], dict | None] = {}
+        self._recalled: dict[tuple[str, str], dict[str, MeasurementRecord]] = {}
 
     # ------------------------------------------------------------------ lifecycle
     def __enter__(self) -> Session:
@@ -283,6 +284,87 @@ class Session:
 
     def settle(self) -> None:
         self.robot.wait_settled(dwell_s=self.config.settle_s)
+
+    # ------------------------------------------------------------------ the loop over a plan
+    def visit(
+        self,
+        plan: Plan,
+        *,
+        shots: int | None = None,
+        aim: bool = True,
+        reaim: Callable[[], None] | None = None,
+        extra: dict | None = None,
+        pin: bool = False,
+    ) -> int:
+        """Visit every pose of a plan that is not recorded yet, in order; returns how many were measured.
+
+        The one loop every static plan runs through: the whole plan (and its approach poses) is checked
+        against the envelope first; `pin` records the plan, or refuses a resume with another one; recorded
+        points are skipped (re-running resumes); the operator is asked for each new setup of the SMR;
+        progress counts the plan's points; each point is measured and committed before the next motion
+        (see `measure_point`). `aim=False` leaves the tracker on its lock (before a registration exists).
+        """
+        self.check_poses(plan.joints(), [p.point_id for p in plan.poses])
+        approaches = [p.approach_q_rad for p in plan.poses if p.approach_q_rad is not None]
+        if approaches:
+            self.check_poses(np.array(approaches))
+        if pin:
+            self.pin_plan(plan)
+        pending = [p for p in plan.poses if not self.recorded(p.procedure, p.step, p.point_id)]
+        setup: tuple[OperatorStep, ...] | None = None
+        total = len(plan.poses)
+        with self.progress.task(plan.procedure.replace("_", " "), total=total, done=total - len(pending)) as advance:
+            for pose in pending:
+                if pose.setup != setup:
+                    self._set_up(pose)
+                    setup = pose.setup
+                if pose.approach_q_rad is not None:
+                    self.move_joints(pose.approach_q_rad, label=pose.point_id + " approach")
+                p_flange_m = self._aim_point(pose) if aim else None
+                self.measure_point(
+                    pose.procedure, pose.step, pose.point_id, pose.q_rad, smr=pose.smr, location=pose.location,
+                    p_flange_m=p_flange_m, shots=shots, reaim=reaim, extra=extra,
+                )  # fmt: skip
+                advance()
+        return len(pending)
+
+    def recall_or_measure(self, procedure: str, step: str, point_id: str, q_target: np.ndarray, **options) -> MeasurementRecord:
+        """The point's recorded measurement (an adaptive loop replays what a resumed campaign holds), else
+        measure it now (`measure_point` options). A recorded point commanded at other joints than these is
+        refused: the run would no longer be the one that recorded it."""
+        key = (procedure, step)
+        if key not in self._recalled:
+            self._recalled[key] = {r.point_id: r for r in self.store.records(procedure, step)}
+        recorded = self._recalled[key].get(point_id)
+        if recorded is None:
+            recorded = self.measure_point(procedure, step, point_id, q_target, **options)
+            if recorded is None:  # recorded between our read and now (not expected): read it back
+                recorded = next(r for r in self.store.records(procedure, step) if r.point_id == point_id)
+            self._recalled[key][point_id] = recorded
+        elif not np.allclose(recorded.q_target_rad, q_target, atol=1e-6):
+            raise CampaignStopped(
+                f"{point_id} was recorded at other joints than this run would command",
+                "re-run with the same model and options, or use a new --campaign file",
+            )
+        return recorded
+
+    def _set_up(self, pose: PlannedPose) -> None:
+        """Ask the pose's manual steps; for steps at the pose, move there and settle first."""
+        for step in pose.setup:
+            self.ask(step)
+        if pose.at_pose:
+            self.move_joints(pose.q_rad, label=pose.point_id)
+            self.settle()
+            for step in pose.at_pose:
+                self.ask(step)
+
+    def _aim_point(self, pose: PlannedPose) -> np.ndarray | None:
+        """Where on the flange the SMR of a pose sits, for aiming: the plan's, else its nest's (tool fit)."""
+        if pose.p_flange_m is not None:
+            return np.asarray(pose.p_flange_m, float)
+        if pose.location.startswith("nest"):
+            return self.nest_flange_m(int(pose.location.removeprefix("nest")))
+        return None
 
     # ------------------------------------------------------------------ measurement
     def measure_point(
