@@ -50,7 +50,7 @@ from hil.data.dataset import (
     smr_ids,
 )
 from hil.geometry.kinematics import KinematicModel
-from hil.geometry.se3 import fit_rigid
+from hil.geometry.se3 import fit_rigid, rotation_log
 
 K0, K1 = 1.5, 2.5  # IGG3 thresholds of the grid paper
 # Beyond this many rows the solvers converge on a fixed random subset of them, then finish on every row
@@ -218,11 +218,6 @@ class Problem:
         if n_pose == len(pose):
             return kfold(len(pose), k, seed)
         return [np.flatnonzero(np.isin(pose, f)) for f in kfold(n_pose, k, seed)]
-
-
-def rotation_log(R: np.ndarray) -> np.ndarray:
-    """SO(3) log vectors (N, 3), rad, of rotations (N, 3, 3)."""
-    return Rotation.from_matrix(R).as_rotvec()
 
 
 @dataclass

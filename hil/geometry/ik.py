@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from hil.geometry.kinematics import KinematicModel, forward_kinematics, geometric_jacobian, pose_and_jacobian
-from hil.geometry.se3 import invert
+from hil.geometry.se3 import invert, rotation_log
 
 # Failure vocabulary of IKResult.reason.
 REASON_OK = "ok"  # converged below tolerance, within joint limits
@@ -270,26 +270,6 @@ def reach_bound(model: KinematicModel, tool_offset_m: float = 0.0) -> float:
 # --------------------------------------------------------------------------------------------------
 # Levenberg-Marquardt (Sugihara)
 # --------------------------------------------------------------------------------------------------
-
-
-def rotation_log(R: np.ndarray) -> np.ndarray:
-    """Rotation vectors (k, 3) of rotation matrices (k, 3, 3); same as se3.pose_error's rotation part
-    (exact near identity, ~1e-13 rad near pi) without scipy's per-call overhead in the LM loop."""
-    s = 0.5 * np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], axis=1)
-    c = 0.5 * (R[:, 0, 0] + R[:, 1, 1] + R[:, 2, 2] - 1.0)
-    sn = np.linalg.norm(s, axis=1)
-    angle = np.arctan2(sn, c)
-    rv = s * np.where(sn > 1e-12, angle / np.maximum(sn, 1e-300), 1.0)[:, None]
-    near_pi = (sn <= 1e-5) & (c < 0)
-    if np.any(near_pi):  # axis from the symmetric part, R + R^T + 2 I ~ 4 n n^T near pi
-        Rn = R[near_pi]
-        B = 0.25 * (Rn + np.swapaxes(Rn, 1, 2)) + 0.5 * np.eye(3)
-        col = np.argmax(np.einsum("kii->ki", B), axis=1)
-        axis = np.take_along_axis(B, col[:, None, None], axis=2)[:, :, 0]
-        axis /= np.linalg.norm(axis, axis=1, keepdims=True)
-        axis *= np.where(np.einsum("ki,ki->k", axis, s[near_pi]) < 0, -1.0, 1.0)[:, None]
-        rv[near_pi] = angle[near_pi, None] * axis
-    return rv
 
 
 @dataclass
