@@ -11,7 +11,6 @@ import pandas as pd
 from hil.analysis.calibration import calibrate
 from hil.analysis.diagnosis import run_record
 from hil.commands.arg_checks import InputError, check_paths, float_in, float_list
-from hil.commands.cli_progress import cli_progress
 from hil.commands.errors import CliError
 from hil.commands.inputs import read_measurements
 from hil.data.dataset import (
@@ -22,6 +21,7 @@ from hil.data.dataset import (
     orientation_columns,
 )
 from hil.geometry.robots import ROBOT_NAMES, get_robot, robot_arg
+from hil.runner.progress import Progress
 
 
 def parse_mm_vector(text: str | None) -> np.ndarray | None:
@@ -104,7 +104,7 @@ def run(args: argparse.Namespace) -> int:
     angle_noise = float(np.deg2rad(args.probe_angle_noise_deg))
     try:
         results = {}
-        with cli_progress() as progress:
+        with Progress().phases() as progress:
             for i, s in enumerate(("ridge", "lm")):
                 progress(f"calibrating {len(df)} poses", i, 2)
                 results[s] = calibrate(df, nominal, solver=s, tool_guess_m=tool, probe_angle_noise_rad=angle_noise)
