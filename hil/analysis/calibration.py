@@ -360,6 +360,13 @@ def igg3_weight(t: np.ndarray, k0: float = K0, k1: float = K1) -> np.ndarray:
     return w
 
 
+def _linearised(problem: Problem, model: CalibratedModel, free: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Residual vector and Jacobian of the free columns at `model`, flattened: what a solver with a frozen
+    Jacobian iterates on (the full Jacobian is dropped at once, it can be large)."""
+    r0, J0 = problem.evaluate(model)
+    return r0.reshape(-1), flatten_jacobian(J0)[:, free]
+
+
 def solve_ridge_igg3(
     model: CalibratedModel,
     problem: Problem,
@@ -380,9 +387,7 @@ def solve_ridge_igg3(
     names = model.param_names
     start = model
     if frozen_jacobian:
-        r0, J0 = problem.evaluate(model)
-        r0v, J0f = r0.reshape(-1), flatten_jacobian(J0)[:, free]
-        del J0
+        r0v, J0f = _linearised(problem, model, free)
     # The prior holds the robot's geometry and effects, not the set-up (base frame, tool points, probes).
     prior_mask = np.array([not n.startswith(("base_", "tool", "probe")) for n in names])[free]
     N_pts = problem.measured.shape[0]
@@ -524,9 +529,7 @@ def solve_lm(
     names = model.param_names
     start = model
     if frozen_jacobian:
-        r0, J0 = problem.evaluate(model)
-        r0v, J0f = r0.reshape(-1), flatten_jacobian(J0)[:, free]
-        del J0
+        r0v, J0f = _linearised(problem, model, free)
 
     def at(x: np.ndarray) -> CalibratedModel:
         dx = np.zeros(len(names))
