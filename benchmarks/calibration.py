@@ -22,7 +22,9 @@ Run:  PYTHONPATH=. python benchmarks/calibration.py [--sizes 200,500,2000] [--se
 from __future__ import annotations
 
 import argparse
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -38,6 +40,9 @@ from hil.geometry.ik import solve_ik
 from hil.geometry.kinematics import KinematicModel, measured_point
 from hil.geometry.robots import get_robot
 from hil.geometry.se3 import make_transform
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from calib_data import ur10_joints  # noqa: E402 - the calibration tests' joint sampler (tests/calib_data.py)
 
 # methods.md 2d: (d_alpha deg, d_a mm, d_d mm, d_theta deg) per joint.
 PAPER_ERRORS = np.array(
@@ -74,16 +79,7 @@ def timing(sizes: list[int], seed: int) -> None:
     print("Calibration time (UR10, 33 parameters of which 27 identifiable, 1% blunders)")
     print(f"{'points':>7} {'solver':>12} {'time s':>8} {'RMS mm':>8} {'flagged':>8} {'blunders found':>15}")
     for n in sizes:
-        q = np.column_stack(
-            [
-                rng.uniform(-1.2, 1.2, n),
-                rng.uniform(-2.3, -0.7, n),
-                rng.uniform(0.6, 2.3, n),
-                rng.uniform(-2.5, -0.5, n),
-                rng.uniform(-2.2, -0.9, n),
-                rng.uniform(-np.pi, np.pi, n),
-            ]
-        )
+        q = ur10_joints(rng, n)
         p = _tracker_noise(rng, measured_point(true, q, T, tool))
         bad = rng.choice(n, max(n // 100, 1), replace=False)
         p[bad] += rng.choice([-1, 1], (len(bad), 3)) * rng.uniform(1e-3, 3e-3, (len(bad), 3))

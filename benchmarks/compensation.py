@@ -15,7 +15,9 @@ depends on it; hil's does). Both are judged by hil's own forward model: `Calibra
 from __future__ import annotations
 
 import argparse
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
 from kinematics import Table, best_time, rtb_ets  # benchmarks/kinematics.py (same directory)
@@ -29,26 +31,15 @@ from hil.geometry.kinematics import forward_kinematics
 from hil.geometry.robots import get_robot
 from hil.geometry.se3 import make_transform
 
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from calib_data import ur10_joints  # noqa: E402 - the calibration tests' joint sampler (tests/calib_data.py)
+
 THRESHOLD_M = 1e-5  # the CLI default, 0.01 mm
 MAX_ITER = 10
 TOOL = np.array([0.03, -0.02, 0.11])
 # hil solves each pseudo target to IK_TOL_FRACTION of the threshold (1e-8 m; 1e-7 rad); rtb's residual
 # E = 1/2 |e|^2 (m and rad unweighted) below this means |dp| < 1e-8 m and |dr| < 1e-8 rad: no looser.
 RTB_TOL = 0.5 * (IK_TOL_FRACTION * THRESHOLD_M) ** 2
-
-
-def ur10_joints(rng: np.random.Generator, n: int) -> np.ndarray:
-    """Joints over a UR10's working volume in front of it (elbow up), as in the calibration tests."""
-    return np.column_stack(
-        [
-            rng.uniform(-1.2, 1.2, n),
-            rng.uniform(-2.3, -0.7, n),
-            rng.uniform(0.6, 2.3, n),
-            rng.uniform(-2.5, -0.5, n),
-            rng.uniform(-2.2, -0.9, n),
-            rng.uniform(-np.pi, np.pi, n),
-        ]
-    )
 
 
 def calibrated_ur10(seed: int) -> CalibratedModel:

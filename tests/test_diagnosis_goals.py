@@ -163,7 +163,7 @@ def test_duplicated_rows_count_once_and_progress_is_reported(capsys):
     import pandas as pd
     from calib_data import cell_datasets
 
-    from hil.commands.cli_progress import cli_progress
+    from hil.runner.progress import Progress
 
     _, train, _ = cell_datasets(seed=2)
     doubled = pd.concat([train, train.iloc[10:60]], ignore_index=True)  # an export that repeated rows
@@ -176,6 +176,6 @@ def test_duplicated_rows_count_once_and_progress_is_reported(capsys):
     phases = [c[0] for c in calls]
     assert phases[0] == "geometric calibration" and any("screening" in p for p in phases)
     assert all(0 <= done <= total for _, done, total in calls)
-    with cli_progress(enabled=True) as progress:  # drawn on stderr when it is a terminal
+    with Progress(enabled=True).phases() as progress:  # drawn on stderr when it is a terminal
         progress("phase", 1, 2)
     assert "phase" in capsys.readouterr().err

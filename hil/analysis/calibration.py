@@ -50,7 +50,7 @@ from hil.data.dataset import (
     smr_ids,
 )
 from hil.geometry.kinematics import KinematicModel
-from hil.geometry.se3 import fit_rigid
+from hil.geometry.se3 import fit_rigid, rotation_log
 
 K0, K1 = 1.5, 2.5  # IGG3 thresholds of the grid paper
 # Beyond this many rows the solvers converge on a fixed random subset of them, then finish on every row
@@ -220,11 +220,6 @@ class Problem:
         return [np.flatnonzero(np.isin(pose, f)) for f in kfold(n_pose, k, seed)]
 
 
-def rotation_log(R: np.ndarray) -> np.ndarray:
-    """SO(3) log vectors (N, 3), rad, of rotations (N, 3, 3)."""
-    return Rotation.from_matrix(R).as_rotvec()
-
-
 @dataclass
 class CalibrationResult:
     model: CalibratedModel
@@ -373,6 +368,13 @@ def igg3_weight(t: np.ndarray, k0: float = K0, k1: float = K1) -> np.ndarray:
     return w
 
 
+def _linearised(problem: Problem, model: CalibratedModel, free: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Residual vector and Jacobian of the free columns at `model`, flattened: what a solver with a frozen
+    Jacobian iterates on (the full Jacobian is dropped at once, it can be large)."""
+    r0, J0 = problem.evaluate(model)
+    return r0.reshape(-1), flatten_jacobian(J0)[:, free]
+
+
 def solve_ridge_igg3(
     model: CalibratedModel,
     problem: Problem,
@@ -393,9 +395,7 @@ def solve_ridge_igg3(
     names = model.param_names
     start = model
     if frozen_jacobian:
-        r0, J0 = problem.evaluate(model)
-        r0v, J0f = r0.reshape(-1), flatten_jacobian(J0)[:, free]
-        del J0
+        r0v, J0f = _linearised(problem, model, free)
     # The prior holds the robot's geometry and effects, not the set-up (base frame, tool points, probes).
     prior_mask = np.array([not n.startswith(("base_", "tool", "probe")) for n in names])[free]
     N_pts = problem.measured.shape[0]
@@ -537,9 +537,7 @@ def solve_lm(
     names = model.param_names
     start = model
     if frozen_jacobian:
-        r0, J0 = problem.evaluate(model)
-        r0v, J0f = r0.reshape(-1), flatten_jacobian(J0)[:, free]
-        del J0
+        r0v, J0f = _linearised(problem, model, free)
 
     def at(x: np.ndarray) -> CalibratedModel:
         dx = np.zeros(len(names))

@@ -187,6 +187,21 @@ def render_html(report: DiagnosisReport, compensation: dict | None = None) -> st
     """The report page; `compensation` (procedures.pseudo_target's summary) adds the measured loop's table."""
     d = report_dict(report)
     parts = [
+        *_head_html(report, d),
+        *_effects_html(report),
+        *_residual_html(report, d),
+        *_calibration_html(d),
+        _undecided_html(report),
+    ]
+    if compensation:
+        parts.append(_compensation_html(compensation))
+    parts.append("</body></html>")
+    return "\n".join(parts)
+
+
+def _head_html(report: DiagnosisReport, d: dict) -> list[str]:
+    """Page head, the conclusion, the noise floor, the error at each stage and the run record."""
+    return [
         "<!doctype html><html><head><meta charset='utf-8'><title>hil calibration report</title>",
         "<style>body{font-family:sans-serif;max-width:1000px;margin:2em auto}table{border-collapse:collapse;"
         "margin:0.5em 0}td,th{border:1px solid #bbb;padding:2px 8px;text-align:right}th{background:#eee}"
@@ -204,7 +219,11 @@ def render_html(report: DiagnosisReport, compensation: dict | None = None) -> st
         "never used for fitting.</p>",
         _run_html(report.run),
     ]
-    parts.append("<h2>Effects added</h2>")
+
+
+def _effects_html(report: DiagnosisReport) -> list[str]:
+    """Each effect added (or removed) with its gain, parameters and the candidates of its round."""
+    parts = ["<h2>Effects added</h2>"]
     if not report.steps:
         parts.append("<p>None: no candidate effect improved the held-out error significantly.</p>")
     for step in report.steps:
@@ -245,8 +264,13 @@ def render_html(report: DiagnosisReport, compensation: dict | None = None) -> st
                 ["name", "joint", "n_params", "cv_rms_mm", "gain_mm2", "p_cv", "p_chi2", "note"],
             )
         )
+    return parts
+
+
+def _residual_html(report: DiagnosisReport, d: dict) -> list[str]:
+    """What is left: residual against noise, the residual maps tried, the plots, the final orientation."""
     rm = d.get("residual_map") or {}
-    parts.append("<h2>Residual left</h2>")
+    parts = ["<h2>Residual left</h2>"]
     parts.append(
         f"<p>residual sigma / noise sigma = {rm.get('excess_ratio', float('nan')):.3f}; "
         f"unexplained structure: {report.unexplained_structure}</p>"
@@ -260,7 +284,12 @@ def render_html(report: DiagnosisReport, compensation: dict | None = None) -> st
     final_orientation = final_orientation_text(report)
     if final_orientation:
         parts.append(f"<p>{html.escape(final_orientation)}</p>")
-    parts.append("<h2>Geometric calibration: both solvers</h2>")
+    return parts
+
+
+def _calibration_html(d: dict) -> list[str]:
+    """Both solvers' geometric calibration: fit quality, identifiability and parameters."""
+    parts = ["<h2>Geometric calibration: both solvers</h2>"]
     for name, cal in d["calibration"].items():
         parts.append(
             f"<h3>{html.escape(name)}</h3><p>sigma0 {cal['sigma0_mm']:.4f} mm, RMS {cal['rms_mm']:.4f} mm, "
@@ -284,11 +313,7 @@ def render_html(report: DiagnosisReport, compensation: dict | None = None) -> st
         parts.append("<details><summary>parameters</summary>")
         parts.append(_table(cal["parameters"], ["name", "value", "delta", "std", "unit"]))
         parts.append("</details>")
-    parts.append(_undecided_html(report))
-    if compensation:
-        parts.append(_compensation_html(compensation))
-    parts.append("</body></html>")
-    return "\n".join(parts)
+    return parts
 
 
 def _compensation_html(summary: dict) -> str:

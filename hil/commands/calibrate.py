@@ -19,7 +19,6 @@ from hil.analysis.calibration import (
 )
 from hil.analysis.diagnosis import run_record
 from hil.commands.arg_checks import InputError, check_paths, float_in, float_list
-from hil.commands.cli_progress import cli_progress
 from hil.commands.errors import CliError
 from hil.commands.help_format import DefaultsHelpFormatter
 from hil.commands.inputs import read_measurements
@@ -31,6 +30,7 @@ from hil.data.dataset import (
     orientation_columns,
 )
 from hil.geometry.robots import ROBOT_NAMES, get_robot, robot_arg
+from hil.runner.progress import Progress
 
 
 def parse_mm_vector(text: str | None) -> np.ndarray | None:
@@ -145,7 +145,7 @@ def run(args: argparse.Namespace) -> int:
     angle_noise = float(np.deg2rad(args.probe_angle_noise_deg))
     try:
         results = {}
-        with cli_progress() as progress:
+        with Progress().phases() as progress:
             for i, s in enumerate(("ridge", "lm")):
                 progress(f"calibrating {len(df)} poses", i, 2)
                 results[s] = calibrate(df, nominal, solver=s, tool_guess_m=tool, probe_angle_noise_rad=angle_noise)

@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import sys
 import warnings
+from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
@@ -228,12 +229,7 @@ def read_targets(path: str, orientation_convention: str = DEFAULT_ORIENTATION_CO
 
 
 def run(args: argparse.Namespace) -> int:
-    if args.threshold_mm <= 0 or args.max_iter < 0 or args.length_scale_mm <= 0:
-        raise CliError("--threshold-mm and --length-scale-mm must be > 0, --max-iter >= 0", "give values in range")
-    try:
-        check_paths({"MODEL": args.model, "TARGETS": args.targets}, {"--output": args.output})
-    except InputError as exc:
-        raise CliError.from_text(str(exc)) from exc
+    _check_options(args)
     campaign = is_campaign_file(args.targets)
     if args.step is not None and not campaign:
         raise CliError(
@@ -242,27 +238,8 @@ def run(args: argparse.Namespace) -> int:
         )
     try:
         model = CalibratedModel.load(args.model)
-        if campaign:
-            source = read_campaign_targets(args.targets, args.step, args.orientation_convention)
-            targets, df, q_seed = source.targets, source.frame, source.q_seed
-            smr = source.smr if args.smr is None else np.full(len(df), args.smr)
-            print(f"{len(df)} {source.step} targets of campaign {args.targets}", file=sys.stderr)
-            if source.robot.lower() != model.robot.lower():
-                print(
-                    f"warning: the campaign's robot is {source.robot}, the model's {model.robot}",
-                    file=sys.stderr,
-                )
-            missing = sorted(set(smr.tolist()) - set(model.tools))
-            if missing:
-                raise CliError(
-                    f"targets of SMR nest(s) {missing}, but the model has tool points for nests {sorted(model.tools)}",
-                    f"calibrate with measurements of those nests, or give --smr {sorted(model.tools)[0]}",
-                )
-        else:
-            targets, df = read_targets(args.targets, args.orientation_convention)
-            q_seed = None
-            smr = np.full(len(df), sorted(model.tools)[0] if args.smr is None else args.smr)
-        nests = sorted(set(smr.tolist()))
+        chosen = _campaign_targets(args, model) if campaign else _csv_targets(args, model)
+        nests = sorted(set(chosen.smr.tolist()))
         if args.path and len(nests) > 1:
             raise CliError(
                 f"--path keeps one IK branch along the targets of one SMR nest; these are in nests {nests}",
@@ -270,27 +247,86 @@ def run(args: argparse.Namespace) -> int:
                 "(split the targets by their smr column)",
             )
         drivers = thermal_drivers(
-            model, df, args.temperature_c, (args.targets, source.step) if campaign else None
-        )
-        kwargs = dict(
-            generator=args.generator,
-            threshold_m=args.threshold_mm / 1000.0,
-            max_iter=args.max_iter,
-            length_scale_m=args.length_scale_mm / 1000.0,
-            ik_model=args.ik_model,
+            model, chosen.frame, args.temperature_c, (args.targets, chosen.step) if chosen.step else None
         )
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            if q_seed is not None and not args.path:  # a path seeds each target from its neighbour
-                kwargs["q_seed"] = q_seed
-            res = compensate_per_smr(model, targets, smr, drivers, args.path, kwargs)
+            res = compensate_per_smr(model, chosen.targets, chosen.smr, drivers, args.path, _options(args, chosen))
     except (ValueError, OSError, KeyError) as exc:
         raise CliError.from_text(str(exc)) from exc
     for w in caught:
         print(f"warning: {w.message}", file=sys.stderr)
-    out = df.copy()
+    _output_frame(args, chosen, campaign, drivers, res).to_csv(args.output, index=False, float_format="%.10g")
+    _print_summary(args, res)
+    return 0
+
+
+@dataclass(frozen=True)
+class _Targets:
+    """The targets to compensate, their rows as read, seeds (campaign only) and SMR nest per target."""
+
+    targets: np.ndarray  # (N, 3) points or (N, 4, 4) poses, tracker frame, m
+    frame: pd.DataFrame
+    q_seed: np.ndarray | None
+    smr: np.ndarray  # (N,) int
+    step: str | None  # the campaign step they come from (None: a CSV)
+
+
+def _check_options(args: argparse.Namespace) -> None:
+    """Option ranges and paths, before anything is read."""
+    if args.threshold_mm <= 0 or args.max_iter < 0 or args.length_scale_mm <= 0:
+        raise CliError("--threshold-mm and --length-scale-mm must be > 0, --max-iter >= 0", "give values in range")
+    try:
+        check_paths({"MODEL": args.model, "TARGETS": args.targets}, {"--output": args.output})
+    except InputError as exc:
+        raise CliError.from_text(str(exc)) from exc
+
+
+def _campaign_targets(args: argparse.Namespace, model: CalibratedModel) -> _Targets:
+    """The targets of one step of a campaign file, each in its nest unless --smr says otherwise."""
+    source = read_campaign_targets(args.targets, args.step, args.orientation_convention)
+    smr = source.smr if args.smr is None else np.full(len(source.frame), args.smr)
+    print(f"{len(source.frame)} {source.step} targets of campaign {args.targets}", file=sys.stderr)
+    if source.robot.lower() != model.robot.lower():
+        print(f"warning: the campaign's robot is {source.robot}, the model's {model.robot}", file=sys.stderr)
+    missing = sorted(set(smr.tolist()) - set(model.tools))
+    if missing:
+        raise CliError(
+            f"targets of SMR nest(s) {missing}, but the model has tool points for nests {sorted(model.tools)}",
+            f"calibrate with measurements of those nests, or give --smr {sorted(model.tools)[0]}",
+        )
+    return _Targets(source.targets, source.frame, source.q_seed, smr, source.step)
+
+
+def _csv_targets(args: argparse.Namespace, model: CalibratedModel) -> _Targets:
+    """The targets of a CSV, all in --smr's nest (default: the model's lowest)."""
+    targets, df = read_targets(args.targets, args.orientation_convention)
+    smr = np.full(len(df), sorted(model.tools)[0] if args.smr is None else args.smr)
+    return _Targets(targets, df, None, smr, None)
+
+
+def _options(args: argparse.Namespace, chosen: _Targets) -> dict:
+    """compensate()'s options from the command line; a campaign's joints seed the IK (not along a path,
+    which seeds each target from its neighbour)."""
+    options = dict(
+        generator=args.generator,
+        threshold_m=args.threshold_mm / 1000.0,
+        max_iter=args.max_iter,
+        length_scale_m=args.length_scale_mm / 1000.0,
+        ik_model=args.ik_model,
+    )
+    if chosen.q_seed is not None and not args.path:
+        options["q_seed"] = chosen.q_seed
+    return options
+
+
+def _output_frame(
+    args: argparse.Namespace, chosen: _Targets, campaign: bool, drivers: dict, res: CompensationResult
+) -> pd.DataFrame:
+    """The targets as read, with the joints, predicted errors, iterations and status of each."""
+    out = chosen.frame.copy()
     if campaign:
-        out["smr"] = smr  # the nest each target was compensated for (--smr overrides the campaign's)
+        out["smr"] = chosen.smr  # the nest each target was compensated for (--smr overrides the campaign's)
     if "temperature_c" in drivers:
         out["temperature_c"] = drivers["temperature_c"]  # what each target was compensated for
     for i, col in enumerate(joint_columns(res.q.shape[1])):
@@ -305,7 +341,11 @@ def run(args: argparse.Namespace) -> int:
     out["outside_volume"] = res.outside_volume
     if args.path:
         out["branch_jump"] = res.branch_jump
-    out.to_csv(args.output, index=False, float_format="%.10g")
+    return out
+
+
+def _print_summary(args: argparse.Namespace, res: CompensationResult) -> None:
+    """One line on stdout; targets left above the threshold and branch jumps on stderr."""
     s = res.summary()
     statuses = ", ".join(f"{k} {v}" for k, v in sorted(s["statuses"].items()))
     print(
@@ -320,4 +360,3 @@ def run(args: argparse.Namespace) -> int:
         )
     if args.path and res.branch_jump.any():
         print(f"warning: {int(res.branch_jump.sum())} branch jump(s) along the path", file=sys.stderr)
-    return 0

@@ -12,12 +12,12 @@ from hil.analysis.diagnosis import DiagnosisReport, run_diagnosis
 from hil.analysis.effects import EFFECT_FAMILIES
 from hil.commands.arg_checks import InputError, check_paths, float_in, float_list, int_in
 from hil.commands.calibrate import add_probe_options, orientation_summary, parse_mm_vector
-from hil.commands.cli_progress import cli_progress
 from hil.commands.errors import CliError
 from hil.commands.help_format import DefaultsHelpFormatter
 from hil.commands.inputs import read_training_and_validation
 from hil.data.dataset import DatasetError, convert_orientation_convention, points_m, pose_ids
 from hil.geometry.robots import ROBOT_NAMES, get_robot, robot_arg
+from hil.runner.progress import Progress
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -218,7 +218,7 @@ def _diagnose(
     families: tuple[str, ...],
     mpe: tuple[float, ...],
 ) -> DiagnosisReport:
-    with cli_progress() as progress:
+    with Progress().phases() as progress:
         return _run(args, df, val, tool, families, mpe, progress)
 
 

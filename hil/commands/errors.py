@@ -5,16 +5,20 @@
 
 from __future__ import annotations
 
+from hil.errors import ActionableError
+
 EXIT_USAGE = 2
 
 
-class CliError(Exception):
+class CliError(ActionableError):
     """A command's failure for the operator: `message` (one line, what went wrong) and `remedy` (what to do)."""
 
     def __init__(self, message: str, remedy: str):
-        super().__init__(message)
-        self.message = message
-        self.remedy = remedy
+        super().__init__(message, remedy)
+
+    def text(self) -> str:
+        """The message alone: `render` prints the remedy on its own line."""
+        return self.message
 
     @classmethod
     def from_text(cls, text: str, remedy: str = "fix the input named above and run the command again") -> CliError:

@@ -13,7 +13,7 @@ import warnings
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from hil.geometry.se3 import invert
+from hil.geometry.se3 import invert, rotation_log
 
 GENERATORS: tuple[str, ...] = ("yin", "fixed", "add", "multiply", "zyz", "rpy", "quaternion")
 DESCRIPTIONS: dict[str, str] = {
@@ -81,11 +81,7 @@ def pose_errors(T_reached: np.ndarray, T_target: np.ndarray) -> tuple[np.ndarray
     """Position error (N,) m and orientation error angle (N,) rad between reached and target poses."""
     dp = np.linalg.norm(T_reached[:, :3, 3] - T_target[:, :3, 3], axis=1)
     R = np.swapaxes(T_target[:, :3, :3], 1, 2) @ T_reached[:, :3, :3]
-    c = np.clip(0.5 * (np.einsum("nii->n", R) - 1.0), -1.0, 1.0)
-    s = 0.5 * np.linalg.norm(
-        np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], 1), axis=1
-    )
-    return dp, np.arctan2(s, c)
+    return dp, np.linalg.norm(rotation_log(R), axis=1)
 
 
 def nearest_rotation(R: np.ndarray) -> np.ndarray:

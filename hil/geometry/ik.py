@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from hil.geometry.kinematics import KinematicModel, forward_kinematics, geometric_jacobian, pose_and_jacobian
-from hil.geometry.se3 import invert
+from hil.geometry.se3 import invert, rotation_log
 
 # Failure vocabulary of IKResult.reason.
 REASON_OK = "ok"  # converged below tolerance, within joint limits
@@ -272,26 +272,6 @@ def reach_bound(model: KinematicModel, tool_offset_m: float = 0.0) -> float:
 # --------------------------------------------------------------------------------------------------
 
 
-def rotation_log(R: np.ndarray) -> np.ndarray:
-    """Rotation vectors (k, 3) of rotation matrices (k, 3, 3); same as se3.pose_error's rotation part
-    (exact near identity, ~1e-13 rad near pi) without scipy's per-call overhead in the LM loop."""
-    s = 0.5 * np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], axis=1)
-    c = 0.5 * (R[:, 0, 0] + R[:, 1, 1] + R[:, 2, 2] - 1.0)
-    sn = np.linalg.norm(s, axis=1)
-    angle = np.arctan2(sn, c)
-    rv = s * np.where(sn > 1e-12, angle / np.maximum(sn, 1e-300), 1.0)[:, None]
-    near_pi = (sn <= 1e-5) & (c < 0)
-    if np.any(near_pi):  # axis from the symmetric part, R + R^T + 2 I ~ 4 n n^T near pi
-        Rn = R[near_pi]
-        B = 0.25 * (Rn + np.swapaxes(Rn, 1, 2)) + 0.5 * np.eye(3)
-        col = np.argmax(np.einsum("kii->ki", B), axis=1)
-        axis = np.take_along_axis(B, col[:, None, None], axis=2)[:, :, 0]
-        axis /= np.linalg.norm(axis, axis=1, keepdims=True)
-        axis *= np.where(np.einsum("ki,ki->k", axis, s[near_pi]) < 0, -1.0, 1.0)[:, None]
-        rv[near_pi] = angle[near_pi, None] * axis
-    return rv
-
-
 @dataclass
 class _Problem:
     model: KinematicModel
@@ -526,19 +506,46 @@ def solve_ik(
     if min(tol_position, tol_rotation, length_scale, wbar) <= 0:
         raise ValueError("tol_position, tol_rotation, length_scale and wbar must be positive")
     tgt = _check_targets(model, targets, mode)
-    N, n = tgt.shape[0], model.n_joints
     T_ft = _tool_frame(T_flange_tool, p_flange_tool)
     weights = np.array([1.0, 1.0, 1.0] + ([length_scale**2] * 3 if mode == "pose" else []))
     prob = _Problem(model, mode, tgt, T_ft, weights, wbar, tol_position, tol_rotation)
     q_ref = default_home(model) if q_near is None else np.asarray(q_near, dtype=float)
-    if q_ref.shape != (n,) or not np.all(np.isfinite(q_ref)):
-        raise ValueError(f"q_near must be a finite ({n},) joint vector, got {q_ref.shape}")
+    if q_ref.shape != (model.n_joints,) or not np.all(np.isfinite(q_ref)):
+        raise ValueError(f"q_near must be a finite ({model.n_joints},) joint vector, got {q_ref.shape}")
     generator = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
 
-    # Candidate seeds per target, in the order they are tried (None: random joints, drawn when needed).
+    seeds = _seeds(prob, q_seed, q_ref, use_analytic and is_ur_like(model), restarts)
+    best = _Best.from_seed(prob, seeds.q[0])
+    beyond = _beyond_reach(prob, seeds.no_branch)
+    if q_seed is not None or seeds.analytic:
+        _newton_from_first_seed(prob, best, seeds.q[0], seeds.ok[0] & ~beyond)
+    _levenberg_marquardt_attempts(prob, best, seeds, beyond, generator, max_iter)
+
+    err_pos = np.linalg.norm(best.e[:, :3], axis=1)
+    err_rot = np.linalg.norm(best.e[:, 3:], axis=1) if mode == "pose" else np.full(len(tgt), np.nan)
+    best.success &= model.within_limits(best.q, tol=1e-12)
+    reason = _diagnose(prob, best.q, best.success, beyond, seeds.no_branch)
+    return IKResult(best.q, best.success, best.iterations, reason, err_pos, err_rot, best.attempts)
+
+
+@dataclass
+class _Seeds:
+    """Candidate seeds per target in the order they are tried (None: random joints, drawn when needed)."""
+
+    q: list[np.ndarray | None]  # (N, n) each
+    ok: list[np.ndarray]  # (N,) bool each: where the seed exists
+    analytic: bool  # the closed-form branches are among them
+    no_branch: np.ndarray | None  # (N,) bool: no closed-form branch, well beyond the nominal reach
+
+
+def _seeds(
+    prob: _Problem, q_seed: np.ndarray | None, q_ref: np.ndarray, analytic: bool, restarts: int
+) -> _Seeds:
+    """The caller's seed, the analytic branches nearest q_ref, q_ref itself (without a caller's seed),
+    then `restarts` random draws."""
+    model, N, n = prob.model, len(prob.targets), prob.model.n_joints
     seeds: list[np.ndarray | None] = []
     seed_ok: list[np.ndarray] = []
-    ur = use_analytic and is_ur_like(model)
     no_branch = None
     if q_seed is not None:
         qs = np.asarray(q_seed, dtype=float)
@@ -547,10 +554,10 @@ def solve_ik(
             raise ValueError(f"q_seed must be finite ({N}, {n}) or ({n},), got {np.shape(q_seed)}")
         seeds.append(qs)
         seed_ok.append(np.ones(N, bool))
-    if ur:
+    if analytic:
         T_base_flange = _analytic_flange_targets(model, prob, q_ref)
         ranked, usable, no_branch = _analytic_seeds(model, T_base_flange, q_ref)
-        if mode != "pose":
+        if prob.mode != "pose":
             no_branch = None  # the orientation was made up: no verdict on reach
         for b in range(ranked.shape[1]):
             seeds.append(np.where(usable[:, b, None], ranked[:, b], q_ref))
@@ -560,69 +567,99 @@ def solve_ik(
         seed_ok.append(np.ones(N, bool))
     seeds.extend([None] * restarts)
     seed_ok.extend([np.ones(N, bool)] * restarts)
+    return _Seeds(seeds, seed_ok, analytic, no_branch)
 
-    first = seeds[0]
-    assert first is not None  # q_seed, an analytic branch or q_near: never a random draw
-    q_best = project_to_limits(model, np.broadcast_to(first, (N, n)))
-    e_best = prob.residual(q_best, np.arange(N))
-    E_best = 0.5 * np.einsum("km,m,km->k", e_best, weights, e_best)
-    iterations = np.zeros(N, int)
-    attempts = np.zeros(N, int)
-    success = np.zeros(N, bool)
-    tool_len = float(np.linalg.norm(T_ft[:3, 3]))
-    point = tgt[:, :3, 3] if mode == "pose" else tgt
-    beyond = np.linalg.norm(point, axis=1) > reach_bound(model, tool_len)
+
+@dataclass
+class _Best:
+    """The best joints found so far per target, their error and cost, and the work spent on them."""
+
+    q: np.ndarray  # (N, n)
+    e: np.ndarray  # (N, m) residual
+    E: np.ndarray  # (N,) cost 1/2 e^T W_E e
+    iterations: np.ndarray  # (N,) int
+    attempts: np.ndarray  # (N,) int
+    success: np.ndarray  # (N,) bool
+
+    @classmethod
+    def from_seed(cls, prob: _Problem, first: np.ndarray | None) -> _Best:
+        """Start from the first seed, projected into the joint limits."""
+        assert first is not None  # q_seed, an analytic branch or q_near: never a random draw
+        N = len(prob.targets)
+        q = project_to_limits(prob.model, np.broadcast_to(first, (N, prob.model.n_joints)))
+        e = prob.residual(q, np.arange(N))
+        return cls(q, e, _cost(prob, e), np.zeros(N, int), np.zeros(N, int), np.zeros(N, bool))
+
+
+def _cost(prob: _Problem, e: np.ndarray) -> np.ndarray:
+    """1/2 e^T W_E e per row."""
+    return 0.5 * np.einsum("km,m,km->k", e, prob.weights, e)
+
+
+def _beyond_reach(prob: _Problem, no_branch: np.ndarray | None) -> np.ndarray:
+    """Targets no joints can reach: farther than the reach bound, or (pose mode) without an analytic branch."""
+    tool_len = float(np.linalg.norm(prob.T_flange_tool[:3, 3]))
+    point = prob.targets[:, :3, 3] if prob.mode == "pose" else prob.targets
+    beyond = np.linalg.norm(point, axis=1) > reach_bound(prob.model, tool_len)
     if no_branch is not None:
         beyond |= no_branch  # well beyond the nominal reach: no small model error makes it reachable
+    return beyond
 
-    if q_seed is not None or ur:
-        # The first seed (the caller's, or the nearest closed-form branch) is usually close: a few Newton
-        # steps finish most targets far cheaper than LM; the rest go through the LM attempts below.
-        todo = np.flatnonzero(seed_ok[0] & ~beyond)
-        if todo.size:
-            first_seed = np.asarray(seeds[0])  # seed_ok[0] is False where the first seed is missing
-            if mode == "pose":
-                T_f = tgt[todo] @ invert(T_ft)
-                nr = newton_ik(
-                    model, T_f, first_seed[todo], max_steps=NEWTON_STEPS, validate=False,
-                    tol_position=0.5 * tol_position, tol_rotation=0.5 * tol_rotation,
-                )  # fmt: skip
-            else:
-                nr = newton_ik(
-                    model, tgt[todo], first_seed[todo], "position", T_ft[:3, 3], NEWTON_STEPS,
-                    tol_position=0.5 * tol_position,
-                )  # fmt: skip
-            e = prob.residual(nr.q, todo)
-            conv = prob.converged(e) & model.within_limits(nr.q, tol=1e-12)
-            done = todo[conv]
-            q_best[done], e_best[done] = nr.q[conv], e[conv]
-            E_best[done] = 0.5 * np.einsum("km,m,km->k", e[conv], weights, e[conv])
-            iterations[todo] += nr.steps
-            attempts[done] += 1
-            success[done] = True
 
-    for s, ok in zip(seeds, seed_ok, strict=True):
-        if np.all(success | beyond):
+def _newton_from_first_seed(prob: _Problem, best: _Best, first: np.ndarray | None, rows_ok: np.ndarray) -> None:
+    """A few Newton steps from the first seed (the caller's, or the nearest closed-form branch): usually
+    close, they finish most targets far cheaper than LM; the rest go through the LM attempts."""
+    todo = np.flatnonzero(rows_ok)
+    if not todo.size:
+        return
+    model, T_ft, tgt = prob.model, prob.T_flange_tool, prob.targets
+    first_seed = np.asarray(first)  # the first seed's ok rows are False where it is missing
+    if prob.mode == "pose":
+        T_f = tgt[todo] @ invert(T_ft)
+        nr = newton_ik(
+            model, T_f, first_seed[todo], max_steps=NEWTON_STEPS, validate=False,
+            tol_position=0.5 * prob.tol_position, tol_rotation=0.5 * prob.tol_rotation,
+        )  # fmt: skip
+    else:
+        nr = newton_ik(
+            model, tgt[todo], first_seed[todo], "position", T_ft[:3, 3], NEWTON_STEPS,
+            tol_position=0.5 * prob.tol_position,
+        )  # fmt: skip
+    e = prob.residual(nr.q, todo)
+    conv = prob.converged(e) & model.within_limits(nr.q, tol=1e-12)
+    done = todo[conv]
+    best.q[done], best.e[done] = nr.q[conv], e[conv]
+    best.E[done] = _cost(prob, e[conv])
+    best.iterations[todo] += nr.steps
+    best.attempts[done] += 1
+    best.success[done] = True
+
+
+def _levenberg_marquardt_attempts(
+    prob: _Problem,
+    best: _Best,
+    seeds: _Seeds,
+    beyond: np.ndarray,
+    generator: np.random.Generator,
+    max_iter: int,
+) -> None:
+    """LM from each seed in turn on the targets still unsolved, keeping the best answer per target."""
+    for s, ok in zip(seeds.q, seeds.ok, strict=True):
+        if np.all(best.success | beyond):
             break
-        todo = np.flatnonzero(~success & ~beyond & ok)
+        todo = np.flatnonzero(~best.success & ~beyond & ok)
         if todo.size == 0:
             continue
-        q0 = random_joints(model, todo.size, generator) if s is None else s[todo]
+        q0 = random_joints(prob.model, todo.size, generator) if s is None else s[todo]
         q, e, it = _levenberg_marquardt(prob, q0, todo, max_iter)
-        iterations[todo] += it
-        attempts[todo] += 1
-        cost = 0.5 * np.einsum("km,m,km->k", e, weights, e)
+        best.iterations[todo] += it
+        best.attempts[todo] += 1
+        cost = _cost(prob, e)
         conv = prob.converged(e)
-        better = conv | (cost < E_best[todo])
+        better = conv | (cost < best.E[todo])
         upd = todo[better]
-        q_best[upd], e_best[upd], E_best[upd] = q[better], e[better], cost[better]
-        success[todo[conv]] = True
-
-    err_pos = np.linalg.norm(e_best[:, :3], axis=1)
-    err_rot = np.linalg.norm(e_best[:, 3:], axis=1) if mode == "pose" else np.full(N, np.nan)
-    success &= model.within_limits(q_best, tol=1e-12)
-    reason = _diagnose(prob, q_best, success, beyond, no_branch)
-    return IKResult(q_best, success, iterations, reason, err_pos, err_rot, attempts)
+        best.q[upd], best.e[upd], best.E[upd] = q[better], e[better], cost[better]
+        best.success[todo[conv]] = True
 
 
 def _diagnose(

@@ -1,6 +1,7 @@
 """SE(3) helpers: homogeneous transforms, UR pose vectors, rigid point-set fits, plane and circle fits.
 
-Rotations go through scipy's `Rotation`; everything is vectorised over leading axes where it matters.
+Rotation vectors come from `rotation_log`, the one SO(3) logarithm of the project; the exponential goes
+through scipy's `Rotation`. Everything is vectorised over leading axes where it matters.
 """
 
 from __future__ import annotations
@@ -46,8 +47,34 @@ def transform_to_pose(T: np.ndarray) -> np.ndarray:
     """Transform(s) (...,4,4) -> UR pose vector(s) [x, y, z, rx, ry, rz]."""
     T = np.asarray(T, dtype=float)
     flat = T.reshape(-1, 4, 4)
-    rv = Rotation.from_matrix(flat[:, :3, :3]).as_rotvec()
+    rv = rotation_log(flat[:, :3, :3])
     return np.concatenate([flat[:, :3, 3], rv], axis=1).reshape(T.shape[:-2] + (6,))
+
+
+def rotation_log(R: np.ndarray) -> np.ndarray:
+    """Rotation vectors (..., 3), rad, of rotation matrices (..., 3, 3): the SO(3) logarithm.
+
+    Exact near identity and ~1e-13 rad near pi, vectorised without scipy's per-call overhead (the IK's
+    Levenberg-Marquardt loop calls it every step).
+    """
+    R = np.asarray(R, dtype=float)
+    lead = R.shape[:-2]
+    R = R.reshape(-1, 3, 3)
+    s = 0.5 * np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], axis=1)
+    c = 0.5 * (R[:, 0, 0] + R[:, 1, 1] + R[:, 2, 2] - 1.0)
+    sn = np.linalg.norm(s, axis=1)
+    angle = np.arctan2(sn, c)
+    rv = s * np.where(sn > 1e-12, angle / np.maximum(sn, 1e-300), 1.0)[:, None]
+    near_pi = (sn <= 1e-5) & (c < 0)
+    if np.any(near_pi):  # axis from the symmetric part, R + R^T + 2 I ~ 4 n n^T near pi
+        Rn = R[near_pi]
+        B = 0.25 * (Rn + np.swapaxes(Rn, 1, 2)) + 0.5 * np.eye(3)
+        col = np.argmax(np.einsum("kii->ki", B), axis=1)
+        axis = np.take_along_axis(B, col[:, None, None], axis=2)[:, :, 0]
+        axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+        axis *= np.where(np.einsum("ki,ki->k", axis, s[near_pi]) < 0, -1.0, 1.0)[:, None]
+        rv[near_pi] = angle[near_pi, None] * axis
+    return rv.reshape(lead + (3,))
 
 
 def rot_x(angle: np.ndarray | float) -> np.ndarray:
@@ -83,9 +110,7 @@ def pose_error(T_actual: np.ndarray, T_desired: np.ndarray) -> np.ndarray:
     """6-vector error(s) (...,6) taking T_actual to T_desired: [dp (m), rotation vector (rad)], base frame."""
     dp = T_desired[..., :3, 3] - T_actual[..., :3, 3]
     R_err = T_desired[..., :3, :3] @ np.swapaxes(T_actual[..., :3, :3], -1, -2)
-    flat = R_err.reshape(-1, 3, 3)
-    rv = Rotation.from_matrix(flat).as_rotvec().reshape(R_err.shape[:-2] + (3,))
-    return np.concatenate([dp, rv], axis=-1)
+    return np.concatenate([dp, rotation_log(R_err)], axis=-1)
 
 
 def fit_rigid(

@@ -11,17 +11,13 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
+from hil.errors import ActionableError
 
-class RobotError(RuntimeError):
+
+class RobotError(ActionableError, RuntimeError):
     """Base of every robot driver error; `remedy` tells the operator or procedure what to do next."""
 
     remedy = "check the robot and its connection, then retry"
-
-    def __init__(self, message: str, remedy: str | None = None):
-        if remedy is not None:
-            self.remedy = remedy
-        super().__init__(f"{message} -- next: {self.remedy}")
-        self.message = message
 
 
 class ProtectiveStopError(RobotError):

@@ -11,6 +11,8 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
+from hil.errors import ActionableError
+
 
 @dataclass(frozen=True)
 class TrackerMeasurement:
@@ -88,16 +90,10 @@ class Tracker(Protocol):
     def close(self) -> None: ...
 
 
-class TrackerError(Exception):
+class TrackerError(ActionableError):
     """Base of every tracker failure; `remedy` tells the operator or procedure what to do next."""
 
     remedy = "check the tracker and its connection, then retry"
-
-    def __init__(self, message: str, remedy: str | None = None):
-        if remedy is not None:
-            self.remedy = remedy
-        super().__init__(f"{message} -- next: {self.remedy}")
-        self.message = message
 
 
 class NoTargetError(TrackerError):

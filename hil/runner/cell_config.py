@@ -210,65 +210,13 @@ def parse_cell_config(data: dict, source: str = "cell.toml") -> CellConfig:
     """Build and check a CellConfig from parsed TOML; raises CellConfigError listing every problem."""
     r = _Reader(data)
     model, robot_file_text, nominal = _robot_model(r, r.get("robot", "model", "str", required=True), source)
-    host = r.get("robot", "host", "str", required=True)
+    host, driver = _read_robot_link(r)
     robot_driver_name = r.get("robot", "driver", "str", default=DEFAULT_ROBOT_DRIVER)
-    driver = {k: v for k, v in r.table("robot").items() if k in ROBOT_DRIVER_KEYS}
-    for key, value in driver.items():
-        if key != "power_on_at_connect" and (isinstance(value, bool) or not isinstance(value, int | float)):
-            r.problems.append(f"robot.{key}: must be a number, got {value!r}")
-        elif key != "power_on_at_connect" and value <= 0:
-            r.problems.append(f"robot.{key}: must be positive, got {value!r}")
     n = nominal.n_joints if nominal else 6
-
-    url = r.get("tracker", "url", "str", required=True)
-    if url is not None and "://" not in url and not url.startswith("/dev/"):
-        r.problems.append(
-            f"tracker.url: {url!r} is not a pyserial URL; use socket://HOST:PORT, rfc2217://HOST:PORT or /dev/tty..."
-        )
-    reflector = r.get("tracker", "reflector", "str")
+    url, reflector, meas_time_s, shots, p_tracker_mm = _read_tracker(r)
     tracker_driver_name = r.get("tracker", "driver", "str", default=DEFAULT_TRACKER_DRIVER)
-    meas_time_s = r.get("tracker", "meas_time_s", "positive", default=1.0)
-    shots = r.get("tracker", "shots_per_point", "int", default=3)
-    p_tracker_mm = r.vector("tracker", "position_base_mm", 3, required=True)
-    if p_tracker_mm is not None and np.linalg.norm(p_tracker_mm[:2]) < 300:
-        r.problems.append(
-            "tracker.position_base_mm: the tracker must stand at least 300 mm from the robot's base axis; "
-            "give its approximate position in the robot base frame (a tape measure is enough)"
-        )
-
-    nests = r.get("tool", "nests_flange_mm", "any", required=True)
-    nests_arr = None
-    if nests is not None:
-        rows = [_numbers(v) for v in nests] if isinstance(nests, list) else [None]
-        if not rows or any(v is None or v.shape != (3,) for v in rows):
-            r.problems.append("tool.nests_flange_mm: must be a list of [x, y, z] nest centres in mm, e.g. [[30, -20, 110]]")
-        else:
-            nests_arr = np.array(rows) / 1e3
-            if np.any(np.linalg.norm(nests_arr, axis=1) > 0.5):
-                r.problems.append("tool.nests_flange_mm: a nest lies over 500 mm from the flange: are these mm?")
-    smr_radius_mm = r.get("tool", "smr_radius_mm", "positive", default=SMR_RADIUS_MM)
-    circle_mm = r.get("tool", "hole_circle_radius_mm", "positive", default=31.5)
-    hole7_mm = r.get("tool", "hole7_radius_mm", "positive", default=45.0)
-    hole_d_mm = r.get("tool", "hole_diameter_mm", "positive", default=6.6)
-    if hole_d_mm is not None and smr_radius_mm is not None and hole_d_mm >= 2 * smr_radius_mm:
-        r.problems.append("tool.hole_diameter_mm: must be smaller than the SMR's diameter, or the SMR falls through")
-
-    box_min = r.vector("envelope", "box_min_mm", 3, required=True)
-    box_max = r.vector("envelope", "box_max_mm", 3, required=True)
-    if box_min is not None and box_max is not None and np.any(box_max <= box_min):
-        r.problems.append("envelope.box_max_mm: every coordinate must exceed envelope.box_min_mm's")
-    limits = nominal.joint_limits if nominal else np.tile([-2 * np.pi, 2 * np.pi], (n, 1))
-    jmin = r.vector("envelope", "joint_min_deg", n, default=np.rad2deg(limits[:, 0]))
-    jmax = r.vector("envelope", "joint_max_deg", n, default=np.rad2deg(limits[:, 1]))
-    if jmin is not None and jmax is not None:
-        if np.any(jmax <= jmin):
-            r.problems.append("envelope.joint_max_deg: every limit must exceed envelope.joint_min_deg's")
-        outside = np.flatnonzero((np.deg2rad(jmin) < limits[:, 0] - 1e-9) | (np.deg2rad(jmax) > limits[:, 1] + 1e-9))
-        if outside.size:
-            r.problems.append(
-                f"envelope.joint_min_deg/joint_max_deg: joint(s) {', '.join(str(j + 1) for j in outside)} "
-                "reach beyond the robot's own limits; stay inside them"
-            )
+    nests_arr, smr_radius_mm, circle_mm, hole7_mm, hole_d_mm = _read_tool(r)
+    box_min, box_max, jmin, jmax = _read_envelope(r, nominal, n)
     settle_s = r.get("motion", "settle_s", "nonneg", default=0.5)
     home_deg = r.vector("motion", "home_deg", n, default=np.rad2deg(_default_home(nominal, n)))
     simulator_control = r.get("simulator", "control", "str")
@@ -278,11 +226,7 @@ def parse_cell_config(data: dict, source: str = "cell.toml") -> CellConfig:
     assert nests_arr is not None and model is not None and nominal is not None  # a missing or malformed one is one of r.problems
     envelope = Envelope(box_min / 1e3, box_max / 1e3, np.deg2rad(jmin), np.deg2rad(jmax))
     home = np.deg2rad(home_deg)
-    problem = envelope.pose_problems(nominal, home[None], nests_arr)[0]
-    if problem:
-        raise CellConfigError(
-            source, [f"motion.home_deg: the home pose leaves the envelope ({problem}); it is the safe detour of moves"]
-        )
+    _check_home(envelope, nominal, home, nests_arr, source)
     return CellConfig(
         robot_model=model,
         robot_host=host,
@@ -307,6 +251,90 @@ def parse_cell_config(data: dict, source: str = "cell.toml") -> CellConfig:
         source=source,
         raw=data,
     )
+
+
+def _read_robot_link(r: _Reader) -> tuple[Any, dict]:
+    """[robot] host and the driver settings (positive numbers; power_on_at_connect a flag)."""
+    host = r.get("robot", "host", "str", required=True)
+    driver = {k: v for k, v in r.table("robot").items() if k in ROBOT_DRIVER_KEYS}
+    for key, value in driver.items():
+        if key != "power_on_at_connect" and (isinstance(value, bool) or not isinstance(value, int | float)):
+            r.problems.append(f"robot.{key}: must be a number, got {value!r}")
+        elif key != "power_on_at_connect" and value <= 0:
+            r.problems.append(f"robot.{key}: must be positive, got {value!r}")
+    return host, driver
+
+
+def _read_tracker(r: _Reader) -> tuple:
+    """[tracker]: url, reflector, measurement time (s), shots per point, position in the base frame (mm)."""
+    url = r.get("tracker", "url", "str", required=True)
+    if url is not None and "://" not in url and not url.startswith("/dev/"):
+        r.problems.append(
+            f"tracker.url: {url!r} is not a pyserial URL; use socket://HOST:PORT, rfc2217://HOST:PORT or /dev/tty..."
+        )
+    reflector = r.get("tracker", "reflector", "str")
+    meas_time_s = r.get("tracker", "meas_time_s", "positive", default=1.0)
+    shots = r.get("tracker", "shots_per_point", "int", default=3)
+    p_tracker_mm = r.vector("tracker", "position_base_mm", 3, required=True)
+    if p_tracker_mm is not None and np.linalg.norm(p_tracker_mm[:2]) < 300:
+        r.problems.append(
+            "tracker.position_base_mm: the tracker must stand at least 300 mm from the robot's base axis; "
+            "give its approximate position in the robot base frame (a tape measure is enough)"
+        )
+    return url, reflector, meas_time_s, shots, p_tracker_mm
+
+
+def _read_tool(r: _Reader) -> tuple:
+    """[tool]: the nest centres (m, flange frame), SMR radius and flange hole pattern (mm)."""
+    nests = r.get("tool", "nests_flange_mm", "any", required=True)
+    nests_arr = None
+    if nests is not None:
+        rows = [_numbers(v) for v in nests] if isinstance(nests, list) else [None]
+        if not rows or any(v is None or v.shape != (3,) for v in rows):
+            r.problems.append("tool.nests_flange_mm: must be a list of [x, y, z] nest centres in mm, e.g. [[30, -20, 110]]")
+        else:
+            nests_arr = np.array(rows) / 1e3
+            if np.any(np.linalg.norm(nests_arr, axis=1) > 0.5):
+                r.problems.append("tool.nests_flange_mm: a nest lies over 500 mm from the flange: are these mm?")
+    smr_radius_mm = r.get("tool", "smr_radius_mm", "positive", default=SMR_RADIUS_MM)
+    circle_mm = r.get("tool", "hole_circle_radius_mm", "positive", default=31.5)
+    hole7_mm = r.get("tool", "hole7_radius_mm", "positive", default=45.0)
+    hole_d_mm = r.get("tool", "hole_diameter_mm", "positive", default=6.6)
+    if hole_d_mm is not None and smr_radius_mm is not None and hole_d_mm >= 2 * smr_radius_mm:
+        r.problems.append("tool.hole_diameter_mm: must be smaller than the SMR's diameter, or the SMR falls through")
+    return nests_arr, smr_radius_mm, circle_mm, hole7_mm, hole_d_mm
+
+
+def _read_envelope(r: _Reader, nominal: KinematicModel | None, n: int) -> tuple:
+    """[envelope]: the Cartesian box (mm) and joint ranges (deg), inside the robot's own limits."""
+    box_min = r.vector("envelope", "box_min_mm", 3, required=True)
+    box_max = r.vector("envelope", "box_max_mm", 3, required=True)
+    if box_min is not None and box_max is not None and np.any(box_max <= box_min):
+        r.problems.append("envelope.box_max_mm: every coordinate must exceed envelope.box_min_mm's")
+    limits = nominal.joint_limits if nominal else np.tile([-2 * np.pi, 2 * np.pi], (n, 1))
+    jmin = r.vector("envelope", "joint_min_deg", n, default=np.rad2deg(limits[:, 0]))
+    jmax = r.vector("envelope", "joint_max_deg", n, default=np.rad2deg(limits[:, 1]))
+    if jmin is not None and jmax is not None:
+        if np.any(jmax <= jmin):
+            r.problems.append("envelope.joint_max_deg: every limit must exceed envelope.joint_min_deg's")
+        outside = np.flatnonzero((np.deg2rad(jmin) < limits[:, 0] - 1e-9) | (np.deg2rad(jmax) > limits[:, 1] + 1e-9))
+        if outside.size:
+            r.problems.append(
+                f"envelope.joint_min_deg/joint_max_deg: joint(s) {', '.join(str(j + 1) for j in outside)} "
+                "reach beyond the robot's own limits; stay inside them"
+            )
+    return box_min, box_max, jmin, jmax
+
+
+def _check_home(
+    envelope: Envelope, nominal: KinematicModel, home: np.ndarray, nests_m: np.ndarray, source: str
+) -> None:
+    """The home pose is the safe detour of moves: it must lie inside the envelope."""
+    problem = envelope.pose_problems(nominal, home[None], nests_m)[0]
+    if problem:
+        raise CellConfigError(
+            source, [f"motion.home_deg: the home pose leaves the envelope ({problem}); it is the safe detour of moves"]
+        )
 
 
 def _default_home(nominal: KinematicModel | None, n: int) -> np.ndarray:
