@@ -15,6 +15,8 @@ from contextlib import AbstractContextManager
 from importlib.metadata import EntryPoint, entry_points
 from typing import TYPE_CHECKING, Any, Literal, Protocol
 
+from hil.errors import ActionableError
+
 if TYPE_CHECKING:
     from hil.instruments.robot import Robot
     from hil.instruments.tracker import Tracker
@@ -28,22 +30,19 @@ DEFAULT_TRACKER_DRIVER = "emscon"  # Leica emScon TPI over a pyserial URL (drive
 DEFAULT_SIMULATOR = "sim"  # the simulated cell (fakes/)
 
 
-class PluginError(LookupError):
+class PluginError(ActionableError, LookupError):
     """An instrument plug-in that is not installed, failed to load or is of another kind: `message`, `remedy`."""
 
     def __init__(self, message: str, remedy: str):
-        super().__init__(f"{message}; {remedy}")
-        self.message = message
-        self.remedy = remedy
+        super().__init__(message, remedy)
+
+    def text(self) -> str:
+        """One "what is wrong; what to do" line, the form the command line splits into its two lines."""
+        return f"{self.message}; {self.remedy}"
 
 
-class PluginOptionError(ValueError):
+class PluginOptionError(PluginError, ValueError):
     """An option a plug-in cannot work with (e.g. an unknown effect of the simulated cell): `message`, `remedy`."""
-
-    def __init__(self, message: str, remedy: str):
-        super().__init__(f"{message}; {remedy}")
-        self.message = message
-        self.remedy = remedy
 
 
 class RobotDriver(Protocol):

@@ -21,6 +21,7 @@ import numpy as np
 import pandas as pd
 
 from hil.data.store import P_COLUMNS, Q_COLUMNS, T_COLUMNS, CampaignStore, MeasurementRecord, StoreLogHandler
+from hil.errors import ActionableError
 from hil.geometry.kinematics import KinematicModel, forward_kinematics
 from hil.geometry.se3 import transform_points
 from hil.instruments.robot import Robot, RobotError
@@ -44,14 +45,12 @@ MEASURE_ATTEMPTS = 4  # a point is given up after this many failed tries (beam b
 MOVE_ATTEMPTS = 3
 
 
-class CampaignStopped(RuntimeError):  # noqa: N818 - reads as what happened, like KeyboardInterrupt
+class CampaignStopped(ActionableError, RuntimeError):  # noqa: N818 - reads as what happened, like KeyboardInterrupt
     """The campaign cannot go on by itself; `remedy` says what to do. Everything recorded stays recorded
     and re-running the same command resumes where it stopped."""
 
     def __init__(self, message: str, remedy: str):
-        self.message = message
-        self.remedy = remedy
-        super().__init__(f"{message} -- next: {remedy}")
+        super().__init__(message, remedy)
 
 
 @dataclass(frozen=True)
