@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import os
+import shlex
 import sys
 from collections.abc import Iterable
 
@@ -64,6 +65,9 @@ def build_parser(load: Iterable[str] | None = None) -> argparse.ArgumentParser:
         description="Hardware-in-the-loop measurement runner for industrial-robot accuracy.",
     )
     parser.add_argument("--version", action=_VersionAction, help="show the version of hil and exit")
+    parser.add_argument(
+        "--verbose", action="store_true", help="also show what the instrument libraries print (anywhere on the line)"
+    )
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, (module_name, help_line) in COMMANDS.items():
         if name in loaded:
@@ -81,7 +85,8 @@ def _command_of(argv: list[str]) -> str | None:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the console script; returns the process exit code."""
-    argv = sys.argv[1:] if argv is None else list(argv)
+    typed = sys.argv[1:] if argv is None else list(argv)
+    argv = [a for a in typed if a != "--verbose"]  # accepted after the command too
     command = _command_of(argv)
     try:
         parser = build_parser(load=[command] if command else [])
@@ -89,6 +94,7 @@ def main(argv: list[str] | None = None) -> int:
         print(exc.render(command or ""), file=sys.stderr)
         return EXIT_USAGE
     args = parser.parse_args(argv)
+    args.verbose = len(argv) < len(typed)
     if not getattr(args, "func", None):
         parser.print_help()
         return EXIT_USAGE
@@ -98,8 +104,22 @@ def main(argv: list[str] | None = None) -> int:
         print(exc.render(args.command), file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
+        print(_interrupted(args.command, typed).render(args.command), file=sys.stderr)
         return _exit_after_interrupt()
+
+
+RESUMABLE = ("run", "demo")  # commands whose campaign keeps every recorded point and resumes
+
+
+def _interrupted(command: str, typed: list[str]) -> CliError:
+    """What a Ctrl-C did, and the command that resumes (or repeats) the work."""
+    again = "hil " + shlex.join(typed)
+    if command in RESUMABLE:
+        return CliError(
+            "interrupted (Ctrl-C): the robot was stopped and every recorded point is kept",
+            f"resume with: {again}",
+        )
+    return CliError("interrupted (Ctrl-C)", f"run it again: {again}")
 
 
 def _exit_after_interrupt() -> int:

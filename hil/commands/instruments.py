@@ -91,15 +91,16 @@ def open_session(config: CellConfig, campaign: str | Path, operator: Operator, s
     """Connect the robot and the tracker through their driver plug-ins, open the campaign store, and build
     the Session.
 
-    The Session's close is registered on `stack`; a failure half-way leaves nothing connected."""
+    The Session's close is registered on `stack`; a failure half-way leaves nothing connected, and the campaign
+    file is created only once both instruments answer (a failed start leaves no empty campaign)."""
     robots, trackers = drivers_of(config)
     with ExitStack() as opening:  # a failure half-way closes what was opened so far
-        store = CampaignStore(campaign)
-        opening.callback(store.close)
         robot = robots.open(config.robot_mapping())
         opening.callback(robot.close)
         tracker = trackers.open(config.tracker_mapping())
         opening.callback(tracker.close)
+        store = CampaignStore(campaign)
+        opening.callback(store.close)
         station = {"robot_controller_version": getattr(robot, "version", None), "tracker": getattr(tracker, "tracker_info", {})}
         clock = _cell_clock(config)
         session = Session(config, robot, tracker, store, operator, Progress(enabled=progress), station=station, clock=clock)
