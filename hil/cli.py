@@ -7,6 +7,7 @@ import importlib
 import os
 import shlex
 import sys
+import warnings
 from collections.abc import Iterable
 
 from hil.commands.errors import EXIT_USAGE, CliError
@@ -98,14 +99,38 @@ def main(argv: list[str] | None = None) -> int:
     if not getattr(args, "func", None):
         parser.print_help()
         return EXIT_USAGE
+    previous_showwarning = warnings.showwarning
+    warnings.showwarning = _show_warning
     try:
-        return int(args.func(args) or 0)
+        code = int(args.func(args) or 0)
+        sys.stdout.flush()  # here, not at exit: a reader that left is then seen below
+        return code
+    except BrokenPipeError:  # the reader left (`| head`): stop quietly, as git does
+        _silence_stdout()
+        return EXIT_BROKEN_PIPE
     except CliError as exc:
         print(exc.render(args.command), file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:
         print(_interrupted(args.command, typed).render(args.command), file=sys.stderr)
         return _exit_after_interrupt()
+    finally:
+        warnings.showwarning = previous_showwarning
+
+
+EXIT_BROKEN_PIPE = 141  # 128 + SIGPIPE, what a shell reports for a command whose reader went away
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """A warning as the CLI says it: one `warning: ...` line, without the Python file and line."""
+    print(f"warning: {message}", file=sys.stderr if file is None else file)
+
+
+def _silence_stdout() -> None:
+    """Point stdout at the null device, so that flushing it at exit raises no second BrokenPipeError."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, sys.stdout.fileno())
+    os.close(devnull)
 
 
 RESUMABLE = ("run", "demo")  # commands whose campaign keeps every recorded point and resumes
