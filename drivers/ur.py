@@ -180,6 +180,11 @@ def _recv_exact(sock: socket.socket, n: int) -> bytes:
     return data
 
 
+def _reason(exc: Exception | None) -> str:
+    """An error's cause alone, without its remedy (the caller words what to do)."""
+    return exc.message if isinstance(exc, RobotError) else str(exc)
+
+
 class URRobot:
     """`Robot` on a UR controller through ur-rtde (receive + control + dashboard)."""
 
@@ -223,10 +228,10 @@ class URRobot:
                 raise
             except (RuntimeError, RobotConnectionError) as exc:
                 last = exc
-                log.warning("connect to %s, attempt %d failed: %s", cfg.host, attempt + 1, exc)
+                log.info("connect to %s, attempt %d failed: %s", cfg.host, attempt + 1, _reason(exc))
                 self._disconnect()
                 time.sleep(min(2.0, 0.2 * 2**attempt))
-        raise RobotConnectionError(f"could not connect to the UR controller at {cfg.host}: {last}")
+        raise RobotConnectionError(f"could not connect to the UR controller at {cfg.host}: {_reason(last)}")
 
     def _require_arm_ready(self) -> None:
         """Before the control program is uploaded: the arm must be powered, brakes released, no stop."""

@@ -3,8 +3,13 @@
 It keeps apart what the controller believes (nominal model, commanded joints, encoder readings) and
 what physically happens (true geometry with hidden errors, gravity compliance, cyclic errors,
 backlash, thermal growth, repeatability jitter), and where each SMR sits and what the tracker reads.
-Hidden truth is drawn from `seed`; noise comes from a second stream, so the same seed and the same
-calls give the same cell and the same readings.
+Hidden truth is drawn from `seed`. Noise is drawn from the seed and a counter, never from how often the
+cell is asked: tracker noise by the index of the reading, repeatability jitter and encoder noise by the index
+of the motion (a robot standing still draws nothing, and its encoders read the same). Two clocks: `time_s`,
+the timer clock that runs whenever simulated time passes (moves, waits, the protective-stop delay), and
+`physics_time_s`, which runs only while something happens (motion, measurement, an explicit
+`advance_time`), so idle wall time neither warms the arm nor drifts the meteo. The same seed and the same
+calls give the same cell and the same readings, however loaded the machine.
 """
 
 from __future__ import annotations
@@ -60,6 +65,11 @@ EFFECT_FLAGS: dict[str, str] = {
     "thermal_expansion": "thermal",
 }
 CELL_EFFECTS: tuple[str, ...] = tuple(EFFECT_FLAGS)
+
+# Counter-keyed noise streams: default_rng([seed, stream, index]).
+TRACKER_NOISE_STREAM = 6  # index: the tracker reading
+JITTER_STREAM = 7  # index: the motion
+ENCODER_STREAM = 8  # index: the motion
 
 
 def parse_effect_flags(text: str) -> EffectFlags:
@@ -208,10 +218,15 @@ class SimulatedCell:
         self.smr_ids: list[int] = list(range(1, cfg.smr_count + 1))
         self._smr_locations: dict[int, SmrLocation] = {}
         self._init_smrs()
-        self._time_s = 0.0
+        self._time_s = 0.0  # the timer clock
+        self._physics_s = 0.0  # the physics clock (thermal growth, meteo drift)
         self._q_cmd = np.array(cfg.q_home_rad, dtype=float)
         self._approach = np.ones(n)  # last motion direction per joint
         self._jitter = np.zeros(n)
+        self._encoder_noise = np.zeros(n)
+        self._standing = True
+        self.motions = 0  # motions started (a change of the commanded joints after standing still)
+        self.readings = 0  # tracker readings taken (measure_smr)
 
     # ----- hidden truth -------------------------------------------------------------------------
     def _draw_true_model(self, rng: np.random.Generator) -> KinematicModel:
@@ -260,8 +275,13 @@ class SimulatedCell:
     # ----- clock --------------------------------------------------------------------------------
     @property
     def time_s(self) -> float:
-        """Simulated seconds since the cell started."""
+        """Simulated seconds since the cell started (the timer clock)."""
         return self._time_s
+
+    @property
+    def physics_time_s(self) -> float:
+        """Simulated seconds of activity (motion, measurement, explicit waits): the clock of the physics."""
+        return self._physics_s
 
     def move_tracker(self, seed: int) -> None:
         """Set the tracker up elsewhere (a new placement drawn from `seed`), as between two campaigns;
@@ -276,14 +296,25 @@ class SimulatedCell:
             self._smr_locations[i] = SmrLocation("fixed", point_m=tuple((self.T_tracker_base @ p_base)[:3]))
 
     def advance_time(self, dt_s: float) -> None:
-        """Move the simulated clock on by dt_s (>= 0)."""
+        """Let dt_s (>= 0) pass on both clocks: the arm warms, the meteo drifts."""
+        self.advance_timer(dt_s)
+        self._physics_s += float(dt_s)
+
+    def advance_timer(self, dt_s: float) -> None:
+        """Let dt_s (>= 0) pass on the timer clock only (an idle tick: nothing physical happens)."""
         if dt_s < 0:
             raise ValueError("time cannot run backwards")
         self._time_s += float(dt_s)
 
+    def advance_physics(self, dt_s: float) -> None:
+        """Let dt_s (>= 0) of activity pass on the physics clock (a motion tick, a measurement)."""
+        if dt_s < 0:
+            raise ValueError("time cannot run backwards")
+        self._physics_s += float(dt_s)
+
     def structure_temperature_c(self, time_s: np.ndarray | float | None = None) -> np.ndarray | float:
-        """Temperature of the arm (and air) at the given simulated time(s)."""
-        t = self._time_s if time_s is None else np.asarray(time_s, dtype=float)
+        """Temperature of the arm (and air) at the given physics time(s) (default: now)."""
+        t = self._physics_s if time_s is None else np.asarray(time_s, dtype=float)
         cfg = self.config
         if not cfg.thermal:
             return cfg.ambient_c + 0.0 * t
@@ -292,7 +323,7 @@ class SimulatedCell:
     def meteo(self) -> Meteo:
         """Meteo at the tracker now (pressure and humidity drift slightly with time)."""
         cfg = self.config
-        t = self._time_s
+        t = self._physics_s
         return Meteo(
             temperature_c=float(self.structure_temperature_c()),
             pressure_hpa=float(cfg.pressure_hpa + 0.5 * np.sin(2 * np.pi * t / 7200.0)),
@@ -305,21 +336,30 @@ class SimulatedCell:
         """Joints last commanded (what the controller believes it holds)."""
         return self._q_cmd.copy()
 
-    def set_commanded_joints(self, q: np.ndarray) -> None:
-        """The controller commands joints q (6,): updates approach directions and repeatability jitter."""
+    def set_commanded_joints(self, q: np.ndarray) -> bool:
+        """The controller commands joints q (6,); whether they changed. A change after standing still starts
+        a motion, which draws its repeatability jitter and encoder noise from the seed and the motion's index."""
         q = np.asarray(q, dtype=float).reshape(-1)
         if q.shape != self._q_cmd.shape or not np.all(np.isfinite(q)):
             raise ValueError(f"commanded joints must be {self._q_cmd.shape[0]} finite values, got {q}")
         step = q - self._q_cmd
         moved = np.abs(step) > 1e-12
-        if np.any(moved):
-            self._approach[moved] = np.sign(step[moved])
-            self._jitter = self._noise_rng.normal(0, self.config.repeatability_sigma_rad, q.shape)
+        if not np.any(moved):
+            self._standing = True
+            return False
+        self._approach[moved] = np.sign(step[moved])
+        if self._standing:
+            self._standing = False
+            self.motions += 1
+            cfg, key = self.config, (self.config.seed, self.motions)
+            self._jitter = _keyed(JITTER_STREAM, key).normal(0, cfg.repeatability_sigma_rad, q.shape)
+            self._encoder_noise = _keyed(ENCODER_STREAM, key).normal(0, cfg.encoder_sigma_rad, q.shape)
         self._q_cmd = q
+        return True
 
     def encoder_joints(self) -> np.ndarray:
-        """What the motor encoders report: commanded joints plus encoder noise."""
-        return self._q_cmd + self._noise_rng.normal(0, self.config.encoder_sigma_rad, self._q_cmd.shape)
+        """What the motor encoders report: commanded joints plus the encoder noise of the current motion."""
+        return self._q_cmd + self._encoder_noise
 
     def true_joint_offsets(
         self, q_cmd: np.ndarray, approach: np.ndarray, time_s: np.ndarray | float
@@ -356,12 +396,12 @@ class SimulatedCell:
 
     def true_joints(self) -> np.ndarray:
         """Output-side joints physically reached now."""
-        offsets, _ = self.true_joint_offsets(self._q_cmd + self._jitter, self._approach, self._time_s)
+        offsets, _ = self.true_joint_offsets(self._q_cmd + self._jitter, self._approach, self._physics_s)
         return self._q_cmd + self._jitter + offsets[0]
 
     def T_base_flange_true(self) -> np.ndarray:
         """Where the flange physically is now (4, 4), base frame."""
-        _, frames = self.true_joint_offsets(self._q_cmd + self._jitter, self._approach, self._time_s)
+        _, frames = self.true_joint_offsets(self._q_cmd + self._jitter, self._approach, self._physics_s)
         return frames[0, -1] @ self.nominal.T_last_flange
 
     # ----- SMRs and the tracker -----------------------------------------------------------------
@@ -423,8 +463,12 @@ class SimulatedCell:
         return p + self._centering[smr_id - 1] + sigma * self._noise_rng.standard_normal(p.shape)
 
     def measure_smr(self, smr_id: int) -> np.ndarray:
-        """One tracker reading (3,) of an SMR, tracker frame, metres."""
-        return self.tracker_reading(smr_id, self.smr_center_tracker(smr_id))[0]
+        """One tracker reading (3,) of an SMR, tracker frame, metres; its noise drawn from the seed and the
+        reading's index."""
+        p = self.smr_center_tracker(smr_id)
+        self.readings += 1
+        noise = _keyed(TRACKER_NOISE_STREAM, (self.config.seed, self.readings)).standard_normal(3)
+        return p + self._centering[smr_id - 1] + self.tracker_sigma_m(float(np.linalg.norm(p))) * noise
 
     # ----- batch campaigns ----------------------------------------------------------------------
     def run_sequence(
@@ -449,7 +493,7 @@ class SimulatedCell:
         moved = np.vstack([np.ones(n, bool), np.abs(step) > 1e-12])
         last_move_row = np.maximum.accumulate(np.where(moved, np.arange(N + 1)[:, None], 0), axis=0)
         approach = np.take_along_axis(signs, last_move_row, axis=0)[1:]
-        t_s = self._time_s + seconds_per_point * np.arange(1, N + 1)
+        t_s = self._physics_s + seconds_per_point * np.arange(1, N + 1)
         jitter = self._noise_rng.normal(0, self.config.repeatability_sigma_rad, q_cmd.shape)
         offsets, frames = self.true_joint_offsets(q_cmd + jitter, approach, t_s)
         T_flange = frames[:, -1] @ self.nominal.T_last_flange
@@ -460,7 +504,8 @@ class SimulatedCell:
         self._q_cmd = q_cmd[-1].copy()
         self._approach = approach[-1].copy()
         self._jitter = jitter[-1].copy()
-        self._time_s = float(t_s[-1])
+        self._time_s += float(t_s[-1]) - self._physics_s
+        self._physics_s = float(t_s[-1])
         return {
             "q_encoder": q_enc,
             "q_true": q_cmd + jitter + offsets,
@@ -494,6 +539,13 @@ class SimulatedCell:
             "cyclic_phase_rad": self._cyclic_phase.tolist() if self.config.cyclic else None,
             "backlash_half_gap_rad": self._backlash.tolist() if self.config.backlash else None,
             "time_s": self._time_s,
+            "physics_time_s": self._physics_s,
             "commanded_q": self._q_cmd.tolist(),
             "smr_locations": {str(k): to_jsonable(asdict(v)) for k, v in self._smr_locations.items()},
         }
+
+
+def _keyed(stream: int, key: tuple[int, int]) -> np.random.Generator:
+    """The generator of one draw: seed, stream and counter, independent of every other draw."""
+    seed, index = key
+    return np.random.default_rng([seed, stream, index])

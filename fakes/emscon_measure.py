@@ -191,7 +191,8 @@ class Beam:
         return None
 
     async def pass_time(self, dt_s: float) -> None:
-        """Let dt_s of simulated time pass: advance the cell clock ourselves, or wait for its owner."""
+        """Let dt_s of simulated time pass: advance the cell clock ourselves, or wait for its owner's timer
+        clock and then move the physics clock on by exactly dt_s."""
         if self.config.advance_clock:
             await asyncio.sleep(dt_s * self.config.wall_time_scale)
             self.cell.advance_time(dt_s)
@@ -199,6 +200,7 @@ class Beam:
         target = self.cell.time_s + dt_s
         while self.cell.time_s < target:
             await asyncio.sleep(self.config.external_clock_poll_s)
+        self.cell.advance_physics(dt_s)  # the shot's time, exactly, whatever the ticks
 
     def _result_packet(self) -> bytes:
         """The result of a shot: the locked SMR with the cell's noise, its std and the meteo, on the wire."""

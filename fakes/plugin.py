@@ -72,5 +72,10 @@ class SimulatedCellPlugin:
         """A client of the cell's control channel."""
         return ControlClient(address)
 
+    def clock(self, address: str) -> Callable[[], float]:
+        """The cell's physics clock as UNIX seconds (the cell's start plus its simulated seconds of activity)."""
+        control = ControlClient(address)
+        return lambda: float(control.call("cell.clock")["unix_s"])
+
 
 plugin = SimulatedCellPlugin()

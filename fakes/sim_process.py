@@ -1,7 +1,8 @@
 """The whole simulated cell in one process on one asyncio event loop (`python -m fakes.sim`, `hil sim`).
 
 One `SimulatedCell`, the fake UR controller on its fixed ports, the fake emScon tracker, the control
-channel, and one clock task that owns simulated time (dt = wall dt x time scale). Adding a server is
+channel, and one clock task that owns simulated time: every tick moves it on by one controller period x the
+time scale, however late the tick (a loaded machine runs the cell slower, never differently). Adding a server is
 two lines in `build()`: `self.add_server(server)` and `self.control.add_handlers(server.control_handlers())`.
 Prints one JSON line on stdout once every server listens, then runs until SIGINT/SIGTERM.
 """
@@ -52,7 +53,8 @@ class SimOptions:
 
 
 class SimClock:
-    """Fixed-rate wall-clock ticker advancing simulated time; keeps period statistics for benchmarks."""
+    """Fixed-rate wall-clock ticker advancing simulated time by a fixed step per tick (period x time scale);
+    keeps period statistics for benchmarks."""
 
     def __init__(self, period_s: float, time_scale: float = 1.0):
         self.period_s = period_s
@@ -95,7 +97,7 @@ class SimClock:
             last = now
             self.ticks += 1
             self.periods.append(wall_dt)
-            dt_sim = min(wall_dt, 10 * self.period_s) * self.time_scale
+            dt_sim = self.period_s * self.time_scale  # fixed: the simulation never depends on the load
             for listener in self.listeners:
                 try:
                     listener(dt_sim)
@@ -150,9 +152,9 @@ class SimProcess:
         self.add_server(self.robot)
         self.control.add_handlers(robot_handlers(self.robot))
         self.clock = SimClock(self.robot.period_s, o.time_scale)
-        self.clock.listeners.append(self.cell.advance_time)
+        self.clock.listeners.append(self.cell.advance_timer)
         self.clock.listeners.append(self.robot.tick)
-        self.control.add_handlers(cell_handlers(self.cell, self.clock))
+        self.control.add_handlers(cell_handlers(self.cell, self.clock, epoch_s=time.time()))
         # The cell's clock task moves simulated time on: a measurement waits for it (scaled by --time-scale)
         # instead of sleeping the unscaled measurement time and advancing the clock a second time.
         tracker = EmsconServer(self.cell, o.host, o.tracker_port, EmsconServerConfig(advance_clock=False))
@@ -249,8 +251,9 @@ def robot_handlers(robot: UrController) -> dict:
     }
 
 
-def cell_handlers(cell: SimulatedCell, clock: SimClock) -> dict:
-    """Control commands for the simulated world: truth, the operator's hands, the clock."""
+def cell_handlers(cell: SimulatedCell, clock: SimClock, epoch_s: float = 0.0) -> dict:
+    """Control commands for the simulated world: truth, the operator's hands, the clock (`cell.clock`: the
+    physics clock as UNIX seconds counted from `epoch_s`, the cell's start)."""
 
     def place_smr(request: dict) -> dict:
         point = request.get("point_m")
@@ -282,10 +285,16 @@ def cell_handlers(cell: SimulatedCell, clock: SimClock) -> dict:
         "smr_location": lambda request: cell.smr_location(int(request["smr_id"])),
         "cell.state": lambda request: {
             "time_s": cell.time_s,
+            "physics_time_s": cell.physics_time_s,
             "commanded_q": cell.commanded_q,
             "true_joints": cell.true_joints(),
             "T_base_flange_true": cell.T_base_flange_true(),
             "smr_ids": cell.smr_ids,
+        },
+        "cell.clock": lambda request: {
+            "unix_s": epoch_s + cell.physics_time_s,
+            "physics_s": cell.physics_time_s,
+            "timer_s": cell.time_s,
         },
         "time_scale": lambda request: clock.time_scale,
         "set_time_scale": set_time_scale,

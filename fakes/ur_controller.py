@@ -435,7 +435,8 @@ class UrController(ScriptRuntime):
             self._check_watchdog(now)
             self._script_cycle()
         self._advance_motion(dt)
-        self.cell.set_commanded_joints(self.q_cmd)
+        if self.cell.set_commanded_joints(self.q_cmd):  # the arm moved: time passes for the physics
+            self.cell.advance_physics(dt)
         self.actual_q = np.asarray(self.cell.encoder_joints(), float)
         self._q_history.appendleft(self.actual_q)
         self._publish(now)

@@ -5,7 +5,9 @@ from __future__ import annotations
 import argparse
 import importlib
 import os
+import shlex
 import sys
+import warnings
 from collections.abc import Iterable
 
 from hil.commands.errors import EXIT_USAGE, CliError
@@ -64,6 +66,9 @@ def build_parser(load: Iterable[str] | None = None) -> argparse.ArgumentParser:
         description="Hardware-in-the-loop measurement runner for industrial-robot accuracy.",
     )
     parser.add_argument("--version", action=_VersionAction, help="show the version of hil and exit")
+    parser.add_argument(
+        "--verbose", action="store_true", help="also show what the instrument libraries print (anywhere on the line)"
+    )
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, (module_name, help_line) in COMMANDS.items():
         if name in loaded:
@@ -81,7 +86,8 @@ def _command_of(argv: list[str]) -> str | None:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the console script; returns the process exit code."""
-    argv = sys.argv[1:] if argv is None else list(argv)
+    typed = sys.argv[1:] if argv is None else list(argv)
+    argv = [a for a in typed if a != "--verbose"]  # accepted after the command too
     command = _command_of(argv)
     try:
         parser = build_parser(load=[command] if command else [])
@@ -89,17 +95,56 @@ def main(argv: list[str] | None = None) -> int:
         print(exc.render(command or ""), file=sys.stderr)
         return EXIT_USAGE
     args = parser.parse_args(argv)
+    args.verbose = len(argv) < len(typed)
     if not getattr(args, "func", None):
         parser.print_help()
         return EXIT_USAGE
+    previous_showwarning = warnings.showwarning
+    warnings.showwarning = _show_warning
     try:
-        return int(args.func(args) or 0)
+        code = int(args.func(args) or 0)
+        sys.stdout.flush()  # here, not at exit: a reader that left is then seen below
+        return code
+    except BrokenPipeError:  # the reader left (`| head`): stop quietly, as git does
+        _silence_stdout()
+        return EXIT_BROKEN_PIPE
     except CliError as exc:
         print(exc.render(args.command), file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
+        print(_interrupted(args.command, typed).render(args.command), file=sys.stderr)
         return _exit_after_interrupt()
+    finally:
+        warnings.showwarning = previous_showwarning
+
+
+EXIT_BROKEN_PIPE = 141  # 128 + SIGPIPE, what a shell reports for a command whose reader went away
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    """A warning as the CLI says it: one `warning: ...` line, without the Python file and line."""
+    print(f"warning: {message}", file=sys.stderr if file is None else file)
+
+
+def _silence_stdout() -> None:
+    """Point stdout at the null device, so that flushing it at exit raises no second BrokenPipeError."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, sys.stdout.fileno())
+    os.close(devnull)
+
+
+RESUMABLE = ("run", "demo")  # commands whose campaign keeps every recorded point and resumes
+
+
+def _interrupted(command: str, typed: list[str]) -> CliError:
+    """What a Ctrl-C did, and the command that resumes (or repeats) the work."""
+    again = "hil " + shlex.join(typed)
+    if command in RESUMABLE:
+        return CliError(
+            "interrupted (Ctrl-C): the robot was stopped and every recorded point is kept",
+            f"resume with: {again}",
+        )
+    return CliError("interrupted (Ctrl-C)", f"run it again: {again}")
 
 
 def _exit_after_interrupt() -> int:

@@ -44,6 +44,7 @@ class ToolFitResult:
     circle_radius_m: float
     distance_check_m: float  # |nest 1 by holes - nest 1 by distances|
     result: dict
+    limits: _Limits | None = None  # what the figures were judged against
 
 
 def hole_points_flange(config: CellConfig) -> dict[str, np.ndarray]:
@@ -242,14 +243,20 @@ def _fit(session: Session, the_plan: Plan, limits: _Limits) -> ToolFitResult:
     session.finish_step(NAME, "fit", result)
     worst = max(p["circle_residual_mm"] for p in per_pose) / 1e3
     radius = float(np.mean([p["circle_radius_mm"] for p in per_pose])) / 1e3
-    return ToolFitResult(nests_m, sigma_m, worst, radius, disagreement, result)
+    return ToolFitResult(nests_m, sigma_m, worst, radius, disagreement, result, limits)
 
 
 def summary(result: ToolFitResult) -> str:
     lines = ["tool fit (flange frame, mm):"]
     for j, p in result.nests_flange_m.items():
         lines.append(f"  nest {j}: {p[0] * 1e3:9.4f} {p[1] * 1e3:9.4f} {p[2] * 1e3:9.4f}  +- {result.uncertainty_m[j] * 1e3:.4f}")
-    lines.append(f"  worst circle residual {result.circle_residual_m * 1e3:.4f} mm; distance-method check {result.distance_check_m * 1e3:.3f} mm")
+    lim = result.limits
+    circle = f" (limit {lim.circle_residual_m * 1e3:g} mm)" if lim else ""
+    check = f" (limit {lim.method_disagreement_m * 1e3:g} mm)" if lim else ""
+    lines.append(
+        f"  worst circle residual {result.circle_residual_m * 1e3:.4f} mm{circle}; "
+        f"distance-method check {result.distance_check_m * 1e3:.3f} mm{check}"
+    )
     return "\n".join(lines)
 
 

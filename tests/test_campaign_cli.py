@@ -1,5 +1,8 @@
 """`hil campaign show/export` and campaign files as input of hil calibrate / diagnose / predict."""
 
+import subprocess
+import sys
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -196,3 +199,30 @@ def test_calibrate_and_predict_read_a_campaign_like_its_csv(files, capsys, tmp_p
         pred[["x_mm", "y_mm", "z_mm"]].to_numpy() - train[["x_mm", "y_mm", "z_mm"]].to_numpy(), axis=1
     )
     assert np.sqrt(np.mean(err_mm**2)) < 0.1  # synthetic data: 15 um noise, geometric errors only
+
+
+def test_show_to_a_reader_that_left_ends_quietly(files):
+    d, _, _ = files
+    process = subprocess.Popen(
+        [sys.executable, "-m", "hil", "campaign", "show", str(d / "c.hilc")], stdout=subprocess.PIPE, stderr=subprocess.PIPE
+    )
+    process.stdout.close()  # `| head -1` gone before the first write
+    stderr = process.stderr.read().decode()
+    assert process.wait(60) == 141 and stderr == "", stderr  # 128 + SIGPIPE, no traceback
+
+
+def test_show_calls_a_step_finished_once_its_planned_points_are_recorded(files, tmp_path, capsys):
+    d, train, _ = files
+    path = tmp_path / "plan.hilc"
+    with CampaignStore(path) as store:
+        store.finish_step("grid_sampling", "plan", {"point_ids": [f"grid{i:03d}" for i in range(5)] + ["validation000"]})
+        store_dataset(store, train.head(5), "grid", 1.7e9)
+    assert main(["campaign", "show", str(path)]) == 0
+    assert "grid                        5  open (5 of 6 planned points)" in capsys.readouterr().out
+    with CampaignStore(path) as store:
+        store_dataset(store, train.head(1), "validation", 1.7e9 + 100)
+    assert main(["campaign", "show", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "grid                        5  finished (plan complete)" in out
+    assert "validation                  1  finished (plan complete)" in out
+

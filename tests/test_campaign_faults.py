@@ -118,6 +118,9 @@ def test_ctrl_c_stops_the_demo_and_leaves_no_simulator_behind(tmp_path):
         warnings.warn(f"hil demo needed the Ctrl-C backstop; its threads:\n{output[-6000:]}", stacklevel=1)
     else:
         assert code in (2, 130), output
+    if code == 130:  # the cause, and the command that resumes
+        assert "interrupted (Ctrl-C)" in output and "resume with: hil demo --out" in output, output
+    assert "RTDEControlInterface" not in output and "RTDEReceiveInterface" not in output, output  # ur-rtde's C++
     for pid in children:
         assert not _alive(pid), f"simulator process {pid} survived Ctrl-C"
     with CampaignStore(campaign) as store:

@@ -108,16 +108,20 @@ def test_tracker_noise_matches_configured_sigma():
 
 
 def test_encoder_and_repeatability_noise():
+    """Each motion draws its jitter and encoder noise; a standing arm (the controller's idle tick repeats the
+    same command) reads the same encoders and draws nothing."""
     cell = SimulatedCell(SimCellConfig(seed=2, compliance=False))
     q = np.array([0.1, -1.2, 1.3, -1.6, -1.5, 0.3])
-    cell.set_commanded_joints(q)
-    enc = np.array([cell.encoder_joints() for _ in range(2000)])
-    np.testing.assert_allclose(enc.std(axis=0), cell.config.encoder_sigma_rad, rtol=0.1)
-    visits = []
-    for _ in range(400):
+    encoders, visits = [], []
+    for _ in range(600):
         cell.set_commanded_joints(q + 0.05)
+        cell.set_commanded_joints(q + 0.05)  # stands: the next change starts a new motion
         cell.set_commanded_joints(q)
+        encoders.append(cell.encoder_joints())
         visits.append(cell.true_joints())
+        assert not cell.set_commanded_joints(q)
+        np.testing.assert_array_equal(cell.encoder_joints(), encoders[-1])
+    np.testing.assert_allclose(np.std(encoders, axis=0), cell.config.encoder_sigma_rad, rtol=0.15)
     np.testing.assert_allclose(np.std(visits, axis=0), cell.config.repeatability_sigma_rad, rtol=0.15)
 
 

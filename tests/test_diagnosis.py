@@ -282,3 +282,17 @@ def test_held_out_fit_holds_out_every_coordinate_of_a_row_position_and_rotation(
         held = (r.reshape(-1) - J @ x).reshape(n, m)
         expected[test] = np.sum(held[test] ** 2, axis=1)
     assert np.allclose(e, expected)
+
+
+def test_plot_headings_are_unique_when_one_effect_is_added_at_two_joints():
+    from types import SimpleNamespace
+
+    from hil.analysis.report import _plots
+
+    plot = {"driver": [0.1, 0.5, 0.9, 1.3], "residual_before_mm": [0.1, 0.0, -0.1, 0.2], "residual_after_mm": [0.0] * 4, "driver_label": "torque (N m)"}
+    steps = [SimpleNamespace(plot=plot, effect={"name": "gravity_compliance", "joint": j}, action="added") for j in (2, 3)]
+    titles = [title for title, _ in _plots(SimpleNamespace(steps=steps, histograms={}))]
+    assert titles == [
+        "Residual against the driver of gravity_compliance joint 2",
+        "Residual against the driver of gravity_compliance joint 3",
+    ]

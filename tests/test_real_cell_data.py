@@ -121,3 +121,25 @@ def test_help_shows_no_default_for_required_or_empty_options(capsys):
     text = " ".join(capsys.readouterr().out.split())
     assert "(default: None)" not in text and "(default: False)" not in text
     assert "(default: ridge)" in text
+
+
+def test_cli_warnings_are_one_line_without_python_internals(campaign, tmp_path, capsys):
+    dup = pd.concat([campaign.iloc[:30], campaign.iloc[[3, 4]], campaign.iloc[30:]], ignore_index=True)
+    dup.to_csv(tmp_path / "dup.csv", index=False)
+    assert main(["calibrate", str(tmp_path / "dup.csv"), "-o", str(tmp_path / "m.json")]) == 0
+    err = capsys.readouterr().err
+    assert "warning: " in err and "2 duplicated row(s)" in err
+    assert "UserWarning" not in err and "dataset.py" not in err and "warnings.warn" not in err
+
+
+def test_diagnose_needs_no_json_and_refuses_the_wrong_robot_unless_forced(campaign, tmp_path, capsys):
+    campaign.to_csv(tmp_path / "ur10.csv", index=False)
+    assert main(["diagnose", str(tmp_path / "ur10.csv"), "--folds", "2", "--families", "gravity_compliance"]) == 0  # README's form
+    capsys.readouterr()
+    model = tmp_path / "ur5.json"
+    argv = ["diagnose", str(tmp_path / "ur10.csv"), "--robot", "ur5", "--folds", "2", "--families", "gravity_compliance", "-o", str(model)]
+    assert main(argv) == 2 and not model.exists()
+    err = capsys.readouterr().err
+    assert "error: implausible: a2 moved" in err and "no model written" in err and "--force" in err
+    assert main([*argv, "--force"]) == 0 and model.exists()
+    assert "warning: implausible: a2 moved" in capsys.readouterr().err

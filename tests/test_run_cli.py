@@ -44,7 +44,12 @@ def test_a_sampling_box_outside_the_envelope_is_refused_before_any_motion(tmp_pa
 def test_an_unreachable_robot_is_a_clear_error(tmp_path):
     done = _run(tmp_path, sim_cell_toml(), "registration")
     assert done.returncode == 2 and "Traceback" not in done.stderr
-    assert "robot" in done.stderr and "what to do" in done.stderr
+    lines = done.stderr.splitlines()
+    assert len(lines) == 2, done.stderr  # the cause, then what to do: once each
+    assert lines[0].startswith("hil run: cannot connect to the robot") and OFFLINE_HOST in lines[0]
+    assert "what to do:" in lines[1] and "robot.host" in lines[1] and "run the same command again" in lines[1]
+    assert "recover()" not in done.stderr and "-- next" not in done.stderr  # no Python API in CLI terms
+    assert not (tmp_path / "c.sqlite").exists()  # a failed start leaves no empty campaign
 
 
 def test_bad_procedure_options_are_refused(tmp_path):

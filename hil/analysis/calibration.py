@@ -806,21 +806,24 @@ TOLERANCE_LENGTH_M = 5e-3
 TOLERANCE_ANGLE_RAD = np.deg2rad(1.0)
 
 
-def implausible_changes(result: CalibrationResult) -> list[str]:
+def implausible_changes(result: CalibrationResult | CalibratedModel) -> list[str]:
     """One message per geometric parameter that moved further than a manufacturing tolerance (a length
-    beyond TOLERANCE_LENGTH_M or an angle beyond TOLERANCE_ANGLE_RAD): the commands refuse such a model."""
+    beyond TOLERANCE_LENGTH_M or an angle beyond TOLERANCE_ANGLE_RAD): the commands refuse such a model.
+    Takes a calibration result or a model (a diagnosis's final model)."""
+    model = result.model if isinstance(result, CalibrationResult) else result
+    names, values = model.param_names, full_values(model)
     out = []
-    for row in result.parameter_table():
-        if row["delta"] is None or row["name"] not in result.model.nominal.param_names:
-            continue
-        if row["unit"] == "m" and abs(row["delta"]) > TOLERANCE_LENGTH_M:
-            size = f"{row['delta'] * 1000:+.1f} mm (tolerance ~{TOLERANCE_LENGTH_M * 1000:g} mm)"
-        elif row["unit"] == "rad" and abs(row["delta"]) > TOLERANCE_ANGLE_RAD:
-            size = f"{np.rad2deg(row['delta']):+.2f} deg (tolerance ~{np.rad2deg(TOLERANCE_ANGLE_RAD):g} deg)"
+    for name, nominal in zip(model.nominal.param_names, model.nominal.params, strict=True):
+        delta = float(values[names.index(name)]) - float(nominal)
+        unit = unit_of(name)
+        if unit == "m" and abs(delta) > TOLERANCE_LENGTH_M:
+            size = f"{delta * 1000:+.1f} mm (tolerance ~{TOLERANCE_LENGTH_M * 1000:g} mm)"
+        elif unit == "rad" and abs(delta) > TOLERANCE_ANGLE_RAD:
+            size = f"{np.rad2deg(delta):+.2f} deg (tolerance ~{np.rad2deg(TOLERANCE_ANGLE_RAD):g} deg)"
         else:
             continue
         out.append(
-            f"implausible: {row['name']} moved {size} from the {result.model.robot} nominal; is the robot "
+            f"implausible: {name} moved {size} from the {model.robot} nominal; is the robot "
             "model right (data of another robot?), are the joints in radians and the positions in mm?"
         )
     return out

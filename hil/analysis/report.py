@@ -150,9 +150,11 @@ def _plots(report: DiagnosisReport) -> list[tuple[str, str]]:
         ax.set_xlabel(p["driver_label"])
         ax.set_ylabel("residual along the effect (mm)")
         joint = step.effect["joint"]
-        ax.set_title(f"{step.effect['name']}" + (f" joint {joint}" if joint else ""))
+        named = f"{step.effect['name']}" + (f" joint {joint}" if joint else "")
+        ax.set_title(named)
         ax.legend(fontsize=8)
-        out.append((f"Residual against the driver of {step.effect['name']}", _png(fig)))
+        verb = "removed " if step.action == "removed" else ""
+        out.append((f"Residual against the driver of {verb}{named}", _png(fig)))
     held = [(k, v) for k, v in report.histograms.items() if not k.endswith("[validate]")]
     if len(held) >= 2:
         fig, ax = plt.subplots(figsize=(6.5, 3.6))

@@ -91,6 +91,20 @@ def _snapshot_section(snapshot: dict, key: str) -> dict | None:
     return found or None
 
 
+def _plan_progress(steps: pd.DataFrame, recorded: pd.DataFrame) -> dict[str, str]:
+    """Per procedure with a pinned plan (its "plan" step): "finished (plan complete)" once every planned point
+    is recorded, else "open (n of N planned points)" for its measurement steps."""
+    out = {}
+    plans = steps[steps["step"] == "plan"].drop_duplicates("procedure", keep="last")
+    for procedure, result in zip(plans["procedure"], plans["result"], strict=True):
+        planned = set(result.get("point_ids", ())) if isinstance(result, dict) else set()
+        if not planned:
+            continue
+        done = len(planned & set(recorded.loc[recorded["procedure"] == procedure, "point_id"]))
+        out[procedure] = "finished (plan complete)" if done == len(planned) else f"open ({done} of {len(planned)} planned points)"
+    return out
+
+
 def run_show(args: argparse.Namespace) -> int:
     problem = _check_campaign(args.file)
     if problem:
@@ -101,6 +115,7 @@ def run_show(args: argparse.Namespace) -> int:
             counts = store.point_counts()
             steps = store.steps()
             events = store.events()
+            recorded = store.measurement_columns(("procedure", "point_id"))
             log = store.log_lines(last=max(args.log_lines, 0))
             created_s = store.created_s
     except CampaignError as exc:
@@ -127,8 +142,14 @@ def run_show(args: argparse.Namespace) -> int:
     print("steps:" if keys else "steps: none")
     if keys:
         print(f"  {'procedure':<18}{'step':<22}{'points':>7}  status")
+        plans = _plan_progress(steps, recorded)
         for key in keys:
-            status = f"finished {_utc(finished.loc[key, 'recorded_s'])}" if key in finished.index else "open"
+            if key in finished.index:
+                status = f"finished {_utc(finished.loc[key, 'recorded_s'])}"
+            elif key[0] in plans:
+                status = plans[key[0]]
+            else:
+                status = "open"
             print(f"  {key[0]:<18}{key[1]:<22}{points.get(key, 0):>7}  {status}")
 
     if events.empty:

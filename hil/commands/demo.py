@@ -105,6 +105,7 @@ def simulated_session(args: argparse.Namespace, out: Path, campaign: Path) -> It
     """Start the simulated cell, write its cell.toml (as for a real cell) and open a Session on it through
     ur-rtde and emScon, the scripted operator moving the simulated SMRs; the cell stops on leaving."""
     from hil.commands.instruments import open_session, simulated_operator
+    from hil.commands.native_output import capture_native_output
     from hil.commands.sim_cell import write_sim_cell
     from hil.runner.cell_config import load_cell_config
 
@@ -114,6 +115,7 @@ def simulated_session(args: argparse.Namespace, out: Path, campaign: Path) -> It
         config = load_cell_config(cell_path)
         print(f"cell: {cell.info['robot']['personality']} controller at {cell.host}, tracker {config.tracker_url}; wrote {cell_path}")
         with ExitStack() as stack:
+            stack.enter_context(capture_native_output(verbose=getattr(args, "verbose", False)))
             session = open_session(config, campaign, simulated_operator(config.simulator_control), stack)
             with session:
                 yield session

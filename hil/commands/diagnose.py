@@ -1,4 +1,4 @@
-"""`hil diagnose DATA.csv --robot ur10 [--validate VAL.csv] [-o model.json] --json report.json [--html ...]`."""
+"""`hil diagnose DATA.csv --robot ur10 [--validate VAL.csv] [-o model.json] [--json report.json] [--html ...] [--force]`."""
 
 from __future__ import annotations
 
@@ -7,11 +7,11 @@ import argparse
 import numpy as np
 import pandas as pd
 
-from hil.analysis.calibration import position_noise_m
+from hil.analysis.calibration import implausible_changes, position_noise_m
 from hil.analysis.diagnosis import DiagnosisReport, run_diagnosis
 from hil.analysis.effects import EFFECT_FAMILIES
 from hil.commands.arg_checks import InputError, check_paths, float_in, float_list, int_in
-from hil.commands.calibrate import add_probe_options, orientation_summary, parse_mm_vector
+from hil.commands.calibrate import add_probe_options, orientation_summary, parse_mm_vector, refuse_implausible
 from hil.commands.errors import CliError
 from hil.commands.help_format import DefaultsHelpFormatter
 from hil.commands.inputs import read_training_and_validation
@@ -45,7 +45,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "tracker placement; the report shows both",
     )
     p.add_argument("-o", "--output", default=None, help="write the final model (effects included) as JSON")
-    p.add_argument("--json", required=True, dest="json_path", help="write the report as JSON")
+    p.add_argument("--json", default=None, dest="json_path", help="write the report as JSON")
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="write the model even when a parameter moved beyond a manufacturing tolerance (wrong robot or units?)",
+    )
     p.add_argument("--html", default=None, help="write the report as a self-contained HTML page")
     p.add_argument("--folds", type=int_in(2, 50), default=5, help="k of the k-fold cross-validation, 2..50")
     p.add_argument(
@@ -148,6 +153,7 @@ def run(args: argparse.Namespace) -> int:
         raise CliError.from_text(str(exc)) from exc
     if plan is not None:
         report.plan = plan.to_dict()
+    refuse_implausible(implausible_changes(report.model), args.force)
     _print_and_write(args, report)
     if plan is not None:
         plan.frame().to_csv(args.plan, index=False)
@@ -268,8 +274,9 @@ def _print_and_write(args: argparse.Namespace, report: DiagnosisReport) -> None:
     print(undecided_text(report))
     if report.plan is not None:
         print(plan_text(report.plan))
-    write_json(report, args.json_path)
-    print(f"report written to {args.json_path}")
+    if args.json_path:
+        write_json(report, args.json_path)
+        print(f"report written to {args.json_path}")
     if args.html:
         write_html(report, args.html)
         print(f"HTML report written to {args.html}")

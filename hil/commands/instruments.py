@@ -9,6 +9,7 @@ cell, a script that moves the simulated SMR through the simulated cell plug-in's
 from __future__ import annotations
 
 import sys
+from collections.abc import Callable
 from contextlib import ExitStack
 from pathlib import Path
 
@@ -75,21 +76,34 @@ def drivers_of(config: CellConfig) -> tuple[RobotDriver, TrackerDriver]:
         raise CliError(exc.message, f"{exc.remedy} (robot.driver / tracker.driver in {config.source})") from exc
 
 
+def _cell_clock(config: CellConfig) -> Callable[[], float] | None:
+    """On a simulated cell its own clock (the same seed and commands give the same timestamps); else None:
+    the tracker's timestamps, from the host's clock."""
+    if not config.simulator_control:
+        return None
+    try:
+        return cell_simulator().clock(config.simulator_control)
+    except PluginError as exc:
+        raise CliError(exc.message, exc.remedy) from exc
+
+
 def open_session(config: CellConfig, campaign: str | Path, operator: Operator, stack: ExitStack, progress: bool | None = None) -> Session:
     """Connect the robot and the tracker through their driver plug-ins, open the campaign store, and build
     the Session.
 
-    The Session's close is registered on `stack`; a failure half-way leaves nothing connected."""
+    The Session's close is registered on `stack`; a failure half-way leaves nothing connected, and the campaign
+    file is created only once both instruments answer (a failed start leaves no empty campaign)."""
     robots, trackers = drivers_of(config)
     with ExitStack() as opening:  # a failure half-way closes what was opened so far
-        store = CampaignStore(campaign)
-        opening.callback(store.close)
         robot = robots.open(config.robot_mapping())
         opening.callback(robot.close)
         tracker = trackers.open(config.tracker_mapping())
         opening.callback(tracker.close)
+        store = CampaignStore(campaign)
+        opening.callback(store.close)
         station = {"robot_controller_version": getattr(robot, "version", None), "tracker": getattr(tracker, "tracker_info", {})}
-        session = Session(config, robot, tracker, store, operator, Progress(enabled=progress), station=station)
+        clock = _cell_clock(config)
+        session = Session(config, robot, tracker, store, operator, Progress(enabled=progress), station=station, clock=clock)
         opening.pop_all()  # from here on the Session owns and releases them
     stack.callback(session.close)
     return session

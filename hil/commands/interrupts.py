@@ -14,6 +14,7 @@ from __future__ import annotations
 import faulthandler
 import os
 import signal
+import sys
 import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -68,7 +69,8 @@ def _arm_deadlines() -> None:
     with _deadline_lock:
         if _deadline:
             return
-        faulthandler.dump_traceback_later(INTERRUPT_GRACE_S + BACKSTOP_S, exit=True, file=2)
+        # sys.stderr, not descriptor 2: while native output is captured, 2 leads into a pipe
+        faulthandler.dump_traceback_later(INTERRUPT_GRACE_S + BACKSTOP_S, exit=True, file=sys.stderr)
         timer = threading.Timer(INTERRUPT_GRACE_S, _leave_now)
         timer.daemon = True
         timer.start()

@@ -128,6 +128,30 @@ class _WrongUnit(argparse.Action):
         parser.error(f"{option_string}: {p.help} is given in {p.unit}: use {p.flag} (allowed {p.allowed()})")
 
 
+def open_instruments(config, campaign: Path, operator, stack: ExitStack):
+    """open_session, its failures worded for the command line (what failed, what to do; no campaign is left)."""
+    from hil.commands.instruments import open_session
+    from hil.instruments.robot import RobotConnectionError, RobotError
+    from hil.instruments.tracker import TrackerError
+
+    again = "then run the same command again"
+    try:
+        return open_session(config, campaign, operator, stack)
+    except RobotConnectionError as exc:
+        raise CliError(
+            f"cannot connect to the robot: {exc.message}",
+            f"check that the controller is on and reachable at {config.robot_host} (robot.host in {config.source}), {again}",
+        ) from exc
+    except RobotError as exc:
+        raise CliError(f"the robot is not ready: {exc.message}", f"{exc.remedy}; {again}") from exc
+    except (TrackerError, OSError) as exc:
+        reason = exc.message if isinstance(exc, TrackerError) else str(exc)
+        raise CliError(
+            f"cannot connect to the tracker at {config.tracker_url}: {reason}",
+            f"check that the tracker is on and reachable (tracker.url in {config.source}), {again}",
+        ) from exc
+
+
 def run(args: argparse.Namespace) -> int:
     try:
         procedure = load(args.procedure)
@@ -149,22 +173,17 @@ def run(args: argparse.Namespace) -> int:
     if args.dry_run:
         print(the_plan.describe())
         return 0
-    from hil.commands.instruments import choose_operator, open_session
+    from hil.commands.instruments import choose_operator
 
     try:
         operator = choose_operator(config, args.operator)
     except ValueError as exc:
         raise CliError(str(exc), "pick another --operator") from exc
-    from hil.instruments.robot import RobotError
-    from hil.instruments.tracker import TrackerError
+    from hil.commands.native_output import capture_native_output
 
     with interrupt_guard(), ExitStack() as stack:
-        try:
-            session = open_session(config, campaign, operator, stack)
-        except RobotError as exc:
-            raise CliError(f"cannot connect to the robot at {config.robot_host}: {exc.message}", exc.remedy) from exc
-        except (TrackerError, OSError) as exc:
-            raise CliError(f"cannot connect to the tracker at {config.tracker_url}: {exc}", "check the tracker, its URL and the network") from exc
+        stack.enter_context(capture_native_output(verbose=getattr(args, "verbose", False)))
+        session = open_instruments(config, campaign, operator, stack)
         try:
             with session:
                 result = procedure(session, **values)

@@ -128,6 +128,11 @@ class CellSimulator(Protocol):
         """A client of the control channel at `address` ("host:port", from the cell's ready line)."""
         ...
 
+    def clock(self, address: str) -> Callable[[], float]:
+        """The cell's own clock at `address` as UNIX seconds: the session's timestamps on this cell, so that the
+        same seed and commands give the same times however loaded the machine."""
+        ...
+
 
 def installed() -> dict[str, EntryPoint]:
     """The instrument plug-ins installed in this environment, by name (nothing is imported)."""

@@ -97,6 +97,7 @@ class Session:
         operator: Operator,
         progress: Progress | None = None,
         station: dict | None = None,
+        clock: Callable[[], float] | None = None,
     ):
         self.config = config
         self.robot = robot
@@ -108,6 +109,8 @@ class Session:
         self.nominal: KinematicModel = config.nominal
         self.log = log
         self._station = station or {}
+        # the measurements' timestamps (UNIX s): a simulated cell's own clock, else the tracker's (the host's)
+        self._clock = clock
         self._log_handler = StoreLogHandler(store)
         self._closed = False
         self._step_cache: dict[tuple[str, str], dict | None] = {}
@@ -403,6 +406,7 @@ class Session:
                 elif attempt > 1 and reaim is not None:
                     reaim()
                 m = self.tracker.measure(shots)
+                timestamp_s = m.timestamp_s if self._clock is None else self._clock()
                 record = MeasurementRecord(
                     procedure=procedure,
                     step=step,
@@ -420,7 +424,7 @@ class Session:
                     temperature_c=m.temperature_c,
                     pressure_hpa=m.pressure_hpa,
                     humidity_pct=m.humidity_pct,
-                    timestamp_s=m.timestamp_s,
+                    timestamp_s=timestamp_s,
                     extra={
                         "attempts": attempt,
                         **({"predicted_mm": (predicted * 1e3).tolist()} if predicted is not None else {}),

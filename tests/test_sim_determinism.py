@@ -1,0 +1,85 @@
+"""The simulated cell is deterministic: the same seed and the same commands give the same campaign, bit for bit,
+however loaded the machine (the second run has a CPU hog beside it)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from contextlib import contextmanager
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from fakes.cell import SimCellConfig, SimulatedCell
+from hil.data.store import P_COLUMNS, Q_COLUMNS, CampaignStore, campaign_dataset
+from hil.runner.registry import load
+from tests.sim_session import running_cell, session_on
+
+pytestmark = [pytest.mark.sim, pytest.mark.timeout(600)]
+
+COMPARED = [*(f"q{i}_rad" for i in range(1, 7)), "x_mm", "y_mm", "z_mm", "temperature_c", "t_s"]
+
+
+@contextmanager
+def _cpu_hog(on: bool):
+    """A busy loop in another process while the block runs (a loaded CI machine)."""
+    hog = subprocess.Popen([sys.executable, "-c", "while True: pass"]) if on else None
+    try:
+        yield
+    finally:
+        if hog is not None:
+            hog.kill()
+            hog.wait()
+
+
+def _measure(folder, loaded: bool) -> dict[str, pd.DataFrame]:
+    """Registration and a small grid with validation poses on a fresh cell of seed 4; the exported campaign."""
+    folder.mkdir()
+    campaign = folder / "campaign.sqlite"
+    registration, grid_sampling = load("registration"), load("grid_sampling")
+    with _cpu_hog(loaded), running_cell(folder, seed=4) as (_, config), session_on(config, campaign) as session:
+        registration(session)
+        grid_sampling(session, step_m=0.3, validation=8, seed=4)
+    with CampaignStore(campaign, create=False) as store:
+        reg = store.measurements("registration")
+        first = store.started_s
+        exported = {
+            "registration": pd.DataFrame(
+                {
+                    **{c: reg[c] for c in (*Q_COLUMNS, *P_COLUMNS)},
+                    "temperature_c": reg["temperature_c"],
+                    "t_s": reg["timestamp_s"] - first,
+                }
+            ),
+            "grid": campaign_dataset(store, "grid_sampling", step="grid")[COMPARED],
+            "validation": campaign_dataset(store, "grid_sampling", step="validation")[COMPARED],
+        }
+    return exported
+
+
+def test_the_same_seed_gives_the_same_campaign_bit_for_bit_under_load(tmp_path):
+    quiet = _measure(tmp_path / "quiet", loaded=False)
+    loaded = _measure(tmp_path / "loaded", loaded=True)
+    for name, frame in quiet.items():
+        assert len(frame) > 5, name
+        assert frame["t_s"].iloc[-1] > 0, name  # the cell's clock moved on with the work
+        pd.testing.assert_frame_equal(frame, loaded[name], check_exact=True, obj=name)
+
+
+def test_standing_still_draws_no_noise_and_does_not_warm_the_arm():
+    cell = SimulatedCell(SimCellConfig(seed=2, thermal=True))
+    q = cell.commanded_q
+    q[0] += 0.1
+    cell.set_commanded_joints(q)
+    encoders = cell.encoder_joints()
+    cell.advance_timer(3600.0)  # an idle hour on the timer clock
+    for _ in range(100):
+        assert not cell.set_commanded_joints(q)  # the controller's idle ticks
+    np.testing.assert_array_equal(cell.encoder_joints(), encoders)
+    assert cell.physics_time_s == 0.0 and cell.structure_temperature_c() == 20.0
+    twin = SimulatedCell(SimCellConfig(seed=2, thermal=True))
+    twin.set_commanded_joints(q)
+    np.testing.assert_array_equal(twin.measure_smr(1), cell.measure_smr(1))  # the first reading of each
+    cell.advance_time(600.0)  # an explicit wait warms the arm
+    assert cell.structure_temperature_c() > 20.0
