@@ -27,6 +27,8 @@ def test_demo_runs_the_procedures_through_the_drivers_and_finds_compliance(tmp_p
     # mean measured errors, mm: the model removes most of it, the measured loop ends near the ~0.013 mm floor
     assert stages["model-based"] < 0.2 * stages["uncompensated"] and stages["measured"] < 0.03
     assert "Measured pseudo-target loop" in (tmp_path / "report.html").read_text()
+    assert "active loop ended after 1 round(s)" in out.stdout  # the grid leaves questions open: one round
+    assert "Active loop: the measurements that decide" in (tmp_path / "report.html").read_text()
     with sqlite3.connect(tmp_path / "campaign.sqlite") as db:
         (count,) = db.execute("select count(*) from measurements").fetchone()
     again = subprocess.run(args, capture_output=True, text=True, timeout=380)

@@ -185,8 +185,9 @@ def _table(rows: list[dict], columns: list[str], fmt: dict | None = None) -> str
     return f"<table><tr>{head}</tr>{''.join(body)}</table>"
 
 
-def render_html(report: DiagnosisReport, compensation: dict | None = None) -> str:
-    """The report page; `compensation` (procedures.pseudo_target's summary) adds the measured loop's table."""
+def render_html(report: DiagnosisReport, compensation: dict | None = None, active: str | None = None) -> str:
+    """The report page; `compensation` (procedures.pseudo_target's summary) adds the measured loop's table,
+    `active` the active loop's rounds (an HTML section, hil.analysis.active_rounds.rounds_html)."""
     d = report_dict(report)
     parts = [
         *_head_html(report, d),
@@ -195,6 +196,8 @@ def render_html(report: DiagnosisReport, compensation: dict | None = None) -> st
         *_calibration_html(d),
         _undecided_html(report),
     ]
+    if active:
+        parts.append(active)
     if compensation:
         parts.append(_compensation_html(compensation))
     parts.append("</body></html>")
@@ -364,9 +367,11 @@ def _run_html(run: dict) -> str:
     )
 
 
-def write_html(report: DiagnosisReport, path: str | Path, compensation: dict | None = None) -> None:
+def write_html(
+    report: DiagnosisReport, path: str | Path, compensation: dict | None = None, active: str | None = None
+) -> None:
     """Write the self-contained HTML report (tables + PNG plots embedded as base64)."""
-    Path(path).write_text(render_html(report, compensation))
+    Path(path).write_text(render_html(report, compensation, active))
 
 
 def question_text(q: dict) -> str:

@@ -7,10 +7,12 @@
    sampling at 100 mm plus random held-out validation poses.
 3. Export the grid and the validation set from the campaign, calibrate and diagnose: find what the
    geometric model misses, add it, and print the error before and after on held-out and validation data.
-4. Close the loop on held-out targets: the cell runs again, the robot goes to the model-based compensated
+4. When the diagnosis leaves anything undecided that poses can decide, run the active loop (`--active-rounds`
+   rounds of at most `--active-poses` poses into the same campaign, diagnosed again after each; 0: skip).
+5. Close the loop on held-out targets: the cell runs again, the robot goes to the model-based compensated
    joints of random targets in the sampled volume and the measured pseudo-target loop corrects what is left
    (uncompensated -> model-based -> measured loop, all measured by the tracker).
-5. Write the JSON report, the HTML report and the final model.
+6. Write the JSON report, the HTML report and the final model.
 
 Interrupted (Ctrl-C, a crash), the same command resumes the campaign: recorded points are not measured again.
 """
@@ -49,6 +51,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--loop-targets", type=int, default=10, help="held-out targets of the measured loop (default 10; 0: skip)"
     )
+    parser.add_argument(
+        "--active-rounds", type=int, default=1,
+        help="rounds of the active loop when the diagnosis leaves anything undecided (default 1; 0: skip)",
+    )  # fmt: skip
+    parser.add_argument("--active-poses", type=int, default=40, help="poses per active-loop round at most (default 40)")
     parser.add_argument("--out", default="demo-out", help="output folder (default ./demo-out)")
     parser.add_argument(
         "--time-scale", type=float, default=20.0, help="simulated seconds per wall second (default 20)"
@@ -64,6 +71,10 @@ def run(args: argparse.Namespace) -> int:
         raise CliError("--validate must be at least 10", "give more validation poses")
     if not 0 <= args.loop_targets <= 200:
         raise CliError(f"--loop-targets {args.loop_targets} is outside 0..200", "use e.g. 10")
+    if not 0 <= args.active_rounds <= 5:
+        raise CliError(f"--active-rounds {args.active_rounds} is outside 0..5", "use e.g. 1, or 0 to skip")
+    if not 1 <= args.active_poses <= 500:
+        raise CliError(f"--active-poses {args.active_poses} is outside 1..500", "use e.g. 40")
     if not 0.5 <= args.time_scale <= 50.0:
         raise CliError(f"--time-scale {args.time_scale:g} is outside 0.5..50", "use e.g. 20")
     out = Path(args.out)
@@ -86,6 +97,13 @@ def run(args: argparse.Namespace) -> int:
             raise CliError(exc.message, exc.remedy + " (run hil demo again to resume)") from exc
     print(f"measured through the drivers in {time.monotonic() - started:.0f} s")
     report = analyse(args, out, campaign)
+    active = None
+    if args.active_rounds and any(q["plannable"] for q in report.undecided):
+        with interrupt_guard():
+            try:
+                report, active = active_loop(args, out, campaign)
+            except CampaignStopped as exc:
+                raise CliError(exc.message, exc.remedy + " (run hil demo again to resume)") from exc
     loop = None
     if args.loop_targets:
         with interrupt_guard():
@@ -95,7 +113,7 @@ def run(args: argparse.Namespace) -> int:
                 raise CliError(exc.message, exc.remedy + " (run hil demo again to resume)") from exc
     from hil.analysis.report import write_html
 
-    write_html(report, out / "report.html", compensation=loop)
+    write_html(report, out / "report.html", compensation=loop, active=active)
     print(f"\nwrote {out}/campaign.sqlite, cell.toml, grid.csv, validate.csv, report.json, report.html, model.json")
     return 0
 
@@ -131,6 +149,26 @@ def measure(args: argparse.Namespace, out: Path, campaign: Path) -> None:
         print(tool_fit.summary(tool_fit(session)))
         result = grid_sampling(session, step_m=args.step_mm / 1e3, validation=args.validate, seed=args.seed)
         print(grid_sampling.summary(result))
+
+
+def active_loop(args: argparse.Namespace, out: Path, campaign: Path):
+    """Start the cell again and measure what the diagnosis left undecided (the active_loop procedure); the
+    final diagnosis (its report and model replace the first) and the rounds as an HTML section."""
+    from hil.analysis.active_rounds import rounds_html
+    from hil.analysis.report import conclusion, write_json
+    from hil.runner.registry import load
+
+    procedure = load("active_loop")
+    print(f"\nactive loop: at most {args.active_rounds} round(s) of at most {args.active_poses} poses that decide what is undecided:")
+    with simulated_session(args, out, campaign) as session:
+        result = procedure(session, rounds=args.active_rounds, poses=args.active_poses, seed=args.seed)
+    print(procedure.summary(result))
+    report = result.report
+    print(report.table())
+    print(conclusion(report))
+    write_json(report, out / "report.json")
+    report.model.save(out / "model.json")
+    return report, rounds_html(result.records, result.stop)
 
 
 def measured_loop(args: argparse.Namespace, out: Path, campaign: Path, model) -> dict:

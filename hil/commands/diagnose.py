@@ -197,23 +197,11 @@ def _propose(args: argparse.Namespace, df: pd.DataFrame, report: DiagnosisReport
     return propose(df, report.model, report.undecided, args.propose, sigma, admissible=admissible)
 
 
-# The SMR is seen while the line to the tracker stays within its acceptance cone about the tool's axis.
-SMR_ACCEPTANCE_DEG = 30.0
-
-
 def _cell_admissible(cell):
     """Poses inside the cell's envelope (whole tool and wrist) with nest 1's SMR facing the tracker."""
-    from hil.geometry.kinematics import forward_kinematics
+    from hil.runner.sight import measurable
 
-    def ok(q: np.ndarray) -> np.ndarray:
-        inside = ~cell.envelope.outside(cell.nominal, q, cell.nests_flange_m)
-        T = forward_kinematics(cell.nominal, q)
-        p = np.einsum("nij,j->ni", T[:, :3, :3], cell.nests_flange_m[0]) + T[:, :3, 3]
-        to_tracker = cell.p_base_tracker_m - p
-        cos = np.einsum("ni,ni->n", T[:, :3, 2], to_tracker) / np.linalg.norm(to_tracker, axis=1)
-        return inside & (cos >= np.cos(np.deg2rad(SMR_ACCEPTANCE_DEG)))
-
-    return ok
+    return measurable(cell)
 
 
 def _diagnose(

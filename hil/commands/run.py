@@ -166,7 +166,7 @@ def run(args: argparse.Namespace) -> int:
     if not campaign.parent.exists():
         raise CliError(f"campaign folder {campaign.parent} does not exist", "create it or choose another --campaign path")
     try:
-        the_plan = procedure.make_plan(config, **values)
+        the_plan = procedure.make_plan(config, campaign=campaign, **values)
         config.envelope.check_poses(config.nominal, the_plan.joints(), config.nests_flange_m, [p.point_id for p in the_plan.poses])
     except (ValueError, EnvelopeError) as exc:
         raise CliError(str(exc), "change the options or the cell config; nothing moved") from exc

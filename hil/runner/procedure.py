@@ -164,10 +164,13 @@ class Procedure:
         """The measurement limits in SI, by keyword."""
         return {limit.keyword: limit.to_si() for limit in self.limits}
 
-    def make_plan(self, config: CellConfig, **values: Any) -> Plan:
-        """The plan for these parameters (SI keywords; defaults filled in and checked)."""
+    def make_plan(self, config: CellConfig, campaign: Any = None, **values: Any) -> Plan:
+        """The plan for these parameters (SI keywords; defaults filled in and checked). A plan that depends
+        on what a campaign holds names a `campaign` keyword and gets the campaign's path (to read only)."""
         resolved = self.resolve(values)
         accepted = inspect.signature(self.plan).parameters
+        if "campaign" in accepted:
+            resolved["campaign"] = campaign
         return self.plan(config, **{k: v for k, v in resolved.items() if k in accepted})
 
     def __call__(self, session: Any, **values: Any) -> Any:

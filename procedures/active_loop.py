@@ -1,0 +1,210 @@
+"""Active loop: measure what the diagnosis leaves undecided, until it decides (issue 18; methods.md sections 2-4).
+
+Shop-floor instruction: after grid sampling (same campaign, SMR in the grid's nest), let the cell answer the
+questions the data could not: the campaign's grid is diagnosed, the open questions that poses can decide (a
+joint whose sampled range does not cover a once-per-turn error, backlash approached from one side only, no
+pose measured again for drift, effects the geometry or each other imitate) get a plan of at most `poses`
+poses inside the envelope with the SMR facing the tracker, the robot measures them into the same campaign
+in that order (row order is motion order), and the longer campaign is diagnosed again. At most `rounds`
+rounds; the loop stops earlier when nothing that poses can decide is left open.
+
+Each round is a campaign step (`round1`, `round2`, ...): its plan is recorded before the first motion
+(`round1/plan`), so an interrupted round resumes with the same poses and measures none twice; its record
+(what was undecided, what was measured, what got decided, the error before and after) is the step result.
+`--dry-run` diagnoses the campaign and shows the next round's plan without moving anything.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from hil.analysis.active_rounds import plan_round, plannable, round_record, rounds_text
+from hil.analysis.diagnosis import DiagnosisReport, run_diagnosis
+from hil.data.dataset import DatasetError
+from hil.data.jsonable import to_jsonable
+from hil.data.store import CampaignStore, campaign_dataset
+from hil.runner.cell_config import CellConfig
+from hil.runner.operator import OperatorStep
+from hil.runner.plan import Plan, PlannedPose
+from hil.runner.procedure import Parameter, Procedure
+from hil.runner.session import CampaignStopped, Session
+from hil.runner.sight import measurable
+
+NAME = "active_loop"
+GRID = "grid_sampling"
+
+
+@dataclass(frozen=True)
+class ActiveLoopResult:
+    records: list[dict]  # one per round, as stored (hil.analysis.active_rounds.round_record)
+    stop: dict  # {"rounds": n, "why": ...}
+    report: DiagnosisReport  # the diagnosis of the campaign with every round's poses
+
+
+@dataclass(frozen=True)
+class _Rows:
+    """The next round's poses: joints (M, 6) in measurement order, each row's purpose, the plan's groups,
+    the open questions it does not serve (and why), and `keep`: the rows the cell can measure now."""
+
+    number: int
+    q_rad: np.ndarray
+    purpose: list[str]
+    groups: list[dict]
+    not_planned: list[dict]
+    keep: np.ndarray
+
+    def to_dict(self) -> dict:
+        return {
+            "q_rad": self.q_rad.round(12).tolist(), "purpose": self.purpose, "groups": self.groups,
+            "not_planned": self.not_planned,
+        }  # fmt: skip
+
+
+@dataclass
+class _Campaign:
+    """What the loop diagnoses: the grid then every finished round's rows (motion order), the validation poses."""
+
+    store: CampaignStore
+    config: CellConfig
+    seed: int
+
+    def records(self) -> list[dict]:
+        """The finished rounds' records, round 1 first."""
+        out: list[dict] = []
+        while (record := self.store.step_result(NAME, f"round{len(out) + 1}")) is not None:
+            out.append(record)
+        return out
+
+    def training(self, rounds: int) -> pd.DataFrame:
+        """The grid, then the rows of rounds 1..`rounds` in the order they were measured."""
+        try:
+            grid = campaign_dataset(self.store, GRID, "grid")
+        except DatasetError as exc:
+            raise CampaignStopped(
+                f"the active loop diagnoses the campaign's grid, and there is none: {exc}",
+                "run `hil run grid_sampling` on the same campaign first",
+            ) from exc
+        if rounds == 0:
+            return grid
+        more = campaign_dataset(self.store, NAME, [f"round{k}" for k in range(1, rounds + 1)])
+        return pd.concat([grid, more], ignore_index=True)
+
+    def validation(self) -> pd.DataFrame | None:
+        try:
+            return campaign_dataset(self.store, GRID, "validation")
+        except DatasetError:
+            return None
+
+    def nest(self, train: pd.DataFrame) -> int:
+        """The nest the grid was measured in (the rounds measure in the same one)."""
+        return int(np.bincount(train["smr"].to_numpy(int)).argmax()) if "smr" in train else 1
+
+    def diagnose(self, train: pd.DataFrame) -> DiagnosisReport:
+        fit = self.store.step_result("tool_fit", "fit")
+        nest = str(self.nest(train))
+        tool = np.array(fit["nests_flange_mm"][nest], float) / 1e3 if fit and nest in fit["nests_flange_mm"] else None
+        return run_diagnosis(train, self.config.nominal, df_validate=self.validation(), seed=self.seed, tool_guess_m=tool)
+
+    def next_rows(self, number: int, rounds: int, poses: int, train: pd.DataFrame, before: DiagnosisReport) -> tuple[_Rows | None, str]:
+        """Round `number`'s poses (its recorded plan when it was started before), or None and why not."""
+        if number > rounds:
+            return None, f"{rounds} round(s) done (the --rounds limit)"
+        pinned = self.store.step_result(NAME, f"round{number}/plan")
+        admissible = measurable(self.config, self.nest(train))
+        if pinned is not None:  # a resumed round: its recorded plan, less poses this cell config cannot measure
+            q = np.asarray(pinned["q_rad"], float).reshape(-1, 6)
+            rows = _Rows(number, q, list(pinned["purpose"]), list(pinned["groups"]), list(pinned.get("not_planned", [])), admissible(q))
+            return rows, ""
+        if not plannable(before):
+            return None, "nothing is left undecided that poses can decide"
+        plan = plan_round(train, before, poses, admissible, self.seed + number)
+        if not plan.purpose:
+            why = "; ".join(sorted({s["why"] for s in plan.not_planned})) or "no pose decides them"
+            return None, f"the open questions cannot be planned on this cell ({why})"
+        keep = np.ones(len(plan.purpose), bool)
+        return _Rows(number, plan.q, list(plan.purpose), plan.groups, plan.not_planned, keep), ""
+
+
+def motion_plan(config: CellConfig, rows: _Rows, nest: int) -> Plan:
+    """The round's poses as the session visits them, in the planned order (no approach poses: the order is
+    the approach)."""
+    location = f"nest{nest}"
+    setup = (OperatorStep(f"Put SMR 1 in tool nest {nest}.", "place_smr", smr=1, location=location),)
+    poses = [
+        PlannedPose(f"a{rows.number}-{i + 1:03d}", NAME, f"round{rows.number}", q, location, smr=nest, setup=setup)
+        for i, q in enumerate(rows.q_rad)
+        if rows.keep[i]
+    ]
+    dropped = {"not measurable with this cell config": int(np.sum(~rows.keep))} if not rows.keep.all() else {}
+    return Plan(NAME, poses, config, operator_steps=1, dropped=dropped)
+
+
+def plan(config: CellConfig, *, campaign: str | Path | None = None, rounds: int, poses: int, seed: int) -> Plan:
+    """The next round's poses on this campaign (for --dry-run): the campaign is diagnosed, nothing moves."""
+    if campaign is None or not Path(campaign).exists():
+        raise ValueError("the active loop plans from a campaign's grid: give --campaign with a measured grid")
+    with CampaignStore(campaign, create=False) as store:
+        state = _Campaign(store, config, seed)
+        done = len(state.records())
+        try:
+            train = state.training(done)
+        except CampaignStopped as exc:
+            raise ValueError(f"{exc.message}; {exc.remedy}") from exc
+        rows, why = state.next_rows(done + 1, rounds, poses, train, state.diagnose(train))
+        nest = state.nest(train)
+    if rows is None:
+        return Plan(NAME, [], config, dropped={f"no round {done + 1}: {why}": 1})
+    return motion_plan(config, rows, nest)
+
+
+def run_loop(session: Session, *, rounds: int, poses: int, seed: int, shots: int | None = None) -> ActiveLoopResult:
+    """Diagnose, plan, measure, diagnose again, for at most `rounds` rounds of at most `poses` poses; resumable."""
+    session.require_registration()
+    state = _Campaign(session.store, session.config, seed)
+    records = state.records()
+    train = state.training(len(records))
+    before = state.diagnose(train)
+    while True:
+        number = len(records) + 1
+        rows, why = state.next_rows(number, rounds, poses, train, before)
+        if rows is None:
+            break
+        if session.step_result(NAME, f"round{number}/plan") is None:
+            session.finish_step(NAME, f"round{number}/plan", rows.to_dict())  # pinned before the first motion
+        nest = state.nest(train)
+        session.visit(motion_plan(session.config, rows, nest), shots=shots, extra={"round": number})
+        longer = state.training(number)
+        after = state.diagnose(longer)
+        record = to_jsonable(round_record(number, before, after, rows.to_dict(), len(train), len(longer)))
+        assert isinstance(record, dict)
+        session.finish_step(NAME, f"round{number}", record)
+        records.append(record)
+        train, before = longer, after
+    stop = {"rounds": len(records), "why": why}
+    session.finish_step(NAME, "stop", stop)
+    return ActiveLoopResult(records, stop, before)
+
+
+def summary(result: ActiveLoopResult) -> str:
+    return rounds_text(result.records, result.stop)
+
+
+PROCEDURE = Procedure(
+    name=NAME,
+    purpose="measure the poses that decide what the grid's diagnosis leaves undecided, diagnose again, repeat",
+    instruction=__doc__ or "",
+    parameters=(
+        Parameter("rounds", "rounds of plan, measure, diagnose (fewer when nothing is left undecided)", 2, int, minimum=1, maximum=5),
+        Parameter("poses", "poses per round at most", 100, int, minimum=1, maximum=500),
+        Parameter("seed", "seed of the diagnosis' folds and of the plan's candidate poses", 0, int, minimum=0),
+        Parameter("shots", "tracker shots per point (default: the cell's tracker.shots_per_point)", None, int, minimum=1),
+    ),
+    plan=plan,
+    body=run_loop,
+    steps=("round1/plan", "round1", "round2/plan", "round2", "...", "stop"),
+    summary=summary,
+)
