@@ -47,7 +47,8 @@ def interrupt_guard() -> Iterator[None]:
     finally:
         signal.signal(signal.SIGINT, previous_handler)
         signal.set_wakeup_fd(previous_wakeup)
-        stop.set()
+        with _deadline_lock:  # after this, the watcher arms nothing (see _arm_deadlines)
+            stop.set()
         os.write(write_fd, b"\0")  # wake the watcher so it sees `stop`
         os.close(write_fd)
         if not leaving_on_error:  # an interrupt handled inside, and the work went on: no deadline any more
@@ -63,11 +64,13 @@ _deadline_lock = threading.RLock()  # re-entrant: the signal handler may run whi
 _deadline: list[threading.Timer] = []  # the armed exit timer, if any
 
 
-def _arm_deadlines() -> None:
+def _arm_deadlines(unless: threading.Event | None = None) -> None:
     """Leave with 130 after INTERRUPT_GRACE_S; faulthandler's C thread, behind it, dumps every thread's stack
-    and exits 1 even if the GIL is never released again. Arming twice keeps the first deadline."""
+    and exits 1 even if the GIL is never released again. Arming twice keeps the first deadline. `unless`, set
+    (under the lock, so a guard that has handled the interrupt and left cannot be re-armed late by a slow
+    watcher thread): nothing is armed."""
     with _deadline_lock:
-        if _deadline:
+        if _deadline or (unless is not None and unless.is_set()):
             return
         # sys.stderr, not descriptor 2: while native output is captured, 2 leads into a pipe
         faulthandler.dump_traceback_later(INTERRUPT_GRACE_S + BACKSTOP_S, exit=True, file=sys.stderr)
@@ -94,10 +97,10 @@ def _watch(read_fd: int, stop: threading.Event) -> None:
             if stop.is_set() or not data:
                 return
             interrupts += data.count(signal.SIGINT)
-            if interrupts >= 2:
+            if interrupts >= 2 and not stop.is_set():
                 _leave_now()
             if interrupts == 1:
-                _arm_deadlines()
+                _arm_deadlines(unless=stop)
     finally:
         os.close(read_fd)
 
