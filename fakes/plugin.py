@@ -61,11 +61,15 @@ class SimulatedCellPlugin:
         return run_cell(options)
 
     @contextmanager
-    def launch(self, robot: str, seed: int, time_scale: float, effects: str) -> Iterator[RunningCell]:
-        """Start `python -m fakes.sim` on a free loopback address; stopped when the context ends."""
+    def launch(
+        self, robot: str, seed: int, time_scale: float, effects: str, host: str | None = None, control_port: int = 0
+    ) -> Iterator[RunningCell]:
+        """Start `python -m fakes.sim` on a free loopback address (or `host`, control on `control_port`);
+        stopped when the context ends."""
         from fakes.launch import sim_cell
 
-        with sim_cell(robot=robot, seed=seed, time_scale=time_scale, extra_args=("--effects", effects)) as cell:
+        extra = ("--effects", effects, "--control-port", str(control_port))
+        with sim_cell(robot=robot, seed=seed, time_scale=time_scale, host=host, extra_args=extra) as cell:
             yield cell
 
     def connect_control(self, address: str) -> ControlClient:

@@ -115,7 +115,17 @@ def run(args: argparse.Namespace) -> int:
 
     write_html(report, out / "report.html", compensation=loop, active=active)
     print(f"\nwrote {out}/campaign.sqlite, cell.toml, grid.csv, validate.csv, report.json, report.html, model.json")
+    print(f"the simulated cell has stopped; {restart_command(args)} starts it again at the address {out / 'cell.toml'} names")
     return 0
+
+
+def restart_command(args: argparse.Namespace) -> str:
+    """The `hil sim` command that brings the demo's cell back at the address its cell.toml names."""
+    host, control_port = args.cell_address
+    return (
+        f"hil sim --host {host} --control-port {control_port} --robot {args.robot} --seed {args.seed} "
+        f"--time-scale {args.time_scale:g} --effects {args.effects}"
+    )
 
 
 @contextmanager
@@ -128,10 +138,16 @@ def simulated_session(args: argparse.Namespace, out: Path, campaign: Path) -> It
     from hil.runner.cell_config import load_cell_config
 
     cell_path = out / "cell.toml"
-    with simulator().launch(robot=args.robot, seed=args.seed, time_scale=args.time_scale, effects=args.effects) as cell:
-        write_sim_cell(cell_path, cell.info, cell.control.call("ground_truth"), args.time_scale)
+    first = not hasattr(args, "cell_address")
+    host, control_port = (None, 0) if first else args.cell_address
+    launch = simulator().launch(args.robot, args.seed, args.time_scale, args.effects, host=host, control_port=control_port)
+    with launch as cell:
+        if first:  # later starts come back at this address, so the one cell.toml serves every stage and after
+            args.cell_address = (cell.host, int(cell.info["control"].rsplit(":", 1)[1]))
+            write_sim_cell(cell_path, cell.info, cell.control.call("ground_truth"), args.time_scale)
         config = load_cell_config(cell_path)
-        print(f"cell: {cell.info['robot']['personality']} controller at {cell.host}, tracker {config.tracker_url}; wrote {cell_path}")
+        what = f"wrote {cell_path}" if first else f"same address as {cell_path}"
+        print(f"cell: {cell.info['robot']['personality']} controller at {cell.host}, tracker {config.tracker_url}; {what}")
         with ExitStack() as stack:
             stack.enter_context(capture_native_output(verbose=getattr(args, "verbose", False)))
             session = open_session(config, campaign, simulated_operator(config.simulator_control), stack)
