@@ -1,7 +1,37 @@
-"""Suite-wide setup: subprocesses started by tests (`python -m hil ...`) import this checkout."""
+"""Suite-wide setup: subprocesses started by tests (`python -m hil ...`) import this checkout; hypothesis
+profiles (`ci` when the CI variable is set, as CI sets it to `true`; `dev` otherwise; HYPOTHESIS_PROFILE
+overrides)."""
 
 import os
 from pathlib import Path
 
+from hypothesis import settings
+
 REPO_ROOT = str(Path(__file__).resolve().parents[1])
 os.environ["PYTHONPATH"] = os.pathsep.join(p for p in (REPO_ROOT, os.environ.get("PYTHONPATH")) if p)
+
+# Tests that talk to a fake server over sockets set their own example counts and no deadline (a busy CI
+# machine is slow). `ci`: the same examples on every run (a red build is reproducible from its log) and no
+# example database on a fresh clone; `dev`: fresh examples each run, failures remembered in .hypothesis/.
+settings.register_profile("ci", derandomize=True, database=None, print_blob=True, deadline=None)
+settings.register_profile("dev", deadline=None)
+_ci = os.environ.get("CI", "").strip().lower() not in ("", "0", "false", "no")
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE") or ("ci" if _ci else "dev"))
+
+
+def pytest_collection_modifyitems(config, items):
+    """Under pytest-xdist's `--dist loadgroup`: the tests that share a module- or class-scoped fixture (a
+    simulated cell, a campaign) go to one worker, so the fixture is built once; every other test goes to
+    whichever worker is free."""
+    import pytest
+
+    for item in items:
+        if item.get_closest_marker("xdist_group") or not hasattr(item, "_fixtureinfo"):
+            continue
+        shared = [
+            name
+            for name, defs in item._fixtureinfo.name2fixturedefs.items()
+            if defs and defs[-1].scope in ("module", "class", "package")
+        ]
+        if shared:
+            item.add_marker(pytest.mark.xdist_group(item.module.__name__ if item.module else item.nodeid))
