@@ -5,6 +5,7 @@ overrides)."""
 import os
 from pathlib import Path
 
+import pytest
 from hypothesis import settings
 
 REPO_ROOT = str(Path(__file__).resolve().parents[1])
@@ -23,8 +24,6 @@ def pytest_collection_modifyitems(config, items):
     """Under pytest-xdist's `--dist loadgroup`: the tests that share a module- or class-scoped fixture (a
     simulated cell, a campaign) go to one worker, so the fixture is built once; every other test goes to
     whichever worker is free."""
-    import pytest
-
     for item in items:
         if item.get_closest_marker("xdist_group") or not hasattr(item, "_fixtureinfo"):
             continue
@@ -35,3 +34,16 @@ def pytest_collection_modifyitems(config, items):
         ]
         if shared:
             item.add_marker(pytest.mark.xdist_group(item.module.__name__ if item.module else item.nodeid))
+
+
+@pytest.fixture(scope="session")
+def gravity_cell_diagnosis():
+    """The simulated UR10 cell's default campaign (seed 2: geometric errors plus gravity compliance) and its
+    diagnosis against the validation set, built once per test process. Shared: read it, do not change it
+    (copy the frames first)."""
+    from calib_data import cell_datasets
+
+    from hil.analysis.diagnosis import run_diagnosis
+
+    cell, train, val = cell_datasets(seed=2)
+    return cell, train, val, run_diagnosis(train, "ur10", df_validate=val)
