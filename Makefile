@@ -3,9 +3,9 @@
 PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
-# pytest-xdist: one worker per core; tests that share a module-scoped fixture stay on one worker
-# (tests/conftest.py puts them in one xdist_group). PYTEST_PARALLEL= runs the suite in one process.
-PYTEST_PARALLEL ?= -n auto --dist loadgroup
+# pytest-xdist: one worker per core, each test module on one worker (its module-scoped fixtures, a simulated
+# cell or a campaign, are built once). PYTEST_PARALLEL= runs the suite in one process.
+PYTEST_PARALLEL ?= -n auto --dist loadfile
 
 .PHONY: demo test soak lint bench clean
 

@@ -7,15 +7,13 @@ from types import SimpleNamespace
 
 
 def hil_in_process(*args: str, cwd, capsys) -> tuple[int, str, str]:
-    """`hil ARGS...` run from `cwd`; returns (exit code, stdout, stderr) as the process would end."""
+    """`hil ARGS...` run from `cwd`; returns (exit code, stdout, stderr)."""
     from hil.cli import main
 
     here = os.getcwd()
     os.chdir(cwd)
     try:
         code = main(list(args))
-    except SystemExit as exc:  # argparse's usage errors and --help leave through SystemExit
-        code = exc.code if isinstance(exc.code, int) else 0 if exc.code is None else 1
     finally:
         os.chdir(here)
     out = capsys.readouterr()
@@ -23,6 +21,12 @@ def hil_in_process(*args: str, cwd, capsys) -> tuple[int, str, str]:
 
 
 def run_hil(*args: str, cwd, capsys) -> SimpleNamespace:
-    """`hil ARGS...` in process, answered as subprocess.run answers: returncode, stdout, stderr."""
-    code, out, err = hil_in_process(*args, cwd=cwd, capsys=capsys)
+    """`hil ARGS...` in process, answered as subprocess.run answers: returncode, stdout, stderr (argparse's
+    usage errors, which leave through SystemExit, give its code as the process would)."""
+    try:
+        code, out, err = hil_in_process(*args, cwd=cwd, capsys=capsys)
+    except SystemExit as exc:
+        code = exc.code if isinstance(exc.code, int) else 0 if exc.code is None else 1
+        captured = capsys.readouterr()
+        out, err = captured.out, captured.err
     return SimpleNamespace(returncode=code, stdout=out, stderr=err)

@@ -20,22 +20,6 @@ _ci = os.environ.get("CI", "").strip().lower() not in ("", "0", "false", "no")
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE") or ("ci" if _ci else "dev"))
 
 
-def pytest_collection_modifyitems(config, items):
-    """Under pytest-xdist's `--dist loadgroup`: the tests that share a module- or class-scoped fixture (a
-    simulated cell, a campaign) go to one worker, so the fixture is built once; every other test goes to
-    whichever worker is free."""
-    for item in items:
-        if item.get_closest_marker("xdist_group") or not hasattr(item, "_fixtureinfo"):
-            continue
-        shared = [
-            name
-            for name, defs in item._fixtureinfo.name2fixturedefs.items()
-            if defs and defs[-1].scope in ("module", "class", "package")
-        ]
-        if shared:
-            item.add_marker(pytest.mark.xdist_group(item.module.__name__ if item.module else item.nodeid))
-
-
 @pytest.fixture(scope="session")
 def gravity_cell_diagnosis():
     """The simulated UR10 cell's default campaign (seed 2: geometric errors plus gravity compliance) and its
