@@ -31,3 +31,14 @@ def gravity_cell_diagnosis():
 
     cell, train, val = cell_datasets(seed=2)
     return cell, train, val, run_diagnosis(train, "ur10", df_validate=val)
+
+
+def pytest_collection_modifyitems(config, items):
+    """Under pytest-xdist (`make test`: --dist loadfile --no-loadscope-reorder) the modules are handed out in
+    this order: the modules with `sim` tests first (the long wall-clock ones: a demo, campaigns on the
+    simulated cell), so no long module starts last while the other worker idles. A module's tests stay
+    together and in file order; a run in one process keeps the file order."""
+    if not hasattr(config, "workerinput"):
+        return
+    sim_modules = {item.path for item in items if item.get_closest_marker("sim")}
+    items.sort(key=lambda item: item.path not in sim_modules)  # stable: file order otherwise
