@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from types import SimpleNamespace
 
 
 def hil_in_process(*args: str, cwd, capsys) -> tuple[int, str, str]:
@@ -17,3 +18,15 @@ def hil_in_process(*args: str, cwd, capsys) -> tuple[int, str, str]:
         os.chdir(here)
     out = capsys.readouterr()
     return code, out.out, out.err
+
+
+def run_hil(*args: str, cwd, capsys) -> SimpleNamespace:
+    """`hil ARGS...` in process, answered as subprocess.run answers: returncode, stdout, stderr (argparse's
+    usage errors, which leave through SystemExit, give its code as the process would)."""
+    try:
+        code, out, err = hil_in_process(*args, cwd=cwd, capsys=capsys)
+    except SystemExit as exc:
+        code = exc.code if isinstance(exc.code, int) else 0 if exc.code is None else 1
+        captured = capsys.readouterr()
+        out, err = captured.out, captured.err
+    return SimpleNamespace(returncode=code, stdout=out, stderr=err)

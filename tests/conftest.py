@@ -1,7 +1,44 @@
-"""Suite-wide setup: subprocesses started by tests (`python -m hil ...`) import this checkout."""
+"""Suite-wide setup: subprocesses started by tests (`python -m hil ...`) import this checkout; hypothesis
+profiles (`ci` when the CI variable is set, as CI sets it to `true`; `dev` otherwise; HYPOTHESIS_PROFILE
+overrides)."""
 
 import os
 from pathlib import Path
 
+import pytest
+from hypothesis import settings
+
 REPO_ROOT = str(Path(__file__).resolve().parents[1])
 os.environ["PYTHONPATH"] = os.pathsep.join(p for p in (REPO_ROOT, os.environ.get("PYTHONPATH")) if p)
+
+# Tests that talk to a fake server over sockets set their own example counts and no deadline (a busy CI
+# machine is slow). `ci`: the same examples on every run (a red build is reproducible from its log) and no
+# example database on a fresh clone; `dev`: fresh examples each run, failures remembered in .hypothesis/.
+settings.register_profile("ci", derandomize=True, database=None, print_blob=True, deadline=None)
+settings.register_profile("dev", deadline=None)
+_ci = os.environ.get("CI", "").strip().lower() not in ("", "0", "false", "no")
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE") or ("ci" if _ci else "dev"))
+
+
+@pytest.fixture(scope="session")
+def gravity_cell_diagnosis():
+    """The simulated UR10 cell's default campaign (seed 2: geometric errors plus gravity compliance) and its
+    diagnosis against the validation set, built once per test process. Shared: read it, do not change it
+    (copy the frames first)."""
+    from calib_data import cell_datasets
+
+    from hil.analysis.diagnosis import run_diagnosis
+
+    cell, train, val = cell_datasets(seed=2)
+    return cell, train, val, run_diagnosis(train, "ur10", df_validate=val)
+
+
+def pytest_collection_modifyitems(config, items):
+    """Under pytest-xdist (`make test`: --dist loadfile --no-loadscope-reorder) the modules are handed out in
+    this order: the modules with `sim` tests first (the long wall-clock ones: a demo, campaigns on the
+    simulated cell), so no long module starts last while the other worker idles. A module's tests stay
+    together and in file order; a run in one process keeps the file order."""
+    if not hasattr(config, "workerinput"):
+        return
+    sim_modules = {item.path for item in items if item.get_closest_marker("sim")}
+    items.sort(key=lambda item: item.path not in sim_modules)  # stable: file order otherwise

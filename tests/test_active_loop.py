@@ -21,6 +21,8 @@ from procedures import active_loop, grid_sampling, registration, tool_fit
 from tests.cell_fixtures import sim_cell_toml
 from tests.sim_session import running_cell, session_on
 
+pytestmark = pytest.mark.sim  # its campaign fixture starts the simulated cell (tests/test_suite_marks.py)
+
 OFFLINE_HOST = "127.254.254.254"  # nothing listens there: a command that tried to connect would fail
 EFFECTS = ("--effects", "gravity_compliance,cyclic")  # cyclic: once- and twice-per-turn errors of joints 1-3
 INTERRUPT_AFTER = 3

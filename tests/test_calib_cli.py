@@ -1,20 +1,17 @@
-"""The stable CLI: hil calibrate / diagnose / predict on a simulated campaign, through `python -m hil`."""
+"""The stable CLI: hil calibrate / diagnose / predict on a simulated campaign, run in process (`hil.cli.main`;
+the entry points as processes are tested in test_demo and test_cli_entry_points)."""
 
 import hashlib
 import json
-import subprocess
-import sys
 
 import numpy as np
 import pandas as pd
 import pytest
 from calib_data import cell_datasets
 
+from tests.cli_in_process import run_hil
+
 pytestmark = pytest.mark.timeout(120)
-
-
-def _hil(*args, cwd):
-    return subprocess.run([sys.executable, "-m", "hil", *args], capture_output=True, text=True, cwd=cwd)
 
 
 @pytest.fixture(scope="module")
@@ -26,15 +23,15 @@ def campaign(tmp_path_factory):
     return d
 
 
-def test_calibrate_diagnose_predict(campaign):
+def test_calibrate_diagnose_predict(campaign, capsys):
     d = campaign
-    out = _hil("calibrate", "train.csv", "--robot", "ur10", "-o", "kin.json", "--residuals", "res.csv", cwd=d)
+    out = run_hil("calibrate", "train.csv", "--robot", "ur10", "-o", "kin.json", "--residuals", "res.csv", cwd=d, capsys=capsys)
     assert out.returncode == 0, out.stderr
     res = pd.read_csv(d / "res.csv")
     assert list(res.columns) == ["row", "dx_mm", "dy_mm", "dz_mm", "norm_mm", "weight", "outlier"]
     assert len(res) == len(pd.read_csv(d / "train.csv"))
     assert "ridge-igg3" in out.stdout and "lm-soft_l1" in out.stdout and "condition number" in out.stdout
-    out = _hil(
+    out = run_hil(
         "diagnose",
         "train.csv",
         "--robot",
@@ -48,6 +45,7 @@ def test_calibrate_diagnose_predict(campaign):
         "--html",
         "report.html",
         cwd=d,
+        capsys=capsys,
     )
     assert out.returncode == 0, out.stderr
 
@@ -73,7 +71,7 @@ def test_calibrate_diagnose_predict(campaign):
     # predict applies everything the model holds: on the validation joints it matches the tracker.
     joints = pd.read_csv(d / "val.csv").drop(columns=["x_mm", "y_mm", "z_mm"])
     joints.to_csv(d / "joints.csv", index=False)
-    out = _hil("predict", "model.json", "joints.csv", "-o", "pred.csv", cwd=d)
+    out = run_hil("predict", "model.json", "joints.csv", "-o", "pred.csv", cwd=d, capsys=capsys)
     assert out.returncode == 0, out.stderr
     pred = pd.read_csv(d / "pred.csv")[["x_mm", "y_mm", "z_mm"]].to_numpy()
     meas = pd.read_csv(d / "val.csv")[["x_mm", "y_mm", "z_mm"]].to_numpy()
@@ -82,13 +80,13 @@ def test_calibrate_diagnose_predict(campaign):
     assert rms == pytest.approx(val_final, rel=1e-4)  # CSV rounding only
 
 
-def test_bad_input_gets_a_clear_error(campaign):
+def test_bad_input_gets_a_clear_error(campaign, capsys):
     d = campaign
     pd.read_csv(d / "train.csv").drop(columns=["z_mm"]).to_csv(d / "broken.csv", index=False)
-    out = _hil("calibrate", "broken.csv", "-o", "x.json", cwd=d)
+    out = run_hil("calibrate", "broken.csv", "-o", "x.json", cwd=d, capsys=capsys)
     assert out.returncode == 2 and "z_mm" in out.stderr
-    out = _hil("diagnose", "train.csv", "--json", "r.json", "--families", "gravity,cyclic", cwd=d)
+    out = run_hil("diagnose", "train.csv", "--json", "r.json", "--families", "gravity,cyclic", cwd=d, capsys=capsys)
     assert out.returncode == 2 and "gravity" in out.stderr
     pd.read_csv(d / "train.csv").head(12).to_csv(d / "tiny.csv", index=False)
-    out = _hil("calibrate", "tiny.csv", "-o", "x.json", cwd=d)
+    out = run_hil("calibrate", "tiny.csv", "-o", "x.json", cwd=d, capsys=capsys)
     assert out.returncode == 2 and "well-spread poses" in out.stderr

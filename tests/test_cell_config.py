@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import subprocess
-import sys
 import tomllib
 
 import numpy as np
@@ -11,6 +9,7 @@ import pytest
 
 from hil.runner.cell_config import CellConfigError, format_cell_toml, load_cell_config, parse_cell_config
 from tests.cell_fixtures import sim_cell_toml
+from tests.cli_in_process import run_hil
 
 
 def test_simulated_cell_config_loads_in_si_units(tmp_path):
@@ -77,18 +76,18 @@ def test_joint_limits_beyond_the_robot_and_a_tracker_on_the_base_axis_are_refuse
     assert "at least 300 mm from the robot's base axis" in str(info.value)
 
 
-def test_cell_check_command(tmp_path):
+def test_cell_check_command(tmp_path, capsys):
     good = tmp_path / "cell.toml"
     good.write_text(sim_cell_toml())
-    ok = subprocess.run([sys.executable, "-m", "hil", "cell", "check", str(good)], capture_output=True, text=True)
+    ok = run_hil("cell", "check", str(good), cwd=tmp_path, capsys=capsys)
     assert ok.returncode == 0 and "OK" in ok.stdout and "ur10" in ok.stdout
     bad = tmp_path / "bad.toml"
     text = sim_cell_toml().replace("settle_s = ", "settle_s = -").replace("socket://127.0.0.9:7000", "tracker-host")
     bad.write_text(text)
-    out = subprocess.run([sys.executable, "-m", "hil", "cell", "check", str(bad)], capture_output=True, text=True)
+    out = run_hil("cell", "check", str(bad), cwd=tmp_path, capsys=capsys)
     assert out.returncode == 2
     assert "motion.settle_s" in out.stderr and "tracker.url" in out.stderr and "what to do" in out.stderr
     broken = tmp_path / "broken.toml"
     broken.write_text("[robot\nmodel = ")
-    out = subprocess.run([sys.executable, "-m", "hil", "cell", "check", str(broken)], capture_output=True, text=True)
+    out = run_hil("cell", "check", str(broken), cwd=tmp_path, capsys=capsys)
     assert out.returncode == 2 and "not valid TOML" in out.stderr and "broken.toml" in out.stderr

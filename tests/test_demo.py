@@ -1,5 +1,5 @@
 """`hil demo` end to end: the procedures through the drivers on hil sim, then diagnosis and reports;
-a second run resumes the campaign and measures nothing again."""
+a second run resumes the campaign and measures nothing again (a second full demo: `make soak`)."""
 
 import json
 import sqlite3
@@ -9,12 +9,26 @@ import tomllib
 
 import pytest
 
+from tests.cli_in_process import hil_in_process
 
-@pytest.mark.sim
+pytestmark = pytest.mark.sim  # `hil demo` starts the simulated cell
+
+
+def _demo_args(out) -> list[str]:
+    return [sys.executable, "-m", "hil", "demo", "--step-mm", "150", "--validate", "40", "--out", str(out)]
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory):
+    """`hil demo` run once as a process (the entry point as a user runs it); its folder and output."""
+    out = tmp_path_factory.mktemp("demo")
+    done = subprocess.run(_demo_args(out), capture_output=True, text=True, timeout=380)
+    return out, done
+
+
 @pytest.mark.timeout(400)
-def test_demo_runs_the_procedures_through_the_drivers_and_finds_compliance(tmp_path):
-    args = [sys.executable, "-m", "hil", "demo", "--step-mm", "150", "--validate", "40", "--out", str(tmp_path)]
-    out = subprocess.run(args, capture_output=True, text=True, timeout=380)
+def test_demo_runs_the_procedures_through_the_drivers_and_finds_compliance(demo):
+    tmp_path, out = demo
     assert out.returncode == 0, out.stderr[-3000:] + out.stdout[-3000:]
     report = json.loads((tmp_path / "report.json").read_text())
     assert {e["name"] for e in report["effects_added"]} == {"gravity_compliance"}
@@ -34,20 +48,24 @@ def test_demo_runs_the_procedures_through_the_drivers_and_finds_compliance(tmp_p
     assert "Measured pseudo-target loop" in (tmp_path / "report.html").read_text()
     assert "active loop ended after 1 round(s)" in out.stdout  # the grid leaves questions open: one round
     assert "Active loop: the measurements that decide" in (tmp_path / "report.html").read_text()
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(400)
+def test_demo_run_again_resumes_and_measures_nothing_twice(demo):
+    """The resume of a whole demo. By default the resume of each procedure's campaign is checked in
+    test_procedures_sim (grid sampling again measures nothing) and test_pseudo_target_sim (the loop)."""
+    tmp_path, first = demo
+    assert first.returncode == 0, first.stderr[-3000:]
     with sqlite3.connect(tmp_path / "campaign.sqlite") as db:
         (count,) = db.execute("select count(*) from measurements").fetchone()
-    again = subprocess.run(args, capture_output=True, text=True, timeout=380)
+    again = subprocess.run(_demo_args(tmp_path), capture_output=True, text=True, timeout=380)
     assert again.returncode == 0, again.stderr[-3000:]
     assert "resuming" in again.stdout
     with sqlite3.connect(tmp_path / "campaign.sqlite") as db:
         assert db.execute("select count(*) from measurements").fetchone() == (count,)
 
 
-def test_demo_refuses_an_unknown_effect(tmp_path):
-    out = subprocess.run(
-        [sys.executable, "-m", "hil", "demo", "--effects", "gravity", "--out", str(tmp_path)],
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
-    assert out.returncode != 0 and "unknown effect" in out.stderr
+def test_demo_refuses_an_unknown_effect(tmp_path, capsys):
+    code, _, err = hil_in_process("demo", "--effects", "gravity", "--out", str(tmp_path), cwd=tmp_path, capsys=capsys)
+    assert code != 0 and "unknown effect" in err

@@ -40,10 +40,9 @@ def test_clean_robot_gets_nothing_added():
     assert _rms(report, "kinematic", "validate") <= 1.2 * report.noise_floor_mm
 
 
-def test_gravity_compliance_is_found():
+def test_gravity_compliance_is_found(gravity_cell_diagnosis):
     # The cell's default: geometric errors plus gravity compliance from link masses.
-    cell, train, val = cell_datasets(seed=2)
-    report = run_diagnosis(train, "ur10", df_validate=val)
+    cell, train, val, report = gravity_cell_diagnosis
     names = [e["name"] for e in report.effects_added]
     assert names and set(names) == {"gravity_compliance"}
     assert report.effects_added[0]["joint"] in (2, 3)  # the shoulder and elbow carry the arm
@@ -130,9 +129,8 @@ def test_model_code_never_imports_the_simulator():
     assert out.stdout.strip() == "False"
 
 
-def test_gross_outlier_in_a_campaign_is_flagged_and_changes_nothing():
-    _, train, val = cell_datasets(seed=2)
-    clean = run_diagnosis(train, "ur10")
+def test_gross_outlier_in_a_campaign_is_flagged_and_changes_nothing(gravity_cell_diagnosis):
+    _, train, val, clean = gravity_cell_diagnosis  # the validation set changes no fit, only what is reported
     bad = train.copy()
     bad.loc[40, "z_mm"] += 3.0  # a 3 mm blunder: the SMR was bumped in its nest
     report = run_diagnosis(bad, "ur10", df_validate=val)

@@ -53,7 +53,11 @@ def test_thermal_growth_with_a_warmer_validation_is_named_and_extrapolates():
     assert "validation temperatures" in conclusion(report)  # the extrapolation is said
 
 
-@pytest.mark.parametrize("seed", [0, 1, 2])
+# One seed by default; the other two seeds of each sweep are soak runs (make soak).
+SOAK = pytest.mark.slow
+
+
+@pytest.mark.parametrize("seed", [0, pytest.param(1, marks=SOAK), pytest.param(2, marks=SOAK)])
 def test_thermal_growth_is_named_on_a_small_grid_measured_in_raster_order(seed):
     # 150 mm grid (96 poses) visited in raster order while the cell warms up: temperature and one axis of the
     # grid are collinear, and the gravity compliance of joint 3 imitates the warm-up as a function of the pose.
@@ -84,8 +88,8 @@ GRAVITY_CYCLIC_J1 = ({"cyclic": True, "cyclic_joints": (1,), "keep_singular": Fa
         # tests average several spatial partitions, so a pose more or less does not decide (it did: one
         # partition is a draw).
         (0, *GRAVITY_CYCLIC_J1),
-        (1, *GRAVITY_CYCLIC_J1),
-        (2, *GRAVITY_CYCLIC_J1),
+        pytest.param(1, *GRAVITY_CYCLIC_J1, marks=SOAK, id="gravity+cyclic_j1-seed1"),
+        pytest.param(2, *GRAVITY_CYCLIC_J1, marks=SOAK, id="gravity+cyclic_j1-seed2"),
         (
             2,
             {

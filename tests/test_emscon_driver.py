@@ -23,9 +23,7 @@ from hil.instruments.tracker import (
     TrackerTimeoutError,
 )
 
-pytestmark = pytest.mark.sim  # starts a simulated cell or a fake server over sockets
-
-pytestmark = pytest.mark.timeout(60)
+pytestmark = [pytest.mark.sim, pytest.mark.timeout(60)]  # starts a simulated cell or a fake server over sockets
 
 MEAS_S = 0.01  # stationary measurement time used by the tests (fast; the fake waits it in wall time)
 SMR = 2  # a floor-nest SMR of the default cell (always faces the tracker)

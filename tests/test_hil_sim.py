@@ -108,7 +108,7 @@ def test_hil_sim_is_the_same_cell_and_writes_its_cell_config(tmp_path):
 
 @pytest.mark.sim
 @pytest.mark.timeout(90)
-def test_write_cell_gives_a_config_that_checks_and_connects(tmp_path):
+def test_write_cell_gives_a_config_that_checks_and_connects(tmp_path, capsys):
     """`hil sim --write-cell` writes the cell.toml of the cell it starts; `hil cell check --connect` reaches
     the robot (ur-rtde) and the tracker (emScon) it names."""
     import subprocess
@@ -125,10 +125,9 @@ def test_write_cell_gives_a_config_that_checks_and_connects(tmp_path):
     try:
         ready = json.loads(process.stdout.readline())  # printed once every server listens
         assert ready["robot"]["host"] == host
-        check = subprocess.run(
-            [sys.executable, "-m", "hil", "cell", "check", str(cell_toml), "--connect"],
-            capture_output=True, text=True, timeout=60,
-        )  # fmt: skip
+        from tests.cli_in_process import run_hil  # in process: the cell, not the check, is the process here
+
+        check = run_hil("cell", "check", str(cell_toml), "--connect", cwd=tmp_path, capsys=capsys)
         assert check.returncode == 0, check.stdout + check.stderr
         assert "robot connected" in check.stdout and "tracker connected" in check.stdout
         assert f'host = "{host}"' in cell_toml.read_text()

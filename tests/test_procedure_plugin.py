@@ -13,6 +13,8 @@ import pytest
 from hil.data.store import CampaignStore
 from tests.sim_session import running_cell
 
+pytestmark = pytest.mark.sim  # one test runs the plug-in on the simulated cell
+
 # A shop floor's own procedure, in one short file: three poses near the middle of the working volume, the
 # SMR in nest 1; judged by how far the measured distances between the points are from the nominal ones.
 PLUGIN_MODULE = '''

@@ -3,9 +3,6 @@ grid sampling; the figures are judged against the simulated cell's hidden truth.
 
 from __future__ import annotations
 
-import subprocess
-import sys
-
 import numpy as np
 import pytest
 
@@ -14,6 +11,7 @@ from hil.data.store import CampaignStore
 from hil.geometry.kinematics import tool_points
 from hil.geometry.se3 import fit_rigid, transform_points
 from procedures import grid_sampling, registration, tool_fit
+from tests.cli_in_process import run_hil
 from tests.sim_session import running_cell, session_on
 
 pytestmark = [pytest.mark.sim, pytest.mark.timeout(400)]
@@ -95,12 +93,9 @@ def test_the_campaign_holds_the_snapshot_the_log_and_the_step_results(campaign):
     assert "operator" in kinds  # every manual step is an event
 
 
-def test_the_export_is_a_dataset_diagnose_reads(campaign):
+def test_the_export_is_a_dataset_diagnose_reads(campaign, capsys):
     out = campaign["folder"] / "grid.csv"
-    done = subprocess.run(
-        [sys.executable, "-m", "hil", "campaign", "export", str(campaign["path"]), "--csv", str(out)],
-        capture_output=True, text=True,
-    )
+    done = run_hil("campaign", "export", str(campaign["path"]), "--csv", str(out), cwd=campaign["folder"], capsys=capsys)
     assert done.returncode == 0, done.stderr
     from hil.data.dataset import load_dataset
 
@@ -108,15 +103,14 @@ def test_the_export_is_a_dataset_diagnose_reads(campaign):
     assert len(df) == campaign["grid"].recorded + campaign["grid"].validation_recorded
 
 
-def test_dry_run_prints_the_plan_and_connects_to_nothing(campaign, tmp_path):
+def test_dry_run_prints_the_plan_and_connects_to_nothing(campaign, tmp_path, capsys):
     cell_toml = campaign["folder"] / "cell.toml"
     text = cell_toml.read_text().replace(campaign["config"].robot_host, "127.254.254.254")
     offline = tmp_path / "cell.toml"
     offline.write_text(text)  # nothing listens at that address: a dry run must not try
-    done = subprocess.run(
-        [sys.executable, "-m", "hil", "run", "grid_sampling", "--cell", str(offline), "--campaign", str(tmp_path / "c.sqlite"),
-         "--dry-run", "--step-mm", "150"],
-        capture_output=True, text=True, timeout=60,
+    done = run_hil(
+        "run", "grid_sampling", "--cell", str(offline), "--campaign", str(tmp_path / "c.sqlite"), "--dry-run", "--step-mm", "150",
+        cwd=tmp_path, capsys=capsys,
     )  # fmt: skip
     assert done.returncode == 0, done.stderr
     assert "plan of grid_sampling" in done.stdout and "estimated duration" in done.stdout

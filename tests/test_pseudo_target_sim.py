@@ -224,8 +224,8 @@ def test_unreachable_and_singular_targets_are_reported_and_not_visited(cell):
     assert "unreachable" in result.table() and "singular" in result.table()
 
 
-def test_cli_dry_run_plans_the_first_poses_and_bad_options_exit_2(cell, tmp_path):
-    import subprocess
+def test_cli_dry_run_plans_the_first_poses_and_bad_options_exit_2(cell, tmp_path, capsys):
+    from tests.cli_in_process import run_hil
 
     model_path = tmp_path / "model.json"
     cell["model"].save(model_path)
@@ -233,9 +233,6 @@ def test_cli_dry_run_plans_the_first_poses_and_bad_options_exit_2(cell, tmp_path
     offline = tmp_path / "cell.toml"
     offline.write_text(text)  # nothing listens there: a dry run must not try
     base = [
-        sys.executable,
-        "-m",
-        "hil",
         "run",
         "pseudo_target",
         "--cell",
@@ -243,12 +240,7 @@ def test_cli_dry_run_plans_the_first_poses_and_bad_options_exit_2(cell, tmp_path
         "--campaign",
         str(tmp_path / "c.sqlite"),
     ]
-    done = subprocess.run(
-        [*base, "--dry-run", "--model", str(model_path), "--targets", "5", "--smrs", "3"],
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+    done = run_hil(*base, "--dry-run", "--model", str(model_path), "--targets", "5", "--smrs", "3", cwd=tmp_path, capsys=capsys)
     assert done.returncode == 0, done.stderr
     assert "plan of pseudo_target: 5 poses" in done.stdout and "t005/i0" in done.stdout
     for bad in (
@@ -256,6 +248,6 @@ def test_cli_dry_run_plans_the_first_poses_and_bad_options_exit_2(cell, tmp_path
         ["--model", str(model_path), "--threshold-mm", "0"],
         ["--model", str(model_path), "--patience", "-1"],
     ):
-        done = subprocess.run([*base, "--dry-run", *bad], capture_output=True, text=True, timeout=120)
+        done = run_hil(*base, "--dry-run", *bad, cwd=tmp_path, capsys=capsys)
         assert done.returncode == 2 and "what to do" in done.stderr, done.stderr
     assert not (tmp_path / "c.sqlite").exists()

@@ -3,8 +3,6 @@ grid plans in random order and from both directions."""
 
 from __future__ import annotations
 
-import subprocess
-import sys
 import tomllib
 
 import numpy as np
@@ -12,37 +10,39 @@ import numpy as np
 from hil.runner.cell_config import format_cell_toml, parse_cell_config
 from procedures import grid_sampling
 from tests.cell_fixtures import sim_cell_toml
+from tests.cli_in_process import run_hil
 
 # Nothing listens there: a command that tried to connect would fail with a connection error instead.
 OFFLINE_HOST = "127.254.254.254"
 
 
-def _run(tmp_path, cell_text: str, *args: str) -> subprocess.CompletedProcess:
+def _run(tmp_path, cell_text: str, *args: str, capsys):
+    """`hil run` in process (the entry point as a process: test_campaign_faults)."""
     cell = tmp_path / "cell.toml"
     cell.write_text(cell_text.replace("127.0.0.9", OFFLINE_HOST))
-    command = [sys.executable, "-m", "hil", "run", *args[:1], "--cell", str(cell), "--campaign", str(tmp_path / "c.sqlite"), *args[1:]]
-    return subprocess.run(command, capture_output=True, text=True, timeout=60)
+    command = ["run", *args[:1], "--cell", str(cell), "--campaign", str(tmp_path / "c.sqlite"), *args[1:]]
+    return run_hil(*command, cwd=tmp_path, capsys=capsys)
 
 
-def test_a_broken_config_is_refused_before_anything_connects(tmp_path):
+def test_a_broken_config_is_refused_before_anything_connects(tmp_path, capsys):
     text = sim_cell_toml().replace("[envelope]\n", "[envelope]\nbox_size_mm = 3\n")
-    done = _run(tmp_path, text, "grid_sampling")
+    done = _run(tmp_path, text, "grid_sampling", capsys=capsys)
     assert done.returncode == 2
     assert "envelope.box_size_mm: unknown setting" in done.stderr and "what to do" in done.stderr
     assert not (tmp_path / "c.sqlite").exists()
 
 
-def test_a_sampling_box_outside_the_envelope_is_refused_before_any_motion(tmp_path):
+def test_a_sampling_box_outside_the_envelope_is_refused_before_any_motion(tmp_path, capsys):
     data = tomllib.loads(sim_cell_toml())
     data["envelope"]["box_min_mm"] = [-1500.0, -1500.0, 300.0]  # nothing may go below z = 300 mm
-    done = _run(tmp_path, format_cell_toml(data), "grid_sampling", "--box-min-mm", "200", "200", "0", "--box-max-mm", "700", "700", "250")
+    done = _run(tmp_path, format_cell_toml(data), "grid_sampling", "--box-min-mm", "200", "200", "0", "--box-max-mm", "700", "700", "250", capsys=capsys)
     assert done.returncode == 2
     assert "inside the envelope" in done.stderr and "what to do" in done.stderr, done.stderr
     assert not (tmp_path / "c.sqlite").exists()
 
 
-def test_an_unreachable_robot_is_a_clear_error(tmp_path):
-    done = _run(tmp_path, sim_cell_toml(), "registration")
+def test_an_unreachable_robot_is_a_clear_error(tmp_path, capsys):
+    done = _run(tmp_path, sim_cell_toml(), "registration", capsys=capsys)
     assert done.returncode == 2 and "Traceback" not in done.stderr
     lines = done.stderr.splitlines()
     assert len(lines) == 2, done.stderr  # the cause, then what to do: once each
@@ -52,30 +52,30 @@ def test_an_unreachable_robot_is_a_clear_error(tmp_path):
     assert not (tmp_path / "c.sqlite").exists()  # a failed start leaves no empty campaign
 
 
-def test_bad_procedure_options_are_refused(tmp_path):
-    done = _run(tmp_path, sim_cell_toml(), "grid_sampling", "--step-mm", "5")
+def test_bad_procedure_options_are_refused(tmp_path, capsys):
+    done = _run(tmp_path, sim_cell_toml(), "grid_sampling", "--step-mm", "5", capsys=capsys)
     assert done.returncode == 2 and "--step-mm 5" in done.stderr and "20..500 mm" in done.stderr
-    done = _run(tmp_path, sim_cell_toml(), "tool_fit", "--poses", "1")
+    done = _run(tmp_path, sim_cell_toml(), "tool_fit", "--poses", "1", capsys=capsys)
     assert done.returncode == 2 and "--poses 1" in done.stderr and "at least 2" in done.stderr
     assert not (tmp_path / "c.sqlite").exists()
 
 
-def test_a_flag_in_another_unit_or_an_unknown_procedure_is_refused(tmp_path):
-    done = _run(tmp_path, sim_cell_toml(), "grid_sampling", "--step-m", "0.1")  # metres, not millimetres
+def test_a_flag_in_another_unit_or_an_unknown_procedure_is_refused(tmp_path, capsys):
+    done = _run(tmp_path, sim_cell_toml(), "grid_sampling", "--step-m", "0.1", capsys=capsys)  # metres, not millimetres
     assert done.returncode == 2 and "use --step-mm" in done.stderr and "20..500 mm" in done.stderr
-    done = _run(tmp_path, sim_cell_toml(), "grid_sampling", "--tilt-rad", "0.2")
+    done = _run(tmp_path, sim_cell_toml(), "grid_sampling", "--tilt-rad", "0.2", capsys=capsys)
     assert done.returncode == 2 and "use --tilt-deg" in done.stderr
-    done = _run(tmp_path, sim_cell_toml(), "no_such_procedure")
+    done = _run(tmp_path, sim_cell_toml(), "no_such_procedure", capsys=capsys)
     assert done.returncode == 2 and "registration" in done.stderr and "grid_sampling" in done.stderr
     assert not (tmp_path / "c.sqlite").exists()
 
 
-def test_help_lists_every_procedure_and_its_declared_parameters():
-    listing = subprocess.run([sys.executable, "-m", "hil", "run", "--help"], capture_output=True, text=True, timeout=60)
+def test_help_lists_every_procedure_and_its_declared_parameters(tmp_path, capsys):
+    listing = run_hil("run", "--help", cwd=tmp_path, capsys=capsys)
     for name in ("registration", "tool_fit", "grid_sampling", "pseudo_target"):
         assert name in listing.stdout
     assert "flange frame" in listing.stdout  # tool_fit's purpose
-    own = subprocess.run([sys.executable, "-m", "hil", "run", "grid_sampling", "--help"], capture_output=True, text=True, timeout=60)
+    own = run_hil("run", "grid_sampling", "--help", cwd=tmp_path, capsys=capsys)
     assert "--step-mm MM" in own.stdout and "20..500 mm; default 100" in own.stdout
     assert "--tilt-deg DEG" in own.stdout
 
