@@ -294,3 +294,15 @@ def test_plot_headings_are_unique_when_one_effect_is_added_at_two_joints():
         "Residual against the driver of gravity_compliance joint 2",
         "Residual against the driver of gravity_compliance joint 3",
     ]
+
+
+def test_effect_coefficients_carry_their_units_into_the_report(gravity_cell_diagnosis):
+    from hil.analysis.report import in_report_units, render_html
+
+    *_, report = gravity_cell_diagnosis
+    rows = [p for step in report.steps for p in step.parameters]
+    assert rows and {p["unit"] for p in rows} == {"rad/m"}  # gravity compliance: rad per metre of lever arm
+    shown = in_report_units(rows[0])
+    assert shown["unit"] == "deg/m" and shown["value"] == pytest.approx(np.rad2deg(rows[0]["value"]))
+    assert in_report_units({"value": 2e-5, "std": None, "unit": "1/K"}) == {"value": 20.0, "std": None, "unit": "ppm/K"}
+    assert "<td>deg/m</td>" in render_html(report)

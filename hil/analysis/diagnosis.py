@@ -168,7 +168,9 @@ def _effect_params(result: CalibrationResult, eff_index: int) -> list[dict]:
     eff = model.effects[eff_index]
     out = []
     for nm, v in zip(eff.param_names, eff.params, strict=True):
-        out.append({"name": nm, "value": float(v), "std": result.honest_std(nm), "free": nm in result.std})
+        out.append(
+            {"name": nm, "value": float(v), "std": result.honest_std(nm), "unit": eff.coefficient_unit(), "free": nm in result.std}
+        )
     return out
 
 

@@ -142,6 +142,11 @@ class Effect:
     def coefficient_names(self) -> list[str]:
         raise NotImplementedError
 
+    def coefficient_unit(self) -> str:
+        """The SI unit of every coefficient: what the effect is in (rad for a joint offset, 1 for a growth
+        factor, m for a tracker offset) per unit of its regressor."""
+        raise NotImplementedError
+
     def prepare(self, ctx: EffectContext, nominal: KinematicModel) -> bool:
         """Fix the data-dependent state from training data; False when the data cannot show the effect."""
         self.params = np.zeros(len(self.coefficient_names()))
@@ -204,6 +209,9 @@ class GravityCompliance(Effect):
     def coefficient_names(self) -> list[str]:
         mix = self.state.get("mix")
         return [f"c{k + 1}" for k in range(np.shape(mix)[1])] if mix else ["c1"]
+
+    def coefficient_unit(self) -> str:
+        return "rad/m"  # joint deflection per metre of lever arm of the weight downstream
 
     def _levers(self, ctx: EffectContext, nominal: KinematicModel) -> np.ndarray:
         """Lever arms (N, K) in metres about joint `joint`'s axis of gravity on each downstream point."""
@@ -277,6 +285,9 @@ class Cyclic(Effect):
     def coefficient_names(self) -> list[str]:
         return [f"{f}{h}" for h in self.harmonics() for f in ("sin", "cos")]
 
+    def coefficient_unit(self) -> str:
+        return "rad"
+
     def prepare(self, ctx: EffectContext, nominal: KinematicModel) -> bool:
         span = float(np.ptp(ctx.q[:, self.joint_index]))
         harmonics = [h for h in (1, 2) if span >= CYCLIC_MIN_PERIODS * 2 * np.pi / h]
@@ -318,6 +329,9 @@ class Backlash(Effect):
     def coefficient_names(self) -> list[str]:
         return ["half_gap"]
 
+    def coefficient_unit(self) -> str:
+        return "rad"
+
     def prepare(self, ctx: EffectContext, nominal: KinematicModel) -> bool:
         s = self.regressors(ctx, nominal)[:, 0]
         self.params = np.zeros(1)
@@ -339,6 +353,9 @@ class JointScale(Effect):
 
     def coefficient_names(self) -> list[str]:
         return ["scale"]
+
+    def coefficient_unit(self) -> str:
+        return "rad/rad"
 
     def regressors(self, ctx: EffectContext, nominal: KinematicModel) -> np.ndarray:
         return ctx.q[:, self.joint_index : self.joint_index + 1]
@@ -378,6 +395,13 @@ class _Thermal(Effect):
 
     def regressors(self, ctx: EffectContext, nominal: KinematicModel) -> np.ndarray:
         return self.delta(ctx)[:, None]
+
+    def driver_unit(self) -> str:
+        """K for a temperature-driven effect, s for a time-driven one."""
+        return "K" if self.state.get("driver", "temperature_c") == "temperature_c" else "s"
+
+    def coefficient_unit(self) -> str:
+        return f"{'1' if self.kind == 'growth' else 'm'}/{self.driver_unit()}"
 
     def driver(self, ctx: EffectContext, nominal: KinematicModel) -> tuple[str, np.ndarray]:
         unit = "°C" if self.state["driver"] == "temperature_c" else "s"

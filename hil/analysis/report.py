@@ -226,6 +226,25 @@ def _head_html(report: DiagnosisReport, d: dict) -> list[str]:
     ]
 
 
+# SI unit of a coefficient -> (the unit a report shows, its factor): degrees, millimetres, ppm.
+REPORT_UNITS = {
+    "rad": ("deg", float(np.rad2deg(1.0))),
+    "rad/m": ("deg/m", float(np.rad2deg(1.0))),
+    "rad/rad": ("1", 1.0),
+    "1/K": ("ppm/K", 1e6),
+    "1/s": ("ppm/s", 1e6),
+    "m/K": ("mm/K", 1e3),
+    "m/s": ("mm/s", 1e3),
+}
+
+
+def in_report_units(row: dict) -> dict:
+    """An effect coefficient's row with its value and standard error in the report's units (deg, mm, ppm)."""
+    unit, factor = REPORT_UNITS.get(row.get("unit", ""), (row.get("unit", ""), 1.0))
+    scaled = {k: row[k] * factor if isinstance(row.get(k), float) else row.get(k) for k in ("value", "std")}
+    return {**row, **scaled, "unit": unit}
+
+
 def _effects_html(report: DiagnosisReport) -> list[str]:
     """Each effect added (or removed) with its gain, parameters and the candidates of its round."""
     parts = ["<h2>Effects added</h2>"]
@@ -243,7 +262,7 @@ def _effects_html(report: DiagnosisReport) -> list[str]:
             parts.append(
                 "<p>" + html.escape(", ".join(f"{k} = {v:.4g}" for k, v in step.summary.items())) + "</p>"
             )
-        parts.append(_table(step.parameters, ["name", "value", "std", "free"]))
+        parts.append(_table([in_report_units(row) for row in step.parameters], ["name", "value", "std", "unit", "free"]))
         if step.merged:
             parts.append(
                 "<p>Merged (not separable from the geometry): "

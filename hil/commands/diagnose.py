@@ -237,6 +237,7 @@ def _print_and_write(args: argparse.Namespace, report: DiagnosisReport) -> None:
     from hil.analysis.report import (
         conclusion,
         final_orientation_text,
+        in_report_units,
         plan_text,
         undecided_text,
         write_html,
@@ -256,9 +257,9 @@ def _print_and_write(args: argparse.Namespace, report: DiagnosisReport) -> None:
         verb = "removed " if step.action == "removed" else ""
         figures = ", ".join(f"{k} {v:.4g}" for k, v in step.summary.items())
         print(f"  {verb}{step.effect['name']}{f' joint {j}' if j else ''}: {figures}")
-        for p in step.parameters:
+        for p in map(in_report_units, step.parameters):
             std = "merged" if p["std"] is None else f"+- {p['std']:.2e}"
-            print(f"    {p['name']:<34} {p['value']: .4e} {std}")
+            print(f"    {p['name']:<34} {p['value']: .4e} {std} {p['unit']}")
     print(undecided_text(report))
     if report.plan is not None:
         print(plan_text(report.plan))
