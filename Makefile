@@ -21,8 +21,7 @@ demo: $(VENV)/.installed
 
 test: $(VENV)/.installed
 	$(VENV)/bin/ruff check .
-# enabled after the one-off format commit (reformatting the tree here would conflict with every branch):
-#	$(VENV)/bin/ruff format --check .
+	$(VENV)/bin/ruff format --check .
 	$(VENV)/bin/lint-imports
 	$(MAKE) --no-print-directory -j2 typecheck unit
 

@@ -221,7 +221,9 @@ def diagnosis_timing(seed: int) -> None:
     print(f"{'grid mm':>8} {'points':>7} {'time s':>7}  effects found")
     for step in (0.15, 0.10, 0.07):
         cell = SimulatedCell(SimCellConfig(robot="ur10", seed=seed, backlash=True))
-        df = simulate_campaign(cell, planned_joints(cell, lambda box, rng, step=step: grid_points(box, step), seed))
+        df = simulate_campaign(
+            cell, planned_joints(cell, lambda box, rng, step=step: grid_points(box, step), seed)
+        )
         t0 = time.perf_counter()
         report = run_diagnosis(df, "ur10")
         dt = time.perf_counter() - t0
@@ -246,7 +248,10 @@ def big_campaigns(seed: int, diagnose_poses: int = 12000, calibrate_poses: int =
     print(f"{'task':<34} {'poses':>7} {'time s':>8} {'target s':>9} {'peak RSS MB':>12}  result")
     cell = SimulatedCell(SimCellConfig(robot="ur10", seed=seed, backlash=True))
     df = simulate_campaign(
-        cell, planned_joints(cell, lambda box, rng: random_points(box, 2 * diagnose_poses, rng), seed + 1)[:diagnose_poses]
+        cell,
+        planned_joints(cell, lambda box, rng: random_points(box, 2 * diagnose_poses, rng), seed + 1)[
+            :diagnose_poses
+        ],
     )
     t0 = time.perf_counter()
     with warnings.catch_warnings():

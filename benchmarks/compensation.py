@@ -166,7 +166,9 @@ def main() -> None:
             # hil and rtb timed alternately, best of each: the machine's load shifts during a run.
             t_hil, t = np.inf, np.inf
             for _ in range(args.repeats):
-                t_hil = min(t_hil, best_time(lambda x=targets, g=gen: compensate(model, x, generator=g), 1)[0])
+                t_hil = min(
+                    t_hil, best_time(lambda x=targets, g=gen: compensate(model, x, generator=g), 1)[0]
+                )
                 dt, res = best_time(
                     lambda x=targets, g=gen, s=solve: compensate(
                         model, x, generator=g, threshold_m=THRESHOLD_M, max_iter=MAX_ITER, ik_solver=s

@@ -87,7 +87,9 @@ def main() -> None:
         seeds = [int(s) for s in args.seeds.split(",")]
     for name in args.cases.split(","):
         print(f"\n{name}: {CASES[name]['named']} named? validation RMS vs the true-effect model's")
-        print(f"{'seed':>4} {'poses':>5} {'named':>5} {'val mm':>7} {'truth mm':>8} {'ratio':>6} {'time s':>6}  effects")
+        print(
+            f"{'seed':>4} {'poses':>5} {'named':>5} {'val mm':>7} {'truth mm':>8} {'ratio':>6} {'time s':>6}  effects"
+        )
         rows = []
         for seed in seeds:
             r = run_case(name, seed)

@@ -60,7 +60,11 @@ def trial(k: int, folder: Path, hang_s: float) -> tuple[int | None, float]:
     except subprocess.TimeoutExpired:
         if shutil.which("gdb"):
             with open(folder / f"demo{k}.gdb.txt", "w") as dump:
-                subprocess.run(["gdb", "-p", str(process.pid), "-batch", "-ex", "thread apply all bt"], stdout=dump, stderr=subprocess.STDOUT)
+                subprocess.run(
+                    ["gdb", "-p", str(process.pid), "-batch", "-ex", "thread apply all bt"],
+                    stdout=dump,
+                    stderr=subprocess.STDOUT,
+                )
         os.killpg(process.pid, signal.SIGKILL)
         print(f"trial {k}: no exit within {hang_s:.0f} s; log and stacks in {folder}", flush=True)
         return None, float("inf")

@@ -71,7 +71,9 @@ def one_seed(seed: int, step_m: float) -> dict[str, dict]:
         }
         if "probe" in way:
             R = res.model.predict_rotation(val) @ np.swapaxes(orientations(val), 1, 2)
-            row["orientation_deg"] = float(np.rad2deg(np.sqrt(np.mean(Rotation.from_matrix(R).magnitude() ** 2))))
+            row["orientation_deg"] = float(
+                np.rad2deg(np.sqrt(np.mean(Rotation.from_matrix(R).magnitude() ** 2)))
+            )
         out[way] = row
     return out
 
@@ -112,6 +114,7 @@ def _median(rows: list[dict], f) -> float:
 def _rms(row: dict, names: list[str]) -> float:
     """RMS error of the named parameters against the injected ones, x 1e6 (urad or um)."""
     return float(np.sqrt(np.mean([row["errors"][n] ** 2 for n in names])) * 1e6)
+
 
 if __name__ == "__main__":
     main()

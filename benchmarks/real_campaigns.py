@@ -57,7 +57,9 @@ def to_contract(raw: pd.DataFrame, orientation: bool = True) -> pd.DataFrame:
     it cannot order or time the rows."""
     from hil.data.dataset import convert_orientation_convention, joint_columns, validate_dataset
 
-    out = pd.DataFrame({c: raw[name].to_numpy(float) for c, name in zip(joint_columns(6), JOINT_NAMES, strict=True)})
+    out = pd.DataFrame(
+        {c: raw[name].to_numpy(float) for c, name in zip(joint_columns(6), JOINT_NAMES, strict=True)}
+    )
     for ax in "xyz":
         out[f"{ax}_mm"] = raw[f"measurement_{ax}"].to_numpy(float)
     out["temperature_c"] = raw["measurement_temperature"].to_numpy(float)
@@ -82,21 +84,32 @@ def run(data_dir: Path, reregister: str, propose_n: int, orientation: bool) -> i
     data = {s: to_contract(read_raw(data_dir, s), orientation) for s in ("B", "C")}
     worse = 0
     on = "validate" if reregister == "none" else "validate, base re-registered"
-    print(f"{'train':<6}{'val':<5}{'rows':>6}{'plain mm':>10}{'final mm':>10}  effects  (reregister {reregister})")
+    print(
+        f"{'train':<6}{'val':<5}{'rows':>6}{'plain mm':>10}{'final mm':>10}  effects  (reregister {reregister})"
+    )
     for train, val in (("C", "B"), ("B", "C")):
         t0 = time.perf_counter()
         report = run_diagnosis(data[train], "ur10", df_validate=data[val], reregister_validation=reregister)
         plain, final = _rms(report.stages, on)
         worse += final > plain * 1.0001
-        named = ", ".join(f"{e['name']} j{e['joint']}" if e["joint"] else e["name"] for e in report.to_dict()["effects_added"])
-        print(f"{train:<6}{val:<5}{len(data[train]):>6}{plain:>10.3f}{final:>10.3f}  {named or 'none'}  ({time.perf_counter() - t0:.0f} s)")
+        named = ", ".join(
+            f"{e['name']} j{e['joint']}" if e["joint"] else e["name"]
+            for e in report.to_dict()["effects_added"]
+        )
+        print(
+            f"{train:<6}{val:<5}{len(data[train]):>6}{plain:>10.3f}{final:>10.3f}  {named or 'none'}  ({time.perf_counter() - t0:.0f} s)"
+        )
         if propose_n:
             sigma = float(np.sqrt(np.mean(report.noise.sigma_axis_m**2)))
             plan = propose(data[train], report.model, report.undecided, propose_n, sigma)
             kinds = ", ".join(sorted({q["kind"] for q in report.undecided})) or "none"
             print(f"      open questions: {kinds}")
             for g in plan.groups:
-                extra = f", evidence z {g['evidence_z_before']:.2g} -> {g['evidence_z_after']:.2g}" if "evidence_z_after" in g else ""
+                extra = (
+                    f", evidence z {g['evidence_z_before']:.2g} -> {g['evidence_z_after']:.2g}"
+                    if "evidence_z_after" in g
+                    else ""
+                )
                 print(f"      plan {g['purpose']}: {g['rows']} rows{extra}")
             for g in plan.not_planned:
                 qu = g["question"]
@@ -108,13 +121,17 @@ def run(data_dir: Path, reregister: str, propose_n: int, orientation: bool) -> i
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("data", nargs="?", default=os.environ.get("HIL_REAL_DATA"), help="the data repository")
+    parser.add_argument(
+        "data", nargs="?", default=os.environ.get("HIL_REAL_DATA"), help="the data repository"
+    )
     parser.add_argument("--reregister", default="base", choices=("none", "base", "base+tool"))
     parser.add_argument("--propose", type=int, default=100, help="plan size to ask for (0: no plan)")
     parser.add_argument("--positions-only", action="store_true", help="ignore the probe's orientation")
     args = parser.parse_args()
     if not args.data or not Path(args.data).exists():
-        print("real_campaigns: no data (give the ipa-robot-accuracy repository as DATA_DIR or HIL_REAL_DATA); skipped")
+        print(
+            "real_campaigns: no data (give the ipa-robot-accuracy repository as DATA_DIR or HIL_REAL_DATA); skipped"
+        )
         return 0
     return run(Path(args.data), args.reregister, args.propose, not args.positions_only)
 

@@ -127,7 +127,9 @@ class InstantTracker:
         from hil.instruments.tracker import TrackerMeasurement
 
         zero = np.zeros(3)
-        return TrackerMeasurement(np.ones(3), zero, zero, 0.0, np.ones((shots, 3)), (), 20.0, 1013.0, 40.0, time.time(), 1)
+        return TrackerMeasurement(
+            np.ones(3), zero, zero, 0.0, np.ones((shots, 3)), (), 20.0, 1013.0, 40.0, time.time(), 1
+        )
 
     def point_at(self, p_tracker_m):
         pass
@@ -151,7 +153,9 @@ def runner_alone(step_mm: float, validation: int) -> dict:
     with tempfile.TemporaryDirectory() as folder:
         store = CampaignStore(Path(folder) / "campaign.sqlite")
         robot = InstantRobot(config.q_home_rad, config.nominal)
-        session = Session(config, robot, InstantTracker(), store, ScriptedOperator({"place_smr": lambda step: None}))
+        session = Session(
+            config, robot, InstantTracker(), store, ScriptedOperator({"place_smr": lambda step: None})
+        )
         with session:
             session.finish_step("registration", "fit", {"T_tracker_base": np.eye(4).tolist(), "rms_mm": 1.0})
             t0 = time.perf_counter()
@@ -186,7 +190,9 @@ def grid_on_sim(step_mm: float, validation: int, time_scale: float) -> dict:
             session.tracker = timed_proxy(session.tracker, totals, "tracker")
             session.store = timed_proxy(session.store, totals, "store")
             t0 = time.perf_counter()
-            grid_sampling.PROCEDURE.make_plan(config, step_m=step_mm / 1e3, validation=validation)  # what run() plans first
+            grid_sampling.PROCEDURE.make_plan(
+                config, step_m=step_mm / 1e3, validation=validation
+            )  # what run() plans first
             plan_s = time.perf_counter() - t0
             t0 = time.perf_counter()
             result = grid_sampling.PROCEDURE(session, step_m=step_mm / 1e3, validation=validation)
@@ -244,12 +250,16 @@ def main() -> None:
         ms = t * 1000
         print(f"{name:<34}{len(ms):>7}{np.median(ms):>11.3f}{np.percentile(ms, 99):>9.3f}{ms.max():>9.3f}")
     alone = runner_alone(100.0, 50)
-    print(f"\nrunner alone (instant robot and tracker, 100 mm grid + 50 validation): {alone['points']} points, "
-          f"{alone['per_point_ms']:.2f} ms per point beyond the instruments (planning excluded)")
+    print(
+        f"\nrunner alone (instant robot and tracker, 100 mm grid + 50 validation): {alone['points']} points, "
+        f"{alone['per_point_ms']:.2f} ms per point beyond the instruments (planning excluded)"
+    )
     if args.no_sim:
         return
     r = grid_on_sim(args.step_mm, args.validation, args.time_scale)
-    print(f"\ngrid campaign on hil sim ({args.step_mm:g} mm, {args.validation} validation, --time-scale {args.time_scale:g})")
+    print(
+        f"\ngrid campaign on hil sim ({args.step_mm:g} mm, {args.validation} validation, --time-scale {args.time_scale:g})"
+    )
     print(
         f"{'points':>7}{'wall s':>9}{'points/min':>12}{'runner ms/pt':>14}{'w/o planning':>14}{'of it store':>13}"
         f"{'robot ms/pt':>13}{'tracker ms/pt':>15}"
@@ -258,8 +268,12 @@ def main() -> None:
         f"{r['points']:>7}{r['wall_s']:>9.1f}{r['points_per_min']:>12.1f}{r['runner_ms']:>14.2f}{r['per_point_ms']:>14.2f}"
         f"{r['store_ms']:>13.2f}{r['robot_ms']:>13.1f}{r['tracker_ms']:>15.1f}"
     )
-    print("runner ms/pt: time per point outside the robot and tracker drivers (w/o planning: less the one-off")
-    print("plan of the whole grid); 'of it store': the campaign store's calls (the resume check and the durable")
+    print(
+        "runner ms/pt: time per point outside the robot and tracker drivers (w/o planning: less the one-off"
+    )
+    print(
+        "plan of the whole grid); 'of it store': the campaign store's calls (the resume check and the durable"
+    )
     print("commit, fsync included)")
 
 

@@ -148,7 +148,9 @@ class EmsconConfig:
         if not 0 < self.meas_time_s <= 3600:
             raise TrackerConfigError(f"meas_time_s must be in (0, 3600] s, got {self.meas_time_s}")
         if self.coordinate_system not in codec.SUPPORTED_SYSTEMS:
-            raise TrackerConfigError(f"coordinate_system must be RHR, SCC or SCW, got {self.coordinate_system!r}")
+            raise TrackerConfigError(
+                f"coordinate_system must be RHR, SCC or SCW, got {self.coordinate_system!r}"
+            )
 
 
 class EmsconTracker:
@@ -474,7 +476,9 @@ class EmsconTracker:
                         )
                     if command == Command.GET_REFLECTORS:
                         if packet.values is None:
-                            raise TrackerProtocolError("GetReflectors answered without a reflector count", packet.raw)
+                            raise TrackerProtocolError(
+                                "GetReflectors answered without a reflector count", packet.raw
+                            )
                         expected = max(1, packet.values[0])
                 elif isinstance(packet, codec.MeasResultPacket):
                     if not result:

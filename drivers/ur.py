@@ -633,7 +633,6 @@ class URRobot:
         self.close()
 
 
-
 class URDriver:
     """The `ur` instrument plug-in (entry point in pyproject.toml): UR arms through ur-rtde."""
 

@@ -46,7 +46,6 @@ JOINT_STIFFNESS: dict[str, tuple[float, ...]] = {
 }
 
 
-
 class EffectFlags(TypedDict, total=False):
     """SimCellConfig flags of the physical effects a cell can switch on beside its hidden geometric errors."""
 

@@ -62,7 +62,13 @@ class SimulatedCellPlugin:
 
     @contextmanager
     def launch(
-        self, robot: str, seed: int, time_scale: float, effects: str, host: str | None = None, control_port: int = 0
+        self,
+        robot: str,
+        seed: int,
+        time_scale: float,
+        effects: str,
+        host: str | None = None,
+        control_port: int = 0,
     ) -> Iterator[RunningCell]:
         """Start `python -m fakes.sim` on a free loopback address (or `host`, control on `control_port`);
         stopped when the context ends."""

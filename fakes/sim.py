@@ -41,7 +41,9 @@ def effects_from_args(args: argparse.Namespace) -> EffectFlags:
     try:
         return parse_effect_flags(args.effects)
     except ValueError as exc:
-        raise SimOptionError(str(exc), f"name effects from {', '.join(CELL_EFFECTS)}, comma-separated, or none") from exc
+        raise SimOptionError(
+            str(exc), f"name effects from {', '.join(CELL_EFFECTS)}, comma-separated, or none"
+        ) from exc
 
 
 def add_sim_arguments(parser: argparse.ArgumentParser) -> None:
@@ -76,10 +78,13 @@ def add_sim_arguments(parser: argparse.ArgumentParser) -> None:
 def sim_options(args: argparse.Namespace) -> SimOptions:
     """SimOptions from the arguments of `add_sim_arguments`; a bad value is a SimOptionError."""
     if not is_loopback_host(args.host):
-        raise SimOptionError(f"--host {args.host} is not a loopback address", "give an IPv4 address in 127.0.0.0/8")
+        raise SimOptionError(
+            f"--host {args.host} is not a loopback address", "give an IPv4 address in 127.0.0.0/8"
+        )
     if args.time_scale <= 0:
         raise SimOptionError(
-            f"--time-scale {args.time_scale:g} is not positive", "give simulated seconds per wall second, e.g. 10"
+            f"--time-scale {args.time_scale:g} is not positive",
+            "give simulated seconds per wall second, e.g. 10",
         )
     return SimOptions(
         host=args.host,

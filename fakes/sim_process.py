@@ -46,7 +46,9 @@ class SimOptions:
     tracker_port: int = 7000
     script_start_delay_s: float = 0.05
     powered: bool = True
-    effects: EffectFlags = field(default_factory=lambda: EffectFlags())  # e.g. {'thermal': True}; unset: defaults
+    effects: EffectFlags = field(
+        default_factory=lambda: EffectFlags()
+    )  # e.g. {'thermal': True}; unset: defaults
     # Called with (ready line, ground truth) once every server listens, before the ready line is printed
     # (e.g. `hil sim --write-cell` writes the cell configuration for this cell).
     on_ready: Callable[[dict, dict], None] | None = None

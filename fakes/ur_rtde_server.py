@@ -38,7 +38,9 @@ class RtdeController(Protocol):
 class RtdeConnection:
     """State of one RTDE client: its recipes, whether it streams, and its writer."""
 
-    def __init__(self, controller: RtdeController, reader: asyncio.StreamReader, writer: asyncio.StreamWriter):
+    def __init__(
+        self, controller: RtdeController, reader: asyncio.StreamReader, writer: asyncio.StreamWriter
+    ):
         self.controller = controller
         self.reader = reader
         self.writer = writer

@@ -33,7 +33,10 @@ class OneLineErrorParser(argparse.ArgumentParser):
     """An argument parser whose usage errors follow the CLI convention (message, what to do; exit 2)."""
 
     def error(self, message: str):  # type: ignore[override]
-        print(CliError(message, f"see '{self.prog} --help'").render(self.prog.removeprefix("hil ")), file=sys.stderr)
+        print(
+            CliError(message, f"see '{self.prog} --help'").render(self.prog.removeprefix("hil ")),
+            file=sys.stderr,
+        )
         raise SystemExit(EXIT_USAGE)
 
 
@@ -67,7 +70,9 @@ def build_parser(load: Iterable[str] | None = None) -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action=_VersionAction, help="show the version of hil and exit")
     parser.add_argument(
-        "--verbose", action="store_true", help="also show what the instrument libraries print (anywhere on the line)"
+        "--verbose",
+        action="store_true",
+        help="also show what the instrument libraries print (anywhere on the line)",
     )
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, (module_name, help_line) in COMMANDS.items():

@@ -106,18 +106,35 @@ class _Campaign:
     def diagnose(self, train: pd.DataFrame) -> DiagnosisReport:
         fit = self.store.step_result("tool_fit", "fit")
         nest = str(self.nest(train))
-        tool = np.array(fit["nests_flange_mm"][nest], float) / 1e3 if fit and nest in fit["nests_flange_mm"] else None
-        return run_diagnosis(train, self.config.nominal, df_validate=self.validation(), seed=self.seed, tool_guess_m=tool)
+        tool = (
+            np.array(fit["nests_flange_mm"][nest], float) / 1e3
+            if fit and nest in fit["nests_flange_mm"]
+            else None
+        )
+        return run_diagnosis(
+            train, self.config.nominal, df_validate=self.validation(), seed=self.seed, tool_guess_m=tool
+        )
 
-    def next_rows(self, number: int, rounds: int, poses: int, train: pd.DataFrame, before: DiagnosisReport) -> tuple[_Rows | None, str]:
+    def next_rows(
+        self, number: int, rounds: int, poses: int, train: pd.DataFrame, before: DiagnosisReport
+    ) -> tuple[_Rows | None, str]:
         """Round `number`'s poses (its recorded plan when it was started before), or None and why not."""
         if number > rounds:
             return None, f"{rounds} round(s) done (the --rounds limit)"
         pinned = self.store.step_result(NAME, f"round{number}/plan")
         admissible = measurable(self.config, self.nest(train))
-        if pinned is not None:  # a resumed round: its recorded plan, less poses this cell config cannot measure
+        if (
+            pinned is not None
+        ):  # a resumed round: its recorded plan, less poses this cell config cannot measure
             q = np.asarray(pinned["q_rad"], float).reshape(-1, 6)
-            rows = _Rows(number, q, list(pinned["purpose"]), list(pinned["groups"]), list(pinned.get("not_planned", [])), admissible(q))
+            rows = _Rows(
+                number,
+                q,
+                list(pinned["purpose"]),
+                list(pinned["groups"]),
+                list(pinned.get("not_planned", [])),
+                admissible(q),
+            )
             return rows, ""
         if not plannable(before):
             return None, "nothing is left undecided that poses can decide"
@@ -135,7 +152,9 @@ def motion_plan(config: CellConfig, rows: _Rows, nest: int) -> Plan:
     location = f"nest{nest}"
     setup = (OperatorStep(f"Put SMR 1 in tool nest {nest}.", "place_smr", smr=1, location=location),)
     poses = [
-        PlannedPose(f"a{rows.number}-{i + 1:03d}", NAME, f"round{rows.number}", q, location, smr=nest, setup=setup)
+        PlannedPose(
+            f"a{rows.number}-{i + 1:03d}", NAME, f"round{rows.number}", q, location, smr=nest, setup=setup
+        )
         for i, q in enumerate(rows.q_rad)
         if rows.keep[i]
     ]
@@ -143,7 +162,9 @@ def motion_plan(config: CellConfig, rows: _Rows, nest: int) -> Plan:
     return Plan(NAME, poses, config, operator_steps=1, dropped=dropped)
 
 
-def plan(config: CellConfig, *, campaign: str | Path | None = None, rounds: int, poses: int, seed: int) -> Plan:
+def plan(
+    config: CellConfig, *, campaign: str | Path | None = None, rounds: int, poses: int, seed: int
+) -> Plan:
     """The next round's poses on this campaign (for --dry-run): the campaign is diagnosed, nothing moves."""
     if campaign is None or not Path(campaign).exists():
         raise ValueError("the active loop plans from a campaign's grid: give --campaign with a measured grid")
@@ -161,7 +182,9 @@ def plan(config: CellConfig, *, campaign: str | Path | None = None, rounds: int,
     return motion_plan(config, rows, nest)
 
 
-def run_loop(session: Session, *, rounds: int, poses: int, seed: int, shots: int | None = None) -> ActiveLoopResult:
+def run_loop(
+    session: Session, *, rounds: int, poses: int, seed: int, shots: int | None = None
+) -> ActiveLoopResult:
     """Diagnose, plan, measure, diagnose again, for at most `rounds` rounds of at most `poses` poses; resumable."""
     session.require_registration()
     state = _Campaign(session.store, session.config, seed)
@@ -198,10 +221,25 @@ PROCEDURE = Procedure(
     purpose="measure the poses that decide what the grid's diagnosis leaves undecided, diagnose again, repeat",
     instruction=__doc__ or "",
     parameters=(
-        Parameter("rounds", "rounds of plan, measure, diagnose (fewer when nothing is left undecided)", 2, int, minimum=1, maximum=5),
+        Parameter(
+            "rounds",
+            "rounds of plan, measure, diagnose (fewer when nothing is left undecided)",
+            2,
+            int,
+            minimum=1,
+            maximum=5,
+        ),
         Parameter("poses", "poses per round at most", 100, int, minimum=1, maximum=500),
-        Parameter("seed", "seed of the diagnosis' folds and of the plan's candidate poses", 0, int, minimum=0),
-        Parameter("shots", "tracker shots per point (default: the cell's tracker.shots_per_point)", None, int, minimum=1),
+        Parameter(
+            "seed", "seed of the diagnosis' folds and of the plan's candidate poses", 0, int, minimum=0
+        ),
+        Parameter(
+            "shots",
+            "tracker shots per point (default: the cell's tracker.shots_per_point)",
+            None,
+            int,
+            minimum=1,
+        ),
     ),
     plan=plan,
     body=run_loop,

@@ -49,10 +49,14 @@ class GridResult:
     validation_recorded: int
 
 
-def sampling_box(config: CellConfig, box_min_m: Sequence[float] | None, box_max_m: Sequence[float] | None) -> Box:
+def sampling_box(
+    config: CellConfig, box_min_m: Sequence[float] | None, box_max_m: Sequence[float] | None
+) -> Box:
     """The box to sample (robot base frame): the one given, else a reachable box in front of the tracker."""
     if (box_min_m is None) != (box_max_m is None):
-        raise ValueError("give both --box-min-mm and --box-max-mm, or neither (default box in front of the tracker)")
+        raise ValueError(
+            "give both --box-min-mm and --box-max-mm, or neither (default box in front of the tracker)"
+        )
     if box_min_m is None or box_max_m is None:
         return workspace_box(config.nominal, config.p_base_tracker_m)
     return Box.from_limits(np.asarray(box_min_m, float), np.asarray(box_max_m, float))
@@ -84,7 +88,9 @@ def plan(
         T = facing_poses(points, config.p_base_tracker_m, rng, tilt_deg=float(np.rad2deg(tilt_rad)))
         joints = plan_joints(config.nominal, T, p_nest, q_near=config.q_home_rad)
         reason = joints.reason.copy()
-        reason[joints.usable & config.envelope.outside(config.nominal, joints.q, config.nests_flange_m)] = "envelope"
+        reason[joints.usable & config.envelope.outside(config.nominal, joints.q, config.nests_flange_m)] = (
+            "envelope"
+        )
         for r in reason[reason != "ok"]:
             dropped[str(r)] = dropped.get(str(r), 0) + 1
         keep = reason == "ok"
@@ -102,7 +108,16 @@ def plan(
     setup = (OperatorStep(f"Put SMR 1 in tool nest {nest}.", "place_smr", smr=1, location=location),)
 
     def pose(point_id: str, step: str, q: np.ndarray) -> PlannedPose:
-        return PlannedPose(point_id, NAME, step, q, location, smr=nest, approach_q_rad=approach_pose(point_id, q), setup=setup)
+        return PlannedPose(
+            point_id,
+            NAME,
+            step,
+            q,
+            location,
+            smr=nest,
+            approach_q_rad=approach_pose(point_id, q),
+            setup=setup,
+        )
 
     suffixes = ("+", "-") if both_directions else ("",)
     poses = [pose(ids[i] + s, "grid", q_grid[i]) for i in visit for s in suffixes]
@@ -153,17 +168,40 @@ PROCEDURE = Procedure(
     purpose="measure the robot over its working volume: a grid (100-200 mm step) and held-out validation poses",
     instruction=__doc__ or "",
     parameters=(
-        Parameter("step", "grid step (the papers use 100-200)", 100.0, float, unit="mm", minimum=20.0, maximum=500.0),
-        Parameter("box_min", "sampling box corner x y z, base frame (default: a box facing the tracker)", None, float, unit="mm", count=3),
+        Parameter(
+            "step", "grid step (the papers use 100-200)", 100.0, float, unit="mm", minimum=20.0, maximum=500.0
+        ),
+        Parameter(
+            "box_min",
+            "sampling box corner x y z, base frame (default: a box facing the tracker)",
+            None,
+            float,
+            unit="mm",
+            count=3,
+        ),
         Parameter("box_max", "opposite box corner x y z", None, float, unit="mm", count=3),
         Parameter("orientations", "tool orientations per grid vertex", 1, int, minimum=1),
         Parameter("order", "visiting order", "travel", str, choices=ORDERS),
         Parameter("both_directions", "approach each vertex from below and from above", False, bool),
         Parameter("validation", "random held-out validation poses", 50, int, minimum=0),
         Parameter("nest", "tool nest holding the SMR", 1, int, minimum=1),
-        Parameter("tilt", "max tilt of the SMR from the tracker line (beyond 30 the SMR turns out of the beam)", 20.0, float, unit="deg", minimum=0.0, maximum=30.0),
+        Parameter(
+            "tilt",
+            "max tilt of the SMR from the tracker line (beyond 30 the SMR turns out of the beam)",
+            20.0,
+            float,
+            unit="deg",
+            minimum=0.0,
+            maximum=30.0,
+        ),
         Parameter("seed", "seed of the orientations and validation poses", 0, int, minimum=0),
-        Parameter("shots", "tracker shots per point (default: the cell's tracker.shots_per_point)", None, int, minimum=1),
+        Parameter(
+            "shots",
+            "tracker shots per point (default: the cell's tracker.shots_per_point)",
+            None,
+            int,
+            minimum=1,
+        ),
     ),
     plan=plan,
     body=sample,

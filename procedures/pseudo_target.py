@@ -339,7 +339,9 @@ def start_joints(config: CellConfig, ik_model: CalibratedModel, model: Calibrate
         status[np.flatnonzero(ok)[sigma < SINGULAR_SIGMA_M]] = "singular"
         ok = status == "ok"
     if ok.any():
-        status[np.flatnonzero(ok)[config.envelope.outside(config.nominal, q[ok], config.nests_flange_m)]] = "envelope"
+        status[np.flatnonzero(ok)[config.envelope.outside(config.nominal, q[ok], config.nests_flange_m)]] = (
+            "envelope"
+        )
     q = np.where((status == "ok")[:, None], q, np.nan)
     return Start(q, q_plain, status.astype(str))
 
@@ -402,7 +404,9 @@ def close_the_loop(session: Session, *, model: CalibratedModel | str | None, tar
         the_model if the_model is not None else nominal_model(session.config, T_tb, session.nest_flange_m(1))
     )
     T_d = resolve_targets(targets, session.config, ik_model, seed, smrs)
-    _pin_targets(session, T_d, generator, round(threshold_m * 1e3, 12), max_iter, smrs, the_model is not None, patience)
+    _pin_targets(
+        session, T_d, generator, round(threshold_m * 1e3, 12), max_iter, smrs, the_model is not None, patience
+    )
     nominal_ik = nominal_model(session.config, T_tb, ik_model.tools[1])
     start = start_joints(session.config, nominal_ik, the_model, T_d, generator, threshold_m)
     loop = _Loop(session, ik_model, T_d, generator, threshold_m, max_iter, smrs, shots, patience)
@@ -486,7 +490,9 @@ class _Loop:
             NAME, STEP, point_id, q, smr=nest, location=f"nest{nest}", p_flange_m=self.nests[nest - 1],
             shots=self.shots, extra={"target": point_id.split("/")[0]},
         )  # fmt: skip
-        self.sigma_m = max(self.sigma_m, measurement_sigma_m(record.p_tracker_m, record.spread_m, record.shots))
+        self.sigma_m = max(
+            self.sigma_m, measurement_sigma_m(record.p_tracker_m, record.spread_m, record.shots)
+        )
         return np.asarray(record.p_tracker_m, float)
 
     def measure(self, base_id: str, q: np.ndarray) -> np.ndarray:
@@ -551,16 +557,55 @@ PROCEDURE = Procedure(
     purpose="put the SMR on targets, measured: model-based start, then pseudo-target corrections",
     instruction=__doc__ or "",
     parameters=(
-        Parameter("model", "calibrated model (model.json from hil calibrate / hil diagnose)", None, str, required=True),
-        Parameter("targets", "N random held-out targets in the sampled volume, or a CSV: x_mm, y_mm, z_mm (tracker frame) [, rx_deg, ry_deg, rz_deg]", "20", str),
+        Parameter(
+            "model",
+            "calibrated model (model.json from hil calibrate / hil diagnose)",
+            None,
+            str,
+            required=True,
+        ),
+        Parameter(
+            "targets",
+            "N random held-out targets in the sampled volume, or a CSV: x_mm, y_mm, z_mm (tracker frame) [, rx_deg, ry_deg, rz_deg]",
+            "20",
+            str,
+        ),
         Parameter("generator", "pseudo-target generator", "yin", str, choices=tuple(GENERATORS)),
-        Parameter("threshold", "stop below this measured error", 0.01, float, unit="mm", minimum=0.0005, maximum=10.0),
+        Parameter(
+            "threshold",
+            "stop below this measured error",
+            0.01,
+            float,
+            unit="mm",
+            minimum=0.0005,
+            maximum=10.0,
+        ),
         Parameter("max_iter", "measured corrections per target", 3, int, minimum=0, maximum=20),
-        Parameter("patience", "stop a target after this many corrections in a row that do not beat its best error by more than the measurement noise (1 sigma of the tracker's noise model or the shot spread, whichever is larger); status no_improvement, best joints kept; 0 = off", PATIENCE, int, minimum=0, maximum=20),
-        Parameter("smrs", "1: position (SMR in nest 1); 3: pose (SMRs in nests 1-3)", 1, int, choices=SMR_MODES),
+        Parameter(
+            "patience",
+            "stop a target after this many corrections in a row that do not beat its best error by more than the measurement noise (1 sigma of the tracker's noise model or the shot spread, whichever is larger); status no_improvement, best joints kept; 0 = off",
+            PATIENCE,
+            int,
+            minimum=0,
+            maximum=20,
+        ),
+        Parameter(
+            "smrs", "1: position (SMR in nest 1); 3: pose (SMRs in nests 1-3)", 1, int, choices=SMR_MODES
+        ),
         Parameter("seed", "seed of the random targets", 0, int, minimum=0),
-        Parameter("shots", "tracker shots per point (default: the cell's tracker.shots_per_point)", None, int, minimum=1),
-        Parameter("measure_uncompensated", "also measure each target's plain nominal IK once (the uncompensated row)", False, bool),
+        Parameter(
+            "shots",
+            "tracker shots per point (default: the cell's tracker.shots_per_point)",
+            None,
+            int,
+            minimum=1,
+        ),
+        Parameter(
+            "measure_uncompensated",
+            "also measure each target's plain nominal IK once (the uncompensated row)",
+            False,
+            bool,
+        ),
     ),
     plan=plan,
     body=close_the_loop,

@@ -40,7 +40,13 @@ def plan(config: CellConfig, *, poses: int, nest: int, seed: int) -> Plan:
     rng = np.random.default_rng(seed)
     box = workspace_box(config.nominal, config.p_base_tracker_m)
     shrunk = Box(box.centre_m, 0.8 * box.axes_m)
-    candidates = np.vstack([shrunk.centre_m, shrunk.corners(), shrunk.centre_m + rng.uniform(-1, 1, (3 * poses, 3)) @ shrunk.axes_m.T])
+    candidates = np.vstack(
+        [
+            shrunk.centre_m,
+            shrunk.corners(),
+            shrunk.centre_m + rng.uniform(-1, 1, (3 * poses, 3)) @ shrunk.axes_m.T,
+        ]
+    )
     T = facing_poses(candidates, config.p_base_tracker_m, rng, tilt_deg=15.0, roll_deg=60.0)
     joints = plan_joints(config.nominal, T, config.nests_flange_m[nest - 1], q_near=config.q_home_rad)
     usable = joints.usable & ~config.envelope.outside(config.nominal, joints.q, config.nests_flange_m)
@@ -78,13 +84,19 @@ def register(session: Session, *, poses: int, nest: int, seed: int, inlier_m: fl
     session.visit(the_plan, aim=False, reaim=reaim)
     records = session.recorded_points(NAME, "poses")
     if len(records.point_id) < 6:
-        raise CampaignStopped(f"only {len(records.point_id)} registration points recorded", "re-run registration to measure the rest")
+        raise CampaignStopped(
+            f"only {len(records.point_id)} registration points recorded",
+            "re-run registration to measure the rest",
+        )
     p_base = tool_points(session.nominal, records.q_rad, p_nest)
     fit = ransac_rigid(p_base, records.p_tracker_m, inlier_m=inlier_m, seed=seed)
     session.finish_step(NAME, "fit", fit.as_result(records.point_id))
     session.log.info(
         "registration: %d of %d points fit, RMS %.3f mm, max %.3f mm",
-        int(fit.inliers.sum()), len(fit.inliers), fit.rms_m * 1e3, fit.max_m * 1e3,
+        int(fit.inliers.sum()),
+        len(fit.inliers),
+        fit.rms_m * 1e3,
+        fit.max_m * 1e3,
     )
     return RegistrationResult(fit, len(records.point_id))
 

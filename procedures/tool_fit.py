@@ -52,7 +52,12 @@ def hole_points_flange(config: CellConfig) -> dict[str, np.ndarray]:
     k = np.arange(1, 7)
     angles = np.deg2rad((k - 3.5) * 60.0)
     seat = np.sqrt(config.smr_radius_m**2 - (config.hole_diameter_m / 2) ** 2)
-    points = {f"hole{i}": np.array([config.hole_circle_radius_m * np.cos(a), config.hole_circle_radius_m * np.sin(a), seat]) for i, a in zip(k, angles, strict=True)}
+    points = {
+        f"hole{i}": np.array(
+            [config.hole_circle_radius_m * np.cos(a), config.hole_circle_radius_m * np.sin(a), seat]
+        )
+        for i, a in zip(k, angles, strict=True)
+    }
     points["hole7"] = np.array([config.hole7_radius_m, 0.0, seat])
     points["face"] = np.array([*face_point(config), config.smr_radius_m])
     return points
@@ -87,9 +92,29 @@ def plan(config: CellConfig, *, poses: int, check_poses: int, seed: int) -> Plan
     nests = [f"nest{j}" for j in range(1, len(config.nests_flange_m) + 1)]
     for k, q in enumerate(q_fit, start=1):
         for location in [*(f"hole{h}" for h in HOLES), "face", *nests]:
-            steps.append(PlannedPose(f"p{k}/{location}", NAME, f"pose{k}", q, location, p_flange_m=nominal[location], setup=seat[location]))
+            steps.append(
+                PlannedPose(
+                    f"p{k}/{location}",
+                    NAME,
+                    f"pose{k}",
+                    q,
+                    location,
+                    p_flange_m=nominal[location],
+                    setup=seat[location],
+                )
+            )
     for k, q in enumerate(q_check, start=1):
-        steps.append(PlannedPose(f"c{k:02d}", NAME, "distance_check", q, "nest1", p_flange_m=nominal["nest1"], setup=seat["nest1"]))
+        steps.append(
+            PlannedPose(
+                f"c{k:02d}",
+                NAME,
+                "distance_check",
+                q,
+                "nest1",
+                p_flange_m=nominal["nest1"],
+                setup=seat["nest1"],
+            )
+        )
     operator = poses * (len(HOLES) + 1 + len(nests)) + 1
     return Plan(NAME, steps, config, operator_steps=operator)
 
@@ -107,8 +132,14 @@ def _seating_steps(config: CellConfig) -> dict[str, tuple[OperatorStep, ...]]:
     steps: dict[str, tuple[OperatorStep, ...]] = {}
     for location in nominal_points(config):
         where = location.replace("nest", "tool nest ").replace("hole", "flange hole ")
-        text = "Rest SMR 1 on the flange face, opposite hole 7." if location == "face" else f"Seat SMR 1 in {where}."
-        steps[location] = (OperatorStep(text, "place_smr", smr=1, location=location, face_point_m=face_point(config)),)
+        text = (
+            "Rest SMR 1 on the flange face, opposite hole 7."
+            if location == "face"
+            else f"Seat SMR 1 in {where}."
+        )
+        steps[location] = (
+            OperatorStep(text, "place_smr", smr=1, location=location, face_point_m=face_point(config)),
+        )
     return steps
 
 
@@ -156,8 +187,13 @@ def _fit_pose(config: CellConfig, data: RecordedPoints, k: str, limits: _Limits)
     def point(location: str) -> np.ndarray:
         return data.p_tracker_m[by_id[f"p{k}/{location}"]]
 
-    fit = fit_flange_frame({h: point(f"hole{h}") for h in HOLES}, point("face"), smr_radius_m=config.smr_radius_m)
-    nests = {j: tool_point_in_flange(fit.T_tracker_flange, point(f"nest{j}")) for j in range(1, len(config.nests_flange_m) + 1)}
+    fit = fit_flange_frame(
+        {h: point(f"hole{h}") for h in HOLES}, point("face"), smr_radius_m=config.smr_radius_m
+    )
+    nests = {
+        j: tool_point_in_flange(fit.T_tracker_flange, point(f"nest{j}"))
+        for j in range(1, len(config.nests_flange_m) + 1)
+    }
     figures = {
         "pose": int(k),
         "circle_residual_mm": fit.circle_residual_rms_m * 1e3,
@@ -179,11 +215,18 @@ def _fit_pose(config: CellConfig, data: RecordedPoints, k: str, limits: _Limits)
     return _PoseFit(figures, nests, problems)
 
 
-def _pose_agreement(nest_values: dict[int, list[np.ndarray]], limits: _Limits) -> tuple[dict, dict, dict, list[str]]:
+def _pose_agreement(
+    nest_values: dict[int, list[np.ndarray]], limits: _Limits
+) -> tuple[dict, dict, dict, list[str]]:
     """Each nest's mean over the poses, its 1-sigma, its worst spread, and the nests whose poses disagree."""
     nests_m = {j: np.mean(v, axis=0) for j, v in nest_values.items()}
-    spread_m = {j: float(np.max(np.linalg.norm(np.asarray(v) - nests_m[j], axis=1))) for j, v in nest_values.items()}
-    sigma_m = {j: float(np.sqrt(np.sum(np.var(np.asarray(v), axis=0, ddof=1)) / len(v))) for j, v in nest_values.items()}
+    spread_m = {
+        j: float(np.max(np.linalg.norm(np.asarray(v) - nests_m[j], axis=1))) for j, v in nest_values.items()
+    }
+    sigma_m = {
+        j: float(np.sqrt(np.sum(np.var(np.asarray(v), axis=0, ddof=1)) / len(v)))
+        for j, v in nest_values.items()
+    }
     problems = [
         f"nest {j}: the poses disagree by up to {s * 1e3:.3f} mm (limit {limits.pose_spread_m * 1e3:g} mm)"
         for j, s in spread_m.items()
@@ -192,10 +235,14 @@ def _pose_agreement(nest_values: dict[int, list[np.ndarray]], limits: _Limits) -
     return nests_m, sigma_m, spread_m, problems
 
 
-def _distance_check(config: CellConfig, data: RecordedPoints, nest1_m: np.ndarray, limits: _Limits) -> tuple[dict, float, list[str]]:
+def _distance_check(
+    config: CellConfig, data: RecordedPoints, nest1_m: np.ndarray, limits: _Limits
+) -> tuple[dict, float, list[str]]:
     """Nest 1 again by the distance-constraint method; how far it is from the flange-hole fit."""
     check = [k for k, s in enumerate(data.step) if s == "distance_check"]
-    p_dist, misfit = tool_point_by_distances(data.T_base_flange[check], data.p_tracker_m[check], config.nests_flange_m[0])
+    p_dist, misfit = tool_point_by_distances(
+        data.T_base_flange[check], data.p_tracker_m[check], config.nests_flange_m[0]
+    )
     disagreement = float(np.linalg.norm(p_dist - nest1_m))
     problems = []
     if disagreement > limits.method_disagreement_m:
@@ -203,7 +250,11 @@ def _distance_check(config: CellConfig, data: RecordedPoints, nest1_m: np.ndarra
             f"nest 1: the flange-hole fit and the distance-constraint check disagree by {disagreement * 1e3:.3f} mm "
             f"(limit {limits.method_disagreement_m * 1e3:g} mm): check tool.nests_flange_mm and the nest seats"
         )
-    figures = {"nest1_flange_mm": (p_dist * 1e3).tolist(), "misfit_rms_mm": misfit * 1e3, "disagreement_mm": disagreement * 1e3}
+    figures = {
+        "nest1_flange_mm": (p_dist * 1e3).tolist(),
+        "misfit_rms_mm": misfit * 1e3,
+        "disagreement_mm": disagreement * 1e3,
+    }
     return figures, disagreement, problems
 
 
@@ -226,7 +277,10 @@ def _fit(session: Session, the_plan: Plan, limits: _Limits) -> ToolFitResult:
         for j, p in pose.nests_m.items():
             nest_values[j].append(p)
     if len(per_pose) < 2:
-        raise ToolFitRejected("the tool fit needs two good poses: " + "; ".join(problems), "re-seat the SMR carefully and run tool_fit on a new campaign step")
+        raise ToolFitRejected(
+            "the tool fit needs two good poses: " + "; ".join(problems),
+            "re-seat the SMR carefully and run tool_fit on a new campaign step",
+        )
     nests_m, sigma_m, spread_m, disagreeing = _pose_agreement(nest_values, limits)
     check, disagreement, mismatch = _distance_check(config, data, nests_m[1], limits)
     problems += disagreeing + mismatch
@@ -239,7 +293,10 @@ def _fit(session: Session, the_plan: Plan, limits: _Limits) -> ToolFitResult:
     }
     if problems:
         session.event("tool_fit_rejected", "; ".join(problems), procedure=NAME)
-        raise ToolFitRejected("the tool fit failed its quality gate: " + "; ".join(problems), "fix the cause named, then run tool_fit on a new campaign")
+        raise ToolFitRejected(
+            "the tool fit failed its quality gate: " + "; ".join(problems),
+            "fix the cause named, then run tool_fit on a new campaign",
+        )
     session.finish_step(NAME, "fit", result)
     worst = max(p["circle_residual_mm"] for p in per_pose) / 1e3
     radius = float(np.mean([p["circle_radius_mm"] for p in per_pose])) / 1e3
@@ -249,7 +306,9 @@ def _fit(session: Session, the_plan: Plan, limits: _Limits) -> ToolFitResult:
 def summary(result: ToolFitResult) -> str:
     lines = ["tool fit (flange frame, mm):"]
     for j, p in result.nests_flange_m.items():
-        lines.append(f"  nest {j}: {p[0] * 1e3:9.4f} {p[1] * 1e3:9.4f} {p[2] * 1e3:9.4f}  +- {result.uncertainty_m[j] * 1e3:.4f}")
+        lines.append(
+            f"  nest {j}: {p[0] * 1e3:9.4f} {p[1] * 1e3:9.4f} {p[2] * 1e3:9.4f}  +- {result.uncertainty_m[j] * 1e3:.4f}"
+        )
     lim = result.limits
     circle = f" (limit {lim.circle_residual_m * 1e3:g} mm)" if lim else ""
     check = f" (limit {lim.method_disagreement_m * 1e3:g} mm)" if lim else ""

@@ -15,7 +15,11 @@ ANNOUNCEMENT = {
 
 def sim_cell_toml(seed: int = 0, time_scale: float = 10.0) -> str:
     """cell.toml text of a UR10 simulated cell with `seed` (no instruments are started)."""
-    return format_cell_toml(sim_cell_values(ANNOUNCEMENT, SimulatedCell().ground_truth() if seed == 0 else _truth(seed), time_scale))
+    return format_cell_toml(
+        sim_cell_values(
+            ANNOUNCEMENT, SimulatedCell().ground_truth() if seed == 0 else _truth(seed), time_scale
+        )
+    )
 
 
 def _truth(seed: int) -> dict:

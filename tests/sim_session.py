@@ -14,7 +14,9 @@ from hil.runner.session import Session
 
 
 @contextmanager
-def running_cell(folder: Path, time_scale: float = 20.0, **kwargs) -> Iterator[tuple[RunningCell, CellConfig]]:
+def running_cell(
+    folder: Path, time_scale: float = 20.0, **kwargs
+) -> Iterator[tuple[RunningCell, CellConfig]]:
     """Start `hil sim`, write its cell.toml into `folder`, yield the cell and its configuration."""
     with sim_cell(time_scale=time_scale, **kwargs) as cell:
         path = folder / "cell.toml"

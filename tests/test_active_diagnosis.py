@@ -82,7 +82,9 @@ def test_backlash_rows_approach_from_both_sides(first):
 def test_plan_respects_the_budget_and_the_admissible_set(first):
     _, train = first
     limit = float(np.median(train["q1_rad"]))
-    plan = propose(train, _model(train), coverage_questions(train), 7, 1e-5, admissible=lambda q: q[:, 0] <= limit)
+    plan = propose(
+        train, _model(train), coverage_questions(train), 7, 1e-5, admissible=lambda q: q[:, 0] <= limit
+    )
     assert len(plan.purpose) <= 7
     assert np.all(plan.q[:, 0] <= limit)
 
@@ -180,7 +182,12 @@ def test_settled_says_which_questions_a_longer_campaign_decided():
     from hil.analysis.undecided import settled
 
     a = {"kind": "period_not_covered", "plannable": True, "effect": {"name": "cyclic", "joint": 1}}
-    b = {"kind": "confounded_parameters", "plannable": True, "parameters": ["theta5", "a5"], "correlation": 0.99}
+    b = {
+        "kind": "confounded_parameters",
+        "plannable": True,
+        "parameters": ["theta5", "a5"],
+        "correlation": 0.99,
+    }
     out = settled([a, b], [dict(b, correlation=0.97)], [{"name": "cyclic", "joint": 1}])
     assert out[0]["decided"] and out[0]["present"]
     assert not out[1]["decided"] and out[1]["now"]["correlation"] == 0.97

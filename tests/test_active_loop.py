@@ -60,8 +60,13 @@ def loop(tmp_path_factory):
             before_resume = store.measurements(active_loop.NAME)
         with session_on(config, path) as session:
             result = active_loop.PROCEDURE(session, rounds=2, poses=20)
-        yield {"config": config, "path": path, "folder": folder, "result": result, "before_resume": before_resume}
-
+        yield {
+            "config": config,
+            "path": path,
+            "folder": folder,
+            "result": result,
+            "before_resume": before_resume,
+        }
 
 
 def _key(effects: list[dict]) -> set:
@@ -77,7 +82,11 @@ def test_each_round_decides_questions_it_measured_for(loop):
     assert any(q["plannable"] for q in records[0]["undecided"])
     for record in records:
         served = {json.dumps(g["question"], sort_keys=True) for g in record["measured"]["groups"]}
-        decided = [s for s in record["settled"] if s["decided"] and json.dumps(s["question"], sort_keys=True) in served]
+        decided = [
+            s
+            for s in record["settled"]
+            if s["decided"] and json.dumps(s["question"], sort_keys=True) in served
+        ]
         assert decided, record["settled"]
         assert 0 < record["measured"]["poses"] <= 20
         for figures in (record["error_before"], record["error_after"]):
@@ -109,7 +118,9 @@ def test_every_round_is_measured_once_in_plan_order_inside_the_envelope(loop):
 @pytest.mark.timeout(400)
 def test_dry_run_shows_the_next_round_and_moves_nothing(loop, tmp_path):
     cell = tmp_path / "cell.toml"
-    cell.write_text((loop["folder"] / "cell.toml").read_text().replace(loop["config"].robot_host, OFFLINE_HOST))
+    cell.write_text(
+        (loop["folder"] / "cell.toml").read_text().replace(loop["config"].robot_host, OFFLINE_HOST)
+    )
     with CampaignStore(loop["path"], create=False) as store:
         count = len(store.measurements())
     done = subprocess.run(
@@ -126,12 +137,23 @@ def test_dry_run_shows_the_next_round_and_moves_nothing(loop, tmp_path):
 
 @pytest.mark.parametrize(
     "flags, says",
-    [(["--rounds", "0"], "--rounds 0 is out of range: allowed 1..5"), (["--poses", "0"], "--poses 0 is out of range")],
+    [
+        (["--rounds", "0"], "--rounds 0 is out of range: allowed 1..5"),
+        (["--poses", "0"], "--poses 0 is out of range"),
+    ],
 )
 def test_bad_parameters_are_refused_before_anything_connects(tmp_path, capsys, flags, says):
     (tmp_path / "cell.toml").write_text(sim_cell_toml().replace("127.0.0.9", OFFLINE_HOST))
     code, _, err = hil_in_process(
-        "run", "active_loop", "--cell", "cell.toml", "--campaign", "c.sqlite", *flags, cwd=tmp_path, capsys=capsys
+        "run",
+        "active_loop",
+        "--cell",
+        "cell.toml",
+        "--campaign",
+        "c.sqlite",
+        *flags,
+        cwd=tmp_path,
+        capsys=capsys,
     )
     assert code != 0 and says in err
     assert not (tmp_path / "c.sqlite").exists()

@@ -25,7 +25,18 @@ def campaign(tmp_path_factory):
 
 def test_calibrate_diagnose_predict(campaign, capsys):
     d = campaign
-    out = run_hil("calibrate", "train.csv", "--robot", "ur10", "-o", "kin.json", "--residuals", "res.csv", cwd=d, capsys=capsys)
+    out = run_hil(
+        "calibrate",
+        "train.csv",
+        "--robot",
+        "ur10",
+        "-o",
+        "kin.json",
+        "--residuals",
+        "res.csv",
+        cwd=d,
+        capsys=capsys,
+    )
     assert out.returncode == 0, out.stderr
     res = pd.read_csv(d / "res.csv")
     assert list(res.columns) == ["row", "dx_mm", "dy_mm", "dz_mm", "norm_mm", "weight", "outlier"]
@@ -85,7 +96,9 @@ def test_bad_input_gets_a_clear_error(campaign, capsys):
     pd.read_csv(d / "train.csv").drop(columns=["z_mm"]).to_csv(d / "broken.csv", index=False)
     out = run_hil("calibrate", "broken.csv", "-o", "x.json", cwd=d, capsys=capsys)
     assert out.returncode == 2 and "z_mm" in out.stderr
-    out = run_hil("diagnose", "train.csv", "--json", "r.json", "--families", "gravity,cyclic", cwd=d, capsys=capsys)
+    out = run_hil(
+        "diagnose", "train.csv", "--json", "r.json", "--families", "gravity,cyclic", cwd=d, capsys=capsys
+    )
     assert out.returncode == 2 and "gravity" in out.stderr
     pd.read_csv(d / "train.csv").head(12).to_csv(d / "tiny.csv", index=False)
     out = run_hil("calibrate", "tiny.csv", "-o", "x.json", cwd=d, capsys=capsys)

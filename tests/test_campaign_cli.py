@@ -133,7 +133,9 @@ def test_export_never_overwrites_a_file_silently(files, capsys, tmp_path):
     assert main(["campaign", "export", str(d / "c.hilc"), "--csv", str(out), "--step", "grid"]) == 2
     err = capsys.readouterr().err
     assert out.read_text() == "keep me\n" and "exists" in err and "--force" in err
-    assert main(["campaign", "export", str(d / "c.hilc"), "--csv", str(out), "--step", "grid", "--force"]) == 0
+    assert (
+        main(["campaign", "export", str(d / "c.hilc"), "--csv", str(out), "--step", "grid", "--force"]) == 0
+    )
     assert len(load_dataset(out)) == len(train)
 
 
@@ -204,7 +206,9 @@ def test_calibrate_and_predict_read_a_campaign_like_its_csv(files, capsys, tmp_p
 def test_show_to_a_reader_that_left_ends_quietly(files):
     d, _, _ = files
     process = subprocess.Popen(
-        [sys.executable, "-m", "hil", "campaign", "show", str(d / "c.hilc")], stdout=subprocess.PIPE, stderr=subprocess.PIPE
+        [sys.executable, "-m", "hil", "campaign", "show", str(d / "c.hilc")],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
     )
     process.stdout.close()  # `| head -1` gone before the first write
     stderr = process.stderr.read().decode()
@@ -215,7 +219,9 @@ def test_show_calls_a_step_finished_once_its_planned_points_are_recorded(files, 
     d, train, _ = files
     path = tmp_path / "plan.hilc"
     with CampaignStore(path) as store:
-        store.finish_step("grid_sampling", "plan", {"point_ids": [f"grid{i:03d}" for i in range(5)] + ["validation000"]})
+        store.finish_step(
+            "grid_sampling", "plan", {"point_ids": [f"grid{i:03d}" for i in range(5)] + ["validation000"]}
+        )
         store_dataset(store, train.head(5), "grid", 1.7e9)
     assert main(["campaign", "show", str(path)]) == 0
     assert "grid                        5  open (5 of 6 planned points)" in capsys.readouterr().out
@@ -225,4 +231,3 @@ def test_show_calls_a_step_finished_once_its_planned_points_are_recorded(files, 
     out = capsys.readouterr().out
     assert "grid                        5  finished (plan complete)" in out
     assert "validation                  1  finished (plan complete)" in out
-

@@ -21,7 +21,18 @@ pytestmark = [pytest.mark.sim]
 
 
 def _hil_run(procedure: str, cell_toml, campaign, *extra: str) -> list[str]:
-    return [sys.executable, "-m", "hil", "run", procedure, "--cell", str(cell_toml), "--campaign", str(campaign), *extra]
+    return [
+        sys.executable,
+        "-m",
+        "hil",
+        "run",
+        procedure,
+        "--cell",
+        str(cell_toml),
+        "--campaign",
+        str(campaign),
+        *extra,
+    ]
 
 
 @pytest.mark.timeout(400)
@@ -61,7 +72,9 @@ def test_sigkill_at_random_moments_loses_and_duplicates_nothing(tmp_path, trials
     rng = random.Random(20261123)  # the 2-kill run uses the first two of the soak's moments
     with running_cell(tmp_path, seed=6) as (cell, config):
         cell_toml = tmp_path / "cell.toml"
-        done = subprocess.run(_hil_run("registration", cell_toml, campaign), capture_output=True, text=True, timeout=120)
+        done = subprocess.run(
+            _hil_run("registration", cell_toml, campaign), capture_output=True, text=True, timeout=120
+        )
         assert done.returncode == 0, done.stderr
         args = _hil_run("grid_sampling", cell_toml, campaign, "--step-mm", "200", "--validation", "6")
         kills = 0
@@ -124,7 +137,9 @@ def test_ctrl_c_stops_the_demo_and_leaves_no_simulator_behind(tmp_path):
         assert code in (2, 130), output
     if code == 130:  # the cause, and the command that resumes
         assert "interrupted (Ctrl-C)" in output and "resume with: hil demo --out" in output, output
-    assert "RTDEControlInterface" not in output and "RTDEReceiveInterface" not in output, output  # ur-rtde's C++
+    assert "RTDEControlInterface" not in output and "RTDEReceiveInterface" not in output, (
+        output
+    )  # ur-rtde's C++
     for pid in children:
         assert not _alive(pid), f"simulator process {pid} survived Ctrl-C"
     with CampaignStore(campaign) as store:

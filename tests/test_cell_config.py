@@ -17,7 +17,9 @@ def test_simulated_cell_config_loads_in_si_units(tmp_path):
     path.write_text(sim_cell_toml())
     config = load_cell_config(path)
     assert config.robot_model == "ur10" and config.robot_host == "127.0.0.9"
-    assert config.nests_flange_m.shape == (3, 3) and np.allclose(config.nests_flange_m[0], [0.03, -0.02, 0.11])
+    assert config.nests_flange_m.shape == (3, 3) and np.allclose(
+        config.nests_flange_m[0], [0.03, -0.02, 0.11]
+    )
     assert np.all(config.envelope.box_max_m > config.envelope.box_min_m)
     assert 1.0 < np.linalg.norm(config.p_base_tracker_m) < 4.0
     assert config.simulator_control == "127.0.0.9:4000"
@@ -32,7 +34,9 @@ def test_the_robot_may_be_a_robot_file_beside_the_cell_file(tmp_path):
     from hil.geometry.robots import ROBOT_DIR, get_robot
 
     text = (ROBOT_DIR / "ur10.toml").read_text()
-    (tmp_path / "our_ur10.toml").write_text(text.replace('name = "ur10"', 'name = "our_ur10"').replace("d_mm = 127.3", "d_mm = 128.3", 1))
+    (tmp_path / "our_ur10.toml").write_text(
+        text.replace('name = "ur10"', 'name = "our_ur10"').replace("d_mm = 127.3", "d_mm = 128.3", 1)
+    )
     path = tmp_path / "cell.toml"
     path.write_text(sim_cell_toml().replace('model = "ur10"', 'model = "our_ur10.toml"'))
     config = load_cell_config(path)
@@ -82,7 +86,11 @@ def test_cell_check_command(tmp_path, capsys):
     ok = run_hil("cell", "check", str(good), cwd=tmp_path, capsys=capsys)
     assert ok.returncode == 0 and "OK" in ok.stdout and "ur10" in ok.stdout
     bad = tmp_path / "bad.toml"
-    text = sim_cell_toml().replace("settle_s = ", "settle_s = -").replace("socket://127.0.0.9:7000", "tracker-host")
+    text = (
+        sim_cell_toml()
+        .replace("settle_s = ", "settle_s = -")
+        .replace("socket://127.0.0.9:7000", "tracker-host")
+    )
     bad.write_text(text)
     out = run_hil("cell", "check", str(bad), cwd=tmp_path, capsys=capsys)
     assert out.returncode == 2

@@ -35,7 +35,9 @@ print(json.dumps(sorted({name.split(".")[0] for name in sys.modules})), file=sys
 
 def _imported(*args: str, cwd: Path = ROOT) -> set[str]:
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]))
-    done = subprocess.run([sys.executable, "-c", PROBE, *args], capture_output=True, text=True, env=env, cwd=cwd, timeout=120)
+    done = subprocess.run(
+        [sys.executable, "-c", PROBE, *args], capture_output=True, text=True, env=env, cwd=cwd, timeout=120
+    )
     return set(json.loads(done.stderr.strip().splitlines()[-1]))
 
 

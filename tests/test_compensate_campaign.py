@@ -48,7 +48,13 @@ def registration(model: CalibratedModel) -> np.ndarray:
 
 
 def record(
-    step: str, point_id: str, q: np.ndarray, smr: int, t_s: float, location: str | None = None, no_temperature=False
+    step: str,
+    point_id: str,
+    q: np.ndarray,
+    smr: int,
+    t_s: float,
+    location: str | None = None,
+    no_temperature=False,
 ):
     return MeasurementRecord(
         procedure="grid_sampling" if step in ("grid", "validation") else "registration",
@@ -72,7 +78,10 @@ def record(
 
 
 def write_campaign(
-    path, model: CalibratedModel, loop_targets: np.ndarray | None = None, snapshot: dict | None = None,
+    path,
+    model: CalibratedModel,
+    loop_targets: np.ndarray | None = None,
+    snapshot: dict | None = None,
     unread_temperature: str | None = None,
 ) -> dict:
     """A campaign as the runner leaves it; returns the commanded joints, nests and ids per step. `snapshot`
@@ -84,8 +93,12 @@ def write_campaign(
             snapshot or {"cell": {"robot": {"model": "ur10"}, "tool": {"nests_flange_mm": NESTS_MM.tolist()}}}
         )
         store.record_measurement(record("poses", "r01", ur10_joints(rng, 1)[0], 1, 0.0))
-        store.finish_step("registration", "fit", {"T_tracker_base": registration(model).tolist(), "rms_mm": 0.9})
-        store.finish_step("tool_fit", "fit", {"nests_flange_mm": {"1": FIT_MM[0].tolist(), "2": FIT_MM[1].tolist()}})
+        store.finish_step(
+            "registration", "fit", {"T_tracker_base": registration(model).tolist(), "rms_mm": 0.9}
+        )
+        store.finish_step(
+            "tool_fit", "fit", {"nests_flange_mm": {"1": FIT_MM[0].tolist(), "2": FIT_MM[1].tolist()}}
+        )
         t = 10.0
         for step, n, prefix in (("grid", 8, "g1-"), ("validation", 5, "v")):
             q = ur10_joints(rng, n)
@@ -118,9 +131,6 @@ def predicted(model: CalibratedModel, q: np.ndarray, smr: np.ndarray, temperatur
     return model.predict(make_dataset(q, np.zeros((len(q), 3)), smr=smr, temperature_c=temperature_c))
 
 
-
-
-
 @pytest.fixture(scope="module")
 def model():
     return true_model()
@@ -129,7 +139,9 @@ def model():
 def test_grid_and_validation_targets_are_the_commanded_points_compensated_per_nest(model, tmp_path, capsys):
     model.save(tmp_path / "model.json")
     layout = write_campaign(tmp_path / "job.sqlite", model)
-    code, out, err = hil_in_process("compensate", "model.json", "job.sqlite", "-o", "val.csv", cwd=tmp_path, capsys=capsys)
+    code, out, err = hil_in_process(
+        "compensate", "model.json", "job.sqlite", "-o", "val.csv", cwd=tmp_path, capsys=capsys
+    )
     assert code == 0, err
     assert "5 validation targets" in err  # no loop in the campaign: the validation step is the default
     df = pd.read_csv(tmp_path / "val.csv")
@@ -153,7 +165,9 @@ def test_grid_and_validation_targets_are_the_commanded_points_compensated_per_ne
     wrong_nest = predicted(model, df[Q_COLS].to_numpy(), np.ones(len(df), int))
     assert np.linalg.norm(wrong_nest - target, axis=1)[grid["smr"] == 2].min() > 0.05
     assert np.abs(df[Q_COLS].to_numpy() - grid["q"]).max() < 0.01  # the commanded posture, corrected
-    np.testing.assert_allclose(df["t_s"], 10.0 + 4.0 * np.arange(len(df)))  # time of each point, for thermal models
+    np.testing.assert_allclose(
+        df["t_s"], 10.0 + 4.0 * np.arange(len(df))
+    )  # time of each point, for thermal models
 
 
 def test_loop_targets_are_poses_by_default_and_unreachable_ones_stay_marked(model, tmp_path, capsys):
@@ -190,9 +204,13 @@ def test_bad_campaign_input_exits_2_with_what_to_do(model, tmp_path, capsys):
         store.record_measurement(record("poses", "r01", ur10_joints(np.random.default_rng(1), 1)[0], 1, 0.0))
     write_campaign(tmp_path / "job.sqlite", model)
     with CampaignStore(tmp_path / "nest3.sqlite") as store:
-        store.add_snapshot({"cell": {"robot": {"model": "ur10"}, "tool": {"nests_flange_mm": NESTS_MM.tolist()}}})
+        store.add_snapshot(
+            {"cell": {"robot": {"model": "ur10"}, "tool": {"nests_flange_mm": NESTS_MM.tolist()}}}
+        )
         store.finish_step("registration", "fit", {"T_tracker_base": registration(model).tolist()})
-        store.record_measurement(record("grid", "g1-0000", ur10_joints(np.random.default_rng(2), 1)[0], 3, 1.0))
+        store.record_measurement(
+            record("grid", "g1-0000", ur10_joints(np.random.default_rng(2), 1)[0], 3, 1.0)
+        )
     pd.DataFrame({"x_mm": [2000.0], "y_mm": [0.0], "z_mm": [0.0]}).to_csv(tmp_path / "t.csv", index=False)
     cases = [
         (["empty.sqlite"], "holds no targets (it holds: no measurements)"),
@@ -203,11 +221,15 @@ def test_bad_campaign_input_exits_2_with_what_to_do(model, tmp_path, capsys):
         (["t.csv", "--step", "grid"], "--step picks the targets of a campaign file"),
     ]
     for args, message in cases:
-        code, out, err = hil_in_process("compensate", "model.json", *args, "-o", "j.csv", cwd=tmp_path, capsys=capsys)
+        code, out, err = hil_in_process(
+            "compensate", "model.json", *args, "-o", "j.csv", cwd=tmp_path, capsys=capsys
+        )
         assert code == 2, (args, err)
         assert message in err and "what to do: " in err, err
     assert not (tmp_path / "j.csv").exists()
-    code, out, err = hil_in_process("compensate", "model.json", "job.sqlite", "-o", "job.sqlite", cwd=tmp_path, capsys=capsys)
+    code, out, err = hil_in_process(
+        "compensate", "model.json", "job.sqlite", "-o", "job.sqlite", cwd=tmp_path, capsys=capsys
+    )
     assert code == 2 and "would be overwritten" in err
 
 
@@ -232,7 +254,9 @@ def test_loop_orientations_follow_the_orientation_convention_option(model, tmp_p
     assert code == 0, err
     df = pd.read_csv(tmp_path / "loop.csv")
     angles = df[["rx_deg", "ry_deg", "rz_deg"]].to_numpy()
-    np.testing.assert_allclose(Rotation.from_euler("XYZ", angles, degrees=True).as_matrix(), T[:, :3, :3], atol=1e-9)
+    np.testing.assert_allclose(
+        Rotation.from_euler("XYZ", angles, degrees=True).as_matrix(), T[:, :3, :3], atol=1e-9
+    )
     assert not np.allclose(orientations(df), T[:, :3, :3], atol=1e-3)  # not the extrinsic angles
     targets, _ = read_targets(str(tmp_path / "loop.csv"), "xyz-intrinsic")
     np.testing.assert_allclose(targets, T, atol=1e-9)
@@ -255,14 +279,24 @@ def test_a_robot_file_campaign_rebuilds_its_robot_from_the_copy_it_keeps(model, 
     layout = write_campaign(tmp_path / "job.sqlite", model, snapshot=snapshot)
     older = {k: v for k, v in snapshot.items() if k != "robot_definition"}  # before campaigns kept the text
     write_campaign(tmp_path / "old.sqlite", model, snapshot=older)
-    (tmp_path / "our_ur10.toml").write_text((ROBOT_DIR / "ur5.toml").read_text())  # a decoy where lower case points
+    (tmp_path / "our_ur10.toml").write_text(
+        (ROBOT_DIR / "ur5.toml").read_text()
+    )  # a decoy where lower case points
     grid = layout["grid"]
     target = commanded_points(model, grid["q"], grid["smr"], robot)
     assert np.abs(target - commanded_points(model, grid["q"], grid["smr"])).max() > 5e-4  # the file matters
 
     def grid_targets(campaign: str) -> tuple[int, str]:
         code, out, err = hil_in_process(
-            "compensate", "model.json", campaign, "-o", "grid.csv", "--step", "grid", cwd=tmp_path, capsys=capsys
+            "compensate",
+            "model.json",
+            campaign,
+            "-o",
+            "grid.csv",
+            "--step",
+            "grid",
+            cwd=tmp_path,
+            capsys=capsys,
         )
         if code == 0:
             df = pd.read_csv(tmp_path / "grid.csv")
@@ -301,7 +335,9 @@ def test_thermal_models_take_the_cell_temperature_and_refuse_time_from_another_c
     layout = write_campaign(tmp_path / "job.sqlite", model, loop_targets=T, unread_temperature="g1-0003")
 
     def run(*args):
-        return hil_in_process("compensate", *args, "-o", "j.csv", "--threshold-mm", "0.002", cwd=tmp_path, capsys=capsys)
+        return hil_in_process(
+            "compensate", *args, "-o", "j.csv", "--threshold-mm", "0.002", cwd=tmp_path, capsys=capsys
+        )
 
     code, out, err = run("hot.json", "job.sqlite")  # loop targets carry no temperature
     assert code == 2 and "3 of 3 targets have none" in err and "give --temperature-c C" in err, err
@@ -339,7 +375,9 @@ def test_thermal_models_take_the_cell_temperature_and_refuse_time_from_another_c
 
     for step in ("grid", "loop"):  # t_s of a campaign counts from its own start, not from the model's data
         code, out, err = run("drift.json", "job.sqlite", "--step", step)
-        assert code == 2 and "thermal_drift effect is driven by time" in err and "not on that clock" in err, err
+        assert code == 2 and "thermal_drift effect is driven by time" in err and "not on that clock" in err, (
+            err
+        )
 
     points = pd.DataFrame(T[:, :3, 3] * 1e3, columns=["x_mm", "y_mm", "z_mm"])
     points.to_csv(tmp_path / "p.csv", index=False)
@@ -357,7 +395,16 @@ def test_a_path_stays_in_one_nest(model, tmp_path, capsys):
     model.save(tmp_path / "model.json")
     write_campaign(tmp_path / "job.sqlite", model)
     code, out, err = hil_in_process(
-        "compensate", "model.json", "job.sqlite", "--step", "grid", "--path", "-o", "p.csv", cwd=tmp_path, capsys=capsys
+        "compensate",
+        "model.json",
+        "job.sqlite",
+        "--step",
+        "grid",
+        "--path",
+        "-o",
+        "p.csv",
+        cwd=tmp_path,
+        capsys=capsys,
     )
     assert code == 2 and "nests [1, 2]" in err and "give --smr 1" in err, err
     assert not (tmp_path / "p.csv").exists()

@@ -201,7 +201,10 @@ def orientation_errors(model: CalibratedModel, q: np.ndarray, T_target: np.ndarr
     """Angle (N,) rad between the flange orientation the model predicts at joints q (its public context and
     geometry, not hil.compensation.model_based's predictor) and the targets' orientations."""
     ctx, _ = model.context(make_dataset(q, np.zeros((len(q), 3)), smr=1))
-    R = model.T_tracker_base[:3, :3] @ forward_kinematics(model.kinematic, q + model.joint_offsets(ctx))[:, :3, :3]
+    R = (
+        model.T_tracker_base[:3, :3]
+        @ forward_kinematics(model.kinematic, q + model.joint_offsets(ctx))[:, :3, :3]
+    )
     return Rotation.from_matrix(np.swapaxes(T_target[:, :3, :3], 1, 2) @ R).magnitude()
 
 
@@ -247,9 +250,19 @@ def test_cli(model, tmp_path, capsys):
     assert orientation_errors(model, q, T_target).max() < np.deg2rad(1e-3)  # the orientation the file meant
 
     intrinsic = poses.copy()  # the same targets in the other convention, named by the option
-    intrinsic[["rx_deg", "ry_deg", "rz_deg"]] = Rotation.from_matrix(T_target[:, :3, :3]).as_euler("XYZ", True)
+    intrinsic[["rx_deg", "ry_deg", "rz_deg"]] = Rotation.from_matrix(T_target[:, :3, :3]).as_euler(
+        "XYZ", True
+    )
     intrinsic.to_csv(tmp_path / "intrinsic.csv", index=False)
-    args = ("intrinsic.csv", "-o", "j4.csv", "--orientation-convention", "xyz-intrinsic", "--threshold-mm", "0.001")
+    args = (
+        "intrinsic.csv",
+        "-o",
+        "j4.csv",
+        "--orientation-convention",
+        "xyz-intrinsic",
+        "--threshold-mm",
+        "0.001",
+    )
     out = _hil("compensate", "model.json", *args, cwd=tmp_path, capsys=capsys)
     assert out[0] == 0, out[2]
     df = pd.read_csv(tmp_path / "j4.csv")
@@ -321,7 +334,13 @@ def test_newton_warm_start_is_the_cold_start_without_its_first_evaluation(model)
     moved[:, :3, 3] += 2e-4  # the next pseudo targets, a little away
     cold = newton_ik(kin, moved, first.q, max_steps=16, tol_position=1e-8, tol_rotation=1e-7)
     warm = newton_ik(
-        kin, moved, first.q, max_steps=16, tol_position=1e-8, tol_rotation=1e-7, start=(first.pose, first.jacobian)
+        kin,
+        moved,
+        first.q,
+        max_steps=16,
+        tol_position=1e-8,
+        tol_rotation=1e-7,
+        start=(first.pose, first.jacobian),
     )
     assert np.isnan(first.pose[:, 0, 0]).any()  # rows without a pose at the seed are evaluated then
     np.testing.assert_allclose(warm.q, cold.q, atol=1e-13)
@@ -346,6 +365,8 @@ def test_large_batches_run_in_blocks_with_the_same_answer(model, monkeypatch):
         blocks = compensate(with_backlash, T_target, **kw)
         assert np.all(whole.status == "ok") and np.array_equal(blocks.status, whole.status)
         for name in ("q", "error_m", "rotation_error_rad", "cost_m", "history", "initial_error_m"):
-            np.testing.assert_allclose(getattr(blocks, name), getattr(whole, name), atol=1e-12, equal_nan=True)
+            np.testing.assert_allclose(
+                getattr(blocks, name), getattr(whole, name), atol=1e-12, equal_nan=True
+            )
         if generator == "yin":  # (an ensemble's near-ties between generators may fall either way)
             assert np.array_equal(blocks.iterations, whole.iterations)

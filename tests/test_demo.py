@@ -32,10 +32,18 @@ def test_demo_runs_the_procedures_through_the_drivers_and_finds_compliance(demo)
     assert out.returncode == 0, out.stderr[-3000:] + out.stdout[-3000:]
     report = json.loads((tmp_path / "report.json").read_text())
     assert {e["name"] for e in report["effects_added"]} == {"gravity_compliance"}
-    cell = tomllib.loads((tmp_path / "cell.toml").read_text())  # written once; every stage's cell came back there
-    assert out.stdout.count(f"wrote {tmp_path / 'cell.toml'}") == 1 and f"same address as {tmp_path / 'cell.toml'}" in out.stdout
+    cell = tomllib.loads(
+        (tmp_path / "cell.toml").read_text()
+    )  # written once; every stage's cell came back there
+    assert (
+        out.stdout.count(f"wrote {tmp_path / 'cell.toml'}") == 1
+        and f"same address as {tmp_path / 'cell.toml'}" in out.stdout
+    )
     restart = next(line for line in out.stdout.splitlines() if "starts it again" in line)
-    assert f"hil sim --host {cell['robot']['host']} --control-port {cell['simulator']['control'].rsplit(':', 1)[1]}" in restart
+    assert (
+        f"hil sim --host {cell['robot']['host']} --control-port {cell['simulator']['control'].rsplit(':', 1)[1]}"
+        in restart
+    )
     for name in ("cell.toml", "campaign.sqlite", "grid.csv", "validate.csv", "report.html", "model.json"):
         assert (tmp_path / name).stat().st_size > 0
     for step in ("registration", "tool fit", "grid sampling", "measured pseudo-target loop"):
@@ -67,5 +75,7 @@ def test_demo_run_again_resumes_and_measures_nothing_twice(demo):
 
 
 def test_demo_refuses_an_unknown_effect(tmp_path, capsys):
-    code, _, err = hil_in_process("demo", "--effects", "gravity", "--out", str(tmp_path), cwd=tmp_path, capsys=capsys)
+    code, _, err = hil_in_process(
+        "demo", "--effects", "gravity", "--out", str(tmp_path), cwd=tmp_path, capsys=capsys
+    )
     assert code != 0 and "unknown effect" in err

@@ -196,14 +196,23 @@ def test_the_verdict_is_data_and_the_report_words_it():
         "ratio": 1.04,
         "map": None,
         "cautions": [
-            {"kind": "validation_temperatures_outside", "validate_c": [29.6, 29.7], "training_c": [20.0, 22.7]},
-            {"kind": "ambiguous_effects", "chosen": {"name": "cyclic", "joint": 4},
-             "confounded_with": {"name": "backlash", "joint": 4}},
+            {
+                "kind": "validation_temperatures_outside",
+                "validate_c": [29.6, 29.7],
+                "training_c": [20.0, 22.7],
+            },
+            {
+                "kind": "ambiguous_effects",
+                "chosen": {"name": "cyclic", "joint": 4},
+                "confounded_with": {"name": "backlash", "joint": 4},
+            },
         ],
     }
     lines = conclusion_text(verdict, [{"name": "gravity_compliance", "joint": 2}]).splitlines()
     assert lines[0] == "Added: gravity_compliance (joint 2). The residual is at the noise floor (1.04x)."
-    assert lines[1].startswith("Caution: validation temperatures 29.6..29.7 C lie outside the training's 20.0..22.7 C")
+    assert lines[1].startswith(
+        "Caution: validation temperatures 29.6..29.7 C lie outside the training's 20.0..22.7 C"
+    )
     assert "cyclic (joint 4) and backlash (joint 4) explain the same residual" in lines[2]
     assert len(lines) == 3
     # every caution the diagnosis can raise has its words
@@ -287,8 +296,16 @@ def test_plot_headings_are_unique_when_one_effect_is_added_at_two_joints():
 
     from hil.analysis.report import _plots
 
-    plot = {"driver": [0.1, 0.5, 0.9, 1.3], "residual_before_mm": [0.1, 0.0, -0.1, 0.2], "residual_after_mm": [0.0] * 4, "driver_label": "torque (N m)"}
-    steps = [SimpleNamespace(plot=plot, effect={"name": "gravity_compliance", "joint": j}, action="added") for j in (2, 3)]
+    plot = {
+        "driver": [0.1, 0.5, 0.9, 1.3],
+        "residual_before_mm": [0.1, 0.0, -0.1, 0.2],
+        "residual_after_mm": [0.0] * 4,
+        "driver_label": "torque (N m)",
+    }
+    steps = [
+        SimpleNamespace(plot=plot, effect={"name": "gravity_compliance", "joint": j}, action="added")
+        for j in (2, 3)
+    ]
     titles = [title for title, _ in _plots(SimpleNamespace(steps=steps, histograms={}))]
     assert titles == [
         "Residual against the driver of gravity_compliance joint 2",
@@ -304,5 +321,9 @@ def test_effect_coefficients_carry_their_units_into_the_report(gravity_cell_diag
     assert rows and {p["unit"] for p in rows} == {"rad/m"}  # gravity compliance: rad per metre of lever arm
     shown = in_report_units(rows[0])
     assert shown["unit"] == "deg/m" and shown["value"] == pytest.approx(np.rad2deg(rows[0]["value"]))
-    assert in_report_units({"value": 2e-5, "std": None, "unit": "1/K"}) == {"value": 20.0, "std": None, "unit": "ppm/K"}
+    assert in_report_units({"value": 2e-5, "std": None, "unit": "1/K"}) == {
+        "value": 20.0,
+        "std": None,
+        "unit": "ppm/K",
+    }
     assert "<td>deg/m</td>" in render_html(report)

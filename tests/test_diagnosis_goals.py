@@ -78,7 +78,10 @@ def test_gravity_compliance_within_10_percent_of_the_true_effect_model():
     assert _validate(report) <= 1.1 * _rms_mm(truth, val)
 
 
-GRAVITY_CYCLIC_J1 = ({"cyclic": True, "cyclic_joints": (1,), "keep_singular": False}, {("gravity_compliance", 2), ("cyclic", 1)})
+GRAVITY_CYCLIC_J1 = (
+    {"cyclic": True, "cyclic_joints": (1,), "keep_singular": False},
+    {("gravity_compliance", 2), ("cyclic", 1)},
+)
 
 
 @pytest.mark.parametrize(
@@ -102,7 +105,12 @@ GRAVITY_CYCLIC_J1 = ({"cyclic": True, "cyclic_joints": (1,), "keep_singular": Fa
             {("cyclic", 4), ("backlash", 4)},
         ),
     ],
-    ids=["gravity+cyclic_j1-seed0", "gravity+cyclic_j1-seed1", "gravity+cyclic_j1-seed2", "cyclic+backlash_j4"],
+    ids=[
+        "gravity+cyclic_j1-seed0",
+        "gravity+cyclic_j1-seed1",
+        "gravity+cyclic_j1-seed2",
+        "cyclic+backlash_j4",
+    ],
 )
 def test_two_effects_at_once_are_both_named(seed, config, expected):
     train, val = _campaigns(seed=seed, **config)

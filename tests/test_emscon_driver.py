@@ -23,7 +23,10 @@ from hil.instruments.tracker import (
     TrackerTimeoutError,
 )
 
-pytestmark = [pytest.mark.sim, pytest.mark.timeout(60)]  # starts a simulated cell or a fake server over sockets
+pytestmark = [
+    pytest.mark.sim,
+    pytest.mark.timeout(60),
+]  # starts a simulated cell or a fake server over sockets
 
 MEAS_S = 0.01  # stationary measurement time used by the tests (fast; the fake waits it in wall time)
 SMR = 2  # a floor-nest SMR of the default cell (always faces the tracker)
@@ -224,7 +227,9 @@ def test_bad_arguments_are_refused_before_anything_is_sent(server_thread):
         tracker._exchange(codec.Command.EXIT_APPLICATION)
     with pytest.raises(TrackerConfigError, match="coordinate_system"):
         EmsconConfig(url="socket://127.0.0.1:1", coordinate_system=codec.CoordinateSystem.CCW)
-    with pytest.raises(TrackerConfigError, match=r"length_unit must be one of \['ft', 'in', 'm', 'mm', 'um'\]"):
+    with pytest.raises(
+        TrackerConfigError, match=r"length_unit must be one of \['ft', 'in', 'm', 'mm', 'um'\]"
+    ):
         EmsconConfig(url="socket://127.0.0.1:1", length_unit="cm")
     with pytest.raises(TrackerConfigError, match=r"unknown emScon settings \['meas_time'\]"):
         EmsconConfig.from_mapping({"url": "socket://127.0.0.1:1", "meas_time": 1.0})

@@ -12,7 +12,10 @@ from drivers.emscon_codec import Command, Status, StatusChange
 from fakes.cell import SimCellConfig, SimulatedCell
 from fakes.emscon_server import EmsconServer, EmsconServerConfig, ServerThread
 
-pytestmark = [pytest.mark.sim, pytest.mark.timeout(30)]  # starts a simulated cell or a fake server over sockets
+pytestmark = [
+    pytest.mark.sim,
+    pytest.mark.timeout(30),
+]  # starts a simulated cell or a fake server over sockets
 
 
 class RawClient:

@@ -54,7 +54,9 @@ def test_a_joint_move_whose_path_leaves_the_box_is_refused_though_both_ends_are_
 
 
 def test_joint_limits_and_linear_segments_are_checked():
-    env = Envelope(np.array([-1.5, -1.5, 0.2]), np.array([1.5, 1.5, 1.5]), np.full(6, -np.pi), np.full(6, np.pi))
+    env = Envelope(
+        np.array([-1.5, -1.5, 0.2]), np.array([1.5, 1.5, 1.5]), np.full(6, -np.pi), np.full(6, np.pi)
+    )
     q = np.array([0.0, -1.2, 1.4, -1.7, -1.57, 4.0])
     assert "joint(s) 6" in env.pose_problems(UR10, q[None], TOOLS)[0]
     T_a = np.eye(4)

@@ -113,14 +113,18 @@ def _hil(*args: str, extra_path: Path | None = None) -> subprocess.CompletedProc
     env = dict(os.environ)
     paths = [str(ROOT)] + ([str(extra_path)] if extra_path else []) + [env.get("PYTHONPATH", "")]
     env["PYTHONPATH"] = os.pathsep.join(p for p in paths if p)
-    return subprocess.run([sys.executable, "-m", "hil", *args], capture_output=True, text=True, env=env, timeout=120)
+    return subprocess.run(
+        [sys.executable, "-m", "hil", *args], capture_output=True, text=True, env=env, timeout=120
+    )
 
 
 def test_a_driver_package_from_outside_the_repository_is_found_and_used(tmp_path, shop_site):
     cell = _cell(tmp_path, "shop_arm", "shop_tracker")
     done = _hil("cell", "check", str(cell), "--connect", extra_path=shop_site)
     assert done.returncode == 0, done.stderr
-    assert "robot connected: controller shop-arm 2.1 at 127.254.254.254" in done.stdout  # its settings reached it
+    assert (
+        "robot connected: controller shop-arm 2.1 at 127.254.254.254" in done.stdout
+    )  # its settings reached it
     assert "robot joints inside the envelope's limits" in done.stdout
     assert "tracker connected: initialized True, target locked True, reflector 42" in done.stdout
 
@@ -152,8 +156,12 @@ def test_a_plugin_of_another_kind_is_refused_with_its_kind():
 def test_a_plugin_that_fails_to_import_is_named(tmp_path):
     site = tmp_path / "site"
     (site / "broken_driver-0.1.dist-info").mkdir(parents=True)
-    (site / "broken_driver-0.1.dist-info" / "METADATA").write_text("Metadata-Version: 2.1\nName: broken-driver\nVersion: 0.1\n")
-    (site / "broken_driver-0.1.dist-info" / "entry_points.txt").write_text(f"[{GROUP}]\nbroken = broken_driver:plugin\n")
+    (site / "broken_driver-0.1.dist-info" / "METADATA").write_text(
+        "Metadata-Version: 2.1\nName: broken-driver\nVersion: 0.1\n"
+    )
+    (site / "broken_driver-0.1.dist-info" / "entry_points.txt").write_text(
+        f"[{GROUP}]\nbroken = broken_driver:plugin\n"
+    )
     (site / "broken_driver.py").write_text("raise ImportError('needs the vendor SDK')\n")
     code = textwrap.dedent(
         """
@@ -166,4 +174,6 @@ def test_a_plugin_that_fails_to_import_is_named(tmp_path):
     )
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(ROOT), str(site)]))
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=60)
-    assert "'broken' (broken_driver:plugin) failed to load: ImportError: needs the vendor SDK" in done.stdout, done.stderr
+    assert (
+        "'broken' (broken_driver:plugin) failed to load: ImportError: needs the vendor SDK" in done.stdout
+    ), done.stderr

@@ -151,7 +151,9 @@ def test_identification_jacobian_matches_central_differences(name, use_beta):
 
 
 @pytest.mark.parametrize("name", ["ur5e", "irb2600"])
-@pytest.mark.parametrize("n", [5, 60])  # small batches take a (4, 4) matmul chain, larger ones the column loop
+@pytest.mark.parametrize(
+    "n", [5, 60]
+)  # small batches take a (4, 4) matmul chain, larger ones the column loop
 def test_geometric_jacobian_matches_central_differences(name, n):
     m = get_robot(name).with_errors({"beta2": 2e-3})
     q = random_joints(m, n, seed=7)

@@ -78,4 +78,6 @@ def test_no_import_circle_anywhere():
     imports = {module: graph.find_modules_directly_imported_by(module) for module in graph.modules}
     assert {m.split(".")[0] for m in imports} == set(PACKAGES)
     circles = import_circles(imports)
-    assert not circles, f"import circles (break each, e.g. with a Protocol or by passing the object in): {circles}"
+    assert not circles, (
+        f"import circles (break each, e.g. with a Protocol or by passing the object in): {circles}"
+    )

@@ -31,7 +31,9 @@ def _run(mode: str) -> subprocess.CompletedProcess:
 def test_native_output_is_logged_not_shown():
     done = _run("quiet")
     assert done.returncode == 0, done.stderr
-    assert "RTDEControlInterface" not in done.stderr and "native chatter" not in done.stdout.split("logged:")[0]
+    assert (
+        "RTDEControlInterface" not in done.stderr and "native chatter" not in done.stdout.split("logged:")[0]
+    )
     assert "python says hello" in done.stdout and "python warns" in done.stderr
     assert "Timeout connecting to UR dashboard server." in done.stdout.split("logged:")[1]
     assert "native chatter on stdout" in done.stdout.split("logged:")[1]
@@ -43,8 +45,15 @@ def test_native_output_is_shown_with_verbose():
 
 
 def test_ctrl_c_says_what_happened_and_how_to_resume():
-    text = _interrupted("run", ["run", "registration", "--cell", "cell.toml", "--campaign", "my job.sqlite"]).render("run")
+    text = _interrupted(
+        "run", ["run", "registration", "--cell", "cell.toml", "--campaign", "my job.sqlite"]
+    ).render("run")
     first, second = text.splitlines()
     assert first == "hil run: interrupted (Ctrl-C): the robot was stopped and every recorded point is kept"
-    assert second == "  what to do: resume with: hil run registration --cell cell.toml --campaign 'my job.sqlite'"
-    assert "run it again: hil campaign show x" in _interrupted("campaign", ["campaign", "show", "x"]).render("campaign")
+    assert (
+        second
+        == "  what to do: resume with: hil run registration --cell cell.toml --campaign 'my job.sqlite'"
+    )
+    assert "run it again: hil campaign show x" in _interrupted("campaign", ["campaign", "show", "x"]).render(
+        "campaign"
+    )

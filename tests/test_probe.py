@@ -97,9 +97,13 @@ def test_rotation_jacobian_matches_finite_differences(use_beta):
     ctx.p_flange_tool = model._row_tools(smr)
     R_pred, J_full = model.rotation_jacobian_ctx(ctx, smr)
     np.testing.assert_allclose(R_pred, model.predict_rotation_ctx(ctx, smr), atol=1e-12)
-    fd = _rotation_fd(lambda dx: model.apply_increment(dx).predict_rotation_ctx(ctx, smr), len(model.param_names))
+    fd = _rotation_fd(
+        lambda dx: model.apply_increment(dx).predict_rotation_ctx(ctx, smr), len(model.param_names)
+    )
     np.testing.assert_allclose(J_full, fd, atol=2e-6)
-    assert np.abs(J_full[:, :, model.param_names.index("probe2_rz")][smr == 1]).max() == 0  # one probe per nest
+    assert (
+        np.abs(J_full[:, :, model.param_names.index("probe2_rz")][smr == 1]).max() == 0
+    )  # one probe per nest
 
 
 def test_several_smrs_per_pose_are_extra_equations(three_smr):
@@ -171,7 +175,9 @@ def test_probe_orientation_recovers_what_positions_see_poorly(probe_campaign):
         assert abs(a[n]["delta"] - truth[n]) < 4 * a[n]["std_ls"], n
         assert a[n]["std_ls"] <= 1.02 * b[n]["std_ls"], n
     assert all(b[n]["std_ls"] / a[n]["std_ls"] > 3 for n in WRIST)
-    err = {k: np.sqrt(np.mean([(t[n]["delta"] - truth[n]) ** 2 for n in WRIST])) for k, t in (("a", a), ("b", b))}
+    err = {
+        k: np.sqrt(np.mean([(t[n]["delta"] - truth[n]) ** 2 for n in WRIST])) for k, t in (("a", a), ("b", b))
+    }
     assert err["a"] < 0.5 * err["b"]
     # The probe's orientation (with theta6/alpha6 merged into it) predicts held-out poses' orientation.
     q_val = held_out_joints(cell, 30, seed=7)
@@ -187,9 +193,10 @@ def test_angle_noise_weighs_the_rotation_equations(probe_campaign):
     sharp_probe = calibrate(df, "ur10").model
     kin = lambda m: m.kinematic.params  # noqa: E731
     # A probe said to be 2000x noisier barely moves the fit away from the position-only one.
-    assert np.abs(kin(noisy_probe) - kin(positions_only)).max() < 0.05 * np.abs(
-        kin(sharp_probe) - kin(positions_only)
-    ).max()
+    assert (
+        np.abs(kin(noisy_probe) - kin(positions_only)).max()
+        < 0.05 * np.abs(kin(sharp_probe) - kin(positions_only)).max()
+    )
     with pytest.raises(ValueError, match="angle noise"):
         calibrate(df, "ur10", probe_angle_noise_rad=0.0)
 
@@ -201,7 +208,9 @@ def test_orientation_columns_conventions_and_refusals(probe_campaign):
     angles = np.rad2deg(Rotation.from_matrix(R).as_euler("XYZ"))
     intrinsic[list(ORIENTATION_COLUMNS)] = angles
     assert not np.allclose(orientations(intrinsic), R, atol=1e-6)  # read in the default: wrong
-    np.testing.assert_allclose(orientations(convert_orientation_convention(intrinsic, "xyz-intrinsic")), R, atol=1e-9)
+    np.testing.assert_allclose(
+        orientations(convert_orientation_convention(intrinsic, "xyz-intrinsic")), R, atol=1e-9
+    )
     with pytest.raises(ValueError, match="xyz-extrinsic or xyz-intrinsic"):
         convert_orientation_convention(df, "zyz")
     with pytest.raises(DatasetError, match="rx_deg, ry_deg, rz_deg"):
@@ -235,10 +244,17 @@ def test_cli_reads_the_convention_and_reports_orientation(probe_campaign, tmp_pa
     data[list(ORIENTATION_COLUMNS)] = np.rad2deg(Rotation.from_matrix(orientations(df)).as_euler("XYZ"))
     data.to_csv(tmp_path / "probe.csv", index=False)
     args = ["calibrate", str(tmp_path / "probe.csv"), "-o", str(tmp_path / "m.json")]
-    assert main([*args, "--orientation-convention", "xyz-intrinsic", "--residuals", str(tmp_path / "r.csv")]) == 0
+    assert (
+        main([*args, "--orientation-convention", "xyz-intrinsic", "--residuals", str(tmp_path / "r.csv")])
+        == 0
+    )
     assert pd.read_csv(tmp_path / "r.csv")["rot_deg"].median() < 0.03
     out = capsys.readouterr().out
-    rms = [float(line.split("orientation RMS ")[1].split()[0]) for line in out.splitlines() if "ridge-igg3:" in line]
+    rms = [
+        float(line.split("orientation RMS ")[1].split()[0])
+        for line in out.splitlines()
+        if "ridge-igg3:" in line
+    ]
     assert rms and rms[0] < 0.03  # read in its own convention, the probe agrees with the arm
     assert "probe orientation SMR 1 in the flange" in out
     for bad in (["--orientation-convention", "zyz"], ["--probe-angle-noise-deg", "0"]):
@@ -260,7 +276,14 @@ def test_diagnose_with_a_probe_finds_compliance_and_reports_orientation(tmp_path
     cell = SimulatedCell(SimCellConfig(robot="ur10", seed=2))  # gravity compliance on
     df = simulate_campaign(cell, grid_joints(cell, step_m=0.15, seed=2), probe=Probe.drawn(2))
     df.to_csv(tmp_path / "probe.csv", index=False)
-    argv = ["diagnose", str(tmp_path / "probe.csv"), "--json", str(tmp_path / "r.json"), "--html", str(tmp_path / "r.html")]
+    argv = [
+        "diagnose",
+        str(tmp_path / "probe.csv"),
+        "--json",
+        str(tmp_path / "r.json"),
+        "--html",
+        str(tmp_path / "r.html"),
+    ]
     assert main([*argv, "--families", "gravity_compliance", "--probe-angle-noise-deg", "0.01"]) == 0
     out = capsys.readouterr().out
     assert "6-DoF probe, geometric ridge_igg3 fit" in out and "6-DoF probe, final model" in out
@@ -277,7 +300,9 @@ def test_diagnose_with_a_probe_finds_compliance_and_reports_orientation(tmp_path
     # calibration's "confounded" notes, which the verdict carries as calibration_note cautions, are gone.
     cautions = report["verdict"]["cautions"]
     notes = [c["text"] for c in cautions if c["kind"] == "calibration_note"]
-    assert all(isinstance(c, dict) and "kind" in c for c in cautions)  # records, as hil.analysis.report reads them
+    assert all(
+        isinstance(c, dict) and "kind" in c for c in cautions
+    )  # records, as hil.analysis.report reads them
     assert not [t for t in notes if t.startswith("confounded")]
     positions_only = calibrate(df.drop(columns=list(ORIENTATION_COLUMNS)), "ur10")
     assert [n for n in positions_only.notes if n.startswith("confounded: theta5 and a5")]
@@ -289,12 +314,16 @@ def test_wrong_orientation_readings_are_refused_before_any_fit(probe_campaign):
     radians = df.assign(**{c: np.deg2rad(df[c]) for c in ORIENTATION_COLUMNS})
     for bad in (wrong_convention, radians):
         for solver in ("ridge", "lm"):
-            with pytest.raises(ValueError, match=r"rx_deg, ry_deg, rz_deg.*--orientation-convention.*radians"):
+            with pytest.raises(
+                ValueError, match=r"rx_deg, ry_deg, rz_deg.*--orientation-convention.*radians"
+            ):
                 calibrate(bad, "ur10", solver)
     # Right readings pass; a probe far noisier than its stated noise gets a note after the fit.
     assert not [n for n in calibrate(df, "ur10").notes if n.startswith("orientation")]
     stated_too_sharp = calibrate(df, "ur10", probe_angle_noise_rad=np.deg2rad(0.001))
-    assert [n for n in stated_too_sharp.notes if n.startswith("orientation") and "--probe-angle-noise-deg" in n]
+    assert [
+        n for n in stated_too_sharp.notes if n.startswith("orientation") and "--probe-angle-noise-deg" in n
+    ]
 
 
 def test_lm_judges_rotations_by_their_own_scale(probe_campaign):

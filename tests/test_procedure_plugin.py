@@ -89,7 +89,9 @@ def plugin_env(tmp_path):
 
 
 def _hil(env, *args: str, timeout: float = 60) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "hil", *args], capture_output=True, text=True, timeout=timeout, env=env)
+    return subprocess.run(
+        [sys.executable, "-m", "hil", *args], capture_output=True, text=True, timeout=timeout, env=env
+    )
 
 
 def test_an_installed_procedure_is_listed_with_its_purpose_and_parameters(plugin_env):
@@ -121,7 +123,16 @@ def test_an_installed_procedure_refuses_bad_parameters_before_connecting(plugin_
 def test_an_installed_procedure_runs_on_the_simulated_cell(plugin_env, tmp_path):
     campaign = tmp_path / "campaign.sqlite"
     with running_cell(tmp_path, seed=2) as (_, config):
-        args = ["run", "distance_check", "--cell", str(tmp_path / "cell.toml"), "--campaign", str(campaign), "--poses", "4"]
+        args = [
+            "run",
+            "distance_check",
+            "--cell",
+            str(tmp_path / "cell.toml"),
+            "--campaign",
+            str(campaign),
+            "--poses",
+            "4",
+        ]
         done = _hil(plugin_env, *args, timeout=240)
         assert done.returncode == 0, done.stderr
         assert "distance check: worst" in done.stdout

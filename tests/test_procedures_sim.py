@@ -57,7 +57,9 @@ def test_registration_is_within_the_noise_of_the_best_possible_fit(campaign):
     p_nominal = tool_points(campaign["config"].nominal, q, campaign["config"].nests_flange_m[0])
     T_best, _ = fit_rigid(p_nominal, np.array(p_true))
     box_points = grid_sampling.sampling_box(campaign["config"], None, None).corners()
-    gap = np.linalg.norm(transform_points(reg.fit.T_tracker_base, box_points) - transform_points(T_best, box_points), axis=1)
+    gap = np.linalg.norm(
+        transform_points(reg.fit.T_tracker_base, box_points) - transform_points(T_best, box_points), axis=1
+    )
     assert gap.max() < 0.05e-3, gap
 
 
@@ -95,7 +97,9 @@ def test_the_campaign_holds_the_snapshot_the_log_and_the_step_results(campaign):
 
 def test_the_export_is_a_dataset_diagnose_reads(campaign, capsys):
     out = campaign["folder"] / "grid.csv"
-    done = run_hil("campaign", "export", str(campaign["path"]), "--csv", str(out), cwd=campaign["folder"], capsys=capsys)
+    done = run_hil(
+        "campaign", "export", str(campaign["path"]), "--csv", str(out), cwd=campaign["folder"], capsys=capsys
+    )
     assert done.returncode == 0, done.stderr
     from hil.data.dataset import load_dataset
 

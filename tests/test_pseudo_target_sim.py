@@ -122,7 +122,9 @@ def session_row_q(cell, name: str, target_id: str) -> np.ndarray:
 def test_three_smrs_correct_the_orientation(cell):
     config, model = cell["config"], cell["model"]
     with session_on(config, campaign(cell, "three")) as session:
-        result = pseudo_target.PROCEDURE(session, model=model, targets=6, smrs=3, max_iter=2, seed=2, shots=10)
+        result = pseudo_target.PROCEDURE(
+            session, model=model, targets=6, smrs=3, max_iter=2, seed=2, shots=10
+        )
         targets = np.array(session.step_result("pseudo_target", "targets")["targets_m"])
         nests = {int(r[-1]) for r in session.store.measurements("pseudo_target", "loop")["point_id"]}
         layout = np.array([session.nest_flange_m(k) for k in (1, 2, 3)])
@@ -153,7 +155,9 @@ def test_a_killed_loop_resumes_without_measuring_twice(cell):
 
         session.measure_point = limited  # type: ignore[method-assign]
         with pytest.raises(KilledError):
-            pseudo_target.PROCEDURE(session, model=model, targets=4, smrs=1, max_iter=2, seed=3, threshold_m=1e-6)
+            pseudo_target.PROCEDURE(
+                session, model=model, targets=4, smrs=1, max_iter=2, seed=3, threshold_m=1e-6
+            )
         first = session.store.measurements("pseudo_target", "loop")
     assert len(first) == 5
     with session_on(config, path) as session:
@@ -201,7 +205,12 @@ def test_below_the_noise_floor_each_target_stops_for_no_improvement_and_keeps_it
         again = pseudo_target.PROCEDURE(session, **options)
         assert len(session.store.measurements("pseudo_target", "loop")) == len(rows)
     for t, u in zip(result.targets, again.targets, strict=True):
-        assert (u.status, u.errors_m, u.best_iteration, u.noise_m) == (t.status, t.errors_m, t.best_iteration, t.noise_m)
+        assert (u.status, u.errors_m, u.best_iteration, u.noise_m) == (
+            t.status,
+            t.errors_m,
+            t.best_iteration,
+            t.noise_m,
+        )
 
 
 def test_unreachable_and_singular_targets_are_reported_and_not_visited(cell):
@@ -240,7 +249,18 @@ def test_cli_dry_run_plans_the_first_poses_and_bad_options_exit_2(cell, tmp_path
         "--campaign",
         str(tmp_path / "c.sqlite"),
     ]
-    done = run_hil(*base, "--dry-run", "--model", str(model_path), "--targets", "5", "--smrs", "3", cwd=tmp_path, capsys=capsys)
+    done = run_hil(
+        *base,
+        "--dry-run",
+        "--model",
+        str(model_path),
+        "--targets",
+        "5",
+        "--smrs",
+        "3",
+        cwd=tmp_path,
+        capsys=capsys,
+    )
     assert done.returncode == 0, done.stderr
     assert "plan of pseudo_target: 5 poses" in done.stdout and "t005/i0" in done.stdout
     for bad in (

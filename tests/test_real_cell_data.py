@@ -108,9 +108,15 @@ def test_a_model_fitted_with_the_wrong_robot_is_refused_unless_forced(campaign, 
 def test_calibrate_prints_changes_in_mm_and_degrees(campaign, tmp_path, capsys):
     campaign.to_csv(tmp_path / "ur10.csv", index=False)
     assert main(["calibrate", str(tmp_path / "ur10.csv"), "-o", str(tmp_path / "m.json")]) == 0
-    rows = {line.split()[0]: line.split() for line in capsys.readouterr().out.splitlines() if line[:2] in ("a2", "al")}
+    rows = {
+        line.split()[0]: line.split()
+        for line in capsys.readouterr().out.splitlines()
+        if line[:2] in ("a2", "al")
+    }
     table = {r["name"]: r for r in calibrate(campaign, "ur10").parameter_table()}
-    assert rows["a2"][-1] == "mm" and float(rows["a2"][1]) == pytest.approx(table["a2"]["delta"] * 1e3, abs=2e-5)
+    assert rows["a2"][-1] == "mm" and float(rows["a2"][1]) == pytest.approx(
+        table["a2"]["delta"] * 1e3, abs=2e-5
+    )
     assert rows["alpha1"][-1] == "deg"
     assert float(rows["alpha1"][1]) == pytest.approx(np.rad2deg(table["alpha1"]["delta"]), abs=2e-5)
 
@@ -134,10 +140,24 @@ def test_cli_warnings_are_one_line_without_python_internals(campaign, tmp_path, 
 
 def test_diagnose_needs_no_json_and_refuses_the_wrong_robot_unless_forced(campaign, tmp_path, capsys):
     campaign.to_csv(tmp_path / "ur10.csv", index=False)
-    assert main(["diagnose", str(tmp_path / "ur10.csv"), "--folds", "2", "--families", "gravity_compliance"]) == 0  # README's form
+    assert (
+        main(["diagnose", str(tmp_path / "ur10.csv"), "--folds", "2", "--families", "gravity_compliance"])
+        == 0
+    )  # README's form
     capsys.readouterr()
     model = tmp_path / "ur5.json"
-    argv = ["diagnose", str(tmp_path / "ur10.csv"), "--robot", "ur5", "--folds", "2", "--families", "gravity_compliance", "-o", str(model)]
+    argv = [
+        "diagnose",
+        str(tmp_path / "ur10.csv"),
+        "--robot",
+        "ur5",
+        "--folds",
+        "2",
+        "--families",
+        "gravity_compliance",
+        "-o",
+        str(model),
+    ]
     assert main(argv) == 2 and not model.exists()
     err = capsys.readouterr().err
     assert "error: implausible: a2 moved" in err and "no model written" in err and "--force" in err

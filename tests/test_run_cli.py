@@ -35,7 +35,20 @@ def test_a_broken_config_is_refused_before_anything_connects(tmp_path, capsys):
 def test_a_sampling_box_outside_the_envelope_is_refused_before_any_motion(tmp_path, capsys):
     data = tomllib.loads(sim_cell_toml())
     data["envelope"]["box_min_mm"] = [-1500.0, -1500.0, 300.0]  # nothing may go below z = 300 mm
-    done = _run(tmp_path, format_cell_toml(data), "grid_sampling", "--box-min-mm", "200", "200", "0", "--box-max-mm", "700", "700", "250", capsys=capsys)
+    done = _run(
+        tmp_path,
+        format_cell_toml(data),
+        "grid_sampling",
+        "--box-min-mm",
+        "200",
+        "200",
+        "0",
+        "--box-max-mm",
+        "700",
+        "700",
+        "250",
+        capsys=capsys,
+    )
     assert done.returncode == 2
     assert "inside the envelope" in done.stderr and "what to do" in done.stderr, done.stderr
     assert not (tmp_path / "c.sqlite").exists()
@@ -61,7 +74,9 @@ def test_bad_procedure_options_are_refused(tmp_path, capsys):
 
 
 def test_a_flag_in_another_unit_or_an_unknown_procedure_is_refused(tmp_path, capsys):
-    done = _run(tmp_path, sim_cell_toml(), "grid_sampling", "--step-m", "0.1", capsys=capsys)  # metres, not millimetres
+    done = _run(
+        tmp_path, sim_cell_toml(), "grid_sampling", "--step-m", "0.1", capsys=capsys
+    )  # metres, not millimetres
     assert done.returncode == 2 and "use --step-mm" in done.stderr and "20..500 mm" in done.stderr
     done = _run(tmp_path, sim_cell_toml(), "grid_sampling", "--tilt-rad", "0.2", capsys=capsys)
     assert done.returncode == 2 and "use --tilt-deg" in done.stderr

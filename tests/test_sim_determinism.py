@@ -38,7 +38,11 @@ def _measure(folder, loaded: bool) -> dict[str, pd.DataFrame]:
     folder.mkdir()
     campaign = folder / "campaign.sqlite"
     registration, grid_sampling = load("registration"), load("grid_sampling")
-    with _cpu_hog(loaded), running_cell(folder, seed=4) as (_, config), session_on(config, campaign) as session:
+    with (
+        _cpu_hog(loaded),
+        running_cell(folder, seed=4) as (_, config),
+        session_on(config, campaign) as session,
+    ):
         registration(session)
         grid_sampling(session, step_m=0.3, validation=8, seed=4)
     with CampaignStore(campaign, create=False) as store:

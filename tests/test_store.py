@@ -239,7 +239,9 @@ def test_dataset_export_csv_and_parquet(tmp_path):
         for i in range(12):
             store.record_measurement(make_record(i))
         for i in range(4):  # other poses than the grid's (an exact copy would be dropped as a duplicate row)
-            store.record_measurement(make_record(i, step="validation", rng=np.random.default_rng(100 + i), t0=1.7e9 + 1000))
+            store.record_measurement(
+                make_record(i, step="validation", rng=np.random.default_rng(100 + i), t0=1.7e9 + 1000)
+            )
         df = campaign_dataset(store)
     assert len(df) == 16
     np.testing.assert_allclose(df["t_s"].iloc[0], 100.0)  # since the campaign's first measurement

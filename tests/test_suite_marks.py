@@ -43,7 +43,11 @@ def socket_uses(tree: ast.Module) -> list[str]:
         elif isinstance(node, ast.ImportFrom) and node.module in SOCKET_MODULES:
             found.append(f"from {node.module} import")
         elif isinstance(node, ast.ImportFrom) and node.module in ("fakes", "tests"):
-            found += [f"from {node.module} import {a.name}" for a in node.names if f"{node.module}.{a.name}" in SOCKET_MODULES]
+            found += [
+                f"from {node.module} import {a.name}"
+                for a in node.names
+                if f"{node.module}.{a.name}" in SOCKET_MODULES
+            ]
         elif isinstance(node, ast.Call):
             f = node.func
             name = f.id if isinstance(f, ast.Name) else f.attr if isinstance(f, ast.Attribute) else None
@@ -60,7 +64,13 @@ def pytestmark_assignments(tree: ast.Module) -> list[ast.expr]:
     """The values assigned to the module-level `pytestmark`, in order."""
     values = []
     for node in tree.body:
-        targets = node.targets if isinstance(node, ast.Assign) else [node.target] if isinstance(node, ast.AnnAssign) else []
+        targets = (
+            node.targets
+            if isinstance(node, ast.Assign)
+            else [node.target]
+            if isinstance(node, ast.AnnAssign)
+            else []
+        )
         if any(isinstance(t, ast.Name) and t.id == "pytestmark" for t in targets):
             values.append(node.value)  # type: ignore[attr-defined]
     return [v for v in values if v is not None]
@@ -70,7 +80,11 @@ def marks_in(value: ast.expr) -> set[str]:
     """The names of `pytest.mark.NAME` (called or not) in a pytestmark value."""
     names = set()
     for node in ast.walk(value):
-        if isinstance(node, ast.Attribute) and isinstance(node.value, ast.Attribute) and node.value.attr == "mark":
+        if (
+            isinstance(node, ast.Attribute)
+            and isinstance(node.value, ast.Attribute)
+            and node.value.attr == "mark"
+        ):
             names.add(node.attr)
     return names
 
@@ -93,18 +107,24 @@ def test_a_module_that_opens_sockets_is_marked_sim(path):
 
 def test_the_scan_finds_what_it_looks_for():
     """The scan itself can fail: it sees each kind of use, a double assignment and a missing mark."""
-    source = '''
+    source = """
 import pytest
 from fakes.launch import sim_cell
 pytestmark = pytest.mark.sim
 pytestmark = pytest.mark.timeout(30)
 def test_x():
     subprocess.run([sys.executable, "-m", "hil", "demo"])
-'''
+"""
     tree = ast.parse(source)
     assert socket_uses(tree) == ["from fakes.launch import", "hil demo as a process"]
     assigned = pytestmark_assignments(tree)
     assert len(assigned) == 2 and marks_in(assigned[-1]) == {"timeout"} and marks_in(assigned[0]) == {"sim"}
-    assert socket_uses(ast.parse("import socket\nwith running_cell(p) as c: pass")) == ["import socket", "running_cell(...)"]
+    assert socket_uses(ast.parse("import socket\nwith running_cell(p) as c: pass")) == [
+        "import socket",
+        "running_cell(...)",
+    ]
     assert socket_uses(ast.parse("import numpy\nmain(['sim', '--host', '10.0.0.1'])")) == []
-    assert marks_in(ast.parse("[pytest.mark.sim, pytest.mark.timeout(400)]", mode="eval").body) == {"sim", "timeout"}
+    assert marks_in(ast.parse("[pytest.mark.sim, pytest.mark.timeout(400)]", mode="eval").body) == {
+        "sim",
+        "timeout",
+    }

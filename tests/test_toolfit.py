@@ -84,5 +84,16 @@ def test_distance_constraint_finds_the_tool_point():
 def test_the_summary_prints_each_judged_figure_with_its_limit():
     from procedures.tool_fit import ToolFitResult, _Limits, summary
 
-    result = ToolFitResult({1: np.array([0.03, -0.02, 0.11])}, {1: 8e-6}, 6.6e-6, 0.0315, 0.717e-3, {}, _Limits(30e-6, 0.2e-3, 0.1e-3, 3e-3))
-    assert "worst circle residual 0.0066 mm (limit 0.03 mm); distance-method check 0.717 mm (limit 3 mm)" in summary(result)
+    result = ToolFitResult(
+        {1: np.array([0.03, -0.02, 0.11])},
+        {1: 8e-6},
+        6.6e-6,
+        0.0315,
+        0.717e-3,
+        {},
+        _Limits(30e-6, 0.2e-3, 0.1e-3, 3e-3),
+    )
+    assert (
+        "worst circle residual 0.0066 mm (limit 0.03 mm); distance-method check 0.717 mm (limit 3 mm)"
+        in summary(result)
+    )

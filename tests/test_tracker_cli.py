@@ -17,7 +17,10 @@ from fakes.emscon_server import EmsconServer, EmsconServerConfig, ServerThread
 from fakes.launch import stop_process
 from hil.commands import tracker as tracker_command
 
-pytestmark = [pytest.mark.sim, pytest.mark.timeout(60)]  # starts a simulated cell or a fake server over sockets
+pytestmark = [
+    pytest.mark.sim,
+    pytest.mark.timeout(60),
+]  # starts a simulated cell or a fake server over sockets
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 

@@ -50,7 +50,12 @@ def errors_mm(report: DiagnosisReport) -> dict[str, float | None]:
 
 
 def round_record(
-    number: int, before: DiagnosisReport, after: DiagnosisReport, plan: dict, rows_before: int, rows_after: int
+    number: int,
+    before: DiagnosisReport,
+    after: DiagnosisReport,
+    plan: dict,
+    rows_before: int,
+    rows_after: int,
 ) -> dict:
     """What one round did, as JSON-ready data: `plan` is {purpose: [...], groups: [...]} of the measured poses."""
     judged = settled(before.undecided, after.undecided, after.effects_added)
@@ -86,7 +91,11 @@ def round_text(record: dict) -> str:
     """One round in words: what was undecided, what was measured, what got decided, the error before and after."""
     m = record["measured"]
     planned = m.get("planned", m["poses"])
-    left = f" of {planned} planned (the rest not measurable with this cell config)" if planned != m["poses"] else ""
+    left = (
+        f" of {planned} planned (the rest not measurable with this cell config)"
+        if planned != m["poses"]
+        else ""
+    )
     lines = [
         f"round {record['round']}: {m['poses']} poses measured{left} ({m['rows_before']} -> {m['rows_after']} training rows)"
     ]
@@ -139,7 +148,9 @@ def rounds_html(records: list[dict], stop: dict | None = None) -> str:
     )
     table = (
         "<table><tr><th>round</th><th>poses</th><th>effects before</th><th>effects after</th>"
-        "<th>validation RMS before (mm)</th><th>after (mm)</th><th>questions decided</th></tr>" + rows + "</table>"
+        "<th>validation RMS before (mm)</th><th>after (mm)</th><th>questions decided</th></tr>"
+        + rows
+        + "</table>"
     )
     text = html.escape(rounds_text(records, stop))
     return "<h2>Active loop: the measurements that decide</h2>" + table + f"<pre>{text}</pre>"

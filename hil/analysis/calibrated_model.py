@@ -47,7 +47,9 @@ class CalibratedModel:
     tools: dict[int, np.ndarray]  # SMR nest id -> tool point in the flange (m)
     effects: list[Effect] = field(default_factory=list)
     info: dict = field(default_factory=dict)  # solver report: std errors, dropped parameters, outliers...
-    residual_map: dict | None = None  # fallback residual map (hil.analysis.residual_maps), applied by `predict`
+    residual_map: dict | None = (
+        None  # fallback residual map (hil.analysis.residual_maps), applied by `predict`
+    )
     probes: dict[int, np.ndarray] = field(default_factory=dict)  # SMR nest id -> R_flange_probe (3, 3)
 
     # ----- parameter vector ---------------------------------------------------------------------

@@ -169,7 +169,13 @@ def _effect_params(result: CalibrationResult, eff_index: int) -> list[dict]:
     out = []
     for nm, v in zip(eff.param_names, eff.params, strict=True):
         out.append(
-            {"name": nm, "value": float(v), "std": result.honest_std(nm), "unit": eff.coefficient_unit(), "free": nm in result.std}
+            {
+                "name": nm,
+                "value": float(v),
+                "std": result.honest_std(nm),
+                "unit": eff.coefficient_unit(),
+                "free": nm in result.std,
+            }
         )
     return out
 
@@ -610,7 +616,9 @@ def _verdict(
         if st.get("worse_than_previous"):
             cautions.append(caution("stage_worse_than_previous", stage=st["stage"], rms_mm=st["rms_mm"]))
     for amb in path.ambiguities:
-        cautions.append(caution("ambiguous_effects", chosen=amb["chosen"], confounded_with=amb["confounded_with"]))
+        cautions.append(
+            caution("ambiguous_effects", chosen=amb["chosen"], confounded_with=amb["confounded_with"])
+        )
     cautions += [caution("calibration_note", text=note) for note in base.ridge.notes]
     final_model.info["diagnosis"] = {
         "effects_added": [s.effect for s in steps],

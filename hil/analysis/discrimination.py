@@ -39,7 +39,9 @@ from hil.analysis.undecided import MIN_REVISITS, MIN_ROWS_PER_DIRECTION
 from hil.data.dataset import joints_rad, pose_ids, smr_ids
 
 RELEVANT_LENGTH_M = 20e-6  # smallest RMS displacement of the SMR worth deciding (about the tracker's noise)
-DECISIVE_Z = 4.6  # z_(1e-3/2) + z_(0.9): a test at 1e-3 that finds an effect of the relevant size 9 times in 10
+DECISIVE_Z = (
+    4.6  # z_(1e-3/2) + z_(0.9): a test at 1e-3 that finds an effect of the relevant size 9 times in 10
+)
 
 SWEEP_SPAN = 0.95 * 2 * np.pi  # a sweep covers this much of a turn where the limits allow
 SWEEP_POINTS = 12
@@ -96,7 +98,9 @@ def propose(
     rng = np.random.default_rng(seed)
     plannable = [qu for qu in questions if qu["plannable"]]
     plan = Plan(np.zeros((0, q_camp.shape[1])), [])
-    plan.not_planned = [{"question": qu, "why": "poses cannot decide it"} for qu in questions if not qu["plannable"]]
+    plan.not_planned = [
+        {"question": qu, "why": "poses cannot decide it"} for qu in questions if not qu["plannable"]
+    ]
     if not plannable:
         return plan
     budget = max_rows
@@ -112,10 +116,14 @@ def propose(
         both = (j + 1) in backlash_joints
         sweep = _sweep(q_camp, centre, j, limits, ok, both, rng)
         if sweep is None:
-            plan.not_planned.append({"question": qu, "why": "no reachable, visible sweep covers enough of a turn"})
+            plan.not_planned.append(
+                {"question": qu, "why": "no reachable, visible sweep covers enough of a turn"}
+            )
             continue
         if len(sweep) > budget:
-            plan.not_planned.append({"question": qu, "why": f"the budget leaves {budget} rows, a sweep needs {len(sweep)}"})
+            plan.not_planned.append(
+                {"question": qu, "why": f"the budget leaves {budget} rows, a sweep needs {len(sweep)}"}
+            )
             continue
         purpose = f"sweep_j{j + 1}"
         rows += [(q, purpose) for q in sweep]
@@ -131,18 +139,22 @@ def propose(
             continue
         there = _back_and_forth(centre, j, limits, ok)
         if there is None or len(there) > budget:
-            plan.not_planned.append({"question": qu, "why": "no room (limits, envelope or budget) to move it both ways"})
+            plan.not_planned.append(
+                {"question": qu, "why": "no room (limits, envelope or budget) to move it both ways"}
+            )
             continue
         purpose = f"backlash_j{j + 1}"
         rows += [(q, purpose) for q in there]
         budget -= len(there)
         groups.append({"purpose": purpose, "rows": len(there), "question": qu})
     physics_q = np.array([r[0] for r in rows]).reshape(-1, q_camp.shape[1])
-    stat = [qu for qu in plannable if qu["kind"] not in ("period_not_covered", "one_approach_direction", "drift_unmonitored")]
+    stat = [
+        qu
+        for qu in plannable
+        if qu["kind"] not in ("period_not_covered", "one_approach_direction", "drift_unmonitored")
+    ]
     if stat:
-        design_rows, design_groups, skipped = _separate(
-            df, model, stat, physics_q, budget, sigma_m, ok, rng
-        )
+        design_rows, design_groups, skipped = _separate(df, model, stat, physics_q, budget, sigma_m, ok, rng)
         rows += design_rows
         groups += design_groups
         plan.not_planned += skipped
@@ -255,7 +267,11 @@ def _rival(df, model, camp: Problem, qu: dict) -> _Rival | None:
         names = list(qu["parameters"])
         label = f"{names[0]}/{names[1]}"
     else:
-        eff = make_effect(qu["rival"]["name"], qu["rival"]["joint"]) if qu["kind"] == "ambiguous_effects" else make_effect(qu["effect"]["name"], qu["effect"]["joint"])
+        eff = (
+            make_effect(qu["rival"]["name"], qu["rival"]["joint"])
+            if qu["kind"] == "ambiguous_effects"
+            else make_effect(qu["effect"]["name"], qu["effect"]["joint"])
+        )
         camp.ctx.p_flange_tool = model._row_tools(camp.smr)
         if not eff.prepare(camp.ctx, model.nominal):
             return None
@@ -275,7 +291,9 @@ def _rival(df, model, camp: Problem, qu: dict) -> _Rival | None:
     Js = Jf[:, keep] / norms
     cols = np.array([kept.index(nm) for nm in names])
     info = Js.T @ Js + 1e-9 * np.eye(Js.shape[1])
-    size = np.array([_relevant_size(nm, Jf[:, all_names.index(nm)], trial, camp) for nm in names]) * norms[cols]
+    size = (
+        np.array([_relevant_size(nm, Jf[:, all_names.index(nm)], trial, camp) for nm in names]) * norms[cols]
+    )
     return _Rival(qu, label, cols, size, np.linalg.inv(info), trial, keep, norms)
 
 
@@ -329,7 +347,12 @@ def _separate(df, model, questions, physics_q, budget, sigma_m, ok, rng):
     pool = _pool(q_camp, limits, ok, rng)
     if len(physics_q):  # the physics rows are measured too: count their information
         for r in rivals:
-            r.cov = _woodbury_update(r.cov, _scaled_rows(r.trial, _context(model, df, physics_q), r.keep, r.norms).reshape(-1, r.cov.shape[0]))
+            r.cov = _woodbury_update(
+                r.cov,
+                _scaled_rows(r.trial, _context(model, df, physics_q), r.keep, r.norms).reshape(
+                    -1, r.cov.shape[0]
+                ),
+            )
     blocks = [_scaled_rows(r.trial, _context(model, df, pool), r.keep, r.norms) for r in rivals]
     z_before = [float(r.z(np.diag(r.cov)[r.cols], sigma_m)) for r in rivals]
     reach = [_solo_reach(r, A, budget, sigma_m) for r, A in zip(rivals, blocks, strict=True)]
@@ -342,7 +365,11 @@ def _separate(df, model, questions, physics_q, budget, sigma_m, ok, rng):
             }
         )
     keep_k = [k for k, z in enumerate(reach) if z >= DECISIVE_Z]
-    rivals, blocks, z_before = [rivals[k] for k in keep_k], [blocks[k] for k in keep_k], [z_before[k] for k in keep_k]
+    rivals, blocks, z_before = (
+        [rivals[k] for k in keep_k],
+        [blocks[k] for k in keep_k],
+        [z_before[k] for k in keep_k],
+    )
     chosen: list[int] = []
     serves: list[int] = []
     available = np.ones(len(pool), bool)
@@ -372,7 +399,9 @@ def _separate(df, model, questions, physics_q, budget, sigma_m, ok, rng):
         count = int(np.sum(np.asarray(serves) == k))
         z_after = float(r.z(np.diag(r.cov)[r.cols], sigma_m))
         if count == 0 and z_after < DECISIVE_Z:
-            skipped.append({"question": r.question, "why": "no reachable pose adds evidence", "evidence_z": z_after})
+            skipped.append(
+                {"question": r.question, "why": "no reachable pose adds evidence", "evidence_z": z_after}
+            )
             continue
         groups.append(
             {
@@ -421,7 +450,12 @@ def evidence(df: pd.DataFrame, model: CalibratedModel, questions: list[dict], si
     camp = Problem.from_frame(model, df)
     out = []
     for qu in questions:
-        if qu["kind"] not in ("marginal", "confounded_with_geometry", "ambiguous_effects", "confounded_parameters"):
+        if qu["kind"] not in (
+            "marginal",
+            "confounded_with_geometry",
+            "ambiguous_effects",
+            "confounded_parameters",
+        ):
             continue
         r = _rival(df, model, camp, qu)
         z = None if r is None else float(r.z(np.diag(r.cov)[r.cols], sigma_m))

@@ -24,7 +24,9 @@ TRACKER_MPE_M: tuple[float, float] = (15e-6, 6e-6)
 TRACKER_MPE_SIGMAS = 2.0
 
 
-def tracker_sigma_m(distance_m, mpe_m: tuple[float, float] = TRACKER_MPE_M, sigmas: float = TRACKER_MPE_SIGMAS):
+def tracker_sigma_m(
+    distance_m, mpe_m: tuple[float, float] = TRACKER_MPE_M, sigmas: float = TRACKER_MPE_SIGMAS
+):
     """Per-axis 1-sigma of one tracker shot at `distance_m` (m, scalar or array) by the MPE = a + b * d model."""
     return (mpe_m[0] + mpe_m[1] * np.asarray(distance_m, float)) / sigmas
 

@@ -30,9 +30,7 @@ def caution_text(c: dict) -> str:
             f"{c['heldout_rms_without_mm']:.4f} mm held-out); it was set aside"
         )
     if kind == "stage_worse_than_previous":
-        return (
-            f"stage '{c['stage']}' predicts held-out points worse than the stage before it ({c['rms_mm']:.4f} mm)"
-        )
+        return f"stage '{c['stage']}' predicts held-out points worse than the stage before it ({c['rms_mm']:.4f} mm)"
     if kind == "ambiguous_effects":
         return (
             f"on this data {_effect(c['chosen'])} and {_effect(c['confounded_with'])} explain the same residual; "
@@ -262,7 +260,11 @@ def _effects_html(report: DiagnosisReport) -> list[str]:
             parts.append(
                 "<p>" + html.escape(", ".join(f"{k} = {v:.4g}" for k, v in step.summary.items())) + "</p>"
             )
-        parts.append(_table([in_report_units(row) for row in step.parameters], ["name", "value", "std", "unit", "free"]))
+        parts.append(
+            _table(
+                [in_report_units(row) for row in step.parameters], ["name", "value", "std", "unit", "free"]
+            )
+        )
         if step.merged:
             parts.append(
                 "<p>Merged (not separable from the geometry): "
@@ -342,7 +344,11 @@ def _calibration_html(d: dict) -> list[str]:
 
 def _compensation_html(summary: dict) -> str:
     """Uncompensated -> model-based (or nominal IK) -> measured loop on held-out targets, mm (and deg)."""
-    names = {"uncompensated": "uncompensated", "start": summary.get("start", "start"), "final": "measured loop"}
+    names = {
+        "uncompensated": "uncompensated",
+        "start": summary.get("start", "start"),
+        "final": "measured loop",
+    }
     rows = []
     for key, label in names.items():
         p = summary["position_mm"][key]
@@ -471,7 +477,10 @@ def plan_text(plan: dict) -> str:
 
 def _undecided_html(report: DiagnosisReport) -> str:
     """The open questions and, when one was made, the plan that decides them."""
-    parts = ["<h2>What this campaign leaves undecided</h2>", "<pre>" + html.escape(undecided_text(report)) + "</pre>"]
+    parts = [
+        "<h2>What this campaign leaves undecided</h2>",
+        "<pre>" + html.escape(undecided_text(report)) + "</pre>",
+    ]
     if report.plan is not None:
         parts.append("<pre>" + html.escape(plan_text(report.plan)) + "</pre>")
     return "\n".join(parts)

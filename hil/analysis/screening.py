@@ -20,7 +20,6 @@ def effect_label(name: str, joint: int | None) -> str:
     return name + (f" (joint {joint})" if joint else "")
 
 
-
 @dataclass
 class Candidate:
     name: str
@@ -36,8 +35,6 @@ class Candidate:
 
     def to_dict(self) -> dict:
         return dict(self.__dict__)
-
-
 
 
 def cv_residuals(

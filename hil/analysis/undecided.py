@@ -36,7 +36,9 @@ from hil.data.dataset import joints_rad, pose_ids
 MARGINAL_P = 0.01  # held-out p-value below this but not below alpha: the data leans, it does not decide
 MIN_ROWS_PER_DIRECTION = 5  # the backlash candidate's own requirement (hil.analysis.effects.Backlash)
 MIN_REVISITS = 4
-REVISIT_GAP = 0.5  # fraction of the campaign's duration (time, else rows) between a pose's first and last visit
+REVISIT_GAP = (
+    0.5  # fraction of the campaign's duration (time, else rows) between a pose's first and last visit
+)
 MIN_TEMPERATURE_SPAN_K = 1.0
 CONFOUNDED_CORRELATION = 0.95  # hil.analysis.calibration.confounded_pairs' limit
 
@@ -132,9 +134,7 @@ def revisited_poses(df: pd.DataFrame) -> tuple[int, str]:
     return int(np.sum(last - first >= REVISIT_GAP * duration)) if duration > 0 else 0, unit
 
 
-def selection_questions(
-    final_round: list, ambiguities: list[dict], alpha: float
-) -> list[dict]:
+def selection_questions(final_round: list, ambiguities: list[dict], alpha: float) -> list[dict]:
     """Questions the last screening round left open: marginal candidates, candidates the geometry imitates,
     candidates that explain the same residual."""
     out = []

@@ -109,7 +109,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def print_parameter_table(result: CalibrationResult) -> None:
     """The change of every free parameter from the nominal, in mm and degrees, with its standard errors."""
-    print(f"{'parameter':<16}{'change':>12}{'std':>11}{'std LS':>11}  unit  (std: larger of LS and spatial folds)")
+    print(
+        f"{'parameter':<16}{'change':>12}{'std':>11}{'std LS':>11}  unit  (std: larger of LS and spatial folds)"
+    )
     for row in result.parameter_table():
         if row["delta"] is None:
             continue
@@ -148,7 +150,9 @@ def run(args: argparse.Namespace) -> int:
         with Progress().phases() as progress:
             for i, s in enumerate(("ridge", "lm")):
                 progress(f"calibrating {len(df)} poses", i, 2)
-                results[s] = calibrate(df, nominal, solver=s, tool_guess_m=tool, probe_angle_noise_rad=angle_noise)
+                results[s] = calibrate(
+                    df, nominal, solver=s, tool_guess_m=tool, probe_angle_noise_rad=angle_noise
+                )
             progress(f"calibrating {len(df)} poses", 2, 2)
     except ValueError as exc:
         raise CliError.from_text(str(exc)) from exc

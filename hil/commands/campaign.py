@@ -101,7 +101,11 @@ def _plan_progress(steps: pd.DataFrame, recorded: pd.DataFrame) -> dict[str, str
         if not planned:
             continue
         done = len(planned & set(recorded.loc[recorded["procedure"] == procedure, "point_id"]))
-        out[procedure] = "finished (plan complete)" if done == len(planned) else f"open ({done} of {len(planned)} planned points)"
+        out[procedure] = (
+            "finished (plan complete)"
+            if done == len(planned)
+            else f"open ({done} of {len(planned)} planned points)"
+        )
     return out
 
 
@@ -175,9 +179,13 @@ def run_export(args: argparse.Namespace) -> int:
         raise CliError.from_text("give exactly one of --csv OUT or --parquet OUT")
     out = Path(args.csv or args.parquet)
     if not out.parent.is_dir():
-        raise CliError.from_text(f"output folder {out.parent} does not exist; create it or choose another path")
+        raise CliError.from_text(
+            f"output folder {out.parent} does not exist; create it or choose another path"
+        )
     if out.exists() and out.resolve() == Path(args.file).resolve():
-        raise CliError.from_text("the output would overwrite the campaign file itself; choose another output path")
+        raise CliError.from_text(
+            "the output would overwrite the campaign file itself; choose another output path"
+        )
     if out.exists() and not args.force:
         raise CliError.from_text(f"{out} exists; choose another output path, or give --force to overwrite it")
     write = export_csv if args.csv else export_parquet

@@ -77,7 +77,9 @@ def read_campaign_targets(
     with store:
         have = available_steps(store)
         if not have:
-            held = ", ".join(f"{r.procedure}/{r.step} ({r.points})" for r in store.point_counts().itertuples())
+            held = ", ".join(
+                f"{r.procedure}/{r.step} ({r.points})" for r in store.point_counts().itertuples()
+            )
             raise CliError(
                 f"campaign {path} holds no targets (it holds: {held or 'no measurements'})",
                 "run `hil run grid_sampling` or `hil run pseudo_target` on it first, or give a targets CSV",
@@ -143,7 +145,9 @@ def _drawing_nests_m(store: CampaignStore) -> dict[int, np.ndarray]:
     return {}
 
 
-def _commanded_points(store: CampaignStore, path: str | Path, step: str, robot: KinematicModel) -> CampaignTargets:
+def _commanded_points(
+    store: CampaignStore, path: str | Path, step: str, robot: KinematicModel
+) -> CampaignTargets:
     """SMR centres the commanded joints aimed at, by nominal kinematics + nest + registration (tracker frame)."""
     procedure, step_name = SOURCES[step]
     reg = store.step_result("registration", "fit")

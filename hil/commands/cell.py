@@ -17,11 +17,20 @@ from hil.runner.cell_config import CellConfig, CellConfigError, load_cell_config
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    parser = subparsers.add_parser("cell", help="check a cell configuration (and optionally its instruments)", description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = subparsers.add_parser(
+        "cell",
+        help="check a cell configuration (and optionally its instruments)",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     actions = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
     check = actions.add_parser("check", help="report every problem of a cell.toml, with its key")
     check.add_argument("config", help="cell configuration (TOML)")
-    check.add_argument("--connect", action="store_true", help="also connect to the robot and the tracker and report their state")
+    check.add_argument(
+        "--connect",
+        action="store_true",
+        help="also connect to the robot and the tracker and report their state",
+    )
     check.set_defaults(func=run_check)
 
 
@@ -37,7 +46,10 @@ def describe(config: CellConfig) -> str:
             f"  tool    {len(config.nests_flange_m)} nest(s) at {nests} mm (flange frame)",
             f"  envelope box ({', '.join(f'{v * 1e3:.0f}' for v in env.box_min_m)}) .. "
             f"({', '.join(f'{v * 1e3:.0f}' for v in env.box_max_m)}) mm; joints "
-            + " ".join(f"[{a:.0f},{b:.0f}]" for a, b in zip(np.rad2deg(env.joint_min_rad), np.rad2deg(env.joint_max_rad), strict=True))
+            + " ".join(
+                f"[{a:.0f},{b:.0f}]"
+                for a, b in zip(np.rad2deg(env.joint_min_rad), np.rad2deg(env.joint_max_rad), strict=True)
+            )
             + " deg",
             f"  settle {config.settle_s:g} s",
         ]
@@ -61,11 +73,15 @@ def run_check(args: argparse.Namespace) -> int:
     try:
         with closing(robots.open(config.robot_mapping())) as robot:
             state = robot.state()
-            print(f"  robot connected: controller {getattr(robot, 'version', '?')}, mode {state.robot_mode}, safety {state.safety_mode}, ready {state.ready}")
+            print(
+                f"  robot connected: controller {getattr(robot, 'version', '?')}, mode {state.robot_mode}, safety {state.safety_mode}, ready {state.ready}"
+            )
             if not config.envelope.joint_violations(robot.joints())[0]:
                 print("  robot joints inside the envelope's limits")
             else:
-                print("  robot joints OUTSIDE the envelope's limits: jog it inside before running a procedure")
+                print(
+                    "  robot joints OUTSIDE the envelope's limits: jog it inside before running a procedure"
+                )
                 failures += 1
     except RobotError as exc:
         print(f"  robot: {exc}", file=sys.stderr)

@@ -189,11 +189,16 @@ def thermal_drivers(
                 "add a t_s column to TARGETS, or calibrate without the time-driven effect",
             )
     if temperature_c is not None and not any(temperature_driven(e) for e in model.effects):
-        print("warning: --temperature-c changes nothing: the model has no temperature-driven effect", file=sys.stderr)
+        print(
+            "warning: --temperature-c changes nothing: the model has no temperature-driven effect",
+            file=sys.stderr,
+        )
     return drivers
 
 
-def read_targets(path: str, orientation_convention: str = DEFAULT_ORIENTATION_CONVENTION) -> tuple[np.ndarray, pd.DataFrame]:
+def read_targets(
+    path: str, orientation_convention: str = DEFAULT_ORIENTATION_CONVENTION
+) -> tuple[np.ndarray, pd.DataFrame]:
     """Targets (N, 3) points or (N, 4, 4) poses T_tracker_tool in metres from a CSV, rx/ry/rz_deg read as in a
     dataset (hil.data.dataset, in `orientation_convention`); ValueError says what to fix."""
     try:
@@ -251,7 +256,9 @@ def run(args: argparse.Namespace) -> int:
         )
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            res = compensate_per_smr(model, chosen.targets, chosen.smr, drivers, args.path, _options(args, chosen))
+            res = compensate_per_smr(
+                model, chosen.targets, chosen.smr, drivers, args.path, _options(args, chosen)
+            )
     except (ValueError, OSError, KeyError) as exc:
         raise CliError.from_text(str(exc)) from exc
     for w in caught:
@@ -275,7 +282,9 @@ class _Targets:
 def _check_options(args: argparse.Namespace) -> None:
     """Option ranges and paths, before anything is read."""
     if args.threshold_mm <= 0 or args.max_iter < 0 or args.length_scale_mm <= 0:
-        raise CliError("--threshold-mm and --length-scale-mm must be > 0, --max-iter >= 0", "give values in range")
+        raise CliError(
+            "--threshold-mm and --length-scale-mm must be > 0, --max-iter >= 0", "give values in range"
+        )
     try:
         check_paths({"MODEL": args.model, "TARGETS": args.targets}, {"--output": args.output})
     except InputError as exc:

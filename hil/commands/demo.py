@@ -49,13 +49,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--validate", type=int, default=100, help="random validation poses (default 100)")
     add_effects_argument(parser)
     parser.add_argument(
-        "--loop-targets", type=int, default=10, help="held-out targets of the measured loop (default 10; 0: skip)"
+        "--loop-targets",
+        type=int,
+        default=10,
+        help="held-out targets of the measured loop (default 10; 0: skip)",
     )
     parser.add_argument(
         "--active-rounds", type=int, default=1,
         help="rounds of the active loop when the diagnosis leaves anything undecided (default 1; 0: skip)",
     )  # fmt: skip
-    parser.add_argument("--active-poses", type=int, default=40, help="poses per active-loop round at most (default 40)")
+    parser.add_argument(
+        "--active-poses", type=int, default=40, help="poses per active-loop round at most (default 40)"
+    )
     parser.add_argument("--out", default="demo-out", help="output folder (default ./demo-out)")
     parser.add_argument(
         "--time-scale", type=float, default=20.0, help="simulated seconds per wall second (default 20)"
@@ -114,8 +119,12 @@ def run(args: argparse.Namespace) -> int:
     from hil.analysis.report import write_html
 
     write_html(report, out / "report.html", compensation=loop, active=active)
-    print(f"\nwrote {out}/campaign.sqlite, cell.toml, grid.csv, validate.csv, report.json, report.html, model.json")
-    print(f"the simulated cell has stopped; {restart_command(args)} starts it again at the address {out / 'cell.toml'} names")
+    print(
+        f"\nwrote {out}/campaign.sqlite, cell.toml, grid.csv, validate.csv, report.json, report.html, model.json"
+    )
+    print(
+        f"the simulated cell has stopped; {restart_command(args)} starts it again at the address {out / 'cell.toml'} names"
+    )
     return 0
 
 
@@ -140,14 +149,18 @@ def simulated_session(args: argparse.Namespace, out: Path, campaign: Path) -> It
     cell_path = out / "cell.toml"
     first = not hasattr(args, "cell_address")
     host, control_port = (None, 0) if first else args.cell_address
-    launch = simulator().launch(args.robot, args.seed, args.time_scale, args.effects, host=host, control_port=control_port)
+    launch = simulator().launch(
+        args.robot, args.seed, args.time_scale, args.effects, host=host, control_port=control_port
+    )
     with launch as cell:
         if first:  # later starts come back at this address, so the one cell.toml serves every stage and after
             args.cell_address = (cell.host, int(cell.info["control"].rsplit(":", 1)[1]))
             write_sim_cell(cell_path, cell.info, cell.control.call("ground_truth"), args.time_scale)
         config = load_cell_config(cell_path)
         what = f"wrote {cell_path}" if first else f"same address as {cell_path}"
-        print(f"cell: {cell.info['robot']['personality']} controller at {cell.host}, tracker {config.tracker_url}; {what}")
+        print(
+            f"cell: {cell.info['robot']['personality']} controller at {cell.host}, tracker {config.tracker_url}; {what}"
+        )
         with ExitStack() as stack:
             stack.enter_context(capture_native_output(verbose=getattr(args, "verbose", False)))
             session = open_session(config, campaign, simulated_operator(config.simulator_control), stack)
@@ -175,7 +188,9 @@ def active_loop(args: argparse.Namespace, out: Path, campaign: Path):
     from hil.runner.registry import load
 
     procedure = load("active_loop")
-    print(f"\nactive loop: at most {args.active_rounds} round(s) of at most {args.active_poses} poses that decide what is undecided:")
+    print(
+        f"\nactive loop: at most {args.active_rounds} round(s) of at most {args.active_poses} poses that decide what is undecided:"
+    )
     with simulated_session(args, out, campaign) as session:
         result = procedure(session, rounds=args.active_rounds, poses=args.active_poses, seed=args.seed)
     print(procedure.summary(result))
@@ -220,7 +235,9 @@ def analyse(args: argparse.Namespace, out: Path, campaign: Path):
     write_dataset(validate, out / "validate.csv")
     print(f"exported {len(train)} grid and {len(validate)} validation points from the campaign")
     tool_guess = np.array(fit["nests_flange_mm"]["1"]) / 1e3 if fit else None
-    report = run_diagnosis(train, get_robot(args.robot), df_validate=validate, seed=args.seed, tool_guess_m=tool_guess)
+    report = run_diagnosis(
+        train, get_robot(args.robot), df_validate=validate, seed=args.seed, tool_guess_m=tool_guess
+    )
     print()
     print(report.table())
     added = ", ".join(

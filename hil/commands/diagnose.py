@@ -247,7 +247,9 @@ def _print_and_write(args: argparse.Namespace, report: DiagnosisReport) -> None:
     print(report.table())
     for name, res in report.calibration.items():
         if res.get("orientation_rms_deg") is not None:
-            print(f"6-DoF probe, geometric {name} fit: position RMS {res['rms_mm']:.4f} mm{orientation_summary(res)}")
+            print(
+                f"6-DoF probe, geometric {name} fit: position RMS {res['rms_mm']:.4f} mm{orientation_summary(res)}"
+            )
     final_orientation = final_orientation_text(report)
     if final_orientation:
         print(final_orientation)

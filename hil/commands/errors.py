@@ -21,7 +21,9 @@ class CliError(ActionableError):
         return self.message
 
     @classmethod
-    def from_text(cls, text: str, remedy: str = "fix the input named above and run the command again") -> CliError:
+    def from_text(
+        cls, text: str, remedy: str = "fix the input named above and run the command again"
+    ) -> CliError:
         """From a one-line "what is wrong; what to do" text (input checks, dataset errors): split at the last
         '; ' into message and remedy; a text without one gets the generic remedy."""
         message, sep, what_to_do = text.rpartition("; ")

@@ -33,7 +33,9 @@ def simulated_operator(control_address: str | None) -> ScriptedOperator:
     """An operator whose hands are the simulated cell's control channel (place_smr, tracker.guide_beam),
     at the cell config's [simulator] control address."""
     if not control_address:
-        raise ValueError("the simulated operator needs [simulator] control in the cell config (hil sim --write-cell writes it)")
+        raise ValueError(
+            "the simulated operator needs [simulator] control in the cell config (hil sim --write-cell writes it)"
+        )
 
     try:
         control = cell_simulator().connect_control(control_address)
@@ -43,10 +45,12 @@ def simulated_operator(control_address: str | None) -> ScriptedOperator:
     def place_smr(step: OperatorStep) -> None:
         location = step.location or ""
         if location == "face":
-            control.call("place_smr", smr_id=step.smr or 1, kind="face", point_m=list(step.face_point_m or (0.0, 0.0)))
+            control.call(
+                "place_smr", smr_id=step.smr or 1, kind="face", point_m=list(step.face_point_m or (0.0, 0.0))
+            )
             return
         kind = location.rstrip("0123456789")
-        index = int(location[len(kind):])
+        index = int(location[len(kind) :])
         control.call("place_smr", smr_id=step.smr or 1, kind=kind, index=index)
 
     def lock_beam(step: OperatorStep) -> None:
@@ -63,7 +67,9 @@ def choose_operator(config: CellConfig, kind: str) -> Operator:
     if kind == "sim":
         return simulated_operator(config.simulator_control)
     if not sys.stdin.isatty():
-        raise ValueError("the console operator needs a terminal: run interactively, or use --operator sim on a simulated cell")
+        raise ValueError(
+            "the console operator needs a terminal: run interactively, or use --operator sim on a simulated cell"
+        )
     return ConsoleOperator()
 
 
@@ -73,7 +79,9 @@ def drivers_of(config: CellConfig) -> tuple[RobotDriver, TrackerDriver]:
     try:
         return robot_driver(config.robot_driver_name), tracker_driver(config.tracker_driver_name)
     except PluginError as exc:
-        raise CliError(exc.message, f"{exc.remedy} (robot.driver / tracker.driver in {config.source})") from exc
+        raise CliError(
+            exc.message, f"{exc.remedy} (robot.driver / tracker.driver in {config.source})"
+        ) from exc
 
 
 def _cell_clock(config: CellConfig) -> Callable[[], float] | None:
@@ -87,7 +95,13 @@ def _cell_clock(config: CellConfig) -> Callable[[], float] | None:
         raise CliError(exc.message, exc.remedy) from exc
 
 
-def open_session(config: CellConfig, campaign: str | Path, operator: Operator, stack: ExitStack, progress: bool | None = None) -> Session:
+def open_session(
+    config: CellConfig,
+    campaign: str | Path,
+    operator: Operator,
+    stack: ExitStack,
+    progress: bool | None = None,
+) -> Session:
     """Connect the robot and the tracker through their driver plug-ins, open the campaign store, and build
     the Session.
 
@@ -101,9 +115,14 @@ def open_session(config: CellConfig, campaign: str | Path, operator: Operator, s
         opening.callback(tracker.close)
         store = CampaignStore(campaign)
         opening.callback(store.close)
-        station = {"robot_controller_version": getattr(robot, "version", None), "tracker": getattr(tracker, "tracker_info", {})}
+        station = {
+            "robot_controller_version": getattr(robot, "version", None),
+            "tracker": getattr(tracker, "tracker_info", {}),
+        }
         clock = _cell_clock(config)
-        session = Session(config, robot, tracker, store, operator, Progress(enabled=progress), station=station, clock=clock)
+        session = Session(
+            config, robot, tracker, store, operator, Progress(enabled=progress), station=station, clock=clock
+        )
         opening.pop_all()  # from here on the Session owns and releases them
     stack.callback(session.close)
     return session

@@ -45,7 +45,9 @@ def capture_native_output(verbose: bool = False) -> Iterator[None]:
     out_fd, err_fd = _terminal_fds()
     saved_streams = sys.stdout, sys.stderr
     read_fd, write_fd = os.pipe()
-    reader = threading.Thread(target=_forward, args=(read_fd, err_fd, verbose), name="hil-native-output", daemon=True)
+    reader = threading.Thread(
+        target=_forward, args=(read_fd, err_fd, verbose), name="hil-native-output", daemon=True
+    )
     sys.stdout, sys.stderr = _text_file(out_fd, saved_streams[0]), _text_file(err_fd, saved_streams[1])
     os.dup2(write_fd, 1)
     os.dup2(write_fd, 2)

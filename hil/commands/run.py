@@ -30,9 +30,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "run", help="run a measurement procedure on a cell", description=__doc__, add_help=False,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )  # fmt: skip
-    parser.add_argument("-h", "--help", action=_HelpWithPurposes, help="show the registered procedures and exit")
+    parser.add_argument(
+        "-h", "--help", action=_HelpWithPurposes, help="show the registered procedures and exit"
+    )
     lazy = type("ProcedureParser", (_DeclaredOptions, type(parser)), {})
-    procedures = parser.add_subparsers(dest="procedure", metavar="PROCEDURE", required=True, parser_class=lazy)
+    procedures = parser.add_subparsers(
+        dest="procedure", metavar="PROCEDURE", required=True, parser_class=lazy
+    )
     for name in registered():
         procedures.add_parser(name, help="", formatter_class=argparse.RawDescriptionHelpFormatter)
 
@@ -80,9 +84,16 @@ def add_procedure_arguments(parser: argparse.ArgumentParser, procedure: Procedur
     """The common options and the procedure's declared parameters (flags in the user's units)."""
     parser.description = procedure.describe()
     parser.add_argument("--cell", required=True, help="cell configuration (TOML)")
-    parser.add_argument("--campaign", required=True, help="campaign file (SQLite); created if missing, resumed if present")
+    parser.add_argument(
+        "--campaign", required=True, help="campaign file (SQLite); created if missing, resumed if present"
+    )
     parser.add_argument("--dry-run", action="store_true", help="print the plan and move nothing")
-    parser.add_argument("--operator", choices=["auto", "console", "sim"], default="auto", help="who does the manual steps (default auto: sim on a simulated cell, else console)")
+    parser.add_argument(
+        "--operator",
+        choices=["auto", "console", "sim"],
+        default="auto",
+        help="who does the manual steps (default auto: sim on a simulated cell, else console)",
+    )
     for p in procedure.parameters:
         parser.add_argument(p.flag, dest=p.keyword, **_argparse_options(p))
         for wrong in WRONG_UNITS.get(p.unit, ()):
@@ -99,7 +110,11 @@ def _argparse_options(p: Parameter) -> dict[str, Any]:
     allowed = p.allowed() if (p.choices or p.minimum is not None or p.maximum is not None) else None
     unit = f", {p.unit}" if p.unit else ""
     notes = "; ".join(s for s in (allowed and f"allowed {allowed}", default) if s)
-    options: dict[str, Any] = {"type": p.type, "default": p.default, "help": f"{p.help}{unit} ({notes})" if notes else f"{p.help}{unit}"}
+    options: dict[str, Any] = {
+        "type": p.type,
+        "default": p.default,
+        "help": f"{p.help}{unit} ({notes})" if notes else f"{p.help}{unit}",
+    }
     if p.choices:
         options["choices"] = list(p.choices)
     if p.unit:
@@ -155,7 +170,9 @@ def open_instruments(config, campaign: Path, operator, stack: ExitStack):
 def run(args: argparse.Namespace) -> int:
     try:
         procedure = load(args.procedure)
-        values = from_user_values(procedure, {p.keyword: getattr(args, p.keyword) for p in procedure.parameters})
+        values = from_user_values(
+            procedure, {p.keyword: getattr(args, p.keyword) for p in procedure.parameters}
+        )
     except (UnknownProcedureError, ParameterError) as exc:
         raise CliError(str(exc), f"see 'hil run {args.procedure} --help'; nothing moved") from exc
     try:
@@ -164,10 +181,14 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(str(exc), "fix the keys named above (hil cell check shows the same list)") from exc
     campaign = Path(args.campaign)
     if not campaign.parent.exists():
-        raise CliError(f"campaign folder {campaign.parent} does not exist", "create it or choose another --campaign path")
+        raise CliError(
+            f"campaign folder {campaign.parent} does not exist", "create it or choose another --campaign path"
+        )
     try:
         the_plan = procedure.make_plan(config, campaign=campaign, **values)
-        config.envelope.check_poses(config.nominal, the_plan.joints(), config.nests_flange_m, [p.point_id for p in the_plan.poses])
+        config.envelope.check_poses(
+            config.nominal, the_plan.joints(), config.nests_flange_m, [p.point_id for p in the_plan.poses]
+        )
     except (ValueError, EnvelopeError) as exc:
         raise CliError(str(exc), "change the options or the cell config; nothing moved") from exc
     if args.dry_run:

@@ -45,7 +45,9 @@ def run(args: argparse.Namespace) -> int:
     if args.shots < 0:
         raise CliError(f"--shots {args.shots} is negative", "give 0 (no measurement) or more shots")
     if not 0 < args.meas_time <= 3600:
-        raise CliError(f"--meas-time {args.meas_time:g} s is outside (0, 3600] s", "give a time in seconds, e.g. 1")
+        raise CliError(
+            f"--meas-time {args.meas_time:g} s is outside (0, 3600] s", "give a time in seconds, e.g. 1"
+        )
     try:
         emscon = tracker_driver("emscon")
     except PluginError as exc:

@@ -104,7 +104,11 @@ class PosePredictor:
         def take(x: np.ndarray | None) -> np.ndarray | None:
             return None if x is None else np.asarray(x)[sl]
 
-        out.t_s, out.temperature_c, out.approach = take(self.t_s), take(self.temperature_c), take(self.approach)
+        out.t_s, out.temperature_c, out.approach = (
+            take(self.t_s),
+            take(self.temperature_c),
+            take(self.approach),
+        )
         return out
 
     def __call__(self, q: np.ndarray, rows: np.ndarray | None = None) -> np.ndarray:

@@ -650,7 +650,10 @@ def campaign_dataset(
 
 
 def export_csv(
-    path: str | Path, out: str | Path, procedure: str = "grid_sampling", step: str | Sequence[str] | None = None
+    path: str | Path,
+    out: str | Path,
+    procedure: str = "grid_sampling",
+    step: str | Sequence[str] | None = None,
 ) -> int:
     """Write one procedure's measurements as a dataset CSV; returns the number of rows written."""
     df = campaign_dataset(path, procedure, step)
@@ -659,7 +662,10 @@ def export_csv(
 
 
 def export_parquet(
-    path: str | Path, out: str | Path, procedure: str = "grid_sampling", step: str | Sequence[str] | None = None
+    path: str | Path,
+    out: str | Path,
+    procedure: str = "grid_sampling",
+    step: str | Sequence[str] | None = None,
 ) -> int:
     """Write one procedure's measurements (dataset columns) as a Parquet file; returns rows written."""
     df = campaign_dataset(path, procedure, step)

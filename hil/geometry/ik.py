@@ -606,7 +606,9 @@ def _beyond_reach(prob: _Problem, no_branch: np.ndarray | None) -> np.ndarray:
     return beyond
 
 
-def _newton_from_first_seed(prob: _Problem, best: _Best, first: np.ndarray | None, rows_ok: np.ndarray) -> None:
+def _newton_from_first_seed(
+    prob: _Problem, best: _Best, first: np.ndarray | None, rows_ok: np.ndarray
+) -> None:
     """A few Newton steps from the first seed (the caller's, or the nearest closed-form branch): usually
     close, they finish most targets far cheaper than LM; the rest go through the LM attempts."""
     todo = np.flatnonzero(rows_ok)

@@ -76,7 +76,12 @@ class KinematicModel:
         for nm, v in zip(self.param_names, values, strict=True):
             arrays[_kind(nm)][_joint(nm)] = v
         return replace(
-            self, theta=arrays["theta"], d=arrays["d"], a=arrays["a"], alpha=arrays["alpha"], beta=arrays["beta"]
+            self,
+            theta=arrays["theta"],
+            d=arrays["d"],
+            a=arrays["a"],
+            alpha=arrays["alpha"],
+            beta=arrays["beta"],
         )
 
     def with_errors(self, errors: dict[str, float]) -> KinematicModel:
@@ -245,7 +250,16 @@ def _chain_constants(model: KinematicModel) -> tuple:
         )
         for r in rows:
             r.flags.writeable = False
-        got = (d.tolist(), a.tolist(), ca.tolist(), sa.tolist(), cb.tolist(), sb.tolist(), (beta != 0).tolist(), rows)
+        got = (
+            d.tolist(),
+            a.tolist(),
+            ca.tolist(),
+            sa.tolist(),
+            cb.tolist(),
+            sb.tolist(),
+            (beta != 0).tolist(),
+            rows,
+        )
         if len(_CONSTANTS) > 256:  # many models in one process (calibration sweeps): start again
             _CONSTANTS.clear()
         _CONSTANTS[key] = got
@@ -327,7 +341,11 @@ def pose_and_jacobian(
     pass over the chain (the Newton step of the IK needs both)."""
     T, Z, O = chain_axes(model, q)
     n, _, N = Z.shape
-    tip = T[:, :3, 3] if p_flange_tool is None else T[:, :3, :3] @ np.asarray(p_flange_tool, float) + T[:, :3, 3]
+    tip = (
+        T[:, :3, 3]
+        if p_flange_tool is None
+        else T[:, :3, :3] @ np.asarray(p_flange_tool, float) + T[:, :3, 3]
+    )
     r = tip.T - O[:n]  # (n, 3, N): from a point on each axis to the tip
     # Rows [v; omega], v_i = z_i x (tip - o_i), omega_i = z_i, filled as (6, n, N) and returned as a view.
     Jt = np.empty((6, n, N))

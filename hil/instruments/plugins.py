@@ -121,7 +121,13 @@ class CellSimulator(Protocol):
         ...
 
     def launch(
-        self, robot: str, seed: int, time_scale: float, effects: str, host: str | None = None, control_port: int = 0
+        self,
+        robot: str,
+        seed: int,
+        time_scale: float,
+        effects: str,
+        host: str | None = None,
+        control_port: int = 0,
     ) -> AbstractContextManager[RunningCell]:
         """Start a cell in a child process on a free loopback address (or `host`, with its control channel on
         `control_port`, 0 any: the same cell again at the address a cell.toml names); stopped when the context

@@ -62,7 +62,9 @@ class CellConfig:
     q_home_rad: np.ndarray
     simulator_control: str | None = None  # control channel of a simulated cell (scripted operator)
     robot_file_text: str | None = None  # the robot definition file's text when robot_model is a file
-    robot_driver_name: str = DEFAULT_ROBOT_DRIVER  # robot.driver: the instrument plug-in that drives the robot
+    robot_driver_name: str = (
+        DEFAULT_ROBOT_DRIVER  # robot.driver: the instrument plug-in that drives the robot
+    )
     tracker_driver_name: str = DEFAULT_TRACKER_DRIVER  # tracker.driver: the plug-in that drives the tracker
     source: str = "cell.toml"
     raw: dict = field(default_factory=dict)
@@ -185,7 +187,9 @@ def _robot_model(
             r.problems.append(f"robot.model: robot file not found: {path}; check the path")
             return None, None, None
         except (OSError, UnicodeDecodeError) as exc:
-            r.problems.append(f"robot.model: cannot read robot file {path} ({exc}); give a readable TOML file")
+            r.problems.append(
+                f"robot.model: cannot read robot file {path} ({exc}); give a readable TOML file"
+            )
             return None, None, None
         resolved = str(path.resolve())  # resolved now: the snapshot must not depend on a later cwd
         try:
@@ -203,7 +207,9 @@ def _robot_model(
 
 def _nominal(robot_model: str, robot_file_text: str | None) -> KinematicModel:
     """The nominal model: from the robot file's text when the cell names a file, else the built-in."""
-    return get_robot(robot_model) if robot_file_text is None else robot_from_text(robot_file_text, robot_model)
+    return (
+        get_robot(robot_model) if robot_file_text is None else robot_from_text(robot_file_text, robot_model)
+    )
 
 
 def parse_cell_config(data: dict, source: str = "cell.toml") -> CellConfig:
@@ -223,7 +229,9 @@ def parse_cell_config(data: dict, source: str = "cell.toml") -> CellConfig:
     r.unknown_keys({"robot": ROBOT_DRIVER_KEYS})
     if r.problems:
         raise CellConfigError(source, r.problems)
-    assert nests_arr is not None and model is not None and nominal is not None  # a missing or malformed one is one of r.problems
+    assert (
+        nests_arr is not None and model is not None and nominal is not None
+    )  # a missing or malformed one is one of r.problems
     envelope = Envelope(box_min / 1e3, box_max / 1e3, np.deg2rad(jmin), np.deg2rad(jmax))
     home = np.deg2rad(home_deg)
     _check_home(envelope, nominal, home, nests_arr, source)
@@ -291,17 +299,23 @@ def _read_tool(r: _Reader) -> tuple:
     if nests is not None:
         rows = [_numbers(v) for v in nests] if isinstance(nests, list) else [None]
         if not rows or any(v is None or v.shape != (3,) for v in rows):
-            r.problems.append("tool.nests_flange_mm: must be a list of [x, y, z] nest centres in mm, e.g. [[30, -20, 110]]")
+            r.problems.append(
+                "tool.nests_flange_mm: must be a list of [x, y, z] nest centres in mm, e.g. [[30, -20, 110]]"
+            )
         else:
             nests_arr = np.array(rows) / 1e3
             if np.any(np.linalg.norm(nests_arr, axis=1) > 0.5):
-                r.problems.append("tool.nests_flange_mm: a nest lies over 500 mm from the flange: are these mm?")
+                r.problems.append(
+                    "tool.nests_flange_mm: a nest lies over 500 mm from the flange: are these mm?"
+                )
     smr_radius_mm = r.get("tool", "smr_radius_mm", "positive", default=SMR_RADIUS_MM)
     circle_mm = r.get("tool", "hole_circle_radius_mm", "positive", default=31.5)
     hole7_mm = r.get("tool", "hole7_radius_mm", "positive", default=45.0)
     hole_d_mm = r.get("tool", "hole_diameter_mm", "positive", default=6.6)
     if hole_d_mm is not None and smr_radius_mm is not None and hole_d_mm >= 2 * smr_radius_mm:
-        r.problems.append("tool.hole_diameter_mm: must be smaller than the SMR's diameter, or the SMR falls through")
+        r.problems.append(
+            "tool.hole_diameter_mm: must be smaller than the SMR's diameter, or the SMR falls through"
+        )
     return nests_arr, smr_radius_mm, circle_mm, hole7_mm, hole_d_mm
 
 
@@ -317,7 +331,9 @@ def _read_envelope(r: _Reader, nominal: KinematicModel | None, n: int) -> tuple:
     if jmin is not None and jmax is not None:
         if np.any(jmax <= jmin):
             r.problems.append("envelope.joint_max_deg: every limit must exceed envelope.joint_min_deg's")
-        outside = np.flatnonzero((np.deg2rad(jmin) < limits[:, 0] - 1e-9) | (np.deg2rad(jmax) > limits[:, 1] + 1e-9))
+        outside = np.flatnonzero(
+            (np.deg2rad(jmin) < limits[:, 0] - 1e-9) | (np.deg2rad(jmax) > limits[:, 1] + 1e-9)
+        )
         if outside.size:
             r.problems.append(
                 f"envelope.joint_min_deg/joint_max_deg: joint(s) {', '.join(str(j + 1) for j in outside)} "
@@ -333,7 +349,10 @@ def _check_home(
     problem = envelope.pose_problems(nominal, home[None], nests_m)[0]
     if problem:
         raise CellConfigError(
-            source, [f"motion.home_deg: the home pose leaves the envelope ({problem}); it is the safe detour of moves"]
+            source,
+            [
+                f"motion.home_deg: the home pose leaves the envelope ({problem}); it is the safe detour of moves"
+            ],
         )
 
 

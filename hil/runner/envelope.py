@@ -83,7 +83,11 @@ class Envelope:
         return problems
 
     def check_poses(
-        self, nominal: KinematicModel, q: np.ndarray, p_flange_tools_m: np.ndarray, labels: list[str] | None = None
+        self,
+        nominal: KinematicModel,
+        q: np.ndarray,
+        p_flange_tools_m: np.ndarray,
+        labels: list[str] | None = None,
     ) -> None:
         """Raise EnvelopeError naming every joint set (N, 6) that leaves the envelope."""
         q = np.atleast_2d(np.asarray(q, float))
@@ -95,7 +99,8 @@ class Envelope:
             lines = [f"{names[i]}: {p}" for i, p in bad[:5]]
             more = f" (and {len(bad) - 5} more)" if len(bad) > 5 else ""
             raise EnvelopeError(
-                f"{len(bad)} commanded pose(s) leave the safety envelope{more}: " + " | ".join(lines)
+                f"{len(bad)} commanded pose(s) leave the safety envelope{more}: "
+                + " | ".join(lines)
                 + "; nothing moved: shrink the sampling box or widen [envelope] in the cell config"
             )
 

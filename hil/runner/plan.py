@@ -92,10 +92,14 @@ class Plan:
         q = self.joints()
         lines = [f"plan of {self.procedure}: {len(self.poses)} poses, {self.operator_steps} operator step(s)"]
         if self.dropped:
-            lines.append("  left out: " + ", ".join(f"{n} {reason}" for reason, n in sorted(self.dropped.items())))
+            lines.append(
+                "  left out: " + ", ".join(f"{n} {reason}" for reason, n in sorted(self.dropped.items()))
+            )
         detours, impossible = self.path_check()
         if detours:
-            lines.append(f"  {detours} move(s) go through the home pose: the direct path would leave the envelope")
+            lines.append(
+                f"  {detours} move(s) go through the home pose: the direct path would leave the envelope"
+            )
         if impossible:
             lines.append(f"  NOT REACHABLE inside the envelope: {', '.join(impossible[:10])}")
         minutes = self.estimated_duration_s() / 60.0

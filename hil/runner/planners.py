@@ -192,7 +192,9 @@ def random_order(count: int, rng: np.random.Generator) -> np.ndarray:
     return rng.permutation(count)
 
 
-def joint_move_time_s(q_from: np.ndarray, q_to: np.ndarray, speed_rad_s: float, accel_rad_s2: float) -> np.ndarray:
+def joint_move_time_s(
+    q_from: np.ndarray, q_to: np.ndarray, speed_rad_s: float, accel_rad_s2: float
+) -> np.ndarray:
     """Duration (N,) of trapezoidal joint moves, set by the joint with the largest travel."""
     d = np.max(np.abs(np.atleast_2d(q_to) - np.atleast_2d(q_from)), axis=1)
     ramp = speed_rad_s**2 / accel_rad_s2  # distance spent accelerating and braking at full speed

@@ -26,7 +26,11 @@ UNITS: dict[str, tuple[str, Callable[[float], float]]] = {
     "s": ("_s", lambda v: v),
 }
 # units a length or an angle is commonly given in by mistake: their flags are refused with the right one
-WRONG_UNITS: dict[str, tuple[str, ...]] = {"mm": ("m", "cm", "in", "um"), "deg": ("rad", "mrad"), "s": ("ms", "min")}
+WRONG_UNITS: dict[str, tuple[str, ...]] = {
+    "mm": ("m", "cm", "in", "um"),
+    "deg": ("rad", "mrad"),
+    "s": ("ms", "min"),
+}
 
 
 class ParameterError(ValueError):
@@ -54,7 +58,9 @@ class Parameter:
 
     def __post_init__(self) -> None:
         if self.unit not in UNITS:
-            raise ValueError(f"parameter {self.name}: unit {self.unit!r} is not one of {', '.join(map(repr, UNITS))}")
+            raise ValueError(
+                f"parameter {self.name}: unit {self.unit!r} is not one of {', '.join(map(repr, UNITS))}"
+            )
 
     @property
     def keyword(self) -> str:
@@ -100,7 +106,9 @@ class Parameter:
         if self.count > 1 and len(values) != self.count:
             raise ParameterError(f"{self.flag} takes {self.count} values, got {len(values)}")
         for v in values:
-            shown = f"{self.from_si(v):g}" if isinstance(v, (int, float)) and not isinstance(v, bool) else repr(v)
+            shown = (
+                f"{self.from_si(v):g}" if isinstance(v, (int, float)) and not isinstance(v, bool) else repr(v)
+            )
             if self.choices and v not in self.choices:
                 raise ParameterError(f"{self.flag} {shown}: allowed {self.allowed()}")
             low = None if self.minimum is None else UNITS[self.unit][1](self.minimum)
@@ -155,7 +163,10 @@ class Procedure:
         if unknown:
             known = ", ".join(sorted(self._names))
             raise ParameterError(f"{self.name} has no parameter {', '.join(unknown)}; it takes {known}")
-        resolved = {p.keyword: values[p.keyword] if p.keyword in values else p.to_si(p.default) for p in self.parameters}
+        resolved = {
+            p.keyword: values[p.keyword] if p.keyword in values else p.to_si(p.default)
+            for p in self.parameters
+        }
         for p in self.parameters:
             p.check(resolved[p.keyword])
         return resolved
@@ -190,5 +201,6 @@ class Procedure:
 
 def from_user_values(procedure: Procedure, values: dict[str, Any]) -> dict[str, Any]:
     """Parameter values in the user's units by keyword (the command line's) -> SI, checked."""
-    return procedure.resolve({p.keyword: p.to_si(values[p.keyword]) for p in procedure.parameters if p.keyword in values})
-
+    return procedure.resolve(
+        {p.keyword: p.to_si(values[p.keyword]) for p in procedure.parameters if p.keyword in values}
+    )

@@ -26,7 +26,10 @@ class Progress:
     """
 
     def __init__(
-        self, enabled: bool | None = None, stream: TextIO | None = None, clock: Callable[[], float] = time.monotonic
+        self,
+        enabled: bool | None = None,
+        stream: TextIO | None = None,
+        clock: Callable[[], float] = time.monotonic,
     ):
         self.stream = stream or sys.stderr
         terminal = self.stream.isatty()
@@ -132,7 +135,11 @@ class _PlainLine:
         left = self.total - self.done
         eta = "done" if left <= 0 else f"ETA {_duration(left / rate)}" if rate > 0 else "ETA unknown"
         percent = 100.0 * self.done / self.total
-        print(f"{self.description}: {self.done}/{self.total} ({percent:.0f}%), {_duration(elapsed)} elapsed, {eta}", file=self.stream, flush=True)
+        print(
+            f"{self.description}: {self.done}/{self.total} ({percent:.0f}%), {_duration(elapsed)} elapsed, {eta}",
+            file=self.stream,
+            flush=True,
+        )
 
 
 def _duration(seconds: float) -> str:
@@ -143,4 +150,3 @@ def _duration(seconds: float) -> str:
     if s < 3600:
         return f"{s // 60}m{s % 60:02d}s"
     return f"{s // 3600}h{s % 3600 // 60:02d}m"
-

@@ -221,7 +221,9 @@ class Session:
         if pinned is None:
             self.finish_step(plan.procedure, "plan", {"point_ids": ids, "q_rad": q.round(9).tolist()})
             return
-        same = pinned["point_ids"] == ids and np.allclose(np.asarray(pinned["q_rad"]).reshape(-1, 6), q, atol=1e-6)
+        same = pinned["point_ids"] == ids and np.allclose(
+            np.asarray(pinned["q_rad"]).reshape(-1, 6), q, atol=1e-6
+        )
         if not same:
             raise CampaignStopped(
                 f"this campaign already holds a different {plan.procedure} plan",
@@ -261,7 +263,11 @@ class Session:
                 self.envelope.check_joint_move(self.nominal, home, q_target, tools)
             except EnvelopeError:
                 raise direct from None
-            self.event("detour", f"the direct move to {label or 'the target'} would leave the envelope; going through home", point_id=label or None)
+            self.event(
+                "detour",
+                f"the direct move to {label or 'the target'} would leave the envelope; going through home",
+                point_id=label or None,
+            )
             return [home, q_target]
 
     def _move_leg(self, q_target: np.ndarray, label: str) -> None:
@@ -272,12 +278,20 @@ class Session:
             except RobotError as exc:  # protective stop, lost connection, interrupted move: recover, retry
                 self._robot_fault(exc, label, attempt)
             # after recovery the arm may stand anywhere along the old path: re-check from where it is
-            self.envelope.check_joint_move(self.nominal, self.robot.joints(), q_target, self.config.nests_flange_m)
+            self.envelope.check_joint_move(
+                self.nominal, self.robot.joints(), q_target, self.config.nests_flange_m
+            )
 
     def _robot_fault(self, exc: RobotError, label: str, attempt: int) -> None:
-        self.event("robot_fault", f"{type(exc).__name__} at {label or 'a move'}: {exc.message}", point_id=label or None)
+        self.event(
+            "robot_fault",
+            f"{type(exc).__name__} at {label or 'a move'}: {exc.message}",
+            point_id=label or None,
+        )
         if attempt >= MOVE_ATTEMPTS:
-            raise CampaignStopped(f"the robot failed {attempt} times at {label}: {exc.message}", exc.remedy) from exc
+            raise CampaignStopped(
+                f"the robot failed {attempt} times at {label}: {exc.message}", exc.remedy
+            ) from exc
         try:
             self.robot.recover()
             self.event("retry", f"robot recovered; retrying {label or 'the move'}", point_id=label or None)
@@ -315,7 +329,9 @@ class Session:
         pending = [p for p in plan.poses if not self.recorded(p.procedure, p.step, p.point_id)]
         setup: tuple[OperatorStep, ...] | None = None
         total = len(plan.poses)
-        with self.progress.task(plan.procedure.replace("_", " "), total=total, done=total - len(pending)) as advance:
+        with self.progress.task(
+            plan.procedure.replace("_", " "), total=total, done=total - len(pending)
+        ) as advance:
             for pose in pending:
                 if pose.setup != setup:
                     self._set_up(pose)
@@ -330,7 +346,9 @@ class Session:
                 advance()
         return len(pending)
 
-    def recall_or_measure(self, procedure: str, step: str, point_id: str, q_target: np.ndarray, **options) -> MeasurementRecord:
+    def recall_or_measure(
+        self, procedure: str, step: str, point_id: str, q_target: np.ndarray, **options
+    ) -> MeasurementRecord:
         """The point's recorded measurement (an adaptive loop replays what a resumed campaign holds), else
         measure it now (`measure_point` options). A recorded point commanded at other joints than these is
         refused: the run would no longer be the one that recorded it."""
@@ -438,11 +456,15 @@ class Session:
                 self.event("beam_break", f"no target at {point_id} (attempt {attempt}): {exc}", **where)
             except (TrackerConnectionError, TrackerTimeoutError) as exc:
                 last_error = exc
-                self.event("tracker_link", f"{type(exc).__name__} at {point_id} (attempt {attempt}): {exc}", **where)
+                self.event(
+                    "tracker_link", f"{type(exc).__name__} at {point_id} (attempt {attempt}): {exc}", **where
+                )
                 time.sleep(0.2 * attempt)  # the driver reconnects on the next call
             except OutlierError as exc:
                 last_error = exc
-                self.event("outliers", f"too few consistent shots at {point_id} (attempt {attempt}): {exc}", **where)
+                self.event(
+                    "outliers", f"too few consistent shots at {point_id} (attempt {attempt}): {exc}", **where
+                )
             except TrackerError as exc:
                 raise CampaignStopped(
                     f"the tracker failed at {point_id}: {exc.message}",
