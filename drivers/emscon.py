@@ -173,6 +173,7 @@ class EmsconTracker:
         self.last_async_error: codec.ErrorPacket | None = None
         self.events: deque = deque(maxlen=100)  # (time, packet) of unsolicited traffic
         self._last_distance_m: float | None = None
+        self.has_object_probe: bool | None = None  # unknown until GetObjectTemperature was asked once
         self._own_events: list[tuple[int, float]] = []  # (change, expiry) echoes expected of our own Sets
         self._settings_stale = False  # another client changed units/CS/mode: redo the connect-time setup
         self.foreign_setting_changes = 0
@@ -569,6 +570,7 @@ class EmsconTracker:
         last = packets[-1]
         p_mean = kept.mean(axis=0)
         self._last_distance_m = float(np.linalg.norm(p_mean))
+        object_temperature_c = self.object_temperature()
         return TrackerMeasurement(
             p_tracker_m=p_mean,
             spread_m=kept.std(axis=0, ddof=1) if len(kept) > 1 else np.zeros(3),
@@ -581,6 +583,7 @@ class EmsconTracker:
             humidity_pct=float(last.humidity),
             timestamp_s=timestamp,
             reflector_id=self.reflector_id,
+            object_temperature_c=object_temperature_c,
         )
 
     def _inliers(self, shots_m: np.ndarray, std_total_m: float) -> np.ndarray:
@@ -653,6 +656,26 @@ class EmsconTracker:
         """(temperature_c, pressure_hpa, humidity_pct) the tracker currently uses."""
         t, p, h = self._call(Command.GET_ENVIRONMENT_PARAMS)[0].values
         return self.units.temperature_from_wire(t), self.units.pressure_from_wire(p), h
+
+    @_serialised
+    def object_temperature(self) -> float | None:
+        """The object probe's temperature (°C), None when the tracker has no probe (asked once, then remembered)."""
+        if self.has_object_probe is False:
+            return None
+        try:
+            (t,) = self._call(Command.GET_OBJECT_TEMPERATURE)[0].values
+        except TrackerCommandError as exc:
+            # Which status a tracker without the probe answers is not documented: any refusal without a
+            # dedicated error class means "no object temperature".
+            log.info("no object temperature: %s", exc)
+            self.has_object_probe = False
+            return None
+        t_c = float(self.units.temperature_from_wire(t))
+        if not math.isfinite(t_c):
+            self._needs_resync = True
+            raise TrackerProtocolError("object temperature is not finite")
+        self.has_object_probe = True
+        return t_c
 
     @_serialised
     def set_environment(self, temperature_c: float, pressure_hpa: float, humidity_pct: float) -> None:

@@ -153,6 +153,7 @@ class SimCellConfig:
     warmup_k: float = 10.0
     warmup_tau_s: float = 1200.0
     expansion_per_k: float = 23e-6  # aluminium
+    air_warmup_fraction: float = 1.0  # the hall's air follows this fraction of the arm's warm-up
     # Controller-side noise.
     encoder_sigma_rad: float = 1e-6
     repeatability_sigma_rad: float = 4e-6
@@ -312,7 +313,7 @@ class SimulatedCell:
         self._physics_s += float(dt_s)
 
     def structure_temperature_c(self, time_s: np.ndarray | float | None = None) -> np.ndarray | float:
-        """Temperature of the arm (and air) at the given physics time(s) (default: now)."""
+        """Temperature of the arm at the given physics time(s) (default: now)."""
         t = self._physics_s if time_s is None else np.asarray(time_s, dtype=float)
         cfg = self.config
         if not cfg.thermal:
@@ -323,8 +324,9 @@ class SimulatedCell:
         """Meteo at the tracker now (pressure and humidity drift slightly with time)."""
         cfg = self.config
         t = self._physics_s
+        arm_c = float(self.structure_temperature_c())
         return Meteo(
-            temperature_c=float(self.structure_temperature_c()),
+            temperature_c=cfg.ambient_c + cfg.air_warmup_fraction * (arm_c - cfg.ambient_c),
             pressure_hpa=float(cfg.pressure_hpa + 0.5 * np.sin(2 * np.pi * t / 7200.0)),
             humidity_pct=float(cfg.humidity_pct + 2.0 * np.sin(2 * np.pi * t / 5400.0)),
         )

@@ -344,7 +344,9 @@ class CommandSet:
         return (0, param, self.state.double_params.get(param, 0.0))
 
     def _cmd_get_object_temperature(self, session):
-        return (0, self.state.units.temperature_to_wire(self.cell.meteo().temperature_c))
+        if not self.config.object_probe:
+            return (self.config.no_object_probe_status,)
+        return (0, self.state.units.temperature_to_wire(float(self.cell.structure_temperature_c())))
 
     def _cmd_clear_command_queue(self, session, which):
         return (0,) if which in (0, 1) else (Status.WRONG_PARAMETER1,)

@@ -69,6 +69,9 @@ class EmsconServerConfig:
     temperature_range_c: tuple[float, float] = (-20.0, 60.0)
     pressure_range_hpa: tuple[float, float] = (500.0, 1200.0)
     humidity_range_pct: tuple[float, float] = (0.0, 100.0)
+    object_probe: bool = True  # an object-temperature probe on the arm (GetObjectTemperature answers)
+    # What GetObjectTemperature answers without the probe: not documented, so configurable (NotImplemented).
+    no_object_probe_status: int = Status.NOT_IMPLEMENTED
 
 
 @dataclass

@@ -10,11 +10,15 @@ measured again. Then a random set of held-out poses in the same box is measured 
 Order: "travel" keeps moves short; "random" makes consecutive moves of different joints independent, which
 separates the backlash of different joints. `both_directions` measures each vertex twice, approached once
 from below and once from above on every joint.
+
+Drift monitor (cell.toml `[drift_monitor] poses = 3, every_points = 25`): a few grid poses, spread over the
+grid, are measured again as step `reference` before the grid, after every `every_points` grid points and at
+its end, so every campaign carries the evidence for drift and thermal growth (their time and temperature).
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -121,12 +125,33 @@ def plan(
 
     suffixes = ("+", "-") if both_directions else ("",)
     poses = [pose(ids[i] + s, "grid", q_grid[i]) for i in visit for s in suffixes]
+    poses = with_reference_rounds(poses, config.drift_poses, config.drift_every_points, pose)
     if validation:
         q_val, _ = usable_joints(random_points(box, 3 * validation, rng))
         poses += [pose(f"v{k + 1:04d}", "validation", q) for k, q in enumerate(q_val[:validation])]
     if not poses:
         raise ValueError("no grid vertex is reachable inside the envelope: move the box or widen [envelope]")
     return Plan(NAME, poses, config, operator_steps=1, dropped=dropped)
+
+
+def with_reference_rounds(
+    grid: list[PlannedPose], n_poses: int, every: int, pose: Callable[[str, str, np.ndarray], PlannedPose]
+) -> list[PlannedPose]:
+    """The grid with rounds of `n_poses` reference poses (spread over the grid) before it, after every
+    `every` grid points and after it; the grid unchanged when the monitor is off or the grid empty."""
+    if n_poses < 1 or every < 1 or not grid:
+        return grid
+    picks = np.unique(np.linspace(0, len(grid) - 1, min(n_poses, len(grid))).round().astype(int))
+    refs = [(f"r{k + 1}", grid[i].q_rad) for k, i in enumerate(picks)]
+
+    def round_(r: int) -> list[PlannedPose]:
+        return [pose(f"{name}-{r:03d}", "reference", q) for name, q in refs]
+
+    out, r = round_(0), 1
+    for start in range(0, len(grid), every):
+        out += grid[start : start + every] + round_(r)
+        r += 1
+    return out
 
 
 def approach_pose(point_id: str, q: np.ndarray) -> np.ndarray | None:
@@ -205,6 +230,6 @@ PROCEDURE = Procedure(
     ),
     plan=plan,
     body=sample,
-    steps=("plan", "grid", "validation"),
+    steps=("plan", "grid", "reference", "validation"),
     summary=summary,
 )

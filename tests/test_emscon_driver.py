@@ -203,6 +203,34 @@ def test_not_initialized_and_meteo_out_of_range_are_typed(server_thread):
         assert (t, p, h) == pytest.approx((20.0, 1013.25, 45.0), abs=0.1)
 
 
+@pytest.mark.parametrize("probe", [True, False])
+def test_meteo_from_the_hall_and_object_temperature_from_the_arm(probe):
+    """The weather station follows the hall's air, the object probe the warming arm; no probe: None."""
+    cfg = SimCellConfig(seed=1, thermal=True, warmup_k=6.0, warmup_tau_s=600.0, air_warmup_fraction=0.25)
+    cell = SimulatedCell(cfg)
+    server = EmsconServer(cell, config=EmsconServerConfig(init_delay_s=0.01, object_probe=probe))
+    with ServerThread(server), _tracker(server.url) as tracker:
+        tracker.point_at(cell.smr_center_tracker(SMR))
+        cell.advance_time(1200.0)
+        arm_c, meteo = float(cell.structure_temperature_c()), cell.meteo()
+        assert arm_c - cfg.ambient_c > 4.0 and meteo.temperature_c < arm_c - 3.0
+        t, p, h = tracker.environment()
+        assert (t, p, h) == pytest.approx(
+            (meteo.temperature_c, meteo.pressure_hpa, meteo.humidity_pct), abs=0.05
+        )
+        m = tracker.measure()
+        assert m.temperature_c == pytest.approx(float(cell.meteo().temperature_c), abs=0.05)
+        if probe:
+            assert m.object_temperature_c == pytest.approx(float(cell.structure_temperature_c()), abs=0.05)
+            assert tracker.has_object_probe is True
+        else:
+            assert m.object_temperature_c is None and tracker.object_temperature() is None
+            assert tracker.has_object_probe is False
+            asked = server.state.command_counts["GET_OBJECT_TEMPERATURE"]
+            tracker.measure()
+            assert server.state.command_counts["GET_OBJECT_TEMPERATURE"] == asked  # asked once, remembered
+
+
 def test_outliers_are_rejected_and_reported(server_thread, cell, caplog):
     truth = cell.smr_center_tracker(SMR)
     with _tracker(server_thread.server.url) as tracker:

@@ -9,7 +9,7 @@ import pandas as pd
 import pytest
 from scipy.spatial.transform import Rotation
 
-from hil.analysis.calibrated_model import CalibratedModel
+from hil.analysis.calibrated_model import CalibratedModel, model_from_dict, model_to_dict
 from hil.analysis.calibration import calibrate
 from hil.data.dataset import make_dataset
 from hil.geometry.ik import random_joints
@@ -28,6 +28,23 @@ def test_every_builtin_is_a_robot_file():
     assert ur10.a[1] == pytest.approx(-0.612) and ur10.d[0] == pytest.approx(0.1273)
     assert list(ur10.uses_beta) == [False, True, True, False, False, False]
     assert not get_robot("ur10", use_beta=False).uses_beta.any()
+    for name in ("ur5", "ur10", "ur5e", "ur10e"):  # aluminium links
+        assert get_robot(name).expansion_per_k == pytest.approx(2.3e-5)
+    assert get_robot("kr6r900").expansion_per_k is None  # optional: unknown material
+
+
+def test_expansion_coefficient_survives_the_model_json(tmp_path):
+    ur5 = get_robot("ur5")
+    assert model_from_dict(json.loads(json.dumps(model_to_dict(ur5)))).expansion_per_k == 2.3e-5
+    kr6 = model_to_dict(get_robot("kr6r900"))
+    assert "expansion_per_k" not in kr6 and model_from_dict(kr6).expansion_per_k is None
+    path = tmp_path / "steel.toml"
+    path.write_text(
+        (ROBOT_DIR / "kr6r900.toml")
+        .read_text()
+        .replace('convention = "dh"', 'convention = "dh"\nexpansion_per_k = 1.2e-5')
+    )
+    assert load_robot_file(path).expansion_per_k == 1.2e-5
 
 
 def test_a_non_ur_arm_from_its_file_calibrates(tmp_path):
@@ -65,6 +82,18 @@ def test_a_non_ur_arm_from_its_file_calibrates(tmp_path):
         (lambda t: t.replace("d_mm = 0\n", "d_m = 0\n", 1), "unknown key(s) ['d_m']"),
         (lambda t: t.replace("limits_deg = [-170, 170]", "limits_deg = [170, -170]"), "lower < upper"),
         (lambda t: t.replace("d_mm = 400", 'd_mm = "400"'), "joint 1: d_mm must be a finite number"),
+        (
+            lambda t: t.replace('convention = "dh"', 'convention = "dh"\nexpansion_per_k = 23'),
+            "expansion_per_k = 23 is outside 1e-06..5e-05 per K",
+        ),
+        (
+            lambda t: t.replace('convention = "dh"', 'convention = "dh"\nexpansion_per_k = 5e-7'),
+            "outside 1e-06..5e-05 per K",
+        ),
+        (
+            lambda t: t.replace('convention = "dh"', 'convention = "dh"\nexpansion_per_k = "2.3e-5"'),
+            "expansion_per_k must be a finite number",
+        ),
     ],
 )
 def test_a_bad_robot_file_is_named_with_what_to_fix(tmp_path, edit, message):

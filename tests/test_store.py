@@ -279,6 +279,24 @@ def test_dataset_export_csv_and_parquet(tmp_path):
         campaign_dataset(path, "tool_fit")
 
 
+def test_dataset_temperature_is_the_arm_s_where_the_probe_read_every_point(tmp_path):
+    """temperature_c: the object probe's reading when every point has one, else the air's (old campaigns)."""
+    path = tmp_path / "c.hilc"
+    with CampaignStore(path) as store:
+        for i in range(4):
+            store.record_measurement(make_record(i, step="probe", extra={"object_temperature_c": 25.0 + i}))
+            store.record_measurement(make_record(i, step="old"))
+        store.record_measurement(make_record(0, step="mixed", extra={"object_temperature_c": 30.0}))
+        store.record_measurement(make_record(1, step="mixed"))
+        probe, old = campaign_dataset(store, step="probe"), campaign_dataset(store, step="old")
+        with pytest.warns(UserWarning, match="object probe read only 1 of 2"):
+            mixed = campaign_dataset(store, step="mixed")
+    np.testing.assert_allclose(probe["temperature_c"], 25.0 + np.arange(4))
+    np.testing.assert_allclose(probe["air_temperature_c"], 20.0 + 0.01 * np.arange(4))
+    np.testing.assert_allclose(old["temperature_c"], old["air_temperature_c"])
+    np.testing.assert_allclose(mixed["temperature_c"], 20.0 + 0.01 * np.arange(2))
+
+
 WRITER = textwrap.dedent(
     """
     import sys, time

@@ -370,6 +370,7 @@ def model_to_dict(m: KinematicModel) -> dict:
         "uses_beta": [bool(b) for b in m.uses_beta],
         "joint_limits": np.asarray(m.joint_limits, float).tolist(),
         "T_last_flange": np.asarray(m.T_last_flange, float).tolist(),
+        **({} if m.expansion_per_k is None else {"expansion_per_k": float(m.expansion_per_k)}),
     }
 
 
@@ -384,6 +385,7 @@ def model_from_dict(d: dict) -> KinematicModel:
         uses_beta=np.asarray(d["uses_beta"], bool),
         joint_limits=np.asarray(d["joint_limits"], float),
         T_last_flange=np.asarray(d["T_last_flange"], float),
+        expansion_per_k=d.get("expansion_per_k"),
     )
 
 

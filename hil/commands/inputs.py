@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 import pandas as pd
@@ -12,10 +13,11 @@ from hil.data.store import CampaignStore, campaign_dataset, is_campaign_file
 CAMPAIGN_PROCEDURE = "grid_sampling"  # the procedure whose measurements the analysis commands read
 TRAINING_STEP = "grid"
 VALIDATION_STEP = "validation"
+REFERENCE_STEP = "reference"  # the drift monitor's re-measured poses: training rows (evidence for drift)
 
 
 def read_measurements(
-    path: str | Path, step: str | None = None, *, require_positions: bool = True
+    path: str | Path, step: str | Sequence[str] | None = None, *, require_positions: bool = True
 ) -> pd.DataFrame:
     """The dataset-contract frame of `path`: a campaign file (its grid_sampling measurements, one step or
     all of them) or a dataset CSV (hil.data.dataset.load_dataset). Raises DatasetError/ValueError on bad input."""
@@ -36,10 +38,12 @@ def read_training_and_validation(
     path: str | Path, validate: str | Path | None = None
 ) -> tuple[pd.DataFrame, pd.DataFrame | None]:
     """Training and validation frames. A campaign with both a 'grid' and a 'validation' step trains on
-    'grid' only and validates on 'validation', unless a separate validation file is given; a campaign
+    'grid' (and the drift monitor's 'reference' rows, in measurement order) and validates on 'validation', unless a separate validation file is given; a campaign
     given as the validation file gives its 'validation' step when it has one (else all its points)."""
-    both = {TRAINING_STEP, VALIDATION_STEP} <= _campaign_steps(path)
-    df = read_measurements(path, TRAINING_STEP if both else None)
+    steps = _campaign_steps(path)
+    both = {TRAINING_STEP, VALIDATION_STEP} <= steps
+    training = [TRAINING_STEP, REFERENCE_STEP] if REFERENCE_STEP in steps else TRAINING_STEP
+    df = read_measurements(path, training if both else None)
     if validate is not None:
         has_validation = VALIDATION_STEP in _campaign_steps(validate)
         return df, read_measurements(validate, VALIDATION_STEP if has_validation else None)

@@ -1,7 +1,10 @@
 """The measurement dataset contract: one CSV row per measured robot pose, rows in measurement order.
 
 Required: ``q1_rad .. q6_rad`` (joints the robot reported) and ``x_mm, y_mm, z_mm`` (SMR centre in the
-tracker frame). Optional: ``t_s`` (seconds since the campaign started), ``temperature_c``, ``smr``
+tracker frame). Optional: ``t_s`` (seconds since the campaign started), ``temperature_c`` (the arm's
+temperature: the tracker's object probe where it read every point, else the air's; thermal effects are driven
+by it), ``air_temperature_c`` (the tracker's weather station; campaigns recorded before it was exported lack
+it), ``smr``
 (nest id, integer; default 1), ``payload_kg``, ``pose`` (which rows share one robot pose), ``rx_deg, ry_deg,
 rz_deg`` (a 6-DoF probe's orientation in the tracker frame, extrinsic x-y-z: R = Rz(rz) Ry(ry) Rx(rx)), and any
 further column whose name ends in its unit.

@@ -608,6 +608,7 @@ def campaign_dataset(
             "shots",
             "point_id",
             "step",
+            "extra",
         )
         m = store.measurement_columns(needed, procedure, step)
         started_s = store.started_s
@@ -627,7 +628,15 @@ def campaign_dataset(
     for a in _AXES:
         data[f"{a}_mm"] = m[f"{a}_m"].to_numpy(float) * 1000.0
     data["t_s"] = m["timestamp_s"].to_numpy(float) - started_s
-    temperature = m["temperature_c"].to_numpy(float)
+    air = m["temperature_c"].to_numpy(float)
+    arm = _object_temperatures(m["extra"])
+    temperature = arm if np.all(np.isfinite(arm)) else air  # the arm's own where the probe read every point
+    if np.any(np.isfinite(arm)) and not np.all(np.isfinite(arm)):
+        warnings.warn(
+            f"{store.path}: the object probe read only {int(np.sum(np.isfinite(arm)))} of {len(arm)} "
+            f"measurements of {procedure}; temperature_c is the air temperature",
+            stacklevel=2,
+        )
     missing = int(np.sum(~np.isfinite(temperature)))
     if missing == 0:
         data["temperature_c"] = temperature
@@ -637,6 +646,8 @@ def campaign_dataset(
             f"{procedure}; the dataset leaves the column out",
             stacklevel=2,
         )
+    if np.all(np.isfinite(air)):
+        data["air_temperature_c"] = air
     data["smr"] = m["smr"].to_numpy(int)
     for kind in ("spread", "std"):
         for a in _AXES:
@@ -647,6 +658,11 @@ def campaign_dataset(
     data["point_id"] = m["point_id"].astype(str).to_numpy()
     data["step_id"] = m["step"].astype(str).to_numpy()
     return validate_dataset(pd.DataFrame(data), source=f"{store.path} ({procedure})")
+
+
+def _object_temperatures(extra: pd.Series) -> np.ndarray:
+    """The object probe's temperature per measurement from the stored extra JSON (NaN where none)."""
+    return np.array([json.loads(e).get("object_temperature_c", np.nan) for e in extra], dtype=float)
 
 
 def export_csv(

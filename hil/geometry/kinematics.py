@@ -38,6 +38,7 @@ class KinematicModel:
     uses_beta: np.ndarray  # bool per joint
     joint_limits: np.ndarray  # (n, 2) rad, [lower, upper]
     T_last_flange: np.ndarray = field(default_factory=lambda: np.eye(4))
+    expansion_per_k: float | None = None  # the links' thermal expansion (1/K), None when unknown
 
     def __post_init__(self) -> None:
         n = len(self.theta)

@@ -6,6 +6,8 @@ A file holds `name`, `convention` and one `[[joint]]` table per joint, in the un
 data sheet: `d_mm`, `a_mm`, `alpha_deg`, optional `theta_offset_deg` (0), `hayati_beta` (false) and
 `limits_deg` ([-360, 360]). Optional `mass_kg` per joint (the link that joint moves) is checked and kept
 for the reader only: no module uses it yet (the simulator has its own mass table per built-in name).
+Optional `expansion_per_k` at the top: the links' coefficient of thermal expansion (their material, e.g.
+2.3e-5 for aluminium, 1.2e-5 for steel), between 1e-6 and 5e-5 per K; the thermal term's prior.
 
 `convention = "dh"` (standard Denavit-Hartenberg, the internal form of hil.geometry.kinematics): joint i is
 Rz(θ_i) Tz(d_i) Tx(a_i) Rx(α_i) [Ry(β_i)], `hayati_beta` on a joint whose axis is parallel to the next.
@@ -38,7 +40,8 @@ ROBOT_DIR = Path(__file__).with_name("robot_models")
 ROBOT_NAMES: tuple[str, ...] = (
     "ur5", "ur10", "ur5e", "ur10e", "irb2600", "kr6r900", "lrmate200id", "irb4600",
 )  # fmt: skip
-_FILE_KEYS = {"name", "convention", "joint"}
+_FILE_KEYS = {"name", "convention", "joint", "expansion_per_k"}
+EXPANSION_RANGE_PER_K = (1e-6, 5e-5)  # plausible materials: from carbon fibre / invar up to plastics
 _JOINT_KEYS = {"d_mm", "a_mm", "alpha_deg", "theta_offset_deg", "hayati_beta", "limits_deg", "mass_kg"}
 # Accepted spellings of `convention`, each mapped to "dh" or "mdh".
 CONVENTIONS: dict[str, str] = {
@@ -106,7 +109,20 @@ def robot_from_text(text: str, source: str | Path, use_beta: bool = True) -> Kin
         beta=np.zeros(len(rows)),
         uses_beta=np.array(beta, bool) if use_beta else np.zeros(len(rows), bool),
         joint_limits=np.deg2rad(np.array(limits, float)),
+        expansion_per_k=_expansion(path, data["expansion_per_k"]) if "expansion_per_k" in data else None,
     )
+
+
+def _expansion(path: Path, value: Any) -> float:
+    """The file's `expansion_per_k`, checked against EXPANSION_RANGE_PER_K."""
+    alpha = _number(str(path), "expansion_per_k", value)
+    lo, hi = EXPANSION_RANGE_PER_K
+    if not lo <= alpha <= hi:
+        raise ValueError(
+            f"{path}: expansion_per_k = {alpha:g} is outside {lo:g}..{hi:g} per K; give the links' material "
+            "coefficient per kelvin (2.3e-5 for aluminium, 1.2e-5 for steel), not ppm or per degree F"
+        )
+    return alpha
 
 
 def _convention(path: Path, value: Any) -> str:

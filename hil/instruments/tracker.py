@@ -20,6 +20,8 @@ class TrackerMeasurement:
 
     `spread_m` is the sample std-dev over the kept shots (zeros for one shot); `std_m`/`std_total_m` the
     mean of the tracker's own per-shot std-devs; `rejected_shots` the indices of shots dropped as outliers.
+    `temperature_c` is the air temperature the tracker used (its weather station or manual input);
+    `object_temperature_c` the object probe's reading (the arm's own temperature), None without a probe.
     """
 
     p_tracker_m: np.ndarray  # (3,) mean of the kept shots
@@ -33,6 +35,7 @@ class TrackerMeasurement:
     humidity_pct: float
     timestamp_s: float  # UNIX time (UTC) when the last shot arrived
     reflector_id: int | None = None
+    object_temperature_c: float | None = None
 
     @property
     def shots_used(self) -> int:
@@ -54,6 +57,7 @@ class TrackerMeasurement:
             "humidity_pct": self.humidity_pct,
             "timestamp_s": self.timestamp_s,
             "reflector_id": self.reflector_id,
+            "object_temperature_c": self.object_temperature_c,
         }
 
 

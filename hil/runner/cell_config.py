@@ -68,6 +68,8 @@ class CellConfig:
     tracker_driver_name: str = DEFAULT_TRACKER_DRIVER  # tracker.driver: the plug-in that drives the tracker
     source: str = "cell.toml"
     raw: dict = field(default_factory=dict)
+    drift_poses: int = 0  # [drift_monitor] poses: reference poses re-measured during a grid (0: none)
+    drift_every_points: int = 0  # [drift_monitor] every_points: grid points between two reference rounds
 
     @cached_property
     def nominal(self) -> KinematicModel:
@@ -160,7 +162,7 @@ class _Reader:
                 )
 
 
-SECTIONS = ("robot", "tracker", "tool", "envelope", "motion", "simulator")
+SECTIONS = ("robot", "tracker", "tool", "envelope", "motion", "simulator", "drift_monitor")
 
 
 def _numbers(value: Any) -> np.ndarray | None:
@@ -226,6 +228,10 @@ def parse_cell_config(data: dict, source: str = "cell.toml") -> CellConfig:
     settle_s = r.get("motion", "settle_s", "nonneg", default=0.5)
     home_deg = r.vector("motion", "home_deg", n, default=np.rad2deg(_default_home(nominal, n)))
     simulator_control = r.get("simulator", "control", "str")
+    drift_poses = r.get("drift_monitor", "poses", "int", default=0)
+    drift_every = r.get("drift_monitor", "every_points", "int", default=0)
+    if (drift_poses > 0) != (drift_every > 0):
+        r.problems.append("[drift_monitor]: give both poses and every_points (or leave the section out)")
     r.unknown_keys({"robot": ROBOT_DRIVER_KEYS})
     if r.problems:
         raise CellConfigError(source, r.problems)
@@ -258,6 +264,8 @@ def parse_cell_config(data: dict, source: str = "cell.toml") -> CellConfig:
         tracker_driver_name=tracker_driver_name,
         source=source,
         raw=data,
+        drift_poses=drift_poses,
+        drift_every_points=drift_every,
     )
 
 

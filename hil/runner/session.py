@@ -11,6 +11,7 @@ is stopped and the store closed, whatever happened.
 from __future__ import annotations
 
 import logging
+import math
 import platform
 import threading
 import time
@@ -31,6 +32,7 @@ from hil.instruments.tracker import (
     Tracker,
     TrackerConnectionError,
     TrackerError,
+    TrackerMeasurement,
     TrackerTimeoutError,
 )
 from hil.runner.cell_config import CellConfig
@@ -446,6 +448,7 @@ class Session:
                     extra={
                         "attempts": attempt,
                         **({"predicted_mm": (predicted * 1e3).tolist()} if predicted is not None else {}),
+                        **_object_temperature(m),
                         **(extra or {}),
                     },
                 )
@@ -475,6 +478,12 @@ class Session:
             "clear the line of sight between tracker and SMR and check the tracker's connection, "
             "then re-run the same command: recorded points are kept and skipped",
         )
+
+
+def _object_temperature(m: TrackerMeasurement) -> dict:
+    """The object probe's reading for a record's extra, nothing when the tracker has no probe."""
+    t = getattr(m, "object_temperature_c", None)
+    return {} if t is None or not math.isfinite(t) else {"object_temperature_c": float(t)}
 
 
 def _software_versions() -> dict:
