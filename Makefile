@@ -31,7 +31,7 @@ typecheck: $(VENV)/.installed
 	$(VENV)/bin/mypy
 
 unit: $(VENV)/.installed
-	$(PY) -m pytest -q $(PYTEST_PARALLEL)
+	$(PY) -m pytest -q --durations=15 $(PYTEST_PARALLEL)
 
 # The long soaks (20 SIGKILLs of a campaign, a whole demo resumed): minutes; the default suite runs a short
 # version of each.

@@ -16,6 +16,8 @@ from procedures import grid_sampling, registration
 from tests.cell_fixtures import sim_cell_toml
 from tests.sim_session import running_cell, session_on
 
+pytestmark = pytest.mark.sim
+
 
 def _toml(extra: str) -> dict:
     return tomllib.loads(sim_cell_toml() + extra)
