@@ -30,7 +30,7 @@ from hil.data.store import CampaignStore, campaign_dataset
 from hil.runner.cell_config import CellConfig
 from hil.runner.operator import OperatorStep
 from hil.runner.plan import Plan, PlannedPose
-from hil.runner.procedure import Parameter, Procedure
+from hil.runner.procedure import SHOTS, Parameter, Procedure
 from hil.runner.session import CampaignStopped, Session
 from hil.runner.sight import measurable
 
@@ -233,13 +233,7 @@ PROCEDURE = Procedure(
         Parameter(
             "seed", "seed of the diagnosis' folds and of the plan's candidate poses", 0, int, minimum=0
         ),
-        Parameter(
-            "shots",
-            "tracker shots per point (default: the cell's tracker.shots_per_point)",
-            None,
-            int,
-            minimum=1,
-        ),
+        SHOTS,
     ),
     plan=plan,
     body=run_loop,

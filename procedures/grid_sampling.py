@@ -36,7 +36,7 @@ from hil.runner.planners import (
     travel_order,
     workspace_box,
 )
-from hil.runner.procedure import Parameter, Procedure
+from hil.runner.procedure import SHOTS, Parameter, Procedure
 from hil.runner.session import Session
 
 NAME = "grid_sampling"
@@ -220,13 +220,7 @@ PROCEDURE = Procedure(
             maximum=30.0,
         ),
         Parameter("seed", "seed of the orientations and validation poses", 0, int, minimum=0),
-        Parameter(
-            "shots",
-            "tracker shots per point (default: the cell's tracker.shots_per_point)",
-            None,
-            int,
-            minimum=1,
-        ),
+        SHOTS,
     ),
     plan=plan,
     body=sample,

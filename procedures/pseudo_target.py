@@ -45,7 +45,7 @@ from hil.runner.planners import (
     random_points,
     workspace_box,
 )
-from hil.runner.procedure import Parameter, Procedure
+from hil.runner.procedure import SHOTS, Parameter, Procedure
 from hil.runner.session import CampaignStopped, Session
 
 NAME = "pseudo_target"
@@ -593,13 +593,7 @@ PROCEDURE = Procedure(
             "smrs", "1: position (SMR in nest 1); 3: pose (SMRs in nests 1-3)", 1, int, choices=SMR_MODES
         ),
         Parameter("seed", "seed of the random targets", 0, int, minimum=0),
-        Parameter(
-            "shots",
-            "tracker shots per point (default: the cell's tracker.shots_per_point)",
-            None,
-            int,
-            minimum=1,
-        ),
+        SHOTS,
         Parameter(
             "measure_uncompensated",
             "also measure each target's plain nominal IK once (the uncompensated row)",

@@ -16,7 +16,7 @@ import sqlite3
 import threading
 import time
 import warnings
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -672,9 +672,7 @@ def export_csv(
     step: str | Sequence[str] | None = None,
 ) -> int:
     """Write one procedure's measurements as a dataset CSV; returns the number of rows written."""
-    df = campaign_dataset(path, procedure, step)
-    write_dataset(df, out)
-    return len(df)
+    return _export(path, procedure, step, lambda df: write_dataset(df, out))
 
 
 def export_parquet(
@@ -684,6 +682,16 @@ def export_parquet(
     step: str | Sequence[str] | None = None,
 ) -> int:
     """Write one procedure's measurements (dataset columns) as a Parquet file; returns rows written."""
+    return _export(path, procedure, step, lambda df: df.to_parquet(out, index=False))
+
+
+def _export(
+    path: str | Path,
+    procedure: str,
+    step: str | Sequence[str] | None,
+    write: Callable[[pd.DataFrame], object],
+) -> int:
+    """Read one procedure's measurements in the dataset contract, write them, count them."""
     df = campaign_dataset(path, procedure, step)
-    df.to_parquet(out, index=False)
+    write(df)
     return len(df)

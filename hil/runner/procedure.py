@@ -117,6 +117,12 @@ class Parameter:
                 raise ParameterError(f"{self.flag} {shown} is out of range: allowed {self.allowed()}")
 
 
+# The tracker's shots per point, a parameter of every procedure that measures; default: the cell's own.
+SHOTS = Parameter(
+    "shots", "tracker shots per point (default: the cell's tracker.shots_per_point)", None, int, minimum=1
+)
+
+
 @dataclass(frozen=True)
 class Limit:
     """A measurement limit the procedure judges its results against (the quality gate), in `unit`."""
