@@ -87,3 +87,21 @@ def test_standing_still_draws_no_noise_and_does_not_warm_the_arm():
     np.testing.assert_array_equal(twin.measure_smr(1), cell.measure_smr(1))  # the first reading of each
     cell.advance_time(600.0)  # an explicit wait warms the arm
     assert cell.structure_temperature_c() > 20.0
+
+
+def test_a_cell_started_again_continues_the_campaigns_clock(tmp_path):
+    """A later stage's (or a resume's) fresh cell restarts its own clock at zero: the session's timestamps continue
+    from the campaign's latest measurement by the cell's elapsed time, never from the host's clock."""
+    from hil.commands.instruments import continuing_clock
+    from tests.test_store import make_record as record
+
+    cell_s = [1000.0]  # the new cell's clock (UNIX seconds of its own start plus simulated activity)
+    with CampaignStore(tmp_path / "c.sqlite") as store:
+        assert (
+            continuing_clock(lambda: cell_s[0], store)() > 1e9
+        )  # a new campaign: its start is the host's now
+        store.record_measurement(record(0, t0=5000.0))
+        store.record_measurement(record(1, t0=5000.0))  # latest at 5002 s
+        clock = continuing_clock(lambda: cell_s[0], store)
+        cell_s[0] += 7.5
+        assert clock() == 5002.0 + 7.5

@@ -9,6 +9,7 @@ cell, a script that moves the simulated SMR through the simulated cell plug-in's
 from __future__ import annotations
 
 import sys
+import time
 from collections.abc import Callable
 from contextlib import ExitStack
 from pathlib import Path
@@ -95,6 +96,17 @@ def _cell_clock(config: CellConfig) -> Callable[[], float] | None:
         raise CliError(exc.message, exc.remedy) from exc
 
 
+def continuing_clock(cell_clock: Callable[[], float], store: CampaignStore) -> Callable[[], float]:
+    """A simulated cell's clock, counted on from the campaign's latest measurement: a cell started again for
+    the same campaign (a later stage of the demo, a resume) continues its times from there, so the campaign's
+    `t_s` depends on the seed and the commands only, not on how long the machine took between two starts.
+    A new campaign starts at the host's time (its `t_s` count from its first measurement)."""
+    opened = cell_clock()
+    last = store.last_timestamp_s
+    base = time.time() if last is None else last
+    return lambda: base + (cell_clock() - opened)
+
+
 def open_session(
     config: CellConfig,
     campaign: str | Path,
@@ -119,7 +131,8 @@ def open_session(
             "robot_controller_version": getattr(robot, "version", None),
             "tracker": getattr(tracker, "tracker_info", {}),
         }
-        clock = _cell_clock(config)
+        cell_clock = _cell_clock(config)
+        clock = None if cell_clock is None else continuing_clock(cell_clock, store)
         session = Session(
             config, robot, tracker, store, operator, Progress(enabled=progress), station=station, clock=clock
         )

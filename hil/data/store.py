@@ -443,6 +443,13 @@ class CampaignStore:
             self._started_s = float(row[0])  # append-only: the first measurement never changes
         return self._started_s
 
+    @property
+    def last_timestamp_s(self) -> float | None:
+        """UNIX time of the campaign's latest measurement; None while it has none."""
+        with self._lock:
+            row = self._db().execute("SELECT MAX(timestamp_s) FROM measurements").fetchone()
+        return None if row is None or row[0] is None else float(row[0])
+
     # -- events, steps, log ---------------------------------------------------------------------------
     def record_event(
         self,
