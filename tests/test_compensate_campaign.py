@@ -415,3 +415,29 @@ def test_a_path_stays_in_one_nest(model, tmp_path, capsys):
     assert code == 0, err
     df = pd.read_csv(tmp_path / "p.csv")
     assert (df["smr"] == 1).all() and "branch_jump" in df.columns
+
+
+def test_targets_warmer_than_the_fitted_range_are_warned_about(model, tmp_path, capsys):
+    hot = thermal_model(model, "temperature_c")
+    hot.info["run"] = {
+        "inputs": {"training": {"temperature_c_range": [19.0, 23.0]}}
+    }  # as diagnose records it
+    hot.save(tmp_path / "hot.json")
+    write_campaign(tmp_path / "job.sqlite", model, loop_targets=loop_poses(model))
+    for temperature, warned in ((21.0, False), (23.4, False), (30.0, True)):
+        code, _, err = hil_in_process(
+            "compensate", "hot.json", "job.sqlite", "-o", "j.csv", "--temperature-c", str(temperature),
+            cwd=tmp_path, capsys=capsys,
+        )  # fmt: skip
+        assert code == 0, err
+        assert ("outside the 19.0..23.0 degC the model's thermal effect was fitted on" in err) == warned, err
+
+
+def test_the_run_record_keeps_the_training_temperatures():
+    from hil.analysis.diagnosis import run_record
+    from hil.geometry.robots import get_robot
+
+    df = pd.DataFrame({"x_mm": [1.0, 2.0, 3.0], "temperature_c": [21.5, "", 23.25]})
+    record = run_record(get_robot("ur10"), {"training": df, "validation": df.drop(columns="temperature_c")})
+    assert record["inputs"]["training"]["temperature_c_range"] == [21.5, 23.25]
+    assert "temperature_c_range" not in record["inputs"]["validation"]

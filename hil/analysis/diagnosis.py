@@ -728,6 +728,11 @@ def run_record(robot: KinematicModel, frames: dict[str, pd.DataFrame | None]) ->
             "rows_used": len(df),
             "duplicate_rows": df.attrs.get("duplicate_rows", []),
         }
+        temperatures = pd.to_numeric(
+            df.get("temperature_c", pd.Series(dtype=float)), errors="coerce"
+        ).dropna()
+        if len(temperatures):  # what a thermal model was fitted on: compensation warns outside it
+            inputs[role]["temperature_c_range"] = [float(temperatures.min()), float(temperatures.max())]
     return {
         "robot": robot.name,
         "inputs": inputs,
