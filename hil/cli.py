@@ -34,7 +34,7 @@ class OneLineErrorParser(argparse.ArgumentParser):
 
     def error(self, message: str):  # type: ignore[override]
         print(
-            CliError(message, f"see '{self.prog} --help'").render(self.prog.removeprefix("hil ")),
+            CliError(message, f"see '{self.prog} --help'").render(self.prog.removeprefix("hil").strip()),
             file=sys.stderr,
         )
         raise SystemExit(EXIT_USAGE)

@@ -1,5 +1,7 @@
 """The one CLI error convention: `hil <command>: <message>`, `  what to do: <remedy>` on stderr, exit 2."""
 
+import pytest
+
 from hil.cli import main
 
 
@@ -26,3 +28,11 @@ def test_unknown_effect_names_the_known_ones(capsys):
     first, second = stderr_lines(capsys)
     assert first.startswith("hil sim: unknown effect(s) ['gravity']")
     assert "gravity_compliance" in first + second and "thermal_expansion" in first + second
+
+
+def test_an_unknown_option_after_a_command_names_hil_once(capsys):
+
+    with pytest.raises(SystemExit) as exit_info:
+        main(["run", "grid_sampling", "--stepp", "3", "--cell", "c.toml", "--campaign", "c.sqlite"])
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2 and err.startswith("hil: unrecognized arguments: --stepp 3"), err

@@ -31,4 +31,4 @@ class CliError(ActionableError):
 
     def render(self, command: str) -> str:
         """The two stderr lines for `hil <command>`."""
-        return f"hil {command}: {self.message}\n  what to do: {self.remedy}"
+        return f"{f'hil {command}'.strip()}: {self.message}\n  what to do: {self.remedy}"
