@@ -304,11 +304,23 @@ class CalibrationResult:
         }
 
 
-USER_UNITS = {"m": ("mm", 1e3), "rad": ("deg", float(np.rad2deg(1.0))), "coef": ("coef", 1.0)}
+# SI unit of a geometric parameter or an effect coefficient -> (the unit the user reads, its factor): mm,
+# degrees, ppm. One table for the calibration's parameter table and the diagnosis' effect coefficients.
+USER_UNITS = {
+    "m": ("mm", 1e3),
+    "rad": ("deg", float(np.rad2deg(1.0))),
+    "coef": ("coef", 1.0),
+    "rad/m": ("deg/m", float(np.rad2deg(1.0))),
+    "rad/rad": ("1", 1.0),
+    "1/K": ("ppm/K", 1e6),
+    "1/s": ("ppm/s", 1e6),
+    "m/K": ("mm/K", 1e3),
+    "m/s": ("mm/s", 1e3),
+}
 
 
 def in_user_units(value: float | None, unit: str) -> float | None:
-    """A parameter value or change from SI (m, rad) into the units the reports use (mm, deg)."""
+    """A parameter value or change from SI (m, rad, ...) into the units the reports use (mm, deg, ppm)."""
     return None if value is None else value * USER_UNITS[unit][1]
 
 

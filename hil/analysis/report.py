@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from hil.analysis.calibration import USER_UNITS, in_user_units
 from hil.analysis.diagnosis import DiagnosisReport, effect_label
 from hil.data.jsonable import to_jsonable
 
@@ -224,23 +225,16 @@ def _head_html(report: DiagnosisReport, d: dict) -> list[str]:
     ]
 
 
-# SI unit of a coefficient -> (the unit a report shows, its factor): degrees, millimetres, ppm.
-REPORT_UNITS = {
-    "rad": ("deg", float(np.rad2deg(1.0))),
-    "rad/m": ("deg/m", float(np.rad2deg(1.0))),
-    "rad/rad": ("1", 1.0),
-    "1/K": ("ppm/K", 1e6),
-    "1/s": ("ppm/s", 1e6),
-    "m/K": ("mm/K", 1e3),
-    "m/s": ("mm/s", 1e3),
-}
-
-
 def in_report_units(row: dict) -> dict:
     """An effect coefficient's row with its value and standard error in the report's units (deg, mm, ppm)."""
-    unit, factor = REPORT_UNITS.get(row.get("unit", ""), (row.get("unit", ""), 1.0))
-    scaled = {k: row[k] * factor if isinstance(row.get(k), float) else row.get(k) for k in ("value", "std")}
-    return {**row, **scaled, "unit": unit}
+    si = row.get("unit", "")
+    if si not in USER_UNITS:
+        return row
+    scaled = {
+        k: in_user_units(row[k], si) if isinstance(row.get(k), float) else row.get(k)
+        for k in ("value", "std")
+    }
+    return {**row, **scaled, "unit": USER_UNITS[si][0]}
 
 
 def _effects_html(report: DiagnosisReport) -> list[str]:
