@@ -223,6 +223,7 @@ class SimulatedCell:
         self._q_cmd = np.array(cfg.q_home_rad, dtype=float)
         self._approach = np.ones(n)  # last motion direction per joint
         self._jitter = np.zeros(n)
+        self._physics_cache: tuple[tuple, tuple[np.ndarray, np.ndarray]] | None = None
         self._encoder_noise = np.zeros(n)
         self._standing = True
         self.motions = 0  # motions started (a change of the commanded joints after standing still)
@@ -395,14 +396,23 @@ class SimulatedCell:
             growth = (1.0 + self.config.expansion_per_k * dT)[:, None]
         return m.theta, m.d * growth, m.a * growth, m.alpha, m.beta
 
+    def _physics_now(self) -> tuple[np.ndarray, np.ndarray]:
+        """`true_joint_offsets` of the arm as it stands now, kept until the command, the approach or the physics
+        clock changes (the tracker asks for it at its own rate, mostly while the arm stands still)."""
+        q = self._q_cmd + self._jitter
+        key = (q.tobytes(), self._approach.tobytes(), self._physics_s)
+        if self._physics_cache is None or self._physics_cache[0] != key:
+            self._physics_cache = (key, self.true_joint_offsets(q, self._approach, self._physics_s))
+        return self._physics_cache[1]
+
     def true_joints(self) -> np.ndarray:
         """Output-side joints physically reached now."""
-        offsets, _ = self.true_joint_offsets(self._q_cmd + self._jitter, self._approach, self._physics_s)
+        offsets, _ = self._physics_now()
         return self._q_cmd + self._jitter + offsets[0]
 
     def T_base_flange_true(self) -> np.ndarray:
         """Where the flange physically is now (4, 4), base frame."""
-        _, frames = self.true_joint_offsets(self._q_cmd + self._jitter, self._approach, self._physics_s)
+        _, frames = self._physics_now()
         return frames[0, -1] @ self.nominal.T_last_flange
 
     # ----- SMRs and the tracker -----------------------------------------------------------------

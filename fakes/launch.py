@@ -66,7 +66,7 @@ def start_cell(
     time_scale: float = 1.0,
     host: str | None = None,
     extra_args: tuple[str, ...] = (),
-    ready_timeout_s: float = 30.0,
+    ready_timeout_s: float = 90.0,  # bounds only a failed start: a ready cell returns at once
     attempts: int = 5,
 ) -> RunningCell:
     """Spawn `python -m fakes.sim ...` and wait for its JSON line; retries other hosts if the address is taken."""

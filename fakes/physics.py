@@ -70,23 +70,33 @@ def gravity_torques(
     N, n1 = frames.shape[:2]
     n = n1 - 1
     origins = frames[:, :, :3, 3]  # (N, n+1, 3)
-    centres = 0.5 * (origins[:, :-1] + origins[:, 1:])  # (N, n, 3)
-    forces = link_masses_kg[None, :, None] * GRAVITY_BASE  # (1, n, 3)
-    masses_at = [centres]
-    forces_at = [np.broadcast_to(forces, (N, n, 3))]
-    if payload_kg > 0:
+    points = 0.5 * (origins[:, :-1] + origins[:, 1:])  # (N, n, 3): link i+1's mass
+    f = np.broadcast_to(link_masses_kg[None, :, None] * GRAVITY_BASE, (N, n, 3))
+    if payload_kg > 0:  # the payload rides on the last link
         p = np.zeros(3) if p_flange_payload is None else np.asarray(p_flange_payload, dtype=float)
         T_last = frames[:, -1]
         p_payload = T_last[:, :3, :3] @ p + T_last[:, :3, 3]
-        masses_at.append(p_payload[:, None, :])
-        forces_at.append(np.broadcast_to(payload_kg * GRAVITY_BASE, (N, 1, 3)))
-    points = np.concatenate(masses_at, axis=1)  # (N, M, 3); masses 0..n-1 belong to links 1..n
-    f = np.concatenate(forces_at, axis=1)
-    owner = np.concatenate([np.arange(n), np.full(points.shape[1] - n, n - 1)])  # link index per mass
-    tau = np.zeros((N, n))
-    for i in range(n):
-        outboard = owner >= i
-        lever = points[:, outboard] - origins[:, i][:, None, :]
-        moment = np.cross(lever, f[:, outboard]).sum(axis=1)  # (N, 3)
-        tau[:, i] = np.einsum("nj,nj->n", moment, frames[:, i, :3, 2])
-    return tau
+        f_payload = np.broadcast_to(payload_kg * GRAVITY_BASE, (N, 3))
+        points = np.concatenate([points, p_payload[:, None, :]], axis=1)
+        f = np.concatenate([f, f_payload[:, None, :]], axis=1)
+    # Moment about o_i of every mass outboard of joint i: sum (p - o_i) x f = sum(p x f) - o_i x sum(f),
+    # both sums taken from the tip inwards (the payload counts with the last link).
+    moments = _cross(points, f)
+    if payload_kg > 0:
+        moments = np.concatenate(
+            [moments[:, : n - 1], moments[:, n - 1 :].sum(axis=1, keepdims=True)], axis=1
+        )
+        f = np.concatenate([f[:, : n - 1], f[:, n - 1 :].sum(axis=1, keepdims=True)], axis=1)
+    outboard_moment = np.cumsum(moments[:, ::-1], axis=1)[:, ::-1]  # (N, n)
+    outboard_force = np.cumsum(f[:, ::-1], axis=1)[:, ::-1]
+    moment = outboard_moment - _cross(origins[:, :-1], outboard_force)  # about o_0 .. o_{n-1}
+    return np.einsum("nij,nij->ni", moment, frames[:, :-1, :3, 2])
+
+
+def _cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """u x v over the last axis, written out (np.cross costs more than the physics on these small arrays)."""
+    out = np.empty(np.broadcast_shapes(u.shape, v.shape))
+    out[..., 0] = u[..., 1] * v[..., 2] - u[..., 2] * v[..., 1]
+    out[..., 1] = u[..., 2] * v[..., 0] - u[..., 0] * v[..., 2]
+    out[..., 2] = u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]
+    return out

@@ -106,6 +106,10 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_USAGE
     previous_showwarning = warnings.showwarning
     warnings.showwarning = _show_warning
+    if args.command in RESUMABLE:  # said also when a stuck clean-up makes the Ctrl-C deadline end the process
+        from hil.commands.interrupts import say_on_forced_exit
+
+        say_on_forced_exit(_forced_exit_text(args.command, typed))
     try:
         code = int(args.func(args) or 0)
         sys.stdout.flush()  # here, not at exit: a reader that left is then seen below
@@ -150,6 +154,17 @@ def _interrupted(command: str, typed: list[str]) -> CliError:
             f"resume with: {again}",
         )
     return CliError("interrupted (Ctrl-C)", f"run it again: {again}")
+
+
+def _forced_exit_text(command: str, typed: list[str]) -> str:
+    """What a Ctrl-C says when the clean-up did not finish in time and the deadline ended the process."""
+    again = "hil " + shlex.join(typed)
+    return CliError(
+        "interrupted (Ctrl-C): the clean-up did not finish in time and hil left without it; every recorded "
+        "point is kept (each is committed before the next motion), the controller stops the robot when its "
+        "connection drops",
+        f"resume with: {again}",
+    ).render(command)
 
 
 def _exit_after_interrupt() -> int:

@@ -58,8 +58,13 @@ def url(request, server_thread):
     return bridge.url
 
 
+LATE_S = 2.0  # how late a timeout may be noticed on a loaded machine (the driver polls every 20 ms)
+
+
 def _tracker(url, **options) -> EmsconTracker:
-    options = {"meas_time_s": MEAS_S, "measurement_margin_s": 1.0, "command_timeout_s": 2.0, **options}
+    # Generous margins where a test does not time out on purpose: a busy 2-core machine may take seconds to
+    # deliver an answer sent byte by byte. The tests of timeouts set their own and bound how late they fire.
+    options = {"meas_time_s": MEAS_S, "measurement_margin_s": 10.0, "command_timeout_s": 10.0, **options}
     return EmsconTracker(EmsconConfig(url=url, **options))
 
 
@@ -305,7 +310,7 @@ def test_slow_answers_time_out_then_recover(url, server_thread, cell):
     start = time.monotonic()
     with pytest.raises(TrackerTimeoutError):
         tracker.measure()
-    assert time.monotonic() - start < MEAS_S + 0.2 + 0.1
+    assert time.monotonic() - start < MEAS_S + 0.2 + LATE_S
     _fault(server_thread, kind="clear")
     m = tracker.measure(shots=2)  # resyncs past the late answer and result
     assert np.linalg.norm(m.p_tracker_m - cell.smr_center_tracker(SMR)) < 1e-3
@@ -334,7 +339,7 @@ def test_dropped_connection_recovers_on_the_next_call(url, server_thread, cell, 
     start = time.monotonic()
     with pytest.raises(TrackerTimeoutError if serial_line else TrackerConnectionError):
         tracker.measure()
-    assert time.monotonic() - start < MEAS_S + 0.3 + 0.1
+    assert time.monotonic() - start < MEAS_S + 0.3 + LATE_S
     if serial_line:
         _fault(server_thread, kind="clear")
     else:

@@ -82,10 +82,11 @@ def test_exits_cleanly_on_signals(sig):
         stop_cell(cell)
 
 
-@pytest.mark.timeout(30)
+@pytest.mark.timeout(150)
 def test_second_cell_on_a_taken_address_fails_clearly(cell):
+    # the second process exits as soon as it finds the address taken; the wait only bounds a loaded start-up
     with pytest.raises(RuntimeError, match="address in use"):
-        start_cell(host=cell.host, ready_timeout_s=15)
+        start_cell(host=cell.host, ready_timeout_s=120)
 
 
 @pytest.mark.timeout(40)

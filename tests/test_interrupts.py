@@ -19,6 +19,7 @@ PROGRAM = textwrap.dedent(
     libc, libc_holding_gil = ctypes.CDLL(None), ctypes.PyDLL(None)
     mutex = ctypes.create_string_buffer(64)  # zeroed: PTHREAD_MUTEX_INITIALIZER
     libc.pthread_mutex_lock(mutex)
+    interrupts.say_on_forced_exit("interrupted (Ctrl-C): resume with: hil run grid_sampling")
     with interrupts.interrupt_guard():
         if MODE == "gil_released":
             while True:  # the program swallows KeyboardInterrupt, as a stuck clean-up would
@@ -55,6 +56,7 @@ def _interrupt_stuck_process(mode: str) -> tuple[int, str]:
 def test_ctrl_c_leaves_when_the_main_thread_is_stuck_in_a_native_call():
     code, stderr = _interrupt_stuck_process("gil_released")
     assert code == 130, stderr
+    assert "interrupted (Ctrl-C): resume with: hil run grid_sampling" in stderr  # the cause, the way back
 
 
 def test_ctrl_c_leaves_when_clean_up_blocks_holding_the_gil_and_says_where():

@@ -24,6 +24,16 @@ INTERRUPT_GRACE_S = 5.0  # after a Ctrl-C the process is gone by then, whatever 
 BACKSTOP_S = 2.0  # then faulthandler's C thread ends it even if the GIL is held
 EXIT_INTERRUPTED = 130
 
+_forced_exit_note: list[tuple[int, bytes]] = []  # (a copy of stderr as it was, the text) for `_leave_now`
+
+
+def say_on_forced_exit(note: str) -> None:
+    """What to print if the deadline ends the process before the clean-up could say it (the cause and the
+    command that resumes). Written to a copy of stderr taken now, so captured native output cannot swallow it."""
+    if _forced_exit_note:
+        os.close(_forced_exit_note.pop()[0])
+    _forced_exit_note.append((os.dup(2), note.encode("utf-8", "replace") + b"\n"))
+
 
 @contextmanager
 def interrupt_guard() -> Iterator[None]:
@@ -107,5 +117,11 @@ def _watch(read_fd: int, stop: threading.Event) -> None:
 
 def _leave_now() -> None:
     """Every measurement is committed before the next motion: nothing is lost by not waiting for a driver.
-    No flush: the main thread may hold stdout's lock, blocked on a full pipe."""
+    No flush: the main thread may hold stdout's lock, blocked on a full pipe; the note goes out with a bare
+    write on its own descriptor."""
+    for fd, note in _forced_exit_note:
+        try:
+            os.write(fd, note)
+        except OSError:
+            pass
     os._exit(EXIT_INTERRUPTED)
