@@ -294,6 +294,7 @@ def test_held_out_fit_holds_out_every_coordinate_of_a_row_position_and_rotation(
 def test_plot_headings_are_unique_when_one_effect_is_added_at_two_joints():
     from types import SimpleNamespace
 
+    from hil.analysis.diagnosis import Step
     from hil.analysis.report import _plots
 
     plot = {
@@ -303,13 +304,17 @@ def test_plot_headings_are_unique_when_one_effect_is_added_at_two_joints():
         "driver_label": "torque (N m)",
     }
     steps = [
-        SimpleNamespace(plot=plot, effect={"name": "gravity_compliance", "joint": j}, action="added")
-        for j in (2, 3)
+        Step({"name": "gravity_compliance", "joint": j}, [], {}, {}, [], [], [], plot=plot) for j in (2, 3)
     ]
+    steps.append(
+        Step({"name": "cyclic", "joint": 2}, [], {}, {}, [], [], [], plot=plot, action="replaced",
+             replaces={"name": "cyclic", "joint": 3})
+    )  # fmt: skip
     titles = [title for title, _ in _plots(SimpleNamespace(steps=steps, histograms={}))]
     assert titles == [
         "Residual against the driver of gravity_compliance joint 2",
         "Residual against the driver of gravity_compliance joint 3",
+        "Residual against the driver of cyclic joint 2 (replaces cyclic joint 3)",
     ]
 
 

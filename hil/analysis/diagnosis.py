@@ -49,6 +49,7 @@ from hil.analysis.effects import (
 from hil.analysis.identifiability import IdentifiabilityReport
 from hil.analysis.noise_floor import TRACKER_MPE_M, NoiseFloor, estimate_noise_floor
 from hil.analysis.residual_maps import MAP_KINDS, kfold_map_errors, make_map, map_from_dict
+from hil.analysis.rivals import compare_with_rivals, rivals_in_round
 from hil.analysis.screening import (
     Candidate,
     Screen,
@@ -92,8 +93,24 @@ class Step:
     merged: list[dict]  # identifiability notes for the effect's coefficients
     correlations: list[dict]  # strongest correlation of each effect coefficient with a geometric parameter
     plot: dict = field(default_factory=dict)  # driver label/values, residual along the effect before/after
-    action: str = "added"  # or "removed" (an earlier effect made redundant by a later one)
+    action: str = (
+        "added"  # "removed" (a later effect made it redundant), "replaced" (a rival the data prefers)
+    )
     summary: dict = field(default_factory=dict)  # physical figures: deflection, amplitude, gap, ppm/K
+    replaces: dict | None = None  # the effect a "replaced" step took out ({name, joint})
+    rival_tests: list[dict] = field(default_factory=list)  # hil.analysis.rivals' comparisons behind it
+
+    def title(self) -> str:
+        """'gravity_compliance joint 2', 'removed backlash joint 4', 'cyclic joint 2 (replaces cyclic joint 3)'."""
+        named = self.effect["name"] + (f" joint {self.effect['joint']}" if self.effect["joint"] else "")
+        if self.action == "removed":
+            return "removed " + named
+        if self.action == "replaced" and self.replaces:
+            gone = self.replaces["name"] + (
+                f" joint {self.replaces['joint']}" if self.replaces["joint"] else ""
+            )
+            return f"{named} (replaces {gone})"
+        return named
 
     def to_dict(self) -> dict:
         d = dict(self.__dict__)
@@ -259,6 +276,7 @@ def run_diagnosis(
                 path = other
             else:
                 break
+        _settle_rivals(base, df, path, alpha)
         stages, hist, steps = _evaluate_stages(path)
         report = _verdict(base, path, stages, hist, steps, alpha, compare_maps)
         if df_validate is not None:
@@ -459,8 +477,19 @@ def _forward_selection(
         results = _screen_round(base, path, alpha, families, banned)
         winners = [(c, m) for c, m in results if c.passed and m is not None]
         if not winners:
-            path.final_round = [c for c, _ in results]
-            break
+            pair = _pair_lookahead(base, path, results, alpha)
+            if pair is None:
+                path.final_round = [c for c, _ in results]
+                break
+            first, (second, pair_model) = pair
+            alone = make_effect(first.name, first.joint)
+            alone.prepare(base.full.ctx, path.current.model.nominal)
+            first.note = (first.note + "; " if first.note else "") + (
+                f"added with {effect_label(second.name, second.joint)}: neither passes alone, together they do"
+            )
+            rep = refit(calibrate(df, path.current.model.with_effect(alone), "ridge"))
+            _record_added(path, first, [c for c, _ in results], rep)
+            winners = [(second, pair_model)]
         best, best_model = pick_winner(winners)
         close = [c for c, _ in winners if c is not best and c.gain_mm2 >= 0.8 * best.gain_mm2]
         if close:  # say so when the data hardly tells two candidates apart
@@ -472,19 +501,7 @@ def _forward_selection(
         rep = refit(calibrate(df, best_model, "ridge"))
         if close:
             path.ambiguities += _confounded(base, path, best, close, alpha)
-        path.stage_models.append(("+ " + effect_label(best.name, best.joint), path.current.model))
-        eff_index = len(path.current.model.effects) - 1
-        eff = path.current.model.effects[eff_index]
-        path.pending.append(
-            {
-                "effect": {"name": best.name, "joint": best.joint},
-                "parameters": _effect_params(path.current, eff_index),
-                "candidates": [c for c, _ in results],
-                "merged": [d for d in rep.dropped if d["name"] in eff.param_names],
-                "correlations": _correlations(path.current, path.prob, eff),
-                "summary": eff.summary(path.prob.ctx, path.current.model.nominal),
-            }
-        )
+        _record_added(path, best, [c for c, _ in results], rep)
         # Backward check: does every earlier effect still earn its place beside the new one?
         while len(path.current.model.effects) > 1:
             weakest = weakest_effect(path.current.model, path.prob, path.partitions, base.sigma2, alpha)
@@ -510,6 +527,138 @@ def _forward_selection(
                 }
             )
     return path
+
+
+def _record_added(
+    path: _Path, added: Candidate, candidates: list[Candidate], rep: IdentifiabilityReport
+) -> None:
+    """The stage and step of the effect just added (the last of the current model)."""
+    path.stage_models.append(("+ " + effect_label(added.name, added.joint), path.current.model))
+    eff_index = len(path.current.model.effects) - 1
+    eff = path.current.model.effects[eff_index]
+    path.pending.append(
+        {
+            "effect": {"name": added.name, "joint": added.joint},
+            "parameters": _effect_params(path.current, eff_index),
+            "candidates": candidates,
+            "merged": [d for d in rep.dropped if d["name"] in eff.param_names],
+            "correlations": _correlations(path.current, path.prob, eff),
+            "summary": eff.summary(path.prob.ctx, path.current.model.nominal),
+        }
+    )
+
+
+# When no single candidate passes, the PAIR_POOL candidates most significant on the full fit are tried in
+# pairs: two effects of one joint (gravity sag and backlash of joint 2, say) can each be half-imitated by the
+# geometry and the other, so neither shows alone, while together they leave the noise floor.
+PAIR_POOL = 4
+
+
+def _pair_lookahead(
+    base: _Baseline, path: _Path, results: list[tuple[Candidate, CalibratedModel | None]], alpha: float
+) -> tuple[Candidate, tuple[Candidate, CalibratedModel]] | None:
+    """The best pair of this round's candidates that passes the screening's tests together (each test at a
+    level shared with every pair tried), as (first, (second, linearised model with both)); None if none does."""
+    pool = sorted(
+        (c for c, _ in results if c.gain_mm2 > 0 and not c.note and c.p_chi2 < 1.0),
+        key=lambda c: c.p_chi2,
+    )[:PAIR_POOL]
+    pairs = [(a, b) for i, a in enumerate(pool) for b in pool[i + 1 :]]
+    if not pairs:
+        return None
+    base_fit = _fit_plain(path.current.model, path.prob, path.free, iters=3)
+    screen = Screen(
+        base_fit, path.prob, path.free, path.partitions, base.sigma2, alpha, len(results) + len(pairs)
+    )
+    best = None
+    for a, b in pairs:
+        effects = [make_effect(c.name, c.joint) for c in (a, b)]
+        if not all(e.prepare(base.full.ctx, base_fit.nominal) for e in effects):
+            continue
+        cand, model = screen.test(effects[1], effects[0])
+        if cand.passed and model is not None and (best is None or cand.gain_mm2 > best[1][0].gain_mm2):
+            best = (a, (cand, model))
+    return best
+
+
+def _settle_rivals(base: _Baseline, df: pd.DataFrame, path: _Path, alpha: float) -> None:
+    """Each added effect against the rivals of its round, in the final model (hil.analysis.rivals): a rival
+    the data prefers replaces it (a step of its own); one the data does not separate from it is an open
+    question. Every replacement re-checks from the start, at most once per effect."""
+    for _ in range(len(path.current.model.effects) + 1):
+        replaced = False
+        for index, eff in enumerate(path.current.model.effects):
+            key = (eff.family, eff.joint)
+            round_of = next(
+                (
+                    i
+                    for i in reversed(path.pending)
+                    if i.get("action", "added") != "removed" and _named(i) == key
+                ),
+                None,
+            )
+            if round_of is None:
+                continue
+            tests, models = compare_with_rivals(
+                path.current.model,
+                index,
+                rivals_in_round(round_of["candidates"], key),
+                path.prob,
+                base.full.ctx,
+                path.partitions,
+                base.sigma2,
+                alpha,
+            )
+            better = [t for t in tests if t.verdict == "replace" and _named(t.rival) in models]
+            if better:
+                best = min(better, key=lambda t: t.p_rival_better)
+                rival = _named(best.rival)
+                path.current = calibrate(df, models[rival], "ridge")
+                path.prob, path.partitions = base.rows_and_folds(path.current)
+                path.free, rep = _free_mask(path.current.model, path.prob)
+                new = path.current.model.effects[-1]
+                path.stage_models.append(
+                    (f"+ {effect_label(*rival)} for {effect_label(*key)}", path.current.model)
+                )
+                path.pending.append(
+                    {
+                        "action": "replaced",
+                        "replaces": best.chosen,
+                        "effect": best.rival,
+                        "parameters": _effect_params(path.current, len(path.current.model.effects) - 1),
+                        "candidates": round_of["candidates"],
+                        "merged": [d for d in rep.dropped if d["name"] in new.param_names],
+                        "correlations": _correlations(path.current, path.prob, new),
+                        "summary": new.summary(path.prob.ctx, path.current.model.nominal),
+                        "rival_tests": [t.to_dict() for t in tests],
+                    }
+                )
+                path.ambiguities = [a for a in path.ambiguities if _named(a["chosen"]) != key]
+                replaced = True
+                break
+            for t in tests:
+                if t.verdict != "undecided":
+                    continue
+                pair = (_named(t.chosen), _named(t.rival))
+                if any((_named(a["chosen"]), _named(a["confounded_with"])) == pair for a in path.ambiguities):
+                    continue
+                path.ambiguities.append(
+                    {
+                        "chosen": t.chosen,
+                        "confounded_with": t.rival,
+                        "chosen_gain_mm2": t.chosen_gain_mm2,
+                        "p_chosen_better": t.p_chosen_better,
+                        "refitted": True,
+                    }
+                )
+        if not replaced:
+            return
+
+
+def _named(item: dict) -> tuple[str, int | None]:
+    """(name, joint) of an effect given as {name, joint} or of a step entry holding one under 'effect'."""
+    effect = item.get("effect", item)
+    return effect["name"], effect["joint"]
 
 
 def _confounded(base: _Baseline, path: _Path, best: Candidate, close: list[Candidate], alpha: float) -> list:
@@ -553,7 +702,7 @@ def _evaluate_stages(path: _Path) -> tuple[list[dict], dict, list[Step]]:
     for k, info in enumerate(path.pending):
         before, after = cv_by_stage[k + 1], cv_by_stage[k + 2]
         plot = {}
-        if info.get("action", "added") == "added":
+        if info.get("action", "added") in ("added", "replaced"):
             stage_model = path.stage_models[k + 2][1]
             eff_index = len(stage_model.effects) - 1
             disp = _effect_displacement(stage_model, path.prob, eff_index)

@@ -148,12 +148,9 @@ def _plots(report: DiagnosisReport) -> list[tuple[str, str]]:
         ax.axhline(0, color="k", lw=0.5)
         ax.set_xlabel(p["driver_label"])
         ax.set_ylabel("residual along the effect (mm)")
-        joint = step.effect["joint"]
-        named = f"{step.effect['name']}" + (f" joint {joint}" if joint else "")
-        ax.set_title(named)
+        ax.set_title(step.title())
         ax.legend(fontsize=8)
-        verb = "removed " if step.action == "removed" else ""
-        out.append((f"Residual against the driver of {verb}{named}", _png(fig)))
+        out.append((f"Residual against the driver of {step.title()}", _png(fig)))
     held = [(k, v) for k, v in report.histograms.items() if not k.endswith("[validate]")]
     if len(held) >= 2:
         fig, ax = plt.subplots(figsize=(6.5, 3.6))
@@ -243,9 +240,7 @@ def _effects_html(report: DiagnosisReport) -> list[str]:
     if not report.steps:
         parts.append("<p>None: no candidate effect improved the held-out error significantly.</p>")
     for step in report.steps:
-        j = step.effect["joint"]
-        verb = "removed: " if step.action == "removed" else ""
-        parts.append(f"<h3>{verb}{html.escape(step.effect['name'])}{f' (joint {j})' if j else ''}</h3>")
+        parts.append(f"<h3>{html.escape(step.title())}</h3>")
         parts.append(
             f"<p>held-out RMS {step.heldout_before['rms_mm']:.4f} &rarr; {step.heldout_after['rms_mm']:.4f} mm, "
             f"max {step.heldout_before['max_mm']:.4f} &rarr; {step.heldout_after['max_mm']:.4f} mm</p>"

@@ -140,13 +140,21 @@ class Screen:
         r, J = prob.evaluate(base)
         fit0, self.e0 = linear_fit_heldout(flatten_jacobian(J)[:, free], r, partitions)
         self.sse0 = float(np.sum(fit0**2))
+        # each tested candidate's held-out squared error per row (N,), for comparing two candidates point by
+        # point (hil.analysis.rivals)
+        self.heldout_errors: dict[tuple[str, int | None], np.ndarray] = {}
 
-    def test(self, eff: Effect) -> tuple[Candidate, CalibratedModel | None]:
-        trial = self.base.with_effect(eff)
+    def test(self, eff: Effect, *together: Effect) -> tuple[Candidate, CalibratedModel | None]:
+        """`eff` added to the base model (after the effects `together` with it, when a group is tested: the
+        Candidate then names `eff` and says what it was tested with)."""
+        trial = self.base
+        for added in (*together, eff):
+            trial = trial.with_effect(added)
+        n_added = sum(len(added.params) for added in (*together, eff))
         r_t, J_t = self.prob.evaluate(trial)
         Jt = flatten_jacobian(J_t)
         tfree = analyse(Jt, trial.param_names).keep_mask
-        n_new = int(np.sum(tfree[len(trial.param_names) - len(eff.params) :]))
+        n_new = int(np.sum(tfree[len(trial.param_names) - n_added :]))
         if n_new == 0:
             note = "inseparable from the geometry"
             return Candidate(eff.family, eff.joint, 0, float("nan"), 0.0, 1.0, 1.0, False, note), None
@@ -160,6 +168,8 @@ class Screen:
             return cand, None
         step: list = []
         fit, e = linear_fit_heldout(Jt[:, tfree], r_t, self.partitions, step)
+        if not together:
+            self.heldout_errors[(eff.family, eff.joint)] = e
         sse = float(np.sum(fit**2))
         s2 = max(self.sigma2, sse / max(fit.size - int(tfree.sum()), 1))
         p_chi2 = float(stats.chi2.sf((self.sse0 - sse) / s2, n_new)) if self.sse0 > sse else 1.0
@@ -168,7 +178,11 @@ class Screen:
         dx = np.zeros(len(trial.param_names))
         dx[tfree] = step[0]
         fitted = trial.apply_increment(dx)  # start the full refit from the linear solution
-        why = fitted.effects[-1].implausible(self.prob.ctx, fitted.nominal) if passed else None
+        why = None
+        for added in fitted.effects[len(fitted.effects) - 1 - len(together) :] if passed else []:
+            why = why or added.implausible(self.prob.ctx, fitted.nominal)
+        with_ = ", ".join(effect_label(x.family, x.joint) for x in together)
+        why_not_alone = f"tested together with {with_}" if together else ""
         cand = Candidate(
             eff.family,
             eff.joint,
@@ -178,7 +192,7 @@ class Screen:
             p_cv,
             p_chi2,
             passed and why is None,
-            why or "",
+            "; ".join(x for x in (why or "", why_not_alone) if x),
             corr,
         )
         return cand, fitted if cand.passed else None

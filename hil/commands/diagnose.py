@@ -255,10 +255,8 @@ def _print_and_write(args: argparse.Namespace, report: DiagnosisReport) -> None:
         print(final_orientation)
     print(conclusion(report))
     for step in report.steps:
-        j = step.effect["joint"]
-        verb = "removed " if step.action == "removed" else ""
         figures = ", ".join(f"{k} {v:.4g}" for k, v in step.summary.items())
-        print(f"  {verb}{step.effect['name']}{f' joint {j}' if j else ''}: {figures}")
+        print(f"  {step.title()}: {figures}")
         for p in map(in_report_units, step.parameters):
             std = "merged" if p["std"] is None else f"+- {p['std']:.2e}"
             print(f"    {p['name']:<34} {p['value']: .4e} {std} {p['unit']}")
