@@ -45,12 +45,12 @@ def main() -> None:
     folder = Path(tempfile.mkdtemp(prefix="axes-bench-"))
     robot_file = folder / "measured.toml"
     t0 = time.time()
-    with running_cell(folder, seed=args.seed, time_scale=50.0) as (_, config):
-        with session_on(config, folder / "campaign.sqlite") as session:
-            registration.PROCEDURE(session)
-            result = joint_axes.PROCEDURE(
-                session, points=args.points, output=str(robot_file), shots=args.shots
-            )
+    with (
+        running_cell(folder, seed=args.seed, time_scale=50.0) as (_, config),
+        session_on(config, folder / "campaign.sqlite") as session,
+    ):
+        registration.PROCEDURE(session)
+        result = joint_axes.PROCEDURE(session, points=args.points, output=str(robot_file), shots=args.shots)
     measured_s = time.time() - t0
     cell = SimulatedCell(SimCellConfig(seed=args.seed))
     q_ref = result.axes.q_ref_rad
