@@ -2,10 +2,11 @@
 and the held-out error of a calibration started from the measured robot file against one started from the
 nominal model.
 
-Run:  PYTHONPATH=. python benchmarks/joint_axes.py [--seed 3] [--points 25] [--shots 5]
+Run:  PYTHONPATH=. python benchmarks/joint_axes.py [--seed 3] [--points 25] [--smrs 3] [--shots 3]
 
 The cell is `hil sim`'s default UR10 (hidden geometric errors, gravity compliance, tracker noise at its stated
-MPE: 15 um + 6 um/m, 2 sigma). Registration, then the joint_axes procedure (its own reference pose search);
+MPE: 15 um + 6 um/m, 2 sigma). Registration, then the joint_axes procedure (its own reference pose search,
+SMRs in every tool nest unless --smrs, the cell's shots per point unless --shots);
 each measured axis is compared with the true axis at the reference pose (the cell's true geometry and joint
 deflections there, in the tracker frame). Both calibrations use the same simulated grid campaign of the same
 cell (150 mm step) and are judged on the same 100 held-out poses.
@@ -32,6 +33,7 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=3)
     ap.add_argument("--points", type=int, default=25)
     ap.add_argument("--shots", type=int, default=None)
+    ap.add_argument("--smrs", type=int, default=None)
     args = ap.parse_args()
 
     from calib_data import cell_datasets
@@ -46,11 +48,13 @@ def main() -> None:
     robot_file = folder / "measured.toml"
     t0 = time.time()
     with (
-        running_cell(folder, seed=args.seed, time_scale=50.0) as (_, config),
+        running_cell(folder, seed=args.seed, time_scale=100.0) as (_, config),
         session_on(config, folder / "campaign.sqlite") as session,
     ):
         registration.PROCEDURE(session)
-        result = joint_axes.PROCEDURE(session, points=args.points, output=str(robot_file), shots=args.shots)
+        result = joint_axes.PROCEDURE(
+            session, points=args.points, smrs=args.smrs, output=str(robot_file), shots=args.shots
+        )
     measured_s = time.time() - t0
     cell = SimulatedCell(SimCellConfig(seed=args.seed))
     q_ref = result.axes.q_ref_rad

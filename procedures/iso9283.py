@@ -73,15 +73,18 @@ def choose_cube(
         p = cube_poses(centre, side)
         T = np.tile(R, (5, 1, 1))
         T[:, :3, 3] = p
-        joints = plan_joints(config.nominal, T, p_nest, q_near=config.q_home_rad)
-        reason = joints.reason.copy()
-        usable = joints.usable.copy()
+        # P1 near home, the others on P1's branch: one arm and wrist configuration for all five poses
+        first = plan_joints(config.nominal, T[:1], p_nest, q_near=config.q_home_rad)
+        rest = plan_joints(config.nominal, T[1:], p_nest, q_near=first.q[0] if first.usable[0] else None)
+        joints_q = np.vstack([first.q, rest.q])
+        reason = np.concatenate([first.reason, rest.reason])
+        usable = np.concatenate([first.usable, rest.usable])
         if usable.all():
-            outside = config.envelope.outside(config.nominal, joints.q, config.nests_flange_m)
+            outside = config.envelope.outside(config.nominal, joints_q, config.nests_flange_m)
             reason[outside] = "envelope"
             usable &= ~outside
         if usable.all():
-            return Cube(centre, float(side), p, joints.q)
+            return Cube(centre, float(side), p, joints_q)
         for r in reason[~usable]:
             reasons[str(r)] = reasons.get(str(r), 0) + 1
     why = ", ".join(f"{n} {r}" for r, n in sorted(reasons.items()))

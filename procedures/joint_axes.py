@@ -1,8 +1,9 @@
 """Joint-axis identification (circle point analysis): each joint turned alone, its SMR arc fitted, the axis
 lines chained into a robot file (iso9283_and_axes.md; Mooring, Roth, Driels 1991).
 
-Shop-floor instruction: the cell is registered (`hil run registration`); put SMR 1 in tool nest 1 (any
-point off the axes will do). From one reference pose the robot turns each joint in turn, alone, over as
+Shop-floor instruction: the cell is registered (`hil run registration`); put SMRs 1..k in tool nests 1..k
+(`smrs` = k, default every nest of the tool: each SMR draws its own arc about every axis, and more arcs fix
+the axes better). From one reference pose the robot turns each joint in turn, alone, over as
 large an arc as the joint limits, the envelope and the SMR's view of the tracker allow (at most `span`),
 measuring `points` poses along it, always in the positive direction; then returns the joint to the
 reference before the next. Each arc is fitted to a circle, each joint's axis to its arcs; the lines give a
@@ -66,13 +67,15 @@ class AxesProcedureResult:
         return "\n".join(lines)
 
 
-def facing_angles(config: CellConfig, q: np.ndarray, p_nest: np.ndarray) -> np.ndarray:
-    """Angle (N,) between the SMR's opening (flange +z) and its line to the tracker, nominal model."""
+def facing_angles(config: CellConfig, q: np.ndarray, p_nests: np.ndarray) -> np.ndarray:
+    """The largest angle (N,) between an SMR's opening (flange +z) and its line to the tracker, over the
+    nests (K, 3), nominal model."""
     T = forward_kinematics(config.nominal, q)
-    p = T[:, :3, :3] @ p_nest + T[:, :3, 3]
+    p = np.einsum("nij,kj->nki", T[:, :3, :3], np.atleast_2d(p_nests)) + T[:, None, :3, 3]
     to_tracker = config.p_base_tracker_m - p
-    to_tracker /= np.linalg.norm(to_tracker, axis=1, keepdims=True)
-    return np.arccos(np.clip(np.einsum("ni,ni->n", T[:, :3, 2], to_tracker), -1.0, 1.0))
+    to_tracker /= np.linalg.norm(to_tracker, axis=2, keepdims=True)
+    cos = np.einsum("ni,nki->nk", T[:, :3, 2], to_tracker)
+    return np.arccos(np.clip(cos, -1.0, 1.0)).max(axis=1)
 
 
 def arc_spans(config: CellConfig, q_ref: np.ndarray, span_rad: float, p_nest: np.ndarray) -> np.ndarray:
@@ -123,12 +126,12 @@ def reference_pose(config: CellConfig, span_rad: float, p_nest: np.ndarray) -> t
 
 
 def plan(
-    config: CellConfig, *, span_rad: float, points: int, q_ref_rad: tuple[float, ...] | None, nest: int
+    config: CellConfig, *, span_rad: float, points: int, q_ref_rad: tuple[float, ...] | None, smrs: int | None
 ) -> Plan:
-    """The sweeps: each joint alone, `points` poses over its arc, from the reference pose."""
-    if not 1 <= nest <= len(config.nests_flange_m):
-        raise ValueError(f"--nest {nest}: the tool has nests 1..{len(config.nests_flange_m)}")
-    p_nest = config.nests_flange_m[nest - 1]
+    """The sweeps: each joint alone, `points` poses over its arc, from the reference pose; every SMR read at
+    every pose."""
+    nests = smr_count(config, smrs)
+    p_nest = config.nests_flange_m[:nests]
     if q_ref_rad is None:
         q_ref, spans = reference_pose(config, span_rad, p_nest)
     else:
@@ -141,8 +144,10 @@ def plan(
                 f"from --q-ref-deg joint {j + 1} can turn only {math.degrees(spans[j]):.0f} deg inside the envelope "
                 "with the SMR facing the tracker (30 needed); choose another reference pose or leave it out"
             )
-    location = f"nest{nest}"
-    setup = (OperatorStep(f"Put SMR {nest} in tool nest {nest}.", "place_smr", smr=nest, location=location),)
+    setup = tuple(
+        OperatorStep(f"Put SMR {k} in tool nest {k}.", "place_smr", smr=k, location=f"nest{k}")
+        for k in range(1, nests + 1)
+    )
     poses = []
     for j, s in enumerate(spans):
         for k, offset in enumerate(np.linspace(-s / 2, s / 2, points)):
@@ -152,9 +157,20 @@ def plan(
             if k == 0:
                 approach = q.copy()
                 approach[j] -= APPROACH_RAD
-            poses.append(PlannedPose(f"j{j + 1}/{k + 1:02d}", NAME, STEP, q, location, smr=nest,
-                                     approach_q_rad=approach, setup=setup))  # fmt: skip
-    return Plan(NAME, poses, config, operator_steps=1)
+            for nest in range(1, nests + 1):
+                poses.append(PlannedPose(f"j{j + 1}/{k + 1:02d}/n{nest}", NAME, STEP, q, f"nest{nest}", smr=nest,
+                                         approach_q_rad=approach if nest == 1 else None, setup=setup))  # fmt: skip
+    return Plan(NAME, poses, config, operator_steps=nests)
+
+
+def smr_count(config: CellConfig, smrs: int | None) -> int:
+    """How many nests (1..k) hold an SMR: the given count, checked against the tool, else all of them."""
+    available = len(config.nests_flange_m)
+    if smrs is None:
+        return available
+    if not 1 <= smrs <= available:
+        raise ValueError(f"--smrs {smrs}: the tool has {available} nest(s); give 1..{available}")
+    return smrs
 
 
 def identify(
@@ -163,14 +179,14 @@ def identify(
     span_rad: float,
     points: int,
     q_ref_rad: tuple[float, ...] | None,
-    nest: int,
+    smrs: int | None,
     output: str | None,
     shots: int | None,
 ) -> AxesProcedureResult:
     """Measure the sweeps (resumable), fit the axes, write the robot file, compare with the nominal axes."""
     reg = session.require_registration()
     config = session.config
-    the_plan = plan(config, span_rad=span_rad, points=points, q_ref_rad=q_ref_rad, nest=nest)
+    the_plan = plan(config, span_rad=span_rad, points=points, q_ref_rad=q_ref_rad, smrs=smrs)
     session.visit(the_plan, shots=shots, pin=True)
     df = campaign_dataset(session.store, NAME, STEP)
     df["sweep"] = [p.split("/")[0] for p in df["point_id"]]
@@ -209,7 +225,13 @@ PROCEDURE = Procedure(
         Parameter("span", "largest arc per joint", 120.0, float, unit="deg", minimum=30.0, maximum=340.0),
         Parameter("points", "poses measured along each arc", 25, int, minimum=5, maximum=200),
         Parameter("q_ref", "reference pose q1..q6 (default: searched)", None, float, unit="deg", count=6),
-        Parameter("nest", "tool nest holding the SMR", 1, int, minimum=1),
+        Parameter(
+            "smrs",
+            "SMRs in tool nests 1..k, each read at every pose (default: every nest)",
+            None,
+            int,
+            minimum=1,
+        ),  # fmt: skip
         Parameter("output", "robot file (.toml) to write the measured model to", None, str),
         SHOTS,
     ),

@@ -152,3 +152,17 @@ def test_the_command_names_a_missing_column(tmp_path, capsys):
     campaign().drop(columns=["pose"]).to_csv(tmp_path / "iso.csv", index=False)
     r = run_hil("iso9283", "iso.csv", cwd=tmp_path, capsys=capsys)
     assert r.returncode == 2 and "missing column(s) pose" in r.stderr
+
+
+def test_with_several_smrs_per_pose_one_is_assessed():
+    """A second SMR read at every pose, 1 mm further along x: the default (lowest id) gives the first's
+    figures, `smr=2` the second's (AP_x 1 mm larger, RP the same)."""
+    one = campaign().assign(smr=1)
+    two = one.assign(smr=2, x_mm=one["x_mm"] + 1.0)
+    both = pd.concat([one, two], ignore_index=True)
+    first, second = pose_performance(both).to_dict(), pose_performance(both, smr=2).to_dict()
+    assert first["smr"] == 1 and first["poses"]["P1"]["AP_x_mm"] == pytest.approx(2.0, abs=UM)
+    assert second["poses"]["P1"]["AP_x_mm"] == pytest.approx(3.0, abs=UM)
+    assert second["poses"]["P1"]["RP_mm"] == pytest.approx(2.624087, abs=UM)
+    with pytest.raises(Iso9283Error, match="no rows of SMR 3"):
+        pose_performance(both, smr=3)

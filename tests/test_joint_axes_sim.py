@@ -19,7 +19,12 @@ Q_REF_DEG = (30.0, -90.0, 90.0, -135.0, -135.0, 0.0)
 
 
 def test_sweeps_give_axes_near_the_truth_and_a_loadable_robot_file(tmp_path):
-    options = {"points": 6, "q_ref_rad": tuple(np.deg2rad(Q_REF_DEG)), "output": str(tmp_path / "arm.toml")}
+    options = {
+        "points": 5,
+        "smrs": 2,
+        "q_ref_rad": tuple(np.deg2rad(Q_REF_DEG)),
+        "output": str(tmp_path / "arm.toml"),
+    }
     with running_cell(tmp_path, seed=SEED, time_scale=200.0) as (_, config):
         with session_on(config, tmp_path / "c.sqlite") as session:
             registration.PROCEDURE(session)
@@ -27,7 +32,7 @@ def test_sweeps_give_axes_near_the_truth_and_a_loadable_robot_file(tmp_path):
             measured = len(session.store.measurements(joint_axes.NAME))
         with session_on(config, tmp_path / "c.sqlite") as session:
             again = joint_axes.PROCEDURE(session, **options)
-            assert len(session.store.measurements(joint_axes.NAME)) == measured == 36
+            assert len(session.store.measurements(joint_axes.NAME)) == measured == 60
     cell = SimulatedCell(SimCellConfig(seed=SEED))
     _, frames = cell.true_joint_offsets(result.axes.q_ref_rad, np.ones(6), 0.0)
     F = cell.T_tracker_base @ frames[0]
@@ -36,7 +41,7 @@ def test_sweeps_give_axes_near_the_truth_and_a_loadable_robot_file(tmp_path):
         d = a.point_m - o
         assert math.degrees(math.acos(min(1.0, float(a.direction @ z)))) < 0.1
         assert np.linalg.norm(d - (d @ z) * z) < 0.6e-3
-        assert a.swept_rad > math.radians(40)
+        assert a.swept_rad > math.radians(35)
     assert np.all(result.nominal_angle_deg < 0.3) and "vs nominal" in result.table()
     assert load_robot_file(tmp_path / "arm.toml").n_joints == 6
     assert np.allclose([a.direction for a in again.axes.axes], [a.direction for a in result.axes.axes])
