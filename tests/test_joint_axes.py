@@ -213,3 +213,24 @@ def test_the_command_refuses_a_bad_sweep_in_the_users_terms(arm, tmp_path, capsy
         and "what to do: turn it by at least 30 deg" in r.stderr
     )
     assert not (tmp_path / "arm.toml").exists()
+
+
+@pytest.mark.parametrize(
+    ("line", "words"),
+    [
+        ("axes missing.csv -o arm.toml", "file not found: missing.csv"),
+        ("axes sweeps.csv -o arm.json", "a robot file ends in .toml"),
+        ("axes sweeps.csv -o arm.toml --json arm.toml", "same file"),
+        ("axes random.csv -o arm.toml", "no sweep found"),
+        ("axes sweeps.csv -o arm.toml --tracker-sigma-um 0", "--tracker-sigma-um"),
+    ],
+)
+def test_bad_command_lines_are_refused_before_any_work(arm, tmp_path, capsys, line, words):
+    sweeps(arm, points=9).to_csv(tmp_path / "sweeps.csv", index=False)
+    q = ur10_joints(np.random.default_rng(0), 30)
+    make_dataset(q, measured_point(arm["true"], q, arm["T"], TOOLS[1])).to_csv(
+        tmp_path / "random.csv", index=False
+    )
+    r = run_hil(*line.split(), cwd=tmp_path, capsys=capsys)
+    assert r.returncode == 2 and words in r.stderr and "what to do" in r.stderr, r.stderr
+    assert not (tmp_path / "arm.toml").exists()

@@ -13,6 +13,7 @@ d = 0). Lengths in metres, angles in radians inside.
 
 from __future__ import annotations
 
+import json
 import math
 from dataclasses import dataclass, field
 
@@ -460,7 +461,7 @@ def robot_file_text(model: KinematicModel, comment: str = "") -> str:
     """The model as a robot definition file (convention = "dh", hayati_beta where axes are parallel; the
     measured beta itself is left to calibration, the file format holds none)."""
     lines = [f"# {line}" for line in comment.splitlines()] if comment else []
-    lines += [f'name = "{model.name}"', 'convention = "dh"', ""]
+    lines += [f"name = {json.dumps(model.name)}", 'convention = "dh"', ""]
     for i in range(model.n_joints):
         lo, hi = np.rad2deg(model.joint_limits[i])
         lines += [

@@ -69,7 +69,11 @@ def run(args: argparse.Namespace) -> int:
     )
     text = robot_file_text(result.model, comment)
     Path(args.output).write_text(text)
-    load_robot_file(args.output)  # what calibration will read: refuse to leave a file it cannot
+    try:
+        load_robot_file(args.output)  # what calibration will read: never leave a file it cannot
+    except ValueError as exc:
+        Path(args.output).unlink()
+        raise CliError(f"the measured model makes no valid robot file ({exc})", "check the sweeps") from exc
     print(f"robot file written to {args.output}")
     if args.json_path:
         out = result.to_dict()
