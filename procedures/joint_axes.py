@@ -29,6 +29,7 @@ from hil.geometry.kinematics import forward_kinematics, link_frames
 from hil.runner.cell_config import CellConfig
 from hil.runner.operator import OperatorStep
 from hil.runner.plan import Plan, PlannedPose
+from hil.runner.planners import facing_poses, plan_joints, random_points, workspace_box
 from hil.runner.procedure import SHOTS, Parameter, Procedure
 from hil.runner.session import Session
 
@@ -37,6 +38,7 @@ STEP = "sweeps"
 FACING_LIMIT_RAD = math.radians(28.0)  # the SMR's opening (30 deg) less a margin for the model's errors
 APPROACH_RAD = math.radians(2.0)  # each sweep starts from below its first pose: one approach direction
 SPAN_STEP_RAD = math.radians(4.0)  # resolution of the arc search
+FACING_CANDIDATES = 120  # reference poses tried with the SMR facing the tracker, at random points
 
 
 @dataclass
@@ -100,17 +102,23 @@ def arc_spans(config: CellConfig, q_ref: np.ndarray, span_rad: float, p_nest: np
 
 
 def reference_pose(config: CellConfig, span_rad: float, p_nest: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The reference pose with the longest arcs (the product of the arcs): the home pose turned about joint 1
-    in 10 deg steps, with the wrist's joints 4 and 5 turned too; refused when no candidate lets every joint
-    turn 30 deg."""
+    """The reference pose with the longest arcs (the product of the arcs) among candidates: the home pose
+    turned about joint 1 and at the wrist, and poses with the SMR facing the tracker straight at random points
+    of the sampled volume; refused when no candidate lets every joint turn 30 deg."""
     home = np.asarray(config.q_home_rad, float)
     candidates = []
-    for d1 in np.deg2rad(np.arange(-180.0, 180.0, 10.0)):
+    for d1 in np.deg2rad(np.arange(-180.0, 180.0, 30.0)):
         for d4 in np.deg2rad([0.0, -45.0, 45.0]):
             for d5 in np.deg2rad([0.0, 45.0, -45.0, 90.0, -90.0]):
                 q = home.copy()
                 q[[0, 3, 4]] += (d1, d4, d5)
                 candidates.append(q)
+    rng = np.random.default_rng(0)
+    box = workspace_box(config.nominal, config.p_base_tracker_m)
+    T = facing_poses(random_points(box, FACING_CANDIDATES, rng), config.p_base_tracker_m, rng, tilt_deg=0.0,
+                     roll_deg=180.0)  # fmt: skip
+    facing = plan_joints(config.nominal, T, p_nest[0], q_near=home)
+    candidates += list(facing.q[facing.usable])
     Q = np.array(candidates)
     spans = arc_spans(config, Q, span_rad, p_nest)
     score = np.where(
