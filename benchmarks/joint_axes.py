@@ -2,7 +2,7 @@
 and the held-out error of a calibration started from the measured robot file against one started from the
 nominal model.
 
-Run:  PYTHONPATH=. python benchmarks/joint_axes.py [--seed 3] [--points 25] [--smrs 3] [--shots 3]
+Run:  PYTHONPATH=. python benchmarks/joint_axes.py [--seed 3] [--points 25] [--smrs 3] [--shots 3] [--effects none]
 
 The cell is `hil sim`'s default UR10 (hidden geometric errors, gravity compliance, tracker noise at its stated
 MPE: 15 um + 6 um/m, 2 sigma). Registration, then the joint_axes procedure (its own reference pose search,
@@ -34,12 +34,15 @@ def main() -> None:
     ap.add_argument("--points", type=int, default=25)
     ap.add_argument("--shots", type=int, default=None)
     ap.add_argument("--smrs", type=int, default=None)
+    ap.add_argument(
+        "--effects", default="gravity_compliance", help="the sim's effects (its --effects), or none"
+    )
     args = ap.parse_args()
 
     from calib_data import cell_datasets
     from sim_session import running_cell, session_on
 
-    from fakes.cell import SimCellConfig, SimulatedCell
+    from fakes.cell import SimCellConfig, SimulatedCell, parse_effect_flags
     from hil.analysis.calibration import calibrate
     from hil.geometry.robots import get_robot
     from procedures import joint_axes, registration
@@ -48,7 +51,10 @@ def main() -> None:
     robot_file = folder / "measured.toml"
     t0 = time.time()
     with (
-        running_cell(folder, seed=args.seed, time_scale=100.0) as (_, config),
+        running_cell(folder, seed=args.seed, time_scale=100.0, extra_args=("--effects", args.effects)) as (
+            _,
+            config,
+        ),
         session_on(config, folder / "campaign.sqlite") as session,
     ):
         registration.PROCEDURE(session)
@@ -56,12 +62,14 @@ def main() -> None:
             session, points=args.points, smrs=args.smrs, output=str(robot_file), shots=args.shots
         )
     measured_s = time.time() - t0
-    cell = SimulatedCell(SimCellConfig(seed=args.seed))
+    effects = parse_effect_flags(args.effects)
+    cell = SimulatedCell(SimCellConfig(seed=args.seed, **effects))
     q_ref = result.axes.q_ref_rad
     _, frames = cell.true_joint_offsets(q_ref, np.ones(6), 0.0)
     F = cell.T_tracker_base @ frames[0]
     print(
-        f"simulated UR10 seed {args.seed}: {args.points} points per arc, shots {args.shots or config.shots_per_point}, "
+        f"simulated UR10 seed {args.seed}, effects {args.effects}: {args.points} points per arc, "
+        f"{args.smrs or len(config.nests_flange_m)} SMR(s), shots {args.shots or config.shots_per_point}, "
         f"reference pose {np.round(np.rad2deg(q_ref), 1).tolist()} deg ({measured_s:.0f} s incl. registration)"
     )
     print(f"{'joint':<6}{'arc deg':>8}{'direction err deg':>19}{'position err mm':>17}{'fit resid mm':>14}")
@@ -77,7 +85,7 @@ def main() -> None:
         )
     print(f"worst: {worst[0]:.4f} deg, {worst[1]:.4f} mm (goal 0.02 deg, 0.1 mm)")
 
-    _, train, val = cell_datasets(step_m=0.15, n_val=100, seed=args.seed)
+    _, train, val = cell_datasets(step_m=0.15, n_val=100, seed=args.seed, **effects)
     p_val = val[["x_mm", "y_mm", "z_mm"]].to_numpy() / 1e3
     print(f"\ncalibration on {len(train)} grid poses, held-out error on {len(val)} poses (mm):")
     print(f"{'start':<22}{'train RMS':>10}{'held-out RMS':>14}{'held-out max':>14}")
