@@ -6,7 +6,8 @@ temperature: the tracker's object probe where it read every point, else the air'
 by it), ``air_temperature_c`` (the tracker's weather station; campaigns recorded before it was exported lack
 it), ``smr``
 (nest id, integer; default 1), ``payload_kg``, ``pose`` (which rows share one robot pose), ``rx_deg, ry_deg,
-rz_deg`` (a 6-DoF probe's orientation in the tracker frame, extrinsic x-y-z: R = Rz(rz) Ry(ry) Rx(rx)), and any
+rz_deg`` (a 6-DoF probe's orientation in the tracker frame, extrinsic x-y-z: R = Rz(rz) Ry(ry) Rx(rx)), ``cycle``
+(an ISO 9283 campaign's cycle, hil.analysis.iso9283), ``sweep`` (a joint sweep's label, hil.analysis.joint_axes), and any
 further column whose name ends in its unit.
 """
 
@@ -21,7 +22,7 @@ import numpy as np
 import pandas as pd
 
 POSITION_COLUMNS: tuple[str, ...] = ("x_mm", "y_mm", "z_mm")
-OPTIONAL_COLUMNS: tuple[str, ...] = ("t_s", "temperature_c", "smr", "payload_kg", "pose")
+OPTIONAL_COLUMNS: tuple[str, ...] = ("t_s", "temperature_c", "smr", "payload_kg", "pose", "cycle", "sweep")
 ORIENTATION_COLUMNS: tuple[str, ...] = ("rx_deg", "ry_deg", "rz_deg")
 # Conventions of the three orientation angles, as scipy's Euler sequences (lower case = extrinsic axes).
 # Inside hil the angles always follow the default; another convention is converted when the data is read.

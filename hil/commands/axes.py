@@ -1,0 +1,84 @@
+"""`hil axes CAMPAIGN.csv -o ROBOT.toml [--json R.json]`: joint axes by circle point analysis, as a robot file."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from pathlib import Path
+
+from hil.analysis.joint_axes import SweepError, identify_axes, robot_file_text
+from hil.commands.arg_checks import InputError, check_paths, float_in
+from hil.commands.errors import CliError
+from hil.commands.help_format import DefaultsHelpFormatter
+from hil.data.dataset import DatasetError, load_dataset
+from hil.data.jsonable import to_jsonable
+from hil.geometry.robots import load_robot_file
+
+HELP = "joint axes from single-joint sweeps (circle point analysis), written as a robot file calibration starts from"
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "axes",
+        help=HELP,
+        description="Each joint turned alone while the others stand still: every SMR's arc is fitted to a "
+        "circle, one axis line per joint to all its arcs, and the lines (all at one reference pose) are chained "
+        "into standard DH with Hayati's beta where axes are parallel. Rows of a sweep share a `sweep` label, or "
+        "(without one) follow each other with only one joint changing. Joints in q1_rad.. or q1_deg...",
+        formatter_class=DefaultsHelpFormatter,
+    )
+    p.add_argument(
+        "data", help="campaign CSV of the sweeps (q1_rad..q6_rad or q1_deg.., x_mm, y_mm, z_mm, smr, sweep)"
+    )
+    p.add_argument("-o", "--output", required=True, help="robot definition file (.toml) to write")
+    p.add_argument("--json", default=None, dest="json_path", help="write the axes and the model as JSON")
+    p.add_argument("--name", default=None, help="the robot's name in the file (default: the output's stem)")
+    p.add_argument(
+        "--tracker-sigma-um",
+        type=float_in(0.1, 500.0),
+        default=10.0,
+        help="per-axis 1-sigma of one reading, um: judges collinear points and an SMR too near its axis",
+    )
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        if not str(args.output).lower().endswith(".toml"):
+            raise InputError(f"-o {args.output}: a robot file ends in .toml; give e.g. -o robot.toml")
+        check_paths({"CAMPAIGN": args.data}, {"--output": args.output, "--json": args.json_path})
+        df = load_dataset(args.data)
+        name = args.name or Path(args.output).stem
+        result = identify_axes(df, sigma_m=args.tracker_sigma_um * 1e-6, source=str(args.data), name=name)
+    except (InputError, DatasetError, SweepError) as exc:
+        raise CliError.from_text(str(exc)) from exc
+    print(
+        f"{'joint':<6}{'point x, y, z (mm, tracker frame)':>36}{'direction':>27}{'resid':>9}{'swept':>8}  (mm, deg)"
+    )
+    for a in result.axes:
+        pt = ", ".join(f"{v * 1e3:9.3f}" for v in a.point_m)
+        dr = ", ".join(f"{v:+.5f}" for v in a.direction)
+        print(
+            f"{a.joint + 1:<6}{pt:>36}{dr:>27}{a.residual_rms_m * 1e3:9.4f}{math.degrees(a.swept_rad):8.1f}"
+        )
+    comment = (
+        f"Measured by circle point analysis (hil axes) from {Path(args.data).name}.\n"
+        "Standard DH; hayati_beta marks parallel axes (their small beta is left to calibration).\n"
+        "Base frame on axis 1; the flange frame on the last axis, level with the SMR; joint limits unknown."
+    )
+    text = robot_file_text(result.model, comment)
+    Path(args.output).write_text(text)
+    try:
+        load_robot_file(args.output)  # what calibration will read: never leave a file it cannot
+    except ValueError as exc:
+        Path(args.output).unlink()
+        raise CliError(f"the measured model makes no valid robot file ({exc})", "check the sweeps") from exc
+    print(f"robot file written to {args.output}")
+    if args.json_path:
+        out = result.to_dict()
+        out["source"] = str(args.data)
+        out["robot_file"] = str(args.output)
+        Path(args.json_path).write_text(json.dumps(to_jsonable(out), indent=1, allow_nan=False))
+        print(f"axes written to {args.json_path}")
+    return 0

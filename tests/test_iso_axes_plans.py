@@ -1,0 +1,64 @@
+"""The plans of the iso9283 and joint_axes procedures on a simulated cell's configuration (no instruments)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from hil.analysis.iso9283 import cube_poses
+from hil.geometry.kinematics import tool_points
+from hil.runner.cell_config import load_cell_config
+from procedures import iso9283, joint_axes
+from tests.cell_fixtures import sim_cell_toml
+
+
+@pytest.fixture(scope="module")
+def config(tmp_path_factory):
+    path = tmp_path_factory.mktemp("plans") / "cell.toml"
+    path.write_text(sim_cell_toml(seed=4))
+    return load_cell_config(path)
+
+
+def test_sweeps_turn_one_joint_at_a_time_from_one_reference_pose(config):
+    plan = joint_axes.PROCEDURE.make_plan(config, points=7, smrs=2)
+    q = plan.joints()
+    assert len(plan.poses) == 6 * 7 * 2 and plan.operator_steps == 2
+    q_ref = q[0].copy()
+    q_ref[0] = np.median(q[:14, 0])
+    for j in range(6):
+        rows = q[j * 14 : (j + 1) * 14]
+        others = np.delete(rows - q_ref, j, axis=1)
+        assert np.allclose(others, 0.0) and np.ptp(rows[:, j]) >= math.radians(30) - 1e-9
+        assert np.all(np.diff(rows[::2, j]) > 0)  # always turned the same way
+    assert not config.envelope.outside(config.nominal, q, config.nests_flange_m).any()
+    assert np.all(joint_axes.facing_angles(config, q, config.nests_flange_m[:2]) < math.radians(30))
+
+
+def test_a_reference_pose_without_room_to_turn_is_refused(config):
+    with pytest.raises(ValueError, match="--q-ref-deg joint"):
+        joint_axes.PROCEDURE.make_plan(config, q_ref_rad=(0.0, 0.0, 0.0, 0.0, 0.0, 0.0))
+    with pytest.raises(ValueError, match="--smrs 5"):
+        joint_axes.PROCEDURE.make_plan(config, smrs=5, q_ref_rad=(0.0,) * 6)
+
+
+def test_the_cycles_visit_the_five_poses_on_one_branch_from_below(config):
+    plan = iso9283.PROCEDURE.make_plan(config, cycles=3, side_m=0.3)
+    assert [p.point_id for p in plan.poses[:6]] == [
+        "c01/P1",
+        "c01/P2",
+        "c01/P3",
+        "c01/P4",
+        "c01/P5",
+        "c02/P1",
+    ]
+    assert {p.step for p in plan.poses} == {"before"} and len(plan.poses) == 15
+    q = plan.joints()[:5]
+    assert np.all(np.abs(q - q[0]) < math.radians(60))  # one arm and wrist configuration
+    assert all(np.allclose(p.q_rad - p.approach_q_rad, iso9283.APPROACH_RAD) for p in plan.poses)
+    cube = iso9283.choose_cube(config, None, 0.3, 1)
+    assert np.allclose(tool_points(config.nominal, q, config.nests_flange_m[0]), cube.p_base_m, atol=1e-6)
+    assert np.allclose(cube.p_base_m, cube_poses(cube.centre_m, 0.3))
+    with pytest.raises(ValueError, match="--model nowhere.json: no such file"):
+        iso9283.PROCEDURE.make_plan(config, cycles=2, model="nowhere.json")
