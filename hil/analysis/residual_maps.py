@@ -1,8 +1,9 @@
 """Residual maps: what the parametric model still gets wrong, interpolated from measured points.
 
 - ``idw``: inverse-distance weighting over the 8 vertices of the grid cube holding the target
-  (grid paper, methods.md 2c; power 2; a target on a vertex takes that vertex's residual). The grid is
-  found in the robot base frame from the measured points (step = median spacing between distinct locations).
+  (grid paper, methods.md 2c; power 2; a target on a vertex takes that vertex's residual). The grid's own
+  frame (any rotation, a step per axis) is recovered from the measured points (hil.analysis.grid_frame):
+  the planner turns its box to face the tracker, and a foreign campaign records no grid frame.
 - ``svr``: one RBF-kernel support-vector regressor per axis on the six joint angles (SVR paper,
   methods.md 3: kernel width sigma = 2 rad -> gamma = 1/(2 sigma^2)). Targets are in units of the noise
   sigma, epsilon = 0.5 sigma, and C is chosen by 3-fold cross-validation from 0.1 ... 100: the paper's
@@ -22,6 +23,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from hil.analysis.folds import location_spacing
+from hil.analysis.grid_frame import GridFrame, estimate_grid_frame
 
 MAP_KINDS: tuple[str, ...] = ("idw", "svr", "gp")
 
@@ -84,18 +86,15 @@ class IDWGridMap(ResidualMap):
 
     def fit(self, q, p_base, residual, noise_sigma_m):
         self._remember_volume(p_base)
-        step = self.step_m or self.state["volume"]["spacing"]
-        origin = p_base[0]
-        idx = np.round((p_base - origin) / step)
-        on_grid = np.all(np.abs(p_base - origin - idx * step) < 0.25 * step, axis=1)
+        frame = estimate_grid_frame(p_base, self.step_m)
+        idx, on_grid = frame.vertices(p_base)
         vertices: dict[tuple, list] = {}
-        for k, r in zip(map(tuple, idx[on_grid].astype(int)), residual[on_grid], strict=True):
-            vertices.setdefault(k, []).append(r)  # repeated vertices are averaged
+        for k, r in zip(map(tuple, idx[on_grid]), residual[on_grid], strict=True):
+            vertices.setdefault(k, []).append(r)  # several orientations at one vertex are averaged
         keys = sorted(vertices)
         self.state.update(
             {
-                "step_m": float(step),
-                "origin_m": origin.tolist(),
+                **frame.to_dict(),
                 "power": self.power,
                 "vertex_index": [list(k) for k in keys],
                 "vertex_residual_m": [np.mean(vertices[k], axis=0).tolist() for k in keys],
@@ -103,9 +102,19 @@ class IDWGridMap(ResidualMap):
         )
         return self
 
+    def frame(self) -> GridFrame:
+        """The grid's frame; a map saved before grids had one is axis-aligned with one step."""
+        st = self.state
+        steps = st.get("steps_m", [st.get("step_m", 0.1)] * 3)
+        return GridFrame(
+            np.asarray(st.get("R_base_grid", np.eye(3)), float),
+            np.asarray(st["origin_m"]),
+            np.asarray(steps, float),
+        )
+
     def predict_raw(self, q, p_base):
         st = self.state
-        step, origin, power = st["step_m"], np.array(st["origin_m"]), st["power"]
+        frame, power = self.frame(), st["power"]
         keys = np.array(st["vertex_index"], dtype=int)
         vals = np.array(st["vertex_residual_m"])
         lo = keys.min(axis=0)
@@ -114,14 +123,14 @@ class IDWGridMap(ResidualMap):
         have = np.zeros(shape, bool)
         table[tuple((keys - lo).T)] = vals
         have[tuple((keys - lo).T)] = True
-        u = (p_base - origin) / step
+        u = frame.lattice(p_base)
         corners = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
         idx = np.floor(u).astype(int)[:, None, :] + corners[None]  # (N, 8, 3) cube vertices
         inside = np.all((idx >= lo) & (idx < lo + shape), axis=2)
         cl = np.clip(idx - lo, 0, shape - 1)
         present = inside & have[cl[..., 0], cl[..., 1], cl[..., 2]]
         corner_vals = table[cl[..., 0], cl[..., 1], cl[..., 2]]  # (N, 8, 3)
-        d = np.linalg.norm(u[:, None, :] - idx, axis=2) * step
+        d = np.linalg.norm((u[:, None, :] - idx) * frame.steps_m, axis=2)
         # (1/d)^m over the measured vertices; a target on a vertex takes that vertex's residual.
         w = np.where(present, 1.0 / np.maximum(d, 1e-12) ** power, 0.0)
         out = np.einsum("nk,nkc->nc", w, corner_vals) / np.maximum(w.sum(axis=1), 1e-300)[:, None]
@@ -130,8 +139,8 @@ class IDWGridMap(ResidualMap):
         out[hit] = corner_vals[hit, np.argmax(on_vertex[hit], axis=1)]
         lonely = ~present.any(axis=1)  # no vertex of this cube was measured: the nearest measured vertex
         if np.any(lonely):
-            nearest = np.argmin(np.linalg.norm(u[lonely][:, None] - keys[None], axis=2), axis=1)
-            out[lonely] = vals[nearest]
+            gap = (u[lonely][:, None] - keys[None]) * frame.steps_m
+            out[lonely] = vals[np.argmin(np.linalg.norm(gap, axis=2), axis=1)]
         return out
 
 
