@@ -64,6 +64,18 @@ def test_grid_frame_recovers_any_rotation_and_a_step_per_axis_with_off_grid_poin
     assert on.all()
 
 
+def test_grid_frame_finds_a_grid_far_from_the_base_origin():
+    """A calibrated model's base frame may lie metres from the grid (a poorly identified base, seen on a
+    fixed-orientation grid) and the model sees the grid slightly sheared: the grid axes' small departure
+    from square must not add up over 70 m to a wrong lattice offset."""
+    box = turned_box(20.0)
+    g = grid_points(box, 0.2)
+    shear = np.eye(3) + np.array([[0, 2e-3, 0], [0, 0, -1.5e-3], [1e-3, 0, 0]])
+    p = (g - box.centre_m) @ shear.T + box.centre_m + np.array([-20.0, 64.0, -33.0])
+    _, on = estimate_grid_frame(p).vertices(p)
+    assert on.all()
+
+
 def test_per_cube_svr_picks_the_model_of_the_cube_holding_the_target():
     """Two cubes with opposite errors over the same joint angles: only the cube can tell them apart."""
     rng = np.random.default_rng(4)

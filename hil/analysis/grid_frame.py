@@ -101,10 +101,12 @@ def estimate_grid_frame(p_base: np.ndarray, step_m: float | None = None, merge_m
     steps = np.array([_step_along(loc, tree, k, a) for a in R.T])
     if step_m is not None:
         steps = np.full(3, float(step_m))
-    u = (loc @ R) / steps
-    phase = np.angle(np.exp(2j * np.pi * u).mean(axis=0)) / (2 * np.pi)  # lattice offset, in steps
-    origin = R @ (phase * steps)
-    frame = GridFrame(R, origin, steps)
+    # Lattice offset, in steps, from the location nearest the middle: far from it a step's small error
+    # would add up to a wrong phase (a model's base frame may lie metres from the grid).
+    anchor = loc[np.argmin(np.linalg.norm(loc - loc.mean(axis=0), axis=1))]
+    u = ((loc - anchor) @ R) / steps
+    phase = np.angle(np.exp(2j * np.pi * u).mean(axis=0)) / (2 * np.pi)
+    frame = GridFrame(R, anchor + R @ (phase * steps), steps)
     for tolerance in (
         ON_VERTEX,
         0.05,
