@@ -24,7 +24,9 @@ from hil.runner.cell_config import CellConfig  # noqa: E402
 from hil.runner.session import Session  # noqa: E402
 
 COLUMNS = ("paper", "quantity", "paper_value", "ours", "unit", "note")
-EFFECTS = "gravity_compliance,cyclic,thermal_expansion"
+EFFECTS = (
+    "gravity_compliance,cyclic,thermal_expansion"  # what the simulated cell adds to its geometric errors
+)
 TIME_SCALE = 200.0
 
 
@@ -83,7 +85,8 @@ def row(paper: str, quantity: str, paper_value: float | None, ours: float, unit:
 
 def print_rows(rows: list[dict]) -> None:
     """The rows as a plain table: the paper's figure beside ours."""
-    print(f"{'quantity':<44}{'paper':>9}{'ours':>9}  unit  note")
+    width = max(len(r["quantity"]) for r in rows) + 2
+    print(f"{'quantity':<{width}}{'paper':>9}{'ours':>9}  unit  note")
     for r in rows:
         paper = "" if r["paper_value"] is None else f"{r['paper_value']:9.3f}"
-        print(f"{r['quantity']:<44}{paper:>9}{r['ours']:9.3f}  {r['unit']:<4}  {r['note']}")
+        print(f"{r['quantity']:<{width}}{paper:>9}{r['ours']:9.3f}  {r['unit']:<4}  {r['note']}")
