@@ -20,6 +20,7 @@ from scipy.spatial import cKDTree
 
 ALIGNED_COS = np.cos(np.deg2rad(5.0))  # neighbour vectors within 5 deg count as one direction
 ON_VERTEX = 0.25  # a location within this fraction of a step of a lattice node is that vertex
+VOTERS = 1500  # neighbour vectors that vote for the dominant direction
 
 
 @dataclass(frozen=True)
@@ -65,24 +66,32 @@ def _dominant_direction(vectors: np.ndarray) -> tuple[np.ndarray, np.ndarray] | 
         return None
     length = np.linalg.norm(vectors, axis=1)
     unit = vectors / length[:, None]
-    votes = np.abs(unit @ unit.T) > ALIGNED_COS
-    best = int(np.argmax(votes.sum(axis=1)))
-    members = votes[best]
-    aligned = unit[members] * np.sign(unit[members] @ unit[best])[:, None]
+    # Votes among at most VOTERS vectors (memory grows with their square; a big campaign has thousands).
+    voters = unit[np.random.default_rng(0).permutation(len(unit))[:VOTERS]]
+    votes = np.abs(voters @ voters.T) > ALIGNED_COS
+    best_direction = voters[int(np.argmax(votes.sum(axis=1)))]
+    members = np.abs(unit @ best_direction) > ALIGNED_COS
+    aligned = unit[members] * np.sign(unit[members] @ best_direction)[:, None]
     direction = aligned.mean(axis=0)
     return direction / np.linalg.norm(direction), members
 
 
-def _nearest_along(points: np.ndarray, tree: cKDTree, k: int, keep) -> np.ndarray:
-    """Per location, the shortest vector to another location that `keep(unit_vectors)` accepts."""
-    dist, idx = tree.query(points, k=min(k, len(points)))
-    vec = points[idx[:, 1:]] - points[:, None, :]
-    d = dist[:, 1:]
-    ok = (d > 0) & keep(vec / np.maximum(d, 1e-12)[..., None])
-    d = np.where(ok, d, np.inf)
-    j = np.argmin(d, axis=1)
-    rows = np.flatnonzero(np.isfinite(d[np.arange(len(d)), j]))
-    return vec[rows, j[rows]]
+class _Neighbours:
+    """Vectors from every location to its nearest others (queried once), and the shortest of a kind."""
+
+    def __init__(self, loc: np.ndarray, k: int = 27) -> None:
+        dist, idx = cKDTree(loc).query(loc, k=min(k, len(loc)))
+        self.vec = loc[idx[:, 1:]] - loc[:, None, :]
+        self.d = dist[:, 1:]
+        self.unit = self.vec / np.maximum(self.d, 1e-12)[..., None]
+
+    def nearest(self, keep=None) -> np.ndarray:
+        """Per location, the shortest vector to another location whose direction `keep(unit)` accepts."""
+        ok = self.d > 0 if keep is None else (self.d > 0) & keep(self.unit)
+        d = np.where(ok, self.d, np.inf)
+        j = np.argmin(d, axis=1)
+        rows = np.flatnonzero(np.isfinite(d[np.arange(len(d)), j]))
+        return self.vec[rows, j[rows]]
 
 
 def estimate_grid_frame(p_base: np.ndarray, step_m: float | None = None, merge_m: float = 5e-3) -> GridFrame:
@@ -90,15 +99,14 @@ def estimate_grid_frame(p_base: np.ndarray, step_m: float | None = None, merge_m
     loc = locations(p_base, merge_m)
     if len(loc) < 2:
         return GridFrame(np.eye(3), loc[0] if len(loc) else np.zeros(3), np.full(3, step_m or 0.1))
-    tree = cKDTree(loc)
-    k = 27
-    first = _dominant_direction(_nearest_along(loc, tree, k, lambda u: np.ones(u.shape[:-1], bool)))
+    nb = _Neighbours(loc)
+    first = _dominant_direction(nb.nearest())
     assert first is not None  # two distinct locations give one vector at least
     a1 = first[0]
-    a2 = _axis_perpendicular(loc, tree, k, a1)
+    a2 = _axis_perpendicular(nb, a1)
     a3 = np.cross(a1, a2)
     R = np.column_stack([a1, a2, a3])
-    steps = np.array([_step_along(loc, tree, k, a) for a in R.T])
+    steps = np.array([_step_along(nb, a) for a in R.T])
     if step_m is not None:
         steps = np.full(3, float(step_m))
     # Lattice offset, in steps, from the location nearest the middle: far from it a step's small error
@@ -107,18 +115,15 @@ def estimate_grid_frame(p_base: np.ndarray, step_m: float | None = None, merge_m
     u = ((loc - anchor) @ R) / steps
     phase = np.angle(np.exp(2j * np.pi * u).mean(axis=0)) / (2 * np.pi)
     frame = GridFrame(R, anchor + R @ (phase * steps), steps)
-    for tolerance in (
-        ON_VERTEX,
-        0.05,
-    ):  # then only the vertices close to the lattice: off-grid points drop out
+    for tolerance in (ON_VERTEX, 0.05):  # then only vertices close to the lattice: off-grid points drop out
         frame = _refine(frame, loc, step_m is not None, tolerance)
     return frame
 
 
-def _axis_perpendicular(loc: np.ndarray, tree: cKDTree, k: int, a1: np.ndarray) -> np.ndarray:
+def _axis_perpendicular(nb: _Neighbours, a1: np.ndarray) -> np.ndarray:
     """The second grid axis: the most common nearest-neighbour direction square to the first."""
     sin_tol = np.sqrt(1.0 - ALIGNED_COS**2)
-    found = _dominant_direction(_nearest_along(loc, tree, k, lambda u: np.abs(u @ a1) < sin_tol))
+    found = _dominant_direction(nb.nearest(lambda u: np.abs(u @ a1) < sin_tol))
     if found is None:  # a single row or column of points: any axis square to the first
         helper = np.eye(3)[int(np.argmin(np.abs(a1)))]
         a2 = helper - (helper @ a1) * a1
@@ -127,11 +132,11 @@ def _axis_perpendicular(loc: np.ndarray, tree: cKDTree, k: int, a1: np.ndarray) 
     return a2 / np.linalg.norm(a2)
 
 
-def _step_along(loc: np.ndarray, tree: cKDTree, k: int, axis: np.ndarray) -> float:
+def _step_along(nb: _Neighbours, axis: np.ndarray) -> float:
     """Median length of the nearest-neighbour vectors along `axis` (one plane of points: the median of all)."""
-    vec = _nearest_along(loc, tree, k, lambda u: np.abs(u @ axis) > ALIGNED_COS)
+    vec = nb.nearest(lambda u: np.abs(u @ axis) > ALIGNED_COS)
     if len(vec) == 0:
-        vec = _nearest_along(loc, tree, k, lambda u: np.ones(u.shape[:-1], bool))
+        vec = nb.nearest()
     return float(np.median(np.linalg.norm(vec, axis=1)))
 
 

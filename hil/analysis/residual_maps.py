@@ -94,6 +94,8 @@ class IDWGridMap(ResidualMap):
         self._remember_volume(p_base)
         frame = estimate_grid_frame(p_base, self.step_m)
         idx, on_grid = frame.vertices(p_base)
+        if not on_grid.any():
+            raise ValueError("no grid vertex found among the points: the IDW map needs a grid campaign")
         vertices: dict[tuple, list] = {}
         for k, r in zip(map(tuple, idx[on_grid]), residual[on_grid], strict=True):
             vertices.setdefault(k, []).append(r)  # several orientations at one vertex are averaged
