@@ -7,6 +7,10 @@ beam breaks, the tracker is re-aimed at where the SMR should be from the robot's
 measured again. Then a random set of held-out poses in the same box is measured for validation. The export
 (`hil campaign export`) is the dataset `hil calibrate` and `hil diagnose` read.
 
+Orientation (cell.toml `[grid] orientation`, or the `orientation` parameter): "varied" (the default, what a
+calibration wants: every vertex in its own orientation, so the wrist joints move) or "fixed" (the grid
+paper: one tool orientation at every vertex, `fixed_rpy_deg` or facing the tracker from the box centre).
+
 Order: "travel" keeps moves short; "random" makes consecutive moves of different joints independent, which
 separates the backlash of different joints. `both_directions` measures each vertex twice, approached once
 from below and once from above on every joint.
@@ -23,16 +27,19 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hil.runner.cell_config import CellConfig
+from hil.runner.cell_config import GRID_ORIENTATIONS, CellConfig
 from hil.runner.operator import OperatorStep
 from hil.runner.plan import Plan, PlannedPose
 from hil.runner.planners import (
     Box,
     facing_poses,
+    facing_rotations,
+    fixed_poses,
     grid_points,
     plan_joints,
     random_order,
     random_points,
+    rpy_rotation,
     travel_order,
     workspace_box,
 )
@@ -79,6 +86,8 @@ def plan(
     nest: int,
     tilt_rad: float,
     seed: int,
+    orientation: str | None = None,
+    fixed_rpy_rad: Sequence[float] | None = None,
 ) -> Plan:
     """The grid and validation poses, filtered for reachability, singularity and the envelope, in order."""
     if not 1 <= nest <= len(config.nests_flange_m):
@@ -87,9 +96,13 @@ def plan(
     box = sampling_box(config, box_min_m, box_max_m)
     p_nest = config.nests_flange_m[nest - 1]
     dropped: dict[str, int] = {}
+    R_fixed = fixed_orientation(config, box, orientation, fixed_rpy_rad, orientations)
 
     def usable_joints(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        T = facing_poses(points, config.p_base_tracker_m, rng, tilt_deg=float(np.rad2deg(tilt_rad)))
+        if R_fixed is None:
+            T = facing_poses(points, config.p_base_tracker_m, rng, tilt_deg=float(np.rad2deg(tilt_rad)))
+        else:
+            T = fixed_poses(points, R_fixed)
         joints = plan_joints(config.nominal, T, p_nest, q_near=config.q_home_rad)
         reason = joints.reason.copy()
         reason[joints.usable & config.envelope.outside(config.nominal, joints.q, config.nests_flange_m)] = (
@@ -132,6 +145,33 @@ def plan(
     if not poses:
         raise ValueError("no grid vertex is reachable inside the envelope: move the box or widen [envelope]")
     return Plan(NAME, poses, config, operator_steps=1, dropped=dropped)
+
+
+def fixed_orientation(
+    config: CellConfig,
+    box: Box,
+    orientation: str | None,
+    fixed_rpy_rad: Sequence[float] | None,
+    orientations: int,
+) -> np.ndarray | None:
+    """R_base_tool of a fixed-orientation grid, None for a varied one. The parameter wins over cell.toml's
+    [grid]; a fixed grid without a given orientation faces the tracker from the box centre (SMR visible)."""
+    chosen = orientation or config.grid_orientation
+    if chosen not in GRID_ORIENTATIONS:
+        raise ValueError(f"--orientation {chosen}: use one of {', '.join(GRID_ORIENTATIONS)}")
+    if chosen == "varied":
+        if fixed_rpy_rad is not None:
+            raise ValueError("--fixed-rpy-deg is only used with --orientation fixed; give both or neither")
+        return None
+    if orientations > 1:
+        raise ValueError(
+            f"--orientations {orientations} with a fixed orientation measures each vertex {orientations} times "
+            "in the same pose; use --orientations 1, or --orientation varied"
+        )
+    rpy = fixed_rpy_rad if fixed_rpy_rad is not None else config.grid_fixed_rpy_rad
+    if rpy is not None:
+        return rpy_rotation(np.asarray(rpy, float))
+    return facing_rotations(box.centre_m[None], config.p_base_tracker_m)[0]
 
 
 def with_reference_rounds(
@@ -218,6 +258,23 @@ PROCEDURE = Procedure(
             unit="deg",
             minimum=0.0,
             maximum=30.0,
+        ),
+        Parameter(
+            "orientation",
+            "varied: each vertex its own tool orientation facing the tracker (calibration); fixed: one "
+            "orientation everywhere (the grid paper); default: cell.toml [grid] orientation, else varied",
+            None,
+            str,
+            choices=GRID_ORIENTATIONS,
+        ),
+        Parameter(
+            "fixed_rpy",
+            "the fixed tool orientation: roll, pitch, yaw about the base x, y, z (default: cell.toml [grid] "
+            "fixed_rpy_deg, else facing the tracker from the box centre)",
+            None,
+            float,
+            unit="deg",
+            count=3,
         ),
         Parameter("seed", "seed of the orientations and validation poses", 0, int, minimum=0),
         SHOTS,

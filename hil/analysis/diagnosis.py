@@ -48,7 +48,7 @@ from hil.analysis.effects import (
 )
 from hil.analysis.identifiability import IdentifiabilityReport
 from hil.analysis.noise_floor import TRACKER_MPE_M, NoiseFloor, estimate_noise_floor
-from hil.analysis.residual_maps import MAP_KINDS, kfold_map_errors, make_map, map_from_dict
+from hil.analysis.residual_maps import MAP_KINDS, MAP_MODES, kfold_map_errors, make_map, map_from_dict
 from hil.analysis.rivals import compare_with_rivals, rivals_in_round
 from hil.analysis.screening import (
     Candidate,
@@ -914,10 +914,10 @@ def _try_residual_maps(
         try:
             res = kfold_map_errors(kind, q, p_base, cv_res, sigma, folds)
         except Exception as exc:  # a map that cannot be built on this data (e.g. no grid) is skipped
-            table[kind] = {"error": str(exc)}
+            table[kind] = {"error": str(exc), "mode": MAP_MODES[kind]}
             continue
         p = held_out_gain(e0 - np.sum(res**2, axis=1), prob.pose)[1]
-        table[kind] = {**error_stats(res), "p_value": p}
+        table[kind] = {**error_stats(res), "p_value": p, "mode": MAP_MODES[kind]}
         if best is None or table[kind]["rms_mm"] < table[best]["rms_mm"]:
             best = kind
             best_res = res

@@ -13,6 +13,7 @@ import numpy as np
 
 from hil.analysis.calibration import USER_UNITS, in_user_units
 from hil.analysis.diagnosis import DiagnosisReport, effect_label
+from hil.analysis.residual_maps import MAP_MODES
 from hil.data.jsonable import to_jsonable
 
 
@@ -77,7 +78,7 @@ def conclusion_text(v: dict, effects_added: list[dict]) -> str:
         text = (
             f"Added: {added}. Structured residual remains that no candidate effect explains (residual sigma "
             f"{v['ratio']:.2f}x the noise floor; a {v['map']} residual map predicts it on held-out points), so a "
-            "residual map is used as the fallback."
+            f"residual map is used as the fallback ({MAP_MODES.get(v['map'], v['map'])})."
         )
     elif v["residual"] == "excess":
         text = (
@@ -292,7 +293,7 @@ def _residual_html(report: DiagnosisReport, d: dict) -> list[str]:
     )
     if rm.get("candidates"):
         rows = [{"map": k, **v} for k, v in rm["candidates"].items()]
-        parts.append(_table(rows, ["map", "rms_mm", "max_mm", "p95_mm", "p_value", "error"]))
+        parts.append(_table(rows, ["map", "rms_mm", "max_mm", "p95_mm", "p_value", "mode", "error"]))
     parts.append("<h2>Plots</h2>")
     for title, img in _plots(report):
         parts.append(f"<h3>{html.escape(title)}</h3>{img}")

@@ -1,12 +1,15 @@
 """Residual maps: what the parametric model still gets wrong, interpolated from measured points.
 
 - ``idw``: inverse-distance weighting over the 8 vertices of the grid cube holding the target
-  (grid paper, methods.md 2c; power 2; a target on a vertex takes that vertex's residual). The grid is
-  found in the robot base frame from the measured points (step = median spacing between distinct locations).
-- ``svr``: one RBF-kernel support-vector regressor per axis on the six joint angles (SVR paper,
-  methods.md 3: kernel width sigma = 2 rad -> gamma = 1/(2 sigma^2)). Targets are in units of the noise
-  sigma, epsilon = 0.5 sigma, and C is chosen by 3-fold cross-validation from 0.1 ... 100: the paper's
-  C = 100 and epsilon = 0.2 mm suit errors of millimetres, not residuals near the noise floor.
+  (grid paper, methods.md 2c; power 2; a target on a vertex takes that vertex's residual). The grid's own
+  frame (any rotation, a step per axis) is recovered from the measured points (hil.analysis.grid_frame):
+  the planner turns its box to face the tracker, and a foreign campaign records no grid frame.
+- ``svr``: RBF-kernel support-vector regressors per axis on the six joint angles (SVR paper, methods.md 3:
+  kernel width sigma = 2 rad -> gamma = 1/(2 sigma^2)), in two modes. "global" (ours): one model over the
+  volume on the residual after calibration; targets in units of the noise sigma, epsilon = 0.5 sigma, and C
+  by 3-fold cross-validation from 0.1 ... 100: the paper's C = 100 and epsilon = 0.2 mm suit errors of
+  millimetres, not residuals near the noise floor. "per_cube" (the paper's): one model per cube on the raw
+  error against the nominal model, C = 100, epsilon = 0.2 mm (hil.analysis.cube_svr).
 - ``gp``: a Gaussian process on the six joint angles (constant x RBF + white noise, hyper-parameters by
   marginal likelihood), all three axes together.
 
@@ -22,6 +25,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from hil.analysis.folds import location_spacing
+from hil.analysis.grid_frame import GridFrame, estimate_grid_frame
 
 MAP_KINDS: tuple[str, ...] = ("idw", "svr", "gp")
 
@@ -73,6 +77,10 @@ class ResidualMap:
     def to_dict(self) -> dict:
         return {"kind": self.kind, "state": self.state}
 
+    def describe(self) -> str:
+        """What the map is and what it was trained on, for reports."""
+        return self.kind
+
 
 class IDWGridMap(ResidualMap):
     kind = "idw"
@@ -84,18 +92,17 @@ class IDWGridMap(ResidualMap):
 
     def fit(self, q, p_base, residual, noise_sigma_m):
         self._remember_volume(p_base)
-        step = self.step_m or self.state["volume"]["spacing"]
-        origin = p_base[0]
-        idx = np.round((p_base - origin) / step)
-        on_grid = np.all(np.abs(p_base - origin - idx * step) < 0.25 * step, axis=1)
+        frame = estimate_grid_frame(p_base, self.step_m)
+        idx, on_grid = frame.vertices(p_base)
+        if not on_grid.any():
+            raise ValueError("no grid vertex found among the points: the IDW map needs a grid campaign")
         vertices: dict[tuple, list] = {}
-        for k, r in zip(map(tuple, idx[on_grid].astype(int)), residual[on_grid], strict=True):
-            vertices.setdefault(k, []).append(r)  # repeated vertices are averaged
+        for k, r in zip(map(tuple, idx[on_grid]), residual[on_grid], strict=True):
+            vertices.setdefault(k, []).append(r)  # several orientations at one vertex are averaged
         keys = sorted(vertices)
         self.state.update(
             {
-                "step_m": float(step),
-                "origin_m": origin.tolist(),
+                **frame.to_dict(),
                 "power": self.power,
                 "vertex_index": [list(k) for k in keys],
                 "vertex_residual_m": [np.mean(vertices[k], axis=0).tolist() for k in keys],
@@ -103,9 +110,26 @@ class IDWGridMap(ResidualMap):
         )
         return self
 
+    def describe(self) -> str:
+        steps = " x ".join(f"{s * 1e3:.0f}" for s in self.frame().steps_m)
+        return (
+            f"IDW over the 8 vertices of the grid cube, {len(self.state['vertex_index'])} vertices, grid frame "
+            f"recovered from the points (steps {steps} mm), on the residual after the kinematic calibration"
+        )
+
+    def frame(self) -> GridFrame:
+        """The grid's frame; a map saved before grids had one is axis-aligned with one step."""
+        st = self.state
+        steps = st.get("steps_m", [st.get("step_m", 0.1)] * 3)
+        return GridFrame(
+            np.asarray(st.get("R_base_grid", np.eye(3)), float),
+            np.asarray(st["origin_m"]),
+            np.asarray(steps, float),
+        )
+
     def predict_raw(self, q, p_base):
         st = self.state
-        step, origin, power = st["step_m"], np.array(st["origin_m"]), st["power"]
+        frame, power = self.frame(), st["power"]
         keys = np.array(st["vertex_index"], dtype=int)
         vals = np.array(st["vertex_residual_m"])
         lo = keys.min(axis=0)
@@ -114,14 +138,14 @@ class IDWGridMap(ResidualMap):
         have = np.zeros(shape, bool)
         table[tuple((keys - lo).T)] = vals
         have[tuple((keys - lo).T)] = True
-        u = (p_base - origin) / step
+        u = frame.lattice(p_base)
         corners = np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)])
         idx = np.floor(u).astype(int)[:, None, :] + corners[None]  # (N, 8, 3) cube vertices
         inside = np.all((idx >= lo) & (idx < lo + shape), axis=2)
         cl = np.clip(idx - lo, 0, shape - 1)
         present = inside & have[cl[..., 0], cl[..., 1], cl[..., 2]]
         corner_vals = table[cl[..., 0], cl[..., 1], cl[..., 2]]  # (N, 8, 3)
-        d = np.linalg.norm(u[:, None, :] - idx, axis=2) * step
+        d = np.linalg.norm((u[:, None, :] - idx) * frame.steps_m, axis=2)
         # (1/d)^m over the measured vertices; a target on a vertex takes that vertex's residual.
         w = np.where(present, 1.0 / np.maximum(d, 1e-12) ** power, 0.0)
         out = np.einsum("nk,nkc->nc", w, corner_vals) / np.maximum(w.sum(axis=1), 1e-300)[:, None]
@@ -130,37 +154,125 @@ class IDWGridMap(ResidualMap):
         out[hit] = corner_vals[hit, np.argmax(on_vertex[hit], axis=1)]
         lonely = ~present.any(axis=1)  # no vertex of this cube was measured: the nearest measured vertex
         if np.any(lonely):
-            nearest = np.argmin(np.linalg.norm(u[lonely][:, None] - keys[None], axis=2), axis=1)
-            out[lonely] = vals[nearest]
+            gap = (u[lonely][:, None] - keys[None]) * frame.steps_m
+            out[lonely] = vals[np.argmin(np.linalg.norm(gap, axis=2), axis=1)]
         return out
 
 
+SVR_MODES: dict[str, str] = {
+    "global": "one model over the whole volume, on the residual after the kinematic calibration (ours)",
+    "per_cube": "one model per cube, on the raw error against the nominal model (the SVR paper)",
+}
+PAPER_SVR = {
+    "C": 100.0,
+    "epsilon_m": 0.2e-3,
+    "sigma_rad": 2.0,
+}  # methods.md 3: C = 100, eps = 0.2 mm, sigma = 2
+
+
+def _fit_axes(q: np.ndarray, y: np.ndarray, C: float, gamma: float, epsilon: float) -> list[dict]:
+    """One RBF-kernel SVR per axis of `y` (N, 3) on the joints, as plain arrays."""
+    from sklearn.svm import SVR
+
+    axes = []
+    for k in range(3):
+        svr = SVR(kernel="rbf", C=C, gamma=gamma, epsilon=epsilon).fit(q, y[:, k])
+        axes.append(
+            {
+                "support": svr.support_vectors_.tolist(),
+                "dual": svr.dual_coef_[0].tolist(),
+                "intercept": float(svr.intercept_[0]),
+            }
+        )
+    return axes
+
+
+def _predict_axes(axes: list[dict], gamma: float, q: np.ndarray) -> np.ndarray:
+    """(N, 3) from the per-axis support vectors, dual coefficients and intercepts."""
+    out = np.zeros((len(q), 3))
+    for k, ax in enumerate(axes):
+        sv = np.asarray(ax["support"])
+        if sv.size == 0:
+            out[:, k] = ax["intercept"]
+            continue
+        K = np.exp(-gamma * np.sum((q[:, None] - sv[None]) ** 2, axis=2))
+        out[:, k] = K @ np.asarray(ax["dual"]) + ax["intercept"]
+    return out
+
+
 class SVRMap(ResidualMap):
+    """SVR on the six joint angles, in one of two modes (SVR_MODES).
+
+    "global" (ours, used by the diagnosis): one model per axis over the whole volume, fitted to the residual
+    the kinematic calibration leaves; targets in noise sigmas, C by cross-validation. "per_cube" (the SVR
+    paper): the volume cut into cubes of `cube_m` on a lattice through the base origin, one model per cube
+    with the paper's C = 100, epsilon = 0.2 mm, sigma = 2; the cube holding the target picks the model. The
+    paper fits the raw error against the nominal model: hil.analysis.cube_svr builds that model.
+    """
+
     kind = "svr"
 
-    def __init__(self, state: dict | None = None, C: float | None = None, sigma_rad: float = 2.0) -> None:
+    def __init__(
+        self,
+        state: dict | None = None,
+        C: float | None = None,
+        sigma_rad: float = 2.0,
+        mode: str = "global",
+        cube_m: float = 0.1,
+    ) -> None:
         super().__init__(state)
-        self.C, self.gamma = C, 1.0 / (2.0 * sigma_rad**2)
+        if mode not in SVR_MODES:
+            raise ValueError(f"SVR mode '{mode}': use one of {', '.join(SVR_MODES)}")
+        self.C, self.gamma, self.mode, self.cube_m = C, 1.0 / (2.0 * sigma_rad**2), mode, cube_m
+
+    def describe(self) -> str:
+        mode = self.state.get("mode", "global")
+        size = f" of {self.state['cube_m'] * 1e3:g} mm" if mode == "per_cube" else ""
+        return f"SVR, {SVR_MODES[mode].replace('per cube', 'per cube' + size)}"
 
     def fit(self, q, p_base, residual, noise_sigma_m):
-        from sklearn.svm import SVR
-
         self._remember_volume(p_base)
+        if self.mode == "per_cube":
+            return self._fit_per_cube(q, p_base, residual)
         scale = 1.0 / max(noise_sigma_m, 1e-12)  # targets in units of the noise sigma
         y = residual * scale
         C = self.C if self.C is not None else self._choose_C(q, y)
-        axes = []
-        for k in range(3):
-            svr = SVR(kernel="rbf", C=C, gamma=self.gamma, epsilon=0.5).fit(q, y[:, k])
-            axes.append(
-                {
-                    "support": svr.support_vectors_.tolist(),
-                    "dual": svr.dual_coef_[0].tolist(),
-                    "intercept": float(svr.intercept_[0]),
-                }
-            )
-        self.state.update({"gamma": self.gamma, "scale": scale, "C": C, "axes": axes})
+        axes = _fit_axes(q, y, C, self.gamma, 0.5)
+        self.state.update({"mode": "global", "gamma": self.gamma, "scale": scale, "C": C, "axes": axes})
         return self
+
+    def _fit_per_cube(self, q: np.ndarray, p_base: np.ndarray, error: np.ndarray) -> SVRMap:
+        """The paper's models: one per cube holding at least two points, targets in mm."""
+        scale = 1e3
+        C = self.C if self.C is not None else PAPER_SVR["C"]
+        cube = self.cube_index(p_base)
+        keys, label = np.unique(cube, axis=0, return_inverse=True)
+        label = label.ravel()
+        cubes = []
+        for c, key in enumerate(keys):
+            rows = label == c
+            if rows.sum() < 2:
+                continue
+            axes = _fit_axes(q[rows], error[rows] * scale, C, self.gamma, PAPER_SVR["epsilon_m"] * scale)
+            cubes.append({"cube": key.tolist(), "points": int(rows.sum()), "axes": axes})
+        if not cubes:
+            raise ValueError("no cube holds two training points: give more points or larger cubes")
+        self.state.update(
+            {
+                "mode": "per_cube",
+                "cube_m": self.cube_m,
+                "gamma": self.gamma,
+                "scale": scale,
+                "C": C,
+                "cubes": cubes,
+            }
+        )
+        return self
+
+    def cube_index(self, p_base: np.ndarray) -> np.ndarray:
+        """Integer cube (N, 3) of each point: cubes of `cube_m` on a lattice through the base origin."""
+        size = self.state.get("cube_m", self.cube_m)
+        return np.floor(np.asarray(p_base, float) / size).astype(int)
 
     def _choose_C(self, q: np.ndarray, y: np.ndarray) -> float:
         """C by 3-fold cross-validation: the paper's C = 100 suits mm-sized errors, not residuals at noise."""
@@ -180,19 +292,33 @@ class SVRMap(ResidualMap):
         return best
 
     def predict_raw(self, q, p_base):
+        st = self.state
+        if st.get("mode", "global") == "global":
+            return _predict_axes(st["axes"], st["gamma"], q) / st["scale"]
+        # The cube holding the target picks the model; a cube without one: the nearest trained cube.
+        keys = np.array([c["cube"] for c in st["cubes"]])
+        cube = self.cube_index(p_base)
+        pick = np.argmin(np.sum((cube[:, None, :] - keys[None]) ** 2, axis=2), axis=1)
         out = np.zeros((len(q), 3))
-        for k, ax in enumerate(self.state["axes"]):
-            sv = np.asarray(ax["support"])
-            if sv.size == 0:
-                out[:, k] = ax["intercept"]
-                continue
-            K = np.exp(-self.state["gamma"] * np.sum((q[:, None] - sv[None]) ** 2, axis=2))
-            out[:, k] = K @ np.asarray(ax["dual"]) + ax["intercept"]
-        return out / self.state["scale"]
+        for c in np.unique(pick):
+            rows = pick == c
+            out[rows] = _predict_axes(st["cubes"][c]["axes"], st["gamma"], q[rows])
+        return out / st["scale"]
+
+
+# What each kind is and is trained on when the diagnosis fits it: the report prints it beside the kind.
+MAP_MODES: dict[str, str] = {
+    "idw": "IDW on the grid cube's 8 vertices (grid frame from the points), on the residual after calibration",
+    "svr": "SVR, " + SVR_MODES["global"],
+    "gp": "Gaussian process on the joint angles, on the residual after calibration",
+}
 
 
 class GPMap(ResidualMap):
     kind = "gp"
+
+    def describe(self) -> str:
+        return "Gaussian process on the joint angles, on the residual after the kinematic calibration"
 
     def __init__(self, state: dict | None = None, hyper: dict | None = None) -> None:
         super().__init__(state)
@@ -258,6 +384,8 @@ def map_from_dict(data: dict) -> ResidualMap:
     m.state = data["state"]
     if isinstance(m, SVRMap):
         m.gamma = m.state.get("gamma", m.gamma)
+        m.mode = m.state.get("mode", "global")
+        m.cube_m = m.state.get("cube_m", m.cube_m)
     return m
 
 

@@ -70,6 +70,10 @@ class CellConfig:
     raw: dict = field(default_factory=dict)
     drift_poses: int = 0  # [drift_monitor] poses: reference poses re-measured during a grid (0: none)
     drift_every_points: int = 0  # [drift_monitor] every_points: grid points between two reference rounds
+    grid_orientation: str = "varied"  # [grid] orientation: "varied" (calibration) or "fixed" (the grid paper)
+    grid_fixed_rpy_rad: np.ndarray | None = (
+        None  # [grid] fixed_rpy_deg: the fixed tool orientation, base frame
+    )
 
     @cached_property
     def nominal(self) -> KinematicModel:
@@ -162,7 +166,11 @@ class _Reader:
                 )
 
 
-SECTIONS = ("robot", "tracker", "tool", "envelope", "motion", "simulator", "drift_monitor")
+SECTIONS = ("robot", "tracker", "tool", "envelope", "motion", "simulator", "drift_monitor", "grid")
+
+# [grid] orientation: every vertex in its own tool orientation facing the tracker (what a calibration wants:
+# the wrist joints move), or one tool orientation at every vertex (the grid paper's setting).
+GRID_ORIENTATIONS: tuple[str, ...] = ("varied", "fixed")
 
 
 def _numbers(value: Any) -> np.ndarray | None:
@@ -232,6 +240,7 @@ def parse_cell_config(data: dict, source: str = "cell.toml") -> CellConfig:
     drift_every = r.get("drift_monitor", "every_points", "int", default=0)
     if (drift_poses > 0) != (drift_every > 0):
         r.problems.append("[drift_monitor]: give both poses and every_points (or leave the section out)")
+    grid_orientation, grid_fixed_rpy_deg = _read_grid(r)
     r.unknown_keys({"robot": ROBOT_DRIVER_KEYS})
     if r.problems:
         raise CellConfigError(source, r.problems)
@@ -266,7 +275,26 @@ def parse_cell_config(data: dict, source: str = "cell.toml") -> CellConfig:
         raw=data,
         drift_poses=drift_poses,
         drift_every_points=drift_every,
+        grid_orientation=grid_orientation,
+        grid_fixed_rpy_rad=None if grid_fixed_rpy_deg is None else np.deg2rad(grid_fixed_rpy_deg),
     )
+
+
+def _read_grid(r: _Reader) -> tuple[str, np.ndarray | None]:
+    """[grid]: orientation ("varied" or "fixed") and the fixed tool orientation as roll, pitch, yaw (deg)."""
+    orientation = r.get("grid", "orientation", "str", default="varied")
+    if orientation not in GRID_ORIENTATIONS:
+        r.problems.append(
+            f"grid.orientation: {orientation!r} is not one of {', '.join(GRID_ORIENTATIONS)}; "
+            '"varied" for a calibration, "fixed" for the grid paper\'s one orientation at every vertex'
+        )
+        orientation = "varied"
+    rpy = r.vector("grid", "fixed_rpy_deg", 3)
+    if rpy is not None and orientation != "fixed":
+        r.problems.append(
+            'grid.fixed_rpy_deg: only used with orientation = "fixed"; set that or remove the key'
+        )
+    return orientation, rpy
 
 
 def _read_robot_link(r: _Reader) -> tuple[Any, dict]:

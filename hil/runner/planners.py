@@ -95,13 +95,7 @@ def facing_poses(
     for a 1.5" SMR) and rolled up to +-`roll_deg` about it: diverse orientations, all visible.
     """
     points = np.atleast_2d(np.asarray(points_base_m, float))
-    z = np.asarray(p_base_tracker_m, float) - points
-    z /= np.linalg.norm(z, axis=1, keepdims=True)
-    helper = np.where(np.abs(z[:, 2:3]) < 0.9, np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0]))
-    x = np.cross(helper, z)
-    x /= np.linalg.norm(x, axis=1, keepdims=True)
-    y = np.cross(z, x)
-    R = np.stack([x, y, z], axis=2)
+    R = facing_rotations(points, p_base_tracker_m)
     count = len(points)
     tilt_axis = rng.normal(0, 1, (count, 2))
     tilt_axis /= np.linalg.norm(tilt_axis, axis=1, keepdims=True)
@@ -114,6 +108,32 @@ def facing_poses(
     T[:, :3, :3] = R @ tilt
     T[:, :3, 3] = points
     T[:, 3, 3] = 1.0
+    return T
+
+
+def facing_rotations(points_base_m: np.ndarray, p_base_tracker_m: np.ndarray) -> np.ndarray:
+    """Tool orientations R_base_tool (N, 3, 3) at the points whose z axis looks straight at the tracker."""
+    points = np.atleast_2d(np.asarray(points_base_m, float))
+    z = np.asarray(p_base_tracker_m, float) - points
+    z /= np.linalg.norm(z, axis=1, keepdims=True)
+    helper = np.where(np.abs(z[:, 2:3]) < 0.9, np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0]))
+    x = np.cross(helper, z)
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    y = np.cross(z, x)
+    return np.stack([x, y, z], axis=2)
+
+
+def rpy_rotation(rpy_rad: np.ndarray) -> np.ndarray:
+    """R (3, 3) from roll, pitch, yaw about the base x, y, z axes: R = Rz(yaw) Ry(pitch) Rx(roll)."""
+    return Rotation.from_euler("xyz", np.asarray(rpy_rad, float)).as_matrix()
+
+
+def fixed_poses(points_base_m: np.ndarray, R_base_tool: np.ndarray) -> np.ndarray:
+    """Tool poses T_base_tool (N, 4, 4) at the points, all in the one orientation (the grid paper's setting)."""
+    points = np.atleast_2d(np.asarray(points_base_m, float))
+    T = np.tile(np.eye(4), (len(points), 1, 1))
+    T[:, :3, :3] = np.asarray(R_base_tool, float)
+    T[:, :3, 3] = points
     return T
 
 
