@@ -17,7 +17,7 @@ import signal
 import sys
 import threading
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from typing import Any
 
 INTERRUPT_GRACE_S = 5.0  # after a Ctrl-C the process is gone by then, whatever a driver does
@@ -120,8 +120,6 @@ def _leave_now() -> None:
     No flush: the main thread may hold stdout's lock, blocked on a full pipe; the note goes out with a bare
     write on its own descriptor."""
     for fd, note in _forced_exit_note:
-        try:
+        with suppress(OSError):
             os.write(fd, note)
-        except OSError:
-            pass
     os._exit(EXIT_INTERRUPTED)
