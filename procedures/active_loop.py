@@ -104,6 +104,8 @@ class _Campaign:
         return int(np.bincount(train["smr"].to_numpy(int)).argmax()) if "smr" in train else 1
 
     def diagnose(self, train: pd.DataFrame) -> DiagnosisReport:
+        """The diagnosis of `train` (validated on the grid's validation poses); the same data diagnosed again in
+        this process (the plan shown before connecting, then the loop's first round) is not diagnosed twice."""
         fit = self.store.step_result("tool_fit", "fit")
         nest = str(self.nest(train))
         tool = (
@@ -111,9 +113,20 @@ class _Campaign:
             if fit and nest in fit["nests_flange_mm"]
             else None
         )
-        return run_diagnosis(
-            train, self.config.nominal, df_validate=self.validation(), seed=self.seed, tool_guess_m=tool
+        validation = self.validation()
+        key = (
+            _fingerprint(train),
+            None if validation is None else _fingerprint(validation),
+            self.seed,
+            None if tool is None else tool.tobytes(),
+            repr(self.config.nominal),
         )
+        if key not in _DIAGNOSED:
+            _DIAGNOSED.clear()  # one is enough: the loop only ever asks for the latest again
+            _DIAGNOSED[key] = run_diagnosis(
+                train, self.config.nominal, df_validate=validation, seed=self.seed, tool_guess_m=tool
+            )
+        return _DIAGNOSED[key]
 
     def next_rows(
         self, number: int, rounds: int, poses: int, train: pd.DataFrame, before: DiagnosisReport
@@ -144,6 +157,14 @@ class _Campaign:
             return None, f"the open questions cannot be planned on this cell ({why})"
         keep = np.ones(len(plan.purpose), bool)
         return _Rows(number, plan.q, list(plan.purpose), plan.groups, plan.not_planned, keep), ""
+
+
+_DIAGNOSED: dict[tuple, DiagnosisReport] = {}
+
+
+def _fingerprint(df: pd.DataFrame) -> tuple:
+    """What identifies a campaign's rows: their columns and a hash of every value."""
+    return tuple(df.columns), len(df), int(pd.util.hash_pandas_object(df, index=False).sum())
 
 
 def motion_plan(config: CellConfig, rows: _Rows, nest: int) -> Plan:

@@ -170,3 +170,28 @@ def test_a_campaign_without_a_grid_is_refused_before_anything_connects(tmp_path,
         "run", "active_loop", "--cell", "cell.toml", "--campaign", "empty.sqlite", cwd=tmp_path, capsys=capsys
     )
     assert code != 0 and "run `hil run grid_sampling`" in err
+
+
+def test_the_same_campaign_is_diagnosed_once_for_the_plan_and_the_first_round(monkeypatch):
+    """`hil run active_loop` plans before connecting and then runs the loop: one diagnosis of the same rows,
+    another as soon as a row differs."""
+    from types import SimpleNamespace
+
+    import pandas as pd
+
+    calls: list[int] = []
+    monkeypatch.setattr(
+        active_loop, "run_diagnosis", lambda train, *a, **k: calls.append(len(train)) or len(calls)
+    )
+    monkeypatch.setattr(active_loop._Campaign, "validation", lambda self: None)
+    store = SimpleNamespace(step_result=lambda *a: None)
+    config = SimpleNamespace(nominal="ur10")
+    train = pd.DataFrame({"q1_rad": [0.1, 0.2], "x_mm": [1.0, 2.0], "smr": [1, 1]})
+    first = active_loop._Campaign(store, config, 0).diagnose(train)
+    again = active_loop._Campaign(store, config, 0).diagnose(train.copy())
+    assert first == again and calls == [2]
+    longer = pd.concat([train, train.iloc[:1].assign(x_mm=3.0)], ignore_index=True)
+    assert active_loop._Campaign(store, config, 0).diagnose(longer) != first and calls == [2, 3]
+    moved = train.assign(x_mm=[1.0, 2.5])
+    active_loop._Campaign(store, config, 0).diagnose(moved)
+    assert calls == [2, 3, 2]
