@@ -37,7 +37,7 @@ def cell(tmp_path_factory):
         base = folder / "registered.sqlite"
         with session_on(config, base) as session:
             registration.PROCEDURE(session)
-            tool_fit.PROCEDURE(session, poses=2, check_poses=4)
+            tool_fit.PROCEDURE(session, check_poses=6, validation_poses=4)
         yield {"config": config, "model": model, "base": base, "folder": folder}
 
 
