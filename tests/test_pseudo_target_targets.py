@@ -28,3 +28,37 @@ def test_targets_with_part_of_an_orientation_are_refused(tmp_path):
     )
     with pytest.raises(ValueError, match="rx_deg, ry_deg, rz_deg"):
         read_targets_csv(tmp_path / "t.csv")
+
+
+def test_a_circle_of_targets_lies_on_one_circle_facing_the_tracker():
+    import tomllib
+
+    from hil.runner.cell_config import parse_cell_config
+    from procedures.pseudo_target import CIRCLE_RADIUS_M, circle_targets, nominal_model, resolve_targets
+    from tests.cell_fixtures import sim_cell_toml
+
+    config = parse_cell_config(tomllib.loads(sim_cell_toml(0)))
+    model = nominal_model(config, np.eye(4), config.nests_flange_m[0])
+    T = circle_targets(config, model, 12, full_pose=True)
+    centre = T[:, :3, 3].mean(axis=0)
+    np.testing.assert_allclose(np.linalg.norm(T[:, :3, 3] - centre, axis=1), CIRCLE_RADIUS_M, atol=1e-12)
+    np.testing.assert_allclose(T[:, :3, :3], np.broadcast_to(T[0, :3, :3], (12, 3, 3)))  # one orientation
+    assert resolve_targets("circle:7", config, model, 0, 1).shape == (7, 3)
+    assert resolve_targets("circle", config, model, 0, 1).shape == (2000, 3)  # the paper's trajectory
+    with pytest.raises(ValueError, match="circle:N with N >= 3"):
+        resolve_targets("circle:2", config, model, 0, 1)
+
+
+def test_the_pt_paper_option_and_the_ensemble_subset_are_checked():
+    from hil.runner.procedure import ParameterError
+    from procedures.pseudo_target import PT_PAPER, ensemble_subset, paper_options
+
+    assert paper_options(True, None, 1, "yin", 3, 2, 1e-5) == PT_PAPER == (3, "zyz", 2, 0, 0.0005e-3)
+    assert paper_options(False, "m.json", 1, "yin", 3, 2, 1e-5) == (1, "yin", 3, 2, 1e-5)
+    with pytest.raises(ParameterError, match="drop --model"):
+        paper_options(True, "m.json", 1, "yin", 3, 2, 1e-5)
+    assert ensemble_subset(" zyz, quaternion ") == ["zyz", "quaternion"]
+    with pytest.raises(ParameterError, match="--ensemble zyz,nope"):
+        ensemble_subset("zyz,nope")
+    with pytest.raises(ParameterError, match="at least one"):
+        ensemble_subset(",")
