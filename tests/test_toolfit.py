@@ -212,3 +212,17 @@ def test_the_summary_prints_each_judged_figure_with_its_limit():
     text = tool_fit.summary(result)
     assert "circle residual 0.0066 mm (limit 0.03 mm); distance-method check 0.717 mm (gate 1.50 mm)" in text
     assert "validation (20 poses, common-point transformation): RMS 0.690 mm" in text
+
+
+def test_the_report_shows_the_tool_fits_checks_and_its_validation_figure():
+    from hil.analysis.report import tool_fit_html
+
+    config, data, _ = _synthetic_tool_fit()
+    result = tool_fit.evaluate(config, data, tool_fit.Limits(), shots=3).result
+    page = tool_fit_html(result)
+    assert (
+        "Tool fit (flange frame)" in page
+        and "face ball height" in page
+        and "hole 7 off the 3-4 bisector" in page
+    )
+    assert "Validation on 6 poses" in page and page.count('<img src="data:image/png;base64,') == 1
