@@ -49,6 +49,7 @@ from hil.data.store import CampaignError, CampaignStore
 from hil.geometry.kinematics import forward_kinematics
 from hil.geometry.se3 import fit_rigid
 from hil.runner.cell_config import CellConfig
+from hil.runner.envelope import EnvelopeError
 from hil.runner.operator import OperatorStep
 from hil.runner.plan import Plan, PlannedPose
 from hil.runner.planners import (
@@ -483,14 +484,15 @@ def plan(config: CellConfig, *, model: CalibratedModel | str | None, targets: in
 def close_the_loop(session: Session, *, model: CalibratedModel | str | None, targets: int | str | np.ndarray,
                    generator: str, threshold_m: float, max_iter: int, smrs: int, seed: int, shots: int | None,
                    measure_uncompensated: bool, patience: int, ensemble: str = ",".join(GENERATORS),
-                   pt_paper: bool = False) -> LoopResult:  # fmt: skip
+                   pt_paper: bool = False, approach_rad: float = 0.0) -> LoopResult:  # fmt: skip
     """Run the measured pseudo-target loop on every target (see the module docstring); resumable.
 
     `targets`: a count of random held-out targets in the sampled volume, a CSV path, or an array (tracker
     frame, m). `max_iter`: corrections after the first measurement. `patience`: stop a target after this
     many corrections in a row without a gain beyond the noise margin (0: off). `measure_uncompensated` also
     measures each target's plain nominal IK once (`t007/u`), the "uncompensated" row of the before / after table.
-    `pt_paper` runs the PT paper's experiment (PT_PAPER); `ensemble` names the generators of --generator ensemble.
+    `pt_paper` runs the PT paper's experiment (PT_PAPER); `ensemble` names the generators of --generator ensemble;
+    `approach_rad` > 0 makes every measured pose approached from the same side on every joint (backlash).
     """
     smrs, generator, max_iter, patience, threshold_m = paper_options(
         pt_paper, model, smrs, generator, max_iter, patience, threshold_m
@@ -509,7 +511,9 @@ def close_the_loop(session: Session, *, model: CalibratedModel | str | None, tar
     )  # fmt: skip
     nominal_ik = nominal_model(session.config, T_tb, ik_model.tools[1])
     start = start_joints(session.config, nominal_ik, the_model, T_d, generator, threshold_m, subset)
-    loop = _Loop(session, ik_model, T_d, generator, threshold_m, max_iter, smrs, shots, patience, subset)
+    loop = _Loop(
+        session, ik_model, T_d, generator, threshold_m, max_iter, smrs, shots, patience, subset, approach_rad
+    )
     ids = target_ids(len(T_d))
     results = [TargetResult(i, str(s)) for i, s in zip(ids, start.status, strict=True)]
     todo = [k for k, r in enumerate(results) if r.status == "ok"]
@@ -570,8 +574,9 @@ class _Loop:
 
     def __init__(self, session: Session, ik_model: CalibratedModel, T_d: np.ndarray, generator: str,
                  threshold_m: float, max_iter: int, smrs: int, shots: int | None, patience: int,
-                 ensemble: list[str] | None = None) -> None:  # fmt: skip
+                 ensemble: list[str] | None = None, approach_rad: float = 0.0) -> None:  # fmt: skip
         self.session, self.generator, self.threshold_m = session, generator, threshold_m
+        self.approach_rad = approach_rad
         self.generators = (ensemble or list(GENERATORS)) if generator == ENSEMBLE else [generator]
         self.max_iter, self.smrs, self.shots, self.patience = max_iter, smrs, shots, patience
         self.full_pose = smrs == 3
@@ -600,10 +605,20 @@ class _Loop:
         )
         return np.asarray(record.p_tracker_m, float)
 
+    def _approach(self, point_id: str, q: np.ndarray) -> None:
+        """Before a point not yet recorded, pass through q - approach on every joint, so each joint reaches q
+        moving the same way every time (a backlash-free approach); nothing when off or recorded."""
+        if self.approach_rad > 0 and not self.session.recorded(NAME, STEP, point_id):
+            try:
+                self.session.move_joints(q - self.approach_rad, label=point_id + " approach")
+            except EnvelopeError as exc:  # checked before any motion: go straight instead
+                self.session.event("approach_skipped", f"{point_id}: {exc}", point_id=point_id)
+
     def measure(self, base_id: str, q: np.ndarray) -> np.ndarray:
         """Measured T_tracker_tool (4, 4): SMR 1's point, and with three SMRs the flange orientation from
         the nest layout fitted to the three measured nests (Kabsch). Sets `sigma_m`, its per-axis noise."""
         self.sigma_m = 0.0
+        self._approach(f"{base_id}/n1" if self.smrs > 1 else base_id, q)
         T = np.eye(4)
         if self.smrs == 1:
             T[:3, 3] = self._point(base_id, q, 1)
@@ -706,6 +721,15 @@ PROCEDURE = Procedure(
             "generators of --generator ensemble, comma-separated (each proposal is measured, the best kept)",
             ",".join(GENERATORS),
             str,
+        ),
+        Parameter(
+            "approach",
+            "reach every measured pose from this far below on every joint, the same side each time (backlash); 0 = straight",
+            0.0,
+            float,
+            unit="deg",
+            minimum=0.0,
+            maximum=5.0,
         ),
         Parameter(
             "pt_paper",
