@@ -302,3 +302,30 @@ def test_an_ensemble_measures_each_generators_proposal_and_keeps_the_best(cell):
     assert {"t001/i1/zyz/n1", "t001/i1/quaternion/n3", "t002/i0/n2"} <= ids
     assert not any("/i1/yin" in i for i in ids)  # only the chosen subset
     assert all(t.errors_m[1] < t.errors_m[0] for t in result.visited)
+
+
+def test_cli_dry_run_of_the_pt_paper_plans_from_the_campaigns_registration(cell, tmp_path, capsys):
+    from tests.cli_in_process import run_hil
+
+    text = (cell["folder"] / "cell.toml").read_text().replace(cell["config"].robot_host, "127.254.254.254")
+    offline = tmp_path / "cell.toml"
+    offline.write_text(text)  # nothing listens there: a dry run must not try
+    registered = campaign(cell, "dry")
+    base = [
+        "run",
+        "pseudo_target",
+        "--cell",
+        str(offline),
+        "--dry-run",
+        "--pt-paper",
+        "--targets",
+        "circle:5",
+    ]
+    done = run_hil(*base, "--campaign", str(registered), cwd=tmp_path, capsys=capsys)
+    assert done.returncode == 0, done.stderr
+    assert "plan of pseudo_target: 5 poses" in done.stdout
+    done = run_hil(*base, "--campaign", str(tmp_path / "new.sqlite"), cwd=tmp_path, capsys=capsys)
+    assert done.returncode == 2 and "give --campaign with a registration" in done.stderr
+    done = run_hil(*base, "--campaign", str(registered), "--model", "m.json", cwd=tmp_path, capsys=capsys)
+    assert done.returncode == 2 and "drop --model" in done.stderr
+    assert not (tmp_path / "new.sqlite").exists()
