@@ -39,6 +39,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from hil.analysis.flange_geometry import (
+    FlangeFit,
     bisector_error_rad,
     common_point_error_m,
     distance_method_sigma_m,
@@ -301,7 +302,7 @@ def evaluate(config: CellConfig, data: RecordedPoints, limits: Limits, shots: in
 
 
 def _flange_checks(
-    config: CellConfig, fit, holes: dict[int, np.ndarray], limits: Limits
+    config: CellConfig, fit: FlangeFit, holes: dict[int, np.ndarray], limits: Limits
 ) -> tuple[list[str], dict]:
     """The flange frame's own checks: circle, radius, hole places, hole 7 on the bisector, face height."""
     angles = hole_angles_rad(fit.T_tracker_flange, holes)
@@ -350,7 +351,7 @@ def _flange_checks(
 
 
 def _nest_sigma(
-    fit, nests: dict[int, np.ndarray], radius_m: float, distance_m: float, shots: int
+    fit: FlangeFit, nests: dict[int, np.ndarray], radius_m: float, distance_m: float, shots: int
 ) -> dict[int, float]:
     """1-sigma (3-D) of each nest from the hole balls' scatter (or the tracker's noise model, if larger):
     the origin's, the nest reading's, and the frame's tilt and turn levered out to the nest."""
