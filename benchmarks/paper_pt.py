@@ -123,4 +123,7 @@ if __name__ == "__main__":
     parser.add_argument(
         "--quick", action="store_true", help="5 targets, a 6-point circle, 3 shots (a minute or two)"
     )
-    print_table(rows(parser.parse_args().quick))
+    parser.add_argument("--targets", type=int, help="random targets (default 5 quick, 20 full)")
+    parser.add_argument("--circle-points", type=int, help="points of the circle (default 6 quick, 2000 full)")
+    args = parser.parse_args()
+    print_table(rows(args.quick, args.targets, args.circle_points))
