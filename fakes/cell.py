@@ -217,6 +217,8 @@ class SimulatedCell:
         self._centering = truth_rng.normal(0, cfg.smr_centering_sigma_m, (cfg.smr_count, 3))
         self.smr_ids: list[int] = list(range(1, cfg.smr_count + 1))
         self._smr_locations: dict[int, SmrLocation] = {}
+        self.tool_mounted = True  # the cell starts with the tool on the flange, covering the holes
+        self._tool_rotation_rad = 0.0  # how far about flange z the tool sits from its drawn position
         self._init_smrs()
         self._time_s = 0.0  # the timer clock
         self._physics_s = 0.0  # the physics clock (thermal growth, meteo drift)
@@ -415,11 +417,48 @@ class SimulatedCell:
         _, frames = self._physics_now()
         return frames[0, -1] @ self.nominal.T_last_flange
 
+    # ----- the tool on the flange -----------------------------------------------------------------
+    def unmount_tool(self) -> None:
+        """The operator's hands: take the tool off the flange (bare flange: holes and face reachable). An SMR in
+        a tool nest is taken out first and put down in the room where it was."""
+        self._put_down("nest")
+        self.tool_mounted = False
+
+    def mount_tool(self, rotation_rad: float = 0.0) -> None:
+        """The operator's hands: put the tool on the flange, turned `rotation_rad` about flange z from its drawn
+        position (0: on its dowel; a bolt circle of six lets it go on 60 deg off). An SMR in a hole or on the
+        face is taken off first (the tool covers them) and put down in the room where it was."""
+        if not np.isfinite(rotation_rad):
+            raise ValueError("the tool's rotation must be a finite angle (radians)")
+        self._put_down("hole", "face")
+        self.tool_mounted = True
+        self._tool_rotation_rad = float(rotation_rad)
+
+    def _put_down(self, *kinds: str) -> None:
+        """SMRs at these kinds of location go off the robot: fixed in the room where they are now."""
+        for smr_id, loc in list(self._smr_locations.items()):
+            if loc.kind in kinds:
+                self._smr_locations[smr_id] = SmrLocation(
+                    "fixed", point_m=tuple(self.smr_center_tracker(smr_id))
+                )
+
+    def _tool_nests_flange(self) -> np.ndarray:
+        """True nest centres (K, 3) in the flange frame, as the tool is mounted now."""
+        c, s = np.cos(self._tool_rotation_rad), np.sin(self._tool_rotation_rad)
+        return self._nests_flange @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]).T
+
     # ----- SMRs and the tracker -----------------------------------------------------------------
     def place_smr(self, smr_id: int, location: SmrLocation) -> None:
-        """The operator's hands: put SMR `smr_id` at `location`."""
+        """The operator's hands: put SMR `smr_id` at `location` (holes and face on the bare flange, nests on
+        the mounted tool)."""
         if smr_id not in self.smr_ids:
             raise ValueError(f"no SMR {smr_id}; the cell has SMRs {self.smr_ids}")
+        if location.kind in ("hole", "face") and self.tool_mounted:
+            raise ValueError(
+                "the tool covers the flange holes and face: take the tool off first (unmount_tool)"
+            )
+        if location.kind == "nest" and not self.tool_mounted:
+            raise ValueError("no tool on the flange: mount the tool before seating an SMR in a tool nest")
         if location.kind == "hole" and not 1 <= location.number <= 7:
             raise ValueError(f"flange holes are numbered 1..7, got {location.index}")
         if location.kind == "nest" and not 1 <= location.number <= len(self._nests_flange):
@@ -435,7 +474,7 @@ class SimulatedCell:
         if location.kind == "hole":
             return self._holes_flange[location.number - 1].copy()
         if location.kind == "nest":
-            return self._nests_flange[location.number - 1].copy()
+            return self._tool_nests_flange()[location.number - 1]
         if location.kind == "face":
             x, y = location.point
             return np.array([x, y, SMR_RADIUS_M])
@@ -553,6 +592,8 @@ class SimulatedCell:
             "physics_time_s": self._physics_s,
             "commanded_q": self._q_cmd.tolist(),
             "smr_locations": {str(k): to_jsonable(asdict(v)) for k, v in self._smr_locations.items()},
+            "tool_mounted": self.tool_mounted,
+            "tool_rotation_rad": self._tool_rotation_rad,
         }
 
 

@@ -285,6 +285,8 @@ def cell_handlers(cell: SimulatedCell, clock: SimClock, epoch_s: float = 0.0) ->
         "ground_truth": lambda request: cell.ground_truth(),
         "place_smr": place_smr,
         "smr_location": lambda request: cell.smr_location(int(request["smr_id"])),
+        "unmount_tool": lambda request: cell.unmount_tool(),
+        "mount_tool": lambda request: cell.mount_tool(float(request.get("rotation_rad", 0.0))),
         "cell.state": lambda request: {
             "time_s": cell.time_s,
             "physics_time_s": cell.physics_time_s,

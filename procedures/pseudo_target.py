@@ -17,6 +17,15 @@ iteration is its own point in the campaign (`t007/i2`, with nests `t007/i2/n1`..
 the next motion: re-running the same command replays what is recorded and measures only what is missing
 (the stop rules decide again from the recorded points, so a resumed target ends where it did). Targets
 the arm cannot reach, near a singularity or outside the envelope are reported with the reason, not visited.
+
+Without --model the loop starts from the nominal model (no calibration). `--pt-paper` runs the PT paper's
+measured experiment: nominal start, three SMRs (the pose from three points), the ZYZ triple-angle generator,
+two measured corrections per target whatever their gain. `--targets circle:N` puts N targets on a circle
+(the paper's trajectory; the paper's simulation used 2 000 points). `--generator ensemble` runs the
+generators named by `--ensemble` at every correction, measures each proposal and keeps the best.
+`--approach-deg A` reaches every measured pose through A below it on every joint, so each joint arrives from
+the same side every time: on an arm with backlash the plain loop stalls where each correction lands on
+another side of the gap (about 0.1 mm on the simulated UR10 with backlash).
 """
 
 from __future__ import annotations
@@ -29,12 +38,21 @@ import pandas as pd
 
 from hil.analysis.calibrated_model import CalibratedModel
 from hil.analysis.noise_floor import tracker_sigma_m
-from hil.compensation.model_based import PosePredictor, PseudoTargetIK, compensate, pose_cost
+from hil.compensation.model_based import (
+    ENSEMBLE,
+    PosePredictor,
+    PseudoTargetIK,
+    compensate,
+    ensemble_names,
+    pose_cost,
+)
 from hil.compensation.target_update import GENERATORS, update_pseudo_position, update_pseudo_target
 from hil.data.dataset import ORIENTATION_COLUMNS, orientations
+from hil.data.store import CampaignError, CampaignStore
 from hil.geometry.kinematics import forward_kinematics
 from hil.geometry.se3 import fit_rigid
 from hil.runner.cell_config import CellConfig
+from hil.runner.envelope import EnvelopeError
 from hil.runner.operator import OperatorStep
 from hil.runner.plan import Plan, PlannedPose
 from hil.runner.planners import (
@@ -45,7 +63,7 @@ from hil.runner.planners import (
     random_points,
     workspace_box,
 )
-from hil.runner.procedure import SHOTS, Parameter, Procedure
+from hil.runner.procedure import SHOTS, Parameter, ParameterError, Procedure
 from hil.runner.session import CampaignStopped, Session
 
 NAME = "pseudo_target"
@@ -53,6 +71,9 @@ STEP = "loop"
 LENGTH_SCALE_M = 0.1  # pose error measure: sqrt(dp^2 + (L * angle)^2), as hil.compensation.model_based
 USABLE_START = ("ok", "max_iter", "stalled")  # compensation statuses whose joints are worth measuring
 SMR_MODES = (1, 3)
+CIRCLE_RADIUS_M = 0.1  # the circle trajectory's radius, in a plane facing the tracker
+# The PT paper's measured experiment (--pt-paper): smrs, generator, corrections, patience, threshold (m).
+PT_PAPER: tuple[int, str, int, int, float] = (3, "zyz", 2, 0, 0.0005e-3)
 PATIENCE = 2  # corrections without a gain beyond the noise margin before a target stops (0: never)
 # Noise margin: a correction counts as a gain when it beats the best error so far by more than
 # GAIN_SIGMAS x the per-axis 1-sigma noise of the measured point: the larger of the tracker's noise model
@@ -240,6 +261,32 @@ def random_targets(config: CellConfig, model: CalibratedModel, count: int, seed:
     return T_actual if full_pose else T_actual[:, :3, 3]
 
 
+def _circle_count(text: str) -> int:
+    """'circle' -> 2000 (the paper's trajectory), 'circle:N' -> N (at least 3)."""
+    _, _, count = text.strip().partition(":")
+    if count and not count.isdigit() or (count and int(count) < 3):
+        raise ValueError(f"--targets {text}: give circle or circle:N with N >= 3 points")
+    return int(count) if count else 2000
+
+
+def circle_targets(config: CellConfig, model: CalibratedModel, count: int, full_pose: bool = False,
+                   radius_m: float = CIRCLE_RADIUS_M) -> np.ndarray:  # fmt: skip
+    """`count` targets on a circle (tracker frame) around the sampled volume's centre, in the plane facing the
+    tracker, the tool's orientation held at the centre's facing pose (the PT paper's circle trajectory).
+    Points (count, 3) of SMR 1, or poses (count, 4, 4) T_tracker_tool: SMR 1 and the flange orientation."""
+    box = workspace_box(config.nominal, config.p_base_tracker_m)
+    T_face = facing_poses(
+        box.centre_m[None], config.p_base_tracker_m, np.random.default_rng(0), tilt_deg=0.0
+    )[0]
+    u, v = T_face[:3, 0], T_face[:3, 1]  # the facing tool's x and y: the plane across the line of sight
+    a = 2 * np.pi * np.arange(count) / count
+    p_base = box.centre_m + radius_m * (np.outer(np.cos(a), u) + np.outer(np.sin(a), v))
+    T_base = np.tile(T_face, (count, 1, 1))
+    T_base[:, :3, 3] = p_base
+    T_tracker = model.T_tracker_base @ T_base
+    return T_tracker if full_pose else T_tracker[:, :3, 3]
+
+
 def read_targets_csv(path: str | Path) -> np.ndarray:
     """Targets from a CSV: x_mm, y_mm, z_mm (SMR 1 in the tracker frame), optionally rx_deg, ry_deg, rz_deg
     (flange orientation in the tracker frame, the dataset's convention: hil.data.dataset.orientations) for full-pose
@@ -275,6 +322,8 @@ def resolve_targets(
         raise ValueError(f"--smrs {smrs}: use 1 (position) or 3 (pose: SMRs in nests 1, 2, 3)")
     if smrs == 3 and len(config.nests_flange_m) < 3:
         raise ValueError("--smrs 3 needs a tool with three nests ([tool] nests_flange_mm)")
+    if isinstance(targets, str) and targets.strip().startswith("circle"):
+        return circle_targets(config, model, _circle_count(targets), full_pose=smrs == 3)
     if isinstance(targets, str):
         targets = int(targets) if targets.strip().isdigit() else read_targets_csv(targets)
     if isinstance(targets, (int, np.integer)):
@@ -300,13 +349,21 @@ class Start:
 
 
 def start_joints(config: CellConfig, ik_model: CalibratedModel, model: CalibratedModel | None, T_d: np.ndarray,
-                 generator: str, threshold_m: float) -> Start:  # fmt: skip
+                 generator: str, threshold_m: float, ensemble: list[str] | None = None) -> Start:  # fmt: skip
     """Model-based compensated joints (nominal IK without a model), checked for reach, singularity, envelope."""
     full_pose = T_d.ndim == 3
     gen = generator if full_pose else None
     home = config.q_home_rad
     if full_pose:
-        plain = compensate(ik_model, T_d, generator=gen, max_iter=0, threshold_m=threshold_m, q_near=home)
+        plain = compensate(
+            ik_model,
+            T_d,
+            generator=gen,
+            max_iter=0,
+            threshold_m=threshold_m,
+            q_near=home,
+            generators=ensemble,
+        )
         q_plain, status = plain.q, plain.status.astype(object)
         seed = None
     else:  # points: the SMR facing the tracker (no tilt), nominal IK of that pose is the uncompensated start
@@ -326,6 +383,7 @@ def start_joints(config: CellConfig, ik_model: CalibratedModel, model: Calibrate
             threshold_m=min(threshold_m, 1e-5) / 10,
             q_near=home,
             q_seed=seed,
+            generators=ensemble,
         )
         q = res.q
         status = np.where(status == "ok", res.status, status).astype(object)
@@ -360,19 +418,58 @@ def target_ids(count: int) -> list[str]:
     return [f"t{k + 1:03d}" for k in range(count)]
 
 
-def plan(config: CellConfig, *, model: CalibratedModel | str | None, targets: int | str, generator: str,
-         threshold_m: float, max_iter: int, smrs: int, seed: int) -> Plan:  # fmt: skip
-    """The first pose of every usable target (model-based start), for --dry-run and the envelope check."""
-    the_model = load_model(model)
-    if the_model is None:
+def paper_options(pt_paper: bool, model: object, smrs: int, generator: str, max_iter: int, patience: int,
+                  threshold_m: float) -> tuple[int, str, int, int, float]:  # fmt: skip
+    """(smrs, generator, max_iter, patience, threshold_m): the PT paper's experiment's with --pt-paper, else as
+    given. The paper's experiment starts from the nominal model: --pt-paper with --model is refused."""
+    if not pt_paper:
+        return smrs, generator, max_iter, patience, threshold_m
+    if model is not None:
+        raise ParameterError("--pt-paper starts from the nominal model (no calibration): drop --model")
+    return PT_PAPER
+
+
+def ensemble_subset(text: str) -> list[str]:
+    """The --ensemble list ('yin,zyz,quaternion') as checked generator names."""
+    try:
+        return ensemble_names([g.strip() for g in str(text).split(",") if g.strip()])
+    except ValueError as exc:
+        raise ParameterError(f"--ensemble {text}: {exc}") from exc
+
+
+def _campaign_model(config: CellConfig, campaign: str | Path | None) -> CalibratedModel:
+    """The nominal model on the campaign's registration (and tool fit), for planning a loop without --model."""
+    try:
+        if campaign is None or not Path(campaign).exists():
+            raise CampaignError("no campaign")
+        with CampaignStore(campaign, create=False) as store:
+            reg = store.step_result("registration", "fit")
+            fit = store.step_result("tool_fit", "fit") or {}
+    except CampaignError:
+        reg = None
+    if reg is None:
         raise ValueError(
-            "planning the loop needs --model (the registration it would use is only known on the cell)"
+            "a loop without --model starts from the nominal model on the campaign's registration: "
+            "give --campaign with a registration (hil run registration), or --model"
         )
-    T_d = resolve_targets(targets, config, the_model, seed, smrs)
-    ik_model = nominal_model(
-        config, the_model.T_tracker_base, the_model.tools.get(1, config.nests_flange_m[0])
+    nest = fit.get("nests_flange_mm", {}).get("1")
+    p_nest = np.asarray(nest, float) / 1e3 if nest is not None else config.nests_flange_m[0]
+    return nominal_model(config, np.asarray(reg["T_tracker_base"], float), p_nest)
+
+
+def plan(config: CellConfig, *, model: CalibratedModel | str | None, targets: int | str, generator: str,
+         threshold_m: float, max_iter: int, patience: int, smrs: int, seed: int, ensemble: str,
+         pt_paper: bool, campaign: str | Path | None = None) -> Plan:  # fmt: skip
+    """The first pose of every usable target (model-based start), for --dry-run and the envelope check."""
+    smrs, generator, max_iter, patience, threshold_m = paper_options(
+        pt_paper, model, smrs, generator, max_iter, patience, threshold_m
     )
-    start = start_joints(config, ik_model, the_model, T_d, generator, threshold_m)
+    ensemble_subset(ensemble)
+    the_model = load_model(model)
+    base = the_model if the_model is not None else _campaign_model(config, campaign)
+    T_d = resolve_targets(targets, config, base, seed, smrs)
+    ik_model = nominal_model(config, base.T_tracker_base, base.tools.get(1, config.nests_flange_m[0]))
+    start = start_joints(config, ik_model, the_model, T_d, generator, threshold_m, ensemble_subset(ensemble))
     ids = target_ids(len(T_d))
     poses = [
         PlannedPose(f"{i}/i0", NAME, STEP, q, "nest1")
@@ -389,14 +486,21 @@ def plan(config: CellConfig, *, model: CalibratedModel | str | None, targets: in
 # ------------------------------------------------------------------------------------------ the loop
 def close_the_loop(session: Session, *, model: CalibratedModel | str | None, targets: int | str | np.ndarray,
                    generator: str, threshold_m: float, max_iter: int, smrs: int, seed: int, shots: int | None,
-                   measure_uncompensated: bool, patience: int) -> LoopResult:  # fmt: skip
+                   measure_uncompensated: bool, patience: int, ensemble: str = ",".join(GENERATORS),
+                   pt_paper: bool = False, approach_rad: float = 0.0) -> LoopResult:  # fmt: skip
     """Run the measured pseudo-target loop on every target (see the module docstring); resumable.
 
     `targets`: a count of random held-out targets in the sampled volume, a CSV path, or an array (tracker
     frame, m). `max_iter`: corrections after the first measurement. `patience`: stop a target after this
     many corrections in a row without a gain beyond the noise margin (0: off). `measure_uncompensated` also
     measures each target's plain nominal IK once (`t007/u`), the "uncompensated" row of the before / after table.
+    `pt_paper` runs the PT paper's experiment (PT_PAPER); `ensemble` names the generators of --generator ensemble;
+    `approach_rad` > 0 makes every measured pose approached from the same side on every joint (backlash).
     """
+    smrs, generator, max_iter, patience, threshold_m = paper_options(
+        pt_paper, model, smrs, generator, max_iter, patience, threshold_m
+    )
+    subset = ensemble_subset(ensemble) if generator == ENSEMBLE else None
     the_model = load_model(model)
     reg = session.require_registration()
     T_tb = the_model.T_tracker_base if the_model is not None else reg.T_tracker_base
@@ -405,11 +509,14 @@ def close_the_loop(session: Session, *, model: CalibratedModel | str | None, tar
     )
     T_d = resolve_targets(targets, session.config, ik_model, seed, smrs)
     _pin_targets(
-        session, T_d, generator, round(threshold_m * 1e3, 12), max_iter, smrs, the_model is not None, patience
-    )
+        session, T_d, generator, round(threshold_m * 1e3, 12), max_iter, smrs, the_model is not None, patience,
+        subset,
+    )  # fmt: skip
     nominal_ik = nominal_model(session.config, T_tb, ik_model.tools[1])
-    start = start_joints(session.config, nominal_ik, the_model, T_d, generator, threshold_m)
-    loop = _Loop(session, ik_model, T_d, generator, threshold_m, max_iter, smrs, shots, patience)
+    start = start_joints(session.config, nominal_ik, the_model, T_d, generator, threshold_m, subset)
+    loop = _Loop(
+        session, ik_model, T_d, generator, threshold_m, max_iter, smrs, shots, patience, subset, approach_rad
+    )
     ids = target_ids(len(T_d))
     results = [TargetResult(i, str(s)) for i, s in zip(ids, start.status, strict=True)]
     todo = [k for k, r in enumerate(results) if r.status == "ok"]
@@ -439,9 +546,10 @@ def _pin_targets(
     smrs: int,
     model_based: bool,
     patience: int,
+    ensemble: list[str] | None = None,
 ) -> None:
     """Record the targets and options on the first run; a resume with other ones would mix two jobs.
-    (A loop pinned before `patience` existed resumes with any patience.)"""
+    (A loop pinned before `patience` or `ensemble` existed resumes with any of them.)"""
     pinned = session.step_result(NAME, "targets")
     options = {
         "generator": generator,
@@ -450,12 +558,14 @@ def _pin_targets(
         "smrs": smrs,
         "model_based": model_based,
         "patience": patience,
+        "ensemble": ensemble,
     }
     if pinned is None:
         session.finish_step(NAME, "targets", {"targets_m": np.round(T_d, 12).tolist(), **options})
         return
     same = np.shape(pinned["targets_m"]) == T_d.shape and np.allclose(pinned["targets_m"], T_d, atol=1e-9)
-    if not same or any(pinned.get(k, v if k == "patience" else None) != v for k, v in options.items()):
+    late = ("patience", "ensemble")  # options added after campaigns were pinned
+    if not same or any(pinned.get(k, v if k in late else None) != v for k, v in options.items()):
         raise CampaignStopped(
             "this campaign already holds a pseudo-target loop with other targets or options",
             "re-run with the same options and model to resume it, or use a new --campaign file",
@@ -466,8 +576,11 @@ class _Loop:
     """Measure (or recall what is recorded), update the pseudo target, solve its IK: one target at a time."""
 
     def __init__(self, session: Session, ik_model: CalibratedModel, T_d: np.ndarray, generator: str,
-                 threshold_m: float, max_iter: int, smrs: int, shots: int | None, patience: int) -> None:  # fmt: skip
+                 threshold_m: float, max_iter: int, smrs: int, shots: int | None, patience: int,
+                 ensemble: list[str] | None = None, approach_rad: float = 0.0) -> None:  # fmt: skip
         self.session, self.generator, self.threshold_m = session, generator, threshold_m
+        self.approach_rad = approach_rad
+        self.generators = (ensemble or list(GENERATORS)) if generator == ENSEMBLE else [generator]
         self.max_iter, self.smrs, self.shots, self.patience = max_iter, smrs, shots, patience
         self.full_pose = smrs == 3
         self.ik = PseudoTargetIK(ik_model, "kinematic", smr=1, full_pose=self.full_pose)
@@ -495,10 +608,20 @@ class _Loop:
         )
         return np.asarray(record.p_tracker_m, float)
 
+    def _approach(self, point_id: str, q: np.ndarray) -> None:
+        """Before a point not yet recorded, pass through q - approach on every joint, so each joint reaches q
+        moving the same way every time (a backlash-free approach); nothing when off or recorded."""
+        if self.approach_rad > 0 and not self.session.recorded(NAME, STEP, point_id):
+            try:
+                self.session.move_joints(q - self.approach_rad, label=point_id + " approach")
+            except EnvelopeError as exc:  # checked before any motion: go straight instead
+                self.session.event("approach_skipped", f"{point_id}: {exc}", point_id=point_id)
+
     def measure(self, base_id: str, q: np.ndarray) -> np.ndarray:
         """Measured T_tracker_tool (4, 4): SMR 1's point, and with three SMRs the flange orientation from
         the nest layout fitted to the three measured nests (Kabsch). Sets `sigma_m`, its per-axis noise."""
         self.sigma_m = 0.0
+        self._approach(f"{base_id}/n1" if self.smrs > 1 else base_id, q)
         T = np.eye(4)
         if self.smrs == 1:
             T[:3, 3] = self._point(base_id, q, 1)
@@ -514,13 +637,13 @@ class _Loop:
         T_p = self.ik.from_flange(forward_kinematics(self.ik.kin, q[None]))  # the pseudo target FK(q)
         T_d = self.T_d4[k : k + 1]
         best, stale = np.inf, 0  # best error measure so far; corrections in a row without a real gain
+        T_a, sigma = self.measure(f"{tid}/i0", q)[None], self.sigma_m
         for i in range(self.max_iter + 1):
-            T_a = self.measure(f"{tid}/i{i}", q)[None]
             cost, dp, dr = pose_cost(T_a, T_d, self.full_pose, LENGTH_SCALE_M)
             out.errors_m.append(float(dp[0]))
             out.rotation_errors_rad.append(float(dr[0]))
-            out.noise_m.append(self.sigma_m)
-            stale = 0 if i == 0 or cost[0] < best - GAIN_SIGMAS * self.sigma_m else stale + 1
+            out.noise_m.append(sigma)
+            stale = 0 if i == 0 or cost[0] < best - GAIN_SIGMAS * sigma else stale + 1
             if cost[0] < best:
                 best, out.best_iteration, out.q_rad = float(cost[0]), i, q.copy()
             if best < self.threshold_m:
@@ -532,20 +655,46 @@ class _Loop:
             if i == self.max_iter:
                 out.status = "max_iter"
                 return
+            proposals, reason = self._propose(T_d, T_a, T_p, q)
+            if not proposals:
+                out.status = reason
+                return
+            T_a, q, T_p, sigma = self._measure_best(f"{tid}/i{i + 1}", T_d, proposals)
+
+    def _propose(
+        self, T_d: np.ndarray, T_a: np.ndarray, T_p: np.ndarray, q: np.ndarray
+    ) -> tuple[list[tuple[str, np.ndarray, np.ndarray]], str]:
+        """Each generator's next pseudo target and its joints (name, T_p, q), and why the first failed one did."""
+        proposals, why = [], ""
+        names = self.generators if self.full_pose else self.generators[:1]  # points: one position update
+        cfg = self.session.config
+        for name in names:
             if self.full_pose:
-                T_p = update_pseudo_target(self.generator, T_d, T_a, T_p)
+                T_new = update_pseudo_target(name, T_d, T_a, T_p)
             else:
-                T_p = T_p.copy()
-                T_p[:, :3, 3] = update_pseudo_position(T_d[:, :3, 3], T_a[:, :3, 3], T_p[:, :3, 3])
-            q_new, reason = self.ik.solve(T_p, q[None], project=self.generator == "add")
+                T_new = T_p.copy()
+                T_new[:, :3, 3] = update_pseudo_position(T_d[:, :3, 3], T_a[:, :3, 3], T_p[:, :3, 3])
+            q_new, reason = self.ik.solve(T_new, q[None], project=name == "add")
             if reason[0] != "ok":
-                out.status = str(reason[0])
-                return
-            cfg = self.session.config
-            if cfg.envelope.outside(cfg.nominal, q_new, cfg.nests_flange_m)[0]:
-                out.status = "envelope"
-                return
-            q = q_new[0]
+                why = why or str(reason[0])
+            elif cfg.envelope.outside(cfg.nominal, q_new, cfg.nests_flange_m)[0]:
+                why = why or "envelope"
+            else:
+                proposals.append((name, T_new, q_new[0]))
+        return proposals, why
+
+    def _measure_best(
+        self, base_id: str, T_d: np.ndarray, proposals: list[tuple[str, np.ndarray, np.ndarray]]
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+        """Measure each proposal (one: `t007/i2`; an ensemble: `t007/i2/zyz`, ...), keep the best: (T_a, q, T_p, noise)."""
+        found = []
+        for name, T_p, q in proposals:
+            point_id = base_id if self.generator != ENSEMBLE else f"{base_id}/{name}"
+            T_a = self.measure(point_id, q)[None]
+            cost = pose_cost(T_a, T_d, self.full_pose, LENGTH_SCALE_M)[0][0]
+            found.append((float(cost), T_a, q, T_p, self.sigma_m))
+        _, T_a, q, T_p, sigma = min(found, key=lambda f: f[0])
+        return T_a, q, T_p, sigma
 
 
 def summary(result: LoopResult) -> str:
@@ -559,18 +708,38 @@ PROCEDURE = Procedure(
     parameters=(
         Parameter(
             "model",
-            "calibrated model (model.json from hil calibrate / hil diagnose)",
+            "calibrated model (model.json from hil calibrate / hil diagnose); absent: the nominal model (no calibration)",
             None,
             str,
-            required=True,
         ),
         Parameter(
             "targets",
-            "N random held-out targets in the sampled volume, or a CSV: x_mm, y_mm, z_mm (tracker frame) [, rx_deg, ry_deg, rz_deg]",
+            "N random held-out targets in the sampled volume, circle:N (N points on a circle, the PT paper's trajectory), or a CSV: x_mm, y_mm, z_mm (tracker frame) [, rx_deg, ry_deg, rz_deg]",
             "20",
             str,
         ),
-        Parameter("generator", "pseudo-target generator", "yin", str, choices=tuple(GENERATORS)),
+        Parameter("generator", "pseudo-target generator", "yin", str, choices=(*GENERATORS, ENSEMBLE)),
+        Parameter(
+            "ensemble",
+            "generators of --generator ensemble, comma-separated (each proposal is measured, the best kept)",
+            ",".join(GENERATORS),
+            str,
+        ),
+        Parameter(
+            "approach",
+            "reach every measured pose from this far below on every joint, the same side each time (backlash); 0 = straight",
+            0.0,
+            float,
+            unit="deg",
+            minimum=0.0,
+            maximum=5.0,
+        ),
+        Parameter(
+            "pt_paper",
+            "the PT paper's measured experiment: nominal start (no --model), 3 SMRs, ZYZ generator, 2 corrections",
+            False,
+            bool,
+        ),
         Parameter(
             "threshold",
             "stop below this measured error",

@@ -141,6 +141,11 @@ def test_flange_holes_follow_the_tool_paper_layout():
 
 def test_smr_placement_and_errors():
     cell = SimulatedCell()
+    with pytest.raises(ValueError, match="tool covers the flange holes"):
+        cell.place_smr(1, SmrLocation("face", point_m=(0.02, 0.01)))
+    cell.unmount_tool()
+    with pytest.raises(ValueError, match="mount the tool before"):
+        cell.place_smr(1, SmrLocation("nest", index=1))
     cell.place_smr(1, SmrLocation("face", point_m=(0.02, 0.01)))
     T = cell.T_tracker_base @ cell.T_base_flange_true()
     expected = T[:3, :3] @ np.array([0.02, 0.01, SMR_RADIUS_M]) + T[:3, 3]
@@ -149,6 +154,8 @@ def test_smr_placement_and_errors():
         cell.place_smr(1, SmrLocation("hole", index=9))
     with pytest.raises(ValueError, match="no SMR 7"):
         cell.place_smr(7, SmrLocation("nest", index=1))
+    cell.mount_tool()  # the SMR comes off the face first
+    assert cell.smr_location(1).kind == "fixed"
     with pytest.raises(ValueError, match="needs an index"):
         SmrLocation("nest")
     with pytest.raises(ValueError, match="fixed in the room"):
@@ -160,3 +167,15 @@ def test_bad_config_is_refused():
         SimCellConfig(robot="kuka")
     with pytest.raises(ValueError, match="finite"):
         SimulatedCell().set_commanded_joints(np.array([0, 0, np.nan, 0, 0, 0]))
+
+
+def test_the_tool_comes_off_and_goes_back_on_turned():
+    """Mounting the tool 60 deg off its dowel turns every nest about flange z; the SMR in a nest comes off with it."""
+    cell = SimulatedCell()
+    drawn = cell.smr_point_flange(SmrLocation("nest", index=2))
+    cell.unmount_tool()
+    assert cell.smr_location(1).kind == "fixed" and not cell.ground_truth()["tool_mounted"]
+    cell.mount_tool(np.deg2rad(60.0))
+    turned = cell.smr_point_flange(SmrLocation("nest", index=2))
+    c, s = np.cos(np.deg2rad(60.0)), np.sin(np.deg2rad(60.0))
+    np.testing.assert_allclose(turned, [c * drawn[0] - s * drawn[1], s * drawn[0] + c * drawn[1], drawn[2]])

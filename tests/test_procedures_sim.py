@@ -74,6 +74,28 @@ def test_tool_fit_finds_every_nest_within_30_um(campaign):
     assert fit.distance_check_m < 3e-3
 
 
+def test_tool_fit_runs_in_the_papers_order_validates_and_redoes_the_registration(campaign):
+    """Bare flange first, the tool mounted by the operator without a move, the nests, then the two methods'
+    check and the 20-pose validation; the registration is then refitted with the fitted nest."""
+    with CampaignStore(campaign["path"]) as store:
+        rows = store.measurements("tool_fit")
+        events = " | ".join(store.events()["message"])
+        registration_fit = store.step_result("registration", "fit")
+        fit = store.step_result("tool_fit", "fit")
+    assert list(dict.fromkeys(rows["step"])) == ["flange", "nests", "distance_check", "validation"]
+    flange = rows[rows["step"].isin(["flange", "nests"])]
+    assert (
+        len(flange) == 11
+        and np.ptp(flange[[f"q{i}_rad" for i in range(1, 7)]].to_numpy(), axis=0).max() < 1e-4
+    )
+    assert events.index("Take SMR 1 out of its nest and the tool off") < events.index("Mount the tool")
+    assert (
+        registration_fit["tool"] == "tool_fit"
+        and registration_fit["nest_flange_mm"] == fit["nests_flange_mm"]["1"]
+    )
+    assert fit["validation"]["poses"] == 20 and 0.1 < fit["validation"]["rms_mm"] < 3
+
+
 def test_grid_records_every_planned_reachable_point_once(campaign):
     grid, plan = campaign["grid"], campaign["plan"]
     assert grid.recorded == grid.planned == sum(p.step == "grid" for p in plan.poses)

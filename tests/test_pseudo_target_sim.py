@@ -37,7 +37,7 @@ def cell(tmp_path_factory):
         base = folder / "registered.sqlite"
         with session_on(config, base) as session:
             registration.PROCEDURE(session)
-            tool_fit.PROCEDURE(session, poses=2, check_poses=4)
+            tool_fit.PROCEDURE(session, check_poses=6, validation_poses=4)
         yield {"config": config, "model": model, "base": base, "folder": folder}
 
 
@@ -271,3 +271,61 @@ def test_cli_dry_run_plans_the_first_poses_and_bad_options_exit_2(cell, tmp_path
         done = run_hil(*base, "--dry-run", *bad, cwd=tmp_path, capsys=capsys)
         assert done.returncode == 2 and "what to do" in done.stderr, done.stderr
     assert not (tmp_path / "c.sqlite").exists()
+
+
+def test_the_pt_paper_experiment_starts_nominal_and_gains_at_each_measured_iteration(cell):
+    """--pt-paper: no model, three SMRs, ZYZ, two corrections: the first measured correction takes the mean
+    position and orientation errors down by an order of magnitude (the paper: 1.1257 -> 0.0262 mm, 0.3155 ->
+    0.012 deg); the second one stays there, within the measurement noise (the simulated cell's noise floor is
+    reached in one correction)."""
+    with session_on(cell["config"], campaign(cell, "paper")) as session:
+        result = pseudo_target.PROCEDURE(session, pt_paper=True, targets="3", seed=4, shots=3)
+    s = result.summary()
+    assert (s["smrs"], s["generator"], s["start"]) == (3, "zyz", "nominal IK")
+    errors = np.array([t.errors_m for t in result.visited])
+    assert errors.shape == (3, 3)  # every target: the nominal start and two measured corrections
+    mean = errors.mean(axis=0)
+    noise = np.mean([t.noise_m for t in result.visited])
+    assert mean[0] > 0.3e-3 and mean[1] < mean[0] / 10 and mean[2] < mean[1] + 3 * noise
+    rotation = np.array([t.rotation_errors_rad for t in result.visited]).mean(axis=0)
+    assert rotation[1] < rotation[0] / 5 and rotation[2] < rotation[0] / 5
+    assert s["position_mm"]["final"]["mean"] < s["position_mm"]["start"]["mean"] / 10
+
+
+def test_an_ensemble_measures_each_generators_proposal_and_keeps_the_best(cell):
+    with session_on(cell["config"], campaign(cell, "ensemble")) as session:
+        result = pseudo_target.PROCEDURE(
+            session, generator="ensemble", ensemble="zyz,quaternion", targets="2", smrs=3, max_iter=1,
+            patience=0, threshold_m=1e-6, seed=6, shots=3,
+        )  # fmt: skip
+        ids = set(session.store.measurements("pseudo_target", "loop")["point_id"])
+    assert {"t001/i1/zyz/n1", "t001/i1/quaternion/n3", "t002/i0/n2"} <= ids
+    assert not any("/i1/yin" in i for i in ids)  # only the chosen subset
+    assert all(t.errors_m[1] < t.errors_m[0] for t in result.visited)
+
+
+def test_cli_dry_run_of_the_pt_paper_plans_from_the_campaigns_registration(cell, tmp_path, capsys):
+    from tests.cli_in_process import run_hil
+
+    text = (cell["folder"] / "cell.toml").read_text().replace(cell["config"].robot_host, "127.254.254.254")
+    offline = tmp_path / "cell.toml"
+    offline.write_text(text)  # nothing listens there: a dry run must not try
+    registered = campaign(cell, "dry")
+    base = [
+        "run",
+        "pseudo_target",
+        "--cell",
+        str(offline),
+        "--dry-run",
+        "--pt-paper",
+        "--targets",
+        "circle:5",
+    ]
+    done = run_hil(*base, "--campaign", str(registered), cwd=tmp_path, capsys=capsys)
+    assert done.returncode == 0, done.stderr
+    assert "plan of pseudo_target: 5 poses" in done.stdout
+    done = run_hil(*base, "--campaign", str(tmp_path / "new.sqlite"), cwd=tmp_path, capsys=capsys)
+    assert done.returncode == 2 and "give --campaign with a registration" in done.stderr
+    done = run_hil(*base, "--campaign", str(registered), "--model", "m.json", cwd=tmp_path, capsys=capsys)
+    assert done.returncode == 2 and "drop --model" in done.stderr
+    assert not (tmp_path / "new.sqlite").exists()

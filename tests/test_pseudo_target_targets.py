@@ -28,3 +28,77 @@ def test_targets_with_part_of_an_orientation_are_refused(tmp_path):
     )
     with pytest.raises(ValueError, match="rx_deg, ry_deg, rz_deg"):
         read_targets_csv(tmp_path / "t.csv")
+
+
+def test_a_circle_of_targets_lies_on_one_circle_facing_the_tracker():
+    import tomllib
+
+    from hil.runner.cell_config import parse_cell_config
+    from procedures.pseudo_target import CIRCLE_RADIUS_M, circle_targets, nominal_model, resolve_targets
+    from tests.cell_fixtures import sim_cell_toml
+
+    config = parse_cell_config(tomllib.loads(sim_cell_toml(0)))
+    model = nominal_model(config, np.eye(4), config.nests_flange_m[0])
+    T = circle_targets(config, model, 12, full_pose=True)
+    centre = T[:, :3, 3].mean(axis=0)
+    np.testing.assert_allclose(np.linalg.norm(T[:, :3, 3] - centre, axis=1), CIRCLE_RADIUS_M, atol=1e-12)
+    np.testing.assert_allclose(T[:, :3, :3], np.broadcast_to(T[0, :3, :3], (12, 3, 3)))  # one orientation
+    assert resolve_targets("circle:7", config, model, 0, 1).shape == (7, 3)
+    assert resolve_targets("circle", config, model, 0, 1).shape == (2000, 3)  # the paper's trajectory
+    with pytest.raises(ValueError, match="circle:N with N >= 3"):
+        resolve_targets("circle:2", config, model, 0, 1)
+
+
+def test_the_pt_paper_option_and_the_ensemble_subset_are_checked():
+    from hil.runner.procedure import ParameterError
+    from procedures.pseudo_target import PT_PAPER, ensemble_subset, paper_options
+
+    assert paper_options(True, None, 1, "yin", 3, 2, 1e-5) == PT_PAPER == (3, "zyz", 2, 0, 0.0005e-3)
+    assert paper_options(False, "m.json", 1, "yin", 3, 2, 1e-5) == (1, "yin", 3, 2, 1e-5)
+    with pytest.raises(ParameterError, match="drop --model"):
+        paper_options(True, "m.json", 1, "yin", 3, 2, 1e-5)
+    assert ensemble_subset(" zyz, quaternion ") == ["zyz", "quaternion"]
+    with pytest.raises(ParameterError, match="--ensemble zyz,nope"):
+        ensemble_subset("zyz,nope")
+    with pytest.raises(ParameterError, match="at least one"):
+        ensemble_subset(",")
+
+
+class _Session:
+    """Just what the loop's approach uses: which points are recorded, motions and events, written down."""
+
+    def __init__(self, recorded: set[str], refuse: bool = False):
+        self.recorded_ids, self.refuse = recorded, refuse
+        self.moves: list[np.ndarray] = []
+        self.events: list[str] = []
+
+    def recorded(self, procedure: str, step: str, point_id: str) -> bool:
+        return point_id in self.recorded_ids
+
+    def move_joints(self, q: np.ndarray, label: str = "") -> None:
+        from hil.runner.envelope import EnvelopeError
+
+        if self.refuse:
+            raise EnvelopeError(f"{label} would leave the envelope")
+        self.moves.append(np.asarray(q, float))
+
+    def event(self, kind: str, message: str, **where) -> None:
+        self.events.append(kind)
+
+
+def test_the_one_sided_approach_passes_below_every_joint_only_before_a_new_point():
+    from procedures.pseudo_target import _Loop
+
+    loop = _Loop.__new__(_Loop)  # only the approach: no model, no targets
+    q = np.array([0.1, -1.2, 1.3, -1.5, -1.6, 0.2])
+    for approach, recorded, refuse, moves, events in (
+        (0.01, set(), False, 1, []),
+        (0.01, {"t001/i1/n1"}, False, 0, []),  # a resume replays, it does not move
+        (0.0, set(), False, 0, []),  # off
+        (0.01, set(), True, 0, ["approach_skipped"]),  # outside the envelope: straight, with an event
+    ):
+        loop.session, loop.approach_rad = _Session(recorded, refuse), approach
+        loop._approach("t001/i1/n1", q)
+        assert len(loop.session.moves) == moves and loop.session.events == events
+        if moves:
+            np.testing.assert_allclose(loop.session.moves[0], q - 0.01)

@@ -68,8 +68,8 @@ def test_an_unreachable_robot_is_a_clear_error(tmp_path, capsys):
 def test_bad_procedure_options_are_refused(tmp_path, capsys):
     done = _run(tmp_path, sim_cell_toml(), "grid_sampling", "--step-mm", "5", capsys=capsys)
     assert done.returncode == 2 and "--step-mm 5" in done.stderr and "20..500 mm" in done.stderr
-    done = _run(tmp_path, sim_cell_toml(), "tool_fit", "--poses", "1", capsys=capsys)
-    assert done.returncode == 2 and "--poses 1" in done.stderr and "at least 2" in done.stderr
+    done = _run(tmp_path, sim_cell_toml(), "tool_fit", "--check-poses", "3", capsys=capsys)
+    assert done.returncode == 2 and "--check-poses 3" in done.stderr and "at least 6" in done.stderr
     assert not (tmp_path / "c.sqlite").exists()
 
 

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
-from hil.geometry.se3 import fit_circle_3d, make_transform
+from hil.geometry.se3 import fit_circle_3d, fit_rigid, make_transform, rotation_log
 
 SMR_RADIUS_M = 0.01905
 
@@ -104,3 +104,85 @@ def tool_point_by_distances(
     guess = np.zeros(3) if p_flange_guess is None else np.asarray(p_flange_guess, float)
     sol = least_squares(misfit, guess, method="lm", xtol=1e-14, ftol=1e-14)
     return sol.x, float(np.sqrt(np.mean(sol.fun**2)))
+
+
+def seated_face_height_m(smr_radius_m: float, hole_diameter_m: float) -> float:
+    """Expected height of a face-resting SMR's centre above the hole-ball plane: r - sqrt(r^2 - (d/2)^2)
+    (0.288 mm for a 1.5" SMR in 6.6 mm holes, the tool paper's flange)."""
+    if not 0.0 < hole_diameter_m < 2 * smr_radius_m:
+        raise ValueError("the hole diameter must lie between 0 and the SMR's diameter")
+    return float(smr_radius_m - np.sqrt(smr_radius_m**2 - (hole_diameter_m / 2) ** 2))
+
+
+def hole_angles_rad(T_tracker_flange: np.ndarray, p_tracker_holes: dict[int, np.ndarray]) -> dict[int, float]:
+    """Each hole ball's angle (rad) around the fitted flange axis, from the fitted +x, in (-pi, pi]."""
+    T = np.asarray(T_tracker_flange, float)
+    return {
+        k: float(np.arctan2(*(T[:3, :3].T @ (np.asarray(p, float) - T[:3, 3]))[[1, 0]]))
+        for k, p in p_tracker_holes.items()
+    }
+
+
+def hole_angle_errors_rad(angles_rad: dict[int, float]) -> dict[int, float]:
+    """How far each of holes 1..6 sits from its nominal place (k - 3.5) * 60 deg, wrapped into (-pi, pi]."""
+    return {
+        k: float(np.angle(np.exp(1j * (a - np.deg2rad((k - 3.5) * 60.0)))))
+        for k, a in angles_rad.items()
+        if 1 <= k <= 6
+    }
+
+
+def bisector_error_rad(angles_rad: dict[int, float]) -> float:
+    """Angle between hole 7's direction and the bisector of holes 3 and 4 (the paper's second way to +x)."""
+    bisector = np.angle(np.exp(1j * angles_rad[3]) + np.exp(1j * angles_rad[4]))
+    return float(np.angle(np.exp(1j * (angles_rad[7] - bisector))))
+
+
+def distance_method_sigma_m(
+    T_base_flange: np.ndarray, p_tracker: np.ndarray, p_flange: np.ndarray, misfit_rms_m: float
+) -> float:
+    """Standard error (m, 3-D) of the distance-constraint tool point: its misfit (mostly the robot's own error)
+    through the equations' geometry; the N(N-1)/2 pair equations carry only N - 3 independent points' worth
+    of information, so the formal covariance is inflated by sqrt(pairs / (N - 3))."""
+    T = np.asarray(T_base_flange, float)
+    P = np.asarray(p_tracker, float)
+    n = len(P)
+    if n < 4:
+        raise ValueError("the distance method's standard error needs at least 4 poses")
+    i, j = np.triu_indices(n, k=1)
+    R, t = T[:, :3, :3], T[:, :3, 3]
+    b = R @ np.asarray(p_flange, float) + t
+    d = b[i] - b[j]
+    u = d / np.linalg.norm(d, axis=1)[:, None]
+    J = np.einsum("ka,kab->kb", u, R[i] - R[j])
+    cov = misfit_rms_m**2 * np.linalg.inv(J.T @ J)
+    return float(np.sqrt(np.trace(cov) * len(i) / (n - 3)))
+
+
+@dataclass(frozen=True)
+class ToolOrientation:
+    """The tool as mounted against its drawing: the rotation taking the drawn nests onto the fitted ones."""
+
+    T_flange_tool: np.ndarray  # (4, 4): drawing (tool) frame in the flange frame
+    rotation_rad: float  # angle of that rotation: 0 for a tool on its dowel
+    shape_error_m: float  # worst nest off the rigidly moved drawing: a swapped nest, a wrong drawing
+
+
+def tool_orientation(p_flange_drawn: np.ndarray, p_flange_fitted: np.ndarray) -> ToolOrientation:
+    """Tool orientation from three or more nests (K, 3): the best rigid map drawing -> fit (Kabsch)."""
+    drawn = np.asarray(p_flange_drawn, float)
+    fitted = np.asarray(p_flange_fitted, float)
+    if drawn.shape != fitted.shape or drawn.ndim != 2 or len(drawn) < 3:
+        raise ValueError("the tool's orientation needs three or more nests, drawn and fitted")
+    T, _ = fit_rigid(drawn, fitted)
+    moved = drawn @ T[:3, :3].T + T[:3, 3]
+    angle = float(np.linalg.norm(rotation_log(T[:3, :3])))
+    return ToolOrientation(T, angle, float(np.max(np.linalg.norm(moved - fitted, axis=1))))
+
+
+def common_point_error_m(p_base_m: np.ndarray, p_tracker_m: np.ndarray) -> np.ndarray:
+    """The tool paper's validation: predicted base points moved onto the tracker's by the best rigid
+    transform (common-point transformation); each point's remaining distance (N,) m."""
+    p_base = np.asarray(p_base_m, float)
+    T, _ = fit_rigid(p_base, p_tracker_m)
+    return np.linalg.norm(p_base @ T[:3, :3].T + T[:3, 3] - np.asarray(p_tracker_m, float), axis=1)

@@ -182,9 +182,15 @@ def _table(rows: list[dict], columns: list[str], fmt: dict | None = None) -> str
     return f"<table><tr>{head}</tr>{''.join(body)}</table>"
 
 
-def render_html(report: DiagnosisReport, compensation: dict | None = None, active: str | None = None) -> str:
+def render_html(
+    report: DiagnosisReport,
+    compensation: dict | None = None,
+    active: str | None = None,
+    tool_fit: dict | None = None,
+) -> str:
     """The report page; `compensation` (procedures.pseudo_target's summary) adds the measured loop's table,
-    `active` the active loop's rounds (an HTML section, hil.analysis.active_rounds.rounds_html)."""
+    `active` the active loop's rounds (an HTML section, hil.analysis.active_rounds.rounds_html), `tool_fit`
+    (the campaign's tool_fit step result) the tool fit's checks and its validation figure."""
     d = report_dict(report)
     parts = [
         *_head_html(report, d),
@@ -193,6 +199,8 @@ def render_html(report: DiagnosisReport, compensation: dict | None = None, activ
         *_calibration_html(d),
         _undecided_html(report),
     ]
+    if tool_fit:
+        parts.append(tool_fit_html(tool_fit))
     if active:
         parts.append(active)
     if compensation:
@@ -383,10 +391,62 @@ def _run_html(run: dict) -> str:
 
 
 def write_html(
-    report: DiagnosisReport, path: str | Path, compensation: dict | None = None, active: str | None = None
+    report: DiagnosisReport,
+    path: str | Path,
+    compensation: dict | None = None,
+    active: str | None = None,
+    tool_fit: dict | None = None,
 ) -> None:
     """Write the self-contained HTML report (tables + PNG plots embedded as base64)."""
-    Path(path).write_text(render_html(report, compensation, active))
+    Path(path).write_text(render_html(report, compensation, active, tool_fit))
+
+
+def tool_fit_html(fit: dict) -> str:
+    """The tool fit (procedures.tool_fit's step result): nests, the checks' figures, and the validation
+    figure: each validation pose's error for the flange-hole nest and the distance method's (tool paper, Fig. 10)."""
+    rows = [
+        {
+            "nest": j,
+            "x_mm": p[0],
+            "y_mm": p[1],
+            "z_mm": p[2],
+            "sigma_mm": fit.get("uncertainty_mm", {}).get(j),
+        }
+        for j, p in fit.get("nests_flange_mm", {}).items()
+    ]
+    parts = ["<h2>Tool fit (flange frame)</h2>", _table(rows, ["nest", "x_mm", "y_mm", "z_mm", "sigma_mm"], {
+        k: ".4f" for k in ("x_mm", "y_mm", "z_mm", "sigma_mm")})]  # fmt: skip
+    flange, check = fit.get("flange", {}), fit.get("distance_check", {})
+    turn, val = fit.get("tool_orientation", {}), fit.get("validation", {})
+    figures = [
+        ("hole balls off their circle, RMS", flange.get("circle_residual_mm"), "mm"),
+        ("face ball height (expected)", flange.get("face_height_mm"), f"mm ({flange.get('face_height_expected_mm', 0):.4f})"),
+        ("hole 7 off the 3-4 bisector", flange.get("bisector_error_deg"), "deg"),
+        ("tool turned against its drawing", turn.get("rotation_deg"), "deg"),
+        ("two methods' nest 1 apart (gate)", check.get("disagreement_mm"), f"mm ({check.get('gate_mm', 0):.2f})"),
+        ("validation RMS, flange-hole nest", val.get("rms_mm"), "mm"),
+        ("validation RMS, distance-method nest", val.get("distance_method_rms_mm"), "mm"),
+    ]  # fmt: skip
+    shown = [
+        {"check": name, "value": value, "unit": unit} for name, value, unit in figures if value is not None
+    ]
+    parts.append(_table(shown, ["check", "value", "unit"], {"value": ".4f"}))
+    if val.get("errors_mm"):
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig, ax = plt.subplots(figsize=(6.5, 3.2))
+        k = np.arange(1, len(val["errors_mm"]) + 1)
+        ax.bar(k - 0.2, val["errors_mm"], width=0.4, label=f"flange holes (RMS {val['rms_mm']:.3f} mm)")
+        ax.bar(k + 0.2, val["distance_method_errors_mm"], width=0.4,
+               label=f"distance constraint (RMS {val['distance_method_rms_mm']:.3f} mm)")  # fmt: skip
+        ax.set_xlabel("validation pose")
+        ax.set_ylabel("error after common-point fit (mm)")
+        ax.legend(fontsize=8)
+        parts.append(f"<h3>Validation on {val['poses']} poses</h3>" + _png(fig))
+    return "\n".join(parts)
 
 
 def question_text(q: dict) -> str:

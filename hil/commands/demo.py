@@ -117,8 +117,11 @@ def run(args: argparse.Namespace) -> int:
             except CampaignStopped as exc:
                 raise CliError(exc.message, exc.remedy + " (run hil demo again to resume)") from exc
     from hil.analysis.report import write_html
+    from hil.data.store import CampaignStore
 
-    write_html(report, out / "report.html", compensation=loop, active=active)
+    with CampaignStore(campaign, create=False) as store:
+        tool = store.step_result("tool_fit", "fit")
+    write_html(report, out / "report.html", compensation=loop, active=active, tool_fit=tool)
     print(
         f"\nwrote {out}/campaign.sqlite, cell.toml, grid.csv, validate.csv, report.json, report.html, model.json"
     )

@@ -57,7 +57,14 @@ def simulated_operator(control_address: str | None) -> ScriptedOperator:
     def lock_beam(step: OperatorStep) -> None:
         control.call("tracker.guide_beam", smr_id=step.smr or 1)
 
-    return ScriptedOperator({"place_smr": place_smr, "lock_beam": lock_beam})
+    return ScriptedOperator(
+        {
+            "place_smr": place_smr,
+            "lock_beam": lock_beam,
+            "unmount_tool": lambda step: control.call("unmount_tool"),
+            "mount_tool": lambda step: control.call("mount_tool"),
+        }
+    )
 
 
 def choose_operator(config: CellConfig, kind: str) -> Operator:

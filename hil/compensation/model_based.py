@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import copy
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, fields
 
 import numpy as np
@@ -216,12 +216,13 @@ def compensate(
     approach: np.ndarray | None = None,
     use_map: bool = True,
     ik_solver: IKSolver | None = None,
+    generators: Sequence[str] | None = None,
 ) -> CompensationResult:
     """Joints that make the model put the SMR on the targets (tracker frame, m): points (N, 3) or poses.
 
     Full-pose targets are T_tracker_tool (N, 4, 4): SMR centre and flange orientation; `generator` is
     one of `hil.compensation.target_update.GENERATORS` (default "yin") or "ensemble" (all of them, best joints per
-    target). Point targets (N, 3) leave the orientation free: the pseudo target is a point
+    target; `generators` picks the ensemble's subset). Point targets (N, 3) leave the orientation free: the pseudo target is a point
     (P_p <- P_p + P_d - P_a, the part all generators share). The first IK starts from `q_seed` (per
     target) if given, else from the closed-form solution on the branch of `q_near` (default
     `hil.geometry.ik.default_home`), for points in that posture's tool orientation. Stops per target below `threshold_m` of the error measure (position, or the
@@ -235,7 +236,7 @@ def compensate(
         raise ValueError("max_iter must be >= 0, patience >= 1, threshold_m and length_scale_m > 0")
     full_pose, T_d_in = _check_targets(targets)
     gen = generator or ("yin" if full_pose else "fixed")
-    names = list(GENERATORS) if gen == ENSEMBLE else [check_generator(gen)]
+    names = ensemble_names(generators) if gen == ENSEMBLE else [check_generator(gen)]
     if not full_pose:  # the generators differ only in the orientation, which points leave free
         names = [POINT_GENERATOR]
     predictor = PosePredictor(model, smr, t_s, temperature_c, approach, use_map)
@@ -278,6 +279,14 @@ def compensate(
     best = blocks[0][1] if len(blocks) == 1 else merge_results(blocks, N)
     best.outside_volume = outside
     return best
+
+
+def ensemble_names(generators: Sequence[str] | None = None) -> list[str]:
+    """The ensemble's generators: all of them, or the subset given (each checked, at least one)."""
+    names = list(GENERATORS) if generators is None else [check_generator(g) for g in generators]
+    if not names:
+        raise ValueError(f"the ensemble needs at least one generator of {', '.join(GENERATORS)}")
+    return names
 
 
 def compensate_path(

@@ -22,7 +22,9 @@ class OperatorStep:
     """One manual step: the instruction shown, and what it means in machine terms for a script.
 
     action: "place_smr" (put SMR `smr` at `location`: "nest1".."nestK", "hole1".."hole7", "face"),
-    "lock_beam" (guide the tracker's beam onto SMR `smr` until it locks) or "confirm" (anything else).
+    "lock_beam" (guide the tracker's beam onto SMR `smr` until it locks), "unmount_tool" (take the tool off
+    the flange, keeping the robot still), "mount_tool" (put it back on its dowel, keeping the robot still) or
+    "confirm" (anything else).
     face_point_m: where on the flange face the SMR should rest (x, y in the flange frame), for "face".
     """
 
