@@ -26,7 +26,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.paper_tool import EFFECTS, print_table  # noqa: E402
+from benchmarks.paper_tool import EFFECTS  # noqa: E402
 
 PAPER = "pt"
 
@@ -126,4 +126,7 @@ if __name__ == "__main__":
     parser.add_argument("--targets", type=int, help="random targets (default 5 quick, 20 full)")
     parser.add_argument("--circle-points", type=int, help="points of the circle (default 6 quick, 2000 full)")
     args = parser.parse_args()
-    print_table(rows(args.quick, args.targets, args.circle_points))
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from paper_cell import print_rows
+
+    print_rows(rows(args.quick, args.targets, args.circle_points))

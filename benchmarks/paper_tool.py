@@ -83,16 +83,11 @@ def rows(quick: bool) -> list[dict]:
     ]  # fmt: skip
 
 
-def print_table(table: list[dict]) -> None:
-    print(f"{'quantity':<52}{'paper':>10}{'ours':>10}  unit  note")
-    for r in table:
-        paper = "-" if r["paper_value"] is None else f"{r['paper_value']:.4f}"
-        print(f"{r['quantity']:<52}{paper:>10}{r['ours']:>10.4f}  {r['unit']:<4}  {r['note']}")
-
-
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     parser.add_argument("--quick", action="store_true", help="fewer poses and shots (about a minute)")
-    print_table(rows(parser.parse_args().quick))
+    from paper_cell import print_rows
+
+    print_rows(rows(parser.parse_args().quick))
