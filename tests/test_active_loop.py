@@ -40,7 +40,8 @@ def loop(tmp_path_factory):
     with running_cell(folder, time_scale=50.0, seed=2, extra_args=EFFECTS) as (_, config):
         with session_on(config, path) as session:
             registration.PROCEDURE(session)
-            tool_fit.PROCEDURE(session)
+            # the paper-sized tool fit is tested in test_procedures_sim
+            tool_fit.PROCEDURE(session, check_poses=6, validation_poses=4, shots=3)
             grid_sampling.PROCEDURE(session, step_m=0.2, validation=20)
         measure = Session.measure_point
         calls = {"n": 0}
