@@ -16,7 +16,8 @@ pytestmark = pytest.mark.sim  # `hil demo` starts the simulated cell
 
 def _demo_args(out) -> list[str]:
     # The whole job at a small size (200 mm grid, 20 validation poses, 3 loop targets, a 20-pose active round,
-    # 50x simulated time): every stage runs and the gravity compliance is still found; `make demo` runs it full.
+    # 50x simulated time, the smallest tool fit): every stage runs and the gravity compliance is still found;
+    # `make demo` runs it full.
     small = [
         "--step-mm",
         "200",
@@ -28,6 +29,10 @@ def _demo_args(out) -> list[str]:
         "20",
         "--time-scale",
         "50",
+        "--tool-check-poses",
+        "6",
+        "--tool-validation-poses",
+        "4",
     ]
     return [sys.executable, "-m", "hil", "demo", *small, "--out", str(out)]
 
@@ -93,3 +98,11 @@ def test_demo_refuses_an_unknown_effect(tmp_path, capsys):
         "demo", "--effects", "gravity", "--out", str(tmp_path), cwd=tmp_path, capsys=capsys
     )
     assert code != 0 and "unknown effect" in err
+
+
+def test_demo_refuses_too_small_a_tool_fit_before_starting_a_cell(tmp_path, capsys):
+    code, _, err = hil_in_process(
+        "demo", "--tool-check-poses", "3", "--out", str(tmp_path), cwd=tmp_path, capsys=capsys
+    )
+    assert code == 2 and "at least 6 check poses" in err
+    assert not (tmp_path / "campaign.sqlite").exists()

@@ -61,6 +61,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--active-poses", type=int, default=40, help="poses per active-loop round at most (default 40)"
     )
+    parser.add_argument(
+        "--tool-check-poses", type=int, default=25,
+        help="poses of the tool fit's distance-constraint check (default 25, the tool paper's; at least 6)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--tool-validation-poses", type=int, default=20,
+        help="validation poses of the tool fit (default 20, the tool paper's; at least 4)",
+    )  # fmt: skip
     parser.add_argument("--out", default="demo-out", help="output folder (default ./demo-out)")
     parser.add_argument(
         "--time-scale", type=float, default=20.0, help="simulated seconds per wall second (default 20)"
@@ -76,6 +84,12 @@ def run(args: argparse.Namespace) -> int:
         raise CliError("--validate must be at least 10", "give more validation poses")
     if not 0 <= args.loop_targets <= 200:
         raise CliError(f"--loop-targets {args.loop_targets} is outside 0..200", "use e.g. 10")
+    if args.tool_check_poses < 6 or args.tool_validation_poses < 4:
+        raise CliError(
+            f"--tool-check-poses {args.tool_check_poses} / --tool-validation-poses {args.tool_validation_poses}"
+            " is too few",
+            "give at least 6 check poses and 4 validation poses (the tool paper: 25 and 20)",
+        )
     if not 0 <= args.active_rounds <= 5:
         raise CliError(f"--active-rounds {args.active_rounds} is outside 0..5", "use e.g. 1, or 0 to skip")
     if not 1 <= args.active_poses <= 500:
@@ -178,7 +192,10 @@ def measure(args: argparse.Namespace, out: Path, campaign: Path) -> None:
     registration, tool_fit, grid_sampling = (load(n) for n in ("registration", "tool_fit", "grid_sampling"))
     with simulated_session(args, out, campaign) as session:
         print(registration.summary(registration(session)))
-        print(tool_fit.summary(tool_fit(session)))
+        fit = tool_fit(
+            session, check_poses=args.tool_check_poses, validation_poses=args.tool_validation_poses
+        )
+        print(tool_fit.summary(fit))
         result = grid_sampling(session, step_m=args.step_mm / 1e3, validation=args.validate, seed=args.seed)
         print(grid_sampling.summary(result))
 
