@@ -55,6 +55,7 @@ from hil.analysis.screening import (
     Screen,
     cv_residuals,
     effect_label,
+    group_key,
     held_out_gain,
     pick_winner,
     weakest_effect,
@@ -567,16 +568,30 @@ def _pair_lookahead(
     if not pairs:
         return None
     base_fit = _fit_plain(path.current.model, path.prob, path.free, iters=3)
-    screen = Screen(
-        base_fit, path.prob, path.free, path.partitions, base.sigma2, alpha, len(results) + len(pairs)
-    )
+    level = len(results) + len(pairs)
+    screen = Screen(base_fit, path.prob, path.free, path.partitions, base.sigma2, alpha, level)
+    singles = {}
+    for c in pool:
+        eff = make_effect(c.name, c.joint)
+        if eff.prepare(base.full.ctx, base_fit.nominal):
+            screen.test(eff)
+            singles[(c.name, c.joint)] = screen.heldout_errors.get((c.name, c.joint))
     best = None
     for a, b in pairs:
+        e_a, e_b = singles.get((a.name, a.joint)), singles.get((b.name, b.joint))
+        if e_a is None or e_b is None:
+            continue
         effects = [make_effect(c.name, c.joint) for c in (a, b)]
         if not all(e.prepare(base.full.ctx, base_fit.nominal) for e in effects):
             continue
         cand, model = screen.test(effects[1], effects[0])
-        if cand.passed and model is not None and (best is None or cand.gain_mm2 > best[1][0].gain_mm2):
+        if not cand.passed or model is None:
+            continue
+        e_pair = screen.heldout_errors[group_key(*effects)]
+        # each member must earn its place in the pair: the pair beats either alone on held-out points
+        if any(held_out_gain(e_one - e_pair, path.prob.pose)[1] >= alpha / level for e_one in (e_a, e_b)):
+            continue
+        if best is None or cand.gain_mm2 > best[1][0].gain_mm2:
             best = (a, (cand, model))
     return best
 

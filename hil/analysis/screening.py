@@ -122,6 +122,12 @@ def held_out_gain(d: np.ndarray, pose: np.ndarray | None) -> tuple[float, float]
     return gain, float(stats.t.sf(gain / se, m - 1)) if np.isfinite(se) else 1.0
 
 
+def group_key(*effects: Effect) -> tuple:
+    """(family, joint) of one effect, or a tuple of those for a group tested together (in the order added)."""
+    keys = tuple((e.family, e.joint) for e in effects)
+    return keys[0] if len(keys) == 1 else keys
+
+
 class Screen:
     """Linearised test of candidate effects against a base model (see the module docstring)."""
 
@@ -142,7 +148,7 @@ class Screen:
         self.sse0 = float(np.sum(fit0**2))
         # each tested candidate's held-out squared error per row (N,), for comparing two candidates point by
         # point (hil.analysis.rivals)
-        self.heldout_errors: dict[tuple[str, int | None], np.ndarray] = {}
+        self.heldout_errors: dict[tuple, np.ndarray] = {}  # keys: `group_key` of what was added
 
     def test(self, eff: Effect, *together: Effect) -> tuple[Candidate, CalibratedModel | None]:
         """`eff` added to the base model (after the effects `together` with it, when a group is tested: the
@@ -168,8 +174,7 @@ class Screen:
             return cand, None
         step: list = []
         fit, e = linear_fit_heldout(Jt[:, tfree], r_t, self.partitions, step)
-        if not together:
-            self.heldout_errors[(eff.family, eff.joint)] = e
+        self.heldout_errors[group_key(*together, eff)] = e
         sse = float(np.sum(fit**2))
         s2 = max(self.sigma2, sse / max(fit.size - int(tfree.sum()), 1))
         p_chi2 = float(stats.chi2.sf((self.sse0 - sse) / s2, n_new)) if self.sse0 > sse else 1.0
