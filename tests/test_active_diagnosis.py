@@ -191,3 +191,25 @@ def test_settled_says_which_questions_a_longer_campaign_decided():
     out = settled([a, b], [dict(b, correlation=0.97)], [{"name": "cyclic", "joint": 1}])
     assert out[0]["decided"] and out[0]["present"]
     assert not out[1]["decided"] and out[1]["now"]["correlation"] == 0.97
+
+
+def test_a_confounded_pair_the_evidence_decided_is_no_longer_called_unreliable():
+    """The demo said 'd5 and alpha5 ... decided' in its round and 'confounded: d5 and alpha5 ... unreliable'
+    in its conclusion: a calibration note on a pair only stays while the pair is an open question."""
+    from hil.analysis.diagnosis import without_decided_pairs
+    from hil.analysis.undecided import question
+
+    note = "confounded: {} and {} correlate +0.990 on these poses; each alone is unreliable (their combination is)"
+    cautions = [
+        {"kind": "calibration_note", "text": note.format("theta5", "a5")},
+        {"kind": "calibration_note", "text": note.format("d5", "alpha5")},
+        {"kind": "calibration_note", "text": "outlier region: 3 flagged rows"},
+        {"kind": "ambiguous_effects", "chosen": {}, "confounded_with": {}},
+    ]
+    still_open = [question("confounded_parameters", parameters=["a5", "theta5"], correlation=0.99)]
+    kept = without_decided_pairs(cautions, still_open)
+    assert [c.get("text", c["kind"])[:22] for c in kept] == [
+        "confounded: theta5 and",
+        "outlier region: 3 flag",
+        "ambiguous_effects",
+    ]

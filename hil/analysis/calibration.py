@@ -713,6 +713,9 @@ def _calibrate(
     return result
 
 
+CONFOUNDED_NOTE = "confounded: "  # the start of a note on a confounded pair (hil.analysis.diagnosis reads it)
+
+
 def _honest_numbers(result: CalibrationResult, problem: Problem, k: int = 5) -> None:
     """Spatial-fold spread of the parameters, confounded pairs and outlier regions, into the result."""
     rows = np.flatnonzero(~result.outliers)
@@ -724,7 +727,7 @@ def _honest_numbers(result: CalibrationResult, problem: Problem, k: int = 5) -> 
     pairs = confounded_pairs(result, inliers, evaluated=evaluated)
     for a, b, c in pairs:
         result.notes.append(
-            f"confounded: {a} and {b} correlate {c:+.3f} on these poses; each alone is unreliable (their "
+            f"{CONFOUNDED_NOTE}{a} and {b} correlate {c:+.3f} on these poses; each alone is unreliable (their "
             "combination is); poses that move them differently separate them"
         )
     result.outlier_regions = outlier_regions(problem.measured, result.outliers)

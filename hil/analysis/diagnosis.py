@@ -31,6 +31,7 @@ from threadpoolctl import threadpool_limits
 
 from hil.analysis.calibrated_model import CalibratedModel, initial_model
 from hil.analysis.calibration import (
+    CONFOUNDED_NOTE,
     CalibrationResult,
     Problem,
     calibrate,
@@ -284,6 +285,7 @@ def run_diagnosis(
             _validate(report, path, df, df_validate, reregister_validation)
         report.run = run_record(base.nominal.nominal, {"training": df, "validation": df_validate})
         report.undecided = undecided_questions(df, path, alpha, float(np.sqrt(base.sigma2)))
+        report.verdict["cautions"] = without_decided_pairs(report.verdict["cautions"], report.undecided)
         return report
 
 
@@ -305,6 +307,21 @@ def undecided_questions(df: pd.DataFrame, path: _Path, alpha: float, sigma_m: fl
         if ev["evidence_z"] is not None and ev["evidence_z"] >= ev["decisive_z"]:
             decided.add(id(ev["question"]))
     return [q for q in found if id(q) not in decided]
+
+
+def without_decided_pairs(cautions: list[dict], undecided: list[dict]) -> list[dict]:
+    """The cautions less the geometric calibration's notes on confounded pairs that the final diagnosis does
+    not leave open (its evidence separates them, or the final model no longer confounds them): the report
+    must not call a pair unreliable that the open questions call decided."""
+    open_pairs = {frozenset(q["parameters"]) for q in undecided if q["kind"] == "confounded_parameters"}
+
+    def decided(c: dict) -> bool:
+        if c["kind"] != "calibration_note" or not c["text"].startswith(CONFOUNDED_NOTE):
+            return False
+        words = c["text"].split()
+        return frozenset((words[1], words[3])) not in open_pairs
+
+    return [c for c in cautions if not decided(c)]
 
 
 def _quiet(phase: str, done: int, total: int) -> None:
