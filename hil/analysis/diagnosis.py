@@ -223,6 +223,7 @@ def run_diagnosis(
     compare_maps: bool = False,
     reregister_validation: str = "none",
     progress: Progress | None = None,
+    screening: str = "batched",
 ) -> DiagnosisReport:
     """The whole loop on a training dataset (and an optional validation dataset never used for fitting).
 
@@ -231,16 +232,21 @@ def run_diagnosis(
     residual is at the noise floor. `reregister_validation` ("none", "base", "base+tool") refits the
     base frame (and tool) of every stage on the validation campaign first, for a campaign taken from
     another tracker placement; the report then shows both. `progress(phase, done, total)` is called as
-    the work advances (the CLI draws it with an ETA).
+    the work advances (the CLI draws it with an ETA). `screening` "batched" judges a round's candidates
+    from one shared factorisation (hil.analysis.screening); "refit" fits each candidate on its own (the
+    slow reference the batched path reproduces).
 
     Held-out figures of every stage are computed at the end on the same rows and spatial folds: all
     points except those the final model rejects as outliers.
     """
+    if screening not in ("batched", "refit"):
+        raise ValueError(f"screening '{screening}': use batched or refit")
     if reregister_validation not in ("none", "base", "base+tool"):
         raise ValueError(f"reregister_validation '{reregister_validation}': use none, base or base+tool")
     df = drop_duplicate_rows(df, "training data")  # copies would count twice in every test
     with threadpool_limits(1):  # small dense problems: threads only contend
         base = _baseline_fit(df, robot, folds, seed, repeatability_mm, tool_guess_m, tracker_mpe_m, progress)
+        base.screening = screening
         path = _forward_selection(base, df, alpha, families, max_effects, banned=set())
         for _ in range(2):  # greedy got stuck above the floor? Try again without its first choice.
             if not path.effects or _excess_ratio(path.current.model, base, path) <= 1.1:
@@ -316,6 +322,7 @@ class _Baseline:
     n_folds: int
     seed: int
     progress: Progress = field(default=lambda phase, done, total: None)
+    screening: str = "batched"  # or "refit": each candidate fitted on its own (the reference)
 
     def rows_and_folds(self, result: CalibrationResult) -> tuple[Problem, list[list[np.ndarray]]]:
         """The rows the screening and the held-out figures use (inliers of `result`; for big campaigns a
@@ -418,10 +425,11 @@ def _screen_round(
     # every candidate alike (the problem is nearly linear there); the winner is refitted in full.
     screen = Screen(base_fit, path.prob, path.free, path.partitions, base.sigma2, alpha, len(cands))
     phase = f"effect {len(path.current.model.effects) + 1}: screening candidates"
+    test = screen.test if base.screening == "batched" else screen.test_refit
     out = []
     for i, eff in enumerate(cands):
         base.progress(phase, i, len(cands))
-        out.append(screen.test(eff))
+        out.append(test(eff))
     base.progress(phase, len(cands), len(cands))
     return out
 
@@ -519,7 +527,7 @@ def _confounded(base: _Baseline, path: _Path, best: Candidate, close: list[Candi
     for c in close:
         eff_c = make_effect(c.name, c.joint)
         eff_c.prepare(base.full.ctx, path.current.model.nominal)
-        left = after.test(eff_c)[0].gain_mm2
+        left = (after.test if base.screening == "batched" else after.test_refit)(eff_c)[0].gain_mm2
         if left < 0.25 * c.gain_mm2:
             out.append(
                 {
