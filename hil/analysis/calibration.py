@@ -366,7 +366,7 @@ def identify(model: CalibratedModel, problem: Problem, tol: float = 1e-3) -> Ide
 
 def _redundancy(Js: np.ndarray, Ninv: np.ndarray) -> np.ndarray:
     """Unit-weight redundancy numbers 1 - a_i N^-1 a_i^T of each row (clipped below at 0.05)."""
-    h = np.einsum("ij,jk,ik->i", Js, Ninv, Js)
+    h = np.sum((Js @ Ninv) * Js, axis=1)  # one BLAS product: a three-operand einsum loops in C, ~10x slower
     return np.clip(1.0 - h, 0.05, None)
 
 
