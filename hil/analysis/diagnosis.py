@@ -1,5 +1,10 @@
 """Close the loop: calibrate, look at the residual, test candidate effects, add the one that helps, repeat.
 
+Every fit and test uses every equation the data has: each SMR's position and, from a 6-DoF probe, its
+orientation, each weighted by its noise (the tracker's MPE, the probe's stated angle noise; see
+hil.analysis.calibration.Problem); the held-out figures (mm) are of positions. Several SMRs at one pose are
+one sample of the pose's error (they share its fold and count once in the tests).
+
 Selection rule for each round (every candidate from `hil.analysis.effects` the data could reveal):
 1. add the candidate to the current model and re-run the identifiability analysis on the joint
    (geometry + effects) Jacobian, so coefficients the data cannot separate from the geometry are merged;
@@ -29,8 +34,9 @@ import pandas as pd
 from scipy import stats
 from threadpoolctl import threadpool_limits
 
-from hil.analysis.calibrated_model import CalibratedModel, initial_model
+from hil.analysis.calibrated_model import CalibratedModel, initial_model, with_initial_probes
 from hil.analysis.calibration import (
+    PROBE_ANGLE_NOISE_RAD,
     CalibrationResult,
     Problem,
     calibrate,
@@ -358,9 +364,17 @@ def _baseline_fit(
     tell("geometric calibration", 1, 2)
     lm = calibrate(df, robot, "lm", tool_guess_m=tool_guess_m)
     tell("geometric calibration", 2, 2)
-    full = Problem.from_frame(ridge.model, df)
-    nominal = initial_model(robot, df, tool_guess_m)
-    reg_free = np.array([n.startswith(("base_", "tool")) for n in nominal.param_names])
+    # Every equation the data has: positions and, from a 6-DoF probe, orientations, each weighted by its
+    # noise (the tracker's MPE, the probe's stated angle noise), as the calibration weighs them.
+    full = Problem.from_frame(
+        ridge.model,
+        df,
+        orientation=True,
+        angle_noise_rad=df.attrs.get("probe_angle_noise_rad", PROBE_ANGLE_NOISE_RAD),
+        position_noise=df.attrs.get("position_noise_m"),
+    )
+    nominal = with_initial_probes(initial_model(robot, df, tool_guess_m), df)
+    reg_free = np.array([n.startswith(REGISTRATION) for n in nominal.param_names])
     base = _Baseline(
         noise=noise,
         sigma2=float(np.mean(noise.sigma_axis_m**2)),
@@ -405,7 +419,19 @@ class _Path:
 
     @property
     def cv_rms_mm(self) -> float:
-        return error_stats(cv_residuals(self.current.model, self.free, self.prob, self.folds))["rms_mm"]
+        return error_stats(_cv_positions(self.current.model, self.free, self.prob, self.folds))["rms_mm"]
+
+
+# What the uncompensated stage fits: the base frame, the tool points and a probe's orientation in the flange.
+REGISTRATION = ("base_", "tool", "probe")
+
+
+def _cv_positions(
+    model: CalibratedModel, free: np.ndarray, prob: Problem, folds: list[np.ndarray]
+) -> np.ndarray:
+    """Held-out position residuals (N, 3): a 6-DoF probe's rotations take part in every fit, while the
+    figures (mm) are of positions."""
+    return cv_residuals(model, free, prob, folds)[:, :3]
 
 
 def _excess_ratio(model: CalibratedModel, base: _Baseline, path: _Path) -> float:
@@ -549,8 +575,8 @@ def _evaluate_stages(path: _Path) -> tuple[list[dict], dict, list[Step]]:
     for label, m in path.stage_models:
         mfree = _free_mask(m, path.prob)[0]
         if label.startswith("uncompensated"):
-            mfree = np.array([n.startswith(("base_", "tool")) for n in m.param_names])
-        cv = cv_residuals(m, mfree, path.prob, path.folds)
+            mfree = np.array([n.startswith(REGISTRATION) for n in m.param_names])
+        cv = _cv_positions(m, mfree, path.prob, path.folds)
         cv_by_stage.append(cv)
         stage = _stage(label, "heldout", cv)
         if len(stages) > 1 and stage["rms_mm"] > stages[-1]["rms_mm"] * 1.0001:
@@ -599,7 +625,7 @@ def _verdict(
     if (p_excess < alpha and ratio > 1.1) or compare_maps:
         # A map interpolates (it warns outside the measured volume): judge it on random folds.
         rfolds = prob.random_folds(base.n_folds, base.seed)
-        cv_random = cv_residuals(final_model, free, prob, rfolds)
+        cv_random = _cv_positions(final_model, free, prob, rfolds)
         map_report = _try_residual_maps(final_model, prob, cv_random, rfolds, base.noise, alpha)
     else:  # at the noise floor: nothing for a map to find
         map_report = {
@@ -615,7 +641,7 @@ def _verdict(
         hist[label] = (np.linalg.norm(map_report["heldout_residual"], axis=1) * 1000).tolist()
         final_model.residual_map = (
             make_map(map_report["winner"])
-            .fit(prob.ctx.q, _p_base(final_model, prob), r_fit, float(np.sqrt(base.sigma2)))
+            .fit(prob.ctx.q, _p_base(final_model, prob), r_fit[:, :3], float(np.sqrt(base.sigma2)))
             .to_dict()
         )
     map_report.pop("heldout_residual", None)
