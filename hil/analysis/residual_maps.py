@@ -254,9 +254,9 @@ class GPMap(ResidualMap):
 
 # Beyond this many rows a map's hyper-parameters (the GP's kernel, the SVR's C) are chosen on a fixed random
 # subset of this size and then fixed for the fit on every row: the marginal likelihood's optimiser costs
-# the cube of the rows per step (minutes and a gigabyte at 3000 rows), and a thousand points pin three
-# hyper-parameters.
-MAP_TUNE_ROWS = 1000
+# the cube of the rows per step (minutes and a gigabyte at 3000 rows), and 600 points pin three
+# hyper-parameters (and keep a 12 000-pose diagnosis within two minutes).
+MAP_TUNE_ROWS = 600
 
 
 def _tuning_rows(q: np.ndarray, p_base: np.ndarray, residual: np.ndarray) -> tuple[np.ndarray, ...]:
