@@ -271,7 +271,7 @@ def run_diagnosis(
                 path = other
             else:
                 break
-        stages, hist, steps = _evaluate_stages(path)
+        stages, hist, steps = _evaluate_stages(path, base.progress)
         report = _verdict(base, path, stages, hist, steps, alpha, compare_maps)
         if df_validate is not None:
             _validate(report, path, df, df_validate, reregister_validation)
@@ -503,7 +503,10 @@ def _forward_selection(
                 + "nearly as good: "
                 + ", ".join(c.name + (f" j{c.joint}" if c.joint else "") for c in close)
             )
+        phase = f"effect {len(best_model.effects)}: full refit with {effect_label(best.name, best.joint)}"
+        base.progress(phase, 0, 1)
         rep = refit(calibrate(df, best_model, "ridge"))
+        base.progress(phase, 1, 1)
         if close:
             path.ambiguities += _confounded(base, path, best, close, alpha)
         path.stage_models.append(("+ " + effect_label(best.name, best.joint), path.current.model))
@@ -566,13 +569,14 @@ def _confounded(base: _Baseline, path: _Path, best: Candidate, close: list[Candi
     return out
 
 
-def _evaluate_stages(path: _Path) -> tuple[list[dict], dict, list[Step]]:
+def _evaluate_stages(path: _Path, tell: Progress = _quiet) -> tuple[list[dict], dict, list[Step]]:
     """Step 3: every stage's held-out error on the final rows and folds; a stage worse than the one
     before it is flagged (`worse_than_previous`)."""
     stages: list[dict] = []
     hist: dict[str, list[float]] = {}
     cv_by_stage: list[np.ndarray] = []
-    for label, m in path.stage_models:
+    for k, (label, m) in enumerate(path.stage_models):
+        tell("held-out figures of every stage", k, len(path.stage_models))
         mfree = _free_mask(m, path.prob)[0]
         if label.startswith("uncompensated"):
             mfree = np.array([n.startswith(REGISTRATION) for n in m.param_names])
@@ -583,6 +587,7 @@ def _evaluate_stages(path: _Path) -> tuple[list[dict], dict, list[Step]]:
             stage["worse_than_previous"] = True
         stages.append(stage)
         hist[label] = (np.linalg.norm(cv, axis=1) * 1000).tolist()
+    tell("held-out figures of every stage", len(path.stage_models), len(path.stage_models))
     steps: list[Step] = []
     for k, info in enumerate(path.pending):
         before, after = cv_by_stage[k + 1], cv_by_stage[k + 2]
@@ -626,7 +631,9 @@ def _verdict(
         # A map interpolates (it warns outside the measured volume): judge it on random folds.
         rfolds = prob.random_folds(base.n_folds, base.seed)
         cv_random = _cv_positions(final_model, free, prob, rfolds)
-        map_report = _try_residual_maps(final_model, prob, cv_random, rfolds, base.noise, alpha)
+        map_report = _try_residual_maps(
+            final_model, prob, cv_random, rfolds, base.noise, alpha, base.progress
+        )
     else:  # at the noise floor: nothing for a map to find
         map_report = {
             "candidates": {},
@@ -787,6 +794,7 @@ def _try_residual_maps(
     folds: list[np.ndarray],
     noise: NoiseFloor,
     alpha: float,
+    tell: Progress = _quiet,
 ) -> dict:
     """Can a residual map predict the held-out residual? k-fold comparison of the map kinds."""
     q = prob.ctx.q
@@ -795,7 +803,8 @@ def _try_residual_maps(
     e0 = np.sum(cv_res**2, axis=1)
     table: dict[str, dict[str, Any]] = {}
     best = None
-    for kind in MAP_KINDS:
+    for i, kind in enumerate(MAP_KINDS):
+        tell("residual maps: held-out comparison", i, len(MAP_KINDS))
         try:
             res = kfold_map_errors(kind, q, p_base, cv_res, sigma, folds)
         except Exception as exc:  # a map that cannot be built on this data (e.g. no grid) is skipped
@@ -806,6 +815,7 @@ def _try_residual_maps(
         if best is None or table[kind]["rms_mm"] < table[best]["rms_mm"]:
             best = kind
             best_res = res
+    tell("residual maps: held-out comparison", len(MAP_KINDS), len(MAP_KINDS))
     structured = best is not None and table[best]["p_value"] < alpha
     return {
         "candidates": table,
