@@ -18,7 +18,7 @@ ANGLE_NOISE_RAD = np.deg2rad(0.01)  # the probe's stated noise (hil's default)
 POSITION_NOISE_M = 15e-6  # the tracker's MPE model at ~2.5 m, 1 sigma
 
 
-def _wrist_cyclic_campaign(n: int = 250, seed: int = 4):
+def _wrist_cyclic_campaign(n: int = 250, seed: int = 4, angle_noise_rad: float = ANGLE_NOISE_RAD):
     """A UR10 whose joint 6 has a once-per-turn error (0.06 deg) while the SMR sits on the joint-6 axis: the
     error turns the probe but does not move the SMR."""
     rng = np.random.default_rng(seed)
@@ -36,7 +36,7 @@ def _wrist_cyclic_campaign(n: int = 250, seed: int = 4):
     p = (T_flange[:, :3, :3] @ tool + T_flange[:, :3, 3]) @ T[:3, :3].T + T[:3, 3]
     p += rng.normal(0, POSITION_NOISE_M, p.shape)
     R = T[:3, :3] @ T_flange[:, :3, :3] @ R_flange_probe
-    R = Rotation.from_rotvec(rng.normal(0, ANGLE_NOISE_RAD, (n, 3))).as_matrix() @ R
+    R = Rotation.from_rotvec(rng.normal(0, angle_noise_rad, (n, 3))).as_matrix() @ R
     df = make_dataset(q, p, smr=1, R_tracker_probe=R)
     df.attrs["position_noise_m"] = POSITION_NOISE_M
     return df
@@ -60,3 +60,11 @@ def test_an_effect_seen_only_in_the_probe_orientation_is_selected_with_orientati
     for x, y in zip(with_rot.final_round, slow.final_round, strict=True):
         assert (x.name, x.joint, x.passed) == (y.name, y.joint, y.passed)
         assert x.gain_mm2 == pytest.approx(y.gain_mm2, rel=1e-7, abs=1e-12)
+
+
+def test_orientations_far_noisier_than_stated_are_left_out_of_the_tests_and_the_verdict_says_so():
+    df = _wrist_cyclic_campaign(angle_noise_rad=6 * ANGLE_NOISE_RAD)  # the probe reads 6x worse than stated
+    report = run_diagnosis(df, "ur10", families=("cyclic",))
+    assert ("cyclic", 6) not in _names(report)
+    notes = [c["text"] for c in report.verdict["cautions"] if c["kind"] == "calibration_note"]
+    assert any("tested on positions only" in t for t in notes)

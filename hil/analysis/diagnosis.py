@@ -2,7 +2,9 @@
 
 Every fit and test uses every equation the data has: each SMR's position and, from a 6-DoF probe, its
 orientation, each weighted by its noise (the tracker's MPE, the probe's stated angle noise; see
-hil.analysis.calibration.Problem); the held-out figures (mm) are of positions. Several SMRs at one pose are
+hil.analysis.calibration.Problem); the held-out figures (mm) are of positions. A probe whose rotation residual
+after the geometric fit is far beyond its stated noise (`orientation_notes`) refutes that weight: the
+effects are then tested on positions only, and a caution says so. Several SMRs at one pose are
 one sample of the pose's error (they share its fold and count once in the tests).
 
 Selection rule for each round (every candidate from `hil.analysis.effects` the data could reveal):
@@ -43,6 +45,7 @@ from hil.analysis.calibration import (
     confounded_pairs,
     flatten_jacobian,
     identify,
+    orientation_notes,
     solve_ridge_igg3,
 )
 from hil.analysis.calibration import reregister as reregister_model
@@ -329,6 +332,7 @@ class _Baseline:
     seed: int
     progress: Progress = field(default=lambda phase, done, total: None)
     screening: str = "batched"  # or "refit": each candidate fitted on its own (the reference)
+    notes: list[str] = field(default_factory=list)  # said in the verdict's cautions
 
     def rows_and_folds(self, result: CalibrationResult) -> tuple[Problem, list[list[np.ndarray]]]:
         """The rows the screening and the held-out figures use (inliers of `result`; for big campaigns a
@@ -365,16 +369,20 @@ def _baseline_fit(
     lm = calibrate(df, robot, "lm", tool_guess_m=tool_guess_m)
     tell("geometric calibration", 2, 2)
     # Every equation the data has: positions and, from a 6-DoF probe, orientations, each weighted by its
-    # noise (the tracker's MPE, the probe's stated angle noise), as the calibration weighs them.
+    # noise (the tracker's MPE, the probe's stated angle noise), as the calibration weighs them; unless the
+    # probe's readings scatter far beyond its stated noise (`orientation_notes`), when that weight is
+    # refuted and the tests would chase the probe's own errors.
+    angle = df.attrs.get("probe_angle_noise_rad", PROBE_ANGLE_NOISE_RAD)
+    rotations = not orientation_notes(ridge, angle)
     full = Problem.from_frame(
         ridge.model,
         df,
-        orientation=True,
-        angle_noise_rad=df.attrs.get("probe_angle_noise_rad", PROBE_ANGLE_NOISE_RAD),
+        orientation=rotations,
+        angle_noise_rad=angle,
         position_noise=df.attrs.get("position_noise_m"),
     )
     nominal = with_initial_probes(initial_model(robot, df, tool_guess_m), df)
-    reg_free = np.array([n.startswith(REGISTRATION) for n in nominal.param_names])
+    reg_free = _registration(nominal, full)
     base = _Baseline(
         noise=noise,
         sigma2=float(np.mean(noise.sigma_axis_m**2)),
@@ -387,6 +395,12 @@ def _baseline_fit(
         seed=seed,
         progress=tell,
     )
+    if not rotations:
+        base.notes.append(
+            "the effects were tested on positions only: the probe's orientation residual is far beyond its stated "
+            "noise (above), so its rotation equations cannot be weighted by it; give the probe's real angle "
+            "noise (--probe-angle-noise-deg) to test them too"
+        )
     prob, _ = base.rows_and_folds(ridge)
     base.nominal = _fit_plain(nominal, prob, reg_free)
     return base
@@ -424,6 +438,12 @@ class _Path:
 
 # What the uncompensated stage fits: the base frame, the tool points and a probe's orientation in the flange.
 REGISTRATION = ("base_", "tool", "probe")
+
+
+def _registration(model: CalibratedModel, prob: Problem) -> np.ndarray:
+    """Mask of the registration parameters (a probe's only with its rotation equations in `prob`)."""
+    fitted = REGISTRATION if prob.R_measured is not None else REGISTRATION[:2]
+    return np.array([n.startswith(fitted) for n in model.param_names])
 
 
 def _cv_positions(
@@ -579,7 +599,7 @@ def _evaluate_stages(path: _Path, tell: Progress = _quiet) -> tuple[list[dict], 
         tell("held-out figures of every stage", k, len(path.stage_models))
         mfree = _free_mask(m, path.prob)[0]
         if label.startswith("uncompensated"):
-            mfree = np.array([n.startswith(REGISTRATION) for n in m.param_names])
+            mfree = _registration(m, path.prob)
         cv = _cv_positions(m, mfree, path.prob, path.folds)
         cv_by_stage.append(cv)
         stage = _stage(label, "heldout", cv)
@@ -660,7 +680,7 @@ def _verdict(
         cautions.append(
             caution("ambiguous_effects", chosen=amb["chosen"], confounded_with=amb["confounded_with"])
         )
-    cautions += [caution("calibration_note", text=note) for note in base.ridge.notes]
+    cautions += [caution("calibration_note", text=note) for note in [*base.ridge.notes, *base.notes]]
     final_model.info["diagnosis"] = {
         "effects_added": [s.effect for s in steps],
         "noise_floor_mm": base.noise.floor_mm,
