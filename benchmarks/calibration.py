@@ -17,6 +17,11 @@ Run:  PYTHONPATH=. python benchmarks/calibration.py [--sizes 200,500,2000] [--se
    solvers of `calibrate` on 200 000 poses (target <= 60 s), random poses of the simulated UR10 cell with
    gravity compliance (and backlash for the diagnosis); peak memory is the process's maximum RSS.
    `--big 0` skips them (they take minutes on a busy 2-core machine).
+5. A campaign shaped like the real ones (issue 19): `hil diagnose` run as a user runs it (a subprocess: robot
+   read from a .toml file, joints in degrees, a 6-DoF probe's orientations, targets <= 120 s and <= 1 GB).
+   With HIL_REAL_DATA set (the ipa-robot-accuracy repository, see benchmarks/real_campaigns.py) it is the
+   public UR10 series A grid (11 911 poses); without, 12 000 random poses of the simulated UR10 cell with
+   gravity compliance and backlash, read by a T-Mac-like probe. `--real 0` skips it.
 """
 
 from __future__ import annotations
@@ -277,19 +282,76 @@ def big_campaigns(seed: int, diagnose_poses: int = 12000, calibrate_poses: int =
     print(f"{'calibrate, both solvers (the CLI)':<34} {len(df):7d} {total:8.1f} {60:9d}")
 
 
+def real_shaped_campaign(seed: int, poses: int = 12000) -> None:
+    """Section 5: `hil diagnose` (a subprocess, as a user runs it) on a campaign shaped like a real one."""
+    import os
+    import resource
+    import subprocess
+    import tempfile
+
+    from hil.data.dataset import joint_columns
+
+    with tempfile.TemporaryDirectory() as tmp:
+        robot = Path(tmp) / "my_ur10.toml"  # the robot read from a file, as a user's own robot would be
+        robot.write_text(
+            (Path(__file__).resolve().parents[1] / "hil/geometry/robot_models/ur10.toml").read_text()
+        )
+        real = os.environ.get("HIL_REAL_DATA")
+        if real and Path(real).exists():
+            from real_campaigns import read_raw, to_contract
+
+            df, what = to_contract(read_raw(Path(real), "A")), "public UR10 series A grid"
+        else:
+            df, what = _simulated_real_shape(seed, poses), "simulated UR10, 6-DoF probe"
+        for c in joint_columns(6):  # joints in degrees, as controllers export them
+            df[c.replace("_rad", "_deg")] = np.rad2deg(df.pop(c))
+        data = Path(tmp) / "campaign.csv"
+        df.to_csv(data, index=False)
+        root = Path(__file__).resolve().parents[1]
+        cmd = [sys.executable, "-m", "hil.cli", "diagnose", "--robot", str(robot), str(data)]
+        t0 = time.perf_counter()
+        out = subprocess.run(
+            cmd, capture_output=True, text=True, cwd=root, env={**os.environ, "PYTHONPATH": str(root)}
+        )
+        dt = time.perf_counter() - t0
+    peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
+    if out.returncode != 0:
+        result = "failed: " + out.stderr.strip()[-300:]
+    else:
+        result = next((ln for ln in out.stdout.splitlines() if ln.startswith("Added:")), "no effect added")
+    print(f"\nA campaign shaped like a real one ({what}): hil diagnose as a subprocess")
+    print(f"{'poses':>7} {'time s':>8} {'target s':>9} {'peak RSS MB':>12} {'target MB':>10}  result")
+    print(f"{len(df):7d} {dt:8.1f} {120:9d} {peak:12.0f} {1024:10d}  {result[:100]}")
+
+
+def _simulated_real_shape(seed: int, poses: int):
+    """Random poses of the simulated UR10 (compliance, backlash) read by a 6-DoF probe with a hidden mounting."""
+    from fakes.campaign import Probe, simulate_campaign
+    from fakes.cell import SimCellConfig, SimulatedCell
+    from hil.runner.planners import random_points
+
+    cell = SimulatedCell(SimCellConfig(robot="ur10", seed=seed, backlash=True))
+    q = planned_joints(cell, lambda box, rng: random_points(box, 2 * poses, rng), seed + 3)[:poses]
+    return simulate_campaign(cell, q, probe=Probe.drawn(seed))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", default="200,500,2000")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--big", type=int, default=1, help="1: also the big-campaign figures (minutes)")
     parser.add_argument("--only-big", action="store_true", help="only the big-campaign figures")
+    parser.add_argument("--only-real", action="store_true", help="only the real-shaped campaign (section 5)")
+    parser.add_argument("--real", type=int, default=1, help="1: also the real-shaped campaign (section 5)")
     args = parser.parse_args()
-    if not args.only_big:
+    if not (args.only_big or args.only_real):
         timing([int(s) for s in args.sizes.split(",")], args.seed)
         grid_paper(args.seed)
         diagnosis_timing(args.seed)
-    if args.big or args.only_big:
+    if (args.big and not args.only_real) or args.only_big:
         big_campaigns(args.seed)
+    if (args.real and not args.only_big) or args.only_real:
+        real_shaped_campaign(args.seed)
 
 
 if __name__ == "__main__":

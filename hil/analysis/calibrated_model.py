@@ -113,7 +113,8 @@ class CalibratedModel:
                 f"the model knows tool points for SMR nests {sorted(self.tools)}, the data uses {missing}; "
                 "calibrate with data that contains those nests"
             )
-        return np.array([self.tools[int(s)] for s in smr]).reshape(-1, 3)
+        ids, inverse = np.unique(smr, return_inverse=True)  # one lookup per nest, not per row
+        return np.array([self.tools[int(s)] for s in ids]).reshape(-1, 3)[inverse.ravel()]
 
     def joint_offsets(self, ctx: EffectContext) -> np.ndarray:
         """Output-side joint offsets (N, n) from every joint effect."""
@@ -204,7 +205,8 @@ class CalibratedModel:
                 f"the model knows probe orientations for SMR nests {sorted(self.probes)}, the data uses "
                 f"{missing}; calibrate with orientation data (rx_deg, ry_deg, rz_deg) of those nests"
             )
-        return np.array([self.probes[int(s)] for s in smr]).reshape(-1, 3, 3)
+        ids, inverse = np.unique(smr, return_inverse=True)
+        return np.array([self.probes[int(s)] for s in ids]).reshape(-1, 3, 3)[inverse.ravel()]
 
     def rotation_jacobian_ctx(self, ctx: EffectContext, smr: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Predicted probe orientations R_tracker_probe (N, 3, 3) and their angular derivative (N, 3, P)

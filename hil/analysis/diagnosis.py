@@ -1,5 +1,12 @@
 """Close the loop: calibrate, look at the residual, test candidate effects, add the one that helps, repeat.
 
+Every fit and test uses every equation the data has: each SMR's position and, from a 6-DoF probe, its
+orientation, each weighted by its noise (the tracker's MPE, the probe's stated angle noise; see
+hil.analysis.calibration.Problem); the held-out figures (mm) are of positions. A probe whose rotation residual
+after the geometric fit is beyond its stated noise (ORIENTATION_SELECTION_FACTOR) refutes that weight: the
+effects are then tested on positions only, and a caution says so. Several SMRs at one pose are
+one sample of the pose's error (they share its fold and count once in the tests).
+
 Selection rule for each round (every candidate from `hil.analysis.effects` the data could reveal):
 1. add the candidate to the current model and re-run the identifiability analysis on the joint
    (geometry + effects) Jacobian, so coefficients the data cannot separate from the geometry are merged;
@@ -29,9 +36,10 @@ import pandas as pd
 from scipy import stats
 from threadpoolctl import threadpool_limits
 
-from hil.analysis.calibrated_model import CalibratedModel, initial_model
+from hil.analysis.calibrated_model import CalibratedModel, initial_model, with_initial_probes
 from hil.analysis.calibration import (
     CONFOUNDED_NOTE,
+    PROBE_ANGLE_NOISE_RAD,
     CalibrationResult,
     Problem,
     calibrate,
@@ -242,6 +250,7 @@ def run_diagnosis(
     compare_maps: bool = False,
     reregister_validation: str = "none",
     progress: Progress | None = None,
+    screening: str = "batched",
 ) -> DiagnosisReport:
     """The whole loop on a training dataset (and an optional validation dataset never used for fitting).
 
@@ -250,16 +259,21 @@ def run_diagnosis(
     residual is at the noise floor. `reregister_validation` ("none", "base", "base+tool") refits the
     base frame (and tool) of every stage on the validation campaign first, for a campaign taken from
     another tracker placement; the report then shows both. `progress(phase, done, total)` is called as
-    the work advances (the CLI draws it with an ETA).
+    the work advances (the CLI draws it with an ETA). `screening` "batched" judges a round's candidates
+    from one shared factorisation (hil.analysis.screening); "refit" fits each candidate on its own (the
+    slow reference the batched path reproduces).
 
     Held-out figures of every stage are computed at the end on the same rows and spatial folds: all
     points except those the final model rejects as outliers.
     """
+    if screening not in ("batched", "refit"):
+        raise ValueError(f"screening '{screening}': use batched or refit")
     if reregister_validation not in ("none", "base", "base+tool"):
         raise ValueError(f"reregister_validation '{reregister_validation}': use none, base or base+tool")
     df = drop_duplicate_rows(df, "training data")  # copies would count twice in every test
     with threadpool_limits(1):  # small dense problems: threads only contend
         base = _baseline_fit(df, robot, folds, seed, repeatability_mm, tool_guess_m, tracker_mpe_m, progress)
+        base.screening = screening
         path = _forward_selection(base, df, alpha, families, max_effects, banned=set())
         for _ in range(2):  # greedy got stuck above the floor? Try again without its first choice.
             if not path.effects or _excess_ratio(path.current.model, base, path) <= 1.1:
@@ -279,7 +293,7 @@ def run_diagnosis(
             else:
                 break
         _settle_rivals(base, df, path, alpha)
-        stages, hist, steps = _evaluate_stages(path)
+        stages, hist, steps = _evaluate_stages(path, base.progress)
         report = _verdict(base, path, stages, hist, steps, alpha, compare_maps)
         if df_validate is not None:
             _validate(report, path, df, df_validate, reregister_validation)
@@ -352,6 +366,8 @@ class _Baseline:
     n_folds: int
     seed: int
     progress: Progress = field(default=lambda phase, done, total: None)
+    screening: str = "batched"  # or "refit": each candidate fitted on its own (the reference)
+    notes: list[str] = field(default_factory=list)  # said in the verdict's cautions
 
     def rows_and_folds(self, result: CalibrationResult) -> tuple[Problem, list[list[np.ndarray]]]:
         """The rows the screening and the held-out figures use (inliers of `result`; for big campaigns a
@@ -387,9 +403,22 @@ def _baseline_fit(
     tell("geometric calibration", 1, 2)
     lm = calibrate(df, robot, "lm", tool_guess_m=tool_guess_m)
     tell("geometric calibration", 2, 2)
-    full = Problem.from_frame(ridge.model, df)
-    nominal = initial_model(robot, df, tool_guess_m)
-    reg_free = np.array([n.startswith(("base_", "tool")) for n in nominal.param_names])
+    # Every equation the data has: positions and, from a 6-DoF probe, orientations, each weighted by its
+    # noise (the tracker's MPE, the probe's stated angle noise), as the calibration weighs them; unless the
+    # probe's readings scatter beyond its stated noise (ORIENTATION_SELECTION_FACTOR), when that weight is
+    # refuted and the tests would chase the probe's own errors.
+    angle = df.attrs.get("probe_angle_noise_rad", PROBE_ANGLE_NOISE_RAD)
+    rms = ridge.orientation_rms_deg
+    rotations = rms is None or rms <= ORIENTATION_SELECTION_FACTOR * np.rad2deg(np.sqrt(3) * angle)
+    full = Problem.from_frame(
+        ridge.model,
+        df,
+        orientation=rotations,
+        angle_noise_rad=angle,
+        position_noise=df.attrs.get("position_noise_m"),
+    )
+    nominal = with_initial_probes(initial_model(robot, df, tool_guess_m), df)
+    reg_free = _registration(nominal, full)
     base = _Baseline(
         noise=noise,
         sigma2=float(np.mean(noise.sigma_axis_m**2)),
@@ -402,6 +431,12 @@ def _baseline_fit(
         seed=seed,
         progress=tell,
     )
+    if not rotations:
+        base.notes.append(
+            f"the effects were tested on positions only: the probe's rotation residual RMS {rms:.3g} deg is more "
+            f"than {ORIENTATION_SELECTION_FACTOR:g}x what its stated noise gives, so its rotation equations cannot "
+            "be weighted by it; give the probe's real angle noise (--probe-angle-noise-deg) to test them too"
+        )
     prob, _ = base.rows_and_folds(ridge)
     base.nominal = _fit_plain(nominal, prob, reg_free)
     return base
@@ -434,7 +469,32 @@ class _Path:
 
     @property
     def cv_rms_mm(self) -> float:
-        return error_stats(cv_residuals(self.current.model, self.free, self.prob, self.folds))["rms_mm"]
+        return error_stats(_cv_positions(self.current.model, self.free, self.prob, self.folds))["rms_mm"]
+
+
+# The rotation equations enter the tests only while the probe's rotation residual after the geometric fit
+# (3-D RMS) stays within this many times what its stated noise gives: a probe read as stated leaves about 1x.
+# The public UR10 + T-Mac campaigns leave 3x (0.05-0.06 deg against 0.017 deg), and weighted at the stated
+# 0.01 deg their rotations made the selection chase the probe's own errors (series B -> C: final RMS 0.82 ->
+# 1.18 mm on the other campaign).
+ORIENTATION_SELECTION_FACTOR = 2.0
+
+# What the uncompensated stage fits: the base frame, the tool points and a probe's orientation in the flange.
+REGISTRATION = ("base_", "tool", "probe")
+
+
+def _registration(model: CalibratedModel, prob: Problem) -> np.ndarray:
+    """Mask of the registration parameters (a probe's only with its rotation equations in `prob`)."""
+    fitted = REGISTRATION if prob.R_measured is not None else REGISTRATION[:2]
+    return np.array([n.startswith(fitted) for n in model.param_names])
+
+
+def _cv_positions(
+    model: CalibratedModel, free: np.ndarray, prob: Problem, folds: list[np.ndarray]
+) -> np.ndarray:
+    """Held-out position residuals (N, 3): a 6-DoF probe's rotations take part in every fit, while the
+    figures (mm) are of positions."""
+    return cv_residuals(model, free, prob, folds)[:, :3]
 
 
 def _excess_ratio(model: CalibratedModel, base: _Baseline, path: _Path) -> float:
@@ -454,10 +514,11 @@ def _screen_round(
     # every candidate alike (the problem is nearly linear there); the winner is refitted in full.
     screen = Screen(base_fit, path.prob, path.free, path.partitions, base.sigma2, alpha, len(cands))
     phase = f"effect {len(path.current.model.effects) + 1}: screening candidates"
+    test = screen.test if base.screening == "batched" else screen.test_refit
     out = []
     for i, eff in enumerate(cands):
         base.progress(phase, i, len(cands))
-        out.append(screen.test(eff))
+        out.append(test(eff))
     base.progress(phase, len(cands), len(cands))
     return out
 
@@ -516,7 +577,10 @@ def _forward_selection(
                 + "nearly as good: "
                 + ", ".join(c.name + (f" j{c.joint}" if c.joint else "") for c in close)
             )
+        phase = f"effect {len(best_model.effects)}: full refit with {effect_label(best.name, best.joint)}"
+        base.progress(phase, 0, 1)
         rep = refit(calibrate(df, best_model, "ridge"))
+        base.progress(phase, 1, 1)
         if close:
             path.ambiguities += _confounded(base, path, best, close, alpha)
         _record_added(path, best, [c for c, _ in results], rep)
@@ -700,7 +764,7 @@ def _confounded(base: _Baseline, path: _Path, best: Candidate, close: list[Candi
     for c in close:
         eff_c = make_effect(c.name, c.joint)
         eff_c.prepare(base.full.ctx, path.current.model.nominal)
-        left = after.test(eff_c)[0].gain_mm2
+        left = (after.test if base.screening == "batched" else after.test_refit)(eff_c)[0].gain_mm2
         if left < 0.25 * c.gain_mm2:
             out.append(
                 {
@@ -713,23 +777,25 @@ def _confounded(base: _Baseline, path: _Path, best: Candidate, close: list[Candi
     return out
 
 
-def _evaluate_stages(path: _Path) -> tuple[list[dict], dict, list[Step]]:
+def _evaluate_stages(path: _Path, tell: Progress = _quiet) -> tuple[list[dict], dict, list[Step]]:
     """Step 3: every stage's held-out error on the final rows and folds; a stage worse than the one
     before it is flagged (`worse_than_previous`)."""
     stages: list[dict] = []
     hist: dict[str, list[float]] = {}
     cv_by_stage: list[np.ndarray] = []
-    for label, m in path.stage_models:
+    for k, (label, m) in enumerate(path.stage_models):
+        tell("held-out figures of every stage", k, len(path.stage_models))
         mfree = _free_mask(m, path.prob)[0]
         if label.startswith("uncompensated"):
-            mfree = np.array([n.startswith(("base_", "tool")) for n in m.param_names])
-        cv = cv_residuals(m, mfree, path.prob, path.folds)
+            mfree = _registration(m, path.prob)
+        cv = _cv_positions(m, mfree, path.prob, path.folds)
         cv_by_stage.append(cv)
         stage = _stage(label, "heldout", cv)
         if len(stages) > 1 and stage["rms_mm"] > stages[-1]["rms_mm"] * 1.0001:
             stage["worse_than_previous"] = True
         stages.append(stage)
         hist[label] = (np.linalg.norm(cv, axis=1) * 1000).tolist()
+    tell("held-out figures of every stage", len(path.stage_models), len(path.stage_models))
     steps: list[Step] = []
     for k, info in enumerate(path.pending):
         before, after = cv_by_stage[k + 1], cv_by_stage[k + 2]
@@ -772,8 +838,10 @@ def _verdict(
     if (p_excess < alpha and ratio > 1.1) or compare_maps:
         # A map interpolates (it warns outside the measured volume): judge it on random folds.
         rfolds = prob.random_folds(base.n_folds, base.seed)
-        cv_random = cv_residuals(final_model, free, prob, rfolds)
-        map_report = _try_residual_maps(final_model, prob, cv_random, rfolds, base.noise, alpha)
+        cv_random = _cv_positions(final_model, free, prob, rfolds)
+        map_report = _try_residual_maps(
+            final_model, prob, cv_random, rfolds, base.noise, alpha, base.progress
+        )
     else:  # at the noise floor: nothing for a map to find
         map_report = {
             "candidates": {},
@@ -788,7 +856,7 @@ def _verdict(
         hist[label] = (np.linalg.norm(map_report["heldout_residual"], axis=1) * 1000).tolist()
         final_model.residual_map = (
             make_map(map_report["winner"])
-            .fit(prob.ctx.q, _p_base(final_model, prob), r_fit, float(np.sqrt(base.sigma2)))
+            .fit(prob.ctx.q, _p_base(final_model, prob), r_fit[:, :3], float(np.sqrt(base.sigma2)))
             .to_dict()
         )
     map_report.pop("heldout_residual", None)
@@ -800,7 +868,7 @@ def _verdict(
         cautions.append(
             caution("ambiguous_effects", chosen=amb["chosen"], confounded_with=amb["confounded_with"])
         )
-    cautions += [caution("calibration_note", text=note) for note in base.ridge.notes]
+    cautions += [caution("calibration_note", text=note) for note in [*base.ridge.notes, *base.notes]]
     final_model.info["diagnosis"] = {
         "effects_added": [s.effect for s in steps],
         "noise_floor_mm": base.noise.floor_mm,
@@ -934,6 +1002,7 @@ def _try_residual_maps(
     folds: list[np.ndarray],
     noise: NoiseFloor,
     alpha: float,
+    tell: Progress = _quiet,
 ) -> dict:
     """Can a residual map predict the held-out residual? k-fold comparison of the map kinds."""
     q = prob.ctx.q
@@ -942,7 +1011,8 @@ def _try_residual_maps(
     e0 = np.sum(cv_res**2, axis=1)
     table: dict[str, dict[str, Any]] = {}
     best = None
-    for kind in MAP_KINDS:
+    for i, kind in enumerate(MAP_KINDS):
+        tell("residual maps: held-out comparison", i, len(MAP_KINDS))
         try:
             res = kfold_map_errors(kind, q, p_base, cv_res, sigma, folds)
         except Exception as exc:  # a map that cannot be built on this data (e.g. no grid) is skipped
@@ -953,6 +1023,7 @@ def _try_residual_maps(
         if best is None or table[kind]["rms_mm"] < table[best]["rms_mm"]:
             best = kind
             best_res = res
+    tell("residual maps: held-out comparison", len(MAP_KINDS), len(MAP_KINDS))
     structured = best is not None and table[best]["p_value"] < alpha
     return {
         "candidates": table,

@@ -278,6 +278,9 @@ class SVRMap(ResidualMap):
         """C by 3-fold cross-validation: the paper's C = 100 suits mm-sized errors, not residuals at noise."""
         from sklearn.svm import SVR
 
+        if len(q) > MAP_TUNE_ROWS:  # C from a subset: each SVR costs the square of its rows
+            keep = np.sort(np.random.default_rng(0).permutation(len(q))[:MAP_TUNE_ROWS])
+            q, y = q[keep], y[keep]
         folds = np.array_split(np.random.default_rng(0).permutation(len(q)), 3)
         best, best_err = 100.0, np.inf
         for C in (0.1, 1.0, 10.0, 100.0):
@@ -345,6 +348,11 @@ class GPMap(ResidualMap):
             random_state=0,
         )
         mean = residual.mean(axis=0) * scale
+        if self.hyper is None and len(q) > MAP_TUNE_ROWS:  # hyper-parameters on a subset, then fixed
+            h = GPMap().fit(*_tuning_rows(q, p_base, residual), noise_sigma_m).state
+            return GPMap(self.state, {k: h[k] for k in ("amplitude", "length_scale", "noise")}).fit(
+                q, p_base, residual, noise_sigma_m
+            )
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             gp.fit(q, residual * scale - mean)
@@ -368,6 +376,19 @@ class GPMap(ResidualMap):
         d2 = np.sum((q[:, None] - X[None]) ** 2, axis=2)
         K = st["amplitude"] * np.exp(-0.5 * d2 / st["length_scale"] ** 2)
         return (K @ np.asarray(st["alpha"]) + np.asarray(st["mean"])) / st["scale"]
+
+
+# Beyond this many rows a map's hyper-parameters (the GP's kernel, the SVR's C) are chosen on a fixed random
+# subset of this size and then fixed for the fit on every row: the marginal likelihood's optimiser costs
+# the cube of the rows per step (minutes and a gigabyte at 3000 rows), and 600 points pin three
+# hyper-parameters (and keep a 12 000-pose diagnosis within two minutes).
+MAP_TUNE_ROWS = 600
+
+
+def _tuning_rows(q: np.ndarray, p_base: np.ndarray, residual: np.ndarray) -> tuple[np.ndarray, ...]:
+    """The fixed random subset of MAP_TUNE_ROWS rows the hyper-parameters are chosen on."""
+    keep = np.sort(np.random.default_rng(0).permutation(len(q))[:MAP_TUNE_ROWS])
+    return q[keep], p_base[keep], residual[keep]
 
 
 _CLASSES = {c.kind: c for c in (IDWGridMap, SVRMap, GPMap)}

@@ -1,6 +1,13 @@
 """Candidate screening for the diagnosis: linearised held-out (cross-validated) fits, the tests a candidate
 effect must pass to be added, near-ties and the thermal preference, and the test that removes an earlier
-effect a later one made redundant. The selection rule itself is told in hil/analysis/diagnosis.py's docstring."""
+effect a later one made redundant. The selection rule itself is told in hil/analysis/diagnosis.py's docstring.
+
+Batched screening (`Screen.test`): the current model's Jacobian, its identifiability basis and every fold's
+held-out solve are computed once per round; a candidate only adds its own few columns, which are
+orthogonalised against that basis and enter each fold's solve as a low-rank (Schur complement) update. It
+gives the per-candidate refit (`Screen.test_refit`, kept as the reference) to rounding, at a fraction of the
+cost: no Jacobian, identifiability analysis or normal equations of the whole model per candidate.
+"""
 
 from __future__ import annotations
 
@@ -11,7 +18,13 @@ from scipy import stats
 
 from hil.analysis.calibrated_model import CalibratedModel
 from hil.analysis.calibration import Problem, flatten_jacobian
-from hil.analysis.effects import PHYSICAL_RANK, THERMAL_FAMILIES, Effect, temperature_driven
+from hil.analysis.effects import (
+    PHYSICAL_RANK,
+    THERMAL_FAMILIES,
+    Effect,
+    growth_direction,
+    temperature_driven,
+)
 from hil.analysis.identifiability import analyse, scale_columns
 
 
@@ -129,7 +142,8 @@ def group_key(*effects: Effect) -> tuple:
 
 
 class Screen:
-    """Linearised test of candidate effects against a base model (see the module docstring)."""
+    """Linearised test of candidate effects against a base model (see the module docstring): `test` is the
+    batched screening, `test_refit` the per-candidate refit it reproduces."""
 
     def __init__(
         self,
@@ -143,16 +157,40 @@ class Screen:
     ) -> None:
         self.base, self.prob, self.partitions, self.sigma2 = base, prob, partitions, sigma2
         self.alpha_cv, self.alpha_chi2 = alpha, alpha / max(n, 1)
-        r, J = prob.evaluate(base)
-        fit0, self.e0 = linear_fit_heldout(flatten_jacobian(J)[:, free], r, partitions)
+        self._r, self._J = prob.evaluate(base)
+        fit0, self.e0 = linear_fit_heldout(flatten_jacobian(self._J)[:, free], self._r, partitions)
         self.sse0 = float(np.sum(fit0**2))
         # each tested candidate's held-out squared error per row (N,), for comparing two candidates point by
-        # point (hil.analysis.rivals)
-        self.heldout_errors: dict[tuple, np.ndarray] = {}  # keys: `group_key` of what was added
+        # point (hil.analysis.rivals); keys: `group_key` of what was added
+        self.heldout_errors: dict[tuple, np.ndarray] = {}
+        self._batch: _Batch | None = None
 
     def test(self, eff: Effect, *together: Effect) -> tuple[Candidate, CalibratedModel | None]:
-        """`eff` added to the base model (after the effects `together` with it, when a group is tested: the
-        Candidate then names `eff` and says what it was tested with)."""
+        """The candidate judged from the shared factorisation (batched screening); with effects `together`,
+        the group added at once (the Candidate names `eff` and says what it was tested with)."""
+        if self._batch is None:
+            self._batch = _Batch(self.base, self._r, self._J, self.partitions)
+        trial = self.base
+        for added in (*together, eff):
+            trial = trial.with_effect(added)
+        b = self._batch
+        E = np.hstack([effect_columns(self.base, added, self.prob, self._J) for added in (*together, eff)])
+        kept, norms = b.separable(E)
+        if not kept:
+            return self._inseparable(eff)
+        Es = E[:, kept] / norms[kept]
+        corr = b.geometry_correlation(Es)
+        if corr > MAX_GEOMETRY_CORRELATION:
+            return self._collinear(eff, len(kept), corr)
+        fit, e, dx_base, dx_new = b.fit(Es)
+        dx = np.zeros(len(trial.param_names))
+        dx[: len(b.keep)][b.keep] = dx_base
+        dx[len(b.keep) + np.asarray(kept)] = dx_new / norms[kept]
+        return self._judge(eff, trial, len(kept), corr, fit, e, int(b.keep.sum()) + len(kept), dx, together)
+
+    def test_refit(self, eff: Effect, *together: Effect) -> tuple[Candidate, CalibratedModel | None]:
+        """The candidate judged from its own Jacobian, identifiability analysis and k-fold fits: what the
+        batched `test` reproduces, kept as its reference."""
         trial = self.base
         for added in (*together, eff):
             trial = trial.with_effect(added)
@@ -162,26 +200,48 @@ class Screen:
         tfree = analyse(Jt, trial.param_names).keep_mask
         n_new = int(np.sum(tfree[len(trial.param_names) - n_added :]))
         if n_new == 0:
-            note = "inseparable from the geometry"
-            return Candidate(eff.family, eff.joint, 0, float("nan"), 0.0, 1.0, 1.0, False, note), None
+            return self._inseparable(eff)
         corr = geometry_correlation(Jt[:, tfree], n_new)
         if corr > MAX_GEOMETRY_CORRELATION:
-            note = (
-                f"collinear with the geometric parameters (correlation {corr:.3f}): on these poses it would "
-                "fake geometry and extrapolate badly"
-            )
-            cand = Candidate(eff.family, eff.joint, n_new, float("nan"), 0.0, 1.0, 1.0, False, note, corr)
-            return cand, None
+            return self._collinear(eff, n_new, corr)
         step: list = []
         fit, e = linear_fit_heldout(Jt[:, tfree], r_t, self.partitions, step)
+        dx = np.zeros(len(trial.param_names))
+        dx[tfree] = step[0]
+        return self._judge(eff, trial, n_new, corr, fit, e, int(tfree.sum()), dx, together)
+
+    @staticmethod
+    def _inseparable(eff: Effect) -> tuple[Candidate, None]:
+        note = "inseparable from the geometry"
+        return Candidate(eff.family, eff.joint, 0, float("nan"), 0.0, 1.0, 1.0, False, note), None
+
+    @staticmethod
+    def _collinear(eff: Effect, n_new: int, corr: float) -> tuple[Candidate, None]:
+        note = (
+            f"collinear with the geometric parameters (correlation {corr:.3f}): on these poses it would "
+            "fake geometry and extrapolate badly"
+        )
+        return Candidate(eff.family, eff.joint, n_new, float("nan"), 0.0, 1.0, 1.0, False, note, corr), None
+
+    def _judge(
+        self,
+        eff: Effect,
+        trial: CalibratedModel,
+        n_new: int,
+        corr: float,
+        fit: np.ndarray,
+        e: np.ndarray,
+        n_free: int,
+        dx: np.ndarray,
+        together: tuple[Effect, ...] = (),
+    ) -> tuple[Candidate, CalibratedModel | None]:
+        """Both tests of the selection rule on the candidate's full-fit and held-out residuals."""
         self.heldout_errors[group_key(*together, eff)] = e
         sse = float(np.sum(fit**2))
-        s2 = max(self.sigma2, sse / max(fit.size - int(tfree.sum()), 1))
+        s2 = max(self.sigma2, sse / max(fit.size - n_free, 1))
         p_chi2 = float(stats.chi2.sf((self.sse0 - sse) / s2, n_new)) if self.sse0 > sse else 1.0
         gain, p_cv = held_out_gain(self.e0 - e, self.prob.pose)
         passed = gain > 0 and p_cv < self.alpha_cv and p_chi2 < self.alpha_chi2
-        dx = np.zeros(len(trial.param_names))
-        dx[tfree] = step[0]
         fitted = trial.apply_increment(dx)  # start the full refit from the linear solution
         why = None
         for added in fitted.effects[len(fitted.effects) - 1 - len(together) :] if passed else []:
@@ -201,6 +261,107 @@ class Screen:
             corr,
         )
         return cand, fitted if cand.passed else None
+
+
+def effect_columns(model: CalibratedModel, eff: Effect, prob: Problem, J: np.ndarray) -> np.ndarray:
+    """The Jacobian columns (N m, k) that `eff` (coefficients zero) adds to `model` on `prob`, from the
+    model's own Jacobian J (N, m, P) of `prob.evaluate`: a joint effect moves the point (and turns a probe)
+    like its joint's theta, a growth scales every link length, an offset shifts the tracker frame."""
+    ctx = prob.ctx
+    ctx.p_flange_tool = model._row_tools(prob.smr)
+    reg = eff.cached_regressors(ctx, model.nominal)
+    n, m, _ = J.shape
+    k = len(eff.params)
+    cols = np.zeros((n, m, k))
+    if eff.kind == "joint":
+        theta = J[:, :, model.kinematic.param_names.index(f"theta{eff.joint_index + 1}")]
+        cols[:] = theta[:, :, None] * reg[:, None, :]
+    elif eff.kind == "growth":
+        q_eff = ctx.q + model.joint_offsets(ctx)
+        G = growth_direction(model.kinematic, q_eff, ctx.p_flange_tool) @ model.T_tracker_base[:3, :3].T
+        cols[:, :3] = G[:, :, None] * reg[:, None, :]
+    else:
+        cols[:, :3] = reg[:, :1, None] * np.eye(3)[None]
+    return cols.reshape(n * m, k)
+
+
+class _Batch:
+    """What every candidate of a round shares: the model's identifiable columns (unit norm), an orthonormal
+    basis of them, and for each fold of each partition the inverse normal matrix without the fold, its
+    solution and held-out residuals. A candidate's k columns then cost O(rows P k) per fold."""
+
+    def __init__(
+        self, model: CalibratedModel, r: np.ndarray, J: np.ndarray, partitions: list[list[np.ndarray]]
+    ) -> None:
+        Jf = flatten_jacobian(J)
+        self.keep = analyse(Jf, model.param_names).keep_mask
+        self.G, self.norms = scale_columns(Jf[:, self.keep])
+        self.Q = np.linalg.qr(self.G)[0]
+        self.n, self.m = r.shape
+        self.rv = r.reshape(-1)
+        N0 = self.G.T @ self.G
+        self.g0 = self.G.T @ self.rv
+        self.N0inv = np.linalg.inv(N0)
+        self.x0 = self.N0inv @ self.g0
+        self.fit0 = self.rv - self.G @ self.x0
+        self.folds: list[list[tuple]] = []
+        for folds in partitions:
+            per = []
+            for test in folds:
+                trows = (self.m * test[:, None] + np.arange(self.m)).ravel()
+                Gt, rt = self.G[trows], self.rv[trows]
+                Ainv = np.linalg.inv(N0 - Gt.T @ Gt)
+                xf = Ainv @ (self.g0 - Gt.T @ rt)
+                per.append((trows, Gt, rt, Ainv, xf, rt - Gt @ xf))
+            self.folds.append(per)
+
+    def separable(self, E: np.ndarray, tol: float = 1e-3) -> tuple[list[int], np.ndarray]:
+        """The candidate's columns the identifiability analysis keeps (`analyse`'s rule: each unit column's
+        part orthogonal to the model's and to the candidate's earlier kept columns exceeds `tol`), and the
+        columns' norms."""
+        norms = np.linalg.norm(E, axis=0)
+        kept: list[int] = []
+        basis: list[np.ndarray] = []
+        for i in range(E.shape[1]):
+            if norms[i] == 0:
+                continue
+            c = E[:, i] / norms[i]
+            for _ in range(2):  # re-orthogonalised once, as `analyse`
+                c = c - self.Q @ (self.Q.T @ c)
+                for b in basis:
+                    c = c - (b @ c) * b
+            if np.linalg.norm(c) > tol:
+                basis.append(c / np.linalg.norm(c))
+                kept.append(i)
+        return kept, np.where(norms > 0, norms, 1.0)
+
+    def geometry_correlation(self, Es: np.ndarray) -> float:
+        """`geometry_correlation` of the candidate's unit columns against the model's."""
+        Qe = np.linalg.qr(Es)[0]
+        sines = np.linalg.svd(Qe - self.Q @ (self.Q.T @ Qe), compute_uv=False)
+        return float(np.sqrt(max(0.0, 1.0 - float(np.max(sines)) ** 2)))
+
+    def fit(self, E: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Full-fit residuals (N, m), mean held-out squared error per point (N,) and the full fit's increments
+        (model columns, candidate columns; scaled) with the candidate's unit columns E added."""
+        C = self.G.T @ E
+        D = E.T @ E
+        ge = E.T @ self.rv
+        W = self.N0inv @ C
+        xe = np.linalg.solve(D - C.T @ W, ge - C.T @ self.x0)
+        fit = (self.fit0 - (E - self.G @ W) @ xe).reshape(self.n, self.m)
+        x_base = self.x0 - W @ xe
+        errs = []
+        for per in self.folds:
+            cv = np.zeros(self.n * self.m)
+            for trows, Gt, rt, Ainv, xf, cv0 in per:
+                Et = E[trows]
+                Cf = C - Gt.T @ Et
+                Wf = Ainv @ Cf
+                xef = np.linalg.solve(D - Et.T @ Et - Cf.T @ Wf, ge - Et.T @ rt - Cf.T @ xf)
+                cv[trows] = cv0 - (Et - Gt @ Wf) @ xef
+            errs.append(np.sum(cv.reshape(self.n, self.m) ** 2, axis=1))
+        return fit, np.mean(errs, axis=0), x_base / self.norms, xe
 
 
 NEAR_TIE = 0.9  # candidates within 10 % of the best held-out gain are a near-tie
