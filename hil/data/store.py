@@ -689,7 +689,15 @@ def export_parquet(
     step: str | Sequence[str] | None = None,
 ) -> int:
     """Write one procedure's measurements (dataset columns) as a Parquet file; returns rows written."""
-    return _export(path, procedure, step, lambda df: df.to_parquet(out, index=False))
+    return _export(path, procedure, step, lambda df: _without_attrs(df).to_parquet(out, index=False))
+
+
+def _without_attrs(df: pd.DataFrame) -> pd.DataFrame:
+    """The frame without its in-memory annotations (data row numbers, dropped duplicates): pandas writes attrs
+    into a Parquet file's metadata as JSON, and they describe this reading, not the campaign."""
+    plain = df.copy(deep=False)
+    plain.attrs = {}
+    return plain
 
 
 def _export(
