@@ -547,10 +547,7 @@ def _forward_selection(
     )
 
     def refit(result: CalibrationResult) -> IdentifiabilityReport:
-        path.current = result
-        path.prob, path.partitions = base.rows_and_folds(result)
-        path.free, rep = _free_mask(result.model, path.prob)
-        return rep
+        return _refit(base, path, result)
 
     for _ in range(max_effects):
         results = _screen_round(base, path, alpha, families, banned)
@@ -611,15 +608,30 @@ def _forward_selection(
     return path
 
 
+def _refit(base: _Baseline, path: _Path, result: CalibrationResult) -> IdentifiabilityReport:
+    """Make `result` the path's current model: its rows, folds and identifiable parameters follow it."""
+    path.current = result
+    path.prob, path.partitions = base.rows_and_folds(result)
+    path.free, rep = _free_mask(result.model, path.prob)
+    return rep
+
+
 def _record_added(
-    path: _Path, added: Candidate, candidates: list[Candidate], rep: IdentifiabilityReport
+    path: _Path,
+    added: Candidate,
+    candidates: list[Candidate],
+    rep: IdentifiabilityReport,
+    label: str | None = None,
+    **extra: Any,
 ) -> None:
-    """The stage and step of the effect just added (the last of the current model)."""
-    path.stage_models.append(("+ " + effect_label(added.name, added.joint), path.current.model))
+    """The stage (`label`, by default '+ effect') and step of the effect just added, the last of the current
+    model; `extra` goes into the step (a replacement's `action`, `replaces`, `rival_tests`)."""
+    path.stage_models.append((label or "+ " + effect_label(added.name, added.joint), path.current.model))
     eff_index = len(path.current.model.effects) - 1
     eff = path.current.model.effects[eff_index]
     path.pending.append(
         {
+            **extra,
             "effect": {"name": added.name, "joint": added.joint},
             "parameters": _effect_params(path.current, eff_index),
             "candidates": candidates,
@@ -709,25 +721,16 @@ def _settle_rivals(base: _Baseline, df: pd.DataFrame, path: _Path, alpha: float)
             if better:
                 best = min(better, key=lambda t: t.p_rival_better)
                 rival = _named(best.rival)
-                path.current = calibrate(df, models[rival], "ridge")
-                path.prob, path.partitions = base.rows_and_folds(path.current)
-                path.free, rep = _free_mask(path.current.model, path.prob)
-                new = path.current.model.effects[-1]
-                path.stage_models.append(
-                    (f"+ {effect_label(*rival)} for {effect_label(*key)}", path.current.model)
-                )
-                path.pending.append(
-                    {
-                        "action": "replaced",
-                        "replaces": best.chosen,
-                        "effect": best.rival,
-                        "parameters": _effect_params(path.current, len(path.current.model.effects) - 1),
-                        "candidates": round_of["candidates"],
-                        "merged": [d for d in rep.dropped if d["name"] in new.param_names],
-                        "correlations": _correlations(path.current, path.prob, new),
-                        "summary": new.summary(path.prob.ctx, path.current.model.nominal),
-                        "rival_tests": [t.to_dict() for t in tests],
-                    }
+                rep = _refit(base, path, calibrate(df, models[rival], "ridge"))
+                _record_added(
+                    path,
+                    next(c for c in round_of["candidates"] if (c.name, c.joint) == rival),
+                    round_of["candidates"],
+                    rep,
+                    label=f"+ {effect_label(*rival)} for {effect_label(*key)}",
+                    action="replaced",
+                    replaces=best.chosen,
+                    rival_tests=[t.to_dict() for t in tests],
                 )
                 path.ambiguities = [a for a in path.ambiguities if _named(a["chosen"]) != key]
                 replaced = True
