@@ -1,5 +1,6 @@
-# Entry points: `make demo` (main job on the simulated cell), `make test` (ruff + import layers + mypy + pytest,
-# the check of every change) and `make soak` (the long soaks marked `slow`, for a nightly run).
+# Entry points: `make demo` (main job on the simulated cell), `make test` (ruff + import layers + the strict docs
+# build + mypy + pytest, the check of every change), `make docs` (the documentation site in site/) and
+# `make soak` (the long soaks marked `slow`, for a nightly run).
 PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
@@ -10,7 +11,7 @@ PY := $(VENV)/bin/python
 # PYTEST_PARALLEL= runs the suite in one process.
 PYTEST_PARALLEL ?= -n 4 --dist loadfile --no-loadscope-reorder
 
-.PHONY: demo test typecheck unit soak lint bench clean
+.PHONY: demo test docs typecheck unit soak lint bench clean
 
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -25,7 +26,14 @@ test: $(VENV)/.installed
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
 	$(VENV)/bin/lint-imports
+	$(MAKE) --no-print-directory docs
 	$(MAKE) --no-print-directory -j2 typecheck unit
+
+# The documentation site (docs/, mkdocs.yml) into site/. Strict: a broken link or anchor, or a page missing from
+# the nav, fails the build. The CLI reference and the procedures' parameter tables are generated from the code
+# at build time (tools/docs_reference.py). A few seconds. Not --quiet: it hides the warnings that strict counts.
+docs: $(VENV)/.installed
+	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict
 
 # mypy alongside pytest: a cold mypy (a fresh clone has no .mypy_cache) takes 25-40 s of one core, and the
 # pytest workers leave a core idle while the simulated cells run in scaled wall-clock time.
@@ -50,4 +58,4 @@ bench: $(VENV)/.installed
 	$(PY) benchmarks/probe.py
 
 clean:
-	rm -rf $(VENV)
+	rm -rf $(VENV) site
