@@ -111,23 +111,24 @@ def arc_spans(
 ) -> np.ndarray:
     """Per candidate reference pose (K, 6) and joint (every joint, or those in `joints`): the longest arc (rad,
     centred on the reference, at most `span_rad`) whose poses stay in the envelope and keep the SMR facing
-    the tracker."""
+    the tracker, its approach pose (APPROACH_RAD before the first) inside the envelope too."""
     q_ref = np.atleast_2d(q_ref)
     half = np.arange(0.0, span_rad / 2 + 1e-9, SPAN_STEP_RAD / 2)
-    offsets = np.concatenate([-half[::-1], half[1:]])  # symmetric, from -span/2 to +span/2
+    # symmetric, from -span/2 to +span/2, then the approach poses below each start
+    offsets = np.concatenate([-half[::-1], half[1:], -half - APPROACH_RAD])
     K, n = q_ref.shape
     swept = list(range(n)) if joints is None else list(joints)
     q = np.repeat(q_ref[:, None, None, :], len(swept), axis=1).repeat(len(offsets), axis=2)  # (K, J, M, n)
     for i, j in enumerate(swept):
         q[:, i, :, j] += offsets
     flat = q.reshape(-1, n)
-    ok = ~config.envelope.outside(config.nominal, flat, config.nests_flange_m)
-    ok &= facing_angles(config, flat, p_nest) < FACING_LIMIT_RAD
-    ok = ok.reshape(K, len(swept), len(offsets))
-    # symmetric reach: the largest k with every offset in -half[k]..half[k] usable
-    mid = len(half) - 1
-    good = np.logical_and(ok[..., mid:], ok[..., mid::-1])  # (K, n, len(half))
-    reach = np.where(np.all(good, axis=-1), len(half) - 1, np.argmin(good, axis=-1) - 1)
+    inside = ~config.envelope.outside(config.nominal, flat, config.nests_flange_m).reshape(K, len(swept), -1)
+    ok = inside & (facing_angles(config, flat, p_nest) < FACING_LIMIT_RAD).reshape(K, len(swept), -1)
+    # symmetric reach: the largest k with every offset in -half[k]..half[k] usable and its approach inside
+    mid, m = len(half) - 1, len(half)
+    good = np.logical_and(ok[..., mid : mid + m], ok[..., mid::-1])  # (K, J, len(half))
+    usable = np.logical_and.accumulate(good, axis=-1) & inside[..., 2 * m - 1 :]
+    reach = np.where(usable.any(axis=-1), m - 1 - np.argmax(usable[..., ::-1], axis=-1), -1)
     return 2 * half[np.clip(reach, 0, None)] * (reach >= 0)
 
 

@@ -38,6 +38,11 @@ def test_sweeps_turn_one_joint_at_a_time_from_one_reference_pose(config):
         assert np.all(np.diff(rows[::2, j]) > 0)  # always turned the same way
     assert q[14, 0] == q_ref[0]
     assert not config.envelope.outside(config.nominal, q, config.nests_flange_m).any()
+    approaches = np.array([p.approach_q_rad for p in plan.poses if p.approach_q_rad is not None])
+    assert (
+        len(approaches) == 6
+        and not config.envelope.outside(config.nominal, approaches, config.nests_flange_m).any()
+    )
     assert np.all(joint_axes.facing_angles(config, q, config.nests_flange_m[:2]) < math.radians(30))
 
 
@@ -85,3 +90,17 @@ def test_the_cycles_visit_the_five_poses_on_one_branch_from_below(config):
     assert np.allclose(cube.p_base_m, cube_poses(cube.centre_m, 0.3))
     with pytest.raises(ValueError, match="--model nowhere.json: no such file"):
         iso9283.PROCEDURE.make_plan(config, cycles=2, model="nowhere.json")
+
+
+def test_each_sweeps_approach_pose_stays_inside_the_envelope(tmp_path):
+    """Each sweep starts from APPROACH_RAD below its first pose: the arc search keeps that pose inside too (on
+    this cell joint 2's full 120 deg arc would put tool point 3 13 mm below the box on the approach)."""
+    path = tmp_path / "cell.toml"
+    path.write_text(sim_cell_toml(seed=1))
+    config = load_cell_config(path)
+    q_ref = np.deg2rad([-16.6, -180.9, 92.1, 41.6, -11.4, -17.3])
+    arcs = joint_axes.arc_spans(config, q_ref, math.radians(120), config.nests_flange_m)[0]
+    starts = np.repeat(q_ref[None], 6, axis=0)
+    starts[np.arange(6), np.arange(6)] -= arcs / 2 + joint_axes.APPROACH_RAD
+    assert not config.envelope.outside(config.nominal, starts, config.nests_flange_m).any()
+    assert math.radians(100) < arcs[1] < math.radians(120)  # shortened by a step, not given up
