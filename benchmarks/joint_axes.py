@@ -8,7 +8,8 @@ The cell is `hil sim`'s default UR10 (hidden geometric errors, gravity complianc
 MPE: 15 um + 6 um/m, 2 sigma). Registration, then the joint_axes procedure (its own reference pose search,
 SMRs in every tool nest unless --smrs, the cell's shots per point unless --shots);
 each measured axis is compared with the true axis at the reference pose (the cell's true geometry and joint
-deflections there, in the tracker frame). Both calibrations use the same simulated grid campaign of the same
+deflections there, in the tracker frame). Joint 2 is swept from its own pose (the arm stretched, where the
+other joints' gravity sag leaves its arc a circle); its axis depends on joint 1 alone, held as at the reference. Both calibrations use the same simulated grid campaign of the same
 cell (150 mm step) and are judged on the same 100 held-out poses.
 """
 

@@ -9,8 +9,16 @@ measuring `points` poses along it, always in the positive direction; then return
 reference before the next. Each arc is fitted to a circle, each joint's axis to its arcs; the lines give a
 standard DH model (Hayati's beta between parallel axes) written as a robot file (`output`) that
 `hil calibrate --robot FILE` starts from: for an arm with no nominal model, or to check the nominal one
-(the table lists each measured axis against the nominal axis through the registration). The reference
-pose is searched for (the one with the longest arcs) unless `q_ref` is given. The recorded sweeps export
+(the table lists each measured axis against the nominal axis through the registration).
+
+Gravity sag: while a joint turns, the load on the other joints changes, they yield by changing amounts and
+the arc is no circle; a radius change along it looks like a moved centre (0.1-0.2 mm on a UR10's shoulder,
+where the elbow's load follows the shoulder's angle). So joint 2, whose axis no load moves (only the
+vertical joint 1 stands before it), is swept from its own pose: joint 1 as at the reference, the others
+where their yield moves the SMRs along the arc, not off it (on a UR the arm stretched along the upper arm).
+The reference pose is searched for (unless `q_ref` is given): among the candidates with long arcs, the one
+whose sweeps a generic sag model (1 kg at every link origin) distorts least. The fit itself stays pure
+geometry: no mass or stiffness enters it. The recorded sweeps export
 as a dataset (`hil campaign export --procedure joint_axes`) that `hil axes` reads.
 """
 
@@ -22,10 +30,11 @@ from pathlib import Path
 
 import numpy as np
 
-from hil.analysis.joint_axes import MIN_ARC_RAD, AxesResult, identify_axes, robot_file_text
+from hil.analysis.effects import GRAVITY_DIRECTION_BASE
+from hil.analysis.joint_axes import MIN_ARC_RAD, AxesResult, fit_circle, identify_axes, robot_file_text
 from hil.analysis.noise_floor import tracker_sigma_m
 from hil.data.store import campaign_dataset
-from hil.geometry.kinematics import forward_kinematics, link_frames
+from hil.geometry.kinematics import KinematicModel, chain_axes, forward_kinematics, link_frames
 from hil.runner.cell_config import CellConfig
 from hil.runner.operator import OperatorStep
 from hil.runner.plan import Plan, PlannedPose
@@ -39,6 +48,19 @@ FACING_LIMIT_RAD = math.radians(28.0)  # the SMR's opening (30 deg) less a margi
 APPROACH_RAD = math.radians(2.0)  # each sweep starts from below its first pose: one approach direction
 SPAN_STEP_RAD = math.radians(4.0)  # resolution of the arc search
 FACING_CANDIDATES = 120  # reference poses tried with the SMR facing the tracker, at random points
+# Gravity sag while a joint turns: the load on the other joints changes, they yield by different amounts along
+# the sweep and the SMR's arc is no circle; a first-harmonic radius change along the arc is indistinguishable
+# from a shifted centre (0.1-0.2 mm on a UR10's shoulder). The fit stays pure geometry; the plan avoids it.
+LONG_ARC_RAD = math.radians(60.0)  # arcs this long fix an axis far better than the tracker's noise needs
+VERTICAL_RAD = math.radians(1.0)  # an axis within this of gravity carries no gravity torque
+SAG_MASS_KG = 1.0  # planning's generic load: this mass at every link origin beyond a joint, and at the flange
+SAG_STIFFNESS_NM_PER_RAD = 1.0e5  # planning's generic joint stiffness (a UR10-class arm, in its magnitude)
+SAG_POINTS = 9  # poses per predicted arc (noise-free: a few fix the circle)
+SAG_TIE_M = 5e-6  # predicted sag biases closer than this count as equal; the longer arcs then decide
+SWEEP_GRID_DEG = (15.0, 15.0, 30.0)  # steps of the swept joint's centre, the next joint, the others
+SWEEP_CANDIDATES = 1500  # the least sag-sensitive sweep poses whose arcs are searched
+REFERENCE_TRIALS = 8  # reference poses (best first) tried for a free joint's sweep pose before settling
+SENSITIVITY_GAIN = 0.5  # a free joint's sweep pose must halve the yield sensitivity of the reference
 
 
 @dataclass
@@ -80,31 +102,46 @@ def facing_angles(config: CellConfig, q: np.ndarray, p_nests: np.ndarray) -> np.
     return np.arccos(np.clip(cos, -1.0, 1.0)).max(axis=1)
 
 
-def arc_spans(config: CellConfig, q_ref: np.ndarray, span_rad: float, p_nest: np.ndarray) -> np.ndarray:
-    """Per candidate reference pose (K, 6) and joint: the longest arc (rad, centred on the reference, at most
-    `span_rad`) whose poses stay in the envelope and keep the SMR facing the tracker."""
+def arc_spans(
+    config: CellConfig,
+    q_ref: np.ndarray,
+    span_rad: float,
+    p_nest: np.ndarray,
+    joints: list[int] | None = None,
+) -> np.ndarray:
+    """Per candidate reference pose (K, 6) and joint (every joint, or those in `joints`): the longest arc (rad,
+    centred on the reference, at most `span_rad`) whose poses stay in the envelope and keep the SMR facing
+    the tracker, its approach pose (APPROACH_RAD before the first) inside the envelope too."""
     q_ref = np.atleast_2d(q_ref)
     half = np.arange(0.0, span_rad / 2 + 1e-9, SPAN_STEP_RAD / 2)
-    offsets = np.concatenate([-half[::-1], half[1:]])  # symmetric, from -span/2 to +span/2
+    # symmetric, from -span/2 to +span/2, then the approach poses below each start
+    offsets = np.concatenate([-half[::-1], half[1:], -half - APPROACH_RAD])
     K, n = q_ref.shape
-    q = np.repeat(q_ref[:, None, None, :], n, axis=1).repeat(len(offsets), axis=2)  # (K, n, M, n)
-    for j in range(n):
-        q[:, j, :, j] += offsets
+    swept = list(range(n)) if joints is None else list(joints)
+    q = np.repeat(q_ref[:, None, None, :], len(swept), axis=1).repeat(len(offsets), axis=2)  # (K, J, M, n)
+    for i, j in enumerate(swept):
+        q[:, i, :, j] += offsets
     flat = q.reshape(-1, n)
-    ok = ~config.envelope.outside(config.nominal, flat, config.nests_flange_m)
-    ok &= facing_angles(config, flat, p_nest) < FACING_LIMIT_RAD
-    ok = ok.reshape(K, n, len(offsets))
-    # symmetric reach: the largest k with every offset in -half[k]..half[k] usable
-    mid = len(half) - 1
-    good = np.logical_and(ok[..., mid:], ok[..., mid::-1])  # (K, n, len(half))
-    reach = np.where(np.all(good, axis=-1), len(half) - 1, np.argmin(good, axis=-1) - 1)
+    inside = ~config.envelope.outside(config.nominal, flat, config.nests_flange_m).reshape(K, len(swept), -1)
+    ok = inside & (facing_angles(config, flat, p_nest) < FACING_LIMIT_RAD).reshape(K, len(swept), -1)
+    # symmetric reach: the largest k with every offset in -half[k]..half[k] usable and its approach inside
+    mid, m = len(half) - 1, len(half)
+    good = np.logical_and(ok[..., mid : mid + m], ok[..., mid::-1])  # (K, J, len(half))
+    usable = np.logical_and.accumulate(good, axis=-1) & inside[..., 2 * m - 1 :]
+    reach = np.where(usable.any(axis=-1), m - 1 - np.argmax(usable[..., ::-1], axis=-1), -1)
     return 2 * half[np.clip(reach, 0, None)] * (reach >= 0)
 
 
-def reference_pose(config: CellConfig, span_rad: float, p_nest: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The reference pose with the longest arcs (the product of the arcs) among candidates: the home pose
-    turned about joint 1 and at the wrist, and poses with the SMR facing the tracker straight at random points
-    of the sampled volume; refused when no candidate lets every joint turn 30 deg."""
+def reference_pose(
+    config: CellConfig, span_rad: float, p_nest: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The reference pose, the pose each joint's sweep stands at (n, n) and the arcs (n,). Candidates: the home
+    pose turned about joint 1 and at the wrist, and poses with the SMR facing the tracker straight at random
+    points of the sampled volume; refused when no candidate lets every joint turn 30 deg. Those whose arcs at
+    the reference are not short (`LONG_ARC_RAD`, or nearly as long as any candidate allows) first, the least
+    predicted sag bias of the joints swept there (`sag_bias`), ties to the longest arcs, whose free joints
+    (`free_joints`) also find a sweep pose with a long arc and half the reference's yield sensitivity
+    (`sweep_poses`); the first candidate when none of the best REFERENCE_TRIALS does."""
     home = np.asarray(config.q_home_rad, float)
     candidates = []
     for d1 in np.deg2rad(np.arange(-180.0, 180.0, 30.0)):
@@ -121,27 +158,158 @@ def reference_pose(config: CellConfig, span_rad: float, p_nest: np.ndarray) -> t
     candidates += list(facing.q[facing.usable])
     Q = np.array(candidates)
     spans = arc_spans(config, Q, span_rad, p_nest)
-    score = np.where(
-        np.all(spans >= MIN_ARC_RAD, axis=1), np.sum(np.log(np.maximum(spans, 1e-9)), axis=1), -np.inf
-    )
-    best = int(np.argmax(score))
-    if not np.isfinite(score[best]):
+    valid = np.all(spans >= MIN_ARC_RAD, axis=1)
+    if not valid.any():
         raise ValueError(
             "no reference pose found from which every joint turns 30 deg inside the envelope with the SMR "
             "facing the tracker; give one with --q-ref-deg or widen [envelope]"
         )
-    return Q[best], spans[best]
+    free = free_joints(config.nominal, home)
+    at_ref = [j for j in range(len(home)) if j not in free]
+    need = np.maximum(
+        MIN_ARC_RAD, np.minimum(LONG_ARC_RAD, spans[valid][:, at_ref].max(axis=0)) - 2 * SPAN_STEP_RAD
+    )
+    long = np.all(spans[:, at_ref] >= need, axis=1)
+    eligible = np.flatnonzero(valid)
+    bias = np.max(
+        [sag_bias(config.nominal, Q[eligible], j, spans[eligible, j], p_nest) for j in at_ref], axis=0
+    )
+    score = np.sum(np.log(np.maximum(spans[eligible][:, at_ref], 1e-9)), axis=1)
+    # long arcs first, then the least bias (in steps of SAG_TIE_M), then the longest arcs
+    order = np.lexsort((-score, np.round(bias / SAG_TIE_M), ~long[eligible]))
+    fallback = None
+    for k in eligible[order][:REFERENCE_TRIALS]:
+        centres, arcs = sweep_poses(config, Q[k], spans[k], span_rad, p_nest)
+        gain = [yield_sensitivity(config.nominal, np.array([centres[j], Q[k]]), p_nest, j) for j in free]
+        if all(g[0] <= SENSITIVITY_GAIN * g[1] for g in gain) and np.all(arcs[free] >= LONG_ARC_RAD - 1e-9):
+            return Q[k], centres, arcs
+        fallback = fallback or (Q[k], centres, arcs)
+    assert fallback is not None
+    return fallback
+
+
+def sweep_poses(
+    config: CellConfig, q_ref: np.ndarray, spans: np.ndarray, span_rad: float, p_nest: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Where each joint's sweep stands (n, n) and its arc (n,): at the reference, bar the free joints
+    (`sweep_pose`)."""
+    q_ref = np.asarray(q_ref, float)
+    centres = np.repeat(q_ref[None], len(q_ref), axis=0)
+    arcs = np.array(spans, float)
+    for j in free_joints(config.nominal, q_ref):
+        centres[j], arcs[j] = sweep_pose(config, q_ref, j, span_rad, p_nest, float(arcs[j]))
+    return centres, arcs
+
+
+def gravity_sag(nominal: KinematicModel, q: np.ndarray) -> np.ndarray:
+    """Planning's generic gravity yield of every joint (N, n), rad: SAG_MASS_KG at each link origin beyond the
+    joint and at the flange, over SAG_STIFFNESS_NM_PER_RAD, the robot upright. Only its variation along a sweep
+    matters, and only to rank poses: the real masses and stiffnesses never enter the fit."""
+    T_flange, Z, O = chain_axes(nominal, q)  # Z (n, 3, N), O (n + 1, 3, N)
+    n = nominal.n_joints
+    weight = SAG_MASS_KG * 9.81 * GRAVITY_DIRECTION_BASE
+    points = np.concatenate([O, T_flange[:, :3, 3].T[None]])  # (n + 2, 3, N)
+    tau = np.empty((np.shape(q)[0], n))
+    for k in range(n):
+        lever = np.sum(points[k + 1 :] - O[k], axis=0)  # (3, N): the summed arms of the unit masses beyond
+        tau[:, k] = np.einsum(
+            "in,in->n", np.cross(weight[:, None], Z[k], axis=0), lever
+        )  # z.(r x F) = (F x z).r
+    return tau / SAG_STIFFNESS_NM_PER_RAD
+
+
+def sag_bias(
+    nominal: KinematicModel, q_centre: np.ndarray, joint: int, span_rad: np.ndarray, p_nest: np.ndarray
+) -> np.ndarray:
+    """Predicted position error (K,), m, of joint `joint`'s axis when swept over `span_rad` (K,) about each pose
+    of `q_centre` (K, n), from the generic sag (`gravity_sag`): the arcs' circles against the sagged axis at
+    the centre pose. For ranking poses only."""
+    Q = np.atleast_2d(np.asarray(q_centre, float))
+    K, n = Q.shape
+    steps = np.linspace(-0.5, 0.5, SAG_POINTS)[None, :] * np.asarray(span_rad, float)[:, None]  # (K, M)
+    sweep = np.repeat(Q[:, None, :], SAG_POINTS, axis=1)
+    sweep[..., joint] += steps
+    flat = sweep.reshape(-1, n)
+    T = forward_kinematics(nominal, flat + gravity_sag(nominal, flat))
+    p = np.einsum("nij,kj->nki", T[:, :3, :3], p_nest) + T[:, None, :3, 3]
+    p = p.reshape(K, SAG_POINTS, len(p_nest), 3)
+    F = link_frames(nominal, Q + gravity_sag(nominal, Q))[:, joint]
+    z, o = F[:, :3, 2], F[:, :3, 3]
+    bias = np.zeros(K)
+    for k in np.flatnonzero(np.asarray(span_rad) >= MIN_ARC_RAD):
+        d = np.mean([fit_circle(p[k, :, i])[0] for i in range(len(p_nest))], axis=0) - o[k]
+        bias[k] = np.linalg.norm(d - (d @ z[k]) * z[k])
+    return bias
+
+
+def free_joints(nominal: KinematicModel, q: np.ndarray) -> list[int]:
+    """Joints (0-based, not the first) whose every upstream axis stands along gravity: no joint before them
+    carries a gravity torque, so their axis does not move with the pose of the joints beyond, and their sweep
+    may stand elsewhere than the reference (on an upright arm: joint 2)."""
+    _, Z, _ = chain_axes(nominal, np.atleast_2d(np.asarray(q, float)))
+    vertical = np.abs(Z[:, :, 0] @ GRAVITY_DIRECTION_BASE) > math.cos(VERTICAL_RAD)
+    out = []
+    for j in range(1, nominal.n_joints):
+        if not vertical[:j].all():
+            break
+        out.append(j)
+    return out
+
+
+def yield_sensitivity(nominal: KinematicModel, q: np.ndarray, p_nest: np.ndarray, joint: int) -> np.ndarray:
+    """Per pose (N,), m/rad: the RMS, over the SMRs and the joints beyond `joint`, of how far an SMR leaves
+    `joint`'s circle (radially or along the axis) when that joint yields. Zero when every yield moves the
+    SMRs along the arc, which a circle fit ignores: no mass or stiffness needed."""
+    T, Z, O = chain_axes(nominal, q)
+    p = np.einsum("nij,kj->nki", T[:, :3, :3], p_nest) + T[:, None, :3, 3]  # (N, K, 3)
+    z, o = Z[joint].T[:, None], O[joint].T[:, None]
+    d = p - o
+    tangent = np.cross(z, d)
+    tangent /= np.linalg.norm(tangent, axis=2, keepdims=True)
+    total = np.zeros(len(p))
+    for k in range(joint + 1, nominal.n_joints):
+        J = np.cross(Z[k].T[:, None], p - O[k].T[:, None])  # the SMRs' motion per rad of joint k
+        total += np.sum((J - np.sum(J * tangent, axis=2, keepdims=True) * tangent) ** 2, axis=(1, 2))
+    return np.sqrt(total / (len(p_nest) * max(nominal.n_joints - joint - 1, 1)))
+
+
+def sweep_pose(
+    config: CellConfig, q_ref: np.ndarray, joint: int, span_rad: float, p_nest: np.ndarray, span_at_ref: float
+) -> tuple[np.ndarray, float]:
+    """Where a free joint (see `free_joints`) is swept and over which arc: the joints before it as at the
+    reference, those beyond (bar the last) on a grid, the pose whose SMRs the other joints' gravity yield
+    moves least off the arc (`yield_sensitivity`), among those with an arc as long as the reference's or
+    LONG_ARC_RAD; the reference itself when nothing beats it. On a UR: the arm stretched along the upper arm."""
+    n = len(q_ref)
+    lo, hi = config.nominal.joint_limits[:, 0], config.nominal.joint_limits[:, 1]
+    axes = []
+    for i, j in enumerate(range(joint, n - 1)):
+        values = np.deg2rad(np.arange(-180.0, 180.0, SWEEP_GRID_DEG[min(i, 2)]))
+        axes.append(values[(values >= lo[j]) & (values <= hi[j])])
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, len(axes))
+    Q = np.repeat(np.asarray(q_ref, float)[None], len(grid) + 1, axis=0)
+    Q[1:, joint : n - 1] = grid  # row 0: the reference
+    sensitivity = yield_sensitivity(config.nominal, Q, p_nest, joint)
+    top = np.concatenate([[0], 1 + np.argsort(sensitivity[1:])[:SWEEP_CANDIDATES]])
+    spans = arc_spans(config, Q[top], span_rad, p_nest, [joint])[:, 0]
+    spans[0] = span_at_ref
+    ok = spans >= max(MIN_ARC_RAD, min(LONG_ARC_RAD, span_at_ref))
+    ok[0] = True
+    least = sensitivity[top][ok].min()
+    tied = np.flatnonzero(ok & (sensitivity[top] <= least * 1.05))
+    best = int(tied[np.argmax(spans[tied])])
+    return Q[top[best]], float(spans[best])
 
 
 def plan(
     config: CellConfig, *, span_rad: float, points: int, q_ref_rad: tuple[float, ...] | None, smrs: int | None
 ) -> Plan:
-    """The sweeps: each joint alone, `points` poses over its arc, from the reference pose; every SMR read at
-    every pose."""
+    """The sweeps: each joint alone, `points` poses over its arc, from the reference pose (a free joint, see
+    `free_joints`, from the pose its gravity sag distorts least: `sweep_pose`); every SMR read at every pose."""
     nests = smr_count(config, smrs)
     p_nest = config.nests_flange_m[:nests]
     if q_ref_rad is None:
-        q_ref, spans = reference_pose(config, span_rad, p_nest)
+        q_ref, centres, spans = reference_pose(config, span_rad, p_nest)
     else:
         q_ref = np.asarray(q_ref_rad, float)
         spans = arc_spans(config, q_ref, span_rad, p_nest)[0]
@@ -152,6 +320,7 @@ def plan(
                 f"from --q-ref-deg joint {j + 1} can turn only {math.degrees(spans[j]):.0f} deg inside the envelope "
                 "with the SMR facing the tracker (30 needed); choose another reference pose or leave it out"
             )
+        centres, spans = sweep_poses(config, q_ref, spans, span_rad, p_nest)
     setup = tuple(
         OperatorStep(f"Put SMR {k} in tool nest {k}.", "place_smr", smr=k, location=f"nest{k}")
         for k in range(1, nests + 1)
@@ -159,7 +328,7 @@ def plan(
     poses = []
     for j, s in enumerate(spans):
         for k, offset in enumerate(np.linspace(-s / 2, s / 2, points)):
-            q = q_ref.copy()
+            q = centres[j].copy()
             q[j] += offset
             approach = None
             if k == 0:

@@ -27,13 +27,41 @@ def test_sweeps_turn_one_joint_at_a_time_from_one_reference_pose(config):
     assert len(plan.poses) == 6 * 7 * 2 and plan.operator_steps == 2
     q_ref = q[0].copy()
     q_ref[0] = np.median(q[:14, 0])
+    assert joint_axes.free_joints(config.nominal, q_ref) == [
+        1
+    ]  # joint 2: only the vertical joint 1 before it
     for j in range(6):
         rows = q[j * 14 : (j + 1) * 14]
-        others = np.delete(rows - q_ref, j, axis=1)
+        held = q_ref if j != 1 else rows[0]  # joint 2 sweeps from its own pose, joint 1 as at the reference
+        others = np.delete(rows - held, j, axis=1)
         assert np.allclose(others, 0.0) and np.ptp(rows[:, j]) >= math.radians(30) - 1e-9
         assert np.all(np.diff(rows[::2, j]) > 0)  # always turned the same way
+    assert q[14, 0] == q_ref[0]
     assert not config.envelope.outside(config.nominal, q, config.nests_flange_m).any()
+    approaches = np.array([p.approach_q_rad for p in plan.poses if p.approach_q_rad is not None])
+    assert (
+        len(approaches) == 6
+        and not config.envelope.outside(config.nominal, approaches, config.nests_flange_m).any()
+    )
     assert np.all(joint_axes.facing_angles(config, q, config.nests_flange_m[:2]) < math.radians(30))
+
+
+def test_the_shoulder_sweeps_where_the_other_joints_sag_along_its_arc(config):
+    """The elbow and wrist yield under a load that changes as the shoulder turns: joint 2's sweep pose puts the
+    SMRs where that yield moves them along the arc (the arm stretched along the upper arm), and the generic
+    sag model predicts a far smaller axis error there than at the reference."""
+    p_nest = config.nests_flange_m[:2]
+    q_ref = np.deg2rad([-37.0, -97.0, 111.0, 54.0, 13.0, 28.0])
+    spans = joint_axes.arc_spans(config, q_ref, math.radians(120), p_nest)[0]
+    centres, arcs = joint_axes.sweep_poses(config, q_ref, spans, math.radians(120), p_nest)
+    assert np.allclose(np.delete(centres, 1, axis=0), q_ref) and centres[1, 0] == q_ref[0]
+    assert arcs[1] >= min(spans[1], joint_axes.LONG_ARC_RAD) and abs(centres[1, 2]) < math.radians(20)
+    both = np.array([centres[1], q_ref])
+    sensitivity = joint_axes.yield_sensitivity(config.nominal, both, p_nest, 1)
+    bias = joint_axes.sag_bias(config.nominal, both, 1, np.array([arcs[1], arcs[1]]), p_nest)
+    assert sensitivity[0] < 0.5 * sensitivity[1] and bias[0] < 0.2 * bias[1]
+    sag = joint_axes.gravity_sag(config.nominal, np.array([q_ref, q_ref + [1.0, 0, 0, 0, 0, 0]]))
+    assert np.allclose(sag[:, 0], 0.0) and np.allclose(sag[0, 1:], sag[1, 1:])  # joint 1 turns no load
 
 
 def test_a_reference_pose_without_room_to_turn_is_refused(config):
@@ -62,3 +90,17 @@ def test_the_cycles_visit_the_five_poses_on_one_branch_from_below(config):
     assert np.allclose(cube.p_base_m, cube_poses(cube.centre_m, 0.3))
     with pytest.raises(ValueError, match="--model nowhere.json: no such file"):
         iso9283.PROCEDURE.make_plan(config, cycles=2, model="nowhere.json")
+
+
+def test_each_sweeps_approach_pose_stays_inside_the_envelope(tmp_path):
+    """Each sweep starts from APPROACH_RAD below its first pose: the arc search keeps that pose inside too (on
+    this cell joint 2's full 120 deg arc would put tool point 3 13 mm below the box on the approach)."""
+    path = tmp_path / "cell.toml"
+    path.write_text(sim_cell_toml(seed=1))
+    config = load_cell_config(path)
+    q_ref = np.deg2rad([-16.6, -180.9, 92.1, 41.6, -11.4, -17.3])
+    arcs = joint_axes.arc_spans(config, q_ref, math.radians(120), config.nests_flange_m)[0]
+    starts = np.repeat(q_ref[None], 6, axis=0)
+    starts[np.arange(6), np.arange(6)] -= arcs / 2 + joint_axes.APPROACH_RAD
+    assert not config.envelope.outside(config.nominal, starts, config.nests_flange_m).any()
+    assert math.radians(100) < arcs[1] < math.radians(120)  # shortened by a step, not given up

@@ -37,13 +37,16 @@ def arm():
     return {"true": true, "T": T}
 
 
-def sweeps(arm, span_rad=2.0, points=25, noise_m=SIGMA_M, smrs=(1,), seed=0, deg=False) -> pd.DataFrame:
-    """Each joint turned alone about Q_REF by +-span/2, every SMR read at every pose."""
+def sweeps(
+    arm, span_rad=2.0, points=25, noise_m=SIGMA_M, smrs=(1,), seed=0, deg=False, centres=None
+) -> pd.DataFrame:
+    """Each joint turned alone about Q_REF (or about its pose in `centres`, by 0-based joint) by +-span/2, every
+    SMR read at every pose."""
     rng = np.random.default_rng(seed)
     q = []
     for j in range(6):
         for v in np.linspace(-span_rad / 2, span_rad / 2, points):
-            row = Q_REF.copy()
+            row = (centres or {}).get(j, Q_REF).copy()
             row[j] += v
             q.append(row)
     q = np.repeat(np.array(q), len(smrs), axis=0)
@@ -141,6 +144,26 @@ def test_joints_in_degrees_and_sweep_labels_give_the_same_axes(arm, identified):
         assert np.allclose(a.direction, b.direction, atol=1e-9) and np.allclose(
             a.point_m, b.point_m, atol=1e-9
         )
+
+
+@pytest.mark.parametrize("labels", [False, True])
+def test_the_shoulder_swept_from_its_own_pose_gives_the_axes_at_the_reference(arm, labels):
+    """The joint_axes procedure sweeps joint 2 with the arm stretched (where the other joints' sag moves the
+    SMR along its arc), joint 1 as at the reference: its axis does not depend on the joints beyond, so the
+    axes, the reference pose and the model are those of sweeps all from the reference."""
+    centre = Q_REF.copy()
+    centre[2:5] = [0.0, 1.6, 0.2]
+    df = sweeps(arm, noise_m=0.0, smrs=(1, 2), centres={1: centre})
+    if labels:
+        df["sweep"] = np.repeat([f"j{j}" for j in range(1, 7)], len(df) // 6)
+    res = identify_axes(df, sigma_m=SIGMA_M)
+    assert np.allclose(res.q_ref_rad, Q_REF, atol=1e-12)
+    p_true, z_true = true_axes(arm)
+    for a in res.axes:
+        angle, offset = line_errors(a.point_m, a.direction, p_true[a.joint], z_true[a.joint])
+        assert angle < 1e-5 and offset < 1e-6, (a.joint + 1, angle, offset)  # deg (acos near 1), mm
+    at_ref = identify_axes(sweeps(arm, noise_m=0.0, smrs=(1, 2)), sigma_m=SIGMA_M)
+    assert np.allclose(res.model.params, at_ref.model.params, atol=1e-9)
 
 
 @pytest.mark.parametrize(

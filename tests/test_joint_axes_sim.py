@@ -1,5 +1,6 @@
 """The joint_axes procedure on `hil sim` through ur-rtde and emScon: short sweeps, judged against the cell's
-truth; the robot file it writes loads; a second run resumes with nothing left to measure."""
+truth (gravity sag on, as by default: the shoulder's axis within the 0.1 mm goal); the robot file it writes
+loads; a second run resumes with nothing left to measure."""
 
 from __future__ import annotations
 
@@ -17,7 +18,7 @@ from tests.sim_session import running_cell, session_on
 
 pytestmark = [pytest.mark.sim, pytest.mark.timeout(300)]
 SEED = 3
-Q_REF_DEG = (30.0, -90.0, 90.0, -135.0, -135.0, 0.0)
+Q_REF_DEG = (-76.5, -101.0, 121.3, 21.2, 21.9, -55.0)  # the reference the procedure finds on this cell
 
 
 def test_sweeps_give_axes_near_the_truth_and_a_loadable_robot_file(tmp_path, capsys):
@@ -38,12 +39,18 @@ def test_sweeps_give_axes_near_the_truth_and_a_loadable_robot_file(tmp_path, cap
     cell = SimulatedCell(SimCellConfig(seed=SEED))
     _, frames = cell.true_joint_offsets(result.axes.q_ref_rad, np.ones(6), 0.0)
     F = cell.T_tracker_base @ frames[0]
+    assert cell.config.compliance  # the elbow and wrists sag by amounts that change as the shoulder turns
     for a in result.axes.axes:
         z, o = F[a.joint, :3, 2], F[a.joint, :3, 3]
         d = a.point_m - o
-        assert math.degrees(math.acos(min(1.0, float(a.direction @ z)))) < 0.1
-        assert np.linalg.norm(d - (d @ z) * z) < 0.6e-3
+        angle_deg, offset_m = (
+            math.degrees(math.acos(min(1.0, float(a.direction @ z)))),
+            np.linalg.norm(d - (d @ z) * z),
+        )
+        assert angle_deg < 0.1 and offset_m < 0.6e-3
         assert a.swept_rad > math.radians(35)
+        if a.joint == 1:  # swept from its own pose (the arm stretched): 0.18-0.20 mm off from the reference
+            assert angle_deg < 0.02 and offset_m < 0.1e-3
     assert np.all(result.nominal_angle_deg < 0.3) and "vs nominal" in result.table()
     assert load_robot_file(tmp_path / "arm.toml").n_joints == 6
     assert np.allclose([a.direction for a in again.axes.axes], [a.direction for a in result.axes.axes])

@@ -6,7 +6,9 @@ joint's axis. Per arc: plane by SVD, circle by an algebraic fit in that plane; t
 the axis line to all arcs of the joint (each arc keeps its own radius and height along the axis). The axis
 points the way a positive joint turn moves the SMRs (right-hand rule). Refused: too short an arc, an SMR
 (almost) on the axis, collinear points, a second joint moving inside a sweep, sweeps that do not share one
-reference pose. The lines, all at the reference pose q_ref, give standard DH frames (common normals), with
+reference pose (only the joints before the swept one count: joint j's axis depends on them alone, so a sweep
+may hold the later joints elsewhere, e.g. the arm stretched where gravity sag leaves the arc a circle). The
+lines, all at the reference pose q_ref, give standard DH frames (common normals), with
 Hayati's beta between (nearly) parallel axes (the normal taken in the plane through the previous origin,
 d = 0). Lengths in metres, angles in radians inside.
 """
