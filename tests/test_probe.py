@@ -16,7 +16,7 @@ from sim_campaigns import grid_joints, held_out_joints
 from fakes.campaign import Probe, simulate_campaign
 from fakes.cell import SimCellConfig, SimulatedCell
 from hil.analysis.calibrated_model import CalibratedModel, initial_model
-from hil.analysis.calibration import Problem, calibrate, confounded_pairs
+from hil.analysis.calibration import Problem, calibrate, confounded_pairs, parameter_correlations
 from hil.analysis.effects import EffectContext, make_effect
 from hil.analysis.folds import spatial_folds
 from hil.analysis.noise_floor import estimate_noise_floor
@@ -445,3 +445,5 @@ def test_confounded_pairs_leave_out_parameters_no_equation_moves(probe_campaign)
         pairs = confounded_pairs(result, positions, evaluated=(r, J))
         assert [p[:2] for p in pairs] == [("theta5", "a5")]
         assert all(abs(c) <= 1.0 for *_, c in pairs)
+        kept, corr = parameter_correlations(result, J)  # what each added effect's step reports too
+        assert names[probe[0]] not in kept and np.all(np.abs(corr) <= 1.0 + 1e-9)

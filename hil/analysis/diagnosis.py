@@ -46,8 +46,8 @@ from hil.analysis.calibration import (
     Problem,
     calibrate,
     confounded_pairs,
-    flatten_jacobian,
     identify,
+    parameter_correlations,
     solve_ridge_igg3,
 )
 from hil.analysis.calibration import reregister as reregister_model
@@ -213,14 +213,7 @@ def _effect_params(result: CalibrationResult, eff_index: int) -> list[dict]:
 
 def _correlations(result: CalibrationResult, problem: Problem, eff: Effect) -> list[dict]:
     """For each free coefficient of `eff`, its strongest correlation with a geometric parameter."""
-    _, J = problem.evaluate(result.model)
-    names = result.model.param_names
-    free = [names.index(n) for n in result.free]
-    Jf = flatten_jacobian(J)[:, free]
-    cov = np.linalg.pinv(Jf.T @ Jf)
-    sd = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
-    corr = cov / np.outer(sd, sd)
-    fnames = result.free
+    fnames, corr = parameter_correlations(result, problem.evaluate(result.model)[1])
     out = []
     for nm in eff.param_names:
         if nm not in fnames:
