@@ -16,7 +16,7 @@ from sim_campaigns import grid_joints, held_out_joints
 from fakes.campaign import Probe, simulate_campaign
 from fakes.cell import SimCellConfig, SimulatedCell
 from hil.analysis.calibrated_model import CalibratedModel, initial_model
-from hil.analysis.calibration import Problem, calibrate
+from hil.analysis.calibration import Problem, calibrate, confounded_pairs, parameter_correlations
 from hil.analysis.effects import EffectContext, make_effect
 from hil.analysis.folds import spatial_folds
 from hil.analysis.noise_floor import estimate_noise_floor
@@ -417,3 +417,33 @@ def test_equation_count_message_counts_rotations_once_and_poses():
     df[list(ORIENTATION_COLUMNS)] = df.groupby(pose_ids(df))[list(ORIENTATION_COLUMNS)].transform("first")
     with pytest.raises(ValueError, match=r"15 rows at 5 distinct poses give 60 equations"):
         calibrate(df, "ur10")
+
+
+def test_confounded_pairs_leave_out_parameters_no_equation_moves(probe_campaign):
+    # The diagnosis sets a noisy probe's rotations aside and asks for the confounded pairs on positions
+    # alone: the probe's orientation in the flange then moves no equation and has no estimate. Its column is
+    # zero and its variance zero up to rounding, which once divided into correlations like +5.7e141
+    # ("a5 and probe1_rx correlate ..." on series A).
+    _, _, df = probe_campaign
+    result = calibrate(df, "ur10")
+    names = result.model.param_names
+    probe = [i for i, n in enumerate(names) if n.startswith("probe")]
+    assert probe and all(names[i] in result.free for i in probe)
+    positions = Problem.from_frame(result.model, df.drop(columns=list(ORIENTATION_COLUMNS)))
+    r, J = positions.evaluate(result.model)
+    assert np.all(J[..., probe] == 0.0)
+    pairs = confounded_pairs(result, positions, evaluated=(r, J))
+    assert {frozenset(p[:2]) for p in pairs} >= {frozenset(("theta5", "a5"))}  # positions confound these
+    # Whether rounding leaves the zero column's variance exactly zero depends on the rest of the Jacobian
+    # (a tiny variance of either sign otherwise): random columns, one zero, a5 made nearly theta5's; three of
+    # these ten draws gave "a1 and probe1_rx correlate +3e132" here.
+    for seed in range(10):
+        rng = np.random.default_rng(seed)
+        J = rng.normal(size=J.shape)
+        J[..., probe[0]] = 0.0
+        J[..., names.index("a5")] = J[..., names.index("theta5")] + 0.1 * rng.normal(size=J.shape[:-1])
+        pairs = confounded_pairs(result, positions, evaluated=(r, J))
+        assert [p[:2] for p in pairs] == [("theta5", "a5")]
+        assert all(abs(c) <= 1.0 for *_, c in pairs)
+        kept, corr = parameter_correlations(result, J)  # what each added effect's step reports too
+        assert names[probe[0]] not in kept and np.all(np.abs(corr) <= 1.0 + 1e-9)

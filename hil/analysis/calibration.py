@@ -769,18 +769,29 @@ def fold_spread_std(
     return {n: float(v) for n, v in zip(free_names, spread, strict=True)}
 
 
+def parameter_correlations(result: CalibrationResult, J: np.ndarray) -> tuple[list[str], np.ndarray]:
+    """Correlations of the free parameters' estimates from the Jacobian `J` (as Problem.evaluate gives it):
+    their names and the matrix.
+
+    A free parameter no equation moves (a 6-DoF probe's orientation in the flange when the rotations are set
+    aside) has no estimate here and correlates with nothing: its zero column is left out. Kept in, its
+    variance is zero up to rounding (of either sign), and dividing by it gave correlations like 1e141 on
+    series A. Every column left is unit-norm and non-zero, so each variance is bounded away from zero
+    (about 1 / P^2 at least) and the correlations are well defined."""
+    names = result.model.param_names
+    Jf = flatten_jacobian(J)
+    free = np.array([n in set(result.free) for n in names]) & np.any(Jf != 0.0, axis=0)
+    Js, _ = scale_columns(Jf[:, free])
+    cov = np.linalg.pinv(Js.T @ Js)
+    sd = np.sqrt(np.diag(cov))
+    return [n for n, m in zip(names, free, strict=True) if m], cov / np.outer(sd, sd)
+
+
 def confounded_pairs(
     result: CalibrationResult, problem: Problem, limit: float = 0.95, evaluated: tuple | None = None
 ) -> list[tuple]:
     """Pairs of free geometric parameters whose estimates correlate beyond `limit` (|corr|)."""
-    names = result.model.param_names
-    free = np.array([n in set(result.free) for n in names])
-    _, J = evaluated or problem.evaluate(result.model)
-    Js, _ = scale_columns(flatten_jacobian(J)[:, free])
-    cov = np.linalg.pinv(Js.T @ Js)
-    sd = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
-    corr = cov / np.outer(sd, sd)
-    fn = [n for n, m in zip(names, free, strict=True) if m]
+    fn, corr = parameter_correlations(result, (evaluated or problem.evaluate(result.model))[1])
     geo = set(result.model.nominal.param_names)
     out = []
     for i in range(len(fn)):

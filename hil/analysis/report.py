@@ -80,6 +80,13 @@ def conclusion_text(v: dict, effects_added: list[dict]) -> str:
             f"{v['ratio']:.2f}x the noise floor; a {v['map']} residual map predicts it on held-out points), so a "
             f"residual map is used as the fallback ({MAP_MODES.get(v['map'], v['map'])})."
         )
+    elif v["residual"] == "local":
+        text = (
+            f"Added: {added}. Structured residual remains that no candidate effect explains (residual sigma "
+            f"{v['ratio']:.2f}x the noise floor), but only locally: a {v['map']} residual map predicts it between "
+            "measured points, not in blocks of the volume held out, so no map is added (it would extrapolate "
+            "worse than the model alone). Measure densely where the model is to be used to map it there."
+        )
     elif v["residual"] == "excess":
         text = (
             f"Added: {added}. The residual is {v['ratio']:.2f}x the noise floor but shows no structure a residual "
@@ -299,9 +306,15 @@ def _residual_html(report: DiagnosisReport, d: dict) -> list[str]:
         f"<p>residual sigma / noise sigma = {rm.get('excess_ratio', float('nan')):.3f}; "
         f"unexplained structure: {report.unexplained_structure}</p>"
     )
-    if rm.get("candidates"):
-        rows = [{"map": k, **v} for k, v in rm["candidates"].items()]
-        parts.append(_table(rows, ["map", "rms_mm", "max_mm", "p95_mm", "p_value", "mode", "error"]))
+    tables = [("spatial", rm), ("random", rm.get("interpolation") or {})]
+    rows = [
+        {"map": k, "folds": folds, **v}
+        for folds, part in tables
+        for k, v in [("none", {"rms_mm": part.get("no_map_rms_mm")}), *part.get("candidates", {}).items()]
+        if part.get("candidates")
+    ]
+    if rows:  # spatial folds decide whether a map is added; random folds only whether structure is local
+        parts.append(_table(rows, ["map", "folds", "rms_mm", "max_mm", "p95_mm", "p_value", "mode", "error"]))
     parts.append("<h2>Plots</h2>")
     for title, img in _plots(report):
         parts.append(f"<h3>{html.escape(title)}</h3>{img}")

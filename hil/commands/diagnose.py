@@ -86,7 +86,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--compare-maps",
         action="store_true",
-        help="always compare the residual maps (IDW, SVR, GP) by k-fold, even at the noise floor",
+        help="always compare the residual maps (IDW, SVR, GP) on held-out blocks of the volume (and on random "
+        "folds when none beats no map there), even at the noise floor",
     )
     p.add_argument(
         "--propose",
