@@ -377,13 +377,13 @@ class _Baseline:
     notes: list[str] = field(default_factory=list)  # said in the verdict's cautions
 
     def rows_and_folds(
-        self, result: CalibrationResult, also: np.ndarray | None = None
+        self, result: CalibrationResult, outliers: np.ndarray | None = None
     ) -> tuple[Problem, list[list[np.ndarray]]]:
         """The rows the screening and the held-out figures use (inliers of `result`; for big campaigns a
         fixed random subset of SCREEN_MAX_ROWS of them) and CV_REPEATS partitions of them into spatial
-        folds (the first is the one the held-out figures use). Fits use every row. `also`: more rows to
-        leave out (another model's outliers, when two models are compared on the same rows)."""
-        rows = np.flatnonzero(~result.outliers & (True if also is None else ~also))
+        folds (the first is the one the held-out figures use). Fits use every row. `outliers`: the rows to
+        leave out instead of `result`'s (when two models are compared: the rows neither fits)."""
+        rows = np.flatnonzero(~(result.outliers if outliers is None else outliers))
         if len(rows) > SCREEN_MAX_ROWS:
             order = np.random.default_rng([self.seed, 7]).permutation(len(self.full.measured))
             rank = np.empty_like(order)
@@ -641,21 +641,22 @@ def _keep_previous(
     held-out points better: more measurements must not leave a worse model than a refit of what was named
     before (a held-out test on new rows can be too weak to re-admit a true effect that the earlier
     diagnosis had, while dropping it leaves the geometry to absorb it). Both paths are judged on the rows
-    inlier to both and the same spatial partitions (the mean held-out squared error over them)."""
+    inlier to either (a row both reject is a blunder for both; one only the other accepts is part of the
+    evidence between them) and the same spatial partitions (the mean held-out squared error)."""
     keys = tuple(_named(e) for e in previous)
     if set(keys) <= set(path.effects):
         return path
     other = _forward_selection(base, df, alpha, families, max_effects, banned=set(), start=keys)
     _settle_rivals(base, df, other, alpha)
-    prob, partitions = base.rows_and_folds(path.current, also=other.current.outliers)
+    prob, partitions = base.rows_and_folds(path.current, path.current.outliers & other.current.outliers)
     errors = []
     for candidate in (path, other):
         model = candidate.current.model
         r, J = prob.evaluate(model)
         free = _free_mask(model, prob)[0]
         errors.append(linear_fit_heldout(flatten_jacobian(J)[:, free], r, partitions)[1])
-    gain = held_out_gain(errors[0] - errors[1], prob.pose)[0]
-    if gain <= 0:
+    gain, p_value = held_out_gain(errors[0] - errors[1], prob.pose)
+    if gain <= 0 or set(other.effects) == set(path.effects):
         return path
     other.cautions.append(
         caution(
@@ -664,6 +665,7 @@ def _keep_previous(
             dropped=[{"name": n, "joint": j} for n, j in keys if (n, j) not in path.effects],
             heldout_rms_mm=float(np.sqrt(np.mean(errors[0]))) * 1000.0,
             heldout_rms_kept_mm=float(np.sqrt(np.mean(errors[1]))) * 1000.0,
+            p_value=p_value,
         )
     )
     return other

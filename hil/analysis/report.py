@@ -33,9 +33,9 @@ def caution_text(c: dict) -> str:
         )
     if kind == "previous_effects_kept":
         return (
-            f"the earlier diagnosis' effects ({', '.join(_effect(e) for e in c['effects'])}) were kept: a selection "
-            f"without {', '.join(_effect(e) for e in c['dropped'])} predicted held-out points worse "
-            f"({c['heldout_rms_mm']:.4f} vs {c['heldout_rms_kept_mm']:.4f} mm)"
+            f"a selection that started from the earlier diagnosis' effects ({', '.join(_effect(e) for e in c['effects'])}) "
+            f"predicted held-out points better ({c['heldout_rms_kept_mm']:.4f} mm, p = {c['p_value']:.2g}) than one that "
+            f"dropped {', '.join(_effect(e) for e in c['dropped'])} ({c['heldout_rms_mm']:.4f} mm); it was kept"
         )
     if kind == "stage_worse_than_previous":
         return f"stage '{c['stage']}' predicts held-out points worse than the stage before it ({c['rms_mm']:.4f} mm)"

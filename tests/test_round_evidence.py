@@ -1,6 +1,7 @@
-"""Held-out tests on a campaign with single-joint sweeps appended (an active loop's round): the sweep's poses are
-dealt to the folds in turn, so the effects of the swept joint are not scored on arcs nothing else samples, and
-a round does not end on fewer true effects than the diagnosis before it named."""
+"""What a diagnosis judges an effect on, where an active loop's rounds put the evidence: single-joint sweeps
+appended to a campaign are dealt to the folds in turn (the effects of the swept joint are not scored on arcs
+nothing else samples); a round does not end on a model that a selection starting from the earlier diagnosis'
+effects beats on held-out points."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ from fakes.cell import SimCellConfig, SimulatedCell
 from hil.analysis.diagnosis import run_diagnosis
 from hil.analysis.discrimination import propose
 from hil.analysis.folds import campaign_folds, spatial_folds, sweep_runs
+from hil.analysis.report import caution_text
 
 
 def _grid_and_sweep(k_sweep: int = 12) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -79,17 +81,44 @@ def two_on_joint2():
     return first, plan, longer
 
 
+TRUE_JOINT2 = {("cyclic", 2), ("backlash", 2), ("gravity_compliance", 2)}
+
+
 def _named(report) -> set:
     return {(e["name"], e["joint"]) for e in report.effects_added}
 
 
 def test_true_effects_stay_named_after_single_joint_sweeps(two_on_joint2):
     first, plan, longer = two_on_joint2
-    assert {("cyclic", 2), ("backlash", 2)} <= _named(first)
+    assert _named(first) >= TRUE_JOINT2
     assert "sweep_j2" in plan.purpose
     # sweeps held out as arcs scored every effect as a loss: nothing at all was named on the longer campaign
     again = run_diagnosis(longer, "ur10")
-    assert {("backlash", 2), ("gravity_compliance", 2)} <= _named(again)
+    assert _named(again) >= {("backlash", 2), ("gravity_compliance", 2)}
     # as a round of the loop: the earlier effects are kept when dropping them predicts held-out points worse
     loop = run_diagnosis(longer, "ur10", previous_effects=first.effects_added)
-    assert {("cyclic", 2), ("backlash", 2), ("gravity_compliance", 2)} <= _named(loop)
+    assert _named(loop) >= TRUE_JOINT2
+
+
+def test_a_round_keeps_the_earlier_effects_a_selection_without_them_predicts_worse(two_on_joint2):
+    """A selection that cannot re-admit the earlier effects (only gravity sag is offered here) does not end the
+    round on the worse model: the selection that starts from them predicts held-out points better."""
+    _, _, longer = two_on_joint2
+    earlier = [{"name": n, "joint": j} for n, j in sorted(TRUE_JOINT2)]
+    alone = run_diagnosis(longer, "ur10", families=("gravity_compliance",))
+    assert not _named(alone) >= TRUE_JOINT2
+    kept = run_diagnosis(longer, "ur10", families=("gravity_compliance",), previous_effects=earlier)
+    assert _named(kept) >= TRUE_JOINT2
+    said = [c for c in kept.verdict["cautions"] if c["kind"] == "previous_effects_kept"]
+    assert len(said) == 1 and said[0]["heldout_rms_kept_mm"] < said[0]["heldout_rms_mm"]
+    assert "it was kept" in caution_text(said[0])
+    assert kept.stages[-1]["rms_mm"] < alone.stages[-1]["rms_mm"]
+
+
+def test_an_earlier_effect_that_does_not_predict_better_is_not_kept(two_on_joint2):
+    _, _, longer = two_on_joint2
+    fresh = run_diagnosis(longer, "ur10")
+    spurious = {"name": "joint_scale", "joint": 5}
+    again = run_diagnosis(longer, "ur10", previous_effects=[*fresh.effects_added, spurious])
+    assert _named(again) == _named(fresh)
+    assert not [c for c in again.verdict["cautions"] if c["kind"] == "previous_effects_kept"]
