@@ -1,5 +1,7 @@
 """The active diagnosis loop on simulated cells: diagnose, propose at most 100 poses, measure them on the same
-cell, diagnose again (at most 2 rounds). Effects are not declared to the diagnosis.
+cell, diagnose again (at most 2 rounds). Effects are not declared to the diagnosis. Each later diagnosis is
+given the effects the one before named (run_diagnosis' previous_effects), as hil's active_loop procedure does;
+the random and D-optimal columns' diagnoses are given the first diagnosis' effects alike.
 
 Run:  PYTHONPATH=. python benchmarks/active_loop.py [--seeds 0-2] [--cases clean,gravity_cyclic1] [--quick]
 
