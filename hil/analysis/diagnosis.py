@@ -11,7 +11,8 @@ Selection rule for each round (every candidate from `hil.analysis.effects` the d
 1. add the candidate to the current model and re-run the identifiability analysis on the joint
    (geometry + effects) Jacobian, so coefficients the data cannot separate from the geometry are merged;
 2. k-fold cross-validation on blocks of the workspace (default 5 folds, the same for every candidate;
-   CV_REPEATS partitions, each point's held-out squared error averaged over them): each fold refits all
+   CV_REPEATS partitions, each point's held-out squared error averaged over them; the poses of a
+   single-joint sweep dealt to the folds in turn, hil.analysis.folds.campaign_folds): each fold refits all
    free parameters on the other folds and predicts the held-out points;
 3. the candidate must (a) lower the held-out squared error per point, tested pairwise against the current
    model (one-sided t-test, p < alpha), and (b) explain more than measurement noise on the full fit:
