@@ -103,9 +103,11 @@ class _Campaign:
         """The nest the grid was measured in (the rounds measure in the same one)."""
         return int(np.bincount(train["smr"].to_numpy(int)).argmax()) if "smr" in train else 1
 
-    def diagnose(self, train: pd.DataFrame) -> DiagnosisReport:
-        """The diagnosis of `train` (validated on the grid's validation poses); the same data diagnosed again in
-        this process (the plan shown before connecting, then the loop's first round) is not diagnosed twice."""
+    def diagnose(self, train: pd.DataFrame, previous: list[dict] | None = None) -> DiagnosisReport:
+        """The diagnosis of `train` (validated on the grid's validation poses); `previous`: the effects the
+        round before named (hil.analysis.diagnosis keeps them when the new selection would predict worse without
+        them). The same data diagnosed again in this process (the plan shown before connecting, then the
+        loop's first round) is not diagnosed twice."""
         fit = self.store.step_result("tool_fit", "fit")
         nest = str(self.nest(train))
         tool = (
@@ -120,11 +122,17 @@ class _Campaign:
             self.seed,
             None if tool is None else tool.tobytes(),
             repr(self.config.nominal),
+            repr(previous),
         )
         if key not in _DIAGNOSED:
             _DIAGNOSED.clear()  # one is enough: the loop only ever asks for the latest again
             _DIAGNOSED[key] = run_diagnosis(
-                train, self.config.nominal, df_validate=validation, seed=self.seed, tool_guess_m=tool
+                train,
+                self.config.nominal,
+                df_validate=validation,
+                seed=self.seed,
+                tool_guess_m=tool,
+                previous_effects=previous,
             )
         return _DIAGNOSED[key]
 
@@ -162,6 +170,12 @@ class _Campaign:
 _DIAGNOSED: dict[tuple, DiagnosisReport] = {}
 
 
+def _previous(records: list[dict]) -> list[dict] | None:
+    """What the last finished round's diagnosis was given as the effects before it (a resumed loop diagnoses
+    the campaign so far as that round did)."""
+    return records[-1]["effects_before"] if records else None
+
+
 def _fingerprint(df: pd.DataFrame) -> tuple:
     """What identifies a campaign's rows: their columns and a hash of every value."""
     return tuple(df.columns), len(df), int(pd.util.hash_pandas_object(df, index=False).sum())
@@ -196,7 +210,8 @@ def plan(
             train = state.training(done)
         except CampaignStopped as exc:
             raise ValueError(f"{exc.message}; {exc.remedy}") from exc
-        rows, why = state.next_rows(done + 1, rounds, poses, train, state.diagnose(train))
+        before = state.diagnose(train, _previous(state.records()))
+        rows, why = state.next_rows(done + 1, rounds, poses, train, before)
         nest = state.nest(train)
     if rows is None:
         return Plan(NAME, [], config, dropped={f"no round {done + 1}: {why}": 1})
@@ -211,7 +226,7 @@ def run_loop(
     state = _Campaign(session.store, session.config, seed)
     records = state.records()
     train = state.training(len(records))
-    before = state.diagnose(train)
+    before = state.diagnose(train, _previous(records))
     while True:
         number = len(records) + 1
         rows, why = state.next_rows(number, rounds, poses, train, before)
@@ -222,7 +237,7 @@ def run_loop(
         nest = state.nest(train)
         session.visit(motion_plan(session.config, rows, nest), shots=shots, extra={"round": number})
         longer = state.training(number)
-        after = state.diagnose(longer)
+        after = state.diagnose(longer, before.effects_added)
         record = to_jsonable(round_record(number, before, after, rows.to_dict(), len(train), len(longer)))
         assert isinstance(record, dict)
         session.finish_step(NAME, f"round{number}", record)

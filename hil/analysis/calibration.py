@@ -36,7 +36,7 @@ from threadpoolctl import threadpool_limits
 
 from hil.analysis.calibrated_model import CalibratedModel, initial_model, with_initial_probes
 from hil.analysis.effects import EffectContext
-from hil.analysis.folds import kfold, location_spacing, spatial_folds
+from hil.analysis.folds import campaign_folds, kfold, location_spacing
 from hil.analysis.identifiability import IdentifiabilityReport, analyse, scale_columns
 from hil.analysis.noise_floor import TRACKER_MPE_M, TRACKER_MPE_SIGMAS, tracker_sigma_m
 from hil.data.dataset import (
@@ -191,14 +191,10 @@ class Problem:
 
     def spatial_folds(self, k: int, seed: int) -> list[np.ndarray]:
         """k folds that are blocks of the measured volume, every row of one pose in the same fold (its
-        SMRs share the robot's error: split, a held-out row would be predicted from its own pose)."""
-        pose, n_pose = self._compact_poses()
-        if n_pose == len(pose):
-            return spatial_folds(self.measured, k, seed)
-        centres = np.zeros((n_pose, 3))
-        np.add.at(centres, pose, self.measured)
-        centres /= np.bincount(pose, minlength=n_pose)[:, None]
-        return [np.flatnonzero(np.isin(pose, f)) for f in spatial_folds(centres, k, seed)]
+        SMRs share the robot's error: split, a held-out row would be predicted from its own pose); the poses
+        of a single-joint sweep are dealt to the folds in turn (hil.analysis.folds.campaign_folds)."""
+        pose = np.arange(len(self.measured)) if self.pose is None else self.pose
+        return campaign_folds(self.measured, pose, self.ctx.q, k, seed)
 
     @property
     def n_poses(self) -> int:

@@ -11,7 +11,8 @@ Selection rule for each round (every candidate from `hil.analysis.effects` the d
 1. add the candidate to the current model and re-run the identifiability analysis on the joint
    (geometry + effects) Jacobian, so coefficients the data cannot separate from the geometry are merged;
 2. k-fold cross-validation on blocks of the workspace (default 5 folds, the same for every candidate;
-   CV_REPEATS partitions, each point's held-out squared error averaged over them): each fold refits all
+   CV_REPEATS partitions, each point's held-out squared error averaged over them; the poses of a
+   single-joint sweep dealt to the folds in turn, hil.analysis.folds.campaign_folds): each fold refits all
    free parameters on the other folds and predicts the held-out points;
 3. the candidate must (a) lower the held-out squared error per point, tested pairwise against the current
    model (one-sided t-test, p < alpha), and (b) explain more than measurement noise on the full fit:
@@ -68,6 +69,7 @@ from hil.analysis.screening import (
     effect_label,
     group_key,
     held_out_gain,
+    linear_fit_heldout,
     pick_winner,
     weakest_effect,
 )
@@ -248,6 +250,7 @@ def run_diagnosis(
     reregister_validation: str = "none",
     progress: Progress | None = None,
     screening: str = "batched",
+    previous_effects: list[dict] | None = None,
 ) -> DiagnosisReport:
     """The whole loop on a training dataset (and an optional validation dataset never used for fitting).
 
@@ -258,7 +261,10 @@ def run_diagnosis(
     another tracker placement; the report then shows both. `progress(phase, done, total)` is called as
     the work advances (the CLI draws it with an ETA). `screening` "batched" judges a round's candidates
     from one shared factorisation (hil.analysis.screening); "refit" fits each candidate on its own (the
-    slow reference the batched path reproduces).
+    slow reference the batched path reproduces). `previous_effects` ({name, joint}, the effects the
+    diagnosis of an earlier part of this campaign named, as an active loop's round has): when the selection
+    here drops any of them, a selection that starts from them is run too and the one whose model predicts
+    held-out points better is kept (`_keep_previous`): a round's measurements must not make the model worse.
 
     Held-out figures of every stage are computed at the end on the same rows and spatial folds: all
     points except those the final model rejects as outliers.
@@ -290,6 +296,8 @@ def run_diagnosis(
             else:
                 break
         _settle_rivals(base, df, path, alpha)
+        if previous_effects:
+            path = _keep_previous(base, df, path, previous_effects, alpha, families, max_effects)
         stages, hist, steps = _evaluate_stages(path, base.progress)
         report = _verdict(base, path, stages, hist, steps, alpha, compare_maps)
         if df_validate is not None:
@@ -366,11 +374,14 @@ class _Baseline:
     screening: str = "batched"  # or "refit": each candidate fitted on its own (the reference)
     notes: list[str] = field(default_factory=list)  # said in the verdict's cautions
 
-    def rows_and_folds(self, result: CalibrationResult) -> tuple[Problem, list[list[np.ndarray]]]:
+    def rows_and_folds(
+        self, result: CalibrationResult, outliers: np.ndarray | None = None
+    ) -> tuple[Problem, list[list[np.ndarray]]]:
         """The rows the screening and the held-out figures use (inliers of `result`; for big campaigns a
         fixed random subset of SCREEN_MAX_ROWS of them) and CV_REPEATS partitions of them into spatial
-        folds (the first is the one the held-out figures use). Fits use every row."""
-        rows = np.flatnonzero(~result.outliers)
+        folds (the first is the one the held-out figures use). Fits use every row. `outliers`: the rows to
+        leave out instead of `result`'s (when two models are compared: the rows neither fits)."""
+        rows = np.flatnonzero(~(result.outliers if outliers is None else outliers))
         if len(rows) > SCREEN_MAX_ROWS:
             order = np.random.default_rng([self.seed, 7]).permutation(len(self.full.measured))
             rank = np.empty_like(order)
@@ -527,8 +538,10 @@ def _forward_selection(
     families: tuple[str, ...] | None,
     max_effects: int,
     banned: set,
+    start: tuple[tuple[str, int | None], ...] = (),
 ) -> _Path:
-    """Step 2: add the best passing candidate, refit, drop effects a later one made redundant; repeat."""
+    """Step 2: add the best passing candidate, refit, drop effects a later one made redundant; repeat.
+    `start`: effects (family, joint) put into the model first, one stage each, without a test."""
     current = base.ridge
     prob, partitions = base.rows_and_folds(current)
     path = _Path(
@@ -546,6 +559,14 @@ def _forward_selection(
     def refit(result: CalibrationResult) -> IdentifiabilityReport:
         return _refit(base, path, result)
 
+    for name, joint in start:
+        carried = make_effect(name, joint)
+        if not carried.prepare(base.full.ctx, path.current.model.nominal):
+            continue  # this campaign does not offer it (hil.analysis.effects' conditions)
+        rep = refit(calibrate(df, path.current.model.with_effect(carried), "ridge"))
+        note = "carried over from the earlier diagnosis"
+        cand = Candidate(name, joint, len(carried.params), float("nan"), 0.0, 1.0, 1.0, True, note)
+        _record_added(path, cand, [], rep)
     for _ in range(max_effects):
         results = _screen_round(base, path, alpha, families, banned)
         winners = [(c, m) for c, m in results if c.passed and m is not None]
@@ -603,6 +624,49 @@ def _forward_selection(
                 }
             )
     return path
+
+
+def _keep_previous(
+    base: _Baseline,
+    df: pd.DataFrame,
+    path: _Path,
+    previous: list[dict],
+    alpha: float,
+    families: tuple[str, ...] | None,
+    max_effects: int,
+) -> _Path:
+    """The selection's path, or one that starts from the `previous` diagnosis' effects when that predicts
+    held-out points better: more measurements must not leave a worse model than a refit of what was named
+    before (a held-out test on new rows can be too weak to re-admit a true effect that the earlier
+    diagnosis had, while dropping it leaves the geometry to absorb it). Both paths are judged on the rows
+    inlier to either (a row both reject is a blunder for both; one only the other accepts is part of the
+    evidence between them) and the same spatial partitions (the mean held-out squared error)."""
+    keys = tuple(_named(e) for e in previous)
+    if set(keys) <= set(path.effects):
+        return path
+    other = _forward_selection(base, df, alpha, families, max_effects, banned=set(), start=keys)
+    _settle_rivals(base, df, other, alpha)
+    prob, partitions = base.rows_and_folds(path.current, path.current.outliers & other.current.outliers)
+    errors = []
+    for candidate in (path, other):
+        model = candidate.current.model
+        r, J = prob.evaluate(model)
+        free = _free_mask(model, prob)[0]
+        errors.append(linear_fit_heldout(flatten_jacobian(J)[:, free], r, partitions)[1])
+    gain, p_value = held_out_gain(errors[0] - errors[1], prob.pose)
+    if gain <= 0 or set(other.effects) == set(path.effects):
+        return path
+    other.cautions.append(
+        caution(
+            "previous_effects_kept",
+            effects=[{"name": n, "joint": j} for n, j in keys],
+            dropped=[{"name": n, "joint": j} for n, j in keys if (n, j) not in path.effects],
+            heldout_rms_mm=float(np.sqrt(np.mean(errors[0]))) * 1000.0,
+            heldout_rms_kept_mm=float(np.sqrt(np.mean(errors[1]))) * 1000.0,
+            p_value=p_value,
+        )
+    )
+    return other
 
 
 def _refit(base: _Baseline, path: _Path, result: CalibrationResult) -> IdentifiabilityReport:

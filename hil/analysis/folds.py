@@ -1,4 +1,5 @@
-"""Cross-validation folds: random (interpolation) and blocks of the measured volume (extrapolation)."""
+"""Cross-validation folds: random (interpolation) and blocks of the measured volume (extrapolation), with the
+poses of a single-joint sweep dealt to the folds in turn (interpolation along the swept joint)."""
 
 from __future__ import annotations
 
@@ -52,3 +53,75 @@ def location_spacing(points: np.ndarray) -> float:
     far = np.where(dist > SAME_LOCATION_M, dist, np.inf).min(axis=1)
     far = far[np.isfinite(far)]
     return float(np.median(far)) if far.size else SAME_LOCATION_M
+
+
+# A joint counts as moved between two consecutive poses when it turned more than this (rad): well above a
+# joint reading's jitter, well below any planned step.
+SWEEP_STEP_TOL_RAD = 1e-3
+
+
+def sweep_runs(q: np.ndarray, min_poses: int, tol_rad: float = SWEEP_STEP_TOL_RAD) -> np.ndarray:
+    """Which single-joint sweep each pose of `q` (M, n), in motion order, belongs to: (M,) run ids from 0,
+    -1 for a pose in none. A sweep is a chain of at least `min_poses` consecutive poses between which one
+    and the same joint moved and no other (a pose ending one sweep and starting the next stays in the first)."""
+    run = np.full(len(q), -1)
+    if len(q) < 2:
+        return run
+    moved = np.abs(np.diff(q, axis=0)) > tol_rad
+    joint = np.where(moved.sum(axis=1) == 1, np.argmax(moved, axis=1), -1)  # step i: pose i -> i + 1
+    edges = np.flatnonzero(np.diff(joint) != 0) + 1
+    n_runs = 0
+    for a, b in zip(np.r_[0, edges], np.r_[edges, len(joint)], strict=True):  # steps a..b-1: one joint
+        poses = np.arange(a, b + 1)
+        if joint[a] >= 0 and len(poses) >= min_poses:
+            free = poses[run[poses] < 0]
+            run[free] = n_runs
+            n_runs += 1
+    return run
+
+
+def campaign_folds(
+    points: np.ndarray, pose: np.ndarray, q: np.ndarray, k: int, seed: int
+) -> list[np.ndarray]:
+    """k folds of the rows (N,) of a campaign, every row of one pose in one fold: blocks of the measured
+    volume (`spatial_folds` on the poses' mean points), except that the poses of each single-joint sweep
+    (`sweep_runs`, in the rows' order, at least k poses) are dealt to the folds in turn.
+
+    Why: a sweep samples one joint's error along that joint's angle, over a range nothing else in the
+    campaign covers (that is why it was measured). A block of the volume cuts a contiguous arc out of it,
+    and predicting that arc asks every model to extrapolate the swept joint's function to angles no other
+    row samples: the effects of that joint, the ones the sweep was measured for, then score as losses. Dealt
+    in turn, each held-out sweep pose has its sweep neighbours on both sides in the training folds, and the
+    grid's blocks still score extrapolation across the workspace.
+    `pose` (N,) ids of the rows' poses; `q` (N, n) joints; `points` (N, 3).
+    """
+    ids, first, compact = np.unique(pose, return_index=True, return_inverse=True)
+    compact = compact.ravel()
+    n_pose = len(ids)
+    centres = np.zeros((n_pose, points.shape[1]))
+    np.add.at(centres, compact, points)
+    centres /= np.bincount(compact, minlength=n_pose)[:, None]
+    # visits in motion order: a new visit wherever the pose changes from the row before
+    change = np.flatnonzero(np.r_[True, compact[1:] != compact[:-1]])
+    visit_pose = compact[change]
+    visit_run = sweep_runs(q[change], max(k, 2))
+    pose_run = np.full(n_pose, -1)
+    for v in np.flatnonzero(visit_run >= 0)[::-1]:  # a pose swept more than once: its first sweep
+        pose_run[visit_pose[v]] = visit_run[v]
+    fold_of = np.full(n_pose, -1)
+    grid = np.flatnonzero(pose_run < 0)
+    n_folds = k
+    if len(grid):
+        blocks = spatial_folds(centres[grid], k, seed)
+        n_folds = len(blocks)
+        for f, block in enumerate(blocks):
+            fold_of[grid[block]] = f
+    rng = np.random.default_rng([seed, 3])
+    for r in range(int(pose_run.max()) + 1):
+        seen: list[int] = []  # the sweep's poses in motion order, each once
+        for p in visit_pose[visit_run == r]:
+            if pose_run[p] == r and p not in seen:
+                seen.append(p)
+        fold_of[seen] = (np.arange(len(seen)) + rng.integers(n_folds)) % n_folds
+    folds = [np.flatnonzero(fold_of[compact] == f) for f in range(n_folds)]
+    return [f for f in folds if len(f) > 0]

@@ -31,6 +31,12 @@ def caution_text(c: dict) -> str:
             f"a first choice of {_effect(c['effect'])} led to a worse final model ({c['heldout_rms_mm']:.4f} vs "
             f"{c['heldout_rms_without_mm']:.4f} mm held-out); it was set aside"
         )
+    if kind == "previous_effects_kept":
+        return (
+            f"a selection that started from the earlier diagnosis' effects ({', '.join(_effect(e) for e in c['effects'])}) "
+            f"predicted held-out points better ({c['heldout_rms_kept_mm']:.4f} mm, p = {c['p_value']:.2g}) than one that "
+            f"dropped {', '.join(_effect(e) for e in c['dropped'])} ({c['heldout_rms_mm']:.4f} mm); it was kept"
+        )
     if kind == "stage_worse_than_previous":
         return f"stage '{c['stage']}' predicts held-out points worse than the stage before it ({c['rms_mm']:.4f} mm)"
     if kind == "ambiguous_effects":
