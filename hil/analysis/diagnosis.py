@@ -19,7 +19,10 @@ Selection rule for each round (every candidate from `hil.analysis.effects` the d
    residual sigma after, p < alpha / number of candidates;
 4. the passing candidate with the largest held-out gain is added (near-ties and temperature: `pick_winner`)
    and the whole model refitted robustly; an earlier effect that no longer earns its place is removed.
-The loop stops when nothing passes. The residual left is then tested against the noise floor; if it is
+The loop stops when nothing passes. The links' thermal growth is physics, not a candidate, when the robot
+names its material and the campaign records a temperature: it is in the model from the geometric fit on,
+fitted with the material's coefficient as its prior (hil.analysis.effects.material_expansion), never removed,
+and the report gives the fitted coefficient beside the material's (`thermal_summary`). The residual left is then tested against the noise floor; if it is
 larger and a residual map predicts it on held-out points, the report says structure remains that no
 candidate explains and adds the map as a fallback stage.
 """
@@ -46,6 +49,7 @@ from hil.analysis.calibration import (
     confounded_pairs,
     flatten_jacobian,
     identify,
+    position_noise_m,
     solve_ridge_igg3,
 )
 from hil.analysis.calibration import reregister as reregister_model
@@ -53,6 +57,8 @@ from hil.analysis.effects import (
     Effect,
     candidate_effects,
     make_effect,
+    material_expansion,
+    physical,
     tool_points_rows,
 )
 from hil.analysis.identifiability import IdentifiabilityReport
@@ -144,11 +150,15 @@ class DiagnosisReport:
     undecided: list[dict] = field(default_factory=list)  # open questions (hil.analysis.undecided)
     plan: dict | None = None  # the proposed measurements' groups (hil.analysis.discrimination.Plan.to_dict)
     run: dict = field(default_factory=dict)  # robot, input files (hash, rows), date, software version
+    thermal: dict | None = None  # the material's thermal growth, fitted against its prior (`thermal_summary`)
 
     @property
     def effects_added(self) -> list[dict]:
-        """The effects the final model holds, in the order they were added."""
-        return [{"name": e.family, "joint": e.joint} for e in self.model.effects]
+        """The effects the final model holds, in the order they were added; the material's thermal growth
+        only where the data, not its prior, set its coefficient (else it is held at the material's value and
+        reported under `thermal`)."""
+        led = bool(self.thermal and self.thermal["data_led"])
+        return [{"name": e.family, "joint": e.joint} for e in self.model.effects if not physical(e) or led]
 
     @property
     def noise_floor_mm(self) -> float:
@@ -167,6 +177,7 @@ class DiagnosisReport:
             "ambiguities": self.ambiguities,
             "undecided": self.undecided,
             "plan": self.plan,
+            "thermal": self.thermal,
             "calibration": self.calibration,
             "residual_map": self.residual_map,
             "run": self.run,
@@ -295,6 +306,7 @@ def run_diagnosis(
         _settle_rivals(base, df, path, alpha)
         stages, hist, steps = _evaluate_stages(path, base.progress)
         report = _verdict(base, path, stages, hist, steps, alpha, compare_maps)
+        report.thermal = thermal_summary(path.current, path.prob)
         if df_validate is not None:
             _validate(report, path, df, df_validate, reregister_validation)
         report.run = run_record(base.nominal.nominal, {"training": df, "validation": df_validate})
@@ -399,7 +411,7 @@ def _baseline_fit(
         df, mpe_const_m=tracker_mpe_m[0], mpe_per_m=tracker_mpe_m[1], repeatability_mm=repeatability_mm
     )
     tell("geometric calibration", 0, 2)
-    ridge = calibrate(df, robot, "ridge", tool_guess_m=tool_guess_m)
+    ridge = calibrate(df, _with_material_growth(robot, df, tool_guess_m), "ridge", tool_guess_m=tool_guess_m)
     tell("geometric calibration", 1, 2)
     lm = calibrate(df, robot, "lm", tool_guess_m=tool_guess_m)
     tell("geometric calibration", 2, 2)
@@ -440,6 +452,50 @@ def _baseline_fit(
     prob, _ = base.rows_and_folds(ridge)
     base.nominal = _fit_plain(nominal, prob, reg_free)
     return base
+
+
+def _with_material_growth(
+    robot: str | KinematicModel, df: pd.DataFrame, tool_guess_m: np.ndarray | None
+) -> str | KinematicModel | CalibratedModel:
+    """Where the geometric fit starts: the registered nominal model with the links' thermal growth when the
+    robot names its material and every row records a temperature, else `robot` itself."""
+    model = initial_model(robot, df, tool_guess_m)
+    eff = material_expansion(model.context(df)[0], model.nominal)
+    return robot if eff is None else model.with_effect(eff)
+
+
+# The material's growth counts as measured (named among the effects) when the data carry at least this share
+# of the information on its coefficient (1 - posterior variance / prior variance), else the prior holds it.
+DATA_LED_SHARE = 0.5
+
+
+def thermal_summary(result: CalibrationResult, prob: Problem) -> dict | None:
+    """The material's thermal growth in the fitted model: the coefficient fitted beside the material's, its
+    standard error, the temperature the rows span and the data's share of what is known of it (0: the prior
+    alone, the campaign spanned too little temperature; 1: the data alone). None without such a term."""
+    eff = next((e for e in result.model.effects if physical(e)), None)
+    if eff is None:
+        return None
+    prior_std = float(eff.state["prior_std_per_k"])
+    name = eff.param_names[0]
+    std = result.std.get(name)
+    share = 0.0
+    if (
+        std is not None and result.sigma0_m > 0
+    ):  # result.std is scaled by sigma0, the prior by the a-priori sigma
+        std_apriori = std * position_noise_m(prob.measured) / result.sigma0_m
+        share = float(np.clip(1.0 - (std_apriori / prior_std) ** 2, 0.0, 1.0))
+    temps = prob.ctx.temperature_c
+    return {
+        "material_per_k": float(eff.state["material_per_k"]),
+        "fitted_per_k": float(eff.params[0]),
+        "std_per_k": prior_std if std is None else float(std),
+        "prior_std_per_k": prior_std,
+        "span_k": float(np.ptp(temps)) if temps is not None and len(temps) else 0.0,
+        "reference_c": float(eff.state["reference"]),
+        "data_share": share,
+        "data_led": share >= DATA_LED_SHARE,
+    }
 
 
 @dataclass

@@ -13,7 +13,11 @@ Every family is written from its physics, independently of any simulator:
 - ``backlash`` (joint j): half the gap times the sign of the joint's approach direction (row order).
 - ``joint_scale`` (joint j): the joint turns (1 + s) times what its encoder says (a transmission ratio
   or encoder scale error), i.e. an offset ``s * q``.
-- ``thermal_expansion``: every link length (a, d) grows by ``k * dT``; the tool does not.
+- ``thermal_expansion``: every link length (a, d) grows by ``k * dT``; the tool does not. When the robot file
+  gives the links' material (`KinematicModel.expansion_per_k`) and the campaign records a temperature, the
+  term is physics, not a candidate (`material_expansion`): always in the model, its coefficient fitted with
+  a Gaussian prior centred on the material's (`Effect.prior`), so a campaign spanning little temperature
+  keeps the material's value and one spanning a lot follows the data.
 - ``thermal_drift``: the tracker sees the base translate by ``v * dT`` (floor, stand or tracker drift).
 
 Thermal families take the structure temperature when the dataset records one that varies, else the
@@ -192,6 +196,11 @@ class Effect:
             f"implausible size: it swings joint {self.joint} by +-{np.rad2deg(swing):.3g} deg (a real "
             f"{self.family.replace('_', ' ')} stays below {np.rad2deg(limit):.2g} deg); it is fitting something else"
         )
+
+    def prior(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """Gaussian prior on the coefficients, (mean, std) each (k,) in their SI unit; None without one (the
+        coefficients are then free, up to the solver's small ridge)."""
+        return None
 
     def to_dict(self) -> dict:
         return {
@@ -387,8 +396,13 @@ class _Thermal(Effect):
         return True
 
     def delta(self, ctx: EffectContext) -> np.ndarray:
+        """The driver less its training reference per row. The material's growth (`physical`) without a
+        temperature is taken at its reference (no growth): a model that merely carries the physics predicts
+        as a geometric one where no temperature is known (the callers that know one pass it and warn)."""
         name = self.state["driver"]
         values = ctx.temperature_c if name == "temperature_c" else ctx.t_s
+        if values is None and physical(self):
+            return np.zeros(ctx.n)
         if values is None:
             raise ValueError(f"the model's {self.family} effect needs the '{name}' column in the data")
         return np.asarray(values, float) - self.state["reference"]
@@ -423,10 +437,18 @@ class ThermalExpansion(_Thermal):
 
     def summary(self, ctx: EffectContext, nominal: KinematicModel) -> dict[str, float]:
         unit = "K" if self.state["driver"] == "temperature_c" else "s"
-        return {f"expansion_ppm_per_{unit}": float(self.params[0] * 1e6)}
+        out = {f"expansion_ppm_per_{unit}": float(self.params[0] * 1e6)}
+        if physical(self):
+            out["material_ppm_per_K"] = float(self.state["material_per_k"] * 1e6)
+        return out
 
     def coefficient_names(self) -> list[str]:
         return ["per_unit"]
+
+    def prior(self) -> tuple[np.ndarray, np.ndarray] | None:
+        if not physical(self):
+            return None
+        return np.array([self.state["material_per_k"]]), np.array([self.state["prior_std_per_k"]])
 
 
 class ThermalDrift(_Thermal):
@@ -457,6 +479,37 @@ THERMAL_FAMILIES = ("thermal_expansion", "thermal_drift")  # driven by a measure
 def temperature_driven(eff: Effect) -> bool:
     """A thermal effect driven by a recorded temperature (not by time: time also orders the poses)."""
     return eff.family in THERMAL_FAMILIES and eff.state.get("driver") == "temperature_c"
+
+
+# 1-sigma of the material prior, as a fraction of the material's coefficient: an arm is not one alloy (steel
+# gears and bearings in aluminium tubes), and the temperature read (a probe on one link, or the air) is not
+# the mean temperature of every link. A campaign spanning a few kelvin over a metre of reach measures the
+# coefficient better than this and follows its data; one spanning a fraction of a kelvin keeps the material's.
+EXPANSION_PRIOR_FRACTION = 0.3
+
+
+def physical(eff: Effect) -> bool:
+    """A term the physics puts in the model (the links' material growth): never selected or removed."""
+    return "material_per_k" in eff.state
+
+
+def material_expansion(ctx: EffectContext, nominal: KinematicModel) -> ThermalExpansion | None:
+    """The links' thermal growth driven by the recorded temperature, its coefficient starting at the
+    material's (`nominal.expansion_per_k`) with that as its prior (`EXPANSION_PRIOR_FRACTION`); None when
+    the robot names no material or the data lack a temperature on some row."""
+    k0 = nominal.expansion_per_k
+    temps = ctx.temperature_c
+    if k0 is None or temps is None or len(temps) == 0 or not np.all(np.isfinite(temps)):
+        return None
+    eff = ThermalExpansion()
+    eff.state = {
+        "driver": "temperature_c",
+        "reference": float(np.mean(temps)),
+        "material_per_k": float(k0),
+        "prior_std_per_k": float(EXPANSION_PRIOR_FRACTION * k0),
+    }
+    eff.params = np.array([float(k0)])
+    return eff
 
 
 def make_effect(family: str, joint: int | None = None) -> Effect:

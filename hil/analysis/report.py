@@ -99,6 +99,25 @@ def final_orientation_text(report: DiagnosisReport) -> str | None:
     return f"6-DoF probe, final model (effects included): orientation RMS {final['rms_deg']:.4f} deg"
 
 
+def thermal_text(thermal: dict | None) -> str | None:
+    """The links' thermal growth in words: the fitted coefficient beside the material's, and whether the
+    campaign's temperature span or the material's prior set it (None without a material term)."""
+    if not thermal:
+        return None
+    share = thermal["data_share"]
+    if thermal["data_led"]:
+        who = "measured by this campaign"
+    elif share < 0.05:
+        who = "held at the material's value: the campaign spans too little temperature to measure it"
+    else:
+        who = "mostly the material's value: the campaign spans too little temperature to measure it well"
+    return (
+        f"Thermal growth of the links: {thermal['fitted_per_k'] * 1e6:.1f} +- {thermal['std_per_k'] * 1e6:.1f} "
+        f"ppm/K fitted, material {thermal['material_per_k'] * 1e6:.1f} ppm/K (temperature span "
+        f"{thermal['span_k']:.2f} K, the data carry {100 * share:.0f} % of what is known of it; {who})."
+    )
+
+
 def report_dict(report: DiagnosisReport) -> dict:
     """The report's data with the conclusion and each caution's words added (what the JSON holds)."""
     out = {}
@@ -106,6 +125,8 @@ def report_dict(report: DiagnosisReport) -> dict:
         if key == "verdict":
             out["conclusion"] = conclusion(report)
             value = {**value, "cautions": [{**c, "text": caution_text(c)} for c in value["cautions"]]}
+        if key == "thermal" and value is not None:
+            value = {**value, "text": thermal_text(value)}
         out[key] = value
     return out
 
@@ -195,6 +216,7 @@ def render_html(
     parts = [
         *_head_html(report, d),
         *_effects_html(report),
+        *_thermal_html(report.thermal),
         *_residual_html(report, d),
         *_calibration_html(d),
         _undecided_html(report),
@@ -289,6 +311,25 @@ def _effects_html(report: DiagnosisReport) -> list[str]:
             )
         )
     return parts
+
+
+def _thermal_html(thermal: dict | None) -> list[str]:
+    """The material's thermal growth: fitted against the material's coefficient, with the prior's share."""
+    if not thermal:
+        return []
+    row = {
+        "material_ppm_per_K": thermal["material_per_k"] * 1e6,
+        "fitted_ppm_per_K": thermal["fitted_per_k"] * 1e6,
+        "std_ppm_per_K": thermal["std_per_k"] * 1e6,
+        "prior_std_ppm_per_K": thermal["prior_std_per_k"] * 1e6,
+        "span_K": thermal["span_k"],
+        "data_share": thermal["data_share"],
+    }
+    return [
+        "<h2>Thermal growth of the links (physics: always in the model)</h2>",
+        f"<p>{html.escape(thermal_text(thermal) or '')}</p>",
+        _table([row], list(row), dict.fromkeys(row, ".3g")),
+    ]
 
 
 def _residual_html(report: DiagnosisReport, d: dict) -> list[str]:

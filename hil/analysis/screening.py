@@ -23,6 +23,7 @@ from hil.analysis.effects import (
     THERMAL_FAMILIES,
     Effect,
     growth_direction,
+    physical,
     temperature_driven,
 )
 from hil.analysis.identifiability import analyse, scale_columns
@@ -434,6 +435,8 @@ def weakest_effect(
     s2 = max(sigma2, sse / max(fit.size - int(keep.sum()), 1))
     weakest = None
     for i, eff in enumerate(model.effects[:-1]):
+        if physical(eff):  # the material's growth is physics: never removed
+            continue
         reduced = replace(model, effects=[x for k, x in enumerate(model.effects) if k != i])
         rr, Jr = prob.evaluate(reduced)
         Jrf = flatten_jacobian(Jr)

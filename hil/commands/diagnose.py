@@ -239,6 +239,7 @@ def _print_and_write(args: argparse.Namespace, report: DiagnosisReport) -> None:
         final_orientation_text,
         in_report_units,
         plan_text,
+        thermal_text,
         undecided_text,
         write_html,
         write_json,
@@ -260,6 +261,9 @@ def _print_and_write(args: argparse.Namespace, report: DiagnosisReport) -> None:
         for p in map(in_report_units, step.parameters):
             std = "merged" if p["std"] is None else f"+- {p['std']:.2e}"
             print(f"    {p['name']:<34} {p['value']: .4e} {std} {p['unit']}")
+    thermal = thermal_text(report.thermal)
+    if thermal:
+        print(thermal)
     print(undecided_text(report))
     if report.plan is not None:
         print(plan_text(report.plan))
