@@ -521,7 +521,8 @@ class _Path:
 
     @property
     def effects(self) -> list[tuple[str, int | None]]:
-        return [(e.family, e.joint) for e in self.current.model.effects]
+        """The effects the selection added (not the material's growth, which the physics put in)."""
+        return [(e.family, e.joint) for e in self.current.model.effects if not physical(e)]
 
     @property
     def cv_rms_mm(self) -> float:
@@ -638,7 +639,7 @@ def _forward_selection(
             path.ambiguities += _confounded(base, path, best, close, alpha)
         _record_added(path, best, [c for c, _ in results], rep)
         # Backward check: does every earlier effect still earn its place beside the new one?
-        while len(path.current.model.effects) > 1:
+        while len(path.effects) > 1:
             weakest = weakest_effect(path.current.model, path.prob, path.partitions, base.sigma2, alpha)
             if weakest is None:
                 break
