@@ -53,6 +53,7 @@ from hil.analysis.calibration import (
     solve_ridge_igg3,
 )
 from hil.analysis.calibration import reregister as reregister_model
+from hil.analysis.drift_monitor import reference_drift
 from hil.analysis.effects import (
     Effect,
     candidate_effects,
@@ -151,6 +152,7 @@ class DiagnosisReport:
     plan: dict | None = None  # the proposed measurements' groups (hil.analysis.discrimination.Plan.to_dict)
     run: dict = field(default_factory=dict)  # robot, input files (hash, rows), date, software version
     thermal: dict | None = None  # the material's thermal growth, fitted against its prior (`thermal_summary`)
+    drift: dict | None = None  # reference poses re-measured (hil.analysis.drift_monitor.reference_drift)
 
     @property
     def effects_added(self) -> list[dict]:
@@ -178,6 +180,7 @@ class DiagnosisReport:
             "undecided": self.undecided,
             "plan": self.plan,
             "thermal": self.thermal,
+            "drift": self.drift,
             "calibration": self.calibration,
             "residual_map": self.residual_map,
             "run": self.run,
@@ -307,6 +310,7 @@ def run_diagnosis(
         stages, hist, steps = _evaluate_stages(path, base.progress)
         report = _verdict(base, path, stages, hist, steps, alpha, compare_maps)
         report.thermal = thermal_summary(path.current, path.prob)
+        report.drift = reference_drift(df)
         if df_validate is not None:
             _validate(report, path, df, df_validate, reregister_validation)
         report.run = run_record(base.nominal.nominal, {"training": df, "validation": df_validate})

@@ -13,6 +13,7 @@ import numpy as np
 
 from hil.analysis.calibration import USER_UNITS, in_user_units
 from hil.analysis.diagnosis import DiagnosisReport, effect_label
+from hil.analysis.drift_monitor import drift_text
 from hil.analysis.residual_maps import MAP_MODES
 from hil.data.jsonable import to_jsonable
 
@@ -217,6 +218,7 @@ def render_html(
         *_head_html(report, d),
         *_effects_html(report),
         *_thermal_html(report.thermal),
+        *_drift_html(report.drift),
         *_residual_html(report, d),
         *_calibration_html(d),
         _undecided_html(report),
@@ -329,6 +331,32 @@ def _thermal_html(thermal: dict | None) -> list[str]:
         "<h2>Thermal growth of the links (physics: always in the model)</h2>",
         f"<p>{html.escape(thermal_text(thermal) or '')}</p>",
         _table([row], list(row), dict.fromkeys(row, ".3g")),
+    ]
+
+
+def _drift_html(drift: dict | None) -> list[str]:
+    """The drift monitor's reference poses: distance from the first visit against time and temperature."""
+    if not drift:
+        return []
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(9.5, 3.4), sharey=True)
+    for s in drift["poses"]:
+        label = f"pose {s['pose']}" + (f" nest {s['smr']}" if s["smr"] > 1 else "")
+        axes[0].plot(np.asarray(s["t_s"]) / 60.0, s["norm_mm"], "o-", ms=3, label=label)
+        axes[1].plot(s["temperature_c"], s["norm_mm"], "o-", ms=3, label=label)
+    axes[0].set_xlabel("time since the campaign started (min)")
+    axes[1].set_xlabel("temperature (degC)")
+    axes[0].set_ylabel("distance from the first visit (mm)")
+    axes[0].legend(fontsize=7)
+    return [
+        "<h2>Drift monitor: reference poses re-measured</h2>",
+        f"<p>{html.escape(drift_text(drift) or '')} Growth and the tracker's scale follow the temperature, a "
+        "drift of the stand or the floor the time.</p>",
+        _png(fig),
     ]
 
 
