@@ -19,6 +19,10 @@ Every family is written from its physics, independently of any simulator:
   a Gaussian prior centred on the material's (`Effect.prior`), so a campaign spanning little temperature
   keeps the material's value and one spanning a lot follows the data.
 - ``thermal_drift``: the tracker sees the base translate by ``v * dT`` (floor, stand or tracker drift).
+- ``tracker_scale``: the tracker's distances scale by ``1 + s * dT`` about the tracker itself: the refractive
+  index of the air it computes from a wrong air temperature (a manual setting while the hall warms, a weather
+  station in the sun) is off by about 1 ppm per K. It rivals the links' growth, which is centred on the base
+  and along the links: the tracker's scale also stretches the base-to-tracker distance and the tool.
 
 Thermal families take the structure temperature when the dataset records one that varies, else the
 time since the campaign started. Joint effects are output-side joint offsets added to the reported
@@ -44,6 +48,7 @@ EFFECT_FAMILIES: tuple[str, ...] = (
     "joint_scale",
     "thermal_expansion",
     "thermal_drift",
+    "tracker_scale",
 )
 
 GRAVITY_DIRECTION_BASE = np.array([0.0, 0.0, -1.0])  # the robot stands upright: base z points up
@@ -58,6 +63,12 @@ PLAUSIBLE_SWING_RAD: dict[str, float] = {
 }
 PLAUSIBLE_EXPANSION_PER_K = 100e-6  # aluminium 23, steel 12, a carbon tube ~0 ppm/K
 PLAUSIBLE_DRIFT_M = 2e-3  # largest base drift over one campaign
+# Refraction: n - 1 of air falls ~0.93 ppm per K, so a tracker computing it from an air temperature off by
+# dT measures distances (1 - 0.93e-6 dT) long. A scale beyond 5 ppm per K of the recorded temperature (or 50
+# ppm over a campaign) is no refraction error.
+REFRACTION_PER_K = -0.93e-6
+PLAUSIBLE_TRACKER_SCALE_PER_K = 5e-6
+PLAUSIBLE_TRACKER_SCALE = 50e-6
 
 # Near-ties between candidates go to the more physically expected family (lower rank first).
 PHYSICAL_RANK: dict[str, int] = {
@@ -66,7 +77,8 @@ PHYSICAL_RANK: dict[str, int] = {
     "backlash": 2,
     "cyclic": 3,
     "thermal_drift": 4,
-    "joint_scale": 5,
+    "tracker_scale": 5,
+    "joint_scale": 6,
 }
 
 
@@ -123,7 +135,8 @@ class Effect:
     """One effect instance: a family, an optional 1-based joint, its parameters and fitted state."""
 
     family: ClassVar[str] = ""
-    kind: ClassVar[str] = "joint"  # "joint" (joint offset), "growth" (link lengths), "offset" (tracker)
+    # "joint" (joint offset), "growth" (link lengths), "offset" (tracker frame), "scale" (about the tracker)
+    kind: ClassVar[str] = "joint"
     joint: int | None = None
     params: np.ndarray = field(default_factory=lambda: np.zeros(0))
     state: dict = field(default_factory=dict)
@@ -415,7 +428,7 @@ class _Thermal(Effect):
         return "K" if self.state.get("driver", "temperature_c") == "temperature_c" else "s"
 
     def coefficient_unit(self) -> str:
-        return f"{'1' if self.kind == 'growth' else 'm'}/{self.driver_unit()}"
+        return f"{'m' if self.kind == 'offset' else '1'}/{self.driver_unit()}"
 
     def driver(self, ctx: EffectContext, nominal: KinematicModel) -> tuple[str, np.ndarray]:
         unit = "°C" if self.state["driver"] == "temperature_c" else "s"
@@ -469,11 +482,39 @@ class ThermalDrift(_Thermal):
         return ["vx", "vy", "vz"]
 
 
+class TrackerScale(_Thermal):
+    family = "tracker_scale"
+    kind = "scale"
+
+    def implausible(self, ctx: EffectContext, nominal: KinematicModel) -> str | None:
+        s = abs(float(self.params[0]))
+        if self.state["driver"] == "temperature_c" and s > PLAUSIBLE_TRACKER_SCALE_PER_K:
+            return f"implausible size: {s * 1e6:.3g} ppm/K (a wrong air temperature gives about 1 ppm/K)"
+        scale = s * float(np.ptp(self.delta(ctx)))
+        if scale > PLAUSIBLE_TRACKER_SCALE:
+            return (
+                f"implausible size: the tracker's scale would change {scale * 1e6:.3g} ppm over the campaign"
+            )
+        return None
+
+    def summary(self, ctx: EffectContext, nominal: KinematicModel) -> dict[str, float]:
+        unit = "K" if self.state["driver"] == "temperature_c" else "s"
+        out = {f"scale_ppm_per_{unit}": float(self.params[0] * 1e6)}
+        if unit == "K":  # the air temperature error that explains it, per K of the recorded temperature
+            out["air_error_k_per_K"] = float(self.params[0] / REFRACTION_PER_K)
+        return out
+
+    def coefficient_names(self) -> list[str]:
+        return ["per_unit"]
+
+
 _CLASSES: dict[str, type[Effect]] = {
-    c.family: c for c in (GravityCompliance, Cyclic, Backlash, JointScale, ThermalExpansion, ThermalDrift)
+    c.family: c
+    for c in (GravityCompliance, Cyclic, Backlash, JointScale, ThermalExpansion, ThermalDrift, TrackerScale)
 }
 JOINT_FAMILIES = ("gravity_compliance", "cyclic", "backlash", "joint_scale")
-THERMAL_FAMILIES = ("thermal_expansion", "thermal_drift")  # driven by a measured temperature (or time)
+# driven by a measured temperature (or time)
+THERMAL_FAMILIES = ("thermal_expansion", "thermal_drift", "tracker_scale")
 
 
 def temperature_driven(eff: Effect) -> bool:

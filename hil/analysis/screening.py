@@ -267,7 +267,8 @@ class Screen:
 def effect_columns(model: CalibratedModel, eff: Effect, prob: Problem, J: np.ndarray) -> np.ndarray:
     """The Jacobian columns (N m, k) that `eff` (coefficients zero) adds to `model` on `prob`, from the
     model's own Jacobian J (N, m, P) of `prob.evaluate`: a joint effect moves the point (and turns a probe)
-    like its joint's theta, a growth scales every link length, an offset shifts the tracker frame."""
+    like its joint's theta, a growth scales every link length, an offset shifts the tracker frame, a scale
+    stretches the point about the tracker."""
     ctx = prob.ctx
     ctx.p_flange_tool = model._row_tools(prob.smr)
     reg = eff.cached_regressors(ctx, model.nominal)
@@ -281,6 +282,8 @@ def effect_columns(model: CalibratedModel, eff: Effect, prob: Problem, J: np.nda
         q_eff = ctx.q + model.joint_offsets(ctx)
         G = growth_direction(model.kinematic, q_eff, ctx.p_flange_tool) @ model.T_tracker_base[:3, :3].T
         cols[:, :3] = G[:, :, None] * reg[:, None, :]
+    elif eff.kind == "scale":
+        cols[:, :3] = model.predict_ctx(ctx)[:, :, None] * reg[:, None, :]
     else:
         cols[:, :3] = reg[:, :1, None] * np.eye(3)[None]
     return cols.reshape(n * m, k)
