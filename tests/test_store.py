@@ -387,3 +387,14 @@ def test_sigkill_while_creating_leaves_no_or_a_whole_campaign(tmp_path):
             stored = [int(p[1:]) for p in store.measurements()["point_id"]]
         assert set(reported) <= set(stored) and stored == list(range(len(stored)))
         assert not list(tmp_path.glob(f".{path.name}.*")), "a half-built campaign was left behind"
+
+
+def test_the_latest_temperature_is_the_arms_probe_else_the_trackers_air(tmp_path):
+    with CampaignStore(tmp_path / "t.sqlite") as store:
+        assert store.last_temperature_c() is None
+        store.record_measurement(make_record(1, temperature_c=21.5))
+        assert store.last_temperature_c() == 21.5
+        store.record_measurement(make_record(2, extra={"object_temperature_c": 23.25}))
+        assert store.last_temperature_c() == 23.25
+        store.record_measurement(make_record(3, temperature_c=float("nan")))
+        assert store.last_temperature_c() is None

@@ -443,6 +443,21 @@ class CampaignStore:
             self._started_s = float(row[0])  # append-only: the first measurement never changes
         return self._started_s
 
+    def last_temperature_c(self) -> float | None:
+        """The temperature at the campaign's latest measurement: the object probe's (the arm's own) when it
+        read one, else the air's the tracker used; None when neither was recorded."""
+        with self._lock:
+            row = (
+                self._db()
+                .execute("SELECT temperature_c, extra FROM measurements ORDER BY id DESC LIMIT 1")
+                .fetchone()
+            )
+        if row is None:
+            return None
+        arm = json.loads(row[1] or "{}").get("object_temperature_c")
+        value = arm if arm is not None else row[0]
+        return None if value is None or not np.isfinite(value) else float(value)
+
     @property
     def last_timestamp_s(self) -> float | None:
         """UNIX time of the campaign's latest measurement; None while it has none."""
