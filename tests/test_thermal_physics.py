@@ -126,3 +126,33 @@ def test_a_model_carrying_the_material_growth_compensates_targets_without_a_temp
     )
     hot = thermal_drivers(model, targets, 30.0, None)["temperature_c"]
     assert np.all(hot == 30.0) and "outside" not in capsys.readouterr().err  # no run record: no range known
+
+
+def test_a_temperature_term_no_material_gives_is_held_at_the_material_with_a_caution():
+    # The links shrink 20 ppm per K of the recorded temperature (no metal does: the temperature follows
+    # something else): the growth is held at the material's value and the report says why.
+    from calib_data import synthetic
+
+    from hil.analysis.effects import growth_direction
+    from hil.analysis.report import conclusion
+    from hil.data.dataset import joints_rad
+
+    truth, df, _ = synthetic(n=200, seed=3)
+    dT = np.random.default_rng(3).uniform(-2.5, 2.5, len(df))
+    df["temperature_c"] = 21.0 + dT
+    G = growth_direction(truth["model"], joints_rad(df), truth["tool"]) @ truth["T_tracker_base"][:3, :3].T
+    df[["x_mm", "y_mm", "z_mm"]] += -20e-6 * dT[:, None] * G * 1000.0
+    report = run_diagnosis(df, "ur10")
+    thermal = report.thermal
+    assert thermal["held_conflicting_per_k"] == pytest.approx(-20e-6, abs=3e-6)
+    assert thermal["fitted_per_k"] == 23e-6 and thermal["data_share"] == 0.0
+    assert "thermal_expansion" not in {e["name"] for e in report.effects_added}
+    assert "held at the material's value" in conclusion(report) and "which is no growth" in thermal_text(thermal)
+
+
+def test_a_plausible_coefficient_far_from_the_files_material_is_the_datas():
+    # A carbon-fibre arm (1.5 ppm/K) described as aluminium (23 ppm/K), warming 7 K: the data's value stands.
+    train, _ = _warm_campaigns(5, expansion_per_k=1.5e-6, warmup_tau_s=1000.0, warmer_k=0.0, step_m=0.1)
+    report = run_diagnosis(train, "ur10")
+    assert "held_conflicting_per_k" not in report.thermal
+    assert report.thermal["fitted_per_k"] == pytest.approx(1.5e-6, abs=1.5e-6) and report.thermal["data_led"]

@@ -169,7 +169,9 @@ class CalibratedModel:
         return make_transform(self.T_tracker_base[:3, :3] @ R_base_flange, p)
 
     def jacobian_ctx(self, ctx: EffectContext, smr: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Predicted points (N, 3) and d(points)/d(parameters) (N, 3, P) in the full parameter order."""
+        """Predicted points (N, 3) and d(points)/d(parameters) (N, 3, P) in the full parameter order; an effect
+        whose coefficients are held (`Effect.held`) has zero columns, so no fit or identifiability test frees
+        them."""
         q_eff = ctx.q + self.joint_offsets(ctx)
         N = ctx.n
         nk = len(self.kinematic.param_names)
@@ -205,6 +207,9 @@ class CalibratedModel:
                 J[:, :, sl] = (p / (1.0 + scale)[:, None])[:, :, None] * reg[:, None, :]
             else:
                 J[:, :, sl] = reg[:, :1, None] * np.eye(3)[None]
+        for eff, sl in zip(self.effects, self.effect_slices(), strict=True):
+            if eff.held:
+                J[:, :, sl] = 0.0
         if np.any(scale):  # the tracker's scale stretches every other parameter's motion too
             others = np.ones(P, bool)
             for eff, sl in zip(self.effects, self.effect_slices(), strict=True):

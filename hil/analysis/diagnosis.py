@@ -57,7 +57,9 @@ from hil.analysis.drift_monitor import reference_drift
 from hil.analysis.effects import (
     Effect,
     candidate_effects,
+    hold_at_material,
     make_effect,
+    material_conflict,
     material_expansion,
     physical,
     tool_points_rows,
@@ -310,6 +312,14 @@ def run_diagnosis(
         stages, hist, steps = _evaluate_stages(path, base.progress)
         report = _verdict(base, path, stages, hist, steps, alpha, compare_maps)
         report.thermal = thermal_summary(path.current, path.prob)
+        if report.thermal and "held_conflicting_per_k" in report.thermal:
+            report.verdict["cautions"].append(
+                caution(
+                    "thermal_growth_held",
+                    fitted_per_k=report.thermal["held_conflicting_per_k"],
+                    material_per_k=report.thermal["material_per_k"],
+                )
+            )
         report.drift = reference_drift(df)
         if df_validate is not None:
             _validate(report, path, df, df_validate, reregister_validation)
@@ -416,6 +426,12 @@ def _baseline_fit(
     )
     tell("geometric calibration", 0, 2)
     ridge = calibrate(df, _with_material_growth(robot, df, tool_guess_m), "ridge", tool_guess_m=tool_guess_m)
+    material = next((i for i, e in enumerate(ridge.model.effects) if physical(e)), None)
+    if material is not None and material_conflict(ridge.model.effects[material]):
+        # the temperature term takes something else (a drift in time, the air's temperature, not the arm's)
+        effects = list(ridge.model.effects)
+        effects[material] = hold_at_material(effects[material])
+        ridge = calibrate(df, replace(ridge.model, effects=effects), "ridge")
     tell("geometric calibration", 1, 2)
     lm = calibrate(df, robot, "lm", tool_guess_m=tool_guess_m)
     tell("geometric calibration", 2, 2)
@@ -490,7 +506,9 @@ def thermal_summary(result: CalibrationResult, prob: Problem) -> dict | None:
         std_apriori = std * position_noise_m(prob.measured) / result.sigma0_m
         share = float(np.clip(1.0 - (std_apriori / prior_std) ** 2, 0.0, 1.0))
     temps = prob.ctx.temperature_c
+    held = {"held_conflicting_per_k": eff.state["conflicting_per_k"]} if eff.held else {}
     return {
+        **held,
         "material_per_k": float(eff.state["material_per_k"]),
         "fitted_per_k": float(eff.params[0]),
         "std_per_k": prior_std if std is None else float(std),

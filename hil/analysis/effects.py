@@ -39,6 +39,7 @@ import pandas as pd
 
 from hil.data.jsonable import to_jsonable
 from hil.geometry.kinematics import KinematicModel, chain_axes, forward_kinematics, tool_points
+from hil.geometry.robots import EXPANSION_RANGE_PER_K
 
 # Names used in reports and model files (the documented vocabulary).
 EFFECT_FAMILIES: tuple[str, ...] = (
@@ -214,6 +215,11 @@ class Effect:
         """Gaussian prior on the coefficients, (mean, std) each (k,) in their SI unit; None without one (the
         coefficients are then free, up to the solver's small ridge)."""
         return None
+
+    @property
+    def held(self) -> bool:
+        """Coefficients held at their values: no fit moves them (the model's Jacobian gives them no column)."""
+        return bool(self.state.get("held", False))
 
     def to_dict(self) -> dict:
         return {
@@ -522,6 +528,13 @@ def temperature_driven(eff: Effect) -> bool:
     return eff.family in THERMAL_FAMILIES and eff.state.get("driver") == "temperature_c"
 
 
+# A campaign whose temperature term comes out more than this many prior sigmas from the material's value and
+# outside what any material gives (EXPANSION_RANGE_PER_K) is not measuring the links' growth (the recorded
+# temperature follows something else: a drift in time, the air rather than the arm): the growth is then held
+# at the material's value (`hold_at_material`). A plausible value far from the file's (a carbon arm described
+# as aluminium) is the data's to keep.
+MATERIAL_CONFLICT_SIGMAS = 3.0
+
 # 1-sigma of the material prior, as a fraction of the material's coefficient: an arm is not one alloy (steel
 # gears and bearings in aluminium tubes), and the temperature read (a probe on one link, or the air) is not
 # the mean temperature of every link. A campaign spanning a few kelvin over a metre of reach measures the
@@ -551,6 +564,22 @@ def material_expansion(ctx: EffectContext, nominal: KinematicModel) -> ThermalEx
     }
     eff.params = np.array([float(k0)])
     return eff
+
+
+def material_conflict(eff: Effect) -> bool:
+    """Whether the material term's fitted coefficient is no growth of any material: more than
+    MATERIAL_CONFLICT_SIGMAS prior sigmas from the material's value and outside EXPANSION_RANGE_PER_K."""
+    k = float(eff.params[0])
+    sigmas = abs(k - eff.state["material_per_k"]) / eff.state["prior_std_per_k"]
+    lo, hi = EXPANSION_RANGE_PER_K
+    return sigmas > MATERIAL_CONFLICT_SIGMAS and not lo <= k <= hi
+
+
+def hold_at_material(eff: Effect) -> Effect:
+    """The material term held at the material's coefficient, remembering what the data had made of it."""
+    held = type(eff)(joint=eff.joint, params=np.array([eff.state["material_per_k"]]), state=dict(eff.state))
+    held.state.update(held=True, conflicting_per_k=float(eff.params[0]))
+    return held
 
 
 def make_effect(family: str, joint: int | None = None) -> Effect:

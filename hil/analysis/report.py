@@ -59,6 +59,13 @@ def caution_text(c: dict) -> str:
             f"validation temperatures {vlo:.1f}..{vhi:.1f} C lie outside the training's {lo:.1f}..{hi:.1f} C: "
             "the model extrapolates thermal effects (measure the training over the working temperatures)"
         )
+    if kind == "thermal_growth_held":
+        return (
+            f"the temperature's term came out at {c['fitted_per_k'] * 1e6:.1f} ppm/K, far from the links' material "
+            f"({c['material_per_k'] * 1e6:.1f} ppm/K): on this campaign the recorded temperature follows something "
+            "else (a drift in time, the air's temperature rather than the arm's), so the growth is held at the "
+            "material's value; if the arm is of another material, give its expansion_per_k in the robot file"
+        )
     if kind == "validation_joints_outside":
         return (
             f"validation joint(s) {', '.join(map(str, c['joints']))} leave the training's range by more than "
@@ -106,7 +113,12 @@ def thermal_text(thermal: dict | None) -> str | None:
     if not thermal:
         return None
     share = thermal["data_share"]
-    if thermal["data_led"]:
+    if "held_conflicting_per_k" in thermal:
+        who = (
+            f"held at the material's value: the data made {thermal['held_conflicting_per_k'] * 1e6:.0f} ppm/K of "
+            "it, which is no growth of the links (see the cautions)"
+        )
+    elif thermal["data_led"]:
         who = "measured by this campaign"
     elif share < 0.05:
         who = "held at the material's value: the campaign spans too little temperature to measure it"
