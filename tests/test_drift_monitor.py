@@ -73,7 +73,9 @@ def test_the_report_gives_each_reference_poses_drift_from_its_first_visit():
 
     q = np.tile([[0.1, -1.2, 1.0, -1.4, -1.5, 0.2], [0.6, -1.6, 1.6, -1.4, -1.5, 0.2]], (3, 1))
     grid = np.array([[0.3, -1.4, 1.2, -1.4, -1.5, 0.2]])
-    p = np.array([[1000, 0, 0], [0, 1000, 0], [1000.01, 0, 0], [0, 1000, 0.03], [1000.02, 0, 0], [0, 1000, 0.06]])
+    p = np.array(
+        [[1000, 0, 0], [0, 1000, 0], [1000.01, 0, 0], [0, 1000, 0.03], [1000.02, 0, 0], [0, 1000, 0.06]]
+    )
     rows = np.vstack([q[:2], grid, q[2:4], grid, q[4:]])
     points = np.vstack([p[:2], [[500, 500, 0]], p[2:4], [[500, 500, 0]], p[4:]])
     df = pd.DataFrame(rows, columns=[f"q{j}_rad" for j in range(1, 7)])
