@@ -61,7 +61,9 @@ def test_reference_poses_are_measured_and_exported_with_time_and_temperature(tmp
     df = campaign_dataset(path, step="reference")
     assert len(df) >= 4 and set(df["step_id"]) == {"reference"}
     assert np.all(np.diff(df["t_s"].to_numpy()) > 0)
-    assert {"temperature_c", "air_temperature_c"} <= set(df.columns)
+    assert {"temperature_c", "air_temperature_c", "robot_temperature_c"} <= set(df.columns)
+    arm = df["robot_temperature_c"].to_numpy()  # the fake controller's joint sensors read the warming arm
+    assert np.all(np.diff(arm) >= 0) and np.ptp(arm) > 0
     training, validation = read_training_and_validation(path)
     assert set(training["step_id"]) == {"grid", "reference"} and validation is not None
 

@@ -297,6 +297,21 @@ def test_dataset_temperature_is_the_arm_s_where_the_probe_read_every_point(tmp_p
     np.testing.assert_allclose(mixed["temperature_c"], 20.0 + 0.01 * np.arange(2))
 
 
+def test_dataset_temperature_is_the_robot_s_own_reading_where_no_probe_read_every_point(tmp_path):
+    """Without a probe on every point the robot's joint sensors give the arm's temperature (their column is
+    kept beside the air's); with one, the probe's reading stays first."""
+    with CampaignStore(tmp_path / "c.hilc") as store:
+        for i in range(3):
+            store.record_measurement(make_record(i, step="robot", extra={"robot_temperature_c": 31.0 + i}))
+            both = {"robot_temperature_c": 31.0 + i, "object_temperature_c": 24.0 + i}
+            store.record_measurement(make_record(i, step="both", extra=both))
+        robot, both_ = campaign_dataset(store, step="robot"), campaign_dataset(store, step="both")
+    np.testing.assert_allclose(robot["temperature_c"], 31.0 + np.arange(3))
+    np.testing.assert_allclose(robot["robot_temperature_c"], 31.0 + np.arange(3))
+    np.testing.assert_allclose(robot["air_temperature_c"], 20.0 + 0.01 * np.arange(3))
+    np.testing.assert_allclose(both_["temperature_c"], 24.0 + np.arange(3))
+
+
 WRITER = textwrap.dedent(
     """
     import sys, time
