@@ -288,26 +288,17 @@ def run_diagnosis(
         raise ValueError(f"reregister_validation '{reregister_validation}': use none, base or base+tool")
     df = drop_duplicate_rows(df, "training data")  # copies would count twice in every test
     with threadpool_limits(1):  # small dense problems: threads only contend
-        base = _baseline_fit(df, robot, folds, seed, repeatability_mm, tool_guess_m, tracker_mpe_m, progress)
+        fit_args = (df, robot, folds, seed, repeatability_mm, tool_guess_m, tracker_mpe_m, progress)
+        base = _baseline_fit(*fit_args)
         base.screening = screening
-        path = _forward_selection(base, df, alpha, families, max_effects, banned=set())
-        for _ in range(2):  # greedy got stuck above the floor? Try again without its first choice.
-            if not path.effects or _excess_ratio(path.current.model, base, path) <= 1.1:
-                break
-            first = path.effects[0]
-            other = _forward_selection(base, df, alpha, families, max_effects, banned={*path.banned, first})
-            if other.cv_rms_mm < 0.95 * path.cv_rms_mm:
-                other.cautions.append(
-                    caution(
-                        "first_choice_set_aside",
-                        effect={"name": first[0], "joint": first[1]},
-                        heldout_rms_mm=path.cv_rms_mm,
-                        heldout_rms_without_mm=other.cv_rms_mm,
-                    )
-                )
-                path = other
-            else:
-                break
+        path = _select(base, df, alpha, families, max_effects)
+        material = next((e for e in path.current.model.effects if physical(e)), None)
+        if material is not None and material_conflict(material):
+            # The temperature's term took something that is no growth of the links (a drift in time, the
+            # air's temperature rather than the arm's): select again with the growth held at the material's.
+            base = _baseline_fit(*fit_args, hold_material=float(material.params[0]))
+            base.screening = screening
+            path = _select(base, df, alpha, families, max_effects)
         _settle_rivals(base, df, path, alpha)
         stages, hist, steps = _evaluate_stages(path, base.progress)
         report = _verdict(base, path, stages, hist, steps, alpha, compare_maps)
@@ -330,6 +321,31 @@ def run_diagnosis(
 
 
 Progress = Callable[[str, int, int], None]  # (phase, done, total)
+
+
+def _select(
+    base: _Baseline, df: pd.DataFrame, alpha: float, families: tuple[str, ...] | None, max_effects: int
+) -> _Path:
+    """Forward selection, tried again without its first choice while it stays above the noise floor."""
+    path = _forward_selection(base, df, alpha, families, max_effects, banned=set())
+    for _ in range(2):  # greedy got stuck above the floor? Try again without its first choice.
+        if not path.effects or _excess_ratio(path.current.model, base, path) <= 1.1:
+            break
+        first = path.effects[0]
+        other = _forward_selection(base, df, alpha, families, max_effects, banned={*path.banned, first})
+        if other.cv_rms_mm < 0.95 * path.cv_rms_mm:
+            other.cautions.append(
+                caution(
+                    "first_choice_set_aside",
+                    effect={"name": first[0], "joint": first[1]},
+                    heldout_rms_mm=path.cv_rms_mm,
+                    heldout_rms_without_mm=other.cv_rms_mm,
+                )
+            )
+            path = other
+        else:
+            break
+    return path
 
 
 def undecided_questions(df: pd.DataFrame, path: _Path, alpha: float, sigma_m: float) -> list[dict]:
@@ -418,20 +434,20 @@ class _Baseline:
 
 
 def _baseline_fit(
-    df, robot, folds, seed, repeatability_mm, tool_guess_m, tracker_mpe_m, progress=None
+    df, robot, folds, seed, repeatability_mm, tool_guess_m, tracker_mpe_m, progress=None, hold_material=None
 ) -> _Baseline:
+    """`hold_material` (the coefficient a first selection made of it): the links' material growth held at the
+    material's coefficient (hil.analysis.effects.hold_at_material)."""
     tell = progress or _quiet
     noise = estimate_noise_floor(
         df, mpe_const_m=tracker_mpe_m[0], mpe_per_m=tracker_mpe_m[1], repeatability_mm=repeatability_mm
     )
     tell("geometric calibration", 0, 2)
-    ridge = calibrate(df, _with_material_growth(robot, df, tool_guess_m), "ridge", tool_guess_m=tool_guess_m)
-    material = next((i for i, e in enumerate(ridge.model.effects) if physical(e)), None)
-    if material is not None and material_conflict(ridge.model.effects[material]):
-        # the temperature term takes something else (a drift in time, the air's temperature, not the arm's)
-        effects = list(ridge.model.effects)
-        effects[material] = hold_at_material(effects[material])
-        ridge = calibrate(df, replace(ridge.model, effects=effects), "ridge")
+    start = _with_material_growth(robot, df, tool_guess_m)
+    if hold_material is not None and isinstance(start, CalibratedModel):
+        held = [hold_at_material(e, hold_material) if physical(e) else e for e in start.effects]
+        start = replace(start, effects=held)
+    ridge = calibrate(df, start, "ridge", tool_guess_m=tool_guess_m)
     tell("geometric calibration", 1, 2)
     lm = calibrate(df, robot, "lm", tool_guess_m=tool_guess_m)
     tell("geometric calibration", 2, 2)

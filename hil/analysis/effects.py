@@ -575,10 +575,10 @@ def material_conflict(eff: Effect) -> bool:
     return sigmas > MATERIAL_CONFLICT_SIGMAS and not lo <= k <= hi
 
 
-def hold_at_material(eff: Effect) -> Effect:
+def hold_at_material(eff: Effect, conflicting_per_k: float) -> Effect:
     """The material term held at the material's coefficient, remembering what the data had made of it."""
     held = type(eff)(joint=eff.joint, params=np.array([eff.state["material_per_k"]]), state=dict(eff.state))
-    held.state.update(held=True, conflicting_per_k=float(eff.params[0]))
+    held.state.update(held=True, conflicting_per_k=float(conflicting_per_k))
     return held
 
 
