@@ -6,7 +6,8 @@ Run:  PYTHONPATH=. python benchmarks/real_campaigns.py DATA_DIR [--reregister ba
       or a bare git directory of it (read with `git show HEAD:...`). Without data the script says so and exits 0.
 
 Per direction: the plain (geometric) calibration's RMS on the other campaign against the final diagnosed
-model's (goal: final <= plain), the effects named, and the open questions with the plan's groups.
+model's (goal: final <= plain), the effects named, the links' thermal growth against the robot file's
+material, and the open questions with the plan's groups.
 The data is never copied into this repository.
 """
 
@@ -105,6 +106,12 @@ def run(
         print(
             f"{train:<6}{val:<5}{len(data[train]):>6}{plain:>10.3f}{final:>10.3f}  {named or 'none'}  ({time.perf_counter() - t0:.0f} s)"
         )
+        if report.thermal:  # the links' growth against the robot file's material
+            th = report.thermal
+            print(
+                f"      growth {th['fitted_per_k'] * 1e6:.1f} +- {th['std_per_k'] * 1e6:.1f} ppm/K (material "
+                f"{th['material_per_k'] * 1e6:.1f}) over {th['span_k']:.2f} K, data share {th['data_share']:.2f}"
+            )
         if propose_n:
             sigma = float(np.sqrt(np.mean(report.noise.sigma_axis_m**2)))
             plan = propose(data[train], report.model, report.undecided, propose_n, sigma)

@@ -521,6 +521,12 @@ class URRobot:
         self._check_stream()
         return pose_to_transform(np.array(self._receive().getActualTCPPose(), float))
 
+    def temperature_c(self) -> float | None:
+        """The arm's temperature from its joint sensors (mean of the six, degC); None when not reported."""
+        self._check_stream()
+        t = np.asarray(self._receive().getJointTemperatures(), float)
+        return float(np.mean(t)) if t.size and np.all(np.isfinite(t)) else None
+
     def _check_stream(self) -> None:
         """Readings need only a live, advancing data stream (not a running program)."""
         rx = self._rx

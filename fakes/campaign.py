@@ -62,7 +62,7 @@ def simulate_campaign(
         if p_flange is None:
             raise ValueError(f"SMR {k} is fixed in the room; seat it on the robot")
         p_true = T_tracker_flange[:, :3, :3] @ p_flange + T_tracker_flange[:, :3, 3]
-        p_meas.append(cell.tracker_reading(k, p_true))
+        p_meas.append(cell.tracker_reading(k, p_true, r["t_s"]))
     ids = [loc.number if loc.kind == "nest" else 0 for loc in map(cell.smr_location, smrs)]
     order = np.arange(N * len(smrs)).reshape(len(smrs), N).T.ravel()  # pose by pose, nests in turn
     R_probe = None

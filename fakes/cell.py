@@ -65,6 +65,11 @@ EFFECT_FLAGS: dict[str, str] = {
 }
 CELL_EFFECTS: tuple[str, ...] = tuple(EFFECT_FLAGS)
 
+# Refraction: n - 1 of air falls ~0.93 ppm per K near 20 degC. A tracker that computes n from an air
+# temperature below the real one takes n too large and measures distances short: 0.93 ppm per K of
+# (real - used) air temperature.
+REFRACTION_PER_K = -0.93e-6
+
 # Counter-keyed noise streams: default_rng([seed, stream, index]).
 TRACKER_NOISE_STREAM = 6  # index: the tracker reading
 JITTER_STREAM = 7  # index: the motion
@@ -154,6 +159,10 @@ class SimCellConfig:
     warmup_tau_s: float = 1200.0
     expansion_per_k: float = 23e-6  # aluminium
     air_warmup_fraction: float = 1.0  # the hall's air follows this fraction of the arm's warm-up
+    # The air temperature the tracker's refraction model uses and reports (a manual setting, a station in the
+    # sun); None: its weather station reads the hall's air. Off by dT, its distances are (1 + REFRACTION_PER_K
+    # dT) too long: a scale about the tracker.
+    tracker_air_c: float | None = None
     # Controller-side noise.
     encoder_sigma_rad: float = 1e-6
     repeatability_sigma_rad: float = 4e-6
@@ -323,13 +332,26 @@ class SimulatedCell:
             return cfg.ambient_c + 0.0 * t
         return cfg.ambient_c + cfg.warmup_k * (1.0 - np.exp(-t / cfg.warmup_tau_s))
 
+    def hall_air_c(self, time_s: np.ndarray | float | None = None) -> np.ndarray | float:
+        """The hall's real air temperature at the given physics time(s) (default: now)."""
+        cfg = self.config
+        arm_c = self.structure_temperature_c(time_s)
+        return cfg.ambient_c + cfg.air_warmup_fraction * (np.asarray(arm_c) - cfg.ambient_c)
+
+    def tracker_scale(self, time_s: np.ndarray | float | None = None) -> np.ndarray | float:
+        """How much too long the tracker measures distances (its refraction from `tracker_air_c`), 0 with a
+        station that reads the hall's air."""
+        cfg = self.config
+        if cfg.tracker_air_c is None:
+            return 0.0 * np.asarray(self.structure_temperature_c(time_s))
+        return REFRACTION_PER_K * (np.asarray(self.hall_air_c(time_s)) - cfg.tracker_air_c)
+
     def meteo(self) -> Meteo:
         """Meteo at the tracker now (pressure and humidity drift slightly with time)."""
         cfg = self.config
         t = self._physics_s
-        arm_c = float(self.structure_temperature_c())
         return Meteo(
-            temperature_c=cfg.ambient_c + cfg.air_warmup_fraction * (arm_c - cfg.ambient_c),
+            temperature_c=float(self.hall_air_c()) if cfg.tracker_air_c is None else cfg.tracker_air_c,
             pressure_hpa=float(cfg.pressure_hpa + 0.5 * np.sin(2 * np.pi * t / 7200.0)),
             humidity_pct=float(cfg.humidity_pct + 2.0 * np.sin(2 * np.pi * t / 5400.0)),
         )
@@ -506,16 +528,20 @@ class SimulatedCell:
             cfg.tracker_mpe_const_m + cfg.tracker_mpe_per_m * np.asarray(distance_m)
         ) / cfg.tracker_mpe_sigmas
 
-    def tracker_reading(self, smr_id: int, p_tracker: np.ndarray) -> np.ndarray:
-        """Noisy tracker readings (N, 3) of SMR `smr_id` whose true centres are p_tracker (N, 3)."""
+    def tracker_reading(
+        self, smr_id: int, p_tracker: np.ndarray, time_s: np.ndarray | None = None
+    ) -> np.ndarray:
+        """Noisy tracker readings (N, 3) of SMR `smr_id` whose true centres are p_tracker (N, 3), at physics
+        times `time_s` (N,) (default: now; the tracker's scale follows the air)."""
         p = np.atleast_2d(p_tracker)
+        p = p * (1.0 + np.broadcast_to(self.tracker_scale(time_s), (len(p),)))[:, None]
         sigma = self.tracker_sigma_m(np.linalg.norm(p, axis=1))[:, None]
         return p + self._centering[smr_id - 1] + sigma * self._noise_rng.standard_normal(p.shape)
 
     def measure_smr(self, smr_id: int) -> np.ndarray:
         """One tracker reading (3,) of an SMR, tracker frame, metres; its noise drawn from the seed and the
         reading's index."""
-        p = self.smr_center_tracker(smr_id)
+        p = self.smr_center_tracker(smr_id) * (1.0 + float(self.tracker_scale()))
         self.readings += 1
         noise = _keyed(TRACKER_NOISE_STREAM, (self.config.seed, self.readings)).standard_normal(3)
         return p + self._centering[smr_id - 1] + self.tracker_sigma_m(float(np.linalg.norm(p))) * noise
@@ -549,7 +575,7 @@ class SimulatedCell:
         T_flange = frames[:, -1] @ self.nominal.T_last_flange
         p_base = T_flange[:, :3, :3] @ p_flange + T_flange[:, :3, 3]
         p_true = p_base @ self.T_tracker_base[:3, :3].T + self.T_tracker_base[:3, 3]
-        p_meas = self.tracker_reading(smr_id, p_true)
+        p_meas = self.tracker_reading(smr_id, p_true, t_s)
         q_enc = q_cmd + self._noise_rng.normal(0, self.config.encoder_sigma_rad, q_cmd.shape)
         self._q_cmd = q_cmd[-1].copy()
         self._approach = approach[-1].copy()

@@ -605,7 +605,7 @@ class UrController(ScriptRuntime):
             "robot_status_bits": self.robot_status_bits,
             "safety_status_bits": self.safety_status_bits,
             "joint_mode": lambda: [253] * 6 if self.robot_mode == RUNNING else [236] * 6,
-            "joint_temperatures": lambda: [self.cell.config.ambient_c + 10.0] * 6,
+            "joint_temperatures": lambda: [float(self.cell.structure_temperature_c())] * 6,  # the arm's
             "speed_scaling": lambda: self.speed_slider,
             "target_speed_fraction": lambda: self.speed_slider,
             "actual_main_voltage": lambda: 48.0,

@@ -30,6 +30,7 @@ another side of the gap (about 0.1 mm on the simulated UR10 with backlash).
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -44,6 +45,7 @@ from hil.compensation.model_based import (
     PseudoTargetIK,
     compensate,
     ensemble_names,
+    outside_fitted_temperatures,
     pose_cost,
 )
 from hil.compensation.target_update import GENERATORS, update_pseudo_position, update_pseudo_target
@@ -349,8 +351,10 @@ class Start:
 
 
 def start_joints(config: CellConfig, ik_model: CalibratedModel, model: CalibratedModel | None, T_d: np.ndarray,
-                 generator: str, threshold_m: float, ensemble: list[str] | None = None) -> Start:  # fmt: skip
-    """Model-based compensated joints (nominal IK without a model), checked for reach, singularity, envelope."""
+                 generator: str, threshold_m: float, ensemble: list[str] | None = None,
+                 temperature_c: float | None = None) -> Start:  # fmt: skip
+    """Model-based compensated joints (nominal IK without a model), checked for reach, singularity, envelope;
+    the model's temperature-driven effects at `temperature_c` (the cell's now; None: at their reference)."""
     full_pose = T_d.ndim == 3
     gen = generator if full_pose else None
     home = config.q_home_rad
@@ -384,6 +388,7 @@ def start_joints(config: CellConfig, ik_model: CalibratedModel, model: Calibrate
             q_near=home,
             q_seed=seed,
             generators=ensemble,
+            temperature_c=None if temperature_c is None else np.full(len(T_d), temperature_c),
         )
         q = res.q
         status = np.where(status == "ok", res.status, status).astype(object)
@@ -513,7 +518,10 @@ def close_the_loop(session: Session, *, model: CalibratedModel | str | None, tar
         subset,
     )  # fmt: skip
     nominal_ik = nominal_model(session.config, T_tb, ik_model.tools[1])
-    start = start_joints(session.config, nominal_ik, the_model, T_d, generator, threshold_m, subset)
+    temperature_c = cell_temperature(session, the_model)
+    start = start_joints(
+        session.config, nominal_ik, the_model, T_d, generator, threshold_m, subset, temperature_c
+    )
     loop = _Loop(
         session, ik_model, T_d, generator, threshold_m, max_iter, smrs, shots, patience, subset, approach_rad
     )
@@ -535,6 +543,23 @@ def close_the_loop(session: Session, *, model: CalibratedModel | str | None, tar
         NAME, "summary", {"summary": result.summary(), "targets": [r.to_dict() for r in results]}
     )
     return result
+
+
+def cell_temperature(session: Session, model: CalibratedModel | None) -> float | None:
+    """The temperature the model's start is compensated for: the campaign's latest reading (the arm's probe,
+    else the tracker's air), recorded as an event, with a warning event when it lies outside what the model's
+    thermal effects were fitted on; None without a model or a reading."""
+    if model is None:
+        return None
+    temperature_c = session.store.last_temperature_c()
+    if temperature_c is None:
+        return None
+    session.event("loop_temperature", f"the start is compensated for {temperature_c:.2f} degC")
+    why = outside_fitted_temperatures(model, np.array([temperature_c]))
+    if why:
+        logging.getLogger(__name__).warning("the cell at %.1f degC: %s", temperature_c, why)
+        session.event("temperature_outside_model", f"the cell at {temperature_c:.1f} degC: {why}")
+    return temperature_c
 
 
 def _pin_targets(

@@ -61,6 +61,33 @@ def test_reference_poses_are_measured_and_exported_with_time_and_temperature(tmp
     df = campaign_dataset(path, step="reference")
     assert len(df) >= 4 and set(df["step_id"]) == {"reference"}
     assert np.all(np.diff(df["t_s"].to_numpy()) > 0)
-    assert {"temperature_c", "air_temperature_c"} <= set(df.columns)
+    assert {"temperature_c", "air_temperature_c", "robot_temperature_c"} <= set(df.columns)
+    arm = df["robot_temperature_c"].to_numpy()  # the fake controller's joint sensors read the warming arm
+    assert np.all(np.diff(arm) >= 0) and np.ptp(arm) > 0
     training, validation = read_training_and_validation(path)
     assert set(training["step_id"]) == {"grid", "reference"} and validation is not None
+
+
+def test_the_report_gives_each_reference_poses_drift_from_its_first_visit():
+    import pandas as pd
+
+    from hil.analysis.drift_monitor import drift_text, reference_drift
+
+    q = np.tile([[0.1, -1.2, 1.0, -1.4, -1.5, 0.2], [0.6, -1.6, 1.6, -1.4, -1.5, 0.2]], (3, 1))
+    grid = np.array([[0.3, -1.4, 1.2, -1.4, -1.5, 0.2]])
+    p = np.array(
+        [[1000, 0, 0], [0, 1000, 0], [1000.01, 0, 0], [0, 1000, 0.03], [1000.02, 0, 0], [0, 1000, 0.06]]
+    )
+    rows = np.vstack([q[:2], grid, q[2:4], grid, q[4:]])
+    points = np.vstack([p[:2], [[500, 500, 0]], p[2:4], [[500, 500, 0]], p[4:]])
+    df = pd.DataFrame(rows, columns=[f"q{j}_rad" for j in range(1, 7)])
+    df[["x_mm", "y_mm", "z_mm"]] = points
+    df["t_s"] = np.arange(len(df)) * 60.0
+    df["temperature_c"] = 20.0 + 0.5 * np.arange(len(df))
+    df["step_id"] = ["reference"] * 2 + ["grid"] + ["reference"] * 2 + ["grid"] + ["reference"] * 2
+    drift = reference_drift(df)
+    assert [len(s["norm_mm"]) for s in drift["poses"]] == [3, 3] and drift["visits"] == 6
+    np.testing.assert_allclose(drift["poses"][1]["norm_mm"], [0.0, 0.03, 0.06], atol=1e-9)
+    assert drift["max_mm"] == pytest.approx(0.06) and drift["span_k"] == pytest.approx(3.5)
+    assert "2 reference pose(s), 6 visits" in drift_text(drift)
+    assert reference_drift(df.drop(columns=["step_id"])) is None

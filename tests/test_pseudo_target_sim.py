@@ -329,3 +329,28 @@ def test_cli_dry_run_of_the_pt_paper_plans_from_the_campaigns_registration(cell,
     done = run_hil(*base, "--campaign", str(registered), "--model", "m.json", cwd=tmp_path, capsys=capsys)
     assert done.returncode == 2 and "drop --model" in done.stderr
     assert not (tmp_path / "new.sqlite").exists()
+
+
+def test_the_start_is_compensated_for_the_cells_temperature_with_a_warning_outside_the_models(cell):
+    # A model whose material growth was fitted around 5.5 degC (5..6 degC in its run record); the cell is at
+    # ~20 degC: the loop reads the temperature from the campaign's latest measurement and says so.
+    from dataclasses import replace
+
+    from hil.analysis.effects import ThermalExpansion
+    from hil.data.store import CampaignStore
+
+    growth = ThermalExpansion(
+        params=np.array([23e-6]),
+        state={"driver": "temperature_c", "reference": 5.5, "material_per_k": 23e-6, "prior_std_per_k": 7e-6},
+    )
+    model = cell["model"]
+    run = {"inputs": {"training": {"temperature_c_range": [5.0, 6.0]}}}
+    cold = replace(model, effects=[*model.effects, growth], info={**model.info, "run": run})
+    path = campaign(cell, "cold")
+    with session_on(cell["config"], path) as session:
+        pseudo_target.PROCEDURE(session, model=cold, targets=2, smrs=1, max_iter=0, seed=2)
+    with CampaignStore(path) as store:
+        events = store.events()
+    said = dict(zip(events["kind"], events["message"], strict=True))
+    assert "compensated for 20." in said["loop_temperature"]
+    assert "outside the 5.0..6.0 degC" in said["temperature_outside_model"]

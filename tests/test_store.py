@@ -297,6 +297,21 @@ def test_dataset_temperature_is_the_arm_s_where_the_probe_read_every_point(tmp_p
     np.testing.assert_allclose(mixed["temperature_c"], 20.0 + 0.01 * np.arange(2))
 
 
+def test_dataset_temperature_is_the_robot_s_own_reading_where_no_probe_read_every_point(tmp_path):
+    """Without a probe on every point the robot's joint sensors give the arm's temperature (their column is
+    kept beside the air's); with one, the probe's reading stays first."""
+    with CampaignStore(tmp_path / "c.hilc") as store:
+        for i in range(3):
+            store.record_measurement(make_record(i, step="robot", extra={"robot_temperature_c": 31.0 + i}))
+            both = {"robot_temperature_c": 31.0 + i, "object_temperature_c": 24.0 + i}
+            store.record_measurement(make_record(i, step="both", extra=both))
+        robot, both_ = campaign_dataset(store, step="robot"), campaign_dataset(store, step="both")
+    np.testing.assert_allclose(robot["temperature_c"], 31.0 + np.arange(3))
+    np.testing.assert_allclose(robot["robot_temperature_c"], 31.0 + np.arange(3))
+    np.testing.assert_allclose(robot["air_temperature_c"], 20.0 + 0.01 * np.arange(3))
+    np.testing.assert_allclose(both_["temperature_c"], 24.0 + np.arange(3))
+
+
 WRITER = textwrap.dedent(
     """
     import sys, time
@@ -387,3 +402,14 @@ def test_sigkill_while_creating_leaves_no_or_a_whole_campaign(tmp_path):
             stored = [int(p[1:]) for p in store.measurements()["point_id"]]
         assert set(reported) <= set(stored) and stored == list(range(len(stored)))
         assert not list(tmp_path.glob(f".{path.name}.*")), "a half-built campaign was left behind"
+
+
+def test_the_latest_temperature_is_the_arms_probe_else_the_trackers_air(tmp_path):
+    with CampaignStore(tmp_path / "t.sqlite") as store:
+        assert store.last_temperature_c() is None
+        store.record_measurement(make_record(1, temperature_c=21.5))
+        assert store.last_temperature_c() == 21.5
+        store.record_measurement(make_record(2, extra={"object_temperature_c": 23.25}))
+        assert store.last_temperature_c() == 23.25
+        store.record_measurement(make_record(3, temperature_c=float("nan")))
+        assert store.last_temperature_c() is None

@@ -129,14 +129,17 @@ class CalibratedModel:
         q_eff = ctx.q + self.joint_offsets(ctx)
         p_base = tool_points_rows(self.kinematic, q_eff, _context_tools(ctx))
         offset = np.zeros_like(p_base)
+        scale = np.zeros(len(p_base))
         for eff in self.effects:
             if eff.kind == "growth":
                 g = eff.cached_regressors(ctx, self.nominal) @ eff.params
                 p_base = p_base + g[:, None] * growth_direction(self.kinematic, q_eff, _context_tools(ctx))
             elif eff.kind == "offset":
                 offset += eff.cached_regressors(ctx, self.nominal)[:, :1] * eff.params[None, :]
+            elif eff.kind == "scale":
+                scale += eff.cached_regressors(ctx, self.nominal) @ eff.params
         R, t = self.T_tracker_base[:3, :3], self.T_tracker_base[:3, 3]
-        return p_base @ R.T + t + offset
+        return (p_base @ R.T + t + offset) * (1.0 + scale)[:, None]  # the tracker scales what it sees
 
     def predict(self, df: pd.DataFrame, with_map: bool = True) -> np.ndarray:
         """Predicted SMR centres (N, 3) in the tracker frame (m) for the joints (and drivers) in df.
@@ -166,7 +169,9 @@ class CalibratedModel:
         return make_transform(self.T_tracker_base[:3, :3] @ R_base_flange, p)
 
     def jacobian_ctx(self, ctx: EffectContext, smr: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Predicted points (N, 3) and d(points)/d(parameters) (N, 3, P) in the full parameter order."""
+        """Predicted points (N, 3) and d(points)/d(parameters) (N, 3, P) in the full parameter order; an effect
+        whose coefficients are held (`Effect.held`) has zero columns, so no fit or identifiability test frees
+        them."""
         q_eff = ctx.q + self.joint_offsets(ctx)
         N = ctx.n
         nk = len(self.kinematic.param_names)
@@ -185,6 +190,11 @@ class CalibratedModel:
             self.kinematic.param_names.index(f"theta{j + 1}") for j in range(self.kinematic.n_joints)
         ]
         R = self.T_tracker_base[:3, :3]
+        p = self.predict_ctx(ctx)
+        scale = sum(
+            (e.cached_regressors(ctx, self.nominal) @ e.params for e in self.effects if e.kind == "scale"),
+            np.zeros(N),
+        )
         for eff, sl in zip(self.effects, self.effect_slices(), strict=True):
             reg = eff.cached_regressors(ctx, self.nominal)
             if eff.kind == "joint":
@@ -193,9 +203,19 @@ class CalibratedModel:
             elif eff.kind == "growth":
                 G = growth_direction(self.kinematic, q_eff, _context_tools(ctx)) @ R.T
                 J[:, :, sl] = G[:, :, None] * reg[:, None, :]
+            elif eff.kind == "scale":  # the point before the tracker's scale
+                J[:, :, sl] = (p / (1.0 + scale)[:, None])[:, :, None] * reg[:, None, :]
             else:
                 J[:, :, sl] = reg[:, :1, None] * np.eye(3)[None]
-        return self.predict_ctx(ctx), J
+        for eff, sl in zip(self.effects, self.effect_slices(), strict=True):
+            if eff.held:
+                J[:, :, sl] = 0.0
+        if np.any(scale):  # the tracker's scale stretches every other parameter's motion too
+            others = np.ones(P, bool)
+            for eff, sl in zip(self.effects, self.effect_slices(), strict=True):
+                others[sl] = eff.kind != "scale"
+            J[:, :, others] *= (1.0 + scale)[:, None, None]
+        return p, J
 
     def _row_probes(self, smr: np.ndarray) -> np.ndarray:
         """R_flange_probe of every row (N, 3, 3); a nest without one is named."""
@@ -213,7 +233,7 @@ class CalibratedModel:
         in the tracker frame, full parameter order: a change dx turns the prediction by Rot(J dx) on the
         left. Kinematic columns are the turning axes (`kinematic_rotation_jacobian`), base rotation turns
         it about the base axes, a probe's own parameters about the flange axes; lengths, tool points,
-        thermal growth and drift do not turn it; a joint effect turns it like its joint."""
+        thermal growth, drift and the tracker's scale do not turn it; a joint effect turns it like its joint."""
         R_FP = self._row_probes(smr)
         q_eff = ctx.q + self.joint_offsets(ctx)
         R_BF, J_kin = kinematic_rotation_jacobian(self.kinematic, q_eff)

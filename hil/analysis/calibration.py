@@ -12,6 +12,9 @@ Two solvers over the same model and the same identifiable parameter set:
   more points). Weights
   are recomputed from the standardised residuals at every step, so a point rejected while the model was
   still far off can come back.
+  An effect with a physical prior (`Effect.prior`: the links' material expansion) adds its Gaussian prior
+  to the cost, (sigma (x - mean) / std)^2 with sigma the tracker's a-priori noise per axis at the data's
+  distances: the data then outweigh the prior exactly when they measure the coefficient better than std.
 - ``lm``: scipy ``least_squares`` (trust-region, Levenberg-Marquardt-like) with a robust loss (soft L1,
   scale 1.5 sigma, sigma from a first least-squares pass by the median absolute deviation: the positions'
   for position coordinates, a probe's rotations' for rotation coordinates, as IGG3 judges them).
@@ -360,6 +363,19 @@ def identify(model: CalibratedModel, problem: Problem, tol: float = 1e-3) -> Ide
     return analyse(flatten_jacobian(J), model.param_names, tol=tol)
 
 
+def prior_terms(model: CalibratedModel, free: np.ndarray, sigma_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per free parameter: the weight (sigma_m / std)^2 of its Gaussian prior (`Effect.prior`; 0 without one)
+    and how far its value in `model` lies from the prior's mean, in the parameter's unit."""
+    weight, offset = np.zeros(len(model.param_names)), np.zeros(len(model.param_names))
+    for eff, sl in zip(model.effects, model.effect_slices(), strict=True):
+        prior = eff.prior()
+        if prior is not None:
+            mean, std = prior
+            weight[sl] = (sigma_m / std) ** 2
+            offset[sl] = eff.params - mean
+    return weight[free], offset[free]
+
+
 def _redundancy(Js: np.ndarray, Ninv: np.ndarray) -> np.ndarray:
     """Unit-weight redundancy numbers 1 - a_i N^-1 a_i^T of each row (clipped below at 0.05)."""
     h = np.sum((Js @ Ninv) * Js, axis=1)  # one BLAS product: a three-operand einsum loops in C, ~10x slower
@@ -406,6 +422,7 @@ def solve_ridge_igg3(
         r0v, J0f = _linearised(problem, model, free)
     # The prior holds the robot's geometry and effects, not the set-up (base frame, tool points, probes).
     prior_mask = np.array([not n.startswith(("base_", "tool", "probe")) for n in names])[free]
+    w_prior, off_prior = prior_terms(model, free, position_noise_m(problem.measured))
     N_pts = problem.measured.shape[0]
     d = problem.n_obs  # coordinates per point: position, and a probe's scaled rotation
     w_pts = np.ones(N_pts)
@@ -424,12 +441,16 @@ def solve_ridge_igg3(
         w_rows = np.repeat(w_pts, d)
         Nm = (Js * w_rows[:, None]).T @ Js
         mu = ridge * np.linalg.eigvalsh(Nm)[-1]
-        M = Nm + mu * np.diag(prior_mask.astype(float))
-        rhs = Js.T @ (w_rows * rv) - mu * prior_mask * (dev * norms)
+        M = Nm + mu * np.diag(prior_mask.astype(float)) + np.diag(w_prior / norms**2)
+        rhs = Js.T @ (w_rows * rv) - mu * prior_mask * (dev * norms) - w_prior * (off_prior + dev) / norms
         step_s = np.linalg.solve(M + 1e-14 * np.trace(M) / len(M) * np.eye(len(M)), rhs)
         step = step_s / norms
         # Backtrack when the step does not lower the penalised weighted cost (guards weak directions).
-        cost0 = float(np.sum(w_rows * rv**2) + mu * np.sum(prior_mask * (dev * norms) ** 2))
+        cost0 = float(
+            np.sum(w_rows * rv**2)
+            + mu * np.sum(prior_mask * (dev * norms) ** 2)
+            + np.sum(w_prior * (off_prior + dev) ** 2)
+        )
         for _ in range(12):
             dx = np.zeros(len(names))
             dx[free] = step
@@ -438,7 +459,11 @@ def solve_ridge_igg3(
             else:
                 trial = model.apply_increment(dx)
                 r_new = problem.residuals(trial).reshape(-1)
-            cost = float(np.sum(w_rows * r_new**2) + mu * np.sum(prior_mask * ((dev + step) * norms) ** 2))
+            cost = float(
+                np.sum(w_rows * r_new**2)
+                + mu * np.sum(prior_mask * ((dev + step) * norms) ** 2)
+                + np.sum(w_prior * (off_prior + dev + step) ** 2)
+            )
             if cost <= cost0 * (1 + 1e-12):
                 break
             step, step_s = step / 2, step_s / 2
@@ -479,7 +504,9 @@ def solve_ridge_igg3(
     mu = ridge * np.linalg.eigvalsh(Nm)[-1]
     dof = max(int(np.count_nonzero(w_rows)) - int(free.sum()), 1)
     sigma0 = float(np.sqrt(np.sum(w_rows * r.reshape(-1) ** 2) / dof))
-    cov_s = np.linalg.inv(Nm + mu * np.diag(prior_mask.astype(float)) + 1e-14 * np.eye(len(Nm)))
+    cov_s = np.linalg.inv(
+        Nm + mu * np.diag(prior_mask.astype(float)) + np.diag(w_prior / norms**2) + 1e-14 * np.eye(len(Nm))
+    )
     std = sigma0 * np.sqrt(np.diag(cov_s)) / norms
     free_names = [n for n, f in zip(names, free, strict=True) if f]
     return CalibrationResult(

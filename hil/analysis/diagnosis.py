@@ -20,11 +20,14 @@ Selection rule for each round (every candidate from `hil.analysis.effects` the d
    residual sigma after, p < alpha / number of candidates;
 4. the passing candidate with the largest held-out gain is added (near-ties and temperature: `pick_winner`)
    and the whole model refitted robustly; an earlier effect that no longer earns its place is removed.
-The loop stops when nothing passes. The residual left is then tested against the noise floor; if it is
-larger and a residual map predicts it on held-out blocks of the volume (the spatial folds: better than no
-map, p < alpha), the report says structure remains that no candidate explains and adds the map as a
-fallback stage. A map that only interpolates (wins on random folds, not on spatial ones) is not added: the
-verdict calls the structure local.
+The loop stops when nothing passes. The links' thermal growth is physics, not a candidate, when the robot
+names its material and the campaign records a temperature: it is in the model from the geometric fit on,
+fitted with the material's coefficient as its prior (hil.analysis.effects.material_expansion), never removed,
+and the report gives the fitted coefficient beside the material's (`thermal_summary`). The residual left is
+then tested against the noise floor; if it is larger and a residual map predicts it on held-out blocks of the
+volume (the spatial folds: better than no map, p < alpha), the report says structure remains that no
+candidate explains and adds the map as a fallback stage. A map that only interpolates (wins on random folds,
+not on spatial ones) is not added: the verdict calls the structure local.
 """
 
 from __future__ import annotations
@@ -50,13 +53,19 @@ from hil.analysis.calibration import (
     flatten_jacobian,
     identify,
     parameter_correlations,
+    position_noise_m,
     solve_ridge_igg3,
 )
 from hil.analysis.calibration import reregister as reregister_model
+from hil.analysis.drift_monitor import reference_drift
 from hil.analysis.effects import (
     Effect,
     candidate_effects,
+    hold_at_material,
     make_effect,
+    material_conflict,
+    material_expansion,
+    physical,
     tool_points_rows,
 )
 from hil.analysis.identifiability import IdentifiabilityReport
@@ -151,11 +160,16 @@ class DiagnosisReport:
     undecided: list[dict] = field(default_factory=list)  # open questions (hil.analysis.undecided)
     plan: dict | None = None  # the proposed measurements' groups (hil.analysis.discrimination.Plan.to_dict)
     run: dict = field(default_factory=dict)  # robot, input files (hash, rows), date, software version
+    thermal: dict | None = None  # the material's thermal growth, fitted against its prior (`thermal_summary`)
+    drift: dict | None = None  # reference poses re-measured (hil.analysis.drift_monitor.reference_drift)
 
     @property
     def effects_added(self) -> list[dict]:
-        """The effects the final model holds, in the order they were added."""
-        return [{"name": e.family, "joint": e.joint} for e in self.model.effects]
+        """The effects the final model holds, in the order they were added; the material's thermal growth
+        only where the data, not its prior, set its coefficient (else it is held at the material's value and
+        reported under `thermal`)."""
+        led = bool(self.thermal and self.thermal["data_led"])
+        return [{"name": e.family, "joint": e.joint} for e in self.model.effects if not physical(e) or led]
 
     @property
     def noise_floor_mm(self) -> float:
@@ -174,6 +188,8 @@ class DiagnosisReport:
             "ambiguities": self.ambiguities,
             "undecided": self.undecided,
             "plan": self.plan,
+            "thermal": self.thermal,
+            "drift": self.drift,
             "calibration": self.calibration,
             "residual_map": self.residual_map,
             "run": self.run,
@@ -276,31 +292,32 @@ def run_diagnosis(
         raise ValueError(f"reregister_validation '{reregister_validation}': use none, base or base+tool")
     df = drop_duplicate_rows(df, "training data")  # copies would count twice in every test
     with threadpool_limits(1):  # small dense problems: threads only contend
-        base = _baseline_fit(df, robot, folds, seed, repeatability_mm, tool_guess_m, tracker_mpe_m, progress)
+        fit_args = (df, robot, folds, seed, repeatability_mm, tool_guess_m, tracker_mpe_m, progress)
+        base = _baseline_fit(*fit_args)
         base.screening = screening
-        path = _forward_selection(base, df, alpha, families, max_effects, banned=set())
-        for _ in range(2):  # greedy got stuck above the floor? Try again without its first choice.
-            if not path.effects or _excess_ratio(path.current.model, base, path) <= 1.1:
-                break
-            first = path.effects[0]
-            other = _forward_selection(base, df, alpha, families, max_effects, banned={*path.banned, first})
-            if other.cv_rms_mm < 0.95 * path.cv_rms_mm:
-                other.cautions.append(
-                    caution(
-                        "first_choice_set_aside",
-                        effect={"name": first[0], "joint": first[1]},
-                        heldout_rms_mm=path.cv_rms_mm,
-                        heldout_rms_without_mm=other.cv_rms_mm,
-                    )
-                )
-                path = other
-            else:
-                break
+        path = _select(base, df, alpha, families, max_effects)
+        material = next((e for e in path.current.model.effects if physical(e)), None)
+        if material is not None and material_conflict(material):
+            # The temperature's term took something that is no growth of the links (a drift in time, the
+            # air's temperature rather than the arm's): select again with the growth held at the material's.
+            base = _baseline_fit(*fit_args, hold_material=float(material.params[0]))
+            base.screening = screening
+            path = _select(base, df, alpha, families, max_effects)
         _settle_rivals(base, df, path, alpha)
         if previous_effects:
             path = _keep_previous(base, df, path, previous_effects, alpha, families, max_effects)
         stages, hist, steps = _evaluate_stages(path, base.progress)
         report = _verdict(base, path, stages, hist, steps, alpha, compare_maps)
+        report.thermal = thermal_summary(path.current, path.prob)
+        if report.thermal and "held_conflicting_per_k" in report.thermal:
+            report.verdict["cautions"].append(
+                caution(
+                    "thermal_growth_held",
+                    fitted_per_k=report.thermal["held_conflicting_per_k"],
+                    material_per_k=report.thermal["material_per_k"],
+                )
+            )
+        report.drift = reference_drift(df)
         if df_validate is not None:
             _validate(report, path, df, df_validate, reregister_validation)
         report.run = run_record(base.nominal.nominal, {"training": df, "validation": df_validate})
@@ -310,6 +327,31 @@ def run_diagnosis(
 
 
 Progress = Callable[[str, int, int], None]  # (phase, done, total)
+
+
+def _select(
+    base: _Baseline, df: pd.DataFrame, alpha: float, families: tuple[str, ...] | None, max_effects: int
+) -> _Path:
+    """Forward selection, tried again without its first choice while it stays above the noise floor."""
+    path = _forward_selection(base, df, alpha, families, max_effects, banned=set())
+    for _ in range(2):  # greedy got stuck above the floor? Try again without its first choice.
+        if not path.effects or _excess_ratio(path.current.model, base, path) <= 1.1:
+            break
+        first = path.effects[0]
+        other = _forward_selection(base, df, alpha, families, max_effects, banned={*path.banned, first})
+        if other.cv_rms_mm < 0.95 * path.cv_rms_mm:
+            other.cautions.append(
+                caution(
+                    "first_choice_set_aside",
+                    effect={"name": first[0], "joint": first[1]},
+                    heldout_rms_mm=path.cv_rms_mm,
+                    heldout_rms_without_mm=other.cv_rms_mm,
+                )
+            )
+            path = other
+        else:
+            break
+    return path
 
 
 def undecided_questions(df: pd.DataFrame, path: _Path, alpha: float, sigma_m: float) -> list[dict]:
@@ -401,14 +443,20 @@ class _Baseline:
 
 
 def _baseline_fit(
-    df, robot, folds, seed, repeatability_mm, tool_guess_m, tracker_mpe_m, progress=None
+    df, robot, folds, seed, repeatability_mm, tool_guess_m, tracker_mpe_m, progress=None, hold_material=None
 ) -> _Baseline:
+    """`hold_material` (the coefficient a first selection made of it): the links' material growth held at the
+    material's coefficient (hil.analysis.effects.hold_at_material)."""
     tell = progress or _quiet
     noise = estimate_noise_floor(
         df, mpe_const_m=tracker_mpe_m[0], mpe_per_m=tracker_mpe_m[1], repeatability_mm=repeatability_mm
     )
     tell("geometric calibration", 0, 2)
-    ridge = calibrate(df, robot, "ridge", tool_guess_m=tool_guess_m)
+    start = _with_material_growth(robot, df, tool_guess_m)
+    if hold_material is not None and isinstance(start, CalibratedModel):
+        held = [hold_at_material(e, hold_material) if physical(e) else e for e in start.effects]
+        start = replace(start, effects=held)
+    ridge = calibrate(df, start, "ridge", tool_guess_m=tool_guess_m)
     tell("geometric calibration", 1, 2)
     lm = calibrate(df, robot, "lm", tool_guess_m=tool_guess_m)
     tell("geometric calibration", 2, 2)
@@ -451,6 +499,52 @@ def _baseline_fit(
     return base
 
 
+def _with_material_growth(
+    robot: str | KinematicModel, df: pd.DataFrame, tool_guess_m: np.ndarray | None
+) -> str | KinematicModel | CalibratedModel:
+    """Where the geometric fit starts: the registered nominal model with the links' thermal growth when the
+    robot names its material and every row records a temperature, else `robot` itself."""
+    model = initial_model(robot, df, tool_guess_m)
+    eff = material_expansion(model.context(df)[0], model.nominal)
+    return robot if eff is None else model.with_effect(eff)
+
+
+# The material's growth counts as measured (named among the effects) when the data carry at least this share
+# of the information on its coefficient (1 - posterior variance / prior variance), else the prior holds it.
+DATA_LED_SHARE = 0.5
+
+
+def thermal_summary(result: CalibrationResult, prob: Problem) -> dict | None:
+    """The material's thermal growth in the fitted model: the coefficient fitted beside the material's, its
+    standard error, the temperature the rows span and the data's share of what is known of it (0: the prior
+    alone, the campaign spanned too little temperature; 1: the data alone). None without such a term."""
+    eff = next((e for e in result.model.effects if physical(e)), None)
+    if eff is None:
+        return None
+    prior_std = float(eff.state["prior_std_per_k"])
+    name = eff.param_names[0]
+    std = result.std.get(name)
+    share = 0.0
+    if (
+        std is not None and result.sigma0_m > 0
+    ):  # result.std is scaled by sigma0, the prior by the a-priori sigma
+        std_apriori = std * position_noise_m(prob.measured) / result.sigma0_m
+        share = float(np.clip(1.0 - (std_apriori / prior_std) ** 2, 0.0, 1.0))
+    temps = prob.ctx.temperature_c
+    held = {"held_conflicting_per_k": eff.state["conflicting_per_k"]} if eff.held else {}
+    return {
+        **held,
+        "material_per_k": float(eff.state["material_per_k"]),
+        "fitted_per_k": float(eff.params[0]),
+        "std_per_k": prior_std if std is None else float(std),
+        "prior_std_per_k": prior_std,
+        "span_k": float(np.ptp(temps)) if temps is not None and len(temps) else 0.0,
+        "reference_c": float(eff.state["reference"]),
+        "data_share": share,
+        "data_led": share >= DATA_LED_SHARE,
+    }
+
+
 @dataclass
 class _Path:
     """Step 2's outcome: the stages one forward selection went through."""
@@ -474,7 +568,8 @@ class _Path:
 
     @property
     def effects(self) -> list[tuple[str, int | None]]:
-        return [(e.family, e.joint) for e in self.current.model.effects]
+        """The effects the selection added (not the material's growth, which the physics put in)."""
+        return [(e.family, e.joint) for e in self.current.model.effects if not physical(e)]
 
     @property
     def cv_rms_mm(self) -> float:
@@ -601,7 +696,7 @@ def _forward_selection(
             path.ambiguities += _confounded(base, path, best, close, alpha)
         _record_added(path, best, [c for c, _ in results], rep)
         # Backward check: does every earlier effect still earn its place beside the new one?
-        while len(path.current.model.effects) > 1:
+        while len(path.effects) > 1:
             weakest = weakest_effect(path.current.model, path.prob, path.partitions, base.sigma2, alpha)
             if weakest is None:
                 break

@@ -13,8 +13,16 @@ Every family is written from its physics, independently of any simulator:
 - ``backlash`` (joint j): half the gap times the sign of the joint's approach direction (row order).
 - ``joint_scale`` (joint j): the joint turns (1 + s) times what its encoder says (a transmission ratio
   or encoder scale error), i.e. an offset ``s * q``.
-- ``thermal_expansion``: every link length (a, d) grows by ``k * dT``; the tool does not.
+- ``thermal_expansion``: every link length (a, d) grows by ``k * dT``; the tool does not. When the robot file
+  gives the links' material (`KinematicModel.expansion_per_k`) and the campaign records a temperature, the
+  term is physics, not a candidate (`material_expansion`): always in the model, its coefficient fitted with
+  a Gaussian prior centred on the material's (`Effect.prior`), so a campaign spanning little temperature
+  keeps the material's value and one spanning a lot follows the data.
 - ``thermal_drift``: the tracker sees the base translate by ``v * dT`` (floor, stand or tracker drift).
+- ``tracker_scale``: the tracker's distances scale by ``1 + s * dT`` about the tracker itself: the refractive
+  index of the air it computes from a wrong air temperature (a manual setting while the hall warms, a weather
+  station in the sun) is off by about 1 ppm per K. It rivals the links' growth, which is centred on the base
+  and along the links: the tracker's scale also stretches the base-to-tracker distance and the tool.
 
 Thermal families take the structure temperature when the dataset records one that varies, else the
 time since the campaign started. Joint effects are output-side joint offsets added to the reported
@@ -31,6 +39,7 @@ import pandas as pd
 
 from hil.data.jsonable import to_jsonable
 from hil.geometry.kinematics import KinematicModel, chain_axes, forward_kinematics, tool_points
+from hil.geometry.robots import EXPANSION_RANGE_PER_K
 
 # Names used in reports and model files (the documented vocabulary).
 EFFECT_FAMILIES: tuple[str, ...] = (
@@ -40,6 +49,7 @@ EFFECT_FAMILIES: tuple[str, ...] = (
     "joint_scale",
     "thermal_expansion",
     "thermal_drift",
+    "tracker_scale",
 )
 
 GRAVITY_DIRECTION_BASE = np.array([0.0, 0.0, -1.0])  # the robot stands upright: base z points up
@@ -54,6 +64,12 @@ PLAUSIBLE_SWING_RAD: dict[str, float] = {
 }
 PLAUSIBLE_EXPANSION_PER_K = 100e-6  # aluminium 23, steel 12, a carbon tube ~0 ppm/K
 PLAUSIBLE_DRIFT_M = 2e-3  # largest base drift over one campaign
+# Refraction: n - 1 of air falls ~0.93 ppm per K, so a tracker computing it from an air temperature off by
+# dT measures distances (1 - 0.93e-6 dT) long. A scale beyond 5 ppm per K of the recorded temperature (or 50
+# ppm over a campaign) is no refraction error.
+REFRACTION_PER_K = -0.93e-6
+PLAUSIBLE_TRACKER_SCALE_PER_K = 5e-6
+PLAUSIBLE_TRACKER_SCALE = 50e-6
 
 # Near-ties between candidates go to the more physically expected family (lower rank first).
 PHYSICAL_RANK: dict[str, int] = {
@@ -62,7 +78,8 @@ PHYSICAL_RANK: dict[str, int] = {
     "backlash": 2,
     "cyclic": 3,
     "thermal_drift": 4,
-    "joint_scale": 5,
+    "tracker_scale": 5,
+    "joint_scale": 6,
 }
 
 
@@ -119,7 +136,8 @@ class Effect:
     """One effect instance: a family, an optional 1-based joint, its parameters and fitted state."""
 
     family: ClassVar[str] = ""
-    kind: ClassVar[str] = "joint"  # "joint" (joint offset), "growth" (link lengths), "offset" (tracker)
+    # "joint" (joint offset), "growth" (link lengths), "offset" (tracker frame), "scale" (about the tracker)
+    kind: ClassVar[str] = "joint"
     joint: int | None = None
     params: np.ndarray = field(default_factory=lambda: np.zeros(0))
     state: dict = field(default_factory=dict)
@@ -192,6 +210,16 @@ class Effect:
             f"implausible size: it swings joint {self.joint} by +-{np.rad2deg(swing):.3g} deg (a real "
             f"{self.family.replace('_', ' ')} stays below {np.rad2deg(limit):.2g} deg); it is fitting something else"
         )
+
+    def prior(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """Gaussian prior on the coefficients, (mean, std) each (k,) in their SI unit; None without one (the
+        coefficients are then free, up to the solver's small ridge)."""
+        return None
+
+    @property
+    def held(self) -> bool:
+        """Coefficients held at their values: no fit moves them (the model's Jacobian gives them no column)."""
+        return bool(self.state.get("held", False))
 
     def to_dict(self) -> dict:
         return {
@@ -387,8 +415,13 @@ class _Thermal(Effect):
         return True
 
     def delta(self, ctx: EffectContext) -> np.ndarray:
+        """The driver less its training reference per row. The material's growth (`physical`) without a
+        temperature is taken at its reference (no growth): a model that merely carries the physics predicts
+        as a geometric one where no temperature is known (the callers that know one pass it and warn)."""
         name = self.state["driver"]
         values = ctx.temperature_c if name == "temperature_c" else ctx.t_s
+        if values is None and physical(self):
+            return np.zeros(ctx.n)
         if values is None:
             raise ValueError(f"the model's {self.family} effect needs the '{name}' column in the data")
         return np.asarray(values, float) - self.state["reference"]
@@ -401,7 +434,7 @@ class _Thermal(Effect):
         return "K" if self.state.get("driver", "temperature_c") == "temperature_c" else "s"
 
     def coefficient_unit(self) -> str:
-        return f"{'1' if self.kind == 'growth' else 'm'}/{self.driver_unit()}"
+        return f"{'m' if self.kind == 'offset' else '1'}/{self.driver_unit()}"
 
     def driver(self, ctx: EffectContext, nominal: KinematicModel) -> tuple[str, np.ndarray]:
         unit = "°C" if self.state["driver"] == "temperature_c" else "s"
@@ -423,10 +456,18 @@ class ThermalExpansion(_Thermal):
 
     def summary(self, ctx: EffectContext, nominal: KinematicModel) -> dict[str, float]:
         unit = "K" if self.state["driver"] == "temperature_c" else "s"
-        return {f"expansion_ppm_per_{unit}": float(self.params[0] * 1e6)}
+        out = {f"expansion_ppm_per_{unit}": float(self.params[0] * 1e6)}
+        if physical(self):
+            out["material_ppm_per_K"] = float(self.state["material_per_k"] * 1e6)
+        return out
 
     def coefficient_names(self) -> list[str]:
         return ["per_unit"]
+
+    def prior(self) -> tuple[np.ndarray, np.ndarray] | None:
+        if not physical(self):
+            return None
+        return np.array([self.state["material_per_k"]]), np.array([self.state["prior_std_per_k"]])
 
 
 class ThermalDrift(_Thermal):
@@ -447,16 +488,98 @@ class ThermalDrift(_Thermal):
         return ["vx", "vy", "vz"]
 
 
+class TrackerScale(_Thermal):
+    family = "tracker_scale"
+    kind = "scale"
+
+    def implausible(self, ctx: EffectContext, nominal: KinematicModel) -> str | None:
+        s = abs(float(self.params[0]))
+        if self.state["driver"] == "temperature_c" and s > PLAUSIBLE_TRACKER_SCALE_PER_K:
+            return f"implausible size: {s * 1e6:.3g} ppm/K (a wrong air temperature gives about 1 ppm/K)"
+        scale = s * float(np.ptp(self.delta(ctx)))
+        if scale > PLAUSIBLE_TRACKER_SCALE:
+            return (
+                f"implausible size: the tracker's scale would change {scale * 1e6:.3g} ppm over the campaign"
+            )
+        return None
+
+    def summary(self, ctx: EffectContext, nominal: KinematicModel) -> dict[str, float]:
+        unit = "K" if self.state["driver"] == "temperature_c" else "s"
+        out = {f"scale_ppm_per_{unit}": float(self.params[0] * 1e6)}
+        if unit == "K":  # the air temperature error that explains it, per K of the recorded temperature
+            out["air_error_k_per_K"] = float(self.params[0] / REFRACTION_PER_K)
+        return out
+
+    def coefficient_names(self) -> list[str]:
+        return ["per_unit"]
+
+
 _CLASSES: dict[str, type[Effect]] = {
-    c.family: c for c in (GravityCompliance, Cyclic, Backlash, JointScale, ThermalExpansion, ThermalDrift)
+    c.family: c
+    for c in (GravityCompliance, Cyclic, Backlash, JointScale, ThermalExpansion, ThermalDrift, TrackerScale)
 }
 JOINT_FAMILIES = ("gravity_compliance", "cyclic", "backlash", "joint_scale")
-THERMAL_FAMILIES = ("thermal_expansion", "thermal_drift")  # driven by a measured temperature (or time)
+# driven by a measured temperature (or time)
+THERMAL_FAMILIES = ("thermal_expansion", "thermal_drift", "tracker_scale")
 
 
 def temperature_driven(eff: Effect) -> bool:
     """A thermal effect driven by a recorded temperature (not by time: time also orders the poses)."""
     return eff.family in THERMAL_FAMILIES and eff.state.get("driver") == "temperature_c"
+
+
+# A campaign whose temperature term comes out more than this many prior sigmas from the material's value and
+# outside what any material gives (EXPANSION_RANGE_PER_K) is not measuring the links' growth (the recorded
+# temperature follows something else: a drift in time, the air rather than the arm): the growth is then held
+# at the material's value (`hold_at_material`). A plausible value far from the file's (a carbon arm described
+# as aluminium) is the data's to keep.
+MATERIAL_CONFLICT_SIGMAS = 3.0
+
+# 1-sigma of the material prior, as a fraction of the material's coefficient: an arm is not one alloy (steel
+# gears and bearings in aluminium tubes), and the temperature read (a probe on one link, or the air) is not
+# the mean temperature of every link. A campaign spanning a few kelvin over a metre of reach measures the
+# coefficient better than this and follows its data; one spanning a fraction of a kelvin keeps the material's.
+EXPANSION_PRIOR_FRACTION = 0.3
+
+
+def physical(eff: Effect) -> bool:
+    """A term the physics puts in the model (the links' material growth): never selected or removed."""
+    return "material_per_k" in eff.state
+
+
+def material_expansion(ctx: EffectContext, nominal: KinematicModel) -> ThermalExpansion | None:
+    """The links' thermal growth driven by the recorded temperature, its coefficient starting at the
+    material's (`nominal.expansion_per_k`) with that as its prior (`EXPANSION_PRIOR_FRACTION`); None when
+    the robot names no material or the data lack a temperature on some row."""
+    k0 = nominal.expansion_per_k
+    temps = ctx.temperature_c
+    if k0 is None or temps is None or len(temps) == 0 or not np.all(np.isfinite(temps)):
+        return None
+    eff = ThermalExpansion()
+    eff.state = {
+        "driver": "temperature_c",
+        "reference": float(np.mean(temps)),
+        "material_per_k": float(k0),
+        "prior_std_per_k": float(EXPANSION_PRIOR_FRACTION * k0),
+    }
+    eff.params = np.array([float(k0)])
+    return eff
+
+
+def material_conflict(eff: Effect) -> bool:
+    """Whether the material term's fitted coefficient is no growth of any material: more than
+    MATERIAL_CONFLICT_SIGMAS prior sigmas from the material's value and outside EXPANSION_RANGE_PER_K."""
+    k = float(eff.params[0])
+    sigmas = abs(k - eff.state["material_per_k"]) / eff.state["prior_std_per_k"]
+    lo, hi = EXPANSION_RANGE_PER_K
+    return sigmas > MATERIAL_CONFLICT_SIGMAS and not lo <= k <= hi
+
+
+def hold_at_material(eff: Effect, conflicting_per_k: float) -> Effect:
+    """The material term held at the material's coefficient, remembering what the data had made of it."""
+    held = type(eff)(joint=eff.joint, params=np.array([eff.state["material_per_k"]]), state=dict(eff.state))
+    held.state.update(held=True, conflicting_per_k=float(conflicting_per_k))
+    return held
 
 
 def make_effect(family: str, joint: int | None = None) -> Effect:

@@ -13,6 +13,7 @@ import numpy as np
 
 from hil.analysis.calibration import USER_UNITS, in_user_units
 from hil.analysis.diagnosis import DiagnosisReport, effect_label
+from hil.analysis.drift_monitor import drift_text
 from hil.analysis.residual_maps import MAP_MODES
 from hil.data.jsonable import to_jsonable
 
@@ -64,6 +65,13 @@ def caution_text(c: dict) -> str:
             f"validation temperatures {vlo:.1f}..{vhi:.1f} C lie outside the training's {lo:.1f}..{hi:.1f} C: "
             "the model extrapolates thermal effects (measure the training over the working temperatures)"
         )
+    if kind == "thermal_growth_held":
+        return (
+            f"the temperature's term came out at {c['fitted_per_k'] * 1e6:.1f} ppm/K, far from the links' material "
+            f"({c['material_per_k'] * 1e6:.1f} ppm/K): on this campaign the recorded temperature follows something "
+            "else (a drift in time, the air's temperature rather than the arm's), so the growth is held at the "
+            "material's value; if the arm is of another material, give its expansion_per_k in the robot file"
+        )
     if kind == "validation_joints_outside":
         return (
             f"validation joint(s) {', '.join(map(str, c['joints']))} leave the training's range by more than "
@@ -112,6 +120,30 @@ def final_orientation_text(report: DiagnosisReport) -> str | None:
     return f"6-DoF probe, final model (effects included): orientation RMS {final['rms_deg']:.4f} deg"
 
 
+def thermal_text(thermal: dict | None) -> str | None:
+    """The links' thermal growth in words: the fitted coefficient beside the material's, and whether the
+    campaign's temperature span or the material's prior set it (None without a material term)."""
+    if not thermal:
+        return None
+    share = thermal["data_share"]
+    if "held_conflicting_per_k" in thermal:
+        who = (
+            f"held at the material's value: the data made {thermal['held_conflicting_per_k'] * 1e6:.0f} ppm/K of "
+            "it, which is no growth of the links (see the cautions)"
+        )
+    elif thermal["data_led"]:
+        who = "measured by this campaign"
+    elif share < 0.05:
+        who = "held at the material's value: the campaign spans too little temperature to measure it"
+    else:
+        who = "mostly the material's value: the campaign spans too little temperature to measure it well"
+    return (
+        f"Thermal growth of the links: {thermal['fitted_per_k'] * 1e6:.1f} +- {thermal['std_per_k'] * 1e6:.1f} "
+        f"ppm/K fitted, material {thermal['material_per_k'] * 1e6:.1f} ppm/K (temperature span "
+        f"{thermal['span_k']:.2f} K, the data carry {100 * share:.0f} % of what is known of it; {who})."
+    )
+
+
 def report_dict(report: DiagnosisReport) -> dict:
     """The report's data with the conclusion and each caution's words added (what the JSON holds)."""
     out = {}
@@ -119,6 +151,8 @@ def report_dict(report: DiagnosisReport) -> dict:
         if key == "verdict":
             out["conclusion"] = conclusion(report)
             value = {**value, "cautions": [{**c, "text": caution_text(c)} for c in value["cautions"]]}
+        if key == "thermal" and value is not None:
+            value = {**value, "text": thermal_text(value)}
         out[key] = value
     return out
 
@@ -208,6 +242,8 @@ def render_html(
     parts = [
         *_head_html(report, d),
         *_effects_html(report),
+        *_thermal_html(report.thermal),
+        *_drift_html(report.drift),
         *_residual_html(report, d),
         *_calibration_html(d),
         _undecided_html(report),
@@ -302,6 +338,51 @@ def _effects_html(report: DiagnosisReport) -> list[str]:
             )
         )
     return parts
+
+
+def _thermal_html(thermal: dict | None) -> list[str]:
+    """The material's thermal growth: fitted against the material's coefficient, with the prior's share."""
+    if not thermal:
+        return []
+    row = {
+        "material_ppm_per_K": thermal["material_per_k"] * 1e6,
+        "fitted_ppm_per_K": thermal["fitted_per_k"] * 1e6,
+        "std_ppm_per_K": thermal["std_per_k"] * 1e6,
+        "prior_std_ppm_per_K": thermal["prior_std_per_k"] * 1e6,
+        "span_K": thermal["span_k"],
+        "data_share": thermal["data_share"],
+    }
+    return [
+        "<h2>Thermal growth of the links (physics: always in the model)</h2>",
+        f"<p>{html.escape(thermal_text(thermal) or '')}</p>",
+        _table([row], list(row), dict.fromkeys(row, ".3g")),
+    ]
+
+
+def _drift_html(drift: dict | None) -> list[str]:
+    """The drift monitor's reference poses: distance from the first visit against time and temperature."""
+    if not drift:
+        return []
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(9.5, 3.4), sharey=True)
+    for s in drift["poses"]:
+        label = f"pose {s['pose']}" + (f" nest {s['smr']}" if s["smr"] > 1 else "")
+        axes[0].plot(np.asarray(s["t_s"]) / 60.0, s["norm_mm"], "o-", ms=3, label=label)
+        axes[1].plot(s["temperature_c"], s["norm_mm"], "o-", ms=3, label=label)
+    axes[0].set_xlabel("time since the campaign started (min)")
+    axes[1].set_xlabel("temperature (degC)")
+    axes[0].set_ylabel("distance from the first visit (mm)")
+    axes[0].legend(fontsize=7)
+    return [
+        "<h2>Drift monitor: reference poses re-measured</h2>",
+        f"<p>{html.escape(drift_text(drift) or '')} Growth and the tracker's scale follow the temperature, a "
+        "drift of the stand or the floor the time.</p>",
+        _png(fig),
+    ]
 
 
 def _residual_html(report: DiagnosisReport, d: dict) -> list[str]:

@@ -23,6 +23,7 @@ from hil.analysis.effects import (
     THERMAL_FAMILIES,
     Effect,
     growth_direction,
+    physical,
     temperature_driven,
 )
 from hil.analysis.identifiability import analyse, scale_columns
@@ -266,7 +267,8 @@ class Screen:
 def effect_columns(model: CalibratedModel, eff: Effect, prob: Problem, J: np.ndarray) -> np.ndarray:
     """The Jacobian columns (N m, k) that `eff` (coefficients zero) adds to `model` on `prob`, from the
     model's own Jacobian J (N, m, P) of `prob.evaluate`: a joint effect moves the point (and turns a probe)
-    like its joint's theta, a growth scales every link length, an offset shifts the tracker frame."""
+    like its joint's theta, a growth scales every link length, an offset shifts the tracker frame, a scale
+    stretches the point about the tracker."""
     ctx = prob.ctx
     ctx.p_flange_tool = model._row_tools(prob.smr)
     reg = eff.cached_regressors(ctx, model.nominal)
@@ -280,6 +282,8 @@ def effect_columns(model: CalibratedModel, eff: Effect, prob: Problem, J: np.nda
         q_eff = ctx.q + model.joint_offsets(ctx)
         G = growth_direction(model.kinematic, q_eff, ctx.p_flange_tool) @ model.T_tracker_base[:3, :3].T
         cols[:, :3] = G[:, :, None] * reg[:, None, :]
+    elif eff.kind == "scale":
+        cols[:, :3] = model.predict_ctx(ctx)[:, :, None] * reg[:, None, :]
     else:
         cols[:, :3] = reg[:, :1, None] * np.eye(3)[None]
     return cols.reshape(n * m, k)
@@ -434,6 +438,8 @@ def weakest_effect(
     s2 = max(sigma2, sse / max(fit.size - int(keep.sum()), 1))
     weakest = None
     for i, eff in enumerate(model.effects[:-1]):
+        if physical(eff):  # the material's growth is physics: never removed
+            continue
         reduced = replace(model, effects=[x for k, x in enumerate(model.effects) if k != i])
         rr, Jr = prob.evaluate(reduced)
         Jrf = flatten_jacobian(Jr)

@@ -16,7 +16,7 @@ import numpy as np
 import pandas as pd
 
 from hil.analysis.calibrated_model import CalibratedModel
-from hil.analysis.effects import THERMAL_FAMILIES, temperature_driven
+from hil.analysis.effects import THERMAL_FAMILIES, physical, temperature_driven
 from hil.commands.arg_checks import InputError, check_paths, float_in
 from hil.commands.campaign_targets import DEFAULT_ORDER, SOURCES, read_campaign_targets
 from hil.commands.errors import CliError
@@ -26,6 +26,7 @@ from hil.compensation.model_based import (
     compensate,
     compensate_path,
     merge_results,
+    outside_fitted_temperatures,
 )
 from hil.compensation.target_update import GENERATORS
 from hil.data.dataset import (
@@ -153,6 +154,17 @@ def thermal_drivers(
         temp = np.full(n, np.nan)
     if temperature_c is not None:
         temp = np.where(np.isfinite(temp), temp, temperature_c)
+    material = next((e for e in model.effects if physical(e)), None)
+    only_material = not any(temperature_driven(e) and not physical(e) for e in model.effects)
+    if material is not None and only_material and not np.all(np.isfinite(temp)):
+        reference = float(material.state["reference"])
+        print(
+            f"warning: {int(np.sum(~np.isfinite(temp)))} of {n} targets have no temperature: they are "
+            f"compensated at {reference:.1f} degC, the temperature the model's thermal growth was fitted "
+            "around (no growth); give --temperature-c C to compensate for the cell's temperature",
+            file=sys.stderr,
+        )
+        temp = np.where(np.isfinite(temp), temp, reference)
     if np.isfinite(temp).any():
         drivers["temperature_c"] = temp
     for eff in model.effects:
@@ -198,26 +210,12 @@ def thermal_drivers(
     return drivers
 
 
-# A target temperature this far beyond the training data's range gets a warning: the thermal term extrapolates.
-TEMPERATURE_MARGIN_K = 0.5
-
-
 def warn_outside_fitted_temperatures(model: CalibratedModel, temperature_c: np.ndarray) -> None:
     """Warn when targets' temperatures lie outside the range the model's thermal effect was fitted on (recorded
     in the model's run record by calibrate and diagnose; older models have none and get no warning)."""
-    fitted = model.info.get("run", {}).get("inputs", {}).get("training", {}).get("temperature_c_range")
-    at = temperature_c[np.isfinite(temperature_c)]
-    if not fitted or not len(at):
-        return
-    lo, hi = fitted
-    outside = (at < lo - TEMPERATURE_MARGIN_K) | (at > hi + TEMPERATURE_MARGIN_K)
-    if outside.any():
-        print(
-            f"warning: {int(outside.sum())} of {len(at)} targets at {at[outside].min():.1f}..{at[outside].max():.1f} "
-            f"degC lie outside the {lo:.1f}..{hi:.1f} degC the model's thermal effect was fitted on: it "
-            "extrapolates there; measure a few of them to check",
-            file=sys.stderr,
-        )
+    why = outside_fitted_temperatures(model, temperature_c)
+    if why:
+        print(f"warning: {why}; measure a few of them to check", file=sys.stderr)
 
 
 def read_targets(

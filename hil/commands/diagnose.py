@@ -235,11 +235,13 @@ def _run(args, df, val, tool, families, mpe, progress) -> DiagnosisReport:
 
 
 def _print_and_write(args: argparse.Namespace, report: DiagnosisReport) -> None:
+    from hil.analysis.drift_monitor import drift_text
     from hil.analysis.report import (
         conclusion,
         final_orientation_text,
         in_report_units,
         plan_text,
+        thermal_text,
         undecided_text,
         write_html,
         write_json,
@@ -261,6 +263,9 @@ def _print_and_write(args: argparse.Namespace, report: DiagnosisReport) -> None:
         for p in map(in_report_units, step.parameters):
             std = "merged" if p["std"] is None else f"+- {p['std']:.2e}"
             print(f"    {p['name']:<34} {p['value']: .4e} {std} {p['unit']}")
+    for line in (thermal_text(report.thermal), drift_text(report.drift)):
+        if line:
+            print(line)
     print(undecided_text(report))
     if report.plan is not None:
         print(plan_text(report.plan))

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field, fields
 import numpy as np
 
 from hil.analysis.calibrated_model import CalibratedModel
-from hil.analysis.effects import EffectContext
+from hil.analysis.effects import EffectContext, temperature_driven
 from hil.analysis.residual_maps import map_from_dict
 from hil.compensation.target_update import (
     GENERATORS,
@@ -197,6 +197,30 @@ def pose_cost(
         return dp, dp, np.full_like(dp, np.nan)
     dp, dr = pose_errors(T_reached, T_target)
     return np.hypot(dp, length_scale_m * dr), dp, dr
+
+
+# A temperature this far beyond the training data's range is extrapolation of the model's thermal terms.
+TEMPERATURE_MARGIN_K = 0.5
+
+
+def outside_fitted_temperatures(model: CalibratedModel, temperature_c: np.ndarray) -> str | None:
+    """Why temperatures lie outside the range the model's temperature-driven effects were fitted on (the
+    run record diagnose / calibrate keep), or None: inside, no such effect, or no record (older models)."""
+    if not any(temperature_driven(e) for e in model.effects):
+        return None
+    fitted = model.info.get("run", {}).get("inputs", {}).get("training", {}).get("temperature_c_range")
+    at = np.asarray(temperature_c, float)
+    at = at[np.isfinite(at)]
+    if not fitted or not len(at):
+        return None
+    lo, hi = fitted
+    outside = (at < lo - TEMPERATURE_MARGIN_K) | (at > hi + TEMPERATURE_MARGIN_K)
+    if not outside.any():
+        return None
+    return (
+        f"{int(outside.sum())} of {len(at)} targets at {at[outside].min():.1f}..{at[outside].max():.1f} degC lie "
+        f"outside the {lo:.1f}..{hi:.1f} degC the model's thermal effect was fitted on: it extrapolates there"
+    )
 
 
 def compensate(

@@ -2,9 +2,9 @@
 
 Required: ``q1_rad .. q6_rad`` (joints the robot reported) and ``x_mm, y_mm, z_mm`` (SMR centre in the
 tracker frame). Optional: ``t_s`` (seconds since the campaign started), ``temperature_c`` (the arm's
-temperature: the tracker's object probe where it read every point, else the air's; thermal effects are driven
-by it), ``air_temperature_c`` (the tracker's weather station; campaigns recorded before it was exported lack
-it), ``smr``
+temperature: the tracker's object probe where it read every point, else the robot's joint sensors where they did,
+else the air's; thermal effects are driven by it), ``air_temperature_c`` (the tracker's weather station;
+campaigns recorded before it was exported lack it), ``robot_temperature_c`` (the robot's own reading), ``smr``
 (nest id, integer; default 1), ``payload_kg``, ``pose`` (which rows share one robot pose), ``rx_deg, ry_deg,
 rz_deg`` (a 6-DoF probe's orientation in the tracker frame, extrinsic x-y-z: R = Rz(rz) Ry(ry) Rx(rx)), ``cycle``
 (an ISO 9283 campaign's cycle, hil.analysis.iso9283), ``sweep`` (a joint sweep's label, hil.analysis.joint_axes), and any

@@ -443,6 +443,21 @@ class CampaignStore:
             self._started_s = float(row[0])  # append-only: the first measurement never changes
         return self._started_s
 
+    def last_temperature_c(self) -> float | None:
+        """The temperature at the campaign's latest measurement: the object probe's (the arm's own) when it
+        read one, else the air's the tracker used; None when neither was recorded."""
+        with self._lock:
+            row = (
+                self._db()
+                .execute("SELECT temperature_c, extra FROM measurements ORDER BY id DESC LIMIT 1")
+                .fetchone()
+            )
+        if row is None:
+            return None
+        arm = json.loads(row[1] or "{}").get("object_temperature_c")
+        value = arm if arm is not None else row[0]
+        return None if value is None or not np.isfinite(value) else float(value)
+
     @property
     def last_timestamp_s(self) -> float | None:
         """UNIX time of the campaign's latest measurement; None while it has none."""
@@ -636,12 +651,21 @@ def campaign_dataset(
         data[f"{a}_mm"] = m[f"{a}_m"].to_numpy(float) * 1000.0
     data["t_s"] = m["timestamp_s"].to_numpy(float) - started_s
     air = m["temperature_c"].to_numpy(float)
-    arm = _object_temperatures(m["extra"])
-    temperature = arm if np.all(np.isfinite(arm)) else air  # the arm's own where the probe read every point
+    arm = _extra_temperatures(m["extra"], "object_temperature_c")
+    robot = _extra_temperatures(m["extra"], "robot_temperature_c")
+    # The arm's own temperature where a sensor read every point: the tracker's object probe on the arm, else
+    # the robot's joint sensors; else the air's.
+    if np.all(np.isfinite(arm)):
+        temperature = arm
+    elif np.all(np.isfinite(robot)):
+        temperature = robot
+    else:
+        temperature = air
     if np.any(np.isfinite(arm)) and not np.all(np.isfinite(arm)):
         warnings.warn(
             f"{store.path}: the object probe read only {int(np.sum(np.isfinite(arm)))} of {len(arm)} "
-            f"measurements of {procedure}; temperature_c is the air temperature",
+            f"measurements of {procedure}; temperature_c is the "
+            + ("robot's (its joint sensors)" if temperature is robot else "air temperature"),
             stacklevel=2,
         )
     missing = int(np.sum(~np.isfinite(temperature)))
@@ -655,6 +679,8 @@ def campaign_dataset(
         )
     if np.all(np.isfinite(air)):
         data["air_temperature_c"] = air
+    if np.all(np.isfinite(robot)):
+        data["robot_temperature_c"] = robot
     data["smr"] = m["smr"].to_numpy(int)
     for kind in ("spread", "std"):
         for a in _AXES:
@@ -667,9 +693,10 @@ def campaign_dataset(
     return validate_dataset(pd.DataFrame(data), source=f"{store.path} ({procedure})")
 
 
-def _object_temperatures(extra: pd.Series) -> np.ndarray:
-    """The object probe's temperature per measurement from the stored extra JSON (NaN where none)."""
-    return np.array([json.loads(e).get("object_temperature_c", np.nan) for e in extra], dtype=float)
+def _extra_temperatures(extra: pd.Series, key: str) -> np.ndarray:
+    """A temperature per measurement from the stored extra JSON (the object probe's `object_temperature_c`,
+    the robot's `robot_temperature_c`); NaN where none."""
+    return np.array([json.loads(e).get(key, np.nan) for e in extra], dtype=float)
 
 
 def export_csv(

@@ -449,6 +449,7 @@ class Session:
                         "attempts": attempt,
                         **({"predicted_mm": (predicted * 1e3).tolist()} if predicted is not None else {}),
                         **_object_temperature(m),
+                        **_robot_temperature(self.robot),
                         **(extra or {}),
                     },
                 )
@@ -484,6 +485,18 @@ def _object_temperature(m: TrackerMeasurement) -> dict:
     """The object probe's reading for a record's extra, nothing when the tracker has no probe."""
     t = getattr(m, "object_temperature_c", None)
     return {} if t is None or not math.isfinite(t) else {"object_temperature_c": float(t)}
+
+
+def _robot_temperature(robot: object) -> dict:
+    """The robot's own temperature reading (its joint sensors) for a record's extra, nothing when the robot
+    plug-in offers none (`temperature_c` is optional: not part of the Robot protocol)."""
+    read = getattr(robot, "temperature_c", None)
+    try:
+        t = read() if callable(read) else None
+    except RobotError as exc:  # an auxiliary reading: the measurement stands without it
+        log.warning("no robot temperature for this measurement: %s", exc)
+        return {}
+    return {} if t is None or not math.isfinite(t) else {"robot_temperature_c": float(t)}
 
 
 def _software_versions() -> dict:

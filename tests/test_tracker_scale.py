@@ -1,0 +1,106 @@
+"""The tracker's scale error from a wrong air temperature (about 1 ppm per K, centred on the tracker) as a
+rival of the links' growth (centred on the base, along the links): the model applies it, and the diagnosis
+tells the two apart on a cell whose tracker keeps a fixed air temperature while the hall warms."""
+
+import numpy as np
+import pytest
+
+from hil.analysis.diagnosis import run_diagnosis
+from hil.analysis.drift_monitor import drift_text
+from hil.analysis.effects import EFFECT_FAMILIES, make_effect
+from hil.analysis.report import render_html
+
+pytestmark = pytest.mark.timeout(180)
+
+
+def test_a_tracker_scale_stretches_the_points_about_the_tracker_and_its_jacobian_says_so():
+    from calib_data import synthetic
+
+    from hil.analysis.calibrated_model import initial_model
+    from hil.analysis.calibration import Problem
+
+    _, df, _ = synthetic(n=40, seed=2)
+    df["temperature_c"] = np.linspace(20.0, 24.0, len(df))
+    plain = initial_model("ur10", df)
+    eff = make_effect("tracker_scale")
+    assert eff.prepare(plain.context(df)[0], plain.nominal)
+    eff.params = np.array([-0.93e-6])
+    model = plain.with_effect(eff)
+    dT = df["temperature_c"].to_numpy() - 22.0
+    np.testing.assert_allclose(model.predict(df), plain.predict(df) * (1 - 0.93e-6 * dT)[:, None], atol=1e-12)
+    p, J = Problem.from_frame(model, df).evaluate(model)
+
+    def central(k: int, h: float) -> np.ndarray:
+        dx = np.zeros(len(model.param_names))
+        dx[k] = h
+        return (model.apply_increment(dx).predict(df) - model.apply_increment(-dx).predict(df)) / (2 * h)
+
+    np.testing.assert_allclose(J[:, :3, -1], central(-1, 1e-7), atol=1e-9)
+    # every other parameter's motion is stretched with the points (here theta1's: the ppm shows)
+    np.testing.assert_allclose(J[:, :3, 0], central(0, 1e-6), rtol=1e-7, atol=1e-10)
+    assert eff.coefficient_unit() == "1/K" and "air_error_k_per_K" in eff.summary(
+        model.context(df)[0], plain.nominal
+    )
+
+
+def _campaign(tracker_air_c, seed=0):
+    """An 80 mm grid while the arm and the hall's air warm ~9 K, with three reference poses (the nearest to
+    the base, the farthest, one between) re-measured every 15 grid points, the tracker 4 m away."""
+    from sim_campaigns import grid_joints
+
+    from fakes.campaign import simulate_campaign
+    from fakes.cell import SimCellConfig, SimulatedCell
+    from hil.geometry.kinematics import forward_kinematics
+
+    cfg = SimCellConfig(
+        robot="ur10",
+        seed=seed,
+        thermal=True,
+        compliance=False,
+        tracker_air_c=tracker_air_c,
+        tracker_distance_m=4.0,
+    )
+    cell = SimulatedCell(cfg)
+    q = grid_joints(cell, step_m=0.08, seed=seed)
+    reach = np.linalg.norm(forward_kinematics(cell.nominal, q)[:, :3, 3], axis=1)
+    refs = q[[np.argmin(reach), np.argmax(reach), np.argsort(reach)[len(q) // 2]]]
+    rounds = [np.vstack([refs, q[k : k + 15]]) for k in range(0, len(q), 15)]
+    train = simulate_campaign(cell, np.vstack([*rounds, refs]))
+    steps = [["reference"] * 3 + ["grid"] * (len(r) - 3) for r in rounds] + [["reference"] * 3]
+    train["step_id"] = np.concatenate(steps)  # as a campaign export labels the drift monitor's rows
+    return cell, train
+
+
+def test_a_fixed_air_temperature_in_a_warming_hall_is_told_apart_from_the_arms_growth():
+    cell, train = _campaign(tracker_air_c=20.0)
+    assert np.ptp(train["temperature_c"]) > 8.0
+    report = run_diagnosis(train, "ur10")
+    assert {e["name"] for e in report.effects_added} == {"thermal_expansion", "tracker_scale"}
+    scale = next(e for e in report.model.effects if e.family == "tracker_scale")
+    assert scale.params[0] == pytest.approx(-0.93e-6, rel=0.25)  # the hall's air warms as the arm does
+    assert report.thermal["fitted_per_k"] == pytest.approx(23e-6, rel=0.05)  # the growth is the arm's
+    # Without the rival, the arm's growth takes the tracker's stretch for its own.
+    others = tuple(f for f in EFFECT_FAMILIES if f != "tracker_scale")
+    alone = run_diagnosis(train, "ur10", families=others)
+    assert abs(alone.thermal["fitted_per_k"] - 23e-6) > 2 * abs(report.thermal["fitted_per_k"] - 23e-6)
+    # The drift monitor's reference poses: the far one moves most, with the temperature (growth and scale).
+    drift = report.drift
+    assert (
+        drift is not None
+        and len(drift["poses"]) == 3
+        and drift["visits"] == 3 * len(drift["poses"][0]["t_s"])
+    )
+    far = max(drift["poses"], key=lambda s: s["norm_mm"][-1])
+    near = min(drift["poses"], key=lambda s: s["norm_mm"][-1])
+    dT = np.asarray(far["temperature_c"]) - far["temperature_c"][0]
+    assert np.corrcoef(dT, far["norm_mm"])[0, 1] > 0.95 and far["norm_mm"][-1] > 1.5 * near["norm_mm"][-1] > 0
+    assert drift["span_k"] > 8.0 and "Drift monitor: 3 reference pose(s)" in drift_text(drift)
+    page = render_html(report)
+    assert "Drift monitor: reference poses re-measured" in page and "Thermal growth of the links" in page
+
+
+def test_a_weather_station_that_reads_the_hall_leaves_no_tracker_scale():
+    _, train = _campaign(tracker_air_c=None)
+    report = run_diagnosis(train, "ur10")
+    assert "tracker_scale" not in {e["name"] for e in report.effects_added}
+    assert report.thermal["fitted_per_k"] == pytest.approx(23e-6, rel=0.05)
