@@ -43,6 +43,7 @@ class Beam:
         self.generation = 0  # counts lock changes: a shot whose lock changed meanwhile has no result
         self.fault_rng = np.random.default_rng([getattr(cell.config, "seed", 0), 3])  # random beam breaks
         self.sent_results: deque[bytes] = deque(maxlen=1000)  # raw result packets, for tests
+        self.stream_task: asyncio.Task | None = None  # the continuous-time stream, while one runs
 
     def running_loop(self) -> asyncio.AbstractEventLoop:
         """The event loop the server runs on (set by its start() or open_pty())."""
@@ -156,6 +157,12 @@ class Beam:
             st.last_result_status = self.config.no_target_status
             return (self.config.no_target_status,)
         generation = self.generation
+        if st.meas_mode == codec.MeasMode.CONTINUOUS_TIME:
+            self.stop_stream()
+            client.send(codec.pack_answer(Command.START_MEASUREMENT, Status.ALL_OK), flush=False)
+            client.send(codec.pack_status_change(StatusChange.MEAS_STATUS_BUSY))
+            self.stream_task = self.running_loop().create_task(self.stream(client, generation))
+            return None
         client.send(codec.pack_answer(Command.START_MEASUREMENT, Status.ALL_OK), flush=False)
         client.send(codec.pack_status_change(StatusChange.MEAS_STATUS_BUSY), flush=False)
         meas_s = st.meas_time_ms / 1000.0
@@ -189,6 +196,60 @@ class Beam:
         client.send(result, codec.pack_status_change(StatusChange.MEAS_STATUS_READY))
         st.last_result_status = 0
         return None
+
+    def stop_stream(self) -> None:
+        """StopMeasurement: end the continuous stream (what it sent so far precedes the answer)."""
+        if self.stream_task is not None and not self.stream_task.done():
+            self.stream_task.cancel()
+        self.stream_task = None
+
+    async def stream(self, client: Client, generation: int) -> None:
+        """Continuous-time mode: a sample of the locked SMR every lTimeSeparation of simulated time, stamped
+        with the cell's clock, each sent as a MultiMeasResult; ends on StopMeasurement, after lNumberOfPoints
+        (then MeasurementCountReached) or when the beam breaks (then the error packet of StartMeasurement).
+
+        The SMR is where the cell's physics put it at the sample's instant: on a cell whose clock ticks more
+        coarsely than the separation, the samples show the arm as it stood after the last tick."""
+        st = self.state
+        separation_s = st.continuous_time[0] / 1000.0
+        count = st.continuous_time[1]
+        sent = 0
+        st.measuring += 1
+        try:
+            due = self.cell.time_s
+            while not getattr(client, "closed", False):
+                due = await self.wait_sample(due, separation_s)
+                self.track()
+                if generation != self.generation or not self.ready():
+                    st.last_result_status = self.config.no_target_status
+                    client.send(codec.pack_error(Command.START_MEASUREMENT, self.config.no_target_status))
+                    return
+                p_m = np.asarray(self.cell.measure_smr(st.locked_smr), dtype=float)
+                values = codec.cartesian_to_wire(p_m, st.cs, st.units)
+                client.send(
+                    codec.pack_multi_meas_result(0, [(self.cell.time_s, tuple(values))], self.meteo_wire())
+                )
+                sent += 1
+                if count and sent >= count:
+                    client.send(
+                        codec.pack_status_change(StatusChange.MEASUREMENT_COUNT_REACHED),
+                        codec.pack_status_change(StatusChange.MEAS_STATUS_READY),
+                    )
+                    return
+        finally:
+            st.measuring -= 1
+
+    async def wait_sample(self, due_s: float, separation_s: float) -> float:
+        """Wait for a sample's instant on the cell clock (own clock: advance it by the separation); returns
+        the next sample's instant, the first one on the separation's grid after now."""
+        if self.config.advance_clock:
+            await asyncio.sleep(separation_s * self.config.wall_time_scale)
+            self.cell.advance_time(separation_s)
+            return self.cell.time_s + separation_s
+        while self.cell.time_s < due_s:
+            await asyncio.sleep(self.config.external_clock_poll_s)
+        late = self.cell.time_s - due_s
+        return due_s + separation_s * (math.floor(late / separation_s) + 1)
 
     async def pass_time(self, dt_s: float) -> None:
         """Let dt_s of simulated time pass: advance the cell clock ourselves, or wait for its owner's timer
