@@ -25,7 +25,14 @@ every run's samples are recorded in the campaign as soon as it ends (a resumed r
 The commanded point of a sample is its foot on the commanded path (tracker frame), searched forward only. The
 whole path, densely, is checked reachable and inside the envelope, the speed held over at least half the line,
 and the tracker checked able to stream, before anything moves. With `csv` the samples go to '<csv>-paths'
-(and '-paths-after') in the columns `hil iso9283 --paths` reads. Orientation figures need a 6-DoF probe.
+(and '-paths-after') in the columns `hil iso9283 --paths` reads.
+
+Orientation (AP_a/b/c, RP_a/b/c): with `smrs` >= 3, SMRs 1..k sit in tool nests 1..k and the tracker reads
+each at every pose (the robot stands still between them); the tool's attained orientation is the rigid fit
+of the nests' flange positions (the tool fit's, else the drawing's) to the readings, its commanded one the
+held flange orientation seen through the same frame as the positions; the angles are rx, ry, rz about the
+fixed tracker axes (R = Rz Ry Rx), written as rx/ry/rz_deg and rx/ry/rz_cmd_deg in the campaign rows. The
+model-based compensation corrects positions, not the orientation, so AP_a/b/c stay about the same after it.
 """
 
 from __future__ import annotations
@@ -48,8 +55,10 @@ from hil.analysis.iso9283 import (
     report_table,
 )
 from hil.compensation.model_based import compensate
+from hil.data.dataset import orientation_columns
 from hil.data.store import campaign_dataset
 from hil.geometry.kinematics import forward_kinematics
+from hil.geometry.se3 import fit_rigid
 from hil.runner.cell_config import CellConfig
 from hil.runner.operator import OperatorStep
 from hil.runner.plan import Plan, PlannedPose
@@ -274,9 +283,12 @@ def plan(
     model: str | None,
     path_runs: int = 0,
     path_speed_m_s: float = 0.25,
+    smrs: int = 1,
 ) -> Plan:
-    """Every cycle's five poses (and their approach poses), before and, with a model, after compensation;
-    with path runs, the paths are checked here too (reach, envelope, speed), so a refusal comes before motion."""
+    """Every cycle's five poses (and their approach poses), before and, with a model, after compensation,
+    each read in `nest` or, with `smrs` > 1, in nests 1..smrs; with path runs, the paths are checked here too
+    (reach, envelope, speed), so a refusal comes before motion."""
+    nests = pose_nests(config, nest, smrs)
     cube = choose_cube(config, centre_m, side_m, nest)
     runs = [("before", cube.q_rad)]
     the_model = load_model(model)
@@ -284,24 +296,40 @@ def plan(
         runs.append(("after", compensated_joints(config, the_model, cube)))
     if path_runs > 0:
         plan_paths(config, cube, nest, the_model, path_speed_m_s)
-    location = f"nest{nest}"
-    setup = (OperatorStep(f"Put SMR {nest} in tool nest {nest}.", "place_smr", smr=nest, location=location),)
+    setup = tuple(
+        OperatorStep(f"Put SMR {j} in tool nest {j}.", "place_smr", smr=j, location=f"nest{j}") for j in nests
+    )
     poses = [
         PlannedPose(
-            f"c{c:02d}/{label}",
+            f"c{c:02d}/{label}" + (f"/n{j}" if len(nests) > 1 else ""),
             NAME,
             step,
             q[k],
-            location,
-            smr=nest,
-            approach_q_rad=q[k] - APPROACH_RAD,
+            f"nest{j}",
+            smr=j,
+            approach_q_rad=q[k] - APPROACH_RAD if i == 0 else None,  # the other nests: read where it stands
             setup=setup,
         )  # fmt: skip
         for step, q in runs
         for c in range(1, cycles + 1)
         for k, label in enumerate(POSE_LABELS)
+        for i, j in enumerate(nests)
     ]
-    return Plan(NAME, poses, config, operator_steps=1)
+    return Plan(NAME, poses, config, operator_steps=len(nests))
+
+
+def pose_nests(config: CellConfig, nest: int, smrs: int) -> tuple[int, ...]:
+    """The nests read at every pose: `nest` alone, or nests 1..smrs (which must include `nest`)."""
+    available = len(config.nests_flange_m)
+    if smrs == 1:
+        return (nest,)
+    if not 2 <= smrs <= available:
+        raise ValueError(f"--smrs {smrs}: the tool has {available} nest(s); give 1..{available}")
+    if nest > smrs:
+        raise ValueError(
+            f"--nest {nest} is not among the nests 1..{smrs} read at each pose; give --nest 1..{smrs}"
+        )
+    return tuple(range(1, smrs + 1))
 
 
 @dataclass
@@ -332,16 +360,39 @@ class IsoResult:
         return "\n".join(lines)
 
 
-def campaign_rows(session: Session, step: str, p_cmd_tracker_m: np.ndarray) -> pd.DataFrame:
-    """A run's measurements with the standard's columns: pose, cycle and the commanded position."""
+def campaign_rows(
+    session: Session, step: str, p_cmd_tracker_m: np.ndarray, R_cmd_tracker_flange: np.ndarray | None = None
+) -> pd.DataFrame:
+    """A run's measurements with the standard's columns: pose, cycle and the commanded position. With three
+    or more nests read at each pose and the commanded flange orientation (tracker frame), also the tool's
+    attained orientation (`tool_orientations`) and the commanded one as rx/ry/rz_deg and rx/ry/rz_cmd_deg."""
     df = campaign_dataset(session.store, NAME, step)
-    cycle, pose = zip(*(p.split("/") for p in df["point_id"]), strict=True)
-    df["pose"] = list(pose)
-    df["cycle"] = [int(c[1:]) for c in cycle]
-    index = np.array([POSE_LABELS.index(p) for p in pose])
+    parts = [p.split("/") for p in df["point_id"]]
+    df["pose"] = [p[1] for p in parts]
+    df["cycle"] = [int(p[0][1:]) for p in parts]
+    index = np.array([POSE_LABELS.index(p[1]) for p in parts])
     for k, ax in enumerate("xyz"):
         df[f"{ax}_cmd_mm"] = p_cmd_tracker_m[index, k] * 1e3
+    if R_cmd_tracker_flange is not None and df["smr"].nunique() >= 3:
+        nests_m = {int(j): session.nest_flange_m(int(j)) for j in np.unique(df["smr"])}
+        R = tool_orientations(df, nests_m)
+        for col, values in orientation_columns(R).items():
+            df[col] = values
+        for col, value in orientation_columns(np.asarray(R_cmd_tracker_flange)[None]).items():
+            df[col.replace("_deg", "_cmd_deg")] = float(value[0])
     return df
+
+
+def tool_orientations(df: pd.DataFrame, nests_flange_m: dict[int, np.ndarray]) -> np.ndarray:
+    """R_tracker_flange (N, 3, 3) for every row: the rigid fit of the nests' flange positions to where the
+    tracker read them in the same pose and cycle (three or more nests, not on one line)."""
+    R = np.empty((len(df), 3, 3))
+    for _, rows in df.groupby(["pose", "cycle"], sort=False).indices.items():
+        smr = df["smr"].to_numpy(int)[rows]
+        measured = df[["x_mm", "y_mm", "z_mm"]].to_numpy(float)[rows] / 1e3
+        T, _ = fit_rigid(np.array([nests_flange_m[j] for j in smr]), measured)
+        R[rows] = T[:3, :3]
+    return R
 
 
 def path_step(step: str, path: str, run: int) -> str:
@@ -362,7 +413,12 @@ def path_rows(results: list[tuple[str, int, dict]], commanded: dict[str, np.ndar
         for k, ax in enumerate("xyz"):
             df[f"{ax}_cmd_mm"] = c_m[:, k] * 1e3
         frames.append(df)
-    return pd.concat(frames, ignore_index=True)
+    # to the nanometre, as the CSV export writes them: the figures computed here and by `hil iso9283 --paths`
+    # from the file then see the same numbers (the commanded points of samples at rest are nanometres apart)
+    out = pd.concat(frames, ignore_index=True)
+    mm = [f"{ax}{kind}_mm" for kind in ("", "_cmd") for ax in "xyz"]
+    out[mm] = out[mm].round(6)
+    return out
 
 
 def run_paths(
@@ -409,12 +465,13 @@ def assess(
     shots: int | None,
     path_runs: int = 0,
     path_speed_m_s: float = 0.25,
+    smrs: int = 1,
 ) -> IsoResult:
     """Run the cycles and the path runs (resumable), then compute each step's figures and record them."""
     reg = session.require_registration()
     the_plan = plan(
         session.config, centre_m=centre_m, side_m=side_m, cycles=cycles, nest=nest, model=model,
-        path_runs=path_runs, path_speed_m_s=path_speed_m_s,
+        path_runs=path_runs, path_speed_m_s=path_speed_m_s, smrs=smrs,
     )  # fmt: skip
     cube = choose_cube(session.config, centre_m, side_m, nest)
     the_model = load_model(model)
@@ -434,7 +491,8 @@ def assess(
     }
     reports, written, path_figures = {}, {}, {}
     for step, T in frames.items():
-        df = campaign_rows(session, step, cube.p_base_m @ T[:3, :3].T + T[:3, 3])
+        R_cmd = T[:3, :3] @ cube.R_base_flange if smrs >= 3 else None
+        df = campaign_rows(session, step, cube.p_base_m @ T[:3, :3].T + T[:3, 3], R_cmd)
         reports[step] = pose_performance(df, source=f"{NAME} {step}", smr=nest)
         result = reports[step].to_dict()
         if step in samples:
@@ -448,7 +506,7 @@ def assess(
             written[step] = str(path)
             if step in samples:
                 path = _named(csv, "-paths" if step == "before" else "-paths-after")
-                samples[step].to_csv(path, index=False, float_format="%.10g")
+                samples[step].to_csv(path, index=False, float_format="%.12g")
                 written[f"{step} paths"] = str(path)
     return IsoResult(cube, reports, written, path_figures or None, path_speed_m_s if paths else None)
 
@@ -482,6 +540,14 @@ PROCEDURE = Procedure(
         ),  # fmt: skip
         Parameter("cycles", "cycles through P1..P5 (the standard: 30)", 30, int, minimum=2, maximum=1000),
         Parameter("nest", "tool nest holding the SMR", 1, int, minimum=1),
+        Parameter(
+            "smrs",
+            "SMRs in tool nests 1..k read at every pose; 3 or more also give the tool's orientation AP_a/b/c, "
+            "RP_a/b/c (default: the one in --nest)",
+            1,
+            int,
+            minimum=1,
+        ),  # fmt: skip
         Parameter(
             "model", "calibrated model (model.json): also run the test on compensated joints", None, str
         ),

@@ -16,6 +16,8 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from fakes.cell import SimCellConfig, SimulatedCell
 from hil.analysis.iso9283 import commanded_tangents, crossings
+from hil.data.dataset import orientation_columns
+from hil.geometry.se3 import fit_rigid
 from hil.runner.planners import plan_joints
 from hil.runner.procedure import ParameterError
 from hil.runner.session import CampaignStopped
@@ -29,9 +31,9 @@ from calib_data import cell_datasets, true_effect_model  # noqa: E402
 pytestmark = [pytest.mark.sim, pytest.mark.timeout(300)]
 SEED = 3
 # Short and slow enough that the cell's clock (8 ms controller ticks x the time scale) moves the SMR by a few
-# mm between the tracker's samples: 0.05 m/s x 0.08 s = 4 mm.
-TIME_SCALE = 10.0
-OPTIONS = {"cycles": 2, "side_m": 0.2, "path_runs": 2, "path_speed_m_s": 0.05}
+# mm between the tracker's samples: 0.025 m/s x 0.16 s = 4 mm.
+TIME_SCALE = 20.0
+OPTIONS = {"cycles": 2, "side_m": 0.2, "path_runs": 2, "path_speed_m_s": 0.025, "smrs": 3}
 
 
 def true_points(q: np.ndarray) -> np.ndarray:
@@ -42,6 +44,22 @@ def true_points(q: np.ndarray) -> np.ndarray:
     T = sim.T_tracker_base @ frames[:, -1] @ sim.nominal.T_last_flange
     nest = np.asarray(truth["tool_nests_flange_m"][0])
     return T[:, :3, :3] @ nest + T[:, :3, 3] + np.asarray(truth["smr_centering_m"][0])
+
+
+def true_angles_deg(config, q: np.ndarray) -> np.ndarray:
+    """rx, ry, rz (N, 3) of the tool as its drawing's nests define it, fitted to the nests' true centres."""
+    sim = SimulatedCell(SimCellConfig(seed=SEED))
+    truth = sim.ground_truth()
+    nests = np.asarray(truth["tool_nests_flange_m"])
+    _, frames = sim.true_joint_offsets(q, np.ones_like(q), 0.0)
+    T = sim.T_tracker_base @ frames[:, -1] @ sim.nominal.T_last_flange
+    p = (
+        np.einsum("nij,kj->nki", T[:, :3, :3], nests)
+        + T[:, None, :3, 3]
+        + np.asarray(truth["smr_centering_m"])
+    )
+    R = np.array([fit_rigid(config.nests_flange_m, pk)[0][:3, :3] for pk in p])
+    return np.column_stack(list(orientation_columns(R).values()))
 
 
 def true_path(config, run: iso9283.PathRun, step_m: float = 0.002) -> np.ndarray:
@@ -99,6 +117,8 @@ def refusals_before_motion(session) -> None:
     q0 = session.robot.joints()
     with pytest.raises(ParameterError, match="path-speed-m-s"):
         iso9283.PROCEDURE(session, **{**OPTIONS, "path_speed_m_s": 2.0})
+    with pytest.raises(ValueError, match="the tool has 3 nest"):
+        iso9283.PROCEDURE(session, **{**OPTIONS, "smrs": 4})
     with pytest.raises(ValueError, match="give at most"):  # the 200 mm cube's line cannot hold 0.5 m/s
         iso9283.PROCEDURE(session, **{**OPTIONS, "path_speed_m_s": 0.5})
     streaming = session.tracker
@@ -148,6 +168,13 @@ def test_poses_and_paths_before_and_after_compensation_in_the_standards_terms(tm
     assert np.all(np.abs(ap - ap_true) < 0.03), (ap, ap_true)
     assert np.all([before[p]["RP_mm"] < 0.1 for p in before])
     assert np.mean([after[p]["AP_mm"] for p in after]) < 0.5 * np.mean(ap)
+    # orientation from the three nests: AP_a/b/c against the tool's true angles less the commanded ones
+    R_cmd = reg.T_tracker_base[:3, :3] @ cube.R_base_flange
+    cmd_deg = np.array([float(v[0]) for v in orientation_columns(R_cmd[None]).values()])
+    ap_abc_true = (true_angles_deg(config, cube.q_rad) - cmd_deg + 180.0) % 360.0 - 180.0
+    ap_abc = np.array([[before[p][f"AP_{a}_deg"] for a in "abc"] for p in before])
+    assert np.all(np.abs(ap_abc - ap_abc_true) < 0.02), (ap_abc, ap_abc_true)
+    assert all(before[p][f"RP_{a}_deg"] < 0.1 for p in before for a in "abc")
     # path accuracy: AT against the true path's (normal-plane) deviation, RT small, compensation helps
     assert result.paths is not None and set(result.paths) == {"before", "after"}
     paths = iso9283.plan_paths(config, cube, 1, model, OPTIONS["path_speed_m_s"])
@@ -168,6 +195,7 @@ def test_poses_and_paths_before_and_after_compensation_in_the_standards_terms(tm
     assert r.returncode == 0, r.stderr
     recomputed = json.loads((tmp_path / "r.json").read_text())
     assert all(abs(recomputed["poses"][p]["AP_mm"] - before[p]["AP_mm"]) < 1e-6 for p in before)
+    assert all(abs(recomputed["poses"][p]["AP_a_deg"] - before[p]["AP_a_deg"]) < 1e-6 for p in before)
     for name, fig in result.paths["before"].items():
         assert abs(recomputed["paths"][name]["AT_mm"] - fig.AT_m * 1e3) < 1e-6
         assert abs(recomputed["paths"][name]["RT_mm"] - fig.RT_m * 1e3) < 1e-6
