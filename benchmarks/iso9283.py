@@ -2,7 +2,7 @@
 set against the cell's true error at the commanded joints, and each path's AT against the true path's.
 
 Run:  PYTHONPATH=. python benchmarks/iso9283.py [--seed 3] [--cycles 10] [--side-mm 300] [--path-runs 10]
-      [--path-speed 0.25] [--time-scale 4]
+      [--path-speed 0.25] [--smrs 3] [--time-scale 4]
 
 The cell is `hil sim`'s default UR10 (hidden geometric errors, gravity compliance, tracker noise at its MPE).
 The model used for compensation is calibrated from a simulated grid campaign of the same cell (200 mm step,
@@ -12,6 +12,8 @@ sqrt(cycles) and the robot's repeatability). "AT true" is the largest distance, 
 commanded path at the measurement's commanded points, of the noise-free true path (the controller's joints
 every 2 mm along the moveL, the cell's truth at them) from the commanded path. The path samples come every
 controller tick of the cell (8 ms x the time scale), so a lower --time-scale samples the paths more densely.
+With --smrs 3 the orientation figures too: "AP_abc true" is the tool's true orientation (the drawing's nests
+fitted to their true centres at the commanded joints) less the commanded one, per angle.
 """
 
 from __future__ import annotations
@@ -36,6 +38,7 @@ def main() -> None:
     ap.add_argument("--side-mm", type=float, default=300.0)
     ap.add_argument("--path-runs", type=int, default=10)
     ap.add_argument("--path-speed", type=float, default=0.25, help="m/s")
+    ap.add_argument("--smrs", type=int, default=3)
     ap.add_argument("--time-scale", type=float, default=4.0)
     args = ap.parse_args()
 
@@ -46,6 +49,8 @@ def main() -> None:
 
     from fakes.cell import SimCellConfig, SimulatedCell
     from hil.analysis.iso9283 import commanded_tangents, crossings
+    from hil.data.dataset import orientation_columns
+    from hil.geometry.se3 import fit_rigid
     from hil.runner.planners import plan_joints
     from procedures import iso9283, registration
 
@@ -61,7 +66,7 @@ def main() -> None:
         registration.PROCEDURE(session)
         result = iso9283.PROCEDURE(
             session, cycles=args.cycles, side_m=args.side_mm / 1e3, model=str(folder / "model.json"),
-            path_runs=args.path_runs, path_speed_m_s=args.path_speed, csv=str(folder / "iso.csv"),
+            path_runs=args.path_runs, path_speed_m_s=args.path_speed, csv=str(folder / "iso.csv"), smrs=args.smrs,
         )  # fmt: skip
         T_reg = session.registration.T_tracker_base
     print(result.table())
@@ -99,6 +104,24 @@ def main() -> None:
         for k, p in enumerate(result.reports[step].poses):
             print(f"{step:<8}{p.pose:<6}{p.AP_m * 1e3:9.4f}{ap_true[k]:12.4f}{(p.AP_m * 1e3 - ap_true[k]) * 1e3:9.1f}"
                   f"{p.RP_m * 1e3:9.4f}")  # fmt: skip
+    if args.smrs >= 3:
+        nests_true = np.asarray(truth["tool_nests_flange_m"])
+        print(
+            f"\n{'run':<8}{'pose':<6}{'AP_a':>8}{'true':>8}{'AP_b':>8}{'true':>8}{'AP_c':>8}{'true':>8}  deg"
+        )
+        for step, T, q in (("before", T_reg, cube.q_rad), ("after", model.T_tracker_base, q_after)):
+            _, frames = sim.true_joint_offsets(q, np.ones_like(q), 0.0)
+            T_true = sim.T_tracker_base @ frames[:, -1] @ sim.nominal.T_last_flange
+            p = np.einsum("nij,kj->nki", T_true[:, :3, :3], nests_true) + T_true[:, None, :3, 3]
+            p = p + np.asarray(truth["smr_centering_m"])
+            R = np.array([fit_rigid(config.nests_flange_m, pk)[0][:3, :3] for pk in p])
+            R_cmd = T[:3, :3] @ cube.R_base_flange
+            cmd = np.array([float(v[0]) for v in orientation_columns(R_cmd[None]).values()])
+            true_abc = (np.column_stack(list(orientation_columns(R).values())) - cmd + 180.0) % 360.0 - 180.0
+            for k, pf in enumerate(result.reports[step].poses):
+                assert pf.AP_abc_rad is not None
+                both = np.column_stack([np.rad2deg(pf.AP_abc_rad), true_abc[k]]).ravel()
+                print(f"{step:<8}{pf.pose:<6}" + "".join(f"{v:8.4f}" for v in both))
     if not args.path_runs:
         return
     paths = iso9283.plan_paths(config, cube, 1, model, args.path_speed)

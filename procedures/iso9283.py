@@ -434,15 +434,17 @@ def run_paths(
     """`runs` runs of each path (recorded ones are read back, not repeated), as `path_rows`."""
     p_flange = session.nest_flange_m(nest)
     results = []
-    with session.progress.task(f"iso9283 paths {step}", total=runs * len(paths)) as advance:
-        for path in paths:
-            for r in range(1, runs + 1):
-                result = session.measure_path(
-                    NAME, path_step(step, path.name, r), path.q_start, path.T_base_flange,
-                    speed_m_s=speed_m_s, accel_m_s2=PATH_ACCEL_M_S2, interval_s=STREAM_INTERVAL_S,
-                    p_flange_m=p_flange, approach_q_rad=path.q_start - APPROACH_RAD,
-                )  # fmt: skip
-                results.append((path.name, r, result))
+    keys = [(path, path_step(step, path.name, r), r) for path in paths for r in range(1, runs + 1)]
+    recorded = {key for _, key, _ in keys if session.step_result(NAME, key) is not None}
+    with session.progress.task(f"iso9283 paths {step}", total=len(keys), done=len(recorded)) as advance:
+        for path, key, r in keys:
+            result = session.measure_path(
+                NAME, key, path.q_start, path.T_base_flange,
+                speed_m_s=speed_m_s, accel_m_s2=PATH_ACCEL_M_S2, interval_s=STREAM_INTERVAL_S,
+                p_flange_m=p_flange, approach_q_rad=path.q_start - APPROACH_RAD,
+            )  # fmt: skip
+            results.append((path.name, r, result))
+            if key not in recorded:
                 advance()
     T = T_tracker_base
     commanded = {p.name: p.p_commanded_base_m @ T[:3, :3].T + T[:3, 3] for p in paths}
