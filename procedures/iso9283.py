@@ -62,7 +62,7 @@ from hil.geometry.se3 import fit_rigid
 from hil.runner.cell_config import CellConfig
 from hil.runner.operator import OperatorStep
 from hil.runner.plan import Plan, PlannedPose
-from hil.runner.planners import facing_poses, plan_joints, workspace_box
+from hil.runner.planners import facing_poses, linear_path_joints, plan_joints, workspace_box
 from hil.runner.procedure import SHOTS, Parameter, Procedure
 from hil.runner.session import Session
 
@@ -186,28 +186,18 @@ def check_path(
     """The joints at the path's start, after checking that the nominal IK reaches every point of the flange
     path (straight between waypoints, every ENVELOPE_STEP_M) away from singularities and inside the envelope."""
     p_nest = config.nests_flange_m[nest - 1]
-    T_tool = np.asarray(T_base_flange, float).copy()
-    T_tool[:, :3, 3] += T_tool[:, :3, :3] @ p_nest
-    dense = [T_tool[:1]]
-    for a, b in zip(T_tool[:-1], T_tool[1:], strict=True):
-        n = max(1, int(np.ceil(np.linalg.norm(b[:3, 3] - a[:3, 3]) / ENVELOPE_STEP_M)))
-        f = np.arange(1, n + 1) / n
-        seg = np.tile(b, (n, 1, 1))
-        seg[:, :3, 3] = a[:3, 3] + f[:, None] * (b[:3, 3] - a[:3, 3])
-        dense.append(seg)
-    T_all = np.concatenate(dense)
-    joints = plan_joints(config.nominal, T_all, p_nest, q_near=q_near)
+    points, joints = linear_path_joints(config.nominal, T_base_flange, p_nest, q_near, ENVELOPE_STEP_M)
     if not joints.usable.all():
         k = int(np.flatnonzero(~joints.usable)[0])
         raise ValueError(
-            f"the {label} path is not reachable at {np.round(T_all[k, :3, 3] * 1e3, 1).tolist()} mm "
+            f"the {label} path is not reachable at {np.round(points[k] * 1e3, 1).tolist()} mm "
             f"({joints.reason[k]}); choose a smaller --side-mm or another --centre-mm"
         )
     outside = config.envelope.outside(config.nominal, joints.q, config.nests_flange_m)
     if outside.any():
         k = int(np.flatnonzero(outside)[0])
         raise ValueError(
-            f"the {label} path leaves the envelope at {np.round(T_all[k, :3, 3] * 1e3, 1).tolist()} mm (SMR, base "
+            f"the {label} path leaves the envelope at {np.round(points[k] * 1e3, 1).tolist()} mm (SMR, base "
             "frame); nothing moved: choose a smaller --side-mm or another --centre-mm"
         )
     return joints.q[0]

@@ -91,6 +91,15 @@ def test_a_tracker_without_continuous_modes_refuses_before_anything_is_measured(
         assert server.state.command_counts["START_MEASUREMENT"] == 1
 
 
+def test_a_stream_without_a_locked_smr_is_refused_and_the_tracker_stays_stationary(cell):
+    with _serve(cell) as server, EmsconTracker(EmsconConfig(url=server.url, meas_time_s=0.01)) as tracker:
+        with pytest.raises(NoTargetError):
+            tracker.start_stream(0.01)
+        assert server.state.meas_mode == codec.MeasMode.STATIONARY
+        tracker.point_at(cell.smr_center_tracker(SMR))
+        tracker.measure()
+
+
 def test_a_beam_break_during_the_stream_is_an_error_at_its_end(cell):
     thread = _serve(cell, wall_time_scale=0.2)
     with thread, EmsconTracker(EmsconConfig(url=thread.server.url, meas_time_s=0.01)) as tracker:

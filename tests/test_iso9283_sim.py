@@ -18,6 +18,7 @@ from fakes.cell import SimCellConfig, SimulatedCell
 from hil.analysis.iso9283 import commanded_tangents, crossings
 from hil.data.dataset import orientation_columns
 from hil.geometry.se3 import fit_rigid
+from hil.runner.envelope import EnvelopeError
 from hil.runner.planners import plan_joints
 from hil.runner.procedure import ParameterError
 from hil.runner.session import CampaignStopped
@@ -136,6 +137,15 @@ def refusals_before_motion(session) -> None:
     tight = dataclasses.replace(config, envelope=dataclasses.replace(config.envelope, box_max_m=box_max))
     with pytest.raises(ValueError, match="circle path leaves the envelope"):
         iso9283.check_path(tight, circle.T_base_flange, 1, circle.q_start, "circle")
+    envelope, session.envelope = session.envelope, tight.envelope  # the session checks every path run too
+    try:
+        with pytest.raises(EnvelopeError, match="leaves the reach or the envelope"):
+            session.measure_path(
+                "iso9283", "path/test/circle/r01", circle.q_start, circle.T_base_flange, speed_m_s=0.05,
+                accel_m_s2=1.2, interval_s=0.01, p_flange_m=config.nests_flange_m[0],
+            )  # fmt: skip
+    finally:
+        session.envelope = envelope
     np.testing.assert_allclose(session.robot.joints(), q0, atol=1e-9)
     assert session.store.measurements("iso9283").empty
 

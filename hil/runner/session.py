@@ -40,6 +40,7 @@ from hil.runner.cell_config import CellConfig
 from hil.runner.envelope import Envelope, EnvelopeError
 from hil.runner.operator import Operator, OperatorStep
 from hil.runner.plan import Plan, PlannedPose
+from hil.runner.planners import linear_path_joints
 from hil.runner.progress import Progress
 
 log = logging.getLogger("hil")
@@ -512,10 +513,11 @@ class Session:
         approach_q_rad: np.ndarray | None = None,
     ) -> dict:
         """One run of a path: move to its start (checked against the envelope), aim, stream the tracker while
-        the robot moves linearly through the flange waypoints T_base_flange (K, 4, 4), and record every sample
-        as the step's result before anything else moves. A run already recorded is returned as it was (a
-        resumed campaign never repeats it); one recorded with other waypoints or speed is refused. Beam
-        breaks are retried from the start, each an event. The caller checks the path against the envelope."""
+                the robot moves linearly through the flange waypoints T_base_flange (K, 4, 4), and record every sample
+                as the step's result before anything else moves. A run already recorded is returned as it was (a
+                resumed campaign never repeats it); one recorded with other waypoints or speed is refused. Beam
+                breaks are retried from the start, each an event. The whole path (every 5 mm) is checked reachable and
+        inside the envelope before anything moves."""
         T = np.asarray(T_base_flange, float)
         waypoints_mm = (T[:, :3, 3] * 1e3).round(6).tolist()
         recorded = self.step_result(procedure, step)
@@ -527,6 +529,10 @@ class Session:
                     "re-run with the same options and model, or use a new --campaign file",
                 )
             return recorded
+        _, joints = linear_path_joints(self.nominal, T, p_flange_m, q_start)
+        outside = self.envelope.outside(self.nominal, joints.q, self.config.nests_flange_m)
+        if not joints.usable.all() or outside.any():
+            raise EnvelopeError(f"{step}: the linear path leaves the reach or the envelope; nothing moved")
         tracker = self.streaming_tracker(interval_s)
         where = {"procedure": procedure, "step": step}
         for attempt in range(1, MEASURE_ATTEMPTS + 1):
