@@ -40,6 +40,7 @@ from hil.instruments.tracker import (
     TrackerMeasurement,
     TrackerProtocolError,
     TrackerState,
+    TrackerStream,
     TrackerTimeoutError,
 )
 
@@ -178,6 +179,9 @@ class EmsconTracker:
         self._settings_stale = False  # another client changed units/CS/mode: redo the connect-time setup
         self.foreign_setting_changes = 0
         self._deadline_cap: float | None = None
+        self._streaming = False  # a continuous-time stream runs: its result packets are gathered
+        self._stream_packets: list[codec.MultiMeasPacket] = []
+        self._stream_error: codec.ErrorPacket | None = None
 
     # ---- lifecycle ---------------------------------------------------------------------------------------
     @_serialised
@@ -358,15 +362,21 @@ class EmsconTracker:
             decoded = self._decode(packet, what)
             if isinstance(decoded, codec.ErrorPacket | codec.StatusChangePacket):
                 self._note_unsolicited(decoded)
-            else:
+            elif not isinstance(decoded, codec.MultiMeasPacket):  # stream samples are gathered by _decode
                 log.debug("dropping a stale %s received before %s", type(decoded).__name__, what)
 
     def _decode(self, packet: bytes, what: str) -> codec.ServerPacket:
         try:
-            return codec.decode_server_packet(packet)
+            decoded = codec.decode_server_packet(packet)
         except codec.CodecError as exc:
             self._needs_resync = True
             raise TrackerProtocolError(f"bad packet while waiting for {what}: {exc}", exc.data) from exc
+        if isinstance(decoded, codec.MultiMeasPacket):
+            if self._streaming:
+                self._stream_packets.append(decoded)
+            else:
+                log.debug("dropping a continuous-mode result nobody waits for")
+        return decoded
 
     def _note_unsolicited(self, packet) -> None:
         self.events.append((time.time(), packet))
@@ -379,6 +389,8 @@ class EmsconTracker:
                 self.meas_ready = False
         elif isinstance(packet, codec.ErrorPacket):
             self.last_async_error = packet
+            if self._streaming and packet.command == Command.START_MEASUREMENT:
+                self._stream_error = packet
             if packet.status in codec.NO_TARGET_STATUSES:
                 self.meas_ready = False
 
@@ -585,6 +597,76 @@ class EmsconTracker:
             reflector_id=self.reflector_id,
             object_temperature_c=object_temperature_c,
         )
+
+    # ---- continuous-time stream (StreamingTracker) ------------------------------------------------------
+    def _stream_mode(self, interval_s: float) -> int:
+        """Continuous-time mode with a sample every interval_s (whole ms); returns the separation in ms."""
+        ms = round(float(interval_s) * 1000.0)
+        if not (math.isfinite(interval_s) and 1 <= ms <= 60_000):
+            raise TrackerConfigError(
+                f"stream interval {interval_s} s: give 0.001 .. 60 s (whole milliseconds)"
+            )
+        try:
+            self._call(Command.SET_CONTINUOUS_TIME_MODE_PARAMS, ms, 0, 0, 0)
+            self._call(Command.SET_MEASUREMENT_MODE, codec.MeasMode.CONTINUOUS_TIME)
+        except TrackerCommandError as exc:
+            raise TrackerCommandError(
+                f"the tracker cannot sample a moving SMR every {ms} ms (continuous time mode refused: {exc})",
+                exc.command,
+                exc.status,
+            ) from exc
+        return ms
+
+    @_serialised
+    def check_stream(self, interval_s: float) -> float:
+        """Set continuous-time mode up and back to stationary: the tracker accepts it, nothing is measured."""
+        try:
+            ms = self._stream_mode(interval_s)
+        finally:
+            self._call(Command.SET_MEASUREMENT_MODE, codec.MeasMode.STATIONARY)
+        return ms / 1000.0
+
+    @_serialised
+    def start_stream(self, interval_s: float) -> None:
+        """Continuous-time mode, then StartMeasurement: MultiMeasResult packets gather until stop_stream."""
+        self._stream_packets = []
+        self._stream_error = None
+        try:
+            self._stream_mode(interval_s)
+            self._streaming = True
+            self._call(Command.START_MEASUREMENT)
+        except TrackerError:
+            self._streaming = False
+            with contextlib.suppress(TrackerError):
+                self._call(Command.SET_MEASUREMENT_MODE, codec.MeasMode.STATIONARY)
+            raise
+
+    @_serialised
+    def stop_stream(self) -> TrackerStream:
+        """StopMeasurement (the samples sent before it arrive first), back to stationary mode, the samples."""
+        try:
+            self._call(Command.STOP_MEASUREMENT)
+        finally:
+            self._streaming = False
+            self._call(Command.SET_MEASUREMENT_MODE, codec.MeasMode.STATIONARY)
+        packets, self._stream_packets = self._stream_packets, []
+        ok = [
+            (t, v)
+            for p in packets
+            if p.status == Status.ALL_OK
+            for t, v, st in zip(p.times_s, p.values, p.sample_status, strict=True)
+            if st == 0
+        ]
+        if self._stream_error is not None:
+            error, self._stream_error = self._stream_error, None
+            raise status_error(
+                Command.START_MEASUREMENT, error.status, f"the beam broke after {len(ok)} samples"
+            )
+        t = np.array([s[0] for s in ok], float)
+        values = np.array([s[1] for s in ok], float).reshape(-1, 3)
+        p = codec.wire_to_cartesian(values, self.config.coordinate_system, self.units) if len(ok) else values
+        order = np.argsort(t, kind="stable")
+        return TrackerStream(t[order], np.asarray(p, float).reshape(-1, 3)[order])
 
     def _inliers(self, shots_m: np.ndarray, std_total_m: float) -> np.ndarray:
         """Mask of shots within max(k * median distance, floor, 4 * reported std) of the median point."""

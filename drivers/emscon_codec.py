@@ -67,6 +67,8 @@ class Command(IntEnum):
     GET_COORDINATE_SYSTEM_TYPE = 27
     SET_STATIONARY_MODE_PARAMS = 28
     GET_STATIONARY_MODE_PARAMS = 29
+    SET_CONTINUOUS_TIME_MODE_PARAMS = 30
+    GET_CONTINUOUS_TIME_MODE_PARAMS = 31
     SET_REFLECTOR = 40
     GET_REFLECTOR = 41
     GET_REFLECTORS = 42
@@ -152,10 +154,12 @@ class StatusChange(IntEnum):
     TRANSFORMATION_PARAMS_CHANGED = 16
     MEASUREMENT_MODE_CHANGED = 17
     STATIONARY_MODE_PARAMS_CHANGED = 18
+    CONTINUOUS_TIME_MODE_PARAMS_CHANGED = 19
     STATISTIC_MODE_CHANGED = 24
     MEAS_STATUS_NOT_READY = 25
     MEAS_STATUS_BUSY = 26
     MEAS_STATUS_READY = 27
+    MEASUREMENT_COUNT_REACHED = 28
     IS_FACE1 = 30
     IS_FACE2 = 31
     INITIALIZATION_STATUS_CHANGED = 151
@@ -165,6 +169,9 @@ class StatusChange(IntEnum):
 
 class MeasMode(IntEnum):
     STATIONARY = 0
+    CONTINUOUS_TIME = (
+        1  # a sample every lTimeSeparation ms, streamed as MultiMeasResult until StopMeasurement
+    )
 
 
 class CoordinateSystem(IntEnum):
@@ -411,6 +418,8 @@ COMMAND_PARAMS: dict[int, struct.Struct] = {
     Command.SET_MEASUREMENT_MODE: struct.Struct("<i"),
     Command.SET_COORDINATE_SYSTEM_TYPE: struct.Struct("<i"),
     Command.SET_STATIONARY_MODE_PARAMS: struct.Struct("<2i"),
+    # lTimeSeparation (ms), lNumberOfPoints (0: until StopMeasurement), bUseRegion, regionType
+    Command.SET_CONTINUOUS_TIME_MODE_PARAMS: struct.Struct("<4i"),
     Command.SET_REFLECTOR: struct.Struct("<i"),
     Command.SET_SEARCH_PARAMS: struct.Struct("<di"),
     Command.SET_SYSTEM_SETTINGS: struct.Struct("<9i"),
@@ -443,6 +452,7 @@ ANSWER_VALUES: dict[int, struct.Struct] = {
     Command.GET_MEASUREMENT_MODE: struct.Struct("<i"),
     Command.GET_COORDINATE_SYSTEM_TYPE: struct.Struct("<i"),
     Command.GET_STATIONARY_MODE_PARAMS: struct.Struct("<2i"),
+    Command.GET_CONTINUOUS_TIME_MODE_PARAMS: struct.Struct("<4i"),
     Command.GET_REFLECTOR: struct.Struct("<i"),
     Command.GET_REFLECTORS: struct.Struct("<3id64s"),
     Command.GET_SEARCH_PARAMS: struct.Struct("<di"),
@@ -454,6 +464,11 @@ ANSWER_VALUES: dict[int, struct.Struct] = {
 SINGLE_MEAS_RESULT = struct.Struct("<2i17d")  # after the 12-byte result head; 156 bytes in total
 SINGLE_MEAS_RESULT2 = struct.Struct("<2i23d")  # 204 bytes in total
 REFLECTOR_POS_RESULT = struct.Struct("<3d")  # 36 bytes in total
+# MultiMeasResult (type 3): after the 12-byte result head lNumberOfResults, measMode, bIsTryMode, dTemperature,
+# dPressure, dHumidity (48 bytes with the head), then lNumberOfResults MeasValueT of 36 bytes each: status,
+# lTime1 (s), lTime2 (us), dVal1..3
+MULTI_MEAS_HEAD = struct.Struct("<3i3d")
+MEAS_VALUE = struct.Struct("<3i3d")
 ERROR_BODY = struct.Struct("<ii")  # command, status; 16 bytes in total
 STATUS_CHANGE_BODY = struct.Struct("<i")  # 12 bytes in total
 
@@ -545,6 +560,22 @@ class ReflectorPosPacket:
 
 
 @dataclass(frozen=True)
+class MultiMeasPacket:
+    """A continuous-mode result (type 3): samples in wire CS and units, their tracker times, meteo in wire units."""
+
+    status: int
+    meas_mode: int
+    is_try_mode: bool
+    temperature: float
+    pressure: float
+    humidity: float
+    sample_status: tuple[int, ...]
+    times_s: tuple[float, ...]  # lTime1 + lTime2 * 1e-6 (seconds, microseconds)
+    values: tuple[tuple[float, float, float], ...]
+    raw: bytes
+
+
+@dataclass(frozen=True)
 class OtherPacket:
     """A packet of a type this codec does not interpret (skipped by size, as Leica's parser does)."""
 
@@ -553,7 +584,13 @@ class OtherPacket:
 
 
 ServerPacket = (
-    AnswerPacket | ErrorPacket | StatusChangePacket | MeasResultPacket | ReflectorPosPacket | OtherPacket
+    AnswerPacket
+    | ErrorPacket
+    | StatusChangePacket
+    | MeasResultPacket
+    | MultiMeasPacket
+    | ReflectorPosPacket
+    | OtherPacket
 )
 
 
@@ -626,6 +663,21 @@ def pack_reflector_pos(status: int, values) -> bytes:
     return RESULT_HEAD.pack(RESULT_HEAD.size + len(body), DataType.REFLECTOR_POS_RESULT, int(status)) + body
 
 
+def pack_multi_meas_result(
+    status: int,
+    samples: list[tuple[float, tuple[float, float, float]]],
+    meteo: tuple[float, float, float],
+    meas_mode: int = MeasMode.CONTINUOUS_TIME,
+) -> bytes:
+    """MultiMeasResult (type 3): (time in s, values in wire units) per sample, each with status 0."""
+    body = MULTI_MEAS_HEAD.pack(len(samples), int(meas_mode), 0, *(float(m) for m in meteo))
+    for t_s, v in samples:
+        seconds = math.floor(t_s)
+        micros = min(round((t_s - seconds) * 1e6), 999_999)
+        body += MEAS_VALUE.pack(0, int(seconds), int(micros), *(float(x) for x in v))
+    return RESULT_HEAD.pack(RESULT_HEAD.size + len(body), DataType.MULTI_MEAS_RESULT, int(status)) + body
+
+
 def _check_header(packet: bytes) -> tuple[int, int]:
     if len(packet) < HEADER_SIZE:
         raise CodecError(f"packet of {len(packet)} bytes is shorter than the 8-byte header", packet)
@@ -683,6 +735,26 @@ def decode_server_packet(packet: bytes) -> ServerPacket:
             temperature=d[-3],
             pressure=d[-2],
             humidity=d[-1],
+            raw=packet,
+        )
+    if data_type == DataType.MULTI_MEAS_RESULT:
+        head = RESULT_HEAD.size + MULTI_MEAS_HEAD.size
+        _need(packet, head, "a multi measurement result")
+        status = RESULT_HEAD.unpack_from(packet)[2]
+        n, mode, try_mode, t, p, h = MULTI_MEAS_HEAD.unpack_from(packet, RESULT_HEAD.size)
+        if n < 0 or size != head + n * MEAS_VALUE.size:
+            raise CodecError(f"a multi measurement result of {n} samples cannot be {size} bytes", packet)
+        rows = [MEAS_VALUE.unpack_from(packet, head + i * MEAS_VALUE.size) for i in range(n)]
+        return MultiMeasPacket(
+            status=status,
+            meas_mode=mode,
+            is_try_mode=bool(try_mode),
+            temperature=t,
+            pressure=p,
+            humidity=h,
+            sample_status=tuple(r[0] for r in rows),
+            times_s=tuple(r[1] + r[2] * 1e-6 for r in rows),
+            values=tuple((r[3], r[4], r[5]) for r in rows),
             raw=packet,
         )
     if data_type == DataType.REFLECTOR_POS_RESULT:

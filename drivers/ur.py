@@ -504,6 +504,45 @@ class URRobot:
 
         self._wait_arrived("moveL", left_of, "m")
 
+    def move_path(
+        self, T_base_flange: np.ndarray, speed: float | None = None, accel: float | None = None
+    ) -> None:
+        """moveL through waypoints (ur-rtde's path form, blend radius 0: the arm stops at each waypoint)."""
+        cfg = self.config
+        T = np.asarray(T_base_flange, float)
+        if T.ndim != 3 or T.shape[1:] != (4, 4) or len(T) < 1 or not np.all(np.isfinite(T)):
+            raise RobotConfigError(f"a path needs finite waypoints (K, 4, 4), got shape {T.shape}")
+        speed = _limited(speed, cfg.linear_speed, cfg.max_linear_speed, "linear speed (m/s)")
+        accel = _limited(accel, cfg.linear_accel, cfg.max_linear_accel, "linear acceleration (m/s^2)")
+        self._check()
+        poses = [transform_to_pose(t) for t in T]
+        legs = np.vstack([self.flange_pose()[None], T])
+        expected_s = sum(
+            _trapezoid_time(
+                max(float(np.linalg.norm(b[:3, 3] - a[:3, 3])), _rotation_angle(a[:3, :3].T @ b[:3, :3])),
+                speed,
+                accel,
+            )
+            for a, b in zip(legs[:-1], legs[1:], strict=True)
+        )
+        ctrl = self._control()
+        op_before = ctrl.getAsyncOperationProgressEx().operationId()
+        path = [[*map(float, p), speed, accel, 0.0] for p in poses]
+        if not ctrl.moveL(path, True):
+            self._check()
+            raise RobotError(
+                "the controller refused the moveL path", "check that every waypoint is reachable"
+            )
+        self._supervise_async(op_before, expected_s, "moveL path")
+        target = T[-1]
+
+        def left_of(q_now: np.ndarray, T_now: np.ndarray) -> tuple[float, bool]:
+            metres = float(np.linalg.norm(T_now[:3, 3] - target[:3, 3]))
+            turned = _rotation_angle(T_now[:3, :3].T @ target[:3, :3])
+            return metres, metres <= cfg.reach_tolerance_m and turned <= cfg.reach_tolerance_rad
+
+        self._wait_arrived("moveL path", left_of, "m")
+
     def stop(self) -> None:
         """Decelerate to rest; a no-op when the program is not running (the controller already holds it)."""
         ctrl = self._ctrl

@@ -110,13 +110,31 @@ class CommandSet:
             self.broadcast(codec.pack_status_change(StatusChange.MEAS_STATUS_READY))
 
     def _cmd_set_measurement_mode(self, session, mode):
-        if mode != codec.MeasMode.STATIONARY:
+        continuous = mode == codec.MeasMode.CONTINUOUS_TIME and self.config.continuous_modes
+        if mode != codec.MeasMode.STATIONARY and not continuous:
             return (Status.NOT_IMPLEMENTED,)
         self.state.meas_mode = mode
         self._changed(session, StatusChange.MEASUREMENT_MODE_CHANGED, Command.SET_MEASUREMENT_MODE)
 
     def _cmd_get_measurement_mode(self, session):
         return (0, self.state.meas_mode)
+
+    def _cmd_set_continuous_time_mode_params(self, session, separation_ms, points, use_region, region_type):
+        if not self.config.continuous_modes:
+            return (Status.NOT_IMPLEMENTED,)
+        if separation_ms < self.config.min_time_separation_ms or points < 0:
+            return (Status.WRONG_PARAMETER,)
+        if use_region:  # measurement regions (box, sphere) are not modelled
+            return (Status.NOT_IMPLEMENTED,)
+        self.state.continuous_time = (separation_ms, points, use_region, region_type)
+        self._changed(
+            session, StatusChange.CONTINUOUS_TIME_MODE_PARAMS_CHANGED, Command.SET_CONTINUOUS_TIME_MODE_PARAMS
+        )
+
+    def _cmd_get_continuous_time_mode_params(self, session):
+        if not self.config.continuous_modes:
+            return (Status.NOT_IMPLEMENTED,)
+        return (0, *self.state.continuous_time)
 
     def _cmd_set_stationary_mode_params(self, session, meas_time_ms, use_adm):
         if not 1 <= meas_time_ms <= 3_600_000:
@@ -203,6 +221,7 @@ class CommandSet:
         return (0, self.state.units.length_to_wire(self.state.search_radius_m), self.state.search_timeout_ms)
 
     def _cmd_stop_measurement(self, session):
+        self.beam.stop_stream()
         return (0,)
 
     def _wire_point(self, v1, v2, v3, spherical: bool) -> np.ndarray:

@@ -12,6 +12,7 @@ import logging
 import math
 from collections import deque
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -21,6 +22,18 @@ from fakes.emscon_faults import Faults
 from fakes.emscon_state import Client, EmsconServerConfig, TrackerState
 
 log = logging.getLogger("fakes.emscon_server")
+
+
+@dataclass
+class _Stream:
+    """A running continuous-time stream: to whom, under which lock, how often, how many, when next."""
+
+    client: Client
+    generation: int
+    separation_s: float
+    count: int  # 0: until StopMeasurement
+    due_s: float  # the next sample's instant on the cell clock
+    sent: int = 0
 
 
 class Beam:
@@ -43,6 +56,9 @@ class Beam:
         self.generation = 0  # counts lock changes: a shot whose lock changed meanwhile has no result
         self.fault_rng = np.random.default_rng([getattr(cell.config, "seed", 0), 3])  # random beam breaks
         self.sent_results: deque[bytes] = deque(maxlen=1000)  # raw result packets, for tests
+        self.stream_task: asyncio.Task | None = None  # the continuous-time stream on the fake's own clock
+        self.stream_state: _Stream | None = None  # the continuous-time stream, while one runs
+        self.tick_driven = False  # True inside `hil sim`: the cell's clock calls on_tick after every tick
 
     def running_loop(self) -> asyncio.AbstractEventLoop:
         """The event loop the server runs on (set by its start() or open_pty())."""
@@ -156,6 +172,12 @@ class Beam:
             st.last_result_status = self.config.no_target_status
             return (self.config.no_target_status,)
         generation = self.generation
+        if st.meas_mode == codec.MeasMode.CONTINUOUS_TIME:
+            self.stop_stream()
+            client.send(codec.pack_answer(Command.START_MEASUREMENT, Status.ALL_OK), flush=False)
+            client.send(codec.pack_status_change(StatusChange.MEAS_STATUS_BUSY))
+            self.start_stream(client, generation)
+            return None
         client.send(codec.pack_answer(Command.START_MEASUREMENT, Status.ALL_OK), flush=False)
         client.send(codec.pack_status_change(StatusChange.MEAS_STATUS_BUSY), flush=False)
         meas_s = st.meas_time_ms / 1000.0
@@ -189,6 +211,71 @@ class Beam:
         client.send(result, codec.pack_status_change(StatusChange.MEAS_STATUS_READY))
         st.last_result_status = 0
         return None
+
+    def stop_stream(self) -> None:
+        """StopMeasurement: end the continuous stream (what it sent so far precedes the answer)."""
+        if self.stream_task is not None and not self.stream_task.done():
+            self.stream_task.cancel()
+        self.stream_task = None
+        if self.stream_state is not None:
+            self.stream_state = None
+            self.state.measuring -= 1
+
+    def start_stream(self, client: Client, generation: int) -> None:
+        """Continuous-time mode: a sample of the locked SMR every lTimeSeparation of simulated time, stamped
+        with the cell's clock, each sent as a MultiMeasResult; ends on StopMeasurement, after lNumberOfPoints
+        (then MeasurementCountReached) or when the beam breaks (then the error packet of StartMeasurement).
+
+        Inside `hil sim` the cell's clock calls `on_tick` after every controller tick, so each sample sees the
+        arm as that tick left it (a clock ticking more coarsely than the separation gives a sample per tick);
+        with its own clock the fake advances the cell by the separation between samples."""
+        self.stop_stream()
+        self.state.measuring += 1
+        self.stream_state = _Stream(client, generation, self.state.continuous_time[0] / 1000.0,
+                                    self.state.continuous_time[1], self.cell.time_s)  # fmt: skip
+        if not self.tick_driven:
+            self.stream_task = self.running_loop().create_task(self._own_clock_stream())
+
+    def on_tick(self, dt_s: float) -> None:
+        """A tick of the cell's clock (a listener after the robot's): take the stream's sample if one is due."""
+        stream = self.stream_state
+        if stream is None or self.cell.time_s < stream.due_s:
+            return
+        late = self.cell.time_s - stream.due_s
+        stream.due_s += stream.separation_s * (math.floor(late / stream.separation_s) + 1)
+        self._sample(stream)
+
+    async def _own_clock_stream(self) -> None:
+        """The stream on the fake's own clock: wait a separation (scaled to wall time), advance the cell, sample."""
+        while self.stream_state is not None:
+            stream = self.stream_state
+            await asyncio.sleep(stream.separation_s * self.config.wall_time_scale)
+            self.cell.advance_time(stream.separation_s)
+            self._sample(stream)
+
+    def _sample(self, stream: _Stream) -> None:
+        """One sample of the locked SMR to the streaming client; the end of the stream on a lost beam or count."""
+        st = self.state
+        client = stream.client
+        if getattr(client, "closed", False):
+            self.stop_stream()
+            return
+        self.track()
+        if stream.generation != self.generation or not self.ready():
+            st.last_result_status = self.config.no_target_status
+            client.send(codec.pack_error(Command.START_MEASUREMENT, self.config.no_target_status))
+            self.stop_stream()
+            return
+        p_m = np.asarray(self.cell.measure_smr(st.locked_smr), dtype=float)
+        values = tuple(codec.cartesian_to_wire(p_m, st.cs, st.units))
+        client.send(codec.pack_multi_meas_result(0, [(self.cell.time_s, values)], self.meteo_wire()))
+        stream.sent += 1
+        if stream.count and stream.sent >= stream.count:
+            client.send(
+                codec.pack_status_change(StatusChange.MEASUREMENT_COUNT_REACHED),
+                codec.pack_status_change(StatusChange.MEAS_STATUS_READY),
+            )
+            self.stop_stream()
 
     async def pass_time(self, dt_s: float) -> None:
         """Let dt_s of simulated time pass: advance the cell clock ourselves, or wait for its owner's timer

@@ -84,6 +84,7 @@ class EmsconServer:
     async def close(self) -> None:
         if self._poll_task is not None:
             self._poll_task.cancel()
+        self.beam.stop_stream()
         for session in list(self._sessions):
             for task in list(session.tasks):
                 task.cancel()

@@ -72,6 +72,10 @@ class EmsconServerConfig:
     object_probe: bool = True  # an object-temperature probe on the arm (GetObjectTemperature answers)
     # What GetObjectTemperature answers without the probe: not documented, so configurable (NotImplemented).
     no_object_probe_status: int = Status.NOT_IMPLEMENTED
+    continuous_modes: bool = (
+        True  # False: an older tracker, continuous measurement modes answer NotImplemented
+    )
+    min_time_separation_ms: int = 1  # fastest continuous-time sampling the fake accepts (1 kHz)
 
 
 @dataclass
@@ -82,6 +86,8 @@ class TrackerState:
     cs: CoordinateSystem = CoordinateSystem.RHR
     meas_mode: int = 0
     meas_time_ms: int = 1000
+    # continuous-time mode: lTimeSeparation (ms), lNumberOfPoints (0: until StopMeasurement), bUseRegion, regionType
+    continuous_time: tuple[int, int, int, int] = (100, 0, 0, 0)
     use_adm: bool = False
     statistic_mode: tuple[int, int] = (0, 0)
     reflector_id: int = 1

@@ -160,6 +160,9 @@ class SimProcess:
         # The cell's clock task moves simulated time on: a measurement waits for it (scaled by --time-scale)
         # instead of sleeping the unscaled measurement time and advancing the clock a second time.
         tracker = EmsconServer(self.cell, o.host, o.tracker_port, EmsconServerConfig(advance_clock=False))
+        # a continuous measurement samples the arm after every tick of the clock, as that tick left it
+        tracker.beam.tick_driven = True
+        self.clock.listeners.append(tracker.beam.on_tick)
         self.add_server(tracker)
         self.control.add_handlers(tracker.control_handlers())
         self.announcers.append(lambda: {"tracker": {"url": tracker.url, "port": tracker.port}})

@@ -85,7 +85,12 @@ SUBSET = [
     (Command.SET_REFRACTION_PARAMS, (1.00027, 1.00027), 0),
     (Command.GET_REFRACTION_PARAMS, (), 0),
     (Command.SET_MEASUREMENT_MODE, (0,), 0),
-    (Command.SET_MEASUREMENT_MODE, (1,), Status.NOT_IMPLEMENTED),
+    (Command.SET_CONTINUOUS_TIME_MODE_PARAMS, (10, 0, 0, 0), 0),
+    (Command.SET_CONTINUOUS_TIME_MODE_PARAMS, (0, 0, 0, 0), Status.WRONG_PARAMETER),
+    (Command.GET_CONTINUOUS_TIME_MODE_PARAMS, (), 0),
+    (Command.SET_MEASUREMENT_MODE, (1,), 0),  # continuous time
+    (Command.SET_MEASUREMENT_MODE, (2,), Status.NOT_IMPLEMENTED),  # continuous distance: not modelled
+    (Command.SET_MEASUREMENT_MODE, (0,), 0),
     (Command.GET_MEASUREMENT_MODE, (), 0),
     (Command.SET_COORDINATE_SYSTEM_TYPE, (7,), 0),
     (Command.SET_COORDINATE_SYSTEM_TYPE, (4,), Status.NOT_IMPLEMENTED),

@@ -9,7 +9,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from hil.analysis.iso9283 import Iso9283Error, cube_poses, path_performance, pose_performance
+from hil.analysis.iso9283 import Iso9283Error, commanded_along, cube_poses, path_performance, pose_performance
 from tests.cli_in_process import run_hil
 
 UM = 1e-3  # 1 um in mm: the tolerance of every figure
@@ -166,3 +166,40 @@ def test_with_several_smrs_per_pose_one_is_assessed():
     assert second["poses"]["P1"]["RP_mm"] == pytest.approx(2.624087, abs=UM)
     with pytest.raises(Iso9283Error, match="no rows of SMR 3"):
         pose_performance(both, smr=3)
+
+
+def test_a_sample_stands_at_its_foot_on_the_commanded_path_moving_forward_only():
+    line = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    rest = np.array([[0.2, 0.1, 0.0], [0.19, -0.1, 0.0], [0.2, 0.0, 0.3]])  # at rest: noise back and forth
+    moving = np.array([[0.5, 0.2, 0.0], [0.8, -0.1, 0.0], [1.3, 0.0, 0.0]])
+    c = commanded_along(line, np.vstack([rest, moving]))
+    np.testing.assert_allclose(c[:, 1:], 0.0)
+    np.testing.assert_allclose(c[:, 0], [0.2, 0.2, 0.2, 0.5, 0.8, 1.0])  # never back, clipped at the end
+    # a closed square: the start and the end sit on the same point, yet the samples go round in order
+    square = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 0]], float)
+    run = np.array(
+        [[0.01, 0.02, 0], [0.5, -0.01, 0], [1.01, 0.5, 0], [0.5, 1.0, 0], [-0.01, 0.5, 0], [0.0, 0.01, 0]]
+    )
+    c = commanded_along(square, run)
+    np.testing.assert_allclose(
+        c, [[0.01, 0, 0], [0.5, 0, 0], [1, 0.5, 0], [0.5, 1, 0], [0, 0.5, 0], [0, 0.01, 0]]
+    )
+    with pytest.raises(Iso9283Error, match="repeats a point"):
+        commanded_along(np.array([[0.0, 0, 0], [0.0, 0, 0]]), rest)
+
+
+def test_the_paths_lie_on_the_cubes_diagonal_plane():
+    from procedures.iso9283 import CIRCLE_DIAMETER, Cube, check_speed, path_shapes
+
+    centre, side = np.array([0.5, -0.2, 0.4]), 0.3
+    p = cube_poses(centre, side)
+    shapes = path_shapes(Cube(centre, side, p, np.zeros((5, 6)), np.eye(3)))
+    np.testing.assert_allclose(shapes["line"], p[[1, 3]])  # P2 -> P4
+    circle = shapes["circle"]
+    np.testing.assert_allclose(circle[0], circle[-1])  # closed
+    np.testing.assert_allclose(np.linalg.norm(circle - centre, axis=1), 0.5 * CIRCLE_DIAMETER * side)
+    normal = np.cross(p[2] - p[1], p[4] - p[1])
+    np.testing.assert_allclose((circle - centre) @ normal, 0.0, atol=1e-12)  # in the plane of the poses
+    check_speed(0.5, 0.5)
+    with pytest.raises(ValueError, match="give at most 0.548 m/s"):
+        check_speed(0.6, 0.5)

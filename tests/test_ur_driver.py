@@ -84,6 +84,10 @@ def test_moves_and_readings(robot, cell):
     robot.move_linear(T_goal)
     robot.wait_settled(dwell_s=0.0)
     np.testing.assert_allclose(robot.flange_pose()[:3, 3], T_goal[:3, 3], atol=1e-4)
+    corners = np.tile(T_goal, (3, 1, 1))  # moveL through waypoints (ur-rtde's path form), ending at the last
+    corners[:, :3, 3] += [[0.03, 0.0, 0.0], [0.03, 0.03, 0.0], [0.0, 0.0, 0.0]]
+    robot.move_path(corners, speed=0.1)
+    np.testing.assert_allclose(robot.flange_pose()[:3, 3], T_goal[:3, 3], atol=1e-4)
     state = robot.state()
     assert state.ready and state.robot_mode == "RUNNING" and state.safety_mode == "NORMAL"
 
@@ -99,6 +103,10 @@ def test_bad_input_fails_before_any_motion(robot, cell):
         robot.move_joints(HOME + [7.0, 0, 0, 0, 0, 0])
     with pytest.raises(RobotConfigError, match="linear acceleration"):
         robot.move_linear(robot.flange_pose(), accel=-1.0)
+    with pytest.raises(RobotConfigError, match="waypoints"):
+        robot.move_path(robot.flange_pose())  # one pose, not (K, 4, 4)
+    with pytest.raises(RobotConfigError, match="linear speed"):
+        robot.move_path(robot.flange_pose()[None], speed=5.0)
     assert cell.control.call("robot.state")["moves_started"] == before
 
 

@@ -357,3 +357,30 @@ def path_campaign_figures(df: pd.DataFrame, source: str = "paths") -> dict[str, 
         except Iso9283Error as exc:
             raise Iso9283Error(f"{source}: path {name}: {exc}") from None
     return out
+
+
+def commanded_along(commanded_m: np.ndarray, samples_m: np.ndarray, lookahead: int = 2) -> np.ndarray:
+    """The commanded point (K, 3) each attained sample (K, 3, in time order) stands at: its foot on the
+    commanded polyline (M, 3), searched forward only (the segment of the sample before, or one of the next
+    `lookahead`), and never behind the sample before along the path. So a closed path's start and end stay
+    apart, and samples taken at rest (noise around one point) give one commanded point, not a zigzag."""
+    c = np.asarray(commanded_m, float)
+    x = np.asarray(samples_m, float)
+    if len(c) < 2:
+        raise Iso9283Error("a commanded path needs at least 2 points")
+    a, d = c[:-1], np.diff(c, axis=0)  # segments a + t d, t in [0, 1]
+    length = np.linalg.norm(d, axis=1)
+    if np.any(length < 1e-12):
+        raise Iso9283Error("the commanded path repeats a point; give distinct points along it")
+    t = np.clip(np.einsum("ksj,sj->ks", x[:, None, :] - a[None], d) / length**2, 0.0, 1.0)  # (K, S)
+    dist = np.linalg.norm(a[None] + t[..., None] * d[None] - x[:, None, :], axis=2)
+    start = np.concatenate([[0.0], np.cumsum(length)])
+    s = np.empty(len(x))
+    seg = 0
+    for k in range(len(x)):  # forward-only choice of the segment: a short loop over samples
+        window = slice(seg, min(seg + lookahead + 1, len(d)))
+        seg = window.start + int(np.argmin(dist[k, window]))
+        s[k] = start[seg] + t[k, seg] * length[seg]
+    s = np.maximum.accumulate(s)
+    j = np.clip(np.searchsorted(start, s, side="right") - 1, 0, len(d) - 1)
+    return a[j] + ((s - start[j]) / length[j])[:, None] * d[j]

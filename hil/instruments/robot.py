@@ -89,6 +89,13 @@ class Robot(Protocol):
         """Move the flange in a straight line to a pose (4x4, or UR pose vector) and return at the end."""
         ...
 
+    def move_path(
+        self, T_base_flange: np.ndarray, speed: float | None = None, accel: float | None = None
+    ) -> None:
+        """Move the flange in straight lines through poses (K, 4, 4) in turn, stopping at each (no blending),
+        and return at the last one."""
+        ...
+
     def joints(self) -> np.ndarray:
         """Current joint positions (6,) as the controller reports them."""
         ...

@@ -94,6 +94,33 @@ class Tracker(Protocol):
     def close(self) -> None: ...
 
 
+@dataclass(frozen=True)
+class TrackerStream:
+    """Samples of a moving SMR taken while a stream ran: the tracker's own sample times (s, its clock) and
+    the positions (tracker frame, m), in time order."""
+
+    t_s: np.ndarray  # (K,)
+    p_tracker_m: np.ndarray  # (K, 3)
+
+
+@runtime_checkable
+class StreamingTracker(Tracker, Protocol):
+    """A tracker that can also sample a moving SMR at a fixed interval (path measurements)."""
+
+    def check_stream(self, interval_s: float) -> float:
+        """Check, without measuring, that the tracker can sample every `interval_s`; returns the interval it
+        will use. Raises TrackerError (with the reason) when it cannot."""
+        ...
+
+    def start_stream(self, interval_s: float) -> None:
+        """Start sampling the locked SMR every `interval_s`; samples gather until stop_stream."""
+        ...
+
+    def stop_stream(self) -> TrackerStream:
+        """Stop sampling and return every sample since start_stream; NoTargetError if the beam broke."""
+        ...
+
+
 class TrackerError(ActionableError):
     """Base of every tracker failure; `remedy` tells the operator or procedure what to do next."""
 

@@ -236,3 +236,25 @@ def sequence_duration_s(
         return 0.0
     previous = np.vstack([np.asarray(q_start, float), q[:-1]])
     return float(np.sum(joint_move_time_s(previous, q, speed_rad_s, accel_rad_s2)) + per_point_s * len(q))
+
+
+def linear_path_joints(
+    nominal: KinematicModel,
+    T_base_flange: np.ndarray,
+    p_flange_tool_m: np.ndarray,
+    q_near: np.ndarray,
+    step_m: float = 0.005,
+) -> tuple[np.ndarray, JointPlan]:
+    """The tool points (N, 3, base frame) of a moveL through flange waypoints (K, 4, 4), every `step_m` of
+    straight line between them (each leg at its end's orientation), and their nominal IK near `q_near`, so
+    the whole path can be checked reachable, away from singularities and inside the envelope before it runs."""
+    T_tool = np.asarray(T_base_flange, float).copy()
+    T_tool[:, :3, 3] += T_tool[:, :3, :3] @ np.asarray(p_flange_tool_m, float)
+    dense = [T_tool[:1]]
+    for a, b in zip(T_tool[:-1], T_tool[1:], strict=True):
+        n = max(1, int(np.ceil(np.linalg.norm(b[:3, 3] - a[:3, 3]) / step_m)))
+        leg = np.tile(b, (n, 1, 1))
+        leg[:, :3, 3] = a[:3, 3] + (np.arange(1, n + 1) / n)[:, None] * (b[:3, 3] - a[:3, 3])
+        dense.append(leg)
+    T_all = np.concatenate(dense)
+    return T_all[:, :3, 3], plan_joints(nominal, T_all, p_flange_tool_m, q_near=q_near)

@@ -29,6 +29,7 @@ from hil.instruments.robot import Robot, RobotError
 from hil.instruments.tracker import (
     NoTargetError,
     OutlierError,
+    StreamingTracker,
     Tracker,
     TrackerConnectionError,
     TrackerError,
@@ -39,6 +40,7 @@ from hil.runner.cell_config import CellConfig
 from hil.runner.envelope import Envelope, EnvelopeError
 from hil.runner.operator import Operator, OperatorStep
 from hil.runner.plan import Plan, PlannedPose
+from hil.runner.planners import linear_path_joints
 from hil.runner.progress import Progress
 
 log = logging.getLogger("hil")
@@ -478,6 +480,101 @@ class Session:
             f"no measurement at {point_id} after {MEASURE_ATTEMPTS} attempts ({type(last_error).__name__}: {last_error})",
             "clear the line of sight between tracker and SMR and check the tracker's connection, "
             "then re-run the same command: recorded points are kept and skipped",
+        )
+
+    # ------------------------------------------------------------------ paths (the SMR sampled while moving)
+    def streaming_tracker(self, interval_s: float) -> StreamingTracker:
+        """The tracker, checked (nothing moves, nothing is measured) to sample a moving SMR every interval_s."""
+        tracker = self.tracker
+        if not isinstance(tracker, StreamingTracker):
+            raise CampaignStopped(
+                f"the tracker ({type(tracker).__name__}) cannot sample a moving SMR",
+                "use a tracker whose driver streams (emScon continuous time mode), or leave paths out",
+            )
+        try:
+            tracker.check_stream(interval_s)
+        except TrackerError as exc:
+            raise CampaignStopped(
+                f"the tracker cannot sample a moving SMR every {interval_s * 1e3:g} ms: {exc.message}",
+                "use a tracker that offers a continuous time mode, or leave paths out",
+            ) from exc
+        return tracker
+
+    def measure_path(
+        self,
+        procedure: str,
+        step: str,
+        q_start: np.ndarray,
+        T_base_flange: np.ndarray,
+        *,
+        speed_m_s: float,
+        accel_m_s2: float,
+        interval_s: float,
+        p_flange_m: np.ndarray,
+        approach_q_rad: np.ndarray | None = None,
+    ) -> dict:
+        """One run of a path: move to its start (checked against the envelope), aim, stream the tracker while
+                the robot moves linearly through the flange waypoints T_base_flange (K, 4, 4), and record every sample
+                as the step's result before anything else moves. A run already recorded is returned as it was (a
+                resumed campaign never repeats it); one recorded with other waypoints or speed is refused. Beam
+                breaks are retried from the start, each an event. The whole path (every 5 mm) is checked reachable and
+        inside the envelope before anything moves."""
+        T = np.asarray(T_base_flange, float)
+        waypoints_mm = (T[:, :3, 3] * 1e3).round(6).tolist()
+        recorded = self.step_result(procedure, step)
+        if recorded is not None:
+            same = np.allclose(recorded["waypoints_mm"], waypoints_mm, atol=1e-4)
+            if not same or abs(recorded["speed_m_s"] - speed_m_s) > 1e-9:
+                raise CampaignStopped(
+                    f"{step} was recorded with another path or speed than this run would command",
+                    "re-run with the same options and model, or use a new --campaign file",
+                )
+            return recorded
+        _, joints = linear_path_joints(self.nominal, T, p_flange_m, q_start)
+        outside = self.envelope.outside(self.nominal, joints.q, self.config.nests_flange_m)
+        if not joints.usable.all() or outside.any():
+            raise EnvelopeError(f"{step}: the linear path leaves the reach or the envelope; nothing moved")
+        tracker = self.streaming_tracker(interval_s)
+        where = {"procedure": procedure, "step": step}
+        for attempt in range(1, MEASURE_ATTEMPTS + 1):
+            if approach_q_rad is not None:
+                self.move_joints(approach_q_rad, label=step + " approach")
+            self.move_joints(q_start, label=step)
+            self.settle()
+            predicted = self.predict_tracker_point(self.robot.joints(), p_flange_m)
+            try:
+                if predicted is not None:
+                    tracker.point_at(predicted)
+                tracker.start_stream(interval_s)
+                try:
+                    self.robot.move_path(T, speed_m_s, accel_m_s2)
+                finally:
+                    stream = tracker.stop_stream()
+            except NoTargetError as exc:
+                self.event("beam_break", f"no target during {step} (attempt {attempt}): {exc}", **where)
+                continue
+            except RobotError as exc:
+                self._robot_fault(exc, step, attempt)
+                continue
+            except TrackerError as exc:
+                raise CampaignStopped(
+                    f"the tracker failed during {step}: {exc.message}",
+                    f"{exc.remedy}; then re-run the same command to resume",
+                ) from exc
+            result = {
+                "speed_m_s": speed_m_s,
+                "accel_m_s2": accel_m_s2,
+                "interval_s": interval_s,
+                "waypoints_mm": waypoints_mm,
+                "attempts": attempt,
+                "t_s": stream.t_s.tolist(),
+                "p_tracker_mm": (stream.p_tracker_m * 1e3).tolist(),
+            }
+            self.finish_step(procedure, step, result)
+            return result
+        raise CampaignStopped(
+            f"no complete run of {step} after {MEASURE_ATTEMPTS} attempts",
+            "clear the line of sight between tracker and SMR along the path, then re-run the same command",
         )
 
 
