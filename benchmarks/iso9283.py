@@ -44,14 +44,14 @@ def main() -> None:
 
     import pandas as pd
     from calib_data import cell_datasets, true_effect_model
-    from scipy.spatial.transform import Rotation, Slerp
+    from iso_truth import true_path as iso_truth_path
+    from iso_truth import true_smr_points
     from sim_session import running_cell, session_on
 
     from fakes.cell import SimCellConfig, SimulatedCell
     from hil.analysis.iso9283 import commanded_tangents, crossings
     from hil.data.dataset import orientation_columns
     from hil.geometry.se3 import fit_rigid
-    from hil.runner.planners import plan_joints
     from procedures import iso9283, registration
 
     folder = Path(tempfile.mkdtemp(prefix="iso-bench-"))
@@ -73,27 +73,12 @@ def main() -> None:
     print(f"({time.time() - t0:.0f} s on the simulated cell)\n")
     sim = SimulatedCell(SimCellConfig(seed=args.seed))
     truth = sim.ground_truth()
-    nest = np.asarray(truth["tool_nests_flange_m"][0])
 
     def true_points(q: np.ndarray) -> np.ndarray:
-        _, frames = sim.true_joint_offsets(q, np.ones_like(q), 0.0)
-        T = sim.T_tracker_base @ frames[:, -1] @ sim.nominal.T_last_flange
-        return T[:, :3, :3] @ nest + T[:, :3, 3] + np.asarray(truth["smr_centering_m"][0])
+        return true_smr_points(sim, q)
 
-    def true_path(run: iso9283.PathRun, step_m: float = 0.002) -> np.ndarray:
-        T = run.T_base_flange
-        dense = [T[:1]]
-        for a, b in zip(T[:-1], T[1:], strict=True):
-            n = max(1, int(np.ceil(np.linalg.norm(b[:3, 3] - a[:3, 3]) / step_m)))
-            f = np.arange(1, n + 1) / n
-            seg = np.tile(np.eye(4), (n, 1, 1))
-            seg[:, :3, :3] = Slerp([0, 1], Rotation.from_matrix([a[:3, :3], b[:3, :3]]))(f).as_matrix()
-            seg[:, :3, 3] = a[:3, 3] + f[:, None] * (b[:3, 3] - a[:3, 3])
-            dense.append(seg)
-        T_tool = np.concatenate(dense)
-        p_nest = config.nests_flange_m[0]
-        T_tool[:, :3, 3] += T_tool[:, :3, :3] @ p_nest
-        return true_points(plan_joints(config.nominal, T_tool, p_nest, q_near=run.q_start).q)
+    def true_path(run: iso9283.PathRun) -> np.ndarray:
+        return iso_truth_path(sim, config, run)
 
     cube = result.cube
     q_after = iso9283.compensated_joints(config, model, cube)

@@ -12,18 +12,18 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from scipy.spatial.transform import Rotation, Slerp
 
 from fakes.cell import SimCellConfig, SimulatedCell
 from hil.analysis.iso9283 import commanded_tangents, crossings
 from hil.data.dataset import orientation_columns
 from hil.geometry.se3 import fit_rigid
 from hil.runner.envelope import EnvelopeError
-from hil.runner.planners import plan_joints
 from hil.runner.procedure import ParameterError
 from hil.runner.session import CampaignStopped
 from procedures import iso9283, registration
 from tests.cli_in_process import run_hil
+from tests.iso_truth import true_path as iso_truth_path
+from tests.iso_truth import true_smr_points
 from tests.sim_session import running_cell, session_on
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -39,12 +39,7 @@ OPTIONS = {"cycles": 2, "side_m": 0.2, "path_runs": 2, "path_speed_m_s": 0.025, 
 
 def true_points(q: np.ndarray) -> np.ndarray:
     """Where the cell really puts SMR 1 in nest 1 at joints q (approached from below), tracker frame."""
-    sim = SimulatedCell(SimCellConfig(seed=SEED))
-    truth = sim.ground_truth()
-    _, frames = sim.true_joint_offsets(q, np.ones_like(q), 0.0)
-    T = sim.T_tracker_base @ frames[:, -1] @ sim.nominal.T_last_flange
-    nest = np.asarray(truth["tool_nests_flange_m"][0])
-    return T[:, :3, :3] @ nest + T[:, :3, 3] + np.asarray(truth["smr_centering_m"][0])
+    return true_smr_points(SimulatedCell(SimCellConfig(seed=SEED)), q)
 
 
 def true_angles_deg(config, q: np.ndarray) -> np.ndarray:
@@ -63,22 +58,9 @@ def true_angles_deg(config, q: np.ndarray) -> np.ndarray:
     return np.column_stack(list(orientation_columns(R).values()))
 
 
-def true_path(config, run: iso9283.PathRun, step_m: float = 0.002) -> np.ndarray:
-    """The true SMR path (N, 3, tracker frame) of a moveL through the run's flange waypoints: every 2 mm the
-    controller's joints (nominal IK of the interpolated flange pose) and the cell's truth at them."""
-    T = run.T_base_flange
-    dense = [T[:1]]
-    for a, b in zip(T[:-1], T[1:], strict=True):
-        n = max(1, int(np.ceil(np.linalg.norm(b[:3, 3] - a[:3, 3]) / step_m)))
-        f = np.arange(1, n + 1) / n
-        seg = np.tile(np.eye(4), (n, 1, 1))
-        seg[:, :3, :3] = Slerp([0, 1], Rotation.from_matrix([a[:3, :3], b[:3, :3]]))(f).as_matrix()
-        seg[:, :3, 3] = a[:3, 3] + f[:, None] * (b[:3, 3] - a[:3, 3])
-        dense.append(seg)
-    T_tool = np.concatenate(dense)
-    p_nest = config.nests_flange_m[0]
-    T_tool[:, :3, 3] += T_tool[:, :3, :3] @ p_nest
-    return true_points(plan_joints(config.nominal, T_tool, p_nest, q_near=run.q_start).q)
+def true_path(config, run: iso9283.PathRun) -> np.ndarray:
+    """The true SMR path of a moveL through the run's flange waypoints (tests/iso_truth.py)."""
+    return iso_truth_path(SimulatedCell(SimCellConfig(seed=SEED)), config, run)
 
 
 def true_at_mm(samples: pd.DataFrame, path: str, p_true: np.ndarray) -> float:
