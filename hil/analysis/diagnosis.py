@@ -47,6 +47,7 @@ from hil.analysis.calibration import (
     Problem,
     calibrate,
     confounded_pairs,
+    flatten_jacobian,
     identify,
     parameter_correlations,
     solve_ridge_igg3,
