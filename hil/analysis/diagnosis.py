@@ -20,6 +20,9 @@ Selection rule for each round (every candidate from `hil.analysis.effects` the d
    residual sigma after, p < alpha / number of candidates;
 4. the passing candidate with the largest held-out gain is added (near-ties and temperature: `pick_winner`)
    and the whole model refitted robustly; an earlier effect that no longer earns its place is removed.
+   The screening's rows are the current model's inliers; a candidate the full-fit test finds but the held-out
+   one does not is judged again on the rows that the current model or its own robust fit accepts (rival
+   models are judged on the rows either fits, a row both reject is a blunder: `_reclaimed`).
 The loop stops when nothing passes. The links' thermal growth is physics, not a candidate, when the robot
 names its material and the campaign records a temperature: it is in the model from the geometric fit on,
 fitted with the material's coefficient as its prior (hil.analysis.effects.material_expansion), never removed,
@@ -608,9 +611,16 @@ def _excess_ratio(model: CalibratedModel, base: _Baseline, path: _Path) -> float
 
 
 def _screen_round(
-    base: _Baseline, path: _Path, alpha: float, families: tuple[str, ...] | None, banned: set
+    base: _Baseline,
+    path: _Path,
+    alpha: float,
+    families: tuple[str, ...] | None,
+    banned: set,
+    df: pd.DataFrame | None = None,
 ) -> list[tuple[Candidate, CalibratedModel | None]]:
-    """Candidate screening: every effect the data could show, tested linearly against the current model."""
+    """Candidate screening: every effect the data could show, tested linearly against the current model
+    (with `df`, a candidate the full-fit test finds is judged again on rows the current model rejects:
+    `_reclaimed`)."""
     cands = candidate_effects(base.full.ctx, path.current.model.nominal, path.current.model.effects, families)
     cands = [c for c in cands if (c.family, c.joint) not in banned]
     base_fit = _fit_plain(path.current.model, path.prob, path.free, iters=3)
@@ -624,6 +634,53 @@ def _screen_round(
         base.progress(phase, i, len(cands))
         out.append(test(eff))
     base.progress(phase, len(cands), len(cands))
+    if df is not None:
+        out = _reclaimed(base, path, df, alpha, out, len(cands))
+    return out
+
+
+def _reclaimed(
+    base: _Baseline,
+    path: _Path,
+    df: pd.DataFrame,
+    alpha: float,
+    results: list[tuple[Candidate, CalibratedModel | None]],
+    n_tests: int,
+) -> list[tuple[Candidate, CalibratedModel | None]]:
+    """The round's results, with each candidate that the full-fit test finds but the held-out test does not
+    judged again on the rows that the current model or the candidate's own robust fit accepts.
+
+    Why: outlier rejection guards against blunders, which no model explains. The screening's rows are the
+    current model's inliers, and the rows a missing effect moves most are the ones that model rejects (an
+    active loop's poses, measured where the rivals differ, most of all): on its inliers alone the effect it
+    lacks cannot show, and the model that lacks the effect would decide the question in its own favour. Two
+    rival models are judged on the rows at least one of them fits; a row both reject is a blunder for both.
+    Only candidates whose verdict this can change are re-judged (the full-fit test passed, the held-out one
+    did not: one robust refit each); a candidate whose fit accepts no rejected row keeps its result.
+    """
+    rejected = path.current.outliers
+    if not rejected.any():
+        return results
+    out = list(results)
+    model = path.current.model
+    test_level = alpha / max(n_tests, 1)
+    for i, (cand, _) in enumerate(results):
+        if cand.passed or cand.note or cand.p_chi2 >= test_level:
+            continue
+        eff = make_effect(cand.name, cand.joint)
+        if not eff.prepare(base.full.ctx, model.nominal):
+            continue
+        fitted = calibrate(df, model.with_effect(eff), "ridge")
+        both = rejected & fitted.outliers
+        if both.sum() == rejected.sum():
+            continue
+        prob, partitions = base.rows_and_folds(path.current, both)
+        free = _free_mask(path.current.model, prob)[0]
+        start = _fit_plain(path.current.model, prob, free, iters=3)
+        screen = Screen(start, prob, free, partitions, base.sigma2, alpha, n_tests)
+        again, trial = (screen.test if base.screening == "batched" else screen.test_refit)(eff)
+        again.rows_reclaimed = int(rejected.sum() - both.sum())
+        out[i] = (again, trial)
     return out
 
 
@@ -664,7 +721,7 @@ def _forward_selection(
         cand = Candidate(name, joint, len(carried.params), float("nan"), 0.0, 1.0, 1.0, True, note)
         _record_added(path, cand, [], rep)
     for _ in range(max_effects):
-        results = _screen_round(base, path, alpha, families, banned)
+        results = _screen_round(base, path, alpha, families, banned, df)
         winners = [(c, m) for c, m in results if c.passed and m is not None]
         if not winners:
             pair = _pair_lookahead(base, path, results, alpha)

@@ -19,6 +19,9 @@ Two kinds of rows, in the order to measure them:
    questions still short of it: the plan stops for each question when its evidence passes, not at a count.
    Why not D-optimality: it shrinks the variance of one model fixed in advance, spending poses on
    parameters no question is about; the rival columns here are what the next test needs.
+   A marginal candidate that the full-fit test finds is the exception (`held_out_z`): its evidence is the
+   held-out test's own z, scaled by the same standard errors, so a question is decided only when the
+   selection's own test can decide it and the loop plans another round until then.
 
 Reachability and line of sight are the caller's: `admissible(q) -> bool mask` (joint limits of the robot
 file are always applied here). hil.runner knows the cell's envelope and tracker; this layer does not.
@@ -31,6 +34,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import pandas as pd
+from scipy import stats
 
 from hil.analysis.calibrated_model import CalibratedModel
 from hil.analysis.calibration import Problem, flatten_jacobian, identify
@@ -236,6 +240,21 @@ class _Rival:
     trial: CalibratedModel
     keep: np.ndarray  # columns of trial used
     norms: np.ndarray
+    z_test: float | None = None  # the held-out test's own z (`held_out_z`), for a question it leaves open
+    n_poses: int = 0  # the campaign's poses
+
+    def rows_needed(self) -> int:
+        """Poses a test-led question needs (`held_out_z`): the held-out t statistic grows as the square root
+        of the number of poses that show the effect, so reaching DECISIVE_Z from z_test takes n ((DECISIVE_Z /
+        z_test)^2 - 1) more poses that show it as well as the campaign's do (the design's rows show it better,
+        so this errs on the side of measuring more)."""
+        if self.z_test is None:
+            return 0
+        return int(np.ceil(self.n_poses * ((DECISIVE_Z / max(self.z_test, 1e-3)) ** 2 - 1)))
+
+    def test_z_after(self, rows: int) -> float:
+        """The held-out z expected after `rows` more poses (see `rows_needed`)."""
+        return float((self.z_test or 0.0) * np.sqrt((self.n_poses + rows) / max(self.n_poses, 1)))
 
     def z(self, diag: np.ndarray, sigma_m: float) -> np.ndarray:
         """Evidence: the smallest size / standard error over the rival's coefficients (per candidate row)."""
@@ -260,7 +279,7 @@ def _scaled_rows(trial: CalibratedModel, prob: Problem, keep: np.ndarray, norms:
     return J[:, :3, keep] / norms
 
 
-def _rival(df, model, camp: Problem, qu: dict) -> _Rival | None:
+def _rival(df, model, camp: Problem, qu: dict, sigma_m: float) -> _Rival | None:
     """The rival model of a question prepared on the campaign (None when its columns cannot be built)."""
     if qu["kind"] == "confounded_parameters":
         trial = model
@@ -289,12 +308,50 @@ def _rival(df, model, camp: Problem, qu: dict) -> _Rival | None:
     norms = np.linalg.norm(Jf[:, keep], axis=0)
     norms = np.where(norms > 0, norms, 1.0)
     Js = Jf[:, keep] / norms
+    if qu["kind"] != "confounded_parameters":
+        names = _separable(Js, kept, names)
+        if not names:
+            return None
     cols = np.array([kept.index(nm) for nm in names])
     info = Js.T @ Js + 1e-9 * np.eye(Js.shape[1])
     size = (
         np.array([_relevant_size(nm, Jf[:, all_names.index(nm)], trial, camp) for nm in names]) * norms[cols]
     )
-    return _Rival(qu, label, cols, size, np.linalg.inv(info), trial, keep, norms)
+    rival = _Rival(qu, label, cols, size, np.linalg.inv(info), trial, keep, norms)
+    rival.z_test = held_out_z(qu)
+    rival.n_poses = camp.n_poses
+    return rival
+
+
+def held_out_z(qu: dict) -> float | None:
+    """The held-out test's own z of a marginal candidate the full fit finds (None for other questions).
+
+    The selection adds an effect when both its tests pass. A candidate that passes the full-fit test (it is
+    there, beyond noise) but narrowly misses the held-out one (it does not yet predict held-out blocks
+    better) is undecided by the selection's own rule, however large the design's z for a relevant-sized
+    coefficient: that z is a full-fit precision, which the full fit has already shown to suffice. So its
+    evidence is what the held-out test saw, z = Phi^-1(1 - p_cv) (< z at alpha, so never decided here), and
+    a plan raises it as the information grows (z scales with the coefficient's standard error)."""
+    if qu["kind"] != "marginal" or not qu.get("full_fit_passed"):
+        return None
+    return float(stats.norm.isf(min(max(qu["p_cv"], 1e-300), 0.5)))
+
+
+def _separable(Js: np.ndarray, kept: list[str], names: list[str], tol: float = 1e-3) -> list[str]:
+    """The rival's coefficients that no combination of the model's columns (and the rival's earlier ones)
+    reproduces, by the screening's rule (hil.analysis.screening: a unit column's part outside that span
+    exceeds `tol`). A coefficient the model reproduces exactly on any poses (a once-per-turn term of joint 2 in
+    phase with its gravity sag) is merged there, as in the test: its evidence would stay zero whatever is
+    measured, and asking for poses to decide it would make every question of that rival unplannable."""
+    basis = np.linalg.qr(Js[:, [i for i, n in enumerate(kept) if n not in names]])[0]
+    out = []
+    for nm in names:
+        col = Js[:, kept.index(nm)]
+        rest = col - basis @ (basis.T @ col)
+        if np.linalg.norm(rest) > tol:
+            out.append(nm)
+            basis = np.column_stack([basis, rest / np.linalg.norm(rest)])
+    return out
 
 
 def _relevant_size(name: str, column: np.ndarray, trial: CalibratedModel, camp: Problem) -> float:
@@ -336,7 +393,7 @@ def _separate(df, model, questions, physics_q, budget, sigma_m, ok, rng):
     camp = Problem.from_frame(model, df)
     rivals, skipped = [], []
     for qu in questions:
-        r = _rival(df, model, camp, qu)
+        r = _rival(df, model, camp, qu, sigma_m)
         if r is None:
             skipped.append({"question": qu, "why": "its rival cannot be built on this campaign"})
         else:
@@ -355,7 +412,10 @@ def _separate(df, model, questions, physics_q, budget, sigma_m, ok, rng):
             )
     blocks = [_scaled_rows(r.trial, _context(model, df, pool), r.keep, r.norms) for r in rivals]
     z_before = [float(r.z(np.diag(r.cov)[r.cols], sigma_m)) for r in rivals]
-    reach = [_solo_reach(r, A, budget, sigma_m) for r, A in zip(rivals, blocks, strict=True)]
+    reach = [
+        DECISIVE_Z if r.z_test is not None else _solo_reach(r, A, budget, sigma_m)
+        for r, A in zip(rivals, blocks, strict=True)
+    ]
     for k in [k for k, z in enumerate(reach) if z < DECISIVE_Z]:  # the whole budget would not decide it
         skipped.append(
             {
@@ -373,16 +433,25 @@ def _separate(df, model, questions, physics_q, budget, sigma_m, ok, rng):
     chosen: list[int] = []
     serves: list[int] = []
     available = np.ones(len(pool), bool)
+    needed = [min(r.rows_needed(), budget) for r in rivals]
     for _ in range(budget):
         z_now = np.array([float(r.z(np.diag(r.cov)[r.cols], sigma_m)) for r in rivals])
-        if np.all(z_now >= DECISIVE_Z) or not available.any():
+        served = np.bincount(np.asarray(serves, int), minlength=len(rivals))
+        open_ = [
+            served[k] < needed[k] if r.z_test is not None else z_now[k] < DECISIVE_Z
+            for k, r in enumerate(rivals)
+        ]
+        if not any(open_) or not available.any():
             break
         gains = np.zeros((len(rivals), len(pool)))
         for k, (r, A) in enumerate(zip(rivals, blocks, strict=True)):
-            if z_now[k] >= DECISIVE_Z:
+            if not open_[k]:
                 continue
             z_new = r.z(_woodbury_diag(r.cov, A, r.cols), sigma_m)
-            gains[k] = np.minimum(z_new, DECISIVE_Z) - min(z_now[k], DECISIVE_Z)
+            if r.z_test is not None:  # test-led: the design's gain ranks the poses, the count decides
+                gains[k] = np.maximum(z_new - z_now[k], 1e-5)
+            else:
+                gains[k] = np.minimum(z_new, DECISIVE_Z) - min(z_now[k], DECISIVE_Z)
         total = np.where(available, gains.sum(axis=0), -np.inf)
         best = int(np.argmax(total))
         if total[best] <= 1e-6:  # nothing in the pool moves any open question: poses cannot decide them
@@ -398,6 +467,8 @@ def _separate(df, model, questions, physics_q, budget, sigma_m, ok, rng):
     for k, r in enumerate(rivals):
         count = int(np.sum(np.asarray(serves) == k))
         z_after = float(r.z(np.diag(r.cov)[r.cols], sigma_m))
+        if r.z_test is not None:  # test-led: its evidence is the held-out test's (`_Rival.rows_needed`)
+            z_before[k], z_after = r.z_test, r.test_z_after(count)
         if count == 0 and z_after < DECISIVE_Z:
             skipped.append(
                 {"question": r.question, "why": "no reachable pose adds evidence", "evidence_z": z_after}
@@ -457,7 +528,13 @@ def evidence(df: pd.DataFrame, model: CalibratedModel, questions: list[dict], si
             "confounded_parameters",
         ):
             continue
-        r = _rival(df, model, camp, qu)
-        z = None if r is None else float(r.z(np.diag(r.cov)[r.cols], sigma_m))
+        r = _rival(df, model, camp, qu, sigma_m)
+        z = (
+            None
+            if r is None
+            else r.z_test
+            if r.z_test is not None
+            else float(r.z(np.diag(r.cov)[r.cols], sigma_m))
+        )
         out.append({"question": qu, "evidence_z": z, "decisive_z": DECISIVE_Z})
     return out

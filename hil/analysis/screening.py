@@ -46,6 +46,7 @@ class Candidate:
     passed: bool
     note: str = ""
     geometry_correlation: float = float("nan")  # largest canonical correlation with the geometry
+    rows_reclaimed: int = 0  # rows the current model rejects that the candidate's fit accepts, judged too
 
     def to_dict(self) -> dict:
         return dict(self.__dict__)

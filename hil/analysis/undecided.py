@@ -12,14 +12,18 @@ After selection a campaign can leave an effect undecided for reasons no test on 
   of the campaign's duration after their first visit.
 - ``temperature_not_spanned``: the recorded temperature spans less than `MIN_TEMPERATURE_SPAN_K`; poses
   cannot decide it (a run at another temperature can), so it is reported but never planned.
-- ``marginal``: a candidate that lowered the held-out error with alpha <= p < `MARGINAL_P`;
+- ``marginal``: a candidate that lowered the held-out error with alpha <= p < `MARGINAL_P`; when its
+  full-fit test passed (`full_fit_passed`), the selection's two tests disagree, and only the held-out test
+  passing (or the full-fit one failing) decides it: its evidence is that test's own z (see below);
 - ``confounded_with_geometry``: a candidate the geometry imitates on these poses (refitted with every
   geometric parameter free, it was rejected as collinear or inseparable);
 - ``ambiguous_effects``: two candidates that explain the same residual (the winner, refitted, took the
   rival's gain);
 - ``confounded_parameters``: two geometric parameters whose estimates correlate beyond 0.95.
 The last four are decided when the campaign separates the rivals: hil.analysis.discrimination's evidence
-(every rival coefficient's smallest relevant size at `DECISIVE_Z` standard errors or more) passes.
+(every rival coefficient's smallest relevant size at `DECISIVE_Z` standard errors or more) passes; except a
+marginal candidate the full fit finds, whose evidence is the held-out test's z (below the test's own level by
+definition), so that it stays open until the selection's own test decides it.
 
 Thermal questions are kinds like the others, so a later physical treatment of temperature adds its own
 rivals (arm growth against the tracker's air-temperature scale) without changing this contract.
@@ -151,7 +155,16 @@ def selection_questions(final_round: list, ambiguities: list[dict], alpha: float
                 )
             )
         elif not c.passed and c.gain_mm2 > 0 and alpha <= c.p_cv < MARGINAL_P and not c.note:
-            out.append(question("marginal", effect=effect, p_cv=float(c.p_cv), p_chi2=float(c.p_chi2)))
+            full_fit = bool(c.p_chi2 < alpha / max(len(final_round), 1))  # the screening's level for it
+            out.append(
+                question(
+                    "marginal",
+                    effect=effect,
+                    p_cv=float(c.p_cv),
+                    p_chi2=float(c.p_chi2),
+                    full_fit_passed=full_fit,
+                )
+            )
     for amb in ambiguities:
         out.append(question("ambiguous_effects", effect=amb["chosen"], rival=amb["confounded_with"]))
     return out
