@@ -342,13 +342,17 @@ def _select(
             break
         first = path.effects[0]
         other = _forward_selection(base, df, alpha, families, max_effects, banned={*path.banned, first})
-        if other.cv_rms_mm < 0.95 * path.cv_rms_mm:
+        # Judged on the rows either path's model accepts: a path whose model rejects more rows would
+        # otherwise look better on its own inliers.
+        errors, _ = _shared_heldout_errors(base, path, other)
+        rms_mm = [float(np.sqrt(np.mean(e))) * 1000.0 for e in errors]
+        if rms_mm[1] < 0.95 * rms_mm[0]:
             other.cautions.append(
                 caution(
                     "first_choice_set_aside",
                     effect={"name": first[0], "joint": first[1]},
-                    heldout_rms_mm=path.cv_rms_mm,
-                    heldout_rms_without_mm=other.cv_rms_mm,
+                    heldout_rms_mm=rms_mm[0],
+                    heldout_rms_without_mm=rms_mm[1],
                 )
             )
             path = other
@@ -799,13 +803,7 @@ def _keep_previous(
         return path
     other = _forward_selection(base, df, alpha, families, max_effects, banned=set(), start=keys)
     _settle_rivals(base, df, other, alpha)
-    prob, partitions = base.rows_and_folds(path.current, path.current.outliers & other.current.outliers)
-    errors = []
-    for candidate in (path, other):
-        model = candidate.current.model
-        r, J = prob.evaluate(model)
-        free = _free_mask(model, prob)[0]
-        errors.append(linear_fit_heldout(flatten_jacobian(J)[:, free], r, partitions)[1])
+    errors, prob = _shared_heldout_errors(base, path, other)
     gain, p_value = held_out_gain(errors[0] - errors[1], prob.pose)
     if gain <= 0 or set(other.effects) == set(path.effects):
         return path
@@ -820,6 +818,20 @@ def _keep_previous(
         )
     )
     return other
+
+
+def _shared_heldout_errors(base: _Baseline, a: _Path, b: _Path) -> tuple[list[np.ndarray], Problem]:
+    """Each path's held-out squared errors per point on the rows inlier to either (a row both reject is a
+    blunder for both; one only the other accepts is evidence between them) and the same spatial partitions:
+    two paths whose models reject different rows are compared on the same points."""
+    prob, partitions = base.rows_and_folds(a.current, a.current.outliers & b.current.outliers)
+    errors = []
+    for candidate in (a, b):
+        model = candidate.current.model
+        r, J = prob.evaluate(model)
+        free = _free_mask(model, prob)[0]
+        errors.append(linear_fit_heldout(flatten_jacobian(J)[:, free], r, partitions)[1])
+    return errors, prob
 
 
 def _refit(base: _Baseline, path: _Path, result: CalibrationResult) -> IdentifiabilityReport:
