@@ -26,7 +26,7 @@ pytestmark = pytest.mark.sim  # starts a simulated cell or a fake server over so
 MARGIN_S = 0.15  # measurement timeout beyond the measurement time
 COMMAND_S = 0.3  # command (and resync) timeout
 SLACK_S = 1.0  # read granularity and scheduling: the fake server runs in this process, and under the suite's
-# four workers beside mypy on 2 cores a 0.25 s slack was overrun (seen twice); still far below a hang
+# workers beside mypy on 2 cores a 0.25 s slack was overrun (seen twice); still far below a hang
 
 
 @pytest.fixture(scope="module")
