@@ -14,12 +14,10 @@ PYTEST_PARALLEL ?= -n 6 --dist loadfile --no-loadscope-reorder
 
 .PHONY: demo test docs typecheck unit soak lint bench clean
 
-# --no-compile: Python compiles a module when it is first imported; compiling every installed package up front
-# took 9 of the install's 23 s on a fresh clone, for modules the project never imports.
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet --no-compile -e '.[dev]'
+	$(PY) -m pip install --quiet -e '.[dev]'
 	touch $@
 
 demo: $(VENV)/.installed
