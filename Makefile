@@ -4,13 +4,13 @@
 PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
-# pytest-xdist: six workers, each test module on one worker (its module-scoped fixtures, a simulated cell or a
-# campaign, are built once), the modules with sim tests first (tests/conftest.py). Six on two cores: the sim
-# tests spend much of their time waiting for the simulated cell, and three workers per core overlap those
-# waits (measured on a 2-core machine, the whole suite of 822 tests: 165-180 s with four workers, 149 s with
-# six, 143 s with eight; 287 s with two and 203 s with four when the suite had 534 tests).
+# pytest-xdist: eight workers, each test module on one worker (its module-scoped fixtures, a simulated cell or
+# a campaign, are built once), the modules with sim tests first (tests/conftest.py). Eight on two cores: the
+# sim tests spend much of their time waiting for the simulated cell, and four workers per core overlap those
+# waits (measured on a 2-core machine, the whole suite of 822 tests: 165-180 s with four workers, 149-163 s
+# with six, 143 s with eight; 287 s with two and 203 s with four when the suite had 534 tests).
 # PYTEST_PARALLEL= runs the suite in one process.
-PYTEST_PARALLEL ?= -n 6 --dist loadfile --no-loadscope-reorder
+PYTEST_PARALLEL ?= -n 8 --dist loadfile --no-loadscope-reorder
 
 .PHONY: demo test docs typecheck unit soak lint bench clean
 
