@@ -547,7 +547,7 @@ def close_the_loop(session: Session, *, model: CalibratedModel | str | None, tar
 
 def cell_temperature(session: Session, model: CalibratedModel | None) -> float | None:
     """The temperature the model's start is compensated for: the campaign's latest reading (the arm's probe,
-    else the tracker's air), recorded as an event, with a warning event when it lies outside what the model's
+    else the robot's joint sensors, else the tracker's air: `CampaignStore.last_temperature_c`), recorded as an event, with a warning event when it lies outside what the model's
     thermal effects were fitted on; None without a model or a reading."""
     if model is None:
         return None

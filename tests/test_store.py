@@ -404,12 +404,18 @@ def test_sigkill_while_creating_leaves_no_or_a_whole_campaign(tmp_path):
         assert not list(tmp_path.glob(f".{path.name}.*")), "a half-built campaign was left behind"
 
 
-def test_the_latest_temperature_is_the_arms_probe_else_the_trackers_air(tmp_path):
+def test_the_latest_temperature_is_the_arms_probe_else_the_robots_sensors_else_the_trackers_air(tmp_path):
     with CampaignStore(tmp_path / "t.sqlite") as store:
         assert store.last_temperature_c() is None
         store.record_measurement(make_record(1, temperature_c=21.5))
         assert store.last_temperature_c() == 21.5
         store.record_measurement(make_record(2, extra={"object_temperature_c": 23.25}))
         assert store.last_temperature_c() == 23.25
-        store.record_measurement(make_record(3, temperature_c=float("nan")))
+        store.record_measurement(make_record(3, temperature_c=20.0, extra={"robot_temperature_c": 24.5}))
+        assert store.last_temperature_c() == 24.5  # the export's order: probe, robot, air
+        store.record_measurement(
+            make_record(4, extra={"object_temperature_c": 22.0, "robot_temperature_c": 24.5})
+        )
+        assert store.last_temperature_c() == 22.0
+        store.record_measurement(make_record(5, temperature_c=float("nan")))
         assert store.last_temperature_c() is None

@@ -31,6 +31,9 @@ APPLICATION_ID = 0x48494C43  # "HILC" in the SQLite header (offset 68): marks th
 SQLITE_MAGIC = b"SQLite format 3\x00"
 
 _AXES = ("x", "y", "z")
+# The arm's own temperature in a measurement's extra JSON, in order of preference: the tracker's object probe on
+# the arm, then the robot's joint sensors (the air's, in the temperature_c column, comes after both).
+ARM_TEMPERATURE_KEYS = ("object_temperature_c", "robot_temperature_c")
 Q_TARGET_COLUMNS = tuple(f"q{i}_target_rad" for i in range(1, 7))
 Q_COLUMNS = tuple(f"q{i}_rad" for i in range(1, 7))
 T_COLUMNS = tuple(f"T_base_flange_{r}{c}" for r in range(4) for c in range(4))
@@ -444,8 +447,9 @@ class CampaignStore:
         return self._started_s
 
     def last_temperature_c(self) -> float | None:
-        """The temperature at the campaign's latest measurement: the object probe's (the arm's own) when it
-        read one, else the air's the tracker used; None when neither was recorded."""
+        """The temperature at the campaign's latest measurement, in the export's order (`ARM_TEMPERATURE_KEYS`):
+        the object probe's (the arm's own), else the robot's joint sensors', else the air's the tracker used;
+        None when none was recorded."""
         with self._lock:
             row = (
                 self._db()
@@ -454,9 +458,9 @@ class CampaignStore:
             )
         if row is None:
             return None
-        arm = json.loads(row[1] or "{}").get("object_temperature_c")
-        value = arm if arm is not None else row[0]
-        return None if value is None or not np.isfinite(value) else float(value)
+        extra = json.loads(row[1] or "{}")
+        readings = [extra.get(key) for key in ARM_TEMPERATURE_KEYS] + [row[0]]
+        return next((float(v) for v in readings if v is not None and np.isfinite(v)), None)
 
     @property
     def last_timestamp_s(self) -> float | None:
@@ -651,8 +655,7 @@ def campaign_dataset(
         data[f"{a}_mm"] = m[f"{a}_m"].to_numpy(float) * 1000.0
     data["t_s"] = m["timestamp_s"].to_numpy(float) - started_s
     air = m["temperature_c"].to_numpy(float)
-    arm = _extra_temperatures(m["extra"], "object_temperature_c")
-    robot = _extra_temperatures(m["extra"], "robot_temperature_c")
+    arm, robot = (_extra_temperatures(m["extra"], key) for key in ARM_TEMPERATURE_KEYS)
     # The arm's own temperature where a sensor read every point: the tracker's object probe on the arm, else
     # the robot's joint sensors; else the air's.
     if np.all(np.isfinite(arm)):
