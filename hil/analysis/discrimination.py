@@ -39,6 +39,7 @@ from scipy import stats
 from hil.analysis.calibrated_model import CalibratedModel
 from hil.analysis.calibration import Problem, flatten_jacobian, identify
 from hil.analysis.effects import CYCLIC_MIN_PERIODS, EffectContext, approach_signs, make_effect
+from hil.analysis.screening import columns_outside_span
 from hil.analysis.undecided import MIN_REVISITS, MIN_ROWS_PER_DIRECTION
 from hil.data.dataset import joints_rad, pose_ids, smr_ids
 
@@ -279,7 +280,7 @@ def _scaled_rows(trial: CalibratedModel, prob: Problem, keep: np.ndarray, norms:
     return J[:, :3, keep] / norms
 
 
-def _rival(df, model, camp: Problem, qu: dict, sigma_m: float) -> _Rival | None:
+def _rival(df, model, camp: Problem, qu: dict) -> _Rival | None:
     """The rival model of a question prepared on the campaign (None when its columns cannot be built)."""
     if qu["kind"] == "confounded_parameters":
         trial = model
@@ -339,19 +340,13 @@ def held_out_z(qu: dict) -> float | None:
 
 def _separable(Js: np.ndarray, kept: list[str], names: list[str], tol: float = 1e-3) -> list[str]:
     """The rival's coefficients that no combination of the model's columns (and the rival's earlier ones)
-    reproduces, by the screening's rule (hil.analysis.screening: a unit column's part outside that span
-    exceeds `tol`). A coefficient the model reproduces exactly on any poses (a once-per-turn term of joint 2 in
-    phase with its gravity sag) is merged there, as in the test: its evidence would stay zero whatever is
-    measured, and asking for poses to decide it would make every question of that rival unplannable."""
+    reproduces, by the screening's rule (`columns_outside_span`). A coefficient the model reproduces exactly on
+    any poses (a once-per-turn term of joint 2 in phase with its gravity sag) is merged there, as in the test:
+    its evidence would stay zero whatever is measured, and asking for poses to decide it would make every
+    question of that rival unplannable."""
     basis = np.linalg.qr(Js[:, [i for i, n in enumerate(kept) if n not in names]])[0]
-    out = []
-    for nm in names:
-        col = Js[:, kept.index(nm)]
-        rest = col - basis @ (basis.T @ col)
-        if np.linalg.norm(rest) > tol:
-            out.append(nm)
-            basis = np.column_stack([basis, rest / np.linalg.norm(rest)])
-    return out
+    rival = Js[:, [kept.index(nm) for nm in names]]
+    return [names[i] for i in columns_outside_span(basis, rival, tol)]
 
 
 def _relevant_size(name: str, column: np.ndarray, trial: CalibratedModel, camp: Problem) -> float:
@@ -393,7 +388,7 @@ def _separate(df, model, questions, physics_q, budget, sigma_m, ok, rng):
     camp = Problem.from_frame(model, df)
     rivals, skipped = [], []
     for qu in questions:
-        r = _rival(df, model, camp, qu, sigma_m)
+        r = _rival(df, model, camp, qu)
         if r is None:
             skipped.append({"question": qu, "why": "its rival cannot be built on this campaign"})
         else:
@@ -528,7 +523,7 @@ def evidence(df: pd.DataFrame, model: CalibratedModel, questions: list[dict], si
             "confounded_parameters",
         ):
             continue
-        r = _rival(df, model, camp, qu, sigma_m)
+        r = _rival(df, model, camp, qu)
         z = (
             None
             if r is None

@@ -143,6 +143,27 @@ def group_key(*effects: Effect) -> tuple:
     return keys[0] if len(keys) == 1 else keys
 
 
+def columns_outside_span(Q: np.ndarray, E: np.ndarray, tol: float = 1e-3) -> list[int]:
+    """The columns of E (indices) that the span of the orthonormal columns Q and E's earlier kept columns does
+    not reproduce: each unit column's part orthogonal to them exceeds `tol` (`analyse`'s rule, re-orthogonalised
+    once as there); zero columns are never kept."""
+    kept: list[int] = []
+    basis: list[np.ndarray] = []
+    for i in range(E.shape[1]):
+        norm = np.linalg.norm(E[:, i])
+        if norm == 0:
+            continue
+        c = E[:, i] / norm
+        for _ in range(2):
+            c = c - Q @ (Q.T @ c)
+            for b in basis:
+                c = c - (b @ c) * b
+        if np.linalg.norm(c) > tol:
+            basis.append(c / np.linalg.norm(c))
+            kept.append(i)
+    return kept
+
+
 class Screen:
     """Linearised test of candidate effects against a base model (see the module docstring): `test` is the
     batched screening, `test_refit` the per-candidate refit it reproduces."""
@@ -325,20 +346,7 @@ class _Batch:
         part orthogonal to the model's and to the candidate's earlier kept columns exceeds `tol`), and the
         columns' norms."""
         norms = np.linalg.norm(E, axis=0)
-        kept: list[int] = []
-        basis: list[np.ndarray] = []
-        for i in range(E.shape[1]):
-            if norms[i] == 0:
-                continue
-            c = E[:, i] / norms[i]
-            for _ in range(2):  # re-orthogonalised once, as `analyse`
-                c = c - self.Q @ (self.Q.T @ c)
-                for b in basis:
-                    c = c - (b @ c) * b
-            if np.linalg.norm(c) > tol:
-                basis.append(c / np.linalg.norm(c))
-                kept.append(i)
-        return kept, np.where(norms > 0, norms, 1.0)
+        return columns_outside_span(self.Q, E, tol), np.where(norms > 0, norms, 1.0)
 
     def geometry_correlation(self, Es: np.ndarray) -> float:
         """`geometry_correlation` of the candidate's unit columns against the model's."""
