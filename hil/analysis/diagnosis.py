@@ -863,6 +863,8 @@ def _forward_selection(
         return _refit(base, path, result)
 
     for name, joint in start:
+        if (name, joint) in {(e.family, e.joint) for e in path.current.model.effects}:
+            continue  # the physics holds it already
         carried = make_effect(name, joint)
         if not carried.prepare(base.full.ctx, path.current.model.nominal):
             continue  # this campaign does not offer it (hil.analysis.effects' conditions)
@@ -944,7 +946,8 @@ def _keep_previous(
     diagnosis had, while dropping it leaves the geometry to absorb it). Both paths are judged on the rows
     inlier to either (a row both reject is a blunder for both; one only the other accepts is part of the
     evidence between them) and the same spatial partitions (the mean held-out squared error)."""
-    keys = tuple(_named(e) for e in previous)
+    physics = {(e.family, e.joint) for e in path.current.model.effects if physical(e)}  # in every path
+    keys = tuple(k for k in map(_named, previous) if k not in physics)
     if set(keys) <= set(path.effects):
         return path
     other = _forward_selection(base, df, alpha, families, max_effects, banned=set(), start=keys)
