@@ -693,7 +693,8 @@ class _Path:
 
     @property
     def effects(self) -> list[tuple[str, int | None]]:
-        """The effects the selection added (not the material's growth, which the physics put in)."""
+        """The effects the selection added (not the physics terms: the material's growth, the gravity yield
+        from the link masses)."""
         return [(e.family, e.joint) for e in self.current.model.effects if not physical(e)]
 
     @property

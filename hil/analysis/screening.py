@@ -491,7 +491,7 @@ def weakest_effect(
     s2 = max(sigma2, sse / max(fit.size - int(keep.sum()), 1))
     weakest = None
     for i, eff in enumerate(model.effects[:-1]):
-        if physical(eff):  # the material's growth is physics: never removed
+        if physical(eff):  # physics (material growth, gravity yield from the masses): never removed
             continue
         reduced = replace(model, effects=[x for k, x in enumerate(model.effects) if k != i])
         rr, Jr = prob.evaluate(reduced)
