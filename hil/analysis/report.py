@@ -324,7 +324,8 @@ def _effects_html(report: DiagnosisReport) -> list[str]:
     """Each effect added (or removed) with its gain, parameters and the candidates of its round."""
     parts = ["<h2>Effects added</h2>"]
     if not report.steps:
-        parts.append("<p>None: no candidate effect improved the held-out error significantly.</p>")
+        beside = " beside the physics terms (below)" if report.gravity or report.thermal else ""
+        parts.append(f"<p>None{beside}: no candidate effect improved the held-out error significantly.</p>")
     for step in report.steps:
         parts.append(f"<h3>{html.escape(step.title())}</h3>")
         parts.append(
