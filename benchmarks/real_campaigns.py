@@ -7,7 +7,8 @@ Run:  PYTHONPATH=. python benchmarks/real_campaigns.py DATA_DIR [--reregister ba
 
 Per direction: the plain (geometric) calibration's RMS on the other campaign against the final diagnosed
 model's (goal: final <= plain), the effects named, the links' thermal growth against the robot file's
-material, and the open questions with the plan's groups.
+material, each joint's stiffness under the link masses' gravity, and the open questions with the plan's
+groups.
 The data is never copied into this repository.
 """
 
@@ -111,6 +112,13 @@ def run(
             print(
                 f"      growth {th['fitted_per_k'] * 1e6:.1f} +- {th['std_per_k'] * 1e6:.1f} ppm/K (material "
                 f"{th['material_per_k'] * 1e6:.1f}) over {th['span_k']:.2f} K, data share {th['data_share']:.2f}"
+            )
+        for g in report.gravity:  # each joint's yield under the link masses' gravity
+            k, dk = g["stiffness_knm_per_rad"], g["stiffness_std_knm_per_rad"]
+            size = f"{k:.0f} +- {dk:.0f} kN m/rad" if k is not None else "no positive compliance"
+            size += " (held rigid)" if "held_negative_compliance" in g else ""
+            print(
+                f"      gravity j{g['joint']}: {size}, data share {g['data_share']:.2f}, found {g['found']}"
             )
         if propose_n:
             sigma = float(np.sqrt(np.mean(report.noise.sigma_axis_m**2)))

@@ -36,6 +36,12 @@ LINK_MASSES_KG: dict[str, tuple[float, ...]] = {
     "irb2600": (90.0, 45.0, 35.0, 15.0, 6.0, 1.0),
 }
 
+# How far each true link mass lies from the table's (1-sigma, as a fraction, clipped at 2 sigma): cables, motors,
+# brakes and castings make a real arm's links differ from the maker's published figures, which the robot
+# files give the diagnosis; the cell's truth must not be the model's assumption.
+LINK_MASS_SIGMA_FRACTION = 0.15
+MASS_STREAM = 4  # default_rng([seed, MASS_STREAM]): the true link masses, apart from the other truth draws
+
 # Joint stiffness (N*m/rad): a harmonic-drive arm of this class deflects a few tenths of a mm.
 JOINT_STIFFNESS: dict[str, tuple[float, ...]] = {
     "ur5": (1.2e5, 1.2e5, 6.0e4, 1.5e4, 1.5e4, 1.5e4),
@@ -140,7 +146,8 @@ class SimCellConfig:
     geometric_errors: bool = True
     error_sigma_angle_rad: float = np.deg2rad(0.03)
     error_sigma_length_m: float = 0.3e-3
-    # Gravity joint compliance from link masses, plus an optional payload at the tool.
+    # Gravity joint compliance from link masses (the table's, each off by LINK_MASS_SIGMA_FRACTION drawn from
+    # the seed), plus an optional payload at the tool.
     compliance: bool = True
     payload_kg: float = 0.0
     payload_point_flange_m: tuple[float, float, float] = (0.0, 0.0, 0.08)
@@ -208,7 +215,7 @@ class SimulatedCell:
         truth_rng = np.random.default_rng([cfg.seed, 1])
         self._noise_rng = np.random.default_rng([cfg.seed, 2])
         self._true_model = self._draw_true_model(truth_rng)
-        self._masses = np.array(LINK_MASSES_KG[self.robot_name])
+        self._masses = _true_link_masses(np.array(LINK_MASSES_KG[self.robot_name]), cfg.seed)
         self._stiffness = np.array(JOINT_STIFFNESS[self.robot_name])
         n = self.nominal.n_joints
         self._cyclic_phase = truth_rng.uniform(0, 2 * np.pi, (n, 2))
@@ -621,6 +628,13 @@ class SimulatedCell:
             "tool_mounted": self.tool_mounted,
             "tool_rotation_rad": self._tool_rotation_rad,
         }
+
+
+def _true_link_masses(table_kg: np.ndarray, seed: int) -> np.ndarray:
+    """The cell's true link masses: the table's, each off by a seeded LINK_MASS_SIGMA_FRACTION (clipped at 2
+    sigma, so no link weighs near nothing), from its own stream so no other truth draw changes with it."""
+    z = np.clip(np.random.default_rng([seed, MASS_STREAM]).standard_normal(len(table_kg)), -2.0, 2.0)
+    return table_kg * (1.0 + LINK_MASS_SIGMA_FRACTION * z)
 
 
 def _keyed(stream: int, key: tuple[int, int]) -> np.random.Generator:

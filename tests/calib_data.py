@@ -87,7 +87,7 @@ def compliant_ur10(
     effects = []
     for j in (2, 3):
         eff = make_effect("gravity_compliance", j)
-        assert eff.prepare(ctx, nominal)
-        eff.params = rng.normal(0.0, 1e-3, len(eff.params))
+        assert eff.prepare(ctx, nominal)  # the torque from the UR10's link masses: one compliance
+        eff.params = np.array([rng.uniform(0.5e-5, 1.5e-5)])  # rad/(N m): 67-200 kN m/rad
         effects.append(eff)
     return CalibratedModel("ur10", nominal, kin, T, tools_m, effects)

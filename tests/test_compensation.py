@@ -74,7 +74,9 @@ def test_every_generator_converges(model, generator):
     dp, dr = pose_errors(reached, T_target)
     assert dp.max() < 1e-6
     if generator == "fixed":  # keeps the target's orientation: the orientation error is never corrected
-        assert np.all(res.status == "stalled")
+        # (a target whose model orientation error is already tiny, where the joints carry little gravity
+        # torque, converges as it is)
+        assert np.all((res.status == "stalled") | (dr < 1e-5)) and np.mean(res.status == "stalled") > 0.9
         assert np.median(dr) > 1e-4
     else:
         assert np.all(res.status == "ok"), res.summary()

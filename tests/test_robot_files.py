@@ -47,6 +47,28 @@ def test_expansion_coefficient_survives_the_model_json(tmp_path):
     assert load_robot_file(path).expansion_per_k == 1.2e-5
 
 
+def test_link_masses_are_read_checked_and_survive_the_model_json(tmp_path):
+    # Universal Robots publish every link's mass (their dynamics parameters); the other makers the arm's total.
+    assert get_robot("ur10").link_masses_kg == (7.1, 12.7, 4.27, 2.0, 2.0, 0.365)
+    for name in ROBOT_NAMES:
+        masses = get_robot(name).link_masses_kg
+        assert (masses is not None) == name.startswith("ur")
+    ur5 = get_robot("ur5")
+    assert model_from_dict(json.loads(json.dumps(model_to_dict(ur5)))).link_masses_kg == ur5.link_masses_kg
+    kr6 = model_to_dict(get_robot("kr6r900"))
+    assert "link_masses_kg" not in kr6 and model_from_dict(kr6).link_masses_kg is None
+    text = (ROBOT_DIR / "ur10.toml").read_text()
+    bad = {
+        "partial.toml": (text.replace("mass_kg = 0.365\n", ""), r"but not on \[6\]"),
+        "grams.toml": (text.replace("mass_kg = 12.7", "mass_kg = 12700"), "not grams"),
+        "zero.toml": (text.replace("mass_kg = 12.7", "mass_kg = 0"), "joint 2: mass_kg = 0 is outside"),
+    }
+    for name, (body, words) in bad.items():
+        (tmp_path / name).write_text(body)
+        with pytest.raises(ValueError, match=words):
+            load_robot_file(tmp_path / name)
+
+
 def test_a_non_ur_arm_from_its_file_calibrates(tmp_path):
     # A KR 6 R900 with hidden errors, defined by a copy of the built-in file under another name.
     text = (ROBOT_DIR / "kr6r900.toml").read_text().replace('name = "kr6r900"', 'name = "my_cell_robot"')

@@ -6,6 +6,8 @@ fit accepts them."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -17,6 +19,7 @@ from hil.analysis.diagnosis import run_diagnosis
 from hil.analysis.discrimination import propose
 from hil.analysis.folds import campaign_folds, spatial_folds, sweep_runs
 from hil.analysis.report import caution_text
+from hil.geometry.robots import get_robot
 
 
 def _grid_and_sweep(k_sweep: int = 12) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -98,8 +101,10 @@ def _named(report) -> set:
 
 def test_true_effects_stay_named_after_single_joint_sweeps(two_on_joint2, longer_diagnosed):
     first, plan, longer = two_on_joint2
-    # on the grid alone joint 2's errors are told apart only in part (here: cyclic j2 beside a joint-2 scale)
-    assert ("cyclic", 2) in _named(first)
+    # on the grid alone joint 2's errors are not told apart: beside its gravity yield (physics from the UR10's
+    # link masses) neither the cyclic error nor the backlash is named, and its scale is an open question
+    assert not _named(first) >= TRUE_JOINT2
+    assert any(q["effect"] == {"name": "joint_scale", "joint": 2} for q in first.undecided if "effect" in q)
     assert "sweep_j2" in plan.purpose
     # sweeps held out as arcs scored every effect as a loss: nothing at all was named on the longer campaign
     assert _named(longer_diagnosed) >= {("backlash", 2), ("gravity_compliance", 2)}
@@ -136,10 +141,13 @@ def test_rows_the_current_model_rejects_count_for_the_effect_that_explains_them(
     """Gravity sag and a once-per-turn error of joint 1 (seed 0 of the benchmark's gravity_cyclic1): the model
     with gravity alone rejects the grid's rows where joint 1's error shows most; judged on its inliers only,
     the cyclic term lost its held-out test (p 0.014), and the loop ended at 1.71x the true model's
-    validation error. Judged on the rows either model accepts, it is named in the first diagnosis."""
+    validation error. Judged on the rows either model accepts, it is named in the first diagnosis.
+    The robot file without its link masses: the gravity yield is then a candidate, and this grid's model with
+    it alone rejects those rows (with the masses the yield is physics from the start and the cyclic term
+    misses its held-out test by a hair, p 0.001; the loop's next round names it)."""
     cell = SimulatedCell(SimCellConfig(robot="ur10", seed=0, cyclic=True, cyclic_joints=(1,)))
     train = simulate_campaign(cell, grid_joints(cell, step_m=0.15, seed=0, keep_singular=False))
-    report = run_diagnosis(train, "ur10")
+    report = run_diagnosis(train, replace(get_robot("ur10"), link_masses_kg=None))
     assert {("cyclic", 1), ("gravity_compliance", 2)} <= _named(report)
     step = next(s for s in report.steps if s.effect == {"name": "cyclic", "joint": 1})
     judged = next(c for c in step.candidates if (c.name, c.joint) == ("cyclic", 1))

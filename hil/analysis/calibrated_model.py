@@ -393,6 +393,7 @@ def model_to_dict(m: KinematicModel) -> dict:
         "joint_limits": np.asarray(m.joint_limits, float).tolist(),
         "T_last_flange": np.asarray(m.T_last_flange, float).tolist(),
         **({} if m.expansion_per_k is None else {"expansion_per_k": float(m.expansion_per_k)}),
+        **({} if m.link_masses_kg is None else {"link_masses_kg": [float(v) for v in m.link_masses_kg]}),
     }
 
 
@@ -408,6 +409,9 @@ def model_from_dict(d: dict) -> KinematicModel:
         joint_limits=np.asarray(d["joint_limits"], float),
         T_last_flange=np.asarray(d["T_last_flange"], float),
         expansion_per_k=d.get("expansion_per_k"),
+        link_masses_kg=tuple(map(float, d["link_masses_kg"]))
+        if d.get("link_masses_kg") is not None
+        else None,
     )
 
 

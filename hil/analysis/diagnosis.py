@@ -26,7 +26,11 @@ Selection rule for each round (every candidate from `hil.analysis.effects` the d
 The loop stops when nothing passes. The links' thermal growth is physics, not a candidate, when the robot
 names its material and the campaign records a temperature: it is in the model from the geometric fit on,
 fitted with the material's coefficient as its prior (hil.analysis.effects.material_expansion), never removed,
-and the report gives the fitted coefficient beside the material's (`thermal_summary`). The residual left is
+and the report gives the fitted coefficient beside the material's (`thermal_summary`). So is the joints' yield
+under gravity when the robot file gives the links' masses: one compliance per joint that carries a gravity
+torque, the torque computed from the masses, fitted with a prior centred on a rigid joint
+(hil.analysis.effects.gravity_physics); the report gives each joint's stiffness and whether the data found
+its yield (`gravity_summary`). The residual left is
 then tested against the noise floor; if it is larger and a residual map predicts it on held-out blocks of the
 volume (the spatial folds: better than no map, p < alpha), the report says structure remains that no
 candidate explains and adds the map as a fallback stage. A map that only interpolates (wins on random folds,
@@ -63,19 +67,26 @@ from hil.analysis.calibration import reregister as reregister_model
 from hil.analysis.drift_monitor import reference_drift
 from hil.analysis.effects import (
     Effect,
+    GravityCompliance,
     candidate_effects,
+    gravity_physics,
+    gravity_physics_term,
     hold_at_material,
+    hold_rigid,
     make_effect,
     material_conflict,
     material_expansion,
+    material_growth,
     physical,
     tool_points_rows,
+    yields_against_gravity,
 )
 from hil.analysis.identifiability import IdentifiabilityReport
 from hil.analysis.noise_floor import TRACKER_MPE_M, NoiseFloor, estimate_noise_floor
 from hil.analysis.residual_maps import MAP_KINDS, MAP_MODES, kfold_map_errors, make_map, map_from_dict
 from hil.analysis.rivals import compare_with_rivals, rivals_in_round
 from hil.analysis.screening import (
+    EXTRAPOLATING_FAMILIES,
     Candidate,
     Screen,
     cv_residuals,
@@ -84,6 +95,7 @@ from hil.analysis.screening import (
     held_out_gain,
     linear_fit_heldout,
     pick_winner,
+    predicts_along_joint,
     weakest_effect,
 )
 from hil.data.dataset import drop_duplicate_rows, joints_rad
@@ -164,15 +176,25 @@ class DiagnosisReport:
     plan: dict | None = None  # the proposed measurements' groups (hil.analysis.discrimination.Plan.to_dict)
     run: dict = field(default_factory=dict)  # robot, input files (hash, rows), date, software version
     thermal: dict | None = None  # the material's thermal growth, fitted against its prior (`thermal_summary`)
+    # the joints' yield from the link masses (`gravity_summary`)
+    gravity: list[dict] = field(default_factory=list)
     drift: dict | None = None  # reference poses re-measured (hil.analysis.drift_monitor.reference_drift)
 
     @property
     def effects_added(self) -> list[dict]:
         """The effects the final model holds, in the order they were added; the material's thermal growth
         only where the data, not its prior, set its coefficient (else it is held at the material's value and
-        reported under `thermal`)."""
+        reported under `thermal`), a joint's gravity yield from the link masses only where the data found it
+        (`gravity_summary`'s `found`; else it is reported under `gravity` only)."""
         led = bool(self.thermal and self.thermal["data_led"])
-        return [{"name": e.family, "joint": e.joint} for e in self.model.effects if not physical(e) or led]
+        found = {g["joint"] for g in self.gravity if g["found"]}
+
+        def named(e: Effect) -> bool:
+            if not physical(e):
+                return True
+            return led if material_growth(e) else e.joint in found
+
+        return [{"name": e.family, "joint": e.joint} for e in self.model.effects if named(e)]
 
     @property
     def noise_floor_mm(self) -> float:
@@ -192,6 +214,7 @@ class DiagnosisReport:
             "undecided": self.undecided,
             "plan": self.plan,
             "thermal": self.thermal,
+            "gravity": self.gravity,
             "drift": self.drift,
             "calibration": self.calibration,
             "residual_map": self.residual_map,
@@ -299,11 +322,18 @@ def run_diagnosis(
         base = _baseline_fit(*fit_args)
         base.screening = screening
         path = _select(base, df, alpha, families, max_effects)
-        material = next((e for e in path.current.model.effects if physical(e)), None)
-        if material is not None and material_conflict(material):
+        material = next((e for e in path.current.model.effects if material_growth(e)), None)
+        conflict = material is not None and material_conflict(material)
+        against = {
+            e.joint: float(e.params[0]) for e in path.current.model.effects if yields_against_gravity(e)
+        }
+        if conflict or against:
             # The temperature's term took something that is no growth of the links (a drift in time, the
-            # air's temperature rather than the arm's): select again with the growth held at the material's.
-            base = _baseline_fit(*fit_args, hold_material=float(material.params[0]))
+            # air's temperature rather than the arm's), or a joint's gravity term yields against gravity once
+            # the selected effects are in: select again with the growth held at the material's and those
+            # joints held rigid.
+            hold = float(material.params[0]) if conflict and material is not None else None
+            base = _baseline_fit(*fit_args, hold_material=hold, hold_gravity={**base.held_gravity, **against})
             base.screening = screening
             path = _select(base, df, alpha, families, max_effects)
         _settle_rivals(base, df, path, alpha)
@@ -312,6 +342,7 @@ def run_diagnosis(
         stages, hist, steps = _evaluate_stages(path, base.progress)
         report = _verdict(base, path, stages, hist, steps, alpha, compare_maps)
         report.thermal = thermal_summary(path.current, path.prob)
+        report.gravity = gravity_summary(path.current, path.prob, alpha)
         if report.thermal and "held_conflicting_per_k" in report.thermal:
             report.verdict["cautions"].append(
                 caution(
@@ -423,6 +454,8 @@ class _Baseline:
     progress: Progress = field(default=lambda phase, done, total: None)
     screening: str = "batched"  # or "refit": each candidate fitted on its own (the reference)
     notes: list[str] = field(default_factory=list)  # said in the verdict's cautions
+    held_gravity: dict = field(default_factory=dict)  # {joint: negative compliance}: gravity terms held rigid
+    geometric: CalibrationResult | None = None  # the fit without the gravity physics (when the model has it)
 
     def rows_and_folds(
         self, result: CalibrationResult, outliers: np.ndarray | None = None
@@ -468,20 +501,40 @@ class _Baseline:
 
 
 def _baseline_fit(
-    df, robot, folds, seed, repeatability_mm, tool_guess_m, tracker_mpe_m, progress=None, hold_material=None
+    df,
+    robot,
+    folds,
+    seed,
+    repeatability_mm,
+    tool_guess_m,
+    tracker_mpe_m,
+    progress=None,
+    hold_material=None,
+    hold_gravity=None,
 ) -> _Baseline:
     """`hold_material` (the coefficient a first selection made of it): the links' material growth held at the
-    material's coefficient (hil.analysis.effects.hold_at_material)."""
+    material's coefficient (hil.analysis.effects.hold_at_material). `hold_gravity` ({joint: the negative
+    compliance a fit made of it}): those joints' gravity terms held rigid (hil.analysis.effects.hold_rigid);
+    a gravity term the geometric fit makes negative is held rigid too, and the fit repeated."""
     tell = progress or _quiet
     noise = estimate_noise_floor(
         df, mpe_const_m=tracker_mpe_m[0], mpe_per_m=tracker_mpe_m[1], repeatability_mm=repeatability_mm
     )
     tell("geometric calibration", 0, 2)
-    start = _with_material_growth(robot, df, tool_guess_m)
+    start = _with_physics(robot, df, tool_guess_m)
     if hold_material is not None and isinstance(start, CalibratedModel):
-        held = [hold_at_material(e, hold_material) if physical(e) else e for e in start.effects]
+        held = [hold_at_material(e, hold_material) if material_growth(e) else e for e in start.effects]
         start = replace(start, effects=held)
-    ridge = calibrate(df, start, "ridge", tool_guess_m=tool_guess_m)
+    hold_gravity = dict(hold_gravity or {})
+    ridge = calibrate(df, _held_rigid(start, hold_gravity), "ridge", tool_guess_m=tool_guess_m)
+    against = {e.joint: float(e.params[0]) for e in ridge.model.effects if yields_against_gravity(e)}
+    if against:
+        hold_gravity.update(against)
+        ridge = calibrate(df, _held_rigid(start, hold_gravity), "ridge", tool_guess_m=tool_guess_m)
+    geometric = None  # with gravity physics: the fit without it, the "kinematic" stage (plain calibration)
+    if isinstance(start, CalibratedModel) and any(gravity_physics_term(e) for e in start.effects):
+        plain = replace(start, effects=[e for e in start.effects if not gravity_physics_term(e)])
+        geometric = calibrate(df, plain if plain.effects else robot, "ridge", tool_guess_m=tool_guess_m)
     tell("geometric calibration", 1, 2)
     lm = calibrate(df, robot, "lm", tool_guess_m=tool_guess_m)
     tell("geometric calibration", 2, 2)
@@ -512,6 +565,8 @@ def _baseline_fit(
         n_folds=folds,
         seed=seed,
         progress=tell,
+        held_gravity=hold_gravity,
+        geometric=geometric,
     )
     if not rotations:
         base.notes.append(
@@ -524,18 +579,36 @@ def _baseline_fit(
     return base
 
 
-def _with_material_growth(
+def _held_rigid(
+    start: str | KinematicModel | CalibratedModel, joints: dict
+) -> str | KinematicModel | CalibratedModel:
+    """`start` with the gravity physics terms of `joints` ({joint: negative compliance}) held rigid."""
+    if not joints or not isinstance(start, CalibratedModel):
+        return start
+    effects = [
+        hold_rigid(e, joints[e.joint]) if gravity_physics_term(e) and e.joint in joints else e
+        for e in start.effects
+    ]
+    return replace(start, effects=effects)
+
+
+def _with_physics(
     robot: str | KinematicModel, df: pd.DataFrame, tool_guess_m: np.ndarray | None
 ) -> str | KinematicModel | CalibratedModel:
-    """Where the geometric fit starts: the registered nominal model with the links' thermal growth when the
-    robot names its material and every row records a temperature, else `robot` itself."""
+    """Where the geometric fit starts: the registered nominal model with the physics the robot file allows
+    (the links' thermal growth when it names their material and every row records a temperature, the joints'
+    gravity yield when it names the link masses), else `robot` itself."""
     model = initial_model(robot, df, tool_guess_m)
-    eff = material_expansion(model.context(df)[0], model.nominal)
-    return robot if eff is None else model.with_effect(eff)
+    ctx = model.context(df)[0]
+    growth = material_expansion(ctx, model.nominal)
+    effects = ([] if growth is None else [growth]) + list(gravity_physics(ctx, model.nominal))
+    for eff in effects:
+        model = model.with_effect(eff)
+    return model if effects else robot
 
 
-# The material's growth counts as measured (named among the effects) when the data carry at least this share
-# of the information on its coefficient (1 - posterior variance / prior variance), else the prior holds it.
+# A physics term (the material's growth, a joint's gravity yield) counts as measured when the data carry at
+# least this share of the information on its coefficient (1 - posterior variance / prior variance), else the prior holds it.
 DATA_LED_SHARE = 0.5
 
 
@@ -543,31 +616,71 @@ def thermal_summary(result: CalibrationResult, prob: Problem) -> dict | None:
     """The material's thermal growth in the fitted model: the coefficient fitted beside the material's, its
     standard error, the temperature the rows span and the data's share of what is known of it (0: the prior
     alone, the campaign spanned too little temperature; 1: the data alone). None without such a term."""
-    eff = next((e for e in result.model.effects if physical(e)), None)
+    eff = next((e for e in result.model.effects if material_growth(e)), None)
     if eff is None:
         return None
     prior_std = float(eff.state["prior_std_per_k"])
-    name = eff.param_names[0]
-    std = result.std.get(name)
-    share = 0.0
-    if (
-        std is not None and result.sigma0_m > 0
-    ):  # result.std is scaled by sigma0, the prior by the a-priori sigma
-        std_apriori = std * position_noise_m(prob.measured) / result.sigma0_m
-        share = float(np.clip(1.0 - (std_apriori / prior_std) ** 2, 0.0, 1.0))
+    std, share = _data_share(result, prob, eff.param_names[0], prior_std)
     temps = prob.ctx.temperature_c
     held = {"held_conflicting_per_k": eff.state["conflicting_per_k"]} if eff.held else {}
     return {
         **held,
         "material_per_k": float(eff.state["material_per_k"]),
         "fitted_per_k": float(eff.params[0]),
-        "std_per_k": prior_std if std is None else float(std),
+        "std_per_k": std,
         "prior_std_per_k": prior_std,
         "span_k": float(np.ptp(temps)) if temps is not None and len(temps) else 0.0,
         "reference_c": float(eff.state["reference"]),
         "data_share": share,
         "data_led": share >= DATA_LED_SHARE,
     }
+
+
+def _data_share(result: CalibrationResult, prob: Problem, name: str, prior_std: float) -> tuple[float, float]:
+    """(standard error, data's share of what is known) of a coefficient fitted with a Gaussian prior of
+    `prior_std`: 1 - posterior variance / prior variance (0: the prior alone, 1: the data alone)."""
+    std = result.std.get(name)
+    if std is None or result.sigma0_m <= 0:
+        return prior_std, 0.0
+    std_apriori = std * position_noise_m(prob.measured) / result.sigma0_m  # std is scaled by sigma0
+    return float(std), float(np.clip(1.0 - (std_apriori / prior_std) ** 2, 0.0, 1.0))
+
+
+def gravity_summary(result: CalibrationResult, prob: Problem, alpha: float) -> list[dict]:
+    """Each joint's yield under the link masses' gravity in the fitted model (one per physics term): the
+    compliance and its standard error, the stiffness it means (kN m/rad), the torque the rows span, the data's
+    share of what is known of it (as `thermal_summary`) and whether the data found the yield: data-led and a
+    compliance above zero by more than the two-sided `alpha` quantile of its standard error. A term held rigid
+    (the data made it negative: `hold_rigid`) says what the data had made of it."""
+    out = []
+    z = float(stats.norm.isf(alpha / 2))
+    for eff in result.model.effects:
+        if not isinstance(eff, GravityCompliance) or not gravity_physics_term(eff):
+            continue
+        prior_std = float(eff.state["prior_std"])
+        std, share = _data_share(result, prob, eff.param_names[0], prior_std)
+        c = float(eff.params[0])
+        torque = eff.torque(prob.ctx, result.model.nominal)
+        stiffness = 1e-3 / c if c > 0 else None
+        # d(1/c) = dc / c^2: the stiffness' standard error where the compliance is well above its own
+        stiffness_std = 1e-3 * std / c**2 if c > 0 else None
+        out.append(
+            {
+                "joint": eff.joint,
+                "compliance_rad_per_nm": c,
+                "std_rad_per_nm": std,
+                "prior_std_rad_per_nm": prior_std,
+                "stiffness_knm_per_rad": stiffness,
+                "stiffness_std_knm_per_rad": stiffness_std,
+                "torque_min_nm": float(torque.min()),
+                "torque_max_nm": float(torque.max()),
+                "data_share": share,
+                "data_led": share >= DATA_LED_SHARE,
+                "found": share >= DATA_LED_SHARE and c > z * std,
+                **({"held_negative_compliance": eff.state["negative_compliance"]} if eff.held else {}),
+            }
+        )
+    return out
 
 
 @dataclass
@@ -587,19 +700,28 @@ class _Path:
     cv_final: np.ndarray | None = None  # held-out residuals of the last stage (step 3)
 
     @property
+    def first_step(self) -> int:
+        """Index in `stage_models` of the stage the selection started from (the one before its first step)."""
+        return len(self.stage_models) - 1 - len(self.pending)
+
+    @property
     def folds(self) -> list[np.ndarray]:
         """The spatial folds of the held-out figures (the first partition)."""
         return self.partitions[0]
 
     @property
     def effects(self) -> list[tuple[str, int | None]]:
-        """The effects the selection added (not the material's growth, which the physics put in)."""
+        """The effects the selection added (not the physics terms: the material's growth, the gravity yield
+        from the link masses)."""
         return [(e.family, e.joint) for e in self.current.model.effects if not physical(e)]
 
     @property
     def cv_rms_mm(self) -> float:
         return error_stats(_cv_positions(self.current.model, self.free, self.prob, self.folds))["rms_mm"]
 
+
+# The stage that adds the joints' gravity yield computed from the link masses (physics) to the geometric fit.
+GRAVITY_STAGE = "+ gravity yield (link masses)"
 
 # The rotation equations enter the tests only while the probe's rotation residual after the geometric fit
 # (3-D RMS) stays within this many times what its stated noise gives: a probe read as stated leaves about 1x.
@@ -658,7 +780,27 @@ def _screen_round(
     base.progress(phase, len(cands), len(cands))
     if df is not None:
         out = _reclaimed(base, path, alpha, out, len(cands))
-    return out
+    return [_along_joint(base_fit, path, base.sigma2, alpha, c, m) for c, m in out]
+
+
+def _along_joint(
+    base_fit: CalibratedModel,
+    path: _Path,
+    sigma2: float,
+    alpha: float,
+    cand: Candidate,
+    model: CalibratedModel | None,
+) -> tuple[Candidate, CalibratedModel | None]:
+    """A passing candidate whose claim reaches beyond the sampled arc of its joint (a scale) fails unless it
+    also predicts each half of the joint's range from the other (hil.analysis.screening.predicts_along_joint)."""
+    if not cand.passed or cand.name not in EXTRAPOLATING_FAMILIES:
+        return cand, model
+    eff = make_effect(cand.name, cand.joint)
+    eff.prepare(path.prob.ctx, base_fit.nominal)
+    why = predicts_along_joint(base_fit, path.prob, path.free, eff, sigma2, alpha)
+    if why is None:
+        return cand, model
+    return replace(cand, passed=False, note="; ".join(x for x in (why, cand.note) if x)), None
 
 
 def _reclaimed(
@@ -728,7 +870,12 @@ def _forward_selection(
         prob=prob,
         partitions=partitions,
         free=_free_mask(current.model, prob)[0],
-        stage_models=[("uncompensated (nominal)", base.nominal), ("kinematic", current.model)],
+        stage_models=[("uncompensated (nominal)", base.nominal)]
+        + (
+            [("kinematic", current.model)]
+            if base.geometric is None
+            else [("kinematic", base.geometric.model), (GRAVITY_STAGE, current.model)]
+        ),
         pending=[],
         ambiguities=[],
         final_round=[],
@@ -739,6 +886,8 @@ def _forward_selection(
         return _refit(base, path, result)
 
     for name, joint in start:
+        if (name, joint) in {(e.family, e.joint) for e in path.current.model.effects}:
+            continue  # the physics holds it already
         carried = make_effect(name, joint)
         if not carried.prepare(base.full.ctx, path.current.model.nominal):
             continue  # this campaign does not offer it (hil.analysis.effects' conditions)
@@ -820,7 +969,8 @@ def _keep_previous(
     diagnosis had, while dropping it leaves the geometry to absorb it). Both paths are judged on the rows
     inlier to either (a row both reject is a blunder for both; one only the other accepts is part of the
     evidence between them) and the same spatial partitions (the mean held-out squared error)."""
-    keys = tuple(_named(e) for e in previous)
+    physics = {(e.family, e.joint) for e in path.current.model.effects if physical(e)}  # in every path
+    keys = tuple(k for k in map(_named, previous) if k not in physics)
     if set(keys) <= set(path.effects):
         return path
     other = _forward_selection(base, df, alpha, families, max_effects, banned=set(), start=keys)
@@ -1049,10 +1199,10 @@ def _evaluate_stages(path: _Path, tell: Progress = _quiet) -> tuple[list[dict], 
     tell("held-out figures of every stage", len(path.stage_models), len(path.stage_models))
     steps: list[Step] = []
     for k, info in enumerate(path.pending):
-        before, after = cv_by_stage[k + 1], cv_by_stage[k + 2]
+        before, after = cv_by_stage[path.first_step + k], cv_by_stage[path.first_step + k + 1]
         plot = {}
         if info.get("action", "added") in ("added", "replaced"):
-            stage_model = path.stage_models[k + 2][1]
+            stage_model = path.stage_models[path.first_step + k + 1][1]
             eff_index = len(stage_model.effects) - 1
             disp = _effect_displacement(stage_model, path.prob, eff_index)
             norm = np.linalg.norm(disp, axis=1, keepdims=True)

@@ -4,10 +4,17 @@ Every family is written from its physics, independently of any simulator:
 
 - ``gravity_compliance`` (joint j): the joint yields in proportion to the gravity torque about its
   axis. The torque is a mass-weighted sum of lever arms ``z_j . ((p_k - o_j) x e_z)`` of the points
-  downstream of the joint (later frame origins, the tool point, a payload); lumped motor masses sit
-  at frame origins and a uniform link's centre of mass lies between two origins, so the lever arms of
-  the downstream origins span the torque. The unknown masses and the stiffness merge into one
-  coefficient per lever arm; the arms the data cannot tell apart are merged by an SVD at fit time.
+  downstream of the joint. When the robot file gives every link's mass (`KinematicModel.link_masses_kg`)
+  the torque is computed from them (each link's mass at the middle of its span between two frame origins,
+  a recorded payload at the tool point) and the joint's compliance (rad per N m) is its ONE coefficient;
+  the term is then physics, not a candidate (`gravity_physics`): every joint that carries a torque has it,
+  fitted with a prior (`GRAVITY_PRIOR_DEFLECTION_RAD`). Without masses the downstream frame origins' and the
+  tool point's lever arms span the torque (lumped motor masses sit at origins, a uniform link's centre of
+  mass between two): the unknown masses and the stiffness merge into one coefficient per lever arm, the
+  arms the data cannot tell apart merged by an SVD at fit time, and the term is a candidate. That free form
+  fits the sampled poses as well but extrapolates worse: trained on one public UR10 campaign (series B or
+  C, whose joint ranges do not overlap) and validated on the other, it left 0.80 / 0.80 mm where one
+  compliance per joint left 0.61 / 0.71 mm.
 - ``cyclic`` (joint j): 1st and 2nd harmonic of the joint angle (gear eccentricity, encoder mounting),
   each only where the sampled range covers most of its period (`CYCLIC_MIN_PERIODS`).
 - ``backlash`` (joint j): half the gap times the sign of the joint's approach direction (row order).
@@ -53,6 +60,7 @@ EFFECT_FAMILIES: tuple[str, ...] = (
 )
 
 GRAVITY_DIRECTION_BASE = np.array([0.0, 0.0, -1.0])  # the robot stands upright: base z points up
+STANDARD_GRAVITY_M_S2 = 9.80665
 
 # Largest plausible half swing of the joint offset a joint effect adds (industrial arms, harmonic drives
 # and RV gears): beyond it the fitted "effect" stands in for something else (geometry, units, robot model).
@@ -183,7 +191,12 @@ class Effect:
             tool = ("every row", len(tools), np.round(tools[0] * 1e4).astype(np.int64).tobytes())
         else:
             tool = np.round(tools * 1e4).astype(np.int64).tobytes()
-        drivers = (self.state.get("mix"), self.state.get("driver"), self.state.get("harmonics"))
+        drivers = (
+            self.state.get("mix"),
+            self.state.get("masses_kg"),
+            self.state.get("driver"),
+            self.state.get("harmonics"),
+        )
         key = (self.label, repr(drivers), hash(tool))
         if key not in ctx.cache:
             ctx.cache[key] = self.regressors(ctx, nominal)
@@ -234,11 +247,20 @@ class Effect:
 class GravityCompliance(Effect):
     family = "gravity_compliance"
 
+    @property
+    def from_masses(self) -> bool:
+        """The torque form: one compliance, the torque computed from the robot's link masses."""
+        return "masses_kg" in self.state
+
     def coefficient_names(self) -> list[str]:
+        if self.from_masses:
+            return ["compliance"]
         mix = self.state.get("mix")
         return [f"c{k + 1}" for k in range(np.shape(mix)[1])] if mix else ["c1"]
 
     def coefficient_unit(self) -> str:
+        if self.from_masses:
+            return "rad/(N m)"  # joint deflection per N m of gravity torque: 1 / stiffness
         return "rad/m"  # joint deflection per metre of lever arm of the weight downstream
 
     def _levers(self, ctx: EffectContext, nominal: KinematicModel) -> np.ndarray:
@@ -264,10 +286,30 @@ class GravityCompliance(Effect):
             L = np.column_stack([L, L[:, -1] * ctx.payload_kg])
         return L
 
+    def torque(self, ctx: EffectContext, nominal: KinematicModel) -> np.ndarray:
+        """Gravity torque (N,) in N m about joint `joint`'s axis from the link masses in the state: link k (the
+        one joint k moves) weighs at the middle of frame origins k-1 and k, a recorded payload at the tool."""
+        masses = np.asarray(self.state["masses_kg"], dtype=float)
+        j, n = self.joint_index, len(masses)
+        L = self._levers(ctx, nominal)  # origins j+1 .. n, the tool point, (the payload's column)
+        arms = np.column_stack([np.zeros(len(L)), L[:, : n - j]])  # origin j lies on the axis itself
+        per_g = 0.5 * (arms[:, :-1] + arms[:, 1:]) @ masses[j:]
+        if ctx.payload_kg is not None and ctx.p_flange_tool is not None:
+            per_g = per_g + ctx.payload_kg * L[:, n - j]
+        return STANDARD_GRAVITY_M_S2 * per_g
+
     def prepare(self, ctx: EffectContext, nominal: KinematicModel) -> bool:
         L = self._levers(ctx, nominal)
         if np.max(np.abs(L)) < 1e-6:  # a vertical axis carries no gravity torque
             return False
+        if nominal.link_masses_kg is not None:  # masses known: one compliance per joint
+            masses = [float(m) for m in nominal.link_masses_kg]
+            self.state = {
+                "masses_kg": masses,
+                "torque_max_nm": stretched_torque_nm(nominal, self.joint_index),
+            }
+            self.params = np.zeros(1)
+            return bool(np.max(np.abs(self.torque(ctx, nominal))) > MIN_GRAVITY_TORQUE_NM)
         # Merge lever arms the data cannot tell apart: keep SVD directions above 1e-3 of the largest.
         _, s, Vt = np.linalg.svd(L, full_matrices=False)
         keep = s > 1e-3 * s[0]
@@ -276,6 +318,8 @@ class GravityCompliance(Effect):
         return True
 
     def regressors(self, ctx: EffectContext, nominal: KinematicModel) -> np.ndarray:
+        if self.from_masses:
+            return self.torque(ctx, nominal)[:, None]
         mix = np.asarray(self.state["mix"], dtype=float)
         L = self._levers(ctx, nominal)
         if L.shape[1] != mix.shape[0]:  # payload column present in one dataset only
@@ -284,11 +328,28 @@ class GravityCompliance(Effect):
 
     def summary(self, ctx: EffectContext, nominal: KinematicModel) -> dict[str, float]:
         deflection = np.rad2deg(self.regressors(ctx, nominal) @ self.params) * 1e3
-        return {
+        out = {
             "deflection_rms_mdeg": float(np.sqrt(np.mean(deflection**2))),
             "deflection_min_mdeg": float(deflection.min()),
             "deflection_max_mdeg": float(deflection.max()),
         }
+        if self.from_masses and self.params[0] > 0:
+            out["stiffness_knm_per_rad"] = float(1e-3 / self.params[0])
+        return out
+
+    def implausible(self, ctx: EffectContext, nominal: KinematicModel) -> str | None:
+        """Beyond the plausible swing, or (torque form) a joint that would yield against gravity."""
+        if self.from_masses and self.params[0] < 0:
+            return (
+                f"implausible sign: joint {self.joint} would yield against the gravity torque (a negative "
+                "compliance); it is fitting something else"
+            )
+        return super().implausible(ctx, nominal)
+
+    def prior(self) -> tuple[np.ndarray, np.ndarray] | None:
+        if not physical(self):
+            return None
+        return np.zeros(1), np.array([self.state["prior_std"]])
 
     def driver(self, ctx: EffectContext, nominal: KinematicModel) -> tuple[str, np.ndarray]:
         """The fitted deflection, i.e. the gravity torque over the stiffness, in millidegrees."""
@@ -420,7 +481,7 @@ class _Thermal(Effect):
         as a geometric one where no temperature is known (the callers that know one pass it and warn)."""
         name = self.state["driver"]
         values = ctx.temperature_c if name == "temperature_c" else ctx.t_s
-        if values is None and physical(self):
+        if values is None and material_growth(self):
             return np.zeros(ctx.n)
         if values is None:
             raise ValueError(f"the model's {self.family} effect needs the '{name}' column in the data")
@@ -457,7 +518,7 @@ class ThermalExpansion(_Thermal):
     def summary(self, ctx: EffectContext, nominal: KinematicModel) -> dict[str, float]:
         unit = "K" if self.state["driver"] == "temperature_c" else "s"
         out = {f"expansion_ppm_per_{unit}": float(self.params[0] * 1e6)}
-        if physical(self):
+        if material_growth(self):
             out["material_ppm_per_K"] = float(self.state["material_per_k"] * 1e6)
         return out
 
@@ -465,7 +526,7 @@ class ThermalExpansion(_Thermal):
         return ["per_unit"]
 
     def prior(self) -> tuple[np.ndarray, np.ndarray] | None:
-        if not physical(self):
+        if not material_growth(self):
             return None
         return np.array([self.state["material_per_k"]]), np.array([self.state["prior_std_per_k"]])
 
@@ -543,7 +604,13 @@ EXPANSION_PRIOR_FRACTION = 0.3
 
 
 def physical(eff: Effect) -> bool:
-    """A term the physics puts in the model (the links' material growth): never selected or removed."""
+    """A term the physics puts in the model (the links' material growth, the joints' yield under the link
+    masses' gravity): never selected or removed."""
+    return material_growth(eff) or "prior_std" in eff.state
+
+
+def material_growth(eff: Effect) -> bool:
+    """The links' material growth (`material_expansion`)."""
     return "material_per_k" in eff.state
 
 
@@ -580,6 +647,73 @@ def hold_at_material(eff: Effect, conflicting_per_k: float) -> Effect:
     held = type(eff)(joint=eff.joint, params=np.array([eff.state["material_per_k"]]), state=dict(eff.state))
     held.state.update(held=True, conflicting_per_k=float(conflicting_per_k))
     return held
+
+
+def gravity_physics_term(eff: Effect) -> bool:
+    """A joint's yield under the link masses' gravity put in the model as physics (`gravity_physics`)."""
+    return isinstance(eff, GravityCompliance) and physical(eff)
+
+
+def yields_against_gravity(eff: Effect) -> bool:
+    """A free gravity physics term whose fitted compliance is negative: the joint would yield against gravity,
+    so the term stands in for something else (`hold_rigid` holds it at a rigid joint)."""
+    return gravity_physics_term(eff) and not eff.held and float(eff.params[0]) < 0
+
+
+def hold_rigid(eff: Effect, negative_compliance: float) -> Effect:
+    """A gravity physics term held at zero compliance (a rigid joint), remembering the negative compliance
+    the data had made of it: no joint yields against gravity."""
+    held = type(eff)(joint=eff.joint, params=np.zeros(1), state=dict(eff.state))
+    held.state.update(held=True, negative_compliance=float(negative_compliance))
+    return held
+
+
+# Gravity below this torque (N m) on every row is no torque: an axis along gravity, or only on-axis masses.
+MIN_GRAVITY_TORQUE_NM = 1e-3
+
+# The prior of a joint's gravity compliance (the physics term, `gravity_physics`): centred on 0 (a rigid
+# joint: the geometric model's own assumption, so a campaign that cannot see the yield predicts as the
+# geometric fit does), with a 1-sigma of this deflection at the joint's largest gravity torque (the arm
+# stretched horizontally, `stretched_torque_nm`). Arms deflect about 0.5-2 mrad there (the public UR10
+# campaigns: 1.5-2 mrad on joint 2; harmonic drives: 1-3 arcmin at rated torque), so the data outweigh the
+# prior wherever they see the yield at all, and a joint they cannot see keeps a deflection of about zero.
+GRAVITY_PRIOR_DEFLECTION_RAD = 2e-3
+
+
+def stretched_torque_nm(nominal: KinematicModel, joint_index: int) -> float:
+    """A bound of the gravity torque about a joint from the link masses: every link downstream held out
+    horizontally in one line, each mass at the middle of its span (the span between two frame origins)."""
+    masses = np.asarray(nominal.link_masses_kg, dtype=float)
+    spans = np.hypot(np.asarray(nominal.a, float), np.asarray(nominal.d, float))[joint_index:]
+    reach = np.cumsum(spans) - 0.5 * spans  # from joint's axis to each downstream link's middle
+    return float(STANDARD_GRAVITY_M_S2 * np.sum(masses[joint_index:] * reach))
+
+
+# The joints that carry the arm's weight: those whose largest gravity torque (`stretched_torque_nm`) is at least
+# this share of the most loaded joint's. A wrist is sized for the payload, not for the arm's own links: on a
+# UR10 joints 4-6 carry at most 5 % of joint 2's torque and yield micro-radians, which a campaign cannot tell
+# from the wrist's geometry, while their torque is mostly one harmonic of the joint's angle and would stand in
+# for other effects (on the public series B joint 5's compliance came out negative, a joint yielding against
+# gravity). Their yield stays a candidate (one compliance, the torque from the masses), tested like any other.
+GRAVITY_PHYSICS_TORQUE_SHARE = 0.1
+
+
+def gravity_physics(ctx: EffectContext, nominal: KinematicModel) -> list[GravityCompliance]:
+    """The joints' yield under gravity as physics when the robot names its link masses: one compliance per
+    joint that carries the arm's weight (GRAVITY_PHYSICS_TORQUE_SHARE) and a torque on these rows, starting at
+    0 with its prior (GRAVITY_PRIOR_DEFLECTION_RAD); none when the masses are unknown (the free form is then a
+    candidate)."""
+    if nominal.link_masses_kg is None:
+        return []
+    bounds = np.array([stretched_torque_nm(nominal, j) for j in range(nominal.n_joints)])
+    out = []
+    for j in np.flatnonzero(bounds >= GRAVITY_PHYSICS_TORQUE_SHARE * bounds.max()) + 1:
+        eff = GravityCompliance(joint=int(j))
+        if not eff.prepare(ctx, nominal):
+            continue
+        eff.state["prior_std"] = GRAVITY_PRIOR_DEFLECTION_RAD / eff.state["torque_max_nm"]
+        out.append(eff)
+    return out
 
 
 def make_effect(family: str, joint: int | None = None) -> Effect:

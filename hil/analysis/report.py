@@ -144,6 +144,31 @@ def thermal_text(thermal: dict | None) -> str | None:
     )
 
 
+def gravity_text(gravity: list[dict]) -> str | None:
+    """The joints' yield under the link masses' gravity in words: each joint's stiffness with its standard
+    error, and whether the data found it or the prior (a rigid joint) holds it (None without such terms)."""
+    if not gravity:
+        return None
+    parts = []
+    for g in gravity:
+        k, dk = g["stiffness_knm_per_rad"], g["stiffness_std_knm_per_rad"]
+        if "held_negative_compliance" in g:
+            what = (
+                f"held rigid: the data made its compliance negative "
+                f"({g['held_negative_compliance'] * 1e6:.2g} urad/(N m), the joint yielding against gravity), so "
+                "the term stood in for something else"
+            )
+        elif g["found"]:
+            size = f"{k:.0f} +- {dk:.0f} kN m/rad" if dk is not None and dk < k else f"{k:.0f} kN m/rad"
+            what = f"{size}, found by the data"
+        elif g["data_led"]:
+            what = f"no yield seen (compliance {g['compliance_rad_per_nm'] * 1e6:.2g} +- {g['std_rad_per_nm'] * 1e6:.2g} urad/(N m))"
+        else:
+            what = f"the prior holds it (the data carry {100 * g['data_share']:.0f} %)"
+        parts.append(f"joint {g['joint']}: {what}")
+    return "Gravity yield from the link masses (joint stiffness): " + "; ".join(parts) + "."
+
+
 def report_dict(report: DiagnosisReport) -> dict:
     """The report's data with the conclusion and each caution's words added (what the JSON holds)."""
     out = {}
@@ -153,6 +178,8 @@ def report_dict(report: DiagnosisReport) -> dict:
             value = {**value, "cautions": [{**c, "text": caution_text(c)} for c in value["cautions"]]}
         if key == "thermal" and value is not None:
             value = {**value, "text": thermal_text(value)}
+        if key == "gravity" and value:
+            value = {"joints": value, "text": gravity_text(value)}
         out[key] = value
     return out
 
@@ -243,6 +270,7 @@ def render_html(
         *_head_html(report, d),
         *_effects_html(report),
         *_thermal_html(report.thermal),
+        *_gravity_html(report.gravity),
         *_drift_html(report.drift),
         *_residual_html(report, d),
         *_calibration_html(d),
@@ -296,7 +324,8 @@ def _effects_html(report: DiagnosisReport) -> list[str]:
     """Each effect added (or removed) with its gain, parameters and the candidates of its round."""
     parts = ["<h2>Effects added</h2>"]
     if not report.steps:
-        parts.append("<p>None: no candidate effect improved the held-out error significantly.</p>")
+        beside = " beside the physics terms (below)" if report.gravity or report.thermal else ""
+        parts.append(f"<p>None{beside}: no candidate effect improved the held-out error significantly.</p>")
     for step in report.steps:
         parts.append(f"<h3>{html.escape(step.title())}</h3>")
         parts.append(
@@ -338,6 +367,19 @@ def _effects_html(report: DiagnosisReport) -> list[str]:
             )
         )
     return parts
+
+
+def _gravity_html(gravity: list[dict]) -> list[str]:
+    """The joints' gravity yield from the link masses: compliance, stiffness, data share per joint."""
+    if not gravity:
+        return []
+    keys = ["joint", "stiffness_knm_per_rad", "stiffness_std_knm_per_rad", "compliance_rad_per_nm"]
+    keys += ["std_rad_per_nm", "torque_min_nm", "torque_max_nm", "data_share", "found"]
+    return [
+        "<h2>Gravity yield of the joints (physics from the link masses: always in the model)</h2>",
+        f"<p>{html.escape(gravity_text(gravity) or '')}</p>",
+        _table(gravity, keys, dict.fromkeys(keys[1:-1], ".3g")),
+    ]
 
 
 def _thermal_html(thermal: dict | None) -> list[str]:

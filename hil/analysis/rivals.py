@@ -21,7 +21,7 @@ import numpy as np
 from hil.analysis.calibrated_model import CalibratedModel
 from hil.analysis.calibration import Problem, identify, solve_ridge_igg3
 from hil.analysis.effects import EffectContext, make_effect
-from hil.analysis.screening import Candidate, Screen, held_out_gain
+from hil.analysis.screening import NOT_ALONG_JOINT_NOTE, Candidate, Screen, held_out_gain
 
 RIVAL_SHARE = 0.3  # a rival passed in the effect's round with at least this share of the winner's gain
 DECIDED_P = 0.01  # the chosen effect must beat each rival at this level, or the question stays open
@@ -69,7 +69,7 @@ def rivals_in_round(
         for c in candidates
         if (c.name, c.joint) != chosen
         and c.gain_mm2 >= RIVAL_SHARE * winner.gain_mm2
-        and not c.note.startswith(("collinear", "inseparable"))
+        and not c.note.startswith(("collinear", "inseparable", NOT_ALONG_JOINT_NOTE))
     ]
 
 

@@ -286,6 +286,50 @@ class Screen:
         return cand, fitted if cand.passed else None
 
 
+# Families whose claim reaches beyond the sampled arc of their joint: a scale error turns the joint (1 + s) times
+# what its encoder says at every angle, so its offset grows without bound along the joint. On a short arc a
+# linear offset of the angle is what many other things look like locally, and the slope then extrapolates
+# wrongly: fitted on the public series B (joint 1 over -180..-45 deg) a 600 ppm scale of joint 1 passed the
+# spatial folds and took the model on series C (joint 1 over -308..-180 deg) from 0.75 to 1.18 mm. Such a
+# candidate must also predict each half of its joint's sampled range from the other (`predicts_along_joint`).
+EXTRAPOLATING_FAMILIES = ("joint_scale",)
+NOT_ALONG_JOINT_NOTE = "does not extrapolate along joint"  # how such a failed candidate's note starts
+
+
+def joint_halves(prob: Problem, joint: int) -> list[np.ndarray]:
+    """Two folds of the rows: the joint's angle up to its median, and beyond (a pose's rows share a fold)."""
+    qj = prob.ctx.q[:, joint - 1]
+    low = qj <= np.median(qj)
+    return [np.flatnonzero(low), np.flatnonzero(~low)]
+
+
+def predicts_along_joint(
+    base: CalibratedModel,
+    prob: Problem,
+    free: np.ndarray,
+    eff: Effect,
+    sigma2: float,
+    alpha: float,
+) -> str | None:
+    """Why a candidate of EXTRAPOLATING_FAMILIES fails to predict one half of its joint's sampled range from
+    the other better than `base` (one-sided test at `alpha`), or None when it does (or is of another family)."""
+    if eff.family not in EXTRAPOLATING_FAMILIES or eff.joint is None:
+        return None
+    halves = joint_halves(prob, eff.joint)
+    if min(len(h) for h in halves) == 0:
+        return f"joint {eff.joint} has one angle only: a scale cannot be told from its offset"
+    screen = Screen(base, prob, free, [halves], sigma2, alpha, 1)
+    screen.test(eff)
+    e = screen.heldout_errors[group_key(eff)]
+    gain, p = held_out_gain(screen.e0 - e, prob.pose)
+    if gain > 0 and p < alpha:
+        return None
+    return (
+        f"{NOT_ALONG_JOINT_NOTE} {eff.joint}: fitted on either half of its sampled range it predicts "
+        f"the other {'worse' if gain <= 0 else 'no better'} (held-out gain {gain * 1e6:+.3g} mm^2, p {p:.1g})"
+    )
+
+
 def effect_columns(model: CalibratedModel, eff: Effect, prob: Problem, J: np.ndarray) -> np.ndarray:
     """The Jacobian columns (N m, k) that `eff` (coefficients zero) adds to `model` on `prob`, from the
     model's own Jacobian J (N, m, P) of `prob.evaluate`: a joint effect moves the point (and turns a probe)
@@ -447,7 +491,7 @@ def weakest_effect(
     s2 = max(sigma2, sse / max(fit.size - int(keep.sum()), 1))
     weakest = None
     for i, eff in enumerate(model.effects[:-1]):
-        if physical(eff):  # the material's growth is physics: never removed
+        if physical(eff):  # physics (material growth, gravity yield from the masses): never removed
             continue
         reduced = replace(model, effects=[x for k, x in enumerate(model.effects) if k != i])
         rr, Jr = prob.evaluate(reduced)

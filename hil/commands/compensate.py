@@ -16,7 +16,7 @@ import numpy as np
 import pandas as pd
 
 from hil.analysis.calibrated_model import CalibratedModel
-from hil.analysis.effects import THERMAL_FAMILIES, physical, temperature_driven
+from hil.analysis.effects import THERMAL_FAMILIES, material_growth, temperature_driven
 from hil.commands.arg_checks import InputError, check_paths, float_in
 from hil.commands.campaign_targets import DEFAULT_ORDER, SOURCES, read_campaign_targets
 from hil.commands.errors import CliError
@@ -154,8 +154,8 @@ def thermal_drivers(
         temp = np.full(n, np.nan)
     if temperature_c is not None:
         temp = np.where(np.isfinite(temp), temp, temperature_c)
-    material = next((e for e in model.effects if physical(e)), None)
-    only_material = not any(temperature_driven(e) and not physical(e) for e in model.effects)
+    material = next((e for e in model.effects if material_growth(e)), None)
+    only_material = not any(temperature_driven(e) and not material_growth(e) for e in model.effects)
     if material is not None and only_material and not np.all(np.isfinite(temp)):
         reference = float(material.state["reference"])
         print(

@@ -239,6 +239,7 @@ def _print_and_write(args: argparse.Namespace, report: DiagnosisReport) -> None:
     from hil.analysis.report import (
         conclusion,
         final_orientation_text,
+        gravity_text,
         in_report_units,
         plan_text,
         thermal_text,
@@ -263,7 +264,7 @@ def _print_and_write(args: argparse.Namespace, report: DiagnosisReport) -> None:
         for p in map(in_report_units, step.parameters):
             std = "merged" if p["std"] is None else f"+- {p['std']:.2e}"
             print(f"    {p['name']:<34} {p['value']: .4e} {std} {p['unit']}")
-    for line in (thermal_text(report.thermal), drift_text(report.drift)):
+    for line in (thermal_text(report.thermal), gravity_text(report.gravity), drift_text(report.drift)):
         if line:
             print(line)
     print(undecided_text(report))

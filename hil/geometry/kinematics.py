@@ -39,6 +39,7 @@ class KinematicModel:
     joint_limits: np.ndarray  # (n, 2) rad, [lower, upper]
     T_last_flange: np.ndarray = field(default_factory=lambda: np.eye(4))
     expansion_per_k: float | None = None  # the links' thermal expansion (1/K), None when unknown
+    link_masses_kg: tuple[float, ...] | None = None  # mass of the link each joint moves, None when unknown
 
     def __post_init__(self) -> None:
         n = len(self.theta)
@@ -49,6 +50,8 @@ class KinematicModel:
             raise ValueError(f"{self.name}: joint_limits must be ({n}, 2)")
         if np.any(np.asarray(self.beta)[~np.asarray(self.uses_beta, bool)] != 0):
             raise ValueError(f"{self.name}: beta must be 0 on joints that do not use beta")
+        if self.link_masses_kg is not None and len(self.link_masses_kg) != n:
+            raise ValueError(f"{self.name}: link_masses_kg has {len(self.link_masses_kg)} entries, need {n}")
 
     @property
     def n_joints(self) -> int:

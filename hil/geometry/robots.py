@@ -4,8 +4,11 @@ in modified DH), and any other serial arm is one more such file.
 
 A file holds `name`, `convention` and one `[[joint]]` table per joint, in the units an engineer reads off a
 data sheet: `d_mm`, `a_mm`, `alpha_deg`, optional `theta_offset_deg` (0), `hayati_beta` (false) and
-`limits_deg` ([-360, 360]). Optional `mass_kg` per joint (the link that joint moves) is checked and kept
-for the reader only: no module uses it yet (the simulator has its own mass table per built-in name).
+`limits_deg` ([-360, 360]). Optional `mass_kg` per joint: the mass of the link that joint moves, from the
+maker's dynamics data (Universal Robots publish them; the other makers publish the arm's total mass only, so
+their files leave it out). Given, it must be on every joint, positive and at most MAX_LINK_MASS_KG; the model
+keeps them (`KinematicModel.link_masses_kg`) and the diagnosis computes each joint's gravity torque from them
+(hil.analysis.effects.gravity_physics).
 Optional `expansion_per_k` at the top: the links' coefficient of thermal expansion (their material, e.g.
 2.3e-5 for aluminium, 1.2e-5 for steel), between 1e-6 and 5e-5 per K; the thermal term's prior.
 
@@ -47,6 +50,9 @@ _JOINT_KEYS = {"d_mm", "a_mm", "alpha_deg", "theta_offset_deg", "hayati_beta", "
 CONVENTIONS: dict[str, str] = {
     "dh": "dh", "standard_dh": "dh", "mdh": "mdh", "modified_dh": "mdh", "craig": "mdh",
 }  # fmt: skip
+# The heaviest link of the largest industrial arms weighs some hundreds of kg: a figure beyond is in grams or
+# the whole arm's mass.
+MAX_LINK_MASS_KG = 2000.0
 _PARALLEL_TOL_DEG = 1.0  # a Hayati-beta joint's alpha must be within this of 0 or 180 deg
 
 
@@ -110,7 +116,23 @@ def robot_from_text(text: str, source: str | Path, use_beta: bool = True) -> Kin
         uses_beta=np.array(beta, bool) if use_beta else np.zeros(len(rows), bool),
         joint_limits=np.deg2rad(np.array(limits, float)),
         expansion_per_k=_expansion(path, data["expansion_per_k"]) if "expansion_per_k" in data else None,
+        link_masses_kg=_link_masses(path, joints),
     )
+
+
+def _link_masses(path: Path, joints: list[dict]) -> tuple[float, ...] | None:
+    """Every joint's `mass_kg` (each checked by `_joint_row`), or None when the file gives none; a file that
+    gives it on some joints only is refused (a torque from a partial table would be wrong, not smaller)."""
+    given = [i for i, j in enumerate(joints, start=1) if "mass_kg" in j]
+    if not given:
+        return None
+    if len(given) != len(joints):
+        missing = [i for i in range(1, len(joints) + 1) if i not in given]
+        raise ValueError(
+            f"{path}: mass_kg is given on joint(s) {given} but not on {missing}; give every joint's link mass "
+            "(kg, the maker's dynamics data) or none"
+        )
+    return tuple(float(j["mass_kg"]) for j in joints)
 
 
 def _expansion(path: Path, value: Any) -> float:
@@ -147,8 +169,11 @@ def _joint_row(path: Path, i: int, j: Any, convention: str) -> tuple:
         what = f"unknown key(s) {sorted(unknown)}" if unknown else f"missing {sorted(missing)}"
         raise ValueError(f"{where}: {what}; keys are {', '.join(sorted(_JOINT_KEYS))}")
     values = {k: _number(where, k, j[k]) for k in ("d_mm", "a_mm", "alpha_deg", "theta_offset_deg") if k in j}
-    if "mass_kg" in j and not _number(where, "mass_kg", j["mass_kg"]) > 0:
-        raise ValueError(f"{where}: mass_kg must be positive (kg); leave it out if unknown")
+    if "mass_kg" in j and not 0 < _number(where, "mass_kg", j["mass_kg"]) <= MAX_LINK_MASS_KG:
+        raise ValueError(
+            f"{where}: mass_kg = {j['mass_kg']:g} is outside 0..{MAX_LINK_MASS_KG:g}; give the mass in kg of the "
+            "link this joint moves (not grams, not the whole arm), or leave it out on every joint if unknown"
+        )
     beta = j.get("hayati_beta", False)
     if not isinstance(beta, bool):
         raise ValueError(f"{where}: hayati_beta must be true or false, got {beta!r}")
