@@ -251,3 +251,19 @@ def test_a_marginal_effect_the_full_fit_finds_stays_open_until_its_own_test_deci
     (group,) = plan.groups
     assert group["evidence_z_before"] == pytest.approx(by_test["evidence_z"])
     assert by_test["evidence_z"] < group["evidence_z_after"] < DECISIVE_Z  # 40 rows: more, not yet enough
+
+
+def test_a_candidate_the_full_fit_finds_stays_a_question_beyond_the_marginal_band():
+    """gravity_cyclic1 seed 4 of benchmarks/active_loop.py: after the sweeps, joint 1's once-per-turn term had
+    a full-fit p of 2e-14 and a held-out p of 0.018, just outside MARGINAL_P: no question was left, the loop
+    stopped and the effect was never named. The two tests disagreeing is the question, whatever p_cv is."""
+    from hil.analysis.screening import Candidate
+    from hil.analysis.undecided import MARGINAL_P, selection_questions
+
+    found = Candidate("cyclic", 1, 2, 0.03, 1e-4, 2 * MARGINAL_P, 2e-14, False)
+    unseen = Candidate("cyclic", 1, 2, 0.03, 1e-4, 2 * MARGINAL_P, 0.3, False)
+    worse = Candidate("cyclic", 1, 2, 0.03, -1e-4, 2 * MARGINAL_P, 2e-14, False)  # held-out error rose
+    (q,) = selection_questions([found], [], 1e-3)
+    assert q["kind"] == "marginal" and q["full_fit_passed"]
+    assert selection_questions([unseen], [], 1e-3) == []
+    assert selection_questions([worse], [], 1e-3) == []
