@@ -267,3 +267,47 @@ def test_a_candidate_the_full_fit_finds_stays_a_question_beyond_the_marginal_ban
     assert q["kind"] == "marginal" and q["full_fit_passed"]
     assert selection_questions([unseen], [], 1e-3) == []
     assert selection_questions([worse], [], 1e-3) == []
+
+
+def test_every_block_of_the_design_rows_is_a_greedy_prefix():
+    """A round measured block by block and stopped early has measured the rows the greedy design chose
+    first: the tour reorders rows only inside a block."""
+    from hil.analysis.discrimination import _block_order
+
+    q = np.random.default_rng(1).uniform(-1, 1, (37, 6))
+    order = _block_order(q, np.zeros(6), 7, 10)
+    assert sorted(order) == list(range(37))
+    for lo, hi in ((0, 7), (7, 17), (17, 27), (27, 37)):
+        assert sorted(order[lo:hi]) == list(range(lo, hi))
+    here = q[order[6]]  # each block's tour starts at the row nearest the last block's end
+    assert order[7] == 7 + int(np.argmin(np.max(np.abs(q[7:17] - here), axis=1)))
+
+
+def test_a_block_judgement_keeps_only_rows_whose_questions_are_open():
+    from types import SimpleNamespace
+
+    from hil.analysis.active_rounds import block_record, plan_blocks, still_to_measure
+    from hil.analysis.undecided import question
+
+    period = question("period_not_covered", effect={"name": "cyclic", "joint": 2})
+    one_way = question("one_approach_direction", effect={"name": "backlash", "joint": 2})
+    leaning = question("marginal", effect={"name": "cyclic", "joint": 1}, p_cv=0.003, full_fit_passed=True)
+    drift = question("drift_unmonitored", effect={"name": "thermal_drift", "joint": None})
+    groups = [
+        {"purpose": "sweep_j2", "question": period, "also": "backlash_j2", "also_question": one_way},
+        {"purpose": "separate_cyclic_j1", "question": leaning},
+        {"purpose": "revisit", "question": drift},
+    ]
+    purpose = ["sweep_j2"] * 4 + ["separate_cyclic_j1"] * 5 + ["revisit"] * 2
+    assert [b.tolist() for b in plan_blocks(len(purpose), 4)] == [[0, 1, 2, 3], [4, 5, 6, 7], [8, 9, 10]]
+    # the sweep covered the period but backlash is still one-sided; the leaning effect was named
+    after = SimpleNamespace(
+        undecided=[dict(one_way), dict(drift)], effects_added=[{"name": "cyclic", "joint": 1}]
+    )
+    judged = block_record(1, 4, groups, after)
+    assert judged["open"] == ["revisit", "sweep_j2"]
+    assert still_to_measure(purpose, judged).tolist() == [True] * 4 + [False] * 5 + [True] * 2
+    done = block_record(2, 8, groups, SimpleNamespace(undecided=[], effects_added=[]))
+    assert done["open"] == [] and not still_to_measure(purpose, done).any()
+    with pytest.raises(ValueError, match="at least 1"):
+        plan_blocks(3, 0)
