@@ -311,3 +311,30 @@ def test_a_block_judgement_keeps_only_rows_whose_questions_are_open():
     assert done["open"] == [] and not still_to_measure(purpose, done).any()
     with pytest.raises(ValueError, match="at least 1"):
         plan_blocks(3, 0)
+
+
+def test_a_round_in_words_says_which_rows_it_did_not_need_and_what_each_block_left_open():
+    from hil.analysis.active_rounds import round_text
+    from hil.analysis.undecided import question
+
+    q = question("period_not_covered", effect={"name": "cyclic", "joint": 2}, range_deg=80.0, needs_deg=288.0)
+    block = {"block": 1, "rows": 25, "open": [], "effects": [{"name": "cyclic", "joint": 2}]}
+    measured = {"planned": 40, "poses": 25, "unmeasurable": 3, "not_needed": 12, "blocks": [block],
+                "groups": [{"purpose": "sweep_j2", "rows": 12, "question": q, "range_after_deg": 340.0}],
+                "not_planned": [], "rows_before": 96, "rows_after": 121}  # fmt: skip
+    errors = {"validation_rms_mm": 0.03, "heldout_rms_mm": 0.03}
+    text = round_text(
+        {
+            "round": 1,
+            "undecided": [q],
+            "measured": measured,
+            "effects_before": [],
+            "effects_after": block["effects"],
+            "settled": [{"question": q, "decided": True, "present": True, "now": None}],
+            "error_before": errors,
+            "error_after": errors,
+        }  # fmt: skip
+    )
+    assert "25 poses measured of 40 planned (3 not measurable" in text
+    assert "12 not needed: their questions were decided before they came up" in text
+    assert "after block 1 (25 poses): effects cyclic j2; still to measure: nothing" in text

@@ -155,7 +155,7 @@ def round_text(record: dict) -> str:
         f"{n} {what}"
         for n, what in (
             (unmeasurable, "not measurable with this cell config"),
-            (m.get("not_needed", 0), "not needed: their questions were decided before"),
+            (m.get("not_needed", 0), "not needed: their questions were decided before they came up"),
         )
         if n
     ]
@@ -163,17 +163,17 @@ def round_text(record: dict) -> str:
     lines = [
         f"round {record['round']}: {m['poses']} poses measured{left} ({m['rows_before']} -> {m['rows_after']} training rows)"
     ]
-    for b in m.get("blocks", []):
-        lines.append(
-            f"  after block {b['block']} ({b['rows']} poses): effects {_effects(b['effects'])}; "
-            f"still open: {', '.join(b['open']) or 'nothing'}"
-        )
     lines.append("  undecided before:")
     lines += [f"    - {question_text(q)}" for q in record["undecided"]]
     lines.append("  measured:")
     lines += ["  " + group_text(g) for g in m["groups"]]
     for skipped in m.get("not_planned", []):
         lines.append(f"    not planned: {question_text(skipped['question']).split(':')[0]}: {skipped['why']}")
+    for b in m.get("blocks", []):
+        lines.append(
+            f"    after block {b['block']} ({b['rows']} poses): effects {_effects(b['effects'])}; "
+            f"still to measure: {', '.join(b['open']) or 'nothing'}"
+        )
     lines.append("  after:")
     for s in record["settled"]:
         what = question_text(s["question"]).split(":")[0]
