@@ -662,9 +662,10 @@ def _reclaimed(
     lacks cannot show, and the model that lacks the effect would decide the question in its own favour. Two
     rival models are judged on the rows at least one of them fits; a row both reject is a blunder for both.
     Only candidates whose verdict this can change are re-judged (one robust refit each): those the full-fit
-    test passed and the held-out one did not, and the RECLAIM_UNSEEN whose linearised fit on every row takes
-    back the most rejected rows beyond the model's own (`_linear_reclaim`): the inlier full-fit test cannot
-    find an effect whose rows were rejected. A candidate whose fit accepts no rejected row keeps its result.
+    test passed and the held-out one did not; and, when nothing passes so the selection would stop, the
+    RECLAIM_UNSEEN whose linearised fit on every row takes back the most rejected rows beyond the model's own
+    (`_linear_reclaim`), since the inlier full-fit test cannot find an effect whose rows were rejected. A
+    candidate whose fit accepts no rejected row keeps its result.
     """
     rejected = path.current.outliers
     if not rejected.any():
@@ -672,25 +673,20 @@ def _reclaimed(
     out = list(results)
     model = path.current.model
     test_level = alpha / max(n_tests, 1)
-    plain = _linear_reclaim(base, model, path.free, rejected)
-    chosen: list[tuple[int, Effect]] = []
-    unseen: list[tuple[int, float, int, Effect]] = []
+    seen: list[tuple[int, Effect]] = []
+    unseen: list[tuple[int, Effect]] = []
     for i, (cand, _) in enumerate(results):
         if cand.passed or cand.note:
             continue
         eff = make_effect(cand.name, cand.joint)
-        if not eff.prepare(base.full.ctx, model.nominal):
-            continue
-        if cand.p_chi2 < test_level:
-            chosen.append((i, eff))
-        elif (taken := _linear_reclaim(base, model, path.free, rejected, eff)) > plain:
-            unseen.append((-taken, cand.p_chi2, i, eff))
-    chosen += [(i, eff) for *_, i, eff in sorted(unseen, key=lambda u: u[:3])[:RECLAIM_UNSEEN]]
-    for i, eff in chosen:
+        if eff.prepare(base.full.ctx, model.nominal):
+            (seen if cand.p_chi2 < test_level else unseen).append((i, eff))
+
+    def judge(i: int, eff: Effect) -> None:
         fitted = calibrate(df, model.with_effect(eff), "ridge")
         both = rejected & fitted.outliers
         if both.sum() == rejected.sum():
-            continue
+            return
         prob, partitions = base.rows_and_folds(path.current, both)
         free = _free_mask(path.current.model, prob)[0]
         start = _fit_plain(path.current.model, prob, free, iters=3)
@@ -698,6 +694,15 @@ def _reclaimed(
         again, trial = (screen.test if base.screening == "batched" else screen.test_refit)(eff)
         again.rows_reclaimed = int(rejected.sum() - both.sum())
         out[i] = (again, trial)
+
+    for i, eff in seen:
+        judge(i, eff)
+    if unseen and not any(c.passed for c, _ in out):  # the selection would stop: what do rejected rows hide?
+        plain = _linear_reclaim(base, model, path.free, rejected)
+        taken = [(_linear_reclaim(base, model, path.free, rejected, eff), i, eff) for i, eff in unseen]
+        best = sorted((t for t in taken if t[0] > plain), key=lambda t: (-t[0], results[t[1]][0].p_chi2))
+        for _, i, eff in best[:RECLAIM_UNSEEN]:
+            judge(i, eff)
     return out
 
 
