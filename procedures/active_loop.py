@@ -6,11 +6,14 @@ joint whose sampled range does not cover a once-per-turn error, backlash approac
 pose measured again for drift, effects the geometry or each other imitate) get a plan of at most `poses`
 poses inside the envelope with the SMR facing the tracker, the robot measures them into the same campaign
 in that order (row order is motion order), and the longer campaign is diagnosed again. At most `rounds`
-rounds; the loop stops earlier when nothing that poses can decide is left open.
+rounds; the loop stops earlier when nothing that poses can decide is left open. A round is measured in blocks
+of `block` poses and the campaign is diagnosed after each: poses whose questions are already decided are not
+measured, so a round ends as soon as what it was planned for is decided.
 
 Each round is a campaign step (`round1`, `round2`, ...): its plan is recorded before the first motion
-(`round1/plan`), so an interrupted round resumes with the same poses and measures none twice; its record
-(what was undecided, what was measured, what got decided, the error before and after) is the step result.
+(`round1/plan`) and each block's judgement after it (`round1/block1`, ...), so an interrupted round resumes
+with the same poses, drops the same ones and measures none twice; its record (what was undecided, what was
+measured block by block, what got decided, the error before and after) is the step result.
 `--dry-run` diagnoses the campaign and shows the next round's plan without moving anything.
 """
 
@@ -22,7 +25,16 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from hil.analysis.active_rounds import plan_round, plannable, round_record, rounds_text
+from hil.analysis.active_rounds import (
+    BLOCK_ROWS,
+    block_record,
+    plan_blocks,
+    plan_round,
+    plannable,
+    round_record,
+    rounds_text,
+    still_to_measure,
+)
 from hil.analysis.diagnosis import DiagnosisReport, run_diagnosis
 from hil.data.dataset import DatasetError
 from hil.data.jsonable import to_jsonable
@@ -137,7 +149,13 @@ class _Campaign:
         return _DIAGNOSED[key]
 
     def next_rows(
-        self, number: int, rounds: int, poses: int, train: pd.DataFrame, before: DiagnosisReport
+        self,
+        number: int,
+        rounds: int,
+        poses: int,
+        train: pd.DataFrame,
+        before: DiagnosisReport,
+        block: int = BLOCK_ROWS,
     ) -> tuple[_Rows | None, str]:
         """Round `number`'s poses (its recorded plan when it was started before), or None and why not."""
         if number > rounds:
@@ -159,7 +177,7 @@ class _Campaign:
             return rows, ""
         if not plannable(before):
             return None, "nothing is left undecided that poses can decide"
-        plan = plan_round(train, before, poses, admissible, self.seed + number)
+        plan = plan_round(train, before, poses, admissible, self.seed + number, block)
         if not plan.purpose:
             why = "; ".join(sorted({s["why"] for s in plan.not_planned})) or "no pose decides them"
             return None, f"the open questions cannot be planned on this cell ({why})"
@@ -181,24 +199,38 @@ def _fingerprint(df: pd.DataFrame) -> tuple:
     return tuple(df.columns), len(df), int(pd.util.hash_pandas_object(df, index=False).sum())
 
 
-def motion_plan(config: CellConfig, rows: _Rows, nest: int) -> Plan:
+def motion_plan(
+    config: CellConfig, rows: _Rows, nest: int, only: np.ndarray | None = None, setup: bool = True
+) -> Plan:
     """The round's poses as the session visits them, in the planned order (no approach poses: the order is
-    the approach)."""
+    the approach); `only`: these plan rows (a block); `setup=False`: the SMR is already in its nest."""
     location = f"nest{nest}"
-    setup = (OperatorStep(f"Put SMR 1 in tool nest {nest}.", "place_smr", smr=1, location=location),)
+    steps = (
+        (OperatorStep(f"Put SMR 1 in tool nest {nest}.", "place_smr", smr=1, location=location),)
+        if setup
+        else ()
+    )
+    chosen = np.zeros(len(rows.keep), bool)
+    chosen[np.arange(len(rows.keep)) if only is None else only] = True
     poses = [
         PlannedPose(
-            f"a{rows.number}-{i + 1:03d}", NAME, f"round{rows.number}", q, location, smr=nest, setup=setup
+            f"a{rows.number}-{i + 1:03d}", NAME, f"round{rows.number}", q, location, smr=nest, setup=steps
         )
         for i, q in enumerate(rows.q_rad)
-        if rows.keep[i]
+        if rows.keep[i] and chosen[i]
     ]
     dropped = {"not measurable with this cell config": int(np.sum(~rows.keep))} if not rows.keep.all() else {}
     return Plan(NAME, poses, config, operator_steps=1, dropped=dropped)
 
 
 def plan(
-    config: CellConfig, *, campaign: str | Path | None = None, rounds: int, poses: int, seed: int
+    config: CellConfig,
+    *,
+    campaign: str | Path | None = None,
+    rounds: int,
+    poses: int,
+    seed: int,
+    block: int = BLOCK_ROWS,
 ) -> Plan:
     """The next round's poses on this campaign (for --dry-run): the campaign is diagnosed, nothing moves."""
     if campaign is None or not Path(campaign).exists():
@@ -211,17 +243,63 @@ def plan(
         except CampaignStopped as exc:
             raise ValueError(f"{exc.message}; {exc.remedy}") from exc
         before = state.diagnose(train, _previous(state.records()))
-        rows, why = state.next_rows(done + 1, rounds, poses, train, before)
+        rows, why = state.next_rows(done + 1, rounds, poses, train, before, block)
         nest = state.nest(train)
     if rows is None:
         return Plan(NAME, [], config, dropped={f"no round {done + 1}: {why}": 1})
     return motion_plan(config, rows, nest)
 
 
+def _measure_round(
+    session: Session,
+    state: _Campaign,
+    rows: _Rows,
+    before: DiagnosisReport,
+    rows_before: int,
+    block: int,
+    shots: int | None,
+) -> list[dict]:
+    """Measure a round's plan block by block; after each block the longer campaign is diagnosed and the rows
+    whose questions it decided are dropped (hil.analysis.active_rounds). Each judgement is recorded
+    (`roundN/blockK`) before the next motion, so a resumed round drops the same rows; returns them all."""
+    nest = state.nest(state.training(rows.number - 1))
+    todo = rows.keep.copy()
+    judged: list[dict] = []
+    ask = True  # the operator places the SMR before this process' first pose, not before every block
+    for k, idx in enumerate(plan_blocks(len(rows.purpose), block), start=1):
+        idx = idx[todo[idx]]
+        if not len(idx):
+            continue
+        plan = motion_plan(session.config, rows, nest, only=idx, setup=ask)
+        if session.visit(plan, shots=shots, extra={"round": rows.number}):
+            ask = False
+        step = f"round{rows.number}/block{k}"
+        record = session.step_result(NAME, step)
+        if record is None:
+            longer = state.training(rows.number)
+            after = state.diagnose(longer, before.effects_added)
+            fresh = to_jsonable(block_record(k, len(longer) - rows_before, rows.groups, after))
+            assert isinstance(fresh, dict)
+            session.finish_step(NAME, step, fresh)
+            record = fresh
+        judged.append(record)
+        todo &= still_to_measure(rows.purpose, record)
+        if not todo[idx[-1] + 1 :].any():
+            break
+    return judged
+
+
 def run_loop(
-    session: Session, *, rounds: int, poses: int, seed: int, shots: int | None = None
+    session: Session,
+    *,
+    rounds: int,
+    poses: int,
+    seed: int,
+    block: int = BLOCK_ROWS,
+    shots: int | None = None,
 ) -> ActiveLoopResult:
-    """Diagnose, plan, measure, diagnose again, for at most `rounds` rounds of at most `poses` poses; resumable."""
+    """Diagnose, plan, measure block by block, diagnose again, for at most `rounds` rounds of at most `poses`
+    poses; resumable."""
     session.require_registration()
     state = _Campaign(session.store, session.config, seed)
     records = state.records()
@@ -229,16 +307,18 @@ def run_loop(
     before = state.diagnose(train, _previous(records))
     while True:
         number = len(records) + 1
-        rows, why = state.next_rows(number, rounds, poses, train, before)
+        rows, why = state.next_rows(number, rounds, poses, train, before, block)
         if rows is None:
             break
         if session.step_result(NAME, f"round{number}/plan") is None:
             session.finish_step(NAME, f"round{number}/plan", rows.to_dict())  # pinned before the first motion
-        nest = state.nest(train)
-        session.visit(motion_plan(session.config, rows, nest), shots=shots, extra={"round": number})
+        blocks = _measure_round(session, state, rows, before, len(train), block, shots)
         longer = state.training(number)
         after = state.diagnose(longer, before.effects_added)
-        record = to_jsonable(round_record(number, before, after, rows.to_dict(), len(train), len(longer)))
+        unmeasurable = int(np.sum(~rows.keep))
+        record = to_jsonable(
+            round_record(number, before, after, rows.to_dict(), len(train), len(longer), blocks, unmeasurable)
+        )
         assert isinstance(record, dict)
         session.finish_step(NAME, f"round{number}", record)
         records.append(record)
@@ -267,12 +347,20 @@ PROCEDURE = Procedure(
         ),
         Parameter("poses", "poses per round at most", 100, int, minimum=1, maximum=500),
         Parameter(
+            "block",
+            "poses measured between two diagnoses of a round (it ends once its questions are decided)",
+            BLOCK_ROWS,
+            int,
+            minimum=1,
+            maximum=500,
+        ),
+        Parameter(
             "seed", "seed of the diagnosis' folds and of the plan's candidate poses", 0, int, minimum=0
         ),
         SHOTS,
     ),
     plan=plan,
     body=run_loop,
-    steps=("round1/plan", "round1", "round2/plan", "round2", "...", "stop"),
+    steps=("round1/plan", "round1/block1", "...", "round1", "round2/plan", "...", "stop"),
     summary=summary,
 )

@@ -26,6 +26,7 @@ pytestmark = pytest.mark.sim  # its campaign fixture starts the simulated cell (
 OFFLINE_HOST = "127.254.254.254"  # nothing listens there: a command that tried to connect would fail
 EFFECTS = ("--effects", "gravity_compliance,cyclic")  # cyclic: once- and twice-per-turn errors of joints 1-3
 INTERRUPT_AFTER = 3
+BLOCK = 10  # two blocks a round: the round is judged after the first (the interruption falls in it)
 
 
 class _LinkDroppedError(RuntimeError):
@@ -34,7 +35,8 @@ class _LinkDroppedError(RuntimeError):
 
 @pytest.fixture(scope="module")
 def loop(tmp_path_factory):
-    """Grid at 200 mm on a seeded cell; a loop of 2 rounds of <= 20 poses interrupted in round 1, then resumed."""
+    """Grid at 200 mm on a seeded cell; a loop of 2 rounds of <= 20 poses in blocks of 10, interrupted in round
+    1, then resumed."""
     folder = tmp_path_factory.mktemp("active_loop")
     path = folder / "campaign.sqlite"
     with running_cell(folder, time_scale=50.0, seed=2, extra_args=EFFECTS) as (_, config):
@@ -56,11 +58,11 @@ def loop(tmp_path_factory):
         with pytest.MonkeyPatch.context() as patch:
             patch.setattr(Session, "measure_point", dropping)
             with pytest.raises(_LinkDroppedError), session_on(config, path) as session:
-                active_loop.PROCEDURE(session, rounds=2, poses=20)
+                active_loop.PROCEDURE(session, rounds=2, poses=20, block=BLOCK)
         with CampaignStore(path, create=False) as store:
             before_resume = store.measurements(active_loop.NAME)
         with session_on(config, path) as session:
-            result = active_loop.PROCEDURE(session, rounds=2, poses=20)
+            result = active_loop.PROCEDURE(session, rounds=2, poses=20, block=BLOCK)
         yield {
             "config": config,
             "path": path,
@@ -113,6 +115,31 @@ def test_every_round_is_measured_once_in_plan_order_inside_the_envelope(loop):
     assert not config.envelope.outside(config.nominal, q, config.nests_flange_m).any()
     assert measurable(config)(q).all()
     assert stored == loop["result"].records  # each round's record is its step result
+
+
+@pytest.mark.sim
+@pytest.mark.timeout(400)
+def test_a_round_is_judged_after_each_block_and_measures_only_what_is_still_open(loop):
+    """Each block's judgement is a step result recorded before the next motion; the rows measured after it
+    serve only the purposes it left open, and the round's record counts the rows it did not need."""
+    with CampaignStore(loop["path"], create=False) as store:
+        rows = store.measurements(active_loop.NAME)
+        for record in loop["result"].records:
+            n, m = record["round"], record["measured"]
+            blocks = m["blocks"]
+            assert (
+                blocks
+                and [store.step_result(active_loop.NAME, f"round{n}/block{b['block']}") for b in blocks]
+                == blocks
+            )
+            purpose = store.step_result(active_loop.NAME, f"round{n}/plan")["purpose"]
+            index = [int(p.split("-")[1]) - 1 for p in rows.loc[rows["step"] == f"round{n}", "point_id"]]
+            for judged in blocks:
+                later = [purpose[i] for i in index if i >= judged["block"] * BLOCK]
+                assert set(later) <= set(judged["open"])
+            assert [b["rows"] for b in blocks] == sorted(b["rows"] for b in blocks)
+            assert blocks[-1]["rows"] == m["poses"] == len(index)
+            assert m["not_needed"] == m["planned"] - m["unmeasurable"] - m["poses"] >= 0
 
 
 @pytest.mark.sim

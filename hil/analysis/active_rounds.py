@@ -6,6 +6,12 @@ hil.analysis.discrimination plans the poses that decide it; they are measured an
 hil.analysis.undecided.settled. A record holds what was undecided, what was measured, what got decided and
 the error before and after: held-out on the campaign so far (it grows by the round's poses, so the two
 figures are on different rows) and on the validation poses (the same poses before and after).
+
+A round is sequential: its plan is measured in blocks of `BLOCK_ROWS` rows (the plan's design rows are
+ordered so that each block ends a greedy prefix), and after each block the longer campaign is diagnosed
+again - the same test that decides at the end of a round, so a marginal (test-led) question is judged by its
+own held-out test. Rows whose every question that diagnosis no longer leaves open are not measured: the
+round stops when the evidence for each question it serves has passed its threshold, not at a fixed count.
 """
 
 from __future__ import annotations
@@ -17,9 +23,9 @@ import numpy as np
 import pandas as pd
 
 from hil.analysis.diagnosis import DiagnosisReport
-from hil.analysis.discrimination import Plan, propose
+from hil.analysis.discrimination import BLOCK_ROWS, Plan, propose
 from hil.analysis.report import group_text, question_text
-from hil.analysis.undecided import settled
+from hil.analysis.undecided import question_key, settled
 
 
 def plan_round(
@@ -28,10 +34,56 @@ def plan_round(
     max_rows: int,
     admissible: Callable[[np.ndarray], np.ndarray] | None,
     seed: int,
+    block: int = BLOCK_ROWS,
 ) -> Plan:
-    """The poses (at most `max_rows`, in measurement order) that decide what `report` leaves open on `df`."""
+    """The poses (at most `max_rows`, in measurement order, most informative first in each `block`) that
+    decide what `report` leaves open on `df`."""
     sigma_m = float(np.sqrt(np.mean(np.asarray(report.noise.sigma_axis_m) ** 2)))
-    return propose(df, report.model, report.undecided, max_rows, sigma_m, admissible=admissible, seed=seed)
+    return propose(
+        df,
+        report.model,
+        report.undecided,
+        max_rows,
+        sigma_m,
+        admissible=admissible,
+        seed=seed,
+        block_rows=block,
+    )
+
+
+def plan_blocks(rows: int, size: int = BLOCK_ROWS) -> list[np.ndarray]:
+    """The plan's row indices in the blocks a round measures between two judgements."""
+    if size < 1:
+        raise ValueError(f"a block needs at least 1 row, got {size}")
+    return [np.arange(a, min(a + size, rows)) for a in range(0, rows, size)]
+
+
+def served_questions(group: dict) -> list[dict]:
+    """The questions a plan group's rows serve (a sweep moved back down serves backlash too)."""
+    also = group.get("also_question")
+    return [group["question"], *([also] if also else [])]
+
+
+def open_purposes(groups: list[dict], report: DiagnosisReport) -> set[str]:
+    """The plan's purposes with a question that `report` (the diagnosis after a block) still leaves open."""
+    now = {question_key(q) for q in report.undecided}
+    return {g["purpose"] for g in groups if any(question_key(q) in now for q in served_questions(g))}
+
+
+def block_record(number: int, rows_measured: int, groups: list[dict], report: DiagnosisReport) -> dict:
+    """The judgement after a round's block `number`: the round's rows measured so far, the purposes still
+    open (the only rows measured from here on), the effects the longer campaign's diagnosis names."""
+    return {
+        "block": number,
+        "rows": rows_measured,
+        "open": sorted(open_purposes(groups, report)),
+        "effects": report.effects_added,
+    }
+
+
+def still_to_measure(purpose: list[str], judged: dict) -> np.ndarray:
+    """Which of a plan's rows a block's judgement (`block_record`) leaves to measure."""
+    return np.isin(np.asarray(purpose, dtype=object), list(judged["open"]))
 
 
 def plannable(report: DiagnosisReport) -> list[dict]:
@@ -56,15 +108,22 @@ def round_record(
     plan: dict,
     rows_before: int,
     rows_after: int,
+    blocks: list[dict] | None = None,
+    unmeasurable: int = 0,
 ) -> dict:
-    """What one round did, as JSON-ready data: `plan` is {purpose: [...], groups: [...]} of the measured poses."""
+    """What one round did, as JSON-ready data: `plan` is {purpose: [...], groups: [...]} of the measured poses;
+    `blocks`: each block's judgement (`block_record`); `unmeasurable`: planned rows the cell cannot measure."""
     judged = settled(before.undecided, after.undecided, after.effects_added)
+    poses = rows_after - rows_before
     return {
         "round": number,
         "undecided": before.undecided,
         "measured": {
             "planned": len(plan["purpose"]),
-            "poses": rows_after - rows_before,
+            "poses": poses,
+            "unmeasurable": unmeasurable,
+            "not_needed": max(len(plan["purpose"]) - unmeasurable - poses, 0),
+            "blocks": blocks or [],
             "groups": plan["groups"],
             "not_planned": plan.get("not_planned", []),
             "rows_before": rows_before,
@@ -91,11 +150,16 @@ def round_text(record: dict) -> str:
     """One round in words: what was undecided, what was measured, what got decided, the error before and after."""
     m = record["measured"]
     planned = m.get("planned", m["poses"])
-    left = (
-        f" of {planned} planned (the rest not measurable with this cell config)"
-        if planned != m["poses"]
-        else ""
-    )
+    unmeasurable = m.get("unmeasurable", planned - m["poses"])
+    why = [
+        f"{n} {what}"
+        for n, what in (
+            (unmeasurable, "not measurable with this cell config"),
+            (m.get("not_needed", 0), "not needed: their questions were decided before they came up"),
+        )
+        if n
+    ]
+    left = f" of {planned} planned ({'; '.join(why)})" if planned != m["poses"] else ""
     lines = [
         f"round {record['round']}: {m['poses']} poses measured{left} ({m['rows_before']} -> {m['rows_after']} training rows)"
     ]
@@ -105,6 +169,11 @@ def round_text(record: dict) -> str:
     lines += ["  " + group_text(g) for g in m["groups"]]
     for skipped in m.get("not_planned", []):
         lines.append(f"    not planned: {question_text(skipped['question']).split(':')[0]}: {skipped['why']}")
+    for b in m.get("blocks", []):
+        lines.append(
+            f"    after block {b['block']} ({b['rows']} poses): effects {_effects(b['effects'])}; "
+            f"still to measure: {', '.join(b['open']) or 'nothing'}"
+        )
     lines.append("  after:")
     for s in record["settled"]:
         what = question_text(s["question"]).split(":")[0]

@@ -22,6 +22,9 @@ Two kinds of rows, in the order to measure them:
    A marginal candidate that the full-fit test finds is the exception (`held_out_z`): its evidence is the
    held-out test's own z, scaled by the same standard errors, so a question is decided only when the
    selection's own test can decide it and the loop plans another round until then.
+   The design's rows are cut into blocks of `BLOCK_ROWS` in greedy order (a short tour inside each block), so
+   a round measured block by block and stopped when its questions are decided has measured the most
+   informative rows first (hil.analysis.active_rounds).
 
 Reachability and line of sight are the caller's: `admissible(q) -> bool mask` (joint limits of the robot
 file are always applied here). hil.runner knows the cell's envelope and tracker; this layer does not.
@@ -53,6 +56,7 @@ SWEEP_POINTS = 12
 APPROACH_STEP_RAD = float(np.deg2rad(3.0))
 POOL_SIZE = 1500
 POOL_PERTURB_RAD = float(np.deg2rad(30.0))
+BLOCK_ROWS = 25  # a round is measured in blocks this long and re-judged after each (sequential stopping)
 
 Admissible = Callable[[np.ndarray], np.ndarray]  # (M, n) joints -> (M,) bool: reachable and measurable
 
@@ -85,11 +89,14 @@ def propose(
     sigma_m: float,
     admissible: Admissible | None = None,
     seed: int = 0,
+    block_rows: int = BLOCK_ROWS,
 ) -> Plan:
     """At most `max_rows` joint configurations, in measurement order, that decide `questions` on `df`.
 
     `sigma_m`: 1-sigma tracker noise per axis; `admissible`: which configurations the cell can reach and
-    the tracker can see (joint limits are applied here in any case).
+    the tracker can see (joint limits are applied here in any case); `block_rows`: the blocks a round is
+    measured and re-judged in (hil.analysis.active_rounds): the design's rows are ordered so that every
+    block boundary of the plan ends a greedy prefix.
     """
     if max_rows < 1:
         raise ValueError(f"a plan needs at least 1 row, got {max_rows}")
@@ -138,6 +145,11 @@ def propose(
         if both:
             backlash_joints.discard(j + 1)
             groups[-1]["also"] = f"backlash_j{j + 1}"
+            groups[-1]["also_question"] = next(
+                b
+                for b in plannable
+                if b["kind"] == "one_approach_direction" and b["effect"]["joint"] == j + 1
+            )
     for qu in [qu for qu in plannable if qu["kind"] == "one_approach_direction"]:
         j = qu["effect"]["joint"] - 1
         if (j + 1) not in backlash_joints:
@@ -159,7 +171,10 @@ def propose(
         if qu["kind"] not in ("period_not_covered", "one_approach_direction", "drift_unmonitored")
     ]
     if stat:
-        design_rows, design_groups, skipped = _separate(df, model, stat, physics_q, budget, sigma_m, ok, rng)
+        first_block = block_rows - len(rows) % block_rows
+        design_rows, design_groups, skipped = _separate(
+            df, model, stat, physics_q, budget, sigma_m, ok, rng, block_rows, first_block
+        )
         rows += design_rows
         groups += design_groups
         plan.not_planned += skipped
@@ -382,8 +397,9 @@ def _pool(q_camp: np.ndarray, limits: np.ndarray, ok, rng) -> np.ndarray:
     return q[ok(q)]
 
 
-def _separate(df, model, questions, physics_q, budget, sigma_m, ok, rng):
-    """Greedy Bayesian T-optimal rows for the statistical questions (see the module docstring)."""
+def _separate(df, model, questions, physics_q, budget, sigma_m, ok, rng, block_rows, first_block):
+    """Greedy Bayesian T-optimal rows for the statistical questions (see the module docstring), in blocks of
+    `block_rows` (the first `first_block` long) that follow the greedy order."""
     q_camp = joints_rad(df)
     camp = Problem.from_frame(model, df)
     rivals, skipped = [], []
@@ -456,7 +472,9 @@ def _separate(df, model, questions, physics_q, budget, sigma_m, ok, rng):
         available[best] = False
         for r, A in zip(rivals, blocks, strict=True):
             r.cov = _woodbury_update(r.cov, A[best])
-    order = _nearest_neighbour_order(pool[chosen], physics_q[-1] if len(physics_q) else q_camp[-1])
+    order = _block_order(
+        pool[chosen], physics_q[-1] if len(physics_q) else q_camp[-1], first_block, block_rows
+    )
     rows = [(pool[chosen[i]], f"separate_{rivals[serves[i]].label}") for i in order]
     groups = []
     for k, r in enumerate(rivals):
@@ -496,6 +514,19 @@ def _solo_reach(r: _Rival, A: np.ndarray, budget: int, sigma_m: float) -> float:
         cov = _woodbury_update(cov, A[best])
         z = float(z_new[best])
     return z
+
+
+def _block_order(q: np.ndarray, start: np.ndarray, first: int, size: int) -> list[int]:
+    """Rows `q` (in greedy choice order) cut into blocks (`first` rows, then `size` each), each toured by
+    `_nearest_neighbour_order` from where the block before ended: every block boundary is a greedy prefix, so
+    a round that stops after any block has measured the most informative rows it could."""
+    out: list[int] = []
+    cut = 0
+    while cut < len(q):
+        end = min(len(q), cut + (first if cut == 0 else size))
+        out += [cut + i for i in _nearest_neighbour_order(q[cut:end], q[out[-1]] if out else start)]
+        cut = end
+    return out
 
 
 def _nearest_neighbour_order(q: np.ndarray, start: np.ndarray) -> list[int]:

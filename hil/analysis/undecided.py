@@ -12,9 +12,10 @@ After selection a campaign can leave an effect undecided for reasons no test on 
   of the campaign's duration after their first visit.
 - ``temperature_not_spanned``: the recorded temperature spans less than `MIN_TEMPERATURE_SPAN_K`; poses
   cannot decide it (a run at another temperature can), so it is reported but never planned.
-- ``marginal``: a candidate that lowered the held-out error with alpha <= p < `MARGINAL_P`; when its
-  full-fit test passed (`full_fit_passed`), the selection's two tests disagree, and only the held-out test
-  passing (or the full-fit one failing) decides it: its evidence is that test's own z (see below);
+- ``marginal``: a candidate that lowered the held-out error with alpha <= p < `MARGINAL_P`, or with any
+  p >= alpha when its full-fit test passed (`full_fit_passed`): then the selection's two tests disagree
+  (a p_cv of 0.02 beside a full-fit p of 1e-14 is no weaker a question than a p_cv of 0.005), and only the
+  held-out test passing (or the full-fit one failing) decides it: its evidence is that test's own z (below);
 - ``confounded_with_geometry``: a candidate the geometry imitates on these poses (refitted with every
   geometric parameter free, it was rejected as collinear or inseparable);
 - ``ambiguous_effects``: two candidates that explain the same residual (the winner, refitted, took the
@@ -154,8 +155,10 @@ def selection_questions(final_round: list, ambiguities: list[dict], alpha: float
                     note=c.note,
                 )
             )
-        elif not c.passed and c.gain_mm2 > 0 and alpha <= c.p_cv < MARGINAL_P and not c.note:
+        elif not c.passed and c.gain_mm2 > 0 and alpha <= c.p_cv and not c.note:
             full_fit = bool(c.p_chi2 < alpha / max(len(final_round), 1))  # the screening's level for it
+            if not (full_fit or c.p_cv < MARGINAL_P):
+                continue
             out.append(
                 question(
                     "marginal",
