@@ -431,7 +431,7 @@ def _separate(df, model, questions, physics_q, budget, sigma_m, ok, rng, block_r
         skipped.append(
             {
                 "question": rivals[k].question,
-                "why": f"{budget} reachable rows would raise its evidence only to z {reach[k]:.2g} of {DECISIVE_Z}",
+                "why": f"{budget} reachable rows would raise its evidence only to z {reach[k]:.3g} of {DECISIVE_Z}",
                 "evidence_z": z_before[k],
             }
         )
