@@ -401,7 +401,7 @@ def undecided_questions(df: pd.DataFrame, path: _Path, alpha: float, sigma_m: fl
     from hil.analysis.undecided import open_questions
 
     pairs = confounded_pairs(path.current, path.prob)
-    found = open_questions(df, path.final_round, path.ambiguities, pairs, alpha)
+    found = open_questions(df, path.final_round, path.ambiguities, pairs, alpha, path.current.model.effects)
     decided = set()
     for ev in evidence(df, path.current.model, found, sigma_m):
         ev["question"]["evidence_z"] = ev["evidence_z"]

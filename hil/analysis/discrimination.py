@@ -552,6 +552,7 @@ def evidence(df: pd.DataFrame, model: CalibratedModel, questions: list[dict], si
             "confounded_with_geometry",
             "ambiguous_effects",
             "confounded_parameters",
+            "thermal_rivals",
         ):
             continue
         r = _rival(df, model, camp, qu)

@@ -625,6 +625,11 @@ def question_text(q: dict) -> str:
         return f"{_effect(eff)}: the geometry imitates it on these poses{ev}"
     if kind == "ambiguous_effects":
         return f"{_effect(eff)} or {_effect(q['rival'])}: both explain the same residual{ev}"
+    if kind == "thermal_rivals":
+        return (
+            f"the tracker's scale or the links' growth: over {q['span_k']:.2g} K the growth may have taken the "
+            f"tracker's stretch (about the tracker, not the base){ev}"
+        )
     if kind == "confounded_parameters":
         a, b = q["parameters"]
         return f"{a} and {b} correlate {q['correlation']:+.3f}: each alone is unreliable{ev}"

@@ -20,8 +20,13 @@ After selection a campaign can leave an effect undecided for reasons no test on 
   geometric parameter free, it was rejected as collinear or inseparable);
 - ``ambiguous_effects``: two candidates that explain the same residual (the winner, refitted, took the
   rival's gain);
-- ``confounded_parameters``: two geometric parameters whose estimates correlate beyond 0.95.
-The last four are decided when the campaign separates the rivals: hil.analysis.discrimination's evidence
+- ``confounded_parameters``: two geometric parameters whose estimates correlate beyond 0.95;
+- ``thermal_rivals``: the model carries the links' growth driven by the recorded temperature, not the
+  tracker's scale (a wrong air temperature stretches every distance about the tracker, about 1 ppm per K),
+  and the temperature spans at least `MIN_TEMPERATURE_SPAN_K`: the growth (about the base, along the links)
+  may have absorbed the tracker's stretch. Poses measured now, at the temperature the cell has reached, where
+  the two move the SMR differently separate them.
+The last five are decided when the campaign separates the rivals: hil.analysis.discrimination's evidence
 (every rival coefficient's smallest relevant size at `DECISIVE_Z` standard errors or more) passes; except a
 marginal candidate the full fit finds, whose evidence is the held-out test's z (below the test's own level by
 definition), so that it stays open until the selection's own test decides it.
@@ -35,7 +40,7 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from hil.analysis.effects import CYCLIC_MIN_PERIODS, approach_signs
+from hil.analysis.effects import CYCLIC_MIN_PERIODS, Effect, approach_signs, temperature_driven
 from hil.data.dataset import joints_rad, pose_ids
 
 MARGINAL_P = 0.01  # held-out p-value below this but not below alpha: the data leans, it does not decide
@@ -56,6 +61,7 @@ PLANNABLE = (
     "confounded_with_geometry",
     "ambiguous_effects",
     "confounded_parameters",
+    "thermal_rivals",
 )
 
 
@@ -178,12 +184,36 @@ def parameter_questions(pairs: list[tuple]) -> list[dict]:
     return [question("confounded_parameters", parameters=[a, b], correlation=float(c)) for a, b, c in pairs]
 
 
+def thermal_questions(df: pd.DataFrame, effects: list[Effect]) -> list[dict]:
+    """The tracker's scale against the links' growth, when the model carries a temperature-driven growth and
+    no tracker scale, and the recorded temperature spans enough to show either."""
+    families = {e.family for e in effects if temperature_driven(e)}
+    if "thermal_expansion" not in families or "tracker_scale" in families or "temperature_c" not in df:
+        return []
+    span_k = float(np.ptp(df["temperature_c"].to_numpy(float)))
+    if span_k < MIN_TEMPERATURE_SPAN_K:
+        return []  # temperature_not_spanned says it: poses at one temperature cannot
+    return [
+        question(
+            "thermal_rivals",
+            effect={"name": "tracker_scale", "joint": None},
+            rival={"name": "thermal_expansion", "joint": None},
+            span_k=span_k,
+        )
+    ]
+
+
 def open_questions(
-    df: pd.DataFrame, final_round: list, ambiguities: list[dict], pairs: list[tuple], alpha: float
+    df: pd.DataFrame,
+    final_round: list,
+    ambiguities: list[dict],
+    pairs: list[tuple],
+    alpha: float,
+    effects: list[Effect] | None = None,
 ) -> list[dict]:
-    """Every undecided question of a diagnosis on `df`, plannable ones first."""
+    """Every undecided question of a diagnosis on `df` whose model carries `effects`, plannable ones first."""
     found = coverage_questions(df) + selection_questions(final_round, ambiguities, alpha)
-    found += parameter_questions(pairs)
+    found += parameter_questions(pairs) + thermal_questions(df, effects or [])
     return sorted(found, key=lambda x: not x["plannable"])
 
 
