@@ -253,6 +253,27 @@ def test_a_marginal_effect_the_full_fit_finds_stays_open_until_its_own_test_deci
     assert by_test["evidence_z"] < group["evidence_z_after"] < DECISIVE_Z  # 40 rows: more, not yet enough
 
 
+def test_a_marginal_question_the_budget_cannot_decide_is_not_planned(first):
+    """The demo's first round spent 36 of 40 poses on a held-out z of 1.4 that they moved to 1.5. A test-led
+    question the whole budget would not decide, even counting each designed row as MAX_DESIGN_ROW_WORTH
+    campaign poses, is reported as not planned; one within reach still gets the rows."""
+    from hil.analysis.discrimination import MAX_DESIGN_ROW_WORTH
+    from hil.analysis.screening import Candidate
+    from hil.analysis.undecided import selection_questions
+
+    _, train = first
+    model = _model(train)
+    hopeless = Candidate("gravity_compliance", 4, 1, 0.03, 1e-5, 0.08, 1e-20, False)
+    within = Candidate("gravity_compliance", 4, 1, 0.03, 1e-4, 0.002, 1e-20, False)
+    (q_hopeless,) = selection_questions([hopeless], [], 1e-3)
+    (q_within,) = selection_questions([within], [], 1e-3)
+    plan = propose(train, model, [q_hopeless], 40, 1e-6)
+    assert plan.purpose == [] and len(plan.not_planned) == 1
+    assert f"counted as {MAX_DESIGN_ROW_WORTH:g} campaign poses" in plan.not_planned[0]["why"]
+    plan = propose(train, model, [q_within], 40, 1e-6)
+    assert set(plan.purpose) == {"separate_gravity_compliance_j4"}
+
+
 def test_a_candidate_the_full_fit_finds_stays_a_question_beyond_the_marginal_band():
     """gravity_cyclic1 seed 4 of benchmarks/active_loop.py: after the sweeps, joint 1's once-per-turn term had
     a full-fit p of 2e-14 and a held-out p of 0.018, just outside MARGINAL_P: no question was left, the loop
