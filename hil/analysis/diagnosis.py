@@ -22,7 +22,7 @@ Selection rule for each round (every candidate from `hil.analysis.effects` the d
    and the whole model refitted robustly; an earlier effect that no longer earns its place is removed.
    The screening's rows are the current model's inliers; a candidate the full-fit test finds but the held-out
    one does not is judged again on the rows that the current model or its own robust fit accepts (rival
-   models are judged on the rows either fits, a row both reject is a blunder: `_reclaimed`).
+   models are judged on the rows either fits, a row both reject is a blunder: `reclaimed`).
 The loop stops when nothing passes. The links' thermal growth is physics, not a candidate, when the robot
 names its material and the campaign records a temperature: it is in the model from the geometric fit on,
 fitted with the material's coefficient as its prior (hil.analysis.effects.material_expansion), never removed,
@@ -40,7 +40,6 @@ not on spatial ones) is not added: the verdict calls the structure local.
 from __future__ import annotations
 
 import warnings
-from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -49,28 +48,30 @@ import pandas as pd
 from scipy import stats
 from threadpoolctl import threadpool_limits
 
-from hil.analysis.calibrated_model import CalibratedModel, initial_model, with_initial_probes
+from hil.analysis.calibrated_model import CalibratedModel
 from hil.analysis.calibration import (
     CONFOUNDED_NOTE,
-    K1,
-    PROBE_ANGLE_NOISE_RAD,
     CalibrationResult,
     Problem,
     calibrate,
     confounded_pairs,
     flatten_jacobian,
-    identify,
     parameter_correlations,
-    robust_scales,
-    solve_ridge_igg3,
 )
 from hil.analysis.calibration import reregister as reregister_model
+from hil.analysis.diagnosis_baseline import (
+    Baseline,
+    Progress,
+    baseline_fit,
+    fit_plain,
+    free_mask,
+    quiet,
+    registration,
+)
 from hil.analysis.drift_monitor import reference_drift
 from hil.analysis.effects import (
     Effect,
     candidate_effects,
-    gravity_physics_term,
-    hold_at_material,
     make_effect,
     material_conflict,
     material_growth,
@@ -79,8 +80,9 @@ from hil.analysis.effects import (
     yields_against_gravity,
 )
 from hil.analysis.identifiability import IdentifiabilityReport
-from hil.analysis.noise_floor import TRACKER_MPE_M, NoiseFloor, estimate_noise_floor
-from hil.analysis.physics_terms import gravity_summary, held_rigid_start, physics_start, thermal_summary
+from hil.analysis.noise_floor import TRACKER_MPE_M, NoiseFloor
+from hil.analysis.physics_terms import gravity_summary, thermal_summary
+from hil.analysis.reclaim import reclaimed
 from hil.analysis.residual_maps import MAP_KINDS, MAP_MODES, kfold_map_errors, make_map, map_from_dict
 from hil.analysis.rivals import compare_with_rivals, rivals_in_round
 from hil.analysis.screening import (
@@ -109,15 +111,6 @@ def error_stats(err_m: np.ndarray) -> dict[str, float]:
         "max_mm": float(np.max(e)),
         "p95_mm": float(np.percentile(e, 95)),
     }
-
-
-def _fit_plain(model: CalibratedModel, problem: Problem, free: np.ndarray, iters: int = 8) -> CalibratedModel:
-    return solve_ridge_igg3(model, problem, free, robust=False, max_iter=iters).model
-
-
-def _free_mask(model: CalibratedModel, problem: Problem) -> tuple[np.ndarray, IdentifiabilityReport]:
-    report = identify(model, problem)
-    return report.keep_mask, report
 
 
 @dataclass
@@ -317,7 +310,7 @@ def run_diagnosis(
     df = drop_duplicate_rows(df, "training data")  # copies would count twice in every test
     with threadpool_limits(1):  # small dense problems: threads only contend
         fit_args = (df, robot, folds, seed, repeatability_mm, tool_guess_m, tracker_mpe_m, progress)
-        base = _baseline_fit(*fit_args)
+        base = baseline_fit(*fit_args)
         base.screening = screening
         path = _select(base, df, alpha, families, max_effects)
         material = next((e for e in path.current.model.effects if material_growth(e)), None)
@@ -331,7 +324,7 @@ def run_diagnosis(
             # the selected effects are in: select again with the growth held at the material's and those
             # joints held rigid.
             hold = float(material.params[0]) if conflict and material is not None else None
-            base = _baseline_fit(*fit_args, hold_material=hold, hold_gravity={**base.held_gravity, **against})
+            base = baseline_fit(*fit_args, hold_material=hold, hold_gravity={**base.held_gravity, **against})
             base.screening = screening
             path = _select(base, df, alpha, families, max_effects)
         _settle_rivals(base, df, path, alpha)
@@ -358,11 +351,8 @@ def run_diagnosis(
         return report
 
 
-Progress = Callable[[str, int, int], None]  # (phase, done, total)
-
-
 def _select(
-    base: _Baseline, df: pd.DataFrame, alpha: float, families: tuple[str, ...] | None, max_effects: int
+    base: Baseline, df: pd.DataFrame, alpha: float, families: tuple[str, ...] | None, max_effects: int
 ) -> _Path:
     """Forward selection, tried again without its first choice while it stays above the noise floor."""
     path = _forward_selection(base, df, alpha, families, max_effects, banned=set())
@@ -422,161 +412,6 @@ def without_decided_pairs(cautions: list[dict], undecided: list[dict]) -> list[d
     return [c for c in cautions if not decided(c)]
 
 
-def _quiet(phase: str, done: int, total: int) -> None:
-    return None
-
-
-# Spatial partitions whose held-out errors the selection tests average. One k-means partition is a draw:
-# on a 100 mm grid a cyclic joint-1 term's held-out gain moved between 33 and 66 um^2 (p 1e-2 .. 2e-5) with
-# the seeding alone, and one pose more or less re-draws it. Four draws average most of that out.
-CV_REPEATS = 4
-
-# Screening a candidate costs a Jacobian and a k-fold solve over every row; beyond this many rows a
-# fixed random subset decides (thousands of points already resolve micrometre effects); fits use all.
-SCREEN_MAX_ROWS = 3000
-
-
-@dataclass
-class _Baseline:
-    """Step 1: the noise floor, both geometric fits, the rows and folds every later step shares."""
-
-    noise: NoiseFloor
-    sigma2: float
-    ridge: CalibrationResult
-    calibration: dict
-    full: Problem
-    nominal: CalibratedModel  # nominal geometry with base and tool registered
-    reg_free: np.ndarray
-    n_folds: int
-    seed: int
-    progress: Progress = field(default=lambda phase, done, total: None)
-    screening: str = "batched"  # or "refit": each candidate fitted on its own (the reference)
-    notes: list[str] = field(default_factory=list)  # said in the verdict's cautions
-    held_gravity: dict = field(default_factory=dict)  # {joint: negative compliance}: gravity terms held rigid
-    geometric: CalibrationResult | None = None  # the fit without the gravity physics (when the model has it)
-
-    def rows_and_folds(
-        self, result: CalibrationResult, outliers: np.ndarray | None = None
-    ) -> tuple[Problem, list[list[np.ndarray]]]:
-        """The rows the screening and the held-out figures use (inliers of `result`; for big campaigns a
-        fixed random subset of SCREEN_MAX_ROWS of them) and CV_REPEATS partitions of them into spatial
-        folds (the first is the one the held-out figures use). Fits use every row. `outliers`: the rows to
-        leave out instead of `result`'s (when two models are compared: the rows neither fits)."""
-        rows = np.flatnonzero(~(result.outliers if outliers is None else outliers))
-        if len(rows) > SCREEN_MAX_ROWS:
-            rank = self._screen_rank()
-            rows = rows[np.argsort(rank[rows])[:SCREEN_MAX_ROWS]]
-            rows.sort()
-        prob = self.full.subset(rows)  # folds keep every SMR of one pose together
-        n_pose = prob.n_poses  # folds are made of poses: count them, not rows
-        if n_pose < 2 * self.n_folds:
-            raise ValueError(
-                f"{n_pose} distinct robot poses (of {len(rows)} inlier rows) are too few for "
-                f"{self.n_folds}-fold spatial cross-validation; measure at least {2 * self.n_folds} "
-                "well-spread poses (several SMRs or revisits at one pose count once) or lower --folds"
-            )
-        return prob, [prob.spatial_folds(self.n_folds, self.seed + r) for r in range(CV_REPEATS)]
-
-    def _screen_rank(self) -> np.ndarray:
-        """Each row's place in the fixed random order a big campaign's screening rows are taken in (the same
-        rows whatever the outlier set)."""
-        order = np.random.default_rng([self.seed, 7]).permutation(len(self.full.measured))
-        rank = np.empty_like(order)
-        rank[order] = np.arange(len(order))
-        return rank
-
-    def contested_rows(self, outliers: np.ndarray) -> np.ndarray:
-        """The rows that can enter `rows_and_folds` whichever of the rows flagged in `outliers` a rival model
-        accepts: every row of a campaign within SCREEN_MAX_ROWS inliers, else the fixed order's rows up to
-        the last one the current subset takes (a random quarter of a 12 000-row campaign, its outliers in
-        their share)."""
-        inliers = np.flatnonzero(~outliers)
-        if len(inliers) <= SCREEN_MAX_ROWS:
-            return np.arange(len(outliers))
-        rank = self._screen_rank()
-        last = np.sort(rank[inliers])[SCREEN_MAX_ROWS - 1]
-        return np.flatnonzero(rank <= last)
-
-
-def _baseline_fit(
-    df,
-    robot,
-    folds,
-    seed,
-    repeatability_mm,
-    tool_guess_m,
-    tracker_mpe_m,
-    progress=None,
-    hold_material=None,
-    hold_gravity=None,
-) -> _Baseline:
-    """`hold_material` (the coefficient a first selection made of it): the links' material growth held at the
-    material's coefficient (hil.analysis.effects.hold_at_material). `hold_gravity` ({joint: the negative
-    compliance a fit made of it}): those joints' gravity terms held rigid (hil.analysis.effects.hold_rigid);
-    a gravity term the geometric fit makes negative is held rigid too, and the fit repeated."""
-    tell = progress or _quiet
-    noise = estimate_noise_floor(
-        df, mpe_const_m=tracker_mpe_m[0], mpe_per_m=tracker_mpe_m[1], repeatability_mm=repeatability_mm
-    )
-    tell("geometric calibration", 0, 2)
-    start = physics_start(robot, df, tool_guess_m)
-    if hold_material is not None and isinstance(start, CalibratedModel):
-        held = [hold_at_material(e, hold_material) if material_growth(e) else e for e in start.effects]
-        start = replace(start, effects=held)
-    hold_gravity = dict(hold_gravity or {})
-    ridge = calibrate(df, held_rigid_start(start, hold_gravity), "ridge", tool_guess_m=tool_guess_m)
-    against = {e.joint: float(e.params[0]) for e in ridge.model.effects if yields_against_gravity(e)}
-    if against:
-        hold_gravity.update(against)
-        ridge = calibrate(df, held_rigid_start(start, hold_gravity), "ridge", tool_guess_m=tool_guess_m)
-    geometric = None  # with gravity physics: the fit without it, the "kinematic" stage (plain calibration)
-    if isinstance(start, CalibratedModel) and any(gravity_physics_term(e) for e in start.effects):
-        plain = replace(start, effects=[e for e in start.effects if not gravity_physics_term(e)])
-        geometric = calibrate(df, plain if plain.effects else robot, "ridge", tool_guess_m=tool_guess_m)
-    tell("geometric calibration", 1, 2)
-    lm = calibrate(df, robot, "lm", tool_guess_m=tool_guess_m)
-    tell("geometric calibration", 2, 2)
-    # Every equation the data has: positions and, from a 6-DoF probe, orientations, each weighted by its
-    # noise (the tracker's MPE, the probe's stated angle noise), as the calibration weighs them; unless the
-    # probe's readings scatter beyond its stated noise (ORIENTATION_SELECTION_FACTOR), when that weight is
-    # refuted and the tests would chase the probe's own errors.
-    angle = df.attrs.get("probe_angle_noise_rad", PROBE_ANGLE_NOISE_RAD)
-    rms = ridge.orientation_rms_deg
-    rotations = rms is None or rms <= ORIENTATION_SELECTION_FACTOR * np.rad2deg(np.sqrt(3) * angle)
-    full = Problem.from_frame(
-        ridge.model,
-        df,
-        orientation=rotations,
-        angle_noise_rad=angle,
-        position_noise=df.attrs.get("position_noise_m"),
-    )
-    nominal = with_initial_probes(initial_model(robot, df, tool_guess_m), df)
-    reg_free = _registration(nominal, full)
-    base = _Baseline(
-        noise=noise,
-        sigma2=float(np.mean(noise.sigma_axis_m**2)),
-        ridge=ridge,
-        calibration={"ridge_igg3": ridge.to_dict(), "lm": lm.to_dict()},
-        full=full,
-        nominal=nominal,
-        reg_free=reg_free,
-        n_folds=folds,
-        seed=seed,
-        progress=tell,
-        held_gravity=hold_gravity,
-        geometric=geometric,
-    )
-    if not rotations:
-        base.notes.append(
-            f"the effects were tested on positions only: the probe's rotation residual RMS {rms:.3g} deg is more "
-            f"than {ORIENTATION_SELECTION_FACTOR:g}x what its stated noise gives, so its rotation equations cannot "
-            "be weighted by it; give the probe's real angle noise (--probe-angle-noise-deg) to test them too"
-        )
-    prob, _ = base.rows_and_folds(ridge)
-    base.nominal = _fit_plain(nominal, prob, reg_free)
-    return base
-
-
 @dataclass
 class _Path:
     """Step 2's outcome: the stages one forward selection went through."""
@@ -617,22 +452,6 @@ class _Path:
 # The stage that adds the joints' gravity yield computed from the link masses (physics) to the geometric fit.
 GRAVITY_STAGE = "+ gravity yield (link masses)"
 
-# The rotation equations enter the tests only while the probe's rotation residual after the geometric fit
-# (3-D RMS) stays within this many times what its stated noise gives: a probe read as stated leaves about 1x.
-# The public UR10 + T-Mac campaigns leave 3x (0.05-0.06 deg against 0.017 deg), and weighted at the stated
-# 0.01 deg their rotations made the selection chase the probe's own errors (series B -> C: final RMS 0.82 ->
-# 1.18 mm on the other campaign).
-ORIENTATION_SELECTION_FACTOR = 2.0
-
-# What the uncompensated stage fits: the base frame, the tool points and a probe's orientation in the flange.
-REGISTRATION = ("base_", "tool", "probe")
-
-
-def _registration(model: CalibratedModel, prob: Problem) -> np.ndarray:
-    """Mask of the registration parameters (a probe's only with its rotation equations in `prob`)."""
-    fitted = REGISTRATION if prob.R_measured is not None else REGISTRATION[:2]
-    return np.array([n.startswith(fitted) for n in model.param_names])
-
 
 def _cv_positions(
     model: CalibratedModel, free: np.ndarray, prob: Problem, folds: list[np.ndarray]
@@ -642,14 +461,14 @@ def _cv_positions(
     return cv_residuals(model, free, prob, folds)[:, :3]
 
 
-def _excess_ratio(model: CalibratedModel, base: _Baseline, path: _Path) -> float:
+def _excess_ratio(model: CalibratedModel, base: Baseline, path: _Path) -> float:
     """Residual sigma over the noise sigma on the path's rows."""
     r = path.prob.residuals(model)
     return float(np.sqrt(np.sum(r**2) / max(r.size - int(path.free.sum()), 1) / base.sigma2))
 
 
 def _screen_round(
-    base: _Baseline,
+    base: Baseline,
     path: _Path,
     alpha: float,
     families: tuple[str, ...] | None,
@@ -658,10 +477,10 @@ def _screen_round(
 ) -> list[tuple[Candidate, CalibratedModel | None]]:
     """Candidate screening: every effect the data could show, tested linearly against the current model
     (with `df`, a candidate the full-fit test finds is judged again on rows the current model rejects:
-    `_reclaimed`)."""
+    `reclaimed`)."""
     cands = candidate_effects(base.full.ctx, path.current.model.nominal, path.current.model.effects, families)
     cands = [c for c in cands if (c.family, c.joint) not in banned]
-    base_fit = _fit_plain(path.current.model, path.prob, path.free, iters=3)
+    base_fit = fit_plain(path.current.model, path.prob, path.free, iters=3)
     # Screening is linear: one Gauss-Newton step from the current fit, for the current model and for
     # every candidate alike (the problem is nearly linear there); the winner is refitted in full.
     screen = Screen(base_fit, path.prob, path.free, path.partitions, base.sigma2, alpha, len(cands))
@@ -673,7 +492,7 @@ def _screen_round(
         out.append(test(eff))
     base.progress(phase, len(cands), len(cands))
     if df is not None:
-        out = _reclaimed(base, path, alpha, out, len(cands))
+        out = reclaimed(base, path.current, path.free, alpha, out, len(cands))
     return [_along_joint(base_fit, path, base.sigma2, alpha, c, m) for c, m in out]
 
 
@@ -697,93 +516,8 @@ def _along_joint(
     return replace(cand, passed=False, note="; ".join(x for x in (why, cand.note) if x)), None
 
 
-def _reclaimed(
-    base: _Baseline,
-    path: _Path,
-    alpha: float,
-    results: list[tuple[Candidate, CalibratedModel | None]],
-    n_tests: int,
-) -> list[tuple[Candidate, CalibratedModel | None]]:
-    """The round's results, with each candidate that the full-fit test finds but the held-out test does not
-    judged again on the rows that the current model or the candidate's own robust fit accepts.
-
-    Why: outlier rejection guards against blunders, which no model explains. The screening's rows are the
-    current model's inliers, and the rows a missing effect moves most are the ones that model rejects (an
-    active loop's poses, measured where the rivals differ, most of all): on its inliers alone the effect it
-    lacks cannot show, and the model that lacks the effect would decide the question in its own favour. Two
-    rival models are judged on the rows at least one of them fits; a row both reject is a blunder for both.
-    Only candidates whose verdict this can change are re-judged (one robust refit each, from the current
-    model, on the rows that can enter the screening's subset): those the full-fit test passed and the
-    held-out one did not; and, when nothing passes so the selection would stop, the RECLAIM_UNSEEN whose
-    linearised fit on every row takes back the most rejected rows beyond the model's own
-    (`_linear_reclaim`), since the inlier full-fit test cannot find an effect whose rows were rejected. A
-    candidate whose fit accepts no rejected row keeps its result.
-    """
-    rejected = path.current.outliers
-    if not rejected.any():
-        return results
-    out = list(results)
-    model = path.current.model
-    test_level = alpha / max(n_tests, 1)
-    seen: list[tuple[int, Effect]] = []
-    unseen: list[tuple[int, Effect]] = []
-    for i, (cand, _) in enumerate(results):
-        if cand.passed or cand.note:
-            continue
-        eff = make_effect(cand.name, cand.joint)
-        if eff.prepare(base.full.ctx, model.nominal):
-            (seen if cand.p_chi2 < test_level else unseen).append((i, eff))
-
-    def judge(i: int, eff: Effect) -> None:
-        rival = model.with_effect(eff)
-        rows = base.contested_rows(rejected)  # only these can enter the screening's rows
-        prob = base.full.subset(rows)
-        fitted = solve_ridge_igg3(rival, prob, _free_mask(rival, prob)[0], frozen_jacobian=True)
-        both = rejected.copy()
-        both[rows] &= fitted.outliers
-        if both.sum() == rejected.sum():
-            return
-        prob, partitions = base.rows_and_folds(path.current, both)
-        free = _free_mask(path.current.model, prob)[0]
-        start = _fit_plain(path.current.model, prob, free, iters=3)
-        screen = Screen(start, prob, free, partitions, base.sigma2, alpha, n_tests)
-        again, trial = (screen.test if base.screening == "batched" else screen.test_refit)(eff)
-        again.rows_reclaimed = int(rejected.sum() - both.sum())
-        out[i] = (again, trial)
-
-    for i, eff in seen:
-        judge(i, eff)
-    if unseen and not any(c.passed for c, _ in out):  # the selection would stop: what do rejected rows hide?
-        plain = _linear_reclaim(base, model, path.free, rejected)
-        taken = [(_linear_reclaim(base, model, path.free, rejected, eff), i, eff) for i, eff in unseen]
-        best = sorted((t for t in taken if t[0] > plain), key=lambda t: (-t[0], results[t[1]][0].p_chi2))
-        for _, i, eff in best[:RECLAIM_UNSEEN]:
-            judge(i, eff)
-    return out
-
-
-RECLAIM_UNSEEN = 3  # unseen candidates `_reclaimed` re-judges per round, most rows taken back first
-
-
-def _linear_reclaim(
-    base: _Baseline, model: CalibratedModel, free: np.ndarray, rejected: np.ndarray, eff: Effect | None = None
-) -> int:
-    """How many rows of `rejected` one least-squares step of `model` (with `eff` added) on every row brings
-    back within the outlier threshold (K1 robust standard deviations of the other rows): `_reclaimed`'s cheap
-    gate before a robust refit."""
-    trial = model if eff is None else model.with_effect(eff)
-    r, J = base.full.evaluate(trial)
-    cols = np.concatenate([free, np.ones(len(trial.param_names) - len(free), bool)])
-    A = flatten_jacobian(J[:, :3])[:, cols]
-    A = A / np.clip(np.linalg.norm(A, axis=0), 1e-300, None)
-    after = r[:, :3] - (A @ np.linalg.lstsq(A, r[:, :3].reshape(-1), rcond=None)[0]).reshape(-1, 3)
-    scale = np.maximum(robust_scales(after[~rejected], centred=True), 1e-12)
-    t = np.sqrt(np.mean((after[rejected] / scale) ** 2, axis=1))
-    return int(np.sum(t <= K1))
-
-
 def _forward_selection(
-    base: _Baseline,
+    base: Baseline,
     df: pd.DataFrame,
     alpha: float,
     families: tuple[str, ...] | None,
@@ -799,7 +533,7 @@ def _forward_selection(
         current=current,
         prob=prob,
         partitions=partitions,
-        free=_free_mask(current.model, prob)[0],
+        free=free_mask(current.model, prob)[0],
         stage_models=[("uncompensated (nominal)", base.nominal)]
         + (
             [("kinematic", current.model)]
@@ -885,7 +619,7 @@ def _forward_selection(
 
 
 def _keep_previous(
-    base: _Baseline,
+    base: Baseline,
     df: pd.DataFrame,
     path: _Path,
     previous: list[dict],
@@ -922,7 +656,7 @@ def _keep_previous(
     return other
 
 
-def _shared_heldout_errors(base: _Baseline, a: _Path, b: _Path) -> tuple[list[np.ndarray], Problem]:
+def _shared_heldout_errors(base: Baseline, a: _Path, b: _Path) -> tuple[list[np.ndarray], Problem]:
     """Each path's held-out squared errors per point on the rows inlier to either (a row both reject is a
     blunder for both; one only the other accepts is evidence between them) and the same spatial partitions:
     two paths whose models reject different rows are compared on the same points."""
@@ -931,16 +665,16 @@ def _shared_heldout_errors(base: _Baseline, a: _Path, b: _Path) -> tuple[list[np
     for candidate in (a, b):
         model = candidate.current.model
         r, J = prob.evaluate(model)
-        free = _free_mask(model, prob)[0]
+        free = free_mask(model, prob)[0]
         errors.append(linear_fit_heldout(flatten_jacobian(J)[:, free], r, partitions)[1])
     return errors, prob
 
 
-def _refit(base: _Baseline, path: _Path, result: CalibrationResult) -> IdentifiabilityReport:
+def _refit(base: Baseline, path: _Path, result: CalibrationResult) -> IdentifiabilityReport:
     """Make `result` the path's current model: its rows, folds and identifiable parameters follow it."""
     path.current = result
     path.prob, path.partitions = base.rows_and_folds(result)
-    path.free, rep = _free_mask(result.model, path.prob)
+    path.free, rep = free_mask(result.model, path.prob)
     return rep
 
 
@@ -977,7 +711,7 @@ PAIR_POOL = 4
 
 
 def _pair_lookahead(
-    base: _Baseline, path: _Path, results: list[tuple[Candidate, CalibratedModel | None]], alpha: float
+    base: Baseline, path: _Path, results: list[tuple[Candidate, CalibratedModel | None]], alpha: float
 ) -> tuple[Candidate, tuple[Candidate, CalibratedModel]] | None:
     """The best pair of this round's candidates that passes the screening's tests together (each test at a
     level shared with every pair tried), as (first, (second, linearised model with both)); None if none does."""
@@ -988,7 +722,7 @@ def _pair_lookahead(
     pairs = [(a, b) for i, a in enumerate(pool) for b in pool[i + 1 :]]
     if not pairs:
         return None
-    base_fit = _fit_plain(path.current.model, path.prob, path.free, iters=3)
+    base_fit = fit_plain(path.current.model, path.prob, path.free, iters=3)
     level = len(results) + len(pairs)
     screen = Screen(base_fit, path.prob, path.free, path.partitions, base.sigma2, alpha, level)
     singles = {}
@@ -1017,7 +751,7 @@ def _pair_lookahead(
     return best
 
 
-def _settle_rivals(base: _Baseline, df: pd.DataFrame, path: _Path, alpha: float) -> None:
+def _settle_rivals(base: Baseline, df: pd.DataFrame, path: _Path, alpha: float) -> None:
     """Each added effect against the rivals of its round, in the final model (hil.analysis.rivals): a rival
     the data prefers replaces it (a step of its own); one the data does not separate from it is an open
     question. Every replacement re-checks from the start, at most once per effect."""
@@ -1088,7 +822,7 @@ def _named(item: dict) -> tuple[str, int | None]:
     return effect["name"], effect["joint"]
 
 
-def _confounded(base: _Baseline, path: _Path, best: Candidate, close: list[Candidate], alpha: float) -> list:
+def _confounded(base: Baseline, path: _Path, best: Candidate, close: list[Candidate], alpha: float) -> list:
     """Did the winner take the near runners-up's gain? Then the data cannot tell them apart."""
     after = Screen(path.current.model, path.prob, path.free, path.partitions, base.sigma2, alpha, 1)
     out = []
@@ -1108,7 +842,7 @@ def _confounded(base: _Baseline, path: _Path, best: Candidate, close: list[Candi
     return out
 
 
-def _evaluate_stages(path: _Path, tell: Progress = _quiet) -> tuple[list[dict], dict, list[Step]]:
+def _evaluate_stages(path: _Path, tell: Progress = quiet) -> tuple[list[dict], dict, list[Step]]:
     """Step 3: every stage's held-out error on the final rows and folds; a stage worse than the one
     before it is flagged (`worse_than_previous`)."""
     stages: list[dict] = []
@@ -1116,9 +850,9 @@ def _evaluate_stages(path: _Path, tell: Progress = _quiet) -> tuple[list[dict], 
     cv_by_stage: list[np.ndarray] = []
     for k, (label, m) in enumerate(path.stage_models):
         tell("held-out figures of every stage", k, len(path.stage_models))
-        mfree = _free_mask(m, path.prob)[0]
+        mfree = free_mask(m, path.prob)[0]
         if label.startswith("uncompensated"):
-            mfree = _registration(m, path.prob)
+            mfree = registration(m, path.prob)
         cv = _cv_positions(m, mfree, path.prob, path.folds)
         cv_by_stage.append(cv)
         stage = _stage(label, "heldout", cv)
@@ -1152,7 +886,7 @@ def _evaluate_stages(path: _Path, tell: Progress = _quiet) -> tuple[list[dict], 
 
 
 def _verdict(
-    base: _Baseline,
+    base: Baseline,
     path: _Path,
     stages: list[dict],
     hist: dict,
@@ -1326,7 +1060,7 @@ def _p_base(model: CalibratedModel, problem: Problem) -> np.ndarray:
     return tool_points_rows(model.kinematic, q_eff, model._row_tools(problem.smr))
 
 
-def _map_verdict(base: _Baseline, path: _Path, model: CalibratedModel, alpha: float) -> dict:
+def _map_verdict(base: Baseline, path: _Path, model: CalibratedModel, alpha: float) -> dict:
     """Does a residual map belong in the model? It does only if it beats no map on the spatial folds.
 
     A map becomes part of the model, and a model is used beyond the points it was fitted on (another
@@ -1363,7 +1097,7 @@ def _try_residual_maps(
     folds: list[np.ndarray],
     noise: NoiseFloor,
     alpha: float,
-    tell: Progress = _quiet,
+    tell: Progress = quiet,
     phase: str = "residual maps: held-out comparison",
 ) -> dict:
     """Can a residual map predict the held-out residual `cv_res` (of `folds`)? The map kinds fitted on the
