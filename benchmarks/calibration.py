@@ -37,7 +37,7 @@ from scipy.spatial.transform import Rotation
 from fakes.physics import chain_frames, gravity_torques
 from hil.analysis.calibrated_model import initial_model
 from hil.analysis.calibration import Problem, calibrate, solve_ridge_igg3
-from hil.analysis.diagnosis import error_stats
+from hil.analysis.diagnosis_baseline import error_stats
 from hil.analysis.effects import tool_points_rows
 from hil.analysis.residual_maps import MAP_KINDS, IDWGridMap, kfold_map_errors, make_map
 from hil.data.dataset import make_dataset

@@ -15,8 +15,9 @@ import pytest
 from calib_data import cell_datasets, ur10_joints
 from scipy.spatial.transform import Rotation
 
-from hil.analysis.diagnosis import GRAVITY_STAGE, run_diagnosis
+from hil.analysis.diagnosis import run_diagnosis
 from hil.analysis.report import conclusion
+from hil.analysis.selection import GRAVITY_STAGE
 from hil.data.dataset import make_dataset
 from hil.geometry.kinematics import measured_point
 from hil.geometry.robots import get_robot

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 
@@ -27,6 +28,23 @@ from hil.analysis.effects import (
 from hil.analysis.identifiability import IdentifiabilityReport
 from hil.analysis.noise_floor import NoiseFloor, estimate_noise_floor
 from hil.analysis.physics_terms import held_rigid_start, physics_start
+
+
+def error_stats(err_m: np.ndarray) -> dict[str, float]:
+    """mean / RMS / max / 95th percentile of 3-D error norms, mm, from (N, 3) errors in metres."""
+    e = np.linalg.norm(np.atleast_2d(err_m), axis=1) * 1000.0
+    return {
+        "mean_mm": float(np.mean(e)),
+        "rms_mm": float(np.sqrt(np.mean(e**2))),
+        "max_mm": float(np.max(e)),
+        "p95_mm": float(np.percentile(e, 95)),
+    }
+
+
+def caution(kind: str, **data: Any) -> dict:
+    """One caution of the verdict, as data: `kind` names it, hil.analysis.report words it."""
+    return {"kind": kind, **data}
+
 
 Progress = Callable[[str, int, int], None]  # (phase, done, total)
 

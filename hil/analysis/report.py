@@ -12,9 +12,10 @@ from pathlib import Path
 import numpy as np
 
 from hil.analysis.calibration import USER_UNITS, in_user_units
-from hil.analysis.diagnosis import DiagnosisReport, effect_label
+from hil.analysis.diagnosis import DiagnosisReport
 from hil.analysis.drift_monitor import drift_text
 from hil.analysis.residual_maps import MAP_MODES
+from hil.analysis.screening import effect_label
 from hil.data.jsonable import to_jsonable
 
 
