@@ -75,6 +75,10 @@ def test_demo_runs_the_procedures_through_the_drivers_and_finds_compliance(demo)
     assert "Measured pseudo-target loop" in (tmp_path / "report.html").read_text()
     assert "active loop ended after 1 round(s)" in out.stdout  # the grid leaves questions open: one round
     assert "Active loop: the measurements that decide" in (tmp_path / "report.html").read_text()
+    # the JSON holds what the HTML shows: the round's record, the measured loop, the tool fit
+    (round1,) = report["active_loop"]["rounds"]
+    assert round1["undecided"] and round1["measured"]["poses"] > 0 and report["active_loop"]["stop"]
+    assert report["measured_loop"]["targets"] == 3 and "nests_flange_mm" in report["tool_fit"]
 
 
 @pytest.mark.slow

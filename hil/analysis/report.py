@@ -185,13 +185,14 @@ def report_dict(report: DiagnosisReport) -> dict:
     return out
 
 
-def write_json(report: DiagnosisReport, path: str | Path) -> None:
+def write_json(report: DiagnosisReport, path: str | Path, extra: dict | None = None) -> None:
     """The report's JSON: effects_added, stages, unexplained_structure, noise_floor_mm, the conclusion and
-    the details.
+    the details; `extra`: sections a run adds beside the diagnosis (the demo's active loop and measured loop),
+    so the JSON holds what the HTML report shows.
 
     Strict JSON: NaN and infinities (e.g. a candidate that was never cross-validated) become null.
     """
-    text = json.dumps(to_jsonable(report_dict(report)), indent=1, allow_nan=False)
+    text = json.dumps(to_jsonable({**report_dict(report), **(extra or {})}), indent=1, allow_nan=False)
     Path(path).write_text(text)
 
 

@@ -130,12 +130,18 @@ def run(args: argparse.Namespace) -> int:
                 loop = measured_loop(args, out, campaign, report.model)
             except CampaignStopped as exc:
                 raise CliError(exc.message, exc.remedy + " (run hil demo again to resume)") from exc
-    from hil.analysis.report import write_html
+    from hil.analysis.report import write_html, write_json
     from hil.data.store import CampaignStore
 
     with CampaignStore(campaign, create=False) as store:
         tool = store.step_result("tool_fit", "fit")
-    write_html(report, out / "report.html", compensation=loop, active=active, tool_fit=tool)
+    write_html(
+        report, out / "report.html", compensation=loop, active=active and active["html"], tool_fit=tool
+    )
+    extra = {"tool_fit": tool, "measured_loop": loop}
+    if active:
+        extra["active_loop"] = {"rounds": active["rounds"], "stop": active["stop"]}
+    write_json(report, out / "report.json", {k: v for k, v in extra.items() if v is not None})
     print(
         f"\nwrote {out}/campaign.sqlite, cell.toml, grid.csv, validate.csv, report.json, report.html, model.json"
     )
@@ -202,7 +208,8 @@ def measure(args: argparse.Namespace, out: Path, campaign: Path) -> None:
 
 def active_loop(args: argparse.Namespace, out: Path, campaign: Path):
     """Start the cell again and measure what the diagnosis left undecided (the active_loop procedure); the
-    final diagnosis (its report and model replace the first) and the rounds as an HTML section."""
+    final diagnosis (its report and model replace the first) and the rounds (records, why the loop stopped,
+    an HTML section)."""
     from hil.analysis.active_rounds import rounds_html
     from hil.analysis.report import conclusion, write_json
     from hil.runner.registry import load
@@ -219,7 +226,11 @@ def active_loop(args: argparse.Namespace, out: Path, campaign: Path):
     print(conclusion(report))
     write_json(report, out / "report.json")
     report.model.save(out / "model.json")
-    return report, rounds_html(result.records, result.stop)
+    return report, {
+        "rounds": result.records,
+        "stop": result.stop,
+        "html": rounds_html(result.records, result.stop),
+    }
 
 
 def measured_loop(args: argparse.Namespace, out: Path, campaign: Path, model) -> dict:
