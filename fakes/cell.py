@@ -345,13 +345,15 @@ class SimulatedCell:
         arm_c = self.structure_temperature_c(time_s)
         return cfg.ambient_c + cfg.air_warmup_fraction * (np.asarray(arm_c) - cfg.ambient_c)
 
-    def tracker_scale(self, time_s: np.ndarray | float | None = None) -> np.ndarray | float:
-        """How much too long the tracker measures distances (its refraction from `tracker_air_c`), 0 with a
-        station that reads the hall's air."""
-        cfg = self.config
-        if cfg.tracker_air_c is None:
+    def tracker_scale(
+        self, time_s: np.ndarray | float | None = None, air_c: float | None = None
+    ) -> np.ndarray | float:
+        """How much too long the tracker measures distances: its refraction computed from `air_c` (the meteo
+        a client entered by hand), else from `tracker_air_c`; 0 with a station that reads the hall's air."""
+        used = self.config.tracker_air_c if air_c is None else air_c
+        if used is None:
             return 0.0 * np.asarray(self.structure_temperature_c(time_s))
-        return REFRACTION_PER_K * (np.asarray(self.hall_air_c(time_s)) - cfg.tracker_air_c)
+        return REFRACTION_PER_K * (np.asarray(self.hall_air_c(time_s)) - used)
 
     def meteo(self) -> Meteo:
         """Meteo at the tracker now (pressure and humidity drift slightly with time)."""
@@ -545,10 +547,10 @@ class SimulatedCell:
         sigma = self.tracker_sigma_m(np.linalg.norm(p, axis=1))[:, None]
         return p + self._centering[smr_id - 1] + sigma * self._noise_rng.standard_normal(p.shape)
 
-    def measure_smr(self, smr_id: int) -> np.ndarray:
+    def measure_smr(self, smr_id: int, air_c: float | None = None) -> np.ndarray:
         """One tracker reading (3,) of an SMR, tracker frame, metres; its noise drawn from the seed and the
-        reading's index."""
-        p = self.smr_center_tracker(smr_id) * (1.0 + float(self.tracker_scale()))
+        reading's index; `air_c`: the air temperature the tracker's refraction uses (`tracker_scale`)."""
+        p = self.smr_center_tracker(smr_id) * (1.0 + float(self.tracker_scale(air_c=air_c)))
         self.readings += 1
         noise = _keyed(TRACKER_NOISE_STREAM, (self.config.seed, self.readings)).standard_normal(3)
         return p + self._centering[smr_id - 1] + self.tracker_sigma_m(float(np.linalg.norm(p))) * noise

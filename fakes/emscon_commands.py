@@ -15,7 +15,7 @@ from collections.abc import Callable
 import numpy as np
 
 from drivers import emscon_codec as codec
-from drivers.emscon_codec import Command, CoordinateSystem, Status, StatusChange
+from drivers.emscon_codec import Command, CoordinateSystem, Status, StatusChange, WeatherMonitorStatus
 from fakes.emscon_measure import Beam
 from fakes.emscon_state import Client, valid_unit
 
@@ -161,6 +161,8 @@ class CommandSet:
     def _cmd_set_system_settings(self, session, *settings):
         if settings[0] not in (0, 1, 2):
             return (Status.WRONG_PARAMETER1,)
+        if settings[0] != WeatherMonitorStatus.NOT_CONNECTED and not self.config.weather_monitor:
+            return (Status.NO_WEATHERMONITOR_FOUND,)
         self.state.settings = [int(v) for v in settings]
         self._changed(session, StatusChange.SYSTEM_SETTINGS_CHANGED, Command.SET_SYSTEM_SETTINGS)
 

@@ -266,7 +266,7 @@ class Beam:
             client.send(codec.pack_error(Command.START_MEASUREMENT, self.config.no_target_status))
             self.stop_stream()
             return
-        p_m = np.asarray(self.cell.measure_smr(st.locked_smr), dtype=float)
+        p_m = np.asarray(self.cell.measure_smr(st.locked_smr, air_c=self.meteo()[0]), dtype=float)
         values = tuple(codec.cartesian_to_wire(p_m, st.cs, st.units))
         client.send(codec.pack_multi_meas_result(0, [(self.cell.time_s, values)], self.meteo_wire()))
         stream.sent += 1
@@ -292,7 +292,7 @@ class Beam:
     def _result_packet(self) -> bytes:
         """The result of a shot: the locked SMR with the cell's noise, its std and the meteo, on the wire."""
         st = self.state
-        p_m = np.asarray(self.cell.measure_smr(st.locked_smr), dtype=float)
+        p_m = np.asarray(self.cell.measure_smr(st.locked_smr, air_c=self.meteo()[0]), dtype=float)
         if self.faults.outlier_count > 0:
             self.faults.outlier_count -= 1
             p_m = p_m + np.array([self.faults.outlier_offset_m, 0.0, 0.0])

@@ -34,6 +34,9 @@ class Reflector:
     surface_offset_m: float = 0.0
 
 
+MANUAL_METEO_DEFAULT = (20.0, 1013.25, 50.0)  # degC, hPa, %RH a tracker without a monitor starts from
+
+
 @dataclass
 class EmsconServerConfig:
     """Behaviour of the fake tracker (timings are wall-clock unless named sim)."""
@@ -69,6 +72,9 @@ class EmsconServerConfig:
     temperature_range_c: tuple[float, float] = (-20.0, 60.0)
     pressure_range_hpa: tuple[float, float] = (500.0, 1200.0)
     humidity_range_pct: tuple[float, float] = (0.0, 100.0)
+    # False: a tracker without a weather monitor. Its refraction (so every distance) follows the meteo the client
+    # enters (SetEnvironmentParams), MANUAL_METEO_DEFAULT until then; asking for the monitor is refused.
+    weather_monitor: bool = True
     object_probe: bool = True  # an object-temperature probe on the arm (GetObjectTemperature answers)
     # What GetObjectTemperature answers without the probe: not documented, so configurable (NotImplemented).
     no_object_probe_status: int = Status.NOT_IMPLEMENTED

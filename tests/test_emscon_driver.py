@@ -17,6 +17,7 @@ from hil.instruments.tracker import (
     NoTargetError,
     NotInitializedError,
     Tracker,
+    TrackerCommandError,
     TrackerConfigError,
     TrackerConnectionError,
     TrackerProtocolError,
@@ -431,3 +432,28 @@ def test_settings_changed_by_another_client_are_applied_again(server_thread, cel
         assert server_thread.server.state.units.length == codec.LengthUnit.MILLIMETER
         assert np.linalg.norm(a.measure().p_tracker_m - truth) < 1e-3
         assert np.linalg.norm(b.measure().p_tracker_m - truth) < 1e-3
+
+
+def test_without_a_weather_monitor_the_distances_follow_the_meteo_entered():
+    """A tracker without a weather monitor computes its refraction from the meteo a client enters: entered
+    15 K below the hall's air, every distance comes out 0.93 ppm/K x 15 K short, about the tracker (the error
+    the diagnosis' tracker_scale family looks for); asking it for a monitor is refused."""
+    from fakes.cell import REFRACTION_PER_K
+
+    cell = SimulatedCell(SimCellConfig(seed=1, tracker_mpe_const_m=1e-9, tracker_mpe_per_m=0.0))
+    server = EmsconServer(cell, config=EmsconServerConfig(init_delay_s=0.01, weather_monitor=False))
+    with ServerThread(server), _tracker(server.url) as tracker:
+        truth = cell.smr_center_tracker(SMR)
+        tracker.point_at(truth)
+        hall_c = float(cell.meteo().temperature_c)
+        tracker.set_environment(hall_c, 1013.25, 50.0)
+        right = tracker.measure().p_tracker_m
+        tracker.set_environment(hall_c - 15.0, 1013.25, 50.0)
+        assert tracker.environment()[0] == pytest.approx(hall_c - 15.0)
+        cold = tracker.measure().p_tracker_m
+        settings = list(server.state.settings)
+        settings[0] = codec.WeatherMonitorStatus.READ_AND_CALCULATE_REFRACTIONS
+        with pytest.raises(TrackerCommandError, match="27"):
+            tracker._exchange(codec.Command.SET_SYSTEM_SETTINGS, *settings)
+    np.testing.assert_allclose(cold - right, truth * REFRACTION_PER_K * 15.0, atol=2e-7)
+    assert np.linalg.norm(cold - right) > 3e-5  # 14 ppm of the 2.5 m: 35 um, far beyond the 1 nm noise
