@@ -22,6 +22,9 @@ DESCRIPTION = (
 )
 
 
+AIR_RANGE_C = (-20.0, 60.0)  # the air temperatures a tracker's refraction model accepts
+
+
 class SimOptionError(PluginOptionError):
     """An option the simulated cell cannot start with: `message` (what is wrong) and `remedy` (what to give)."""
 
@@ -73,6 +76,19 @@ def add_sim_arguments(parser: argparse.ArgumentParser) -> None:
     )
     add_effects_argument(parser)
     parser.add_argument("--powered-off", action="store_true", help="start with the arm powered off")
+    parser.add_argument(
+        "--tracker-air-c",
+        type=float,
+        default=None,
+        help="air temperature (degC) the tracker's weather station reads whatever the hall does (a station in "
+        "the sun, a fixed setting): distances scale 0.93 ppm per K of the difference (default: the hall's air)",
+    )
+    parser.add_argument(
+        "--no-weather-monitor",
+        action="store_true",
+        help="the tracker has no weather monitor: its refraction uses the meteo a client enters "
+        "(SetEnvironmentParams; 20 degC, 1013.25 hPa, 50 %% until then)",
+    )
 
 
 def sim_options(args: argparse.Namespace) -> SimOptions:
@@ -86,6 +102,12 @@ def sim_options(args: argparse.Namespace) -> SimOptions:
             f"--time-scale {args.time_scale:g} is not positive",
             "give simulated seconds per wall second, e.g. 10",
         )
+    air = args.tracker_air_c
+    if air is not None and not AIR_RANGE_C[0] <= air <= AIR_RANGE_C[1]:
+        raise SimOptionError(
+            f"--tracker-air-c {air:g} is outside {AIR_RANGE_C[0]:g}..{AIR_RANGE_C[1]:g} degC",
+            "give the air temperature in degrees Celsius, e.g. 20",
+        )
     return SimOptions(
         host=args.host,
         robot=args.robot,
@@ -96,6 +118,8 @@ def sim_options(args: argparse.Namespace) -> SimOptions:
         tracker_port=args.tracker_port,
         script_start_delay_s=args.script_start_delay,
         powered=not args.powered_off,
+        tracker_air_c=air,
+        weather_monitor=not args.no_weather_monitor,
         effects=effects_from_args(args),
     )
 

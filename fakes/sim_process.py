@@ -46,6 +46,8 @@ class SimOptions:
     tracker_port: int = 7000
     script_start_delay_s: float = 0.05
     powered: bool = True
+    tracker_air_c: float | None = None  # the air temperature the tracker's station reads (None: the hall's)
+    weather_monitor: bool = True  # False: the tracker has none and uses the meteo a client enters
     effects: EffectFlags = field(
         default_factory=lambda: EffectFlags()
     )  # e.g. {'thermal': True}; unset: defaults
@@ -131,7 +133,11 @@ class SimProcess:
     def __init__(self, options: SimOptions):
         self.options = options
         self.servers: list = []
-        self.cell = SimulatedCell(SimCellConfig(robot=options.robot, seed=options.seed, **options.effects))
+        self.cell = SimulatedCell(
+            SimCellConfig(
+                robot=options.robot, seed=options.seed, tracker_air_c=options.tracker_air_c, **options.effects
+            )
+        )
         self.control = ControlChannel(options.host, options.control_port)
         self.robot: UrController | None = None
         self.clock: SimClock | None = None
@@ -159,7 +165,12 @@ class SimProcess:
         self.control.add_handlers(cell_handlers(self.cell, self.clock, epoch_s=time.time()))
         # The cell's clock task moves simulated time on: a measurement waits for it (scaled by --time-scale)
         # instead of sleeping the unscaled measurement time and advancing the clock a second time.
-        tracker = EmsconServer(self.cell, o.host, o.tracker_port, EmsconServerConfig(advance_clock=False))
+        tracker = EmsconServer(
+            self.cell,
+            o.host,
+            o.tracker_port,
+            EmsconServerConfig(advance_clock=False, weather_monitor=o.weather_monitor),
+        )
         # a continuous measurement samples the arm after every tick of the clock, as that tick left it
         tracker.beam.tick_driven = True
         self.clock.listeners.append(tracker.beam.on_tick)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import signal
 import socket
@@ -134,3 +135,35 @@ def test_write_cell_gives_a_config_that_checks_and_connects(tmp_path, capsys):
         assert f'host = "{host}"' in cell_toml.read_text()
     finally:
         stop_process(process)
+
+
+@pytest.mark.timeout(90)
+@pytest.mark.parametrize(
+    ("extra", "air_c", "monitor"),
+    [(("--tracker-air-c", "12.5"), 12.5, 1), (("--no-weather-monitor",), 20.0, 0)],
+)
+def test_the_tracker_options_reach_the_fake_tracker(extra, air_c, monitor):
+    """--tracker-air-c: the station reads that air whatever the hall does (the tracker_scale rival of the
+    arm's growth); --no-weather-monitor: the tracker has none and starts from the controller's default meteo."""
+    from drivers.emscon import EmsconConfig, EmsconTracker
+
+    running = start_cell(robot="ur10", seed=1, time_scale=2.0, extra_args=extra)
+    try:
+        with EmsconTracker(
+            EmsconConfig(url=running.info["tracker"]["url"], command_timeout_s=10.0)
+        ) as tracker:
+            assert tracker.environment()[0] == pytest.approx(air_c)
+            assert tracker.state().details["weather_monitor_status"] == monitor
+    finally:
+        stop_cell(running)
+
+
+def test_bad_tracker_air_is_refused_before_the_cell_starts():
+    from fakes.sim import SimOptionError, add_sim_arguments, sim_options
+
+    parser = argparse.ArgumentParser()
+    add_sim_arguments(parser)
+    with pytest.raises(SimOptionError, match="degrees Celsius|outside"):
+        sim_options(parser.parse_args(["--tracker-air-c", "293"]))  # kelvin given as Celsius
+    options = sim_options(parser.parse_args(["--tracker-air-c", "18", "--no-weather-monitor"]))
+    assert options.tracker_air_c == 18.0 and not options.weather_monitor
