@@ -51,6 +51,10 @@ def test_gravity_compliance_is_found(gravity_cell_diagnosis):
     cell, train, val, report = gravity_cell_diagnosis
     assert report.effects_added == [{"name": "gravity_compliance", "joint": j} for j in (2, 3)]
     assert report.steps == []  # no candidate was needed beside the physics
+    from hil.analysis.report import render_html
+
+    page = render_html(report)  # the effects section says what the verdict names, not "None"
+    assert "gravity_compliance (joint 2), gravity_compliance (joint 3): physics terms the data found" in page
     before, after = _rms(report, "kinematic"), _last(report)
     assert _rms(report, GRAVITY_STAGE) == after
     floor = report.noise_floor_mm

@@ -326,8 +326,18 @@ def _effects_html(report: DiagnosisReport) -> list[str]:
     """Each effect added (or removed) with its gain, parameters and the candidates of its round."""
     parts = ["<h2>Effects added</h2>"]
     if not report.steps:
-        beside = " beside the physics terms (below)" if report.gravity or report.thermal else ""
-        parts.append(f"<p>None{beside}: no candidate effect improved the held-out error significantly.</p>")
+        found = report.effects_added
+        if found:  # physics terms the data found: the verdict names them, so say where they are
+            names = ", ".join(effect_label(e["name"], e["joint"]) for e in found)
+            parts.append(
+                f"<p>{html.escape(names)}: physics terms the data found (their sections below); no candidate "
+                "effect beside them improved the held-out error significantly.</p>"
+            )
+        else:
+            beside = " beside the physics terms (below)" if report.gravity or report.thermal else ""
+            parts.append(
+                f"<p>None{beside}: no candidate effect improved the held-out error significantly.</p>"
+            )
     for step in report.steps:
         parts.append(f"<h3>{html.escape(step.title())}</h3>")
         parts.append(
