@@ -60,7 +60,9 @@ class ActiveLoopResult:
 @dataclass(frozen=True)
 class _Rows:
     """The next round's poses: joints (M, 6) in measurement order, each row's purpose, the plan's groups,
-    the open questions it does not serve (and why), and `keep`: the rows the cell can measure now."""
+    the open questions it does not serve (and why), `keep`: the rows the cell can measure now, and `block`:
+    the rows measured between two judgements (the plan's order was built for it, so a resumed round keeps it
+    whatever --block says now: its recorded judgements name blocks of that size)."""
 
     number: int
     q_rad: np.ndarray
@@ -68,11 +70,12 @@ class _Rows:
     groups: list[dict]
     not_planned: list[dict]
     keep: np.ndarray
+    block: int
 
     def to_dict(self) -> dict:
         return {
             "q_rad": self.q_rad.round(12).tolist(), "purpose": self.purpose, "groups": self.groups,
-            "not_planned": self.not_planned,
+            "not_planned": self.not_planned, "block": self.block,
         }  # fmt: skip
 
 
@@ -173,6 +176,7 @@ class _Campaign:
                 list(pinned["groups"]),
                 list(pinned.get("not_planned", [])),
                 admissible(q),
+                int(pinned.get("block", block)),
             )
             return rows, ""
         if not plannable(before):
@@ -182,7 +186,7 @@ class _Campaign:
             why = "; ".join(sorted({s["why"] for s in plan.not_planned})) or "no pose decides them"
             return None, f"the open questions cannot be planned on this cell ({why})"
         keep = np.ones(len(plan.purpose), bool)
-        return _Rows(number, plan.q, list(plan.purpose), plan.groups, plan.not_planned, keep), ""
+        return _Rows(number, plan.q, list(plan.purpose), plan.groups, plan.not_planned, keep, block), ""
 
 
 _DIAGNOSED: dict[tuple, DiagnosisReport] = {}
@@ -256,7 +260,6 @@ def _measure_round(
     rows: _Rows,
     before: DiagnosisReport,
     rows_before: int,
-    block: int,
     shots: int | None,
 ) -> list[dict]:
     """Measure a round's plan block by block; after each block the longer campaign is diagnosed and the rows
@@ -266,7 +269,7 @@ def _measure_round(
     todo = rows.keep.copy()
     judged: list[dict] = []
     ask = True  # the operator places the SMR before this process' first pose, not before every block
-    for k, idx in enumerate(plan_blocks(len(rows.purpose), block), start=1):
+    for k, idx in enumerate(plan_blocks(len(rows.purpose), rows.block), start=1):
         idx = idx[todo[idx]]
         if not len(idx):
             continue
@@ -312,7 +315,7 @@ def run_loop(
             break
         if session.step_result(NAME, f"round{number}/plan") is None:
             session.finish_step(NAME, f"round{number}/plan", rows.to_dict())  # pinned before the first motion
-        blocks = _measure_round(session, state, rows, before, len(train), block, shots)
+        blocks = _measure_round(session, state, rows, before, len(train), shots)
         longer = state.training(number)
         after = state.diagnose(longer, before.effects_added)
         unmeasurable = int(np.sum(~rows.keep))

@@ -61,8 +61,8 @@ def loop(tmp_path_factory):
                 active_loop.PROCEDURE(session, rounds=2, poses=20, block=BLOCK)
         with CampaignStore(path, create=False) as store:
             before_resume = store.measurements(active_loop.NAME)
-        with session_on(config, path) as session:
-            result = active_loop.PROCEDURE(session, rounds=2, poses=20, block=BLOCK)
+        with session_on(config, path) as session:  # resumed without --block: round 1 keeps its blocks of 10
+            result = active_loop.PROCEDURE(session, rounds=2, poses=20)
         yield {
             "config": config,
             "path": path,
@@ -132,10 +132,15 @@ def test_a_round_is_judged_after_each_block_and_measures_only_what_is_still_open
                 and [store.step_result(active_loop.NAME, f"round{n}/block{b['block']}") for b in blocks]
                 == blocks
             )
-            purpose = store.step_result(active_loop.NAME, f"round{n}/plan")["purpose"]
+            plan = store.step_result(active_loop.NAME, f"round{n}/plan")
+            purpose, size = plan["purpose"], plan["block"]
+            if (
+                n == 1
+            ):  # planned in blocks of BLOCK, interrupted, resumed with the default: the plan's size holds
+                assert size == BLOCK
             index = [int(p.split("-")[1]) - 1 for p in rows.loc[rows["step"] == f"round{n}", "point_id"]]
             for judged in blocks:
-                later = [purpose[i] for i in index if i >= judged["block"] * BLOCK]
+                later = [purpose[i] for i in index if i >= judged["block"] * size]
                 assert set(later) <= set(judged["open"])
             assert [b["rows"] for b in blocks] == sorted(b["rows"] for b in blocks)
             assert blocks[-1]["rows"] == m["poses"] == len(index)
