@@ -690,11 +690,13 @@ def stretched_torque_nm(nominal: KinematicModel, joint_index: int) -> float:
 
 
 # The joints that carry the arm's weight: those whose largest gravity torque (`stretched_torque_nm`) is at least
-# this share of the most loaded joint's. A wrist is sized for the payload, not for the arm's own links: on a
-# UR10 joints 4-6 carry at most 5 % of joint 2's torque and yield micro-radians, which a campaign cannot tell
-# from the wrist's geometry, while their torque is mostly one harmonic of the joint's angle and would stand in
-# for other effects (on the public series B joint 5's compliance came out negative, a joint yielding against
-# gravity). Their yield stays a candidate (one compliance, the torque from the masses), tested like any other.
+# this share of the most loaded joint's (among the joints gravity loads: a vertical base axis carries none). A
+# wrist is sized for the payload, not for the arm's own links: on a UR10 joints 4-6 carry at most 5 % of joint
+# 2's torque and yield micro-radians, which a campaign cannot tell from the wrist's geometry, while their torque
+# is mostly one harmonic of the joint's angle and would stand in for other effects (on the public series B joint
+# 5's compliance came out negative, a joint yielding against gravity). Their yield stays a candidate (one
+# compliance, the torque from the masses), tested like any other. A heavy industrial wrist passes (an IRB 2600
+# with its masses: joint 4 at 16 % of joint 2's).
 GRAVITY_PHYSICS_TORQUE_SHARE = 0.1
 
 
@@ -705,14 +707,19 @@ def gravity_physics(ctx: EffectContext, nominal: KinematicModel) -> list[Gravity
     candidate)."""
     if nominal.link_masses_kg is None:
         return []
-    bounds = np.array([stretched_torque_nm(nominal, j) for j in range(nominal.n_joints)])
-    out = []
-    for j in np.flatnonzero(bounds >= GRAVITY_PHYSICS_TORQUE_SHARE * bounds.max()) + 1:
-        eff = GravityCompliance(joint=int(j))
-        if not eff.prepare(ctx, nominal):
-            continue
+    # Only joints gravity loads on these rows compete for "most loaded": a vertical axis (a base joint)
+    # carries none, however far its links reach.
+    loaded = [
+        eff
+        for eff in (GravityCompliance(joint=j) for j in range(1, nominal.n_joints + 1))
+        if eff.prepare(ctx, nominal)
+    ]
+    if not loaded:
+        return []
+    most = max(eff.state["torque_max_nm"] for eff in loaded)
+    out = [eff for eff in loaded if eff.state["torque_max_nm"] >= GRAVITY_PHYSICS_TORQUE_SHARE * most]
+    for eff in out:
         eff.state["prior_std"] = GRAVITY_PRIOR_DEFLECTION_RAD / eff.state["torque_max_nm"]
-        out.append(eff)
     return out
 
 
