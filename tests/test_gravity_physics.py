@@ -81,6 +81,24 @@ def test_the_joints_that_carry_the_arm_are_physics_with_their_prior():
     assert {e.joint for e in free} >= {2, 3} and all(e.coefficient_unit() == "rad/m" for e in free)
 
 
+def test_a_heavy_wrist_carries_its_share_against_the_loaded_joints_not_the_base():
+    """The share is of the most loaded joint gravity acts on: a vertical base axis carries no gravity torque
+    however far its links reach (an IRB 2600 given its masses: joint 4 carries 16 % of joint 2's, 8 % of the
+    base's stretched bound)."""
+    robot = replace(get_robot("irb2600"), link_masses_kg=(90.0, 45.0, 35.0, 15.0, 6.0, 1.0))
+    rng = np.random.default_rng(0)
+    limits = np.asarray(robot.joint_limits)
+    q = rng.uniform(
+        limits.mean(axis=1) - 0.3 * np.ptp(limits, axis=1),
+        limits.mean(axis=1) + 0.3 * np.ptp(limits, axis=1),
+        (60, 6),
+    )
+    ctx = EffectContext(q, p_flange_tool=np.tile([0, 0, 0.1], (60, 1)))
+    # the base's stretched bound is no torque: against it the wrist would fall under the share
+    assert stretched_torque_nm(robot, 3) < 0.1 * stretched_torque_nm(robot, 0)
+    assert [e.joint for e in gravity_physics(ctx, robot)] == [2, 3, 4]
+
+
 def test_a_negative_compliance_is_held_rigid():
     robot = get_robot("ur10")
     ctx = EffectContext(
