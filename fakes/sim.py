@@ -108,6 +108,11 @@ def sim_options(args: argparse.Namespace) -> SimOptions:
             f"--tracker-air-c {air:g} is outside {AIR_RANGE_C[0]:g}..{AIR_RANGE_C[1]:g} degC",
             "give the air temperature in degrees Celsius, e.g. 20",
         )
+    if air is not None and args.no_weather_monitor:
+        raise SimOptionError(
+            "--tracker-air-c sets what the tracker's weather station reads, and --no-weather-monitor removes it",
+            "give one of them (without a monitor the client enters the meteo, e.g. with SetEnvironmentParams)",
+        )
     return SimOptions(
         host=args.host,
         robot=args.robot,

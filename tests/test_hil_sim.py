@@ -165,5 +165,9 @@ def test_bad_tracker_air_is_refused_before_the_cell_starts():
     add_sim_arguments(parser)
     with pytest.raises(SimOptionError, match="degrees Celsius|outside"):
         sim_options(parser.parse_args(["--tracker-air-c", "293"]))  # kelvin given as Celsius
-    options = sim_options(parser.parse_args(["--tracker-air-c", "18", "--no-weather-monitor"]))
-    assert options.tracker_air_c == 18.0 and not options.weather_monitor
+    with pytest.raises(
+        SimOptionError, match="give one of them"
+    ):  # a station's reading on a tracker without one
+        sim_options(parser.parse_args(["--tracker-air-c", "18", "--no-weather-monitor"]))
+    assert sim_options(parser.parse_args(["--tracker-air-c", "18"])).tracker_air_c == 18.0
+    assert not sim_options(parser.parse_args(["--no-weather-monitor"])).weather_monitor

@@ -476,7 +476,7 @@ class _Thermal(Effect):
         return True
 
     def delta(self, ctx: EffectContext) -> np.ndarray:
-        """The driver less its training reference per row. The material's growth (`physical`) without a
+        """The driver less its training reference per row. The material's growth (`material_growth`) without a
         temperature is taken at its reference (no growth): a model that merely carries the physics predicts
         as a geometric one where no temperature is known (the callers that know one pass it and warn)."""
         name = self.state["driver"]

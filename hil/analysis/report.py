@@ -24,7 +24,7 @@ def _effect(e: dict) -> str:
 
 
 def caution_text(c: dict) -> str:
-    """One caution of the verdict (`hil.analysis.diagnosis.caution`) in words."""
+    """One caution of the verdict (`hil.analysis.diagnosis_baseline.caution`) in words."""
     kind = c["kind"]
     if kind == "calibration_note":
         return c["text"]
@@ -179,8 +179,8 @@ def report_dict(report: DiagnosisReport) -> dict:
             value = {**value, "cautions": [{**c, "text": caution_text(c)} for c in value["cautions"]]}
         if key == "thermal" and value is not None:
             value = {**value, "text": thermal_text(value)}
-        if key == "gravity" and value:
-            value = {"joints": value, "text": gravity_text(value)}
+        if key == "gravity":  # one shape whether or not the robot file gives the masses
+            value = {"joints": value, "text": gravity_text(value) if value else ""}
         out[key] = value
     return out
 
