@@ -221,17 +221,21 @@ def run_diagnosis(
         base = baseline_fit(*fit_args)
         base.screening = screening
         path = select_effects(base, df, alpha, families, max_effects)
-        material = next((e for e in path.current.model.effects if material_growth(e)), None)
-        conflict = material is not None and material_conflict(material)
-        against = {
-            e.joint: float(e.params[0]) for e in path.current.model.effects if yields_against_gravity(e)
-        }
-        if conflict or against:
+        hold: float | None = None
+        for _ in range(base.nominal.nominal.n_joints + 1):  # each pass holds the growth or more joints
+            material = next((e for e in path.current.model.effects if material_growth(e)), None)
+            conflict = material is not None and material_conflict(material)
+            against = {
+                e.joint: float(e.params[0]) for e in path.current.model.effects if yields_against_gravity(e)
+            }
+            if not (conflict or against):
+                break
             # The temperature's term took something that is no growth of the links (a drift in time, the
             # air's temperature rather than the arm's), or a joint's gravity term yields against gravity once
             # the selected effects are in: select again with the growth held at the material's and those
-            # joints held rigid.
-            hold = float(material.params[0]) if conflict and material is not None else None
+            # joints held rigid (and again if that selection turns another joint against gravity).
+            if conflict and material is not None:
+                hold = float(material.params[0])
             base = baseline_fit(*fit_args, hold_material=hold, hold_gravity={**base.held_gravity, **against})
             base.screening = screening
             path = select_effects(base, df, alpha, families, max_effects)
