@@ -328,6 +328,10 @@ def test_a_block_judgement_keeps_only_rows_whose_questions_are_open():
     judged = block_record(1, 4, groups, after)
     assert judged["open"] == ["revisit", "sweep_j2"]
     assert still_to_measure(purpose, judged).tolist() == [True] * 4 + [False] * 5 + [True] * 2
+    # the block's rows turned the leaning effect into one the geometry imitates: still open, its rows stay
+    imitated = question("confounded_with_geometry", effect={"name": "cyclic", "joint": 1})
+    again = block_record(1, 4, groups, SimpleNamespace(undecided=[imitated], effects_added=[]))
+    assert again["open"] == ["separate_cyclic_j1"]
     done = block_record(2, 8, groups, SimpleNamespace(undecided=[], effects_added=[]))
     assert done["open"] == [] and not still_to_measure(purpose, done).any()
     with pytest.raises(ValueError, match="at least 1"):

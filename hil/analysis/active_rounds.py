@@ -25,7 +25,7 @@ import pandas as pd
 from hil.analysis.diagnosis import DiagnosisReport
 from hil.analysis.discrimination import BLOCK_ROWS, Plan, propose
 from hil.analysis.report import group_text, question_text
-from hil.analysis.undecided import question_key, settled
+from hil.analysis.undecided import question_subject, settled
 
 
 def plan_round(
@@ -65,9 +65,10 @@ def served_questions(group: dict) -> list[dict]:
 
 
 def open_purposes(groups: list[dict], report: DiagnosisReport) -> set[str]:
-    """The plan's purposes with a question that `report` (the diagnosis after a block) still leaves open."""
-    now = {question_key(q) for q in report.undecided}
-    return {g["purpose"] for g in groups if any(question_key(q) in now for q in served_questions(g))}
+    """The plan's purposes with a question that `report` (the diagnosis after a block) still leaves open, of
+    whatever kind now (a marginal effect the block's rows turned into one the geometry imitates is still open)."""
+    now = {question_subject(q) for q in report.undecided}
+    return {g["purpose"] for g in groups if any(question_subject(q) in now for q in served_questions(g))}
 
 
 def block_record(number: int, rows_measured: int, groups: list[dict], report: DiagnosisReport) -> dict:

@@ -219,10 +219,15 @@ def open_questions(
 
 def question_key(q: dict) -> tuple:
     """What identifies a question across rounds (kind and subject)."""
+    return (q["kind"], *question_subject(q))
+
+
+def question_subject(q: dict) -> tuple:
+    """What a question is about, whatever kind of doubt it is (a marginal effect can come back as one the
+    geometry imitates): its effect, its rival, its parameters."""
     eff = q.get("effect") or {}
     rival = q.get("rival") or {}
     return (
-        q["kind"],
         eff.get("name"),
         eff.get("joint"),
         rival.get("name"),
