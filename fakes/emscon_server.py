@@ -26,11 +26,10 @@ from collections.abc import Callable
 
 import numpy as np
 
-from drivers.emscon_codec import WeatherMonitorStatus
 from fakes.emscon_commands import CommandSet
 from fakes.emscon_faults import Faults
 from fakes.emscon_measure import Beam
-from fakes.emscon_state import MANUAL_METEO_DEFAULT, EmsconServerConfig, Reflector, TrackerState
+from fakes.emscon_state import EmsconServerConfig, Reflector, TrackerState
 from fakes.emscon_wire import ClientStream, PtyLine
 
 __all__ = ["EmsconServer", "EmsconServerConfig", "Reflector", "ServerThread", "main"]
@@ -49,14 +48,7 @@ class EmsconServer:
         self.requested_port = port
         self.config = config or EmsconServerConfig()
         self.faults = Faults()
-        self.state = TrackerState(
-            initialized=self.config.initialized,
-            search_radius_m=self.config.search_radius_m,
-            search_timeout_ms=self.config.search_timeout_ms,
-        )
-        if not self.config.weather_monitor:
-            self.state.settings[0] = WeatherMonitorStatus.NOT_CONNECTED
-            self.state.manual_meteo = MANUAL_METEO_DEFAULT
+        self.state = TrackerState.powered_on(self.config)
         self.beam = Beam(cell, self.config, self.state, self.faults, self.broadcast)
         self.commands = CommandSet(self.beam, self.broadcast)
         self.port: int | None = None

@@ -123,6 +123,20 @@ class TrackerState:
     double_params: dict = field(default_factory=dict)
     command_counts: Counter = field(default_factory=Counter)  # per command name, for tests and tracker.state
 
+    @classmethod
+    def powered_on(cls, config: EmsconServerConfig) -> TrackerState:
+        """A tracker's state as it powers on with `config`: without a weather monitor, its settings say so and
+        its refraction starts from MANUAL_METEO_DEFAULT."""
+        state = cls(
+            initialized=config.initialized,
+            search_radius_m=config.search_radius_m,
+            search_timeout_ms=config.search_timeout_ms,
+        )
+        if not config.weather_monitor:
+            state.settings[0] = codec.WeatherMonitorStatus.NOT_CONNECTED
+            state.manual_meteo = MANUAL_METEO_DEFAULT
+        return state
+
 
 def valid_unit(index: int, value: int) -> bool:
     """Whether `value` is a member of the index-th unit enum of SetUnits (length, angle, temperature, pressure, humidity)."""
