@@ -8,6 +8,7 @@ so the SMR turns away from the tracker and no visible sweep exists on this cell.
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
 
@@ -45,6 +46,7 @@ def loop(tmp_path_factory):
             # the paper-sized tool fit is tested in test_procedures_sim
             tool_fit.PROCEDURE(session, check_poses=6, validation_poses=4, shots=3)
             grid_sampling.PROCEDURE(session, step_m=0.2, validation=20)
+        shutil.copy(path, folder / "grid_only.sqlite")  # the campaign before any round (another crash test)
         measure = Session.measure_point
         calls = {"n": 0}
 
@@ -66,6 +68,7 @@ def loop(tmp_path_factory):
         yield {
             "config": config,
             "path": path,
+            "grid_only": folder / "grid_only.sqlite",
             "folder": folder,
             "result": result,
             "before_resume": before_resume,
@@ -145,6 +148,36 @@ def test_a_round_is_judged_after_each_block_and_measures_only_what_is_still_open
             assert [b["rows"] for b in blocks] == sorted(b["rows"] for b in blocks)
             assert blocks[-1]["rows"] == m["poses"] == len(index)
             assert m["not_needed"] == m["planned"] - m["unmeasurable"] - m["poses"] >= 0
+
+
+@pytest.mark.sim
+@pytest.mark.timeout(400)
+def test_a_crash_between_a_block_and_its_judgement_loses_nothing_and_measures_nothing_twice(loop, tmp_path):
+    """The other crash window of a round: block 1 fully measured, its judgement not yet recorded. The resumed
+    round measures none of block 1 again, judges it from the rows it has, and goes on."""
+    path = tmp_path / "campaign.sqlite"
+    shutil.copy(loop["grid_only"], path)
+    finish = Session.finish_step
+
+    def crashing(self, procedure, step, result):
+        if procedure == active_loop.NAME and step == "round1/block1":
+            raise _LinkDroppedError("the process died before recording the judgement")
+        return finish(self, procedure, step, result)
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(Session, "finish_step", crashing)
+        with pytest.raises(_LinkDroppedError), session_on(loop["config"], path) as session:
+            active_loop.PROCEDURE(session, rounds=1, poses=10, block=5)
+    with CampaignStore(path, create=False) as store:
+        before = list(store.measurements(active_loop.NAME)["point_id"])
+        assert store.step_result(active_loop.NAME, "round1/block1") is None
+    assert len(before) == 5  # block 1 was measured and kept
+    with session_on(loop["config"], path) as session:
+        active_loop.PROCEDURE(session, rounds=1, poses=10, block=5)
+    with CampaignStore(path, create=False) as store:
+        after = list(store.measurements(active_loop.NAME)["point_id"])
+        assert store.step_result(active_loop.NAME, "round1/block1") is not None
+    assert after[: len(before)] == before and len(after) == len(set(after))
 
 
 @pytest.mark.sim
