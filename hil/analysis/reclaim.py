@@ -64,11 +64,14 @@ def reclaimed(
         if eff.prepare(base.full.ctx, model.nominal):
             (seen if cand.p_chi2 < test_level else unseen).append((i, eff))
 
+    if not seen and not unseen:
+        return out
+    rows = base.contested_rows(rejected)  # only these can enter the screening's rows, whichever rival fits
+    contested = base.full.subset(rows)
+
     def judge(i: int, eff: Effect) -> None:
         rival = model.with_effect(eff)
-        rows = base.contested_rows(rejected)  # only these can enter the screening's rows
-        prob = base.full.subset(rows)
-        fitted = solve_ridge_igg3(rival, prob, free_mask(rival, prob)[0], frozen_jacobian=True)
+        fitted = solve_ridge_igg3(rival, contested, free_mask(rival, contested)[0], frozen_jacobian=True)
         both = rejected.copy()
         both[rows] &= fitted.outliers
         if both.sum() == rejected.sum():
