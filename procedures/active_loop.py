@@ -259,13 +259,14 @@ def _measure_round(
     state: _Campaign,
     rows: _Rows,
     before: DiagnosisReport,
-    rows_before: int,
+    train: pd.DataFrame,
     shots: int | None,
 ) -> list[dict]:
     """Measure a round's plan block by block; after each block the longer campaign is diagnosed and the rows
     whose questions it decided are dropped (hil.analysis.active_rounds). Each judgement is recorded
-    (`roundN/blockK`) before the next motion, so a resumed round drops the same rows; returns them all."""
-    nest = state.nest(state.training(rows.number - 1))
+    (`roundN/blockK`) before the next motion, so a resumed round drops the same rows; returns them all.
+    `train`: the campaign before the round (the round measures in its nest)."""
+    nest = state.nest(train)
     todo = rows.keep.copy()
     judged: list[dict] = []
     ask = True  # the operator places the SMR before this process' first pose, not before every block
@@ -281,7 +282,7 @@ def _measure_round(
         if record is None:
             longer = state.training(rows.number)
             after = state.diagnose(longer, before.effects_added)
-            fresh = to_jsonable(block_record(k, len(longer) - rows_before, rows.groups, after))
+            fresh = to_jsonable(block_record(k, len(longer) - len(train), rows.groups, after))
             assert isinstance(fresh, dict)
             session.finish_step(NAME, step, fresh)
             record = fresh
@@ -315,7 +316,7 @@ def run_loop(
             break
         if session.step_result(NAME, f"round{number}/plan") is None:
             session.finish_step(NAME, f"round{number}/plan", rows.to_dict())  # pinned before the first motion
-        blocks = _measure_round(session, state, rows, before, len(train), shots)
+        blocks = _measure_round(session, state, rows, before, train, shots)
         longer = state.training(number)
         after = state.diagnose(longer, before.effects_added)
         unmeasurable = int(np.sum(~rows.keep))
