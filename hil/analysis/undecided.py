@@ -109,10 +109,7 @@ def coverage_questions(df: pd.DataFrame) -> list[dict]:
                 gap=gap,
             )
         )
-    if "temperature_c" in df.columns:
-        span_k = float(np.ptp(df["temperature_c"].to_numpy(float))) if len(df) else 0.0
-    else:
-        span_k = 0.0
+    span_k = temperature_span_k(df)
     if span_k < MIN_TEMPERATURE_SPAN_K:
         out.append(
             question(
@@ -124,6 +121,13 @@ def coverage_questions(df: pd.DataFrame) -> list[dict]:
             )
         )
     return out
+
+
+def temperature_span_k(df: pd.DataFrame) -> float:
+    """The recorded temperature's span (K); 0 without a temperature column or rows."""
+    if "temperature_c" not in df.columns or not len(df):
+        return 0.0
+    return float(np.ptp(df["temperature_c"].to_numpy(float)))
 
 
 def revisited_poses(df: pd.DataFrame) -> tuple[int, str]:
@@ -188,9 +192,9 @@ def thermal_questions(df: pd.DataFrame, effects: list[Effect]) -> list[dict]:
     """The tracker's scale against the links' growth, when the model carries a temperature-driven growth and
     no tracker scale, and the recorded temperature spans enough to show either."""
     families = {e.family for e in effects if temperature_driven(e)}
-    if "thermal_expansion" not in families or "tracker_scale" in families or "temperature_c" not in df:
+    if "thermal_expansion" not in families or "tracker_scale" in families:
         return []
-    span_k = float(np.ptp(df["temperature_c"].to_numpy(float)))
+    span_k = temperature_span_k(df)
     if span_k < MIN_TEMPERATURE_SPAN_K:
         return []  # temperature_not_spanned says it: poses at one temperature cannot
     return [
