@@ -286,12 +286,15 @@ class GravityCompliance(Effect):
             L = np.column_stack([L, L[:, -1] * ctx.payload_kg])
         return L
 
-    def torque(self, ctx: EffectContext, nominal: KinematicModel) -> np.ndarray:
+    def torque(
+        self, ctx: EffectContext, nominal: KinematicModel, levers: np.ndarray | None = None
+    ) -> np.ndarray:
         """Gravity torque (N,) in N m about joint `joint`'s axis from the link masses in the state: link k (the
-        one joint k moves) weighs at the middle of frame origins k-1 and k, a recorded payload at the tool."""
+        one joint k moves) weighs at the middle of frame origins k-1 and k, a recorded payload at the tool.
+        `levers`: `_levers` on these rows when the caller has them."""
         masses = np.asarray(self.state["masses_kg"], dtype=float)
         j, n = self.joint_index, len(masses)
-        L = self._levers(ctx, nominal)  # origins j+1 .. n, the tool point, (the payload's column)
+        L = self._levers(ctx, nominal) if levers is None else levers  # origins j+1 .. n, the tool, (payload)
         arms = np.column_stack([np.zeros(len(L)), L[:, : n - j]])  # origin j lies on the axis itself
         per_g = 0.5 * (arms[:, :-1] + arms[:, 1:]) @ masses[j:]
         if ctx.payload_kg is not None and ctx.p_flange_tool is not None:
@@ -309,7 +312,7 @@ class GravityCompliance(Effect):
                 "torque_max_nm": stretched_torque_nm(nominal, self.joint_index),
             }
             self.params = np.zeros(1)
-            return bool(np.max(np.abs(self.torque(ctx, nominal))) > MIN_GRAVITY_TORQUE_NM)
+            return bool(np.max(np.abs(self.torque(ctx, nominal, L))) > MIN_GRAVITY_TORQUE_NM)
         # Merge lever arms the data cannot tell apart: keep SVD directions above 1e-3 of the largest.
         _, s, Vt = np.linalg.svd(L, full_matrices=False)
         keep = s > 1e-3 * s[0]
