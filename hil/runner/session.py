@@ -514,11 +514,11 @@ class Session:
         approach_q_rad: np.ndarray | None = None,
     ) -> dict:
         """One run of a path: move to its start (checked against the envelope), aim, stream the tracker while
-                the robot moves linearly through the flange waypoints T_base_flange (K, 4, 4), and record every sample
-                as the step's result before anything else moves. A run already recorded is returned as it was (a
-                resumed campaign never repeats it); one recorded with other waypoints or speed is refused. Beam
-                breaks are retried from the start, each an event. The whole path (every 5 mm) is checked reachable and
-        inside the envelope before anything moves."""
+        the robot moves linearly through the flange waypoints T_base_flange (K, 4, 4), and record every sample
+        as the step's result before anything else moves. A run already recorded is returned as it was (a
+        resumed campaign never repeats it); one recorded with other waypoints or speed is refused. Beam breaks
+        are retried from the start, each an event. The whole path (every 5 mm) is checked reachable and inside
+        the envelope before anything moves."""
         T = np.asarray(T_base_flange, float)
         waypoints_mm = (T[:, :3, 3] * 1e3).round(6).tolist()
         recorded = self.step_result(procedure, step)
