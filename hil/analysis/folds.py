@@ -95,7 +95,7 @@ def campaign_folds(
     grid's blocks still score extrapolation across the workspace.
     `pose` (N,) ids of the rows' poses; `q` (N, n) joints; `points` (N, 3).
     """
-    ids, first, compact = np.unique(pose, return_index=True, return_inverse=True)
+    ids, compact = np.unique(pose, return_inverse=True)
     compact = compact.ravel()
     n_pose = len(ids)
     centres = np.zeros((n_pose, points.shape[1]))
