@@ -66,9 +66,9 @@ def run_case(case: str, seed: int, compare: bool, block: int) -> dict:
     from sim_campaigns import grid_joints, held_out_joints
 
     from fakes.campaign import simulate_campaign
-    from hil.analysis.active_rounds import block_record, plan_blocks, still_to_measure
-    from hil.analysis.diagnosis import run_diagnosis
-    from hil.analysis.discrimination import propose
+    from hil.analysis.design.plan import propose
+    from hil.analysis.design.rounds import block_record, plan_blocks, still_to_measure
+    from hil.analysis.diagnosis.pipeline import run_diagnosis
 
     cell = _cell(case, seed)
     train = simulate_campaign(cell, grid_joints(cell, step_m=0.15, seed=seed, keep_singular=False))
@@ -131,7 +131,7 @@ def _extra_needed(cell, first, want, how: str, seed: int, start: list[dict], blo
     the longer campaign is diagnosed after each block as a round of the loop is (the first diagnosis' effects
     `start` known). The blocks are measured one after the other on the cell, as a round's are."""
     from fakes.campaign import simulate_campaign
-    from hil.analysis.diagnosis import run_diagnosis
+    from hil.analysis.diagnosis.pipeline import run_diagnosis
     from hil.data.dataset import joints_rad
 
     rng = np.random.default_rng([seed, 11])
@@ -150,8 +150,9 @@ def _extra_needed(cell, first, want, how: str, seed: int, start: list[dict], blo
 
 def _d_optimal(first, pool, count: int) -> np.ndarray:
     """Greedy D-optimal order of pool poses for the geometric model alone (log det of its information)."""
-    from hil.analysis.calibration import Problem, calibrate, flatten_jacobian, identify
-    from hil.analysis.discrimination import _context, _woodbury_update
+    from hil.analysis.calibration.solve import Problem, calibrate, flatten_jacobian, identify
+    from hil.analysis.design.plan import _woodbury_update
+    from hil.analysis.diagnosis.evidence import unmeasured_problem
 
     model = calibrate(first, "ur10", "ridge").model
     camp = Problem.from_frame(model, first)
@@ -159,7 +160,7 @@ def _d_optimal(first, pool, count: int) -> np.ndarray:
     J = flatten_jacobian(camp.evaluate(model)[1][:, :3])[:, keep]
     norms = np.linalg.norm(J, axis=0)
     cov = np.linalg.inv((J / norms).T @ (J / norms) + 1e-9 * np.eye(J.shape[1]))
-    A = camp_rows = _context(model, first, pool).evaluate(model)[1][:, :3, keep] / norms
+    A = camp_rows = unmeasured_problem(model, first, pool).evaluate(model)[1][:, :3, keep] / norms
     del camp_rows
     chosen: list[int] = []
     for _ in range(count):
@@ -177,7 +178,7 @@ def _fmt(named: set) -> str:
 
 
 def main() -> None:
-    from hil.analysis.discrimination import BLOCK_ROWS
+    from hil.analysis.design.plan import BLOCK_ROWS
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", default="0-2", help="a range 'a-b' or a list '0,3,5'")

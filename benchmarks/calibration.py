@@ -35,16 +35,16 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from fakes.physics import chain_frames, gravity_torques
-from hil.analysis.calibrated_model import initial_model
-from hil.analysis.calibration import Problem, calibrate, solve_ridge_igg3
-from hil.analysis.diagnosis_baseline import error_stats
-from hil.analysis.effects import tool_points_rows
-from hil.analysis.residual_maps import MAP_KINDS, IDWGridMap, kfold_map_errors, make_map
+from hil.analysis.calibration.solve import Problem, calibrate, solve_ridge_igg3
+from hil.analysis.diagnosis.baseline import error_stats
 from hil.data.dataset import make_dataset
 from hil.geometry.ik import solve_ik
 from hil.geometry.kinematics import KinematicModel, measured_point
 from hil.geometry.robots import get_robot
 from hil.geometry.se3 import make_transform
+from hil.model.calibrated_model import initial_model
+from hil.model.effects import tool_points_rows
+from hil.model.residual_maps import MAP_KINDS, IDWGridMap, kfold_map_errors, make_map
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from calib_data import ur10_joints  # noqa: E402 - the calibration tests' joint sampler (tests/calib_data.py)
@@ -219,7 +219,7 @@ def diagnosis_timing(seed: int) -> None:
     """The whole diagnosis loop on the simulated UR10 cell (compliance + backlash) at three grid steps."""
     from fakes.campaign import simulate_campaign
     from fakes.cell import SimCellConfig, SimulatedCell
-    from hil.analysis.diagnosis import run_diagnosis
+    from hil.analysis.diagnosis.pipeline import run_diagnosis
     from hil.runner.planners import grid_points
 
     print("\nDiagnosis loop on the simulated UR10 (gravity compliance + backlash), grid campaigns")
@@ -243,7 +243,7 @@ def big_campaigns(seed: int, diagnose_poses: int = 12000, calibrate_poses: int =
 
     from fakes.campaign import simulate_campaign
     from fakes.cell import SimCellConfig, SimulatedCell
-    from hil.analysis.diagnosis import run_diagnosis
+    from hil.analysis.diagnosis.pipeline import run_diagnosis
     from hil.runner.planners import random_points
 
     def peak_mb() -> float:

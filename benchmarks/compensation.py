@@ -23,13 +23,13 @@ import numpy as np
 from kinematics import Table, best_time, rtb_ets  # benchmarks/kinematics.py (same directory)
 from scipy.spatial.transform import Rotation
 
-from hil.analysis.calibrated_model import CalibratedModel
-from hil.analysis.effects import EffectContext, make_effect
 from hil.compensation.model_based import IK_TOL_FRACTION, compensate
 from hil.compensation.target_update import pose_errors
 from hil.geometry.kinematics import forward_kinematics
 from hil.geometry.robots import get_robot
 from hil.geometry.se3 import make_transform
+from hil.model.calibrated_model import CalibratedModel
+from hil.model.effects import EffectContext, make_effect
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from calib_data import ur10_joints  # noqa: E402 - the calibration tests' joint sampler (tests/calib_data.py)

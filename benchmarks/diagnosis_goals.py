@@ -78,7 +78,7 @@ def run_case(name: str, seed: int) -> dict:
 
     from fakes.campaign import simulate_campaign
     from fakes.cell import SimCellConfig, SimulatedCell
-    from hil.analysis.diagnosis import run_diagnosis
+    from hil.analysis.diagnosis.pipeline import run_diagnosis
     from hil.geometry.robots import get_robot
 
     case = CASES[name]

@@ -49,7 +49,7 @@ def main() -> None:
     from sim_session import running_cell, session_on
 
     from fakes.cell import SimCellConfig, SimulatedCell
-    from hil.analysis.iso9283 import commanded_tangents, crossings
+    from hil.analysis.standards.iso9283 import commanded_tangents, crossings
     from hil.data.dataset import orientation_columns
     from hil.geometry.se3 import fit_rigid
     from procedures import iso9283, registration

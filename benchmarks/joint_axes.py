@@ -44,7 +44,7 @@ def main() -> None:
     from sim_session import running_cell, session_on
 
     from fakes.cell import SimCellConfig, SimulatedCell, parse_effect_flags
-    from hil.analysis.calibration import calibrate
+    from hil.analysis.calibration.solve import calibrate
     from hil.geometry.robots import get_robot
     from procedures import joint_axes, registration
 

@@ -88,12 +88,11 @@ def rows(quick: bool = False) -> list[dict]:
 
 def evaluate(nominal_robot, tool_m, train, test) -> tuple[dict[str, np.ndarray], dict]:
     """Errors (N,) mm at the test points after each of the paper's stages, and facts about the IDW grid."""
-    from hil.analysis.calibration import Problem, calibrate
-    from hil.analysis.cube_svr import registered_nominal
-    from hil.analysis.effects import tool_points_rows
-    from hil.analysis.folds import SAME_LOCATION_M
-    from hil.analysis.grid_frame import locations
-    from hil.analysis.residual_maps import IDWGridMap, make_map
+    from hil.analysis.calibration.cube_svr import registered_nominal
+    from hil.analysis.calibration.solve import Problem, calibrate
+    from hil.model.effects import tool_points_rows
+    from hil.model.grid_frame import SAME_LOCATION_M, locations
+    from hil.model.residual_maps import IDWGridMap, make_map
 
     nominal = registered_nominal(nominal_robot, train, tool_m)
     kin = calibrate(train, nominal_robot, "ridge", tool_guess_m=tool_m).model

@@ -72,10 +72,10 @@ def evaluate(
     nominal_robot, tool_m: np.ndarray, train: pd.DataFrame, test: dict[str, pd.DataFrame]
 ) -> dict[str, dict[str, np.ndarray]]:
     """Errors (N,) mm at each cube's test points: raw, per-cube SVR (the paper), LM calibration, ours."""
-    from hil.analysis.calibration import Problem, calibrate
-    from hil.analysis.cube_svr import fit_cube_svr, registered_nominal
-    from hil.analysis.effects import tool_points_rows
-    from hil.analysis.residual_maps import SVRMap
+    from hil.analysis.calibration.cube_svr import fit_cube_svr, registered_nominal
+    from hil.analysis.calibration.solve import Problem, calibrate
+    from hil.model.effects import tool_points_rows
+    from hil.model.residual_maps import SVRMap
 
     nominal = registered_nominal(nominal_robot, train, tool_m)
     paper_model = fit_cube_svr(nominal_robot, train, CUBE_M, tool_m)

@@ -22,7 +22,7 @@ from scipy.spatial.transform import Rotation
 
 from fakes.campaign import Probe, simulate_campaign
 from fakes.cell import SimCellConfig, SimulatedCell
-from hil.analysis.calibration import calibrate
+from hil.analysis.calibration.solve import calibrate
 from hil.data.dataset import ORIENTATION_COLUMNS, orientations
 from hil.runner.planners import facing_poses, grid_points, plan_joints, random_points, workspace_box
 

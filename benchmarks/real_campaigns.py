@@ -83,8 +83,8 @@ def run(
     data_dir: Path, reregister: str, propose_n: int, orientation: bool, angle_noise_deg: float | None = None
 ) -> int:
     """Both directions; returns 1 when a final model is worse than plain calibration on the other campaign."""
-    from hil.analysis.diagnosis import run_diagnosis
-    from hil.analysis.discrimination import propose
+    from hil.analysis.design.plan import propose
+    from hil.analysis.diagnosis.pipeline import run_diagnosis
 
     data = {s: to_contract(read_raw(data_dir, s), orientation) for s in ("B", "C")}
     if angle_noise_deg is not None:  # as `hil diagnose --probe-angle-noise-deg` passes it

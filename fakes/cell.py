@@ -61,7 +61,7 @@ class EffectFlags(TypedDict, total=False):
     thermal: bool
 
 
-# Each effect named as the diagnosis names its effect family (hil.analysis.effects.EFFECT_FAMILIES), with the
+# Each effect named as the diagnosis names its effect family (hil.model.effects.EFFECT_FAMILIES), with the
 # SimCellConfig flag that switches it on: one name per effect across the simulator and the diagnosis.
 EFFECT_FLAGS: dict[str, str] = {
     "gravity_compliance": "compliance",

@@ -25,20 +25,20 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from hil.analysis.active_rounds import (
+from hil.analysis.design.rounds import (
     BLOCK_ROWS,
     block_record,
     plan_blocks,
     plan_round,
     plannable,
     round_record,
-    rounds_text,
     still_to_measure,
 )
-from hil.analysis.diagnosis import DiagnosisReport, run_diagnosis
+from hil.analysis.diagnosis.pipeline import DiagnosisReport, run_diagnosis
 from hil.data.dataset import DatasetError
 from hil.data.jsonable import to_jsonable
 from hil.data.store import CampaignStore, campaign_dataset
+from hil.report.rounds import rounds_text
 from hil.runner.cell_config import CellConfig
 from hil.runner.operator import OperatorStep
 from hil.runner.plan import Plan, PlannedPose
@@ -52,7 +52,7 @@ GRID = "grid_sampling"
 
 @dataclass(frozen=True)
 class ActiveLoopResult:
-    records: list[dict]  # one per round, as stored (hil.analysis.active_rounds.round_record)
+    records: list[dict]  # one per round, as stored (hil.analysis.design.rounds.round_record)
     stop: dict  # {"rounds": n, "why": ...}
     report: DiagnosisReport  # the diagnosis of the campaign with every round's poses
 
@@ -120,7 +120,7 @@ class _Campaign:
 
     def diagnose(self, train: pd.DataFrame, previous: list[dict] | None = None) -> DiagnosisReport:
         """The diagnosis of `train` (validated on the grid's validation poses); `previous`: the effects the
-        round before named (hil.analysis.diagnosis keeps them when the new selection would predict worse without
+        round before named (hil.analysis.diagnosis.pipeline keeps them when the new selection would predict worse without
         them). The same data diagnosed again in this process (the plan shown before connecting, then the
         loop's first round) is not diagnosed twice."""
         fit = self.store.step_result("tool_fit", "fit")
@@ -263,7 +263,7 @@ def _measure_round(
     shots: int | None,
 ) -> list[dict]:
     """Measure a round's plan block by block; after each block the longer campaign is diagnosed and the rows
-    whose questions it decided are dropped (hil.analysis.active_rounds). Each judgement is recorded
+    whose questions it decided are dropped (hil.analysis.design.rounds). Each judgement is recorded
     (`roundN/blockK`) before the next motion, so a resumed round drops the same rows; returns them all.
     `train`: the campaign before the round (the round measures in its nest)."""
     nest = state.nest(train)

@@ -43,8 +43,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from hil.analysis.calibrated_model import CalibratedModel
-from hil.analysis.iso9283 import (
+from hil.analysis.standards.iso9283 import (
     POSE_LABELS,
     Iso9283Report,
     PathFigures,
@@ -59,6 +58,7 @@ from hil.data.dataset import orientation_columns
 from hil.data.store import campaign_dataset
 from hil.geometry.kinematics import forward_kinematics
 from hil.geometry.se3 import fit_rigid
+from hil.model.calibrated_model import CalibratedModel
 from hil.runner.cell_config import CellConfig
 from hil.runner.operator import OperatorStep
 from hil.runner.plan import Plan, PlannedPose

@@ -30,11 +30,17 @@ from pathlib import Path
 
 import numpy as np
 
-from hil.analysis.effects import GRAVITY_DIRECTION_BASE
-from hil.analysis.joint_axes import MIN_ARC_RAD, AxesResult, fit_circle, identify_axes, robot_file_text
-from hil.analysis.noise_floor import tracker_sigma_m
+from hil.analysis.calibration.noise_floor import tracker_sigma_m
+from hil.analysis.standards.joint_axes import (
+    MIN_ARC_RAD,
+    AxesResult,
+    fit_circle,
+    identify_axes,
+    robot_file_text,
+)
 from hil.data.store import campaign_dataset
 from hil.geometry.kinematics import KinematicModel, chain_axes, forward_kinematics, link_frames
+from hil.model.effects import GRAVITY_DIRECTION_BASE
 from hil.runner.cell_config import CellConfig
 from hil.runner.operator import OperatorStep
 from hil.runner.plan import Plan, PlannedPose

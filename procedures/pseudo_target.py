@@ -37,8 +37,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from hil.analysis.calibrated_model import CalibratedModel
-from hil.analysis.noise_floor import tracker_sigma_m
+from hil.analysis.calibration.noise_floor import tracker_sigma_m
 from hil.compensation.model_based import (
     ENSEMBLE,
     PosePredictor,
@@ -53,6 +52,7 @@ from hil.data.dataset import ORIENTATION_COLUMNS, orientations
 from hil.data.store import CampaignError, CampaignStore
 from hil.geometry.kinematics import forward_kinematics
 from hil.geometry.se3 import fit_rigid
+from hil.model.calibrated_model import CalibratedModel
 from hil.runner.cell_config import CellConfig
 from hil.runner.envelope import EnvelopeError
 from hil.runner.operator import OperatorStep
@@ -79,7 +79,7 @@ PT_PAPER: tuple[int, str, int, int, float] = (3, "zyz", 2, 0, 0.0005e-3)
 PATIENCE = 2  # corrections without a gain beyond the noise margin before a target stops (0: never)
 # Noise margin: a correction counts as a gain when it beats the best error so far by more than
 # GAIN_SIGMAS x the per-axis 1-sigma noise of the measured point: the larger of the tracker's noise model
-# (hil.analysis.noise_floor.tracker_sigma_m) and the recorded shot spread, each / sqrt(shots).
+# (hil.analysis.calibration.noise_floor.tracker_sigma_m) and the recorded shot spread, each / sqrt(shots).
 GAIN_SIGMAS = 1.0
 
 

@@ -38,7 +38,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from hil.analysis.flange_geometry import (
+from hil.analysis.calibration.noise_floor import tracker_sigma_m
+from hil.analysis.standards.flange_geometry import (
     FlangeFit,
     bisector_error_rad,
     common_point_error_m,
@@ -51,7 +52,6 @@ from hil.analysis.flange_geometry import (
     tool_point_by_distances,
     tool_point_in_flange,
 )
-from hil.analysis.noise_floor import tracker_sigma_m
 from hil.geometry.kinematics import KinematicModel, tool_points
 from hil.geometry.rigid_fit import ransac_rigid
 from hil.runner.cell_config import CellConfig

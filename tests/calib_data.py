@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from hil.analysis.calibrated_model import CalibratedModel
-from hil.analysis.effects import EffectContext, make_effect
 from hil.data.dataset import make_dataset
 from hil.geometry.kinematics import measured_point
 from hil.geometry.robots import get_robot
 from hil.geometry.se3 import make_transform
+from hil.model.calibrated_model import CalibratedModel
+from hil.model.effects import EffectContext, make_effect
 
 
 def ur10_joints(rng: np.random.Generator, n: int) -> np.ndarray:
@@ -61,10 +61,10 @@ def cell_datasets(step_m: float = 0.1, n_val: int = 100, seed: int = 0, **config
 def true_effect_model(train, robot: str, families: tuple[str, ...]):
     """The model a user who knew the cell's effects would fit: geometry plus every candidate of those
     families the data can show (the yardstick of the diagnosis goals)."""
-    from hil.analysis.calibrated_model import initial_model
-    from hil.analysis.calibration import calibrate
-    from hil.analysis.effects import EffectContext, candidate_effects
+    from hil.analysis.calibration.solve import calibrate
     from hil.data.dataset import joints_rad
+    from hil.model.calibrated_model import initial_model
+    from hil.model.effects import EffectContext, candidate_effects
 
     model = initial_model(robot, train)
     ctx = EffectContext.from_frame(train, joints_rad(train))

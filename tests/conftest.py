@@ -27,7 +27,7 @@ def gravity_cell_diagnosis():
     (copy the frames first)."""
     from calib_data import cell_datasets
 
-    from hil.analysis.diagnosis import run_diagnosis
+    from hil.analysis.diagnosis.pipeline import run_diagnosis
 
     cell, train, val = cell_datasets(seed=2)
     return cell, train, val, run_diagnosis(train, "ur10", df_validate=val)

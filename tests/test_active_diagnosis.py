@@ -12,9 +12,9 @@ from sim_campaigns import grid_joints
 
 from fakes.campaign import simulate_campaign
 from fakes.cell import SimCellConfig, SimulatedCell
-from hil.analysis.diagnosis import run_diagnosis
-from hil.analysis.discrimination import propose
-from hil.analysis.undecided import coverage_questions
+from hil.analysis.design.plan import propose
+from hil.analysis.diagnosis.pipeline import run_diagnosis
+from hil.analysis.diagnosis.questions import coverage_questions
 
 JOINT_COLUMNS = [f"q{j}_rad" for j in range(1, 7)]
 
@@ -104,7 +104,7 @@ def test_nothing_plannable_gives_a_header_only_plan(first):
 
 
 def _model(train):
-    from hil.analysis.calibration import calibrate
+    from hil.analysis.calibration.solve import calibrate
 
     return calibrate(train, "ur10", "ridge").model
 
@@ -136,7 +136,7 @@ def test_propose_writes_at_most_n_rows_with_purposes(campaign_csv, tmp_path, cap
 
 
 def test_nothing_undecided_writes_the_header_and_says_so(campaign_csv, tmp_path, capsys, monkeypatch):
-    import hil.analysis.diagnosis as diagnosis
+    import hil.analysis.diagnosis.pipeline as diagnosis
 
     monkeypatch.setattr(diagnosis, "undecided_questions", lambda *a, **k: [])
     code, out, _ = hil_in_process(
@@ -185,7 +185,7 @@ def test_a_cell_of_another_robot_is_refused(campaign_csv, tmp_path, capsys):
 
 
 def test_settled_says_which_questions_a_longer_campaign_decided():
-    from hil.analysis.undecided import settled
+    from hil.analysis.diagnosis.questions import settled
 
     a = {"kind": "period_not_covered", "plannable": True, "effect": {"name": "cyclic", "joint": 1}}
     b = {
@@ -202,8 +202,8 @@ def test_settled_says_which_questions_a_longer_campaign_decided():
 def test_a_confounded_pair_the_evidence_decided_is_no_longer_called_unreliable():
     """The demo said 'd5 and alpha5 ... decided' in its round and 'confounded: d5 and alpha5 ... unreliable'
     in its conclusion: a calibration note on a pair only stays while the pair is an open question."""
-    from hil.analysis.diagnosis import without_decided_pairs
-    from hil.analysis.undecided import question
+    from hil.analysis.diagnosis.pipeline import without_decided_pairs
+    from hil.analysis.diagnosis.questions import question
 
     note = "confounded: {} and {} correlate +0.990 on these poses; each alone is unreliable (their combination is)"
     cautions = [
@@ -228,9 +228,9 @@ def test_a_marginal_effect_the_full_fit_finds_stays_open_until_its_own_test_deci
     so no round was planned for it. Its evidence is now the held-out test's own z, and the plan serves it."""
     from scipy import stats
 
-    from hil.analysis.discrimination import DECISIVE_Z, evidence
-    from hil.analysis.screening import Candidate
-    from hil.analysis.undecided import selection_questions
+    from hil.analysis.diagnosis.evidence import DECISIVE_Z, evidence
+    from hil.analysis.diagnosis.questions import selection_questions
+    from hil.analysis.diagnosis.screening import Candidate
 
     _, train = first
     model = _model(train)
@@ -257,9 +257,9 @@ def test_a_marginal_question_the_budget_cannot_decide_is_not_planned(first):
     """The demo's first round spent 36 of 40 poses on a held-out z of 1.4 that they moved to 1.5. A test-led
     question the whole budget would not decide, even counting each designed row as MAX_DESIGN_ROW_WORTH
     campaign poses, is reported as not planned; one within reach still gets the rows."""
-    from hil.analysis.discrimination import MAX_DESIGN_ROW_WORTH
-    from hil.analysis.screening import Candidate
-    from hil.analysis.undecided import selection_questions
+    from hil.analysis.design.plan import MAX_DESIGN_ROW_WORTH
+    from hil.analysis.diagnosis.questions import selection_questions
+    from hil.analysis.diagnosis.screening import Candidate
 
     _, train = first
     model = _model(train)
@@ -278,8 +278,8 @@ def test_a_candidate_the_full_fit_finds_stays_a_question_beyond_the_marginal_ban
     """gravity_cyclic1 seed 4 of benchmarks/active_loop.py: after the sweeps, joint 1's once-per-turn term had
     a full-fit p of 2e-14 and a held-out p of 0.018, just outside MARGINAL_P: no question was left, the loop
     stopped and the effect was never named. The two tests disagreeing is the question, whatever p_cv is."""
-    from hil.analysis.screening import Candidate
-    from hil.analysis.undecided import MARGINAL_P, selection_questions
+    from hil.analysis.diagnosis.questions import MARGINAL_P, selection_questions
+    from hil.analysis.diagnosis.screening import Candidate
 
     found = Candidate("cyclic", 1, 2, 0.03, 1e-4, 2 * MARGINAL_P, 2e-14, False)
     unseen = Candidate("cyclic", 1, 2, 0.03, 1e-4, 2 * MARGINAL_P, 0.3, False)
@@ -293,7 +293,7 @@ def test_a_candidate_the_full_fit_finds_stays_a_question_beyond_the_marginal_ban
 def test_every_block_of_the_design_rows_is_a_greedy_prefix():
     """A round measured block by block and stopped early has measured the rows the greedy design chose
     first: the tour reorders rows only inside a block."""
-    from hil.analysis.discrimination import _block_order
+    from hil.analysis.design.plan import _block_order
 
     q = np.random.default_rng(1).uniform(-1, 1, (37, 6))
     order = _block_order(q, np.zeros(6), 7, 10)
@@ -307,8 +307,8 @@ def test_every_block_of_the_design_rows_is_a_greedy_prefix():
 def test_a_block_judgement_keeps_only_rows_whose_questions_are_open():
     from types import SimpleNamespace
 
-    from hil.analysis.active_rounds import block_record, plan_blocks, still_to_measure
-    from hil.analysis.undecided import question
+    from hil.analysis.design.rounds import block_record, plan_blocks, still_to_measure
+    from hil.analysis.diagnosis.questions import question
 
     period = question("period_not_covered", effect={"name": "cyclic", "joint": 2})
     one_way = question("one_approach_direction", effect={"name": "backlash", "joint": 2})
@@ -339,8 +339,8 @@ def test_a_block_judgement_keeps_only_rows_whose_questions_are_open():
 
 
 def test_a_round_in_words_says_which_rows_it_did_not_need_and_what_each_block_left_open():
-    from hil.analysis.active_rounds import round_text
-    from hil.analysis.undecided import question
+    from hil.analysis.diagnosis.questions import question
+    from hil.report.rounds import round_text
 
     q = question("period_not_covered", effect={"name": "cyclic", "joint": 2}, range_deg=80.0, needs_deg=288.0)
     block = {"block": 1, "rows": 25, "open": [], "effects": [{"name": "cyclic", "joint": 2}]}

@@ -5,12 +5,12 @@ import pandas as pd
 import pytest
 from calib_data import synthetic
 
-from hil.analysis.calibrated_model import CalibratedModel
-from hil.analysis.calibration import calibrate
-from hil.analysis.noise_floor import estimate_noise_floor
-from hil.analysis.residual_maps import IDWGridMap
+from hil.analysis.calibration.noise_floor import estimate_noise_floor
+from hil.analysis.calibration.solve import calibrate
 from hil.data.dataset import make_dataset
 from hil.geometry.kinematics import measured_point
+from hil.model.calibrated_model import CalibratedModel
+from hil.model.residual_maps import IDWGridMap
 
 
 @pytest.fixture(scope="module")
@@ -126,7 +126,7 @@ def test_residual_map_warns_outside_the_measured_volume():
 
 
 def test_approach_signs_follow_the_row_order():
-    from hil.analysis.effects import approach_signs
+    from hil.model.effects import approach_signs
 
     q = np.array([[0, 0], [1, 0], [1, 0], [0.5, 1e-9], [0.5, 2], [0.7, 2]], float)
     expected = [[0, 0], [1, 0], [1, 0], [-1, 0], [-1, 1], [1, 1]]  # a joint at rest keeps its side

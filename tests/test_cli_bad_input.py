@@ -11,7 +11,7 @@ import pandas as pd
 import pytest
 from calib_data import synthetic
 
-from hil.analysis.calibration import calibrate
+from hil.analysis.calibration.solve import calibrate
 from hil.cli import build_parser, main
 
 pytestmark = pytest.mark.timeout(120)

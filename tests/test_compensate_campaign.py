@@ -15,14 +15,14 @@ import pytest
 from calib_data import compliant_ur10, ur10_joints
 from scipy.spatial.transform import Rotation
 
-from hil.analysis.calibrated_model import CalibratedModel
-from hil.analysis.effects import make_effect
 from hil.commands.compensate import read_targets
 from hil.data.dataset import make_dataset, orientations
 from hil.data.store import CampaignStore, MeasurementRecord
 from hil.geometry.kinematics import KinematicModel, forward_kinematics
 from hil.geometry.robots import ROBOT_DIR, get_robot
 from hil.geometry.se3 import make_transform, transform_points
+from hil.model.calibrated_model import CalibratedModel
+from hil.model.effects import make_effect
 from hil.runner.cell_config import load_cell_config
 from tests.cell_fixtures import sim_cell_toml
 from tests.cli_in_process import hil_in_process
@@ -434,7 +434,7 @@ def test_targets_warmer_than_the_fitted_range_are_warned_about(model, tmp_path, 
 
 
 def test_the_run_record_keeps_the_training_temperatures():
-    from hil.analysis.diagnosis import run_record
+    from hil.analysis.diagnosis.pipeline import run_record
     from hil.geometry.robots import get_robot
 
     df = pd.DataFrame({"x_mm": [1.0, 2.0, 3.0], "temperature_c": [21.5, "", 23.25]})

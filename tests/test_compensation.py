@@ -12,9 +12,6 @@ import pytest
 from calib_data import compliant_ur10, ur10_joints
 from scipy.spatial.transform import Rotation
 
-from hil.analysis.calibrated_model import CalibratedModel
-from hil.analysis.effects import make_effect
-from hil.analysis.residual_maps import make_map
 from hil.compensation.model_based import (
     ENSEMBLE,
     STATUSES,
@@ -28,6 +25,9 @@ from hil.data.dataset import make_dataset, orientation_columns
 from hil.geometry.ik import default_home, newton_ik, same_branch_seed, ur_branch_index
 from hil.geometry.kinematics import forward_kinematics
 from hil.geometry.se3 import make_transform, transform_points
+from hil.model.calibrated_model import CalibratedModel
+from hil.model.effects import make_effect
+from hil.model.residual_maps import make_map
 from tests.cli_in_process import hil_in_process
 
 pytestmark = pytest.mark.timeout(120)

@@ -15,13 +15,13 @@ import pytest
 from calib_data import cell_datasets, ur10_joints
 from scipy.spatial.transform import Rotation
 
-from hil.analysis.diagnosis import run_diagnosis
-from hil.analysis.report import conclusion
-from hil.analysis.selection import GRAVITY_STAGE
+from hil.analysis.diagnosis.pipeline import run_diagnosis
+from hil.analysis.diagnosis.selection import GRAVITY_STAGE
 from hil.data.dataset import make_dataset
 from hil.geometry.kinematics import measured_point
 from hil.geometry.robots import get_robot
 from hil.geometry.se3 import make_transform
+from hil.report.text import conclusion
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -51,7 +51,7 @@ def test_gravity_compliance_is_found(gravity_cell_diagnosis):
     cell, train, val, report = gravity_cell_diagnosis
     assert report.effects_added == [{"name": "gravity_compliance", "joint": j} for j in (2, 3)]
     assert report.steps == []  # no candidate was needed beside the physics
-    from hil.analysis.report import render_html
+    from hil.report.html import render_html
 
     page = render_html(report)  # the effects section says what the verdict names, not "None"
     assert "gravity_compliance (joint 2), gravity_compliance (joint 3): physics terms the data found" in page
@@ -180,7 +180,7 @@ def test_model_code_never_imports_the_simulator():
             else:
                 continue
             assert not any(m.split(".")[0] == "fakes" for m in mods), f"{path} imports {mods}"
-    code = "import sys, hil.analysis.diagnosis, hil.analysis.calibration, hil.analysis.effects; print('fakes' in sys.modules)"
+    code = "import sys, hil.analysis.diagnosis.pipeline, hil.analysis.calibration.solve, hil.model.effects; print('fakes' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
 
@@ -238,7 +238,7 @@ def test_an_effect_the_simulator_does_not_have_is_found_too():
 
 def test_one_name_per_effect_in_the_simulator_and_the_diagnosis():
     from fakes.cell import CELL_EFFECTS, SimCellConfig, parse_effect_flags
-    from hil.analysis.effects import EFFECT_FAMILIES
+    from hil.model.effects import EFFECT_FAMILIES
 
     assert set(CELL_EFFECTS) <= set(EFFECT_FAMILIES)
     for name in CELL_EFFECTS:
@@ -250,8 +250,8 @@ def test_one_name_per_effect_in_the_simulator_and_the_diagnosis():
 
 
 def test_the_verdict_is_data_and_the_report_words_it():
-    # hil.analysis.diagnosis returns the verdict as data; hil.analysis.report words it, one caution a line.
-    from hil.analysis.report import caution_text, conclusion_text
+    # hil.analysis.diagnosis.pipeline returns the verdict as data; hil.report.html words it, one caution a line.
+    from hil.report.text import caution_text, conclusion_text
 
     verdict = {
         "residual": "floor",
@@ -278,7 +278,9 @@ def test_the_verdict_is_data_and_the_report_words_it():
     assert "cyclic (joint 4) and backlash (joint 4) explain the same residual" in lines[2]
     assert len(lines) == 3
     # every caution the diagnosis can raise has its words
-    source = (pathlib.Path(__file__).resolve().parents[1] / "hil" / "analysis" / "diagnosis.py").read_text()
+    source = (
+        pathlib.Path(__file__).resolve().parents[1] / "hil" / "analysis" / "diagnosis" / "pipeline.py"
+    ).read_text()
     kinds = {
         node.args[0].value
         for node in ast.walk(ast.parse(source))
@@ -295,8 +297,8 @@ def test_the_verdict_is_data_and_the_report_words_it():
 def test_a_temperature_driven_thermal_candidate_goes_before_a_pose_effect_it_matches_per_parameter():
     from types import SimpleNamespace
 
-    from hil.analysis.effects import make_effect
-    from hil.analysis.screening import Candidate, pick_winner
+    from hil.analysis.diagnosis.screening import Candidate, pick_winner
+    from hil.model.effects import make_effect
 
     def winner(name, joint, k, gain_mm2, driver=None):
         eff = make_effect(name, joint)
@@ -319,7 +321,7 @@ def test_held_out_gain_counts_the_rows_of_one_pose_as_one_sample():
     """Three SMR rows per pose that share the pose's gain: the p-value is that of 40 samples, not 120."""
     from scipy import stats
 
-    from hil.analysis.screening import held_out_gain
+    from hil.analysis.diagnosis.screening import held_out_gain
 
     rng = np.random.default_rng(0)
     pose = np.repeat(np.arange(40), 3)
@@ -335,7 +337,7 @@ def test_held_out_gain_counts_the_rows_of_one_pose_as_one_sample():
 
 def test_held_out_fit_holds_out_every_coordinate_of_a_row_position_and_rotation():
     """Rows of 6 coordinates (a probe's rotation beside the position): a fold leaves out all 6 of its rows."""
-    from hil.analysis.screening import linear_fit_heldout
+    from hil.analysis.diagnosis.screening import linear_fit_heldout
 
     rng = np.random.default_rng(1)
     n, m, p = 40, 6, 5
@@ -356,8 +358,8 @@ def test_held_out_fit_holds_out_every_coordinate_of_a_row_position_and_rotation(
 def test_plot_headings_are_unique_when_one_effect_is_added_at_two_joints():
     from types import SimpleNamespace
 
-    from hil.analysis.diagnosis import Step
-    from hil.analysis.report import _plots
+    from hil.analysis.diagnosis.pipeline import Step
+    from hil.report.html import _plots
 
     plot = {
         "driver": [0.1, 0.5, 0.9, 1.3],
@@ -381,7 +383,7 @@ def test_plot_headings_are_unique_when_one_effect_is_added_at_two_joints():
 
 
 def test_effect_coefficients_carry_their_units_into_the_report(gravity_cell_diagnosis):
-    from hil.analysis.report import in_report_units, render_html
+    from hil.report.html import in_report_units, render_html
 
     *_, report = gravity_cell_diagnosis
     # The gravity yield from the link masses: one compliance per joint, in rad per N m, and its stiffness.

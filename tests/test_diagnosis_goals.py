@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from calib_data import true_effect_model
 
-from hil.analysis.diagnosis import run_diagnosis
-from hil.analysis.report import conclusion
+from hil.analysis.diagnosis.pipeline import run_diagnosis
+from hil.report.text import conclusion
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -134,9 +134,9 @@ def test_on_a_campaign_from_another_tracker_placement_never_worse_than_geometric
 
 
 def test_fakes_of_geometry_are_rejected_with_the_reason():
-    from hil.analysis.effects import EffectContext, make_effect
-    from hil.analysis.screening import MAX_GEOMETRY_CORRELATION, geometry_correlation
+    from hil.analysis.diagnosis.screening import MAX_GEOMETRY_CORRELATION, geometry_correlation
     from hil.geometry.robots import get_robot
+    from hil.model.effects import EffectContext, make_effect
 
     rng = np.random.default_rng(0)
     G = rng.normal(size=(300, 5))
@@ -158,7 +158,7 @@ def test_fakes_of_geometry_are_rejected_with_the_reason():
 
 
 def test_cross_validation_folds_are_blocks_of_the_workspace():
-    from hil.analysis.folds import kfold, spatial_folds
+    from hil.analysis.calibration.folds import kfold, spatial_folds
 
     rng = np.random.default_rng(1)
     p = rng.uniform(-1, 1, (600, 3))

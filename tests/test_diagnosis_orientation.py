@@ -6,7 +6,7 @@ import pytest
 from calib_data import ur10_joints
 from scipy.spatial.transform import Rotation
 
-from hil.analysis.diagnosis import run_diagnosis
+from hil.analysis.diagnosis.pipeline import run_diagnosis
 from hil.data.dataset import ORIENTATION_COLUMNS, make_dataset
 from hil.geometry.kinematics import forward_kinematics
 from hil.geometry.robots import get_robot

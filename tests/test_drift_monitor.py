@@ -71,7 +71,7 @@ def test_reference_poses_are_measured_and_exported_with_time_and_temperature(tmp
 def test_the_report_gives_each_reference_poses_drift_from_its_first_visit():
     import pandas as pd
 
-    from hil.analysis.drift_monitor import drift_text, reference_drift
+    from hil.analysis.diagnosis.drift_monitor import drift_text, reference_drift
 
     q = np.tile([[0.1, -1.2, 1.0, -1.4, -1.5, 0.2], [0.6, -1.6, 1.6, -1.4, -1.5, 0.2]], (3, 1))
     grid = np.array([[0.3, -1.4, 1.2, -1.4, -1.5, 0.2]])

@@ -1,7 +1,7 @@
 """Gravity yield as physics: with the links' masses in the robot file, each joint that carries the arm's weight
 has one compliance whose regressor is the gravity torque from those masses, always in the model with a prior
-(hil.analysis.effects.gravity_physics). A scale of a joint must also predict along that joint
-(hil.analysis.screening.predicts_along_joint). The simulator's physics is read only to check the torque."""
+(hil.model.effects.gravity_physics). A scale of a joint must also predict along that joint
+(hil.analysis.diagnosis.screening.predicts_along_joint). The simulator's physics is read only to check the torque."""
 
 from dataclasses import replace
 
@@ -10,8 +10,13 @@ import pytest
 from calib_data import ur10_joints
 from scipy.spatial.transform import Rotation
 
-from hil.analysis.calibration import Problem, calibrate, identify
-from hil.analysis.effects import (
+from hil.analysis.calibration.solve import Problem, calibrate, identify
+from hil.analysis.diagnosis.screening import predicts_along_joint
+from hil.data.dataset import make_dataset
+from hil.geometry.kinematics import measured_point
+from hil.geometry.robots import get_robot
+from hil.geometry.se3 import make_transform
+from hil.model.effects import (
     GRAVITY_PRIOR_DEFLECTION_RAD,
     EffectContext,
     GravityCompliance,
@@ -24,11 +29,6 @@ from hil.analysis.effects import (
     stretched_torque_nm,
     yields_against_gravity,
 )
-from hil.analysis.screening import predicts_along_joint
-from hil.data.dataset import make_dataset
-from hil.geometry.kinematics import measured_point
-from hil.geometry.robots import get_robot
-from hil.geometry.se3 import make_transform
 
 pytestmark = pytest.mark.timeout(120)
 

@@ -3,9 +3,9 @@
 import numpy as np
 import pytest
 
-from hil.analysis.calibration import calibrate, outlier_regions
-from hil.analysis.folds import location_spacing
-from hil.analysis.residual_maps import make_map
+from hil.analysis.calibration.solve import calibrate, outlier_regions
+from hil.model.grid_frame import location_spacing
+from hil.model.residual_maps import make_map
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -68,7 +68,7 @@ def test_repeated_orientations_at_a_node_do_not_shrink_the_map_spacing():
 def test_a_big_campaign_converges_on_a_subset_and_finishes_on_every_row(monkeypatch, solver):
     from calib_data import synthetic
 
-    import hil.analysis.calibration as cal
+    import hil.analysis.calibration.solve as cal
 
     _, df, _ = synthetic(n=900, seed=6)
     df.loc[[17, 400, 777], "y_mm"] += 2.5  # blunders, one outside any subset of 300 is likely

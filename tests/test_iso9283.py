@@ -9,7 +9,13 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from hil.analysis.iso9283 import Iso9283Error, commanded_along, cube_poses, path_performance, pose_performance
+from hil.analysis.standards.iso9283 import (
+    Iso9283Error,
+    commanded_along,
+    cube_poses,
+    path_performance,
+    pose_performance,
+)
 from tests.cli_in_process import run_hil
 
 UM = 1e-3  # 1 um in mm: the tolerance of every figure

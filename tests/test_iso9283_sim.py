@@ -14,7 +14,7 @@ import pandas as pd
 import pytest
 
 from fakes.cell import SimCellConfig, SimulatedCell
-from hil.analysis.iso9283 import commanded_tangents, crossings
+from hil.analysis.standards.iso9283 import commanded_tangents, crossings
 from hil.data.dataset import orientation_columns
 from hil.geometry.se3 import fit_rigid
 from hil.runner.envelope import EnvelopeError

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from hil.analysis.iso9283 import cube_poses
+from hil.analysis.standards.iso9283 import cube_poses
 from hil.geometry.kinematics import tool_points
 from hil.runner.cell_config import load_cell_config
 from procedures import iso9283, joint_axes

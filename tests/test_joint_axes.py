@@ -11,12 +11,12 @@ import pandas as pd
 import pytest
 from scipy.spatial.transform import Rotation
 
-from hil.analysis.calibrated_model import CalibratedModel
-from hil.analysis.joint_axes import SweepError, fit_axis, fit_circle, identify_axes
+from hil.analysis.standards.joint_axes import SweepError, fit_axis, fit_circle, identify_axes
 from hil.data.dataset import make_dataset
 from hil.geometry.kinematics import link_frames, measured_point, tool_points
 from hil.geometry.robots import get_robot, load_robot_file
 from hil.geometry.se3 import make_transform
+from hil.model.calibrated_model import CalibratedModel
 from tests.calib_data import ur10_joints
 from tests.cli_in_process import run_hil
 

@@ -15,11 +15,9 @@ from sim_campaigns import grid_joints, held_out_joints
 
 from fakes.campaign import Probe, simulate_campaign
 from fakes.cell import SimCellConfig, SimulatedCell
-from hil.analysis.calibrated_model import CalibratedModel, initial_model
-from hil.analysis.calibration import Problem, calibrate, confounded_pairs, parameter_correlations
-from hil.analysis.effects import EffectContext, make_effect
-from hil.analysis.folds import spatial_folds
-from hil.analysis.noise_floor import estimate_noise_floor
+from hil.analysis.calibration.folds import spatial_folds
+from hil.analysis.calibration.noise_floor import estimate_noise_floor
+from hil.analysis.calibration.solve import Problem, calibrate, confounded_pairs, parameter_correlations
 from hil.data.dataset import (
     ORIENTATION_COLUMNS,
     DatasetError,
@@ -30,6 +28,8 @@ from hil.data.dataset import (
 )
 from hil.geometry.kinematics import forward_kinematics, kinematic_rotation_jacobian
 from hil.geometry.robots import get_robot
+from hil.model.calibrated_model import CalibratedModel, initial_model
+from hil.model.effects import EffectContext, make_effect
 
 WRIST = ("theta5", "d5", "a5", "alpha5")  # joint 5: positions see it only through the short tool lever
 
@@ -302,7 +302,7 @@ def test_diagnose_with_a_probe_finds_compliance_and_reports_orientation(tmp_path
     notes = [c["text"] for c in cautions if c["kind"] == "calibration_note"]
     assert all(
         isinstance(c, dict) and "kind" in c for c in cautions
-    )  # records, as hil.analysis.report reads them
+    )  # records, as hil.report.html reads them
     assert not [t for t in notes if t.startswith("confounded")]
     positions_only = calibrate(df.drop(columns=list(ORIENTATION_COLUMNS)), "ur10")
     assert [n for n in positions_only.notes if n.startswith("confounded: theta5 and a5")]
@@ -344,7 +344,7 @@ def test_lm_judges_rotations_by_their_own_scale(probe_campaign):
 
 def test_ridge_prior_leaves_the_probe_orientation_free(probe_campaign):
     """The ridge prior holds the robot's geometry; the set-up (base, tools, probe) is fitted freely."""
-    from hil.analysis.calibration import full_values, solve_ridge_igg3
+    from hil.analysis.calibration.solve import full_values, solve_ridge_igg3
 
     _, _, df = probe_campaign
     model = initial_model("ur10", df)
@@ -361,7 +361,7 @@ def test_ridge_prior_leaves_the_probe_orientation_free(probe_campaign):
 
 def test_few_distinct_poses_give_no_fold_figures_instead_of_a_crash():
     """4 poses x 3 nests x 6 revisits: 72 rows but only 4 poses for the 5 spatial folds."""
-    from hil.analysis.diagnosis import run_diagnosis
+    from hil.analysis.diagnosis.pipeline import run_diagnosis
 
     cell = _cell(1)
     q = np.tile(grid_joints(cell, step_m=0.3, seed=1)[:4], (6, 1))

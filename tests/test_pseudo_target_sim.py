@@ -336,8 +336,8 @@ def test_the_start_is_compensated_for_the_cells_temperature_with_a_warning_outsi
     # ~20 degC: the loop reads the temperature from the campaign's latest measurement and says so.
     from dataclasses import replace
 
-    from hil.analysis.effects import ThermalExpansion
     from hil.data.store import CampaignStore
+    from hil.model.effects import ThermalExpansion
 
     growth = ThermalExpansion(
         params=np.array([23e-6]),

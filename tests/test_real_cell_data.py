@@ -7,7 +7,7 @@ import pandas as pd
 import pytest
 from calib_data import synthetic
 
-from hil.analysis.calibration import calibrate
+from hil.analysis.calibration.solve import calibrate
 from hil.cli import main
 from hil.data.dataset import DatasetError, load_dataset
 

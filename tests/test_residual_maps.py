@@ -7,8 +7,8 @@ import warnings
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from hil.analysis.grid_frame import estimate_grid_frame
-from hil.analysis.residual_maps import IDWGridMap, SVRMap, map_from_dict
+from hil.model.grid_frame import estimate_grid_frame
+from hil.model.residual_maps import IDWGridMap, SVRMap, map_from_dict
 from hil.runner.planners import Box, grid_points, random_points
 
 
@@ -99,7 +99,7 @@ def test_per_cube_svr_picks_the_model_of_the_cube_holding_the_target():
 def test_cube_svr_learns_the_raw_error_against_the_nominal_model():
     """A robot ~1 mm off its nominal geometry: the paper's model (nominal + per-cube SVR) must predict held-out
     points to a fraction of that; one trained on the residual after calibration would leave the millimetre."""
-    from hil.analysis.cube_svr import fit_cube_svr, registered_nominal
+    from hil.analysis.calibration.cube_svr import fit_cube_svr, registered_nominal
     from hil.data.dataset import make_dataset
     from hil.geometry.kinematics import measured_point
     from hil.geometry.robots import get_robot
@@ -131,7 +131,7 @@ def test_cube_svr_learns_the_raw_error_against_the_nominal_model():
 
 
 def test_the_report_says_which_svr_mode_was_used():
-    from hil.analysis.report import conclusion_text
+    from hil.report.text import conclusion_text
 
     text = conclusion_text({"residual": "structured", "ratio": 2.0, "map": "svr", "cautions": []}, [])
     assert "one model over the whole volume, on the residual after the kinematic calibration" in text

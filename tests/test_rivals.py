@@ -1,4 +1,4 @@
-"""An added effect refitted against its rivals (hil.analysis.rivals) and effects tested as a group: the wrong
+"""An added effect refitted against its rivals (hil.analysis.diagnosis.rivals) and effects tested as a group: the wrong
 joint is replaced when the data says so, and left as an open question when it cannot."""
 
 from __future__ import annotations
@@ -7,14 +7,14 @@ import numpy as np
 import pytest
 from calib_data import ur10_joints
 
-from hil.analysis.calibrated_model import CalibratedModel, initial_model
-from hil.analysis.calibration import Problem, calibrate, identify
-from hil.analysis.effects import EffectContext, make_effect
-from hil.analysis.rivals import compare_with_rivals, rivals_in_round
-from hil.analysis.screening import Candidate, Screen
+from hil.analysis.calibration.solve import Problem, calibrate, identify
+from hil.analysis.diagnosis.rivals import compare_with_rivals, rivals_in_round
+from hil.analysis.diagnosis.screening import Candidate, Screen
 from hil.data.dataset import joints_rad, make_dataset
 from hil.geometry.robots import get_robot
 from hil.geometry.se3 import make_transform
+from hil.model.calibrated_model import CalibratedModel, initial_model
+from hil.model.effects import EffectContext, make_effect
 
 GRAVITY_2, GRAVITY_3 = ("gravity_compliance", 2), ("gravity_compliance", 3)
 

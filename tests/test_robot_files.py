@@ -9,13 +9,13 @@ import pandas as pd
 import pytest
 from scipy.spatial.transform import Rotation
 
-from hil.analysis.calibrated_model import CalibratedModel, model_from_dict, model_to_dict
-from hil.analysis.calibration import calibrate
+from hil.analysis.calibration.solve import calibrate
 from hil.data.dataset import make_dataset
 from hil.geometry.ik import random_joints
 from hil.geometry.kinematics import forward_kinematics, measured_point, tool_points
 from hil.geometry.robots import ROBOT_DIR, ROBOT_NAMES, get_robot, load_robot_file
 from hil.geometry.se3 import make_transform
+from hil.model.calibrated_model import CalibratedModel, model_from_dict, model_to_dict
 
 
 def test_every_builtin_is_a_robot_file():

@@ -15,11 +15,11 @@ from sim_campaigns import grid_joints
 
 from fakes.campaign import simulate_campaign
 from fakes.cell import SimCellConfig, SimulatedCell
-from hil.analysis.diagnosis import run_diagnosis
-from hil.analysis.discrimination import propose
-from hil.analysis.folds import campaign_folds, spatial_folds, sweep_runs
-from hil.analysis.report import caution_text
+from hil.analysis.calibration.folds import campaign_folds, spatial_folds, sweep_runs
+from hil.analysis.design.plan import propose
+from hil.analysis.diagnosis.pipeline import run_diagnosis
 from hil.geometry.robots import get_robot
+from hil.report.text import caution_text
 
 
 def _grid_and_sweep(k_sweep: int = 12) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

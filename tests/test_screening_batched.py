@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from calib_data import cell_datasets
 
-from hil.analysis.diagnosis import run_diagnosis
+from hil.analysis.diagnosis.pipeline import run_diagnosis
 from hil.data.dataset import make_dataset
 
 pytestmark = pytest.mark.timeout(180)

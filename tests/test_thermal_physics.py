@@ -1,5 +1,5 @@
 """Thermal growth as physics: with the links' material in the robot file the thermal term is always in the
-model, fitted with the material's coefficient as its prior (hil.analysis.effects.material_expansion). The
+model, fitted with the material's coefficient as its prior (hil.model.effects.material_expansion). The
 cell's truth is read only to set up the cases."""
 
 from dataclasses import replace
@@ -8,10 +8,11 @@ import numpy as np
 import pytest
 from calib_data import true_effect_model
 
-from hil.analysis.diagnosis import run_diagnosis
-from hil.analysis.effects import physical
-from hil.analysis.report import report_dict, thermal_text
+from hil.analysis.diagnosis.pipeline import run_diagnosis
 from hil.geometry.robots import get_robot
+from hil.model.effects import physical
+from hil.report.json_report import report_dict
+from hil.report.text import thermal_text
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -108,9 +109,9 @@ def test_a_model_carrying_the_material_growth_compensates_targets_without_a_temp
     # temperature the growth was fitted around, with a warning that names the option; with one, it applies.
     from calib_data import synthetic
 
-    from hil.analysis.calibrated_model import initial_model
-    from hil.analysis.effects import material_expansion
     from hil.commands.compensate import thermal_drivers
+    from hil.model.calibrated_model import initial_model
+    from hil.model.effects import material_expansion
 
     _, df, _ = synthetic(n=60, seed=1)
     df["temperature_c"] = np.linspace(20.0, 21.0, len(df))
@@ -133,9 +134,9 @@ def test_a_temperature_term_no_material_gives_is_held_at_the_material_with_a_cau
     # something else): the growth is held at the material's value and the report says why.
     from calib_data import synthetic
 
-    from hil.analysis.effects import growth_direction
-    from hil.analysis.report import conclusion
     from hil.data.dataset import joints_rad
+    from hil.model.effects import growth_direction
+    from hil.report.text import conclusion
 
     truth, df, _ = synthetic(n=200, seed=3)
     dT = np.random.default_rng(3).uniform(-2.5, 2.5, len(df))

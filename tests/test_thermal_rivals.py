@@ -9,11 +9,12 @@ from sim_campaigns import grid_joints
 
 from fakes.campaign import simulate_campaign
 from fakes.cell import SimCellConfig, SimulatedCell
-from hil.analysis.diagnosis import run_diagnosis
-from hil.analysis.discrimination import DECISIVE_Z, propose
-from hil.analysis.effects import make_effect
-from hil.analysis.report import question_text
-from hil.analysis.undecided import MIN_TEMPERATURE_SPAN_K, thermal_questions
+from hil.analysis.design.plan import propose
+from hil.analysis.diagnosis.evidence import DECISIVE_Z
+from hil.analysis.diagnosis.pipeline import run_diagnosis
+from hil.analysis.diagnosis.questions import MIN_TEMPERATURE_SPAN_K, thermal_questions
+from hil.model.effects import make_effect
+from hil.report.text import question_text
 
 pytestmark = pytest.mark.timeout(240)
 

@@ -6,7 +6,11 @@ import numpy as np
 import pytest
 
 from fakes.cell import SimCellConfig, SimulatedCell, SmrLocation
-from hil.analysis.flange_geometry import fit_flange_frame, tool_point_by_distances, tool_point_in_flange
+from hil.analysis.standards.flange_geometry import (
+    fit_flange_frame,
+    tool_point_by_distances,
+    tool_point_in_flange,
+)
 from hil.geometry.kinematics import forward_kinematics
 from hil.runner.cell_config import parse_cell_config
 from hil.runner.session import RecordedPoints
@@ -215,7 +219,7 @@ def test_the_summary_prints_each_judged_figure_with_its_limit():
 
 
 def test_the_report_shows_the_tool_fits_checks_and_its_validation_figure():
-    from hil.analysis.report import tool_fit_html
+    from hil.report.html import tool_fit_html
 
     config, data, _ = _synthetic_tool_fit()
     result = tool_fit.evaluate(config, data, tool_fit.Limits(), shots=3).result

@@ -7,11 +7,11 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from hil.analysis.diagnosis import run_diagnosis
-from hil.analysis.drift_monitor import drift_text
-from hil.analysis.effects import EFFECT_FAMILIES, make_effect
-from hil.analysis.report import render_html
+from hil.analysis.diagnosis.drift_monitor import drift_text
+from hil.analysis.diagnosis.pipeline import run_diagnosis
 from hil.geometry.robots import get_robot
+from hil.model.effects import EFFECT_FAMILIES, make_effect
+from hil.report.html import render_html
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -19,8 +19,8 @@ pytestmark = pytest.mark.timeout(180)
 def test_a_tracker_scale_stretches_the_points_about_the_tracker_and_its_jacobian_says_so():
     from calib_data import synthetic
 
-    from hil.analysis.calibrated_model import initial_model
-    from hil.analysis.calibration import Problem
+    from hil.analysis.calibration.solve import Problem
+    from hil.model.calibrated_model import initial_model
 
     _, df, _ = synthetic(n=40, seed=2)
     df["temperature_c"] = np.linspace(20.0, 24.0, len(df))

@@ -7,7 +7,7 @@ import json
 import math
 from pathlib import Path
 
-from hil.analysis.joint_axes import SweepError, identify_axes, robot_file_text
+from hil.analysis.standards.joint_axes import SweepError, identify_axes, robot_file_text
 from hil.commands.arg_checks import InputError, check_paths, float_in
 from hil.commands.errors import CliError
 from hil.commands.help_format import DefaultsHelpFormatter

@@ -8,7 +8,7 @@ import sys
 import numpy as np
 import pandas as pd
 
-from hil.analysis.calibration import (
+from hil.analysis.calibration.solve import (
     TOLERANCE_ANGLE_RAD,
     TOLERANCE_LENGTH_M,
     USER_UNITS,
@@ -17,7 +17,7 @@ from hil.analysis.calibration import (
     implausible_changes,
     in_user_units,
 )
-from hil.analysis.diagnosis import run_record
+from hil.analysis.diagnosis.pipeline import run_record
 from hil.commands.arg_checks import InputError, check_paths, float_in, float_list
 from hil.commands.errors import CliError
 from hil.commands.help_format import DefaultsHelpFormatter

@@ -15,8 +15,6 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from hil.analysis.calibrated_model import CalibratedModel
-from hil.analysis.effects import THERMAL_FAMILIES, material_growth, temperature_driven
 from hil.commands.arg_checks import InputError, check_paths, float_in
 from hil.commands.campaign_targets import DEFAULT_ORDER, SOURCES, read_campaign_targets
 from hil.commands.errors import CliError
@@ -38,6 +36,8 @@ from hil.data.dataset import (
     orientations,
 )
 from hil.data.store import is_campaign_file
+from hil.model.calibrated_model import CalibratedModel
+from hil.model.effects import THERMAL_FAMILIES, material_growth, temperature_driven
 
 TEMPERATURE_RANGE_C = (-20.0, 60.0)  # --temperature-c: a cell's air, not a typo in kelvin or fahrenheit
 

@@ -130,8 +130,9 @@ def run(args: argparse.Namespace) -> int:
                 loop = measured_loop(args, out, campaign, report.model)
             except CampaignStopped as exc:
                 raise CliError(exc.message, exc.remedy + " (run hil demo again to resume)") from exc
-    from hil.analysis.report import write_html, write_json
     from hil.data.store import CampaignStore
+    from hil.report.html import write_html
+    from hil.report.json_report import write_json
 
     with CampaignStore(campaign, create=False) as store:
         tool = store.step_result("tool_fit", "fit")
@@ -210,8 +211,9 @@ def active_loop(args: argparse.Namespace, out: Path, campaign: Path):
     """Start the cell again and measure what the diagnosis left undecided (the active_loop procedure); the
     final diagnosis (its report and model replace the first) and the rounds (records, why the loop stopped,
     an HTML section)."""
-    from hil.analysis.active_rounds import rounds_html
-    from hil.analysis.report import conclusion, write_json
+    from hil.report.json_report import write_json
+    from hil.report.rounds import rounds_html
+    from hil.report.text import conclusion
     from hil.runner.registry import load
 
     procedure = load("active_loop")
@@ -252,11 +254,12 @@ def analyse(args: argparse.Namespace, out: Path, campaign: Path):
     """Diagnose the grid against the validation set and write the JSON report and the model."""
     import numpy as np
 
-    from hil.analysis.diagnosis import run_diagnosis
-    from hil.analysis.report import conclusion, write_json
+    from hil.analysis.diagnosis.pipeline import run_diagnosis
     from hil.data.dataset import write_dataset
     from hil.data.store import CampaignStore, campaign_dataset
     from hil.geometry.robots import get_robot
+    from hil.report.json_report import write_json
+    from hil.report.text import conclusion
 
     with CampaignStore(campaign) as store:
         train = campaign_dataset(store, "grid_sampling", step="grid")

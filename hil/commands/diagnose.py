@@ -7,9 +7,8 @@ import argparse
 import numpy as np
 import pandas as pd
 
-from hil.analysis.calibration import implausible_changes, position_noise_m
-from hil.analysis.diagnosis import DiagnosisReport, run_diagnosis
-from hil.analysis.effects import EFFECT_FAMILIES
+from hil.analysis.calibration.solve import implausible_changes, position_noise_m
+from hil.analysis.diagnosis.pipeline import DiagnosisReport, run_diagnosis
 from hil.commands.arg_checks import InputError, check_paths, float_in, float_list, int_in
 from hil.commands.calibrate import add_probe_options, orientation_summary, parse_mm_vector, refuse_implausible
 from hil.commands.errors import CliError
@@ -17,6 +16,7 @@ from hil.commands.help_format import DefaultsHelpFormatter
 from hil.commands.inputs import read_training_and_validation
 from hil.data.dataset import DatasetError, convert_orientation_convention, points_m, pose_ids
 from hil.geometry.robots import ROBOT_NAMES, get_robot, robot_arg
+from hil.model.effects import EFFECT_FAMILIES
 from hil.runner.progress import Progress
 
 
@@ -191,7 +191,7 @@ def _plan_cell(args: argparse.Namespace):
 
 
 def _propose(args: argparse.Namespace, df: pd.DataFrame, report: DiagnosisReport, cell):
-    from hil.analysis.discrimination import propose
+    from hil.analysis.design.plan import propose
 
     admissible = None if cell is None else _cell_admissible(cell)
     sigma = float(np.sqrt(np.mean(report.noise.sigma_axis_m**2)))
@@ -235,17 +235,16 @@ def _run(args, df, val, tool, families, mpe, progress) -> DiagnosisReport:
 
 
 def _print_and_write(args: argparse.Namespace, report: DiagnosisReport) -> None:
-    from hil.analysis.drift_monitor import drift_text
-    from hil.analysis.report import (
+    from hil.analysis.diagnosis.drift_monitor import drift_text
+    from hil.report.html import in_report_units, write_html
+    from hil.report.json_report import write_json
+    from hil.report.text import (
         conclusion,
         final_orientation_text,
         gravity_text,
-        in_report_units,
         plan_text,
         thermal_text,
         undecided_text,
-        write_html,
-        write_json,
     )
 
     print(report.table())

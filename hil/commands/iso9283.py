@@ -8,7 +8,12 @@ from pathlib import Path
 
 import pandas as pd
 
-from hil.analysis.iso9283 import CMD_POSITION_COLUMNS, Iso9283Error, path_campaign_figures, pose_performance
+from hil.analysis.standards.iso9283 import (
+    CMD_POSITION_COLUMNS,
+    Iso9283Error,
+    path_campaign_figures,
+    pose_performance,
+)
 from hil.commands.arg_checks import InputError, check_paths, int_in
 from hil.commands.errors import CliError
 from hil.commands.help_format import DefaultsHelpFormatter

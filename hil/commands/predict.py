@@ -9,12 +9,12 @@ import warnings
 import numpy as np
 import pandas as pd
 
-from hil.analysis.calibrated_model import CalibratedModel
 from hil.commands.arg_checks import InputError, check_paths
 from hil.commands.errors import CliError
 from hil.commands.help_format import DefaultsHelpFormatter
 from hil.commands.inputs import read_measurements
 from hil.data.dataset import POSITION_COLUMNS, DatasetError, joints_rad
+from hil.model.calibrated_model import CalibratedModel
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

@@ -17,9 +17,6 @@ from dataclasses import dataclass, field, fields
 
 import numpy as np
 
-from hil.analysis.calibrated_model import CalibratedModel
-from hil.analysis.effects import EffectContext, temperature_driven
-from hil.analysis.residual_maps import map_from_dict
 from hil.compensation.target_update import (
     GENERATORS,
     check_generator,
@@ -42,6 +39,9 @@ from hil.geometry.ik import (
 )
 from hil.geometry.kinematics import KinematicModel, forward_kinematics, pose_and_jacobian
 from hil.geometry.se3 import invert
+from hil.model.calibrated_model import CalibratedModel
+from hil.model.effects import EffectContext, temperature_driven
+from hil.model.residual_maps import map_from_dict
 
 STATUS_OK = "ok"  # predicted error below the threshold
 STATUS_MAX_ITER = "max_iter"  # iteration cap reached above the threshold (best joints kept)

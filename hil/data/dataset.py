@@ -7,7 +7,7 @@ else the air's; thermal effects are driven by it), ``air_temperature_c`` (the tr
 campaigns recorded before it was exported lack it), ``robot_temperature_c`` (the robot's own reading), ``smr``
 (nest id, integer; default 1), ``payload_kg``, ``pose`` (which rows share one robot pose), ``rx_deg, ry_deg,
 rz_deg`` (a 6-DoF probe's orientation in the tracker frame, extrinsic x-y-z: R = Rz(rz) Ry(ry) Rx(rx)), ``cycle``
-(an ISO 9283 campaign's cycle, hil.analysis.iso9283), ``sweep`` (a joint sweep's label, hil.analysis.joint_axes), and any
+(an ISO 9283 campaign's cycle, hil.analysis.standards.iso9283), ``sweep`` (a joint sweep's label, hil.analysis.standards.joint_axes), and any
 further column whose name ends in its unit.
 """
 

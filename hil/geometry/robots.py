@@ -8,7 +8,7 @@ data sheet: `d_mm`, `a_mm`, `alpha_deg`, optional `theta_offset_deg` (0), `hayat
 maker's dynamics data (Universal Robots publish them; the other makers publish the arm's total mass only, so
 their files leave it out). Given, it must be on every joint, positive and at most MAX_LINK_MASS_KG; the model
 keeps them (`KinematicModel.link_masses_kg`) and the diagnosis computes each joint's gravity torque from them
-(hil.analysis.effects.gravity_physics).
+(hil.model.effects.gravity_physics).
 Optional `expansion_per_k` at the top: the links' coefficient of thermal expansion (their material, e.g.
 2.3e-5 for aluminium, 1.2e-5 for steel), between 1e-6 and 5e-5 per K; the thermal term's prior.
 

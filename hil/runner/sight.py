@@ -1,6 +1,6 @@
 """Which joint configurations a cell can measure: inside its envelope, with the SMR facing its tracker.
 
-A plan made by the analysis (hil.analysis.discrimination) takes this as its `admissible` test; the analysis
+A plan made by the analysis (hil.analysis.design.plan) takes this as its `admissible` test; the analysis
 knows joint limits only, the cell's envelope and the tracker's place are the runner's knowledge.
 """
 

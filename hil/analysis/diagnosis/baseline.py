@@ -10,8 +10,9 @@ from typing import Any
 
 import numpy as np
 
-from hil.analysis.calibrated_model import CalibratedModel, initial_model, with_initial_probes
-from hil.analysis.calibration import (
+from hil.analysis.calibration.identifiability import IdentifiabilityReport
+from hil.analysis.calibration.noise_floor import NoiseFloor, estimate_noise_floor
+from hil.analysis.calibration.solve import (
     PROBE_ANGLE_NOISE_RAD,
     CalibrationResult,
     Problem,
@@ -19,15 +20,9 @@ from hil.analysis.calibration import (
     identify,
     solve_ridge_igg3,
 )
-from hil.analysis.effects import (
-    gravity_physics_term,
-    hold_at_material,
-    material_growth,
-    yields_against_gravity,
-)
-from hil.analysis.identifiability import IdentifiabilityReport
-from hil.analysis.noise_floor import NoiseFloor, estimate_noise_floor
-from hil.analysis.physics_terms import held_rigid_start, physics_start
+from hil.analysis.diagnosis.physics_terms import held_rigid_start, physics_start
+from hil.model.calibrated_model import CalibratedModel, initial_model, with_initial_probes
+from hil.model.effects import gravity_physics_term, hold_at_material, material_growth, yields_against_gravity
 
 
 def error_stats(err_m: np.ndarray) -> dict[str, float]:
@@ -42,7 +37,7 @@ def error_stats(err_m: np.ndarray) -> dict[str, float]:
 
 
 def caution(kind: str, **data: Any) -> dict:
-    """One caution of the verdict, as data: `kind` names it, hil.analysis.report words it."""
+    """One caution of the verdict, as data: `kind` names it, hil.report.html words it."""
     return {"kind": kind, **data}
 
 
@@ -167,8 +162,8 @@ def baseline_fit(
     hold_gravity=None,
 ) -> Baseline:
     """`hold_material` (the coefficient a first selection made of it): the links' material growth held at the
-    material's coefficient (hil.analysis.effects.hold_at_material). `hold_gravity` ({joint: the negative
-    compliance a fit made of it}): those joints' gravity terms held rigid (hil.analysis.effects.hold_rigid);
+    material's coefficient (hil.model.effects.hold_at_material). `hold_gravity` ({joint: the negative
+    compliance a fit made of it}): those joints' gravity terms held rigid (hil.model.effects.hold_rigid);
     a gravity term the geometric fit makes negative is held rigid too, and the fit repeated."""
     tell = progress or quiet
     noise = estimate_noise_floor(

@@ -1,7 +1,7 @@
 """The physics terms of a diagnosed model: where the geometric fit starts (the links' thermal growth when the
 robot file names their material, the joints' gravity yield when it names the link masses) and what the fit
 made of them against their priors (fitted beside prior, standard error, the data's share of what is known).
-The selection never adds or removes these terms; hil.analysis.diagnosis reports them.
+The selection never adds or removes these terms; hil.analysis.diagnosis.pipeline reports them.
 """
 
 from __future__ import annotations
@@ -12,9 +12,10 @@ import numpy as np
 import pandas as pd
 from scipy import stats
 
-from hil.analysis.calibrated_model import CalibratedModel, initial_model
-from hil.analysis.calibration import CalibrationResult, Problem, position_noise_m
-from hil.analysis.effects import (
+from hil.analysis.calibration.solve import CalibrationResult, Problem, position_noise_m
+from hil.geometry.kinematics import KinematicModel
+from hil.model.calibrated_model import CalibratedModel, initial_model
+from hil.model.effects import (
     GravityCompliance,
     gravity_physics,
     gravity_physics_term,
@@ -22,7 +23,6 @@ from hil.analysis.effects import (
     material_expansion,
     material_growth,
 )
-from hil.geometry.kinematics import KinematicModel
 
 
 def held_rigid_start(

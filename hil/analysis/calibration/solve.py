@@ -37,11 +37,9 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 from threadpoolctl import threadpool_limits
 
-from hil.analysis.calibrated_model import CalibratedModel, initial_model, with_initial_probes
-from hil.analysis.effects import EffectContext
-from hil.analysis.folds import campaign_folds, kfold, location_spacing
-from hil.analysis.identifiability import IdentifiabilityReport, analyse, scale_columns
-from hil.analysis.noise_floor import TRACKER_MPE_M, TRACKER_MPE_SIGMAS, tracker_sigma_m
+from hil.analysis.calibration.folds import campaign_folds, kfold
+from hil.analysis.calibration.identifiability import IdentifiabilityReport, analyse, scale_columns
+from hil.analysis.calibration.noise_floor import TRACKER_MPE_M, TRACKER_MPE_SIGMAS, tracker_sigma_m
 from hil.data.dataset import (
     ORIENTATION_COLUMNS,
     data_rows,
@@ -54,6 +52,9 @@ from hil.data.dataset import (
 )
 from hil.geometry.kinematics import KinematicModel
 from hil.geometry.se3 import fit_rigid, rotation_log
+from hil.model.calibrated_model import CalibratedModel, initial_model, with_initial_probes
+from hil.model.effects import EffectContext
+from hil.model.grid_frame import location_spacing
 
 K0, K1 = 1.5, 2.5  # IGG3 thresholds of the grid paper
 # Beyond this many rows the solvers converge on a fixed random subset of them, then finish on every row
@@ -70,7 +71,7 @@ PROBE_ANGLE_NOISE_RAD = float(np.deg2rad(0.01))
 def position_noise_m(
     points: np.ndarray, mpe_m: tuple[float, float] = TRACKER_MPE_M, sigmas: float = TRACKER_MPE_SIGMAS
 ) -> float:
-    """1-sigma tracker noise per axis at the median distance of the points (hil.analysis.noise_floor's model)."""
+    """1-sigma tracker noise per axis at the median distance of the points (hil.analysis.calibration.noise_floor's model)."""
     return float(tracker_sigma_m(float(np.median(np.linalg.norm(points, axis=1))), mpe_m, sigmas))
 
 
@@ -195,7 +196,7 @@ class Problem:
     def spatial_folds(self, k: int, seed: int) -> list[np.ndarray]:
         """k folds that are blocks of the measured volume, every row of one pose in the same fold (its
         SMRs share the robot's error: split, a held-out row would be predicted from its own pose); the poses
-        of a single-joint sweep are dealt to the folds in turn (hil.analysis.folds.campaign_folds)."""
+        of a single-joint sweep are dealt to the folds in turn (hil.analysis.calibration.folds.campaign_folds)."""
         pose = np.arange(len(self.measured)) if self.pose is None else self.pose
         return campaign_folds(self.measured, pose, self.ctx.q, k, seed)
 
@@ -736,7 +737,9 @@ def _calibrate(
     return result
 
 
-CONFOUNDED_NOTE = "confounded: "  # the start of a note on a confounded pair (hil.analysis.diagnosis reads it)
+CONFOUNDED_NOTE = (
+    "confounded: "  # the start of a note on a confounded pair (hil.analysis.diagnosis.pipeline reads it)
+)
 
 
 def _honest_numbers(result: CalibrationResult, problem: Problem, k: int = 5) -> None:

@@ -1,6 +1,6 @@
 """Step 2 of a diagnosis: forward selection of the effects the data prove. Each round screens every candidate
-against the current model (hil.analysis.screening), re-judges those the rejected rows may hide
-(hil.analysis.reclaim), adds the best passing one and refits, drops an earlier effect a later one made
+against the current model (hil.analysis.diagnosis.screening), re-judges those the rejected rows may hide
+(hil.analysis.diagnosis.reclaim), adds the best passing one and refits, drops an earlier effect a later one made
 redundant, settles pairs and rivals; a second selection without the first choice, or from the previous
 round's effects, is kept when it predicts better on the same held-out rows.
 """
@@ -13,31 +13,18 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from hil.analysis.calibrated_model import CalibratedModel
-from hil.analysis.calibration import (
+from hil.analysis.calibration.identifiability import IdentifiabilityReport
+from hil.analysis.calibration.solve import (
     CalibrationResult,
     Problem,
     calibrate,
     flatten_jacobian,
     parameter_correlations,
 )
-from hil.analysis.diagnosis_baseline import (
-    Baseline,
-    caution,
-    error_stats,
-    fit_plain,
-    free_mask,
-)
-from hil.analysis.effects import (
-    Effect,
-    candidate_effects,
-    make_effect,
-    physical,
-)
-from hil.analysis.identifiability import IdentifiabilityReport
-from hil.analysis.reclaim import reclaimed
-from hil.analysis.rivals import compare_with_rivals, rivals_in_round
-from hil.analysis.screening import (
+from hil.analysis.diagnosis.baseline import Baseline, caution, error_stats, fit_plain, free_mask
+from hil.analysis.diagnosis.reclaim import reclaimed
+from hil.analysis.diagnosis.rivals import compare_with_rivals, rivals_in_round
+from hil.analysis.diagnosis.screening import (
     EXTRAPOLATING_FAMILIES,
     Candidate,
     Screen,
@@ -50,6 +37,8 @@ from hil.analysis.screening import (
     predicts_along_joint,
     weakest_effect,
 )
+from hil.model.calibrated_model import CalibratedModel
+from hil.model.effects import Effect, candidate_effects, make_effect, physical
 
 
 @dataclass
@@ -67,7 +56,9 @@ class Step:
     )
     summary: dict = field(default_factory=dict)  # physical figures: deflection, amplitude, gap, ppm/K
     replaces: dict | None = None  # the effect a "replaced" step took out ({name, joint})
-    rival_tests: list[dict] = field(default_factory=list)  # hil.analysis.rivals' comparisons behind it
+    rival_tests: list[dict] = field(
+        default_factory=list
+    )  # hil.analysis.diagnosis.rivals' comparisons behind it
 
     def title(self) -> str:
         """'gravity_compliance joint 2', 'removed backlash joint 4', 'cyclic joint 2 (replaces cyclic joint 3)'."""
@@ -247,7 +238,7 @@ def _along_joint(
     model: CalibratedModel | None,
 ) -> tuple[Candidate, CalibratedModel | None]:
     """A passing candidate whose claim reaches beyond the sampled arc of its joint (a scale) fails unless it
-    also predicts each half of the joint's range from the other (hil.analysis.screening.predicts_along_joint)."""
+    also predicts each half of the joint's range from the other (hil.analysis.diagnosis.screening.predicts_along_joint)."""
     if not cand.passed or cand.name not in EXTRAPOLATING_FAMILIES:
         return cand, model
     eff = make_effect(cand.name, cand.joint)
@@ -296,7 +287,7 @@ def _forward_selection(
             continue  # the physics holds it already
         carried = make_effect(name, joint)
         if not carried.prepare(base.full.ctx, path.current.model.nominal):
-            continue  # this campaign does not offer it (hil.analysis.effects' conditions)
+            continue  # this campaign does not offer it (hil.model.effects' conditions)
         rep = refit(calibrate(df, path.current.model.with_effect(carried), "ridge"))
         note = "carried over from the earlier diagnosis"
         cand = Candidate(name, joint, len(carried.params), float("nan"), 0.0, 1.0, 1.0, True, note)
@@ -496,7 +487,7 @@ def _pair_lookahead(
 
 
 def settle_rivals(base: Baseline, df: pd.DataFrame, path: SelectionPath, alpha: float) -> None:
-    """Each added effect against the rivals of its round, in the final model (hil.analysis.rivals): a rival
+    """Each added effect against the rivals of its round, in the final model (hil.analysis.diagnosis.rivals): a rival
     the data prefers replaces it (a step of its own); one the data does not separate from it is an open
     question. Every replacement re-checks from the start, at most once per effect."""
     for _ in range(len(path.current.model.effects) + 1):

@@ -9,7 +9,7 @@ their held-out squared errors compared pose by pose (one-sided t-tests, as in th
 
 - the rival is better at p < alpha: the rival replaces the effect;
 - the effect is not better at p < `DECIDED_P`: the data does not decide between them, and the diagnosis
-  reports an open question (`ambiguous_effects`) that hil.analysis.discrimination plans poses for.
+  reports an open question (`ambiguous_effects`) that hil.analysis.design.plan plans poses for.
 """
 
 from __future__ import annotations
@@ -18,10 +18,10 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from hil.analysis.calibrated_model import CalibratedModel
-from hil.analysis.calibration import Problem, identify, solve_ridge_igg3
-from hil.analysis.effects import EffectContext, make_effect
-from hil.analysis.screening import NOT_ALONG_JOINT_NOTE, Candidate, Screen, held_out_gain
+from hil.analysis.calibration.solve import Problem, identify, solve_ridge_igg3
+from hil.analysis.diagnosis.screening import NOT_ALONG_JOINT_NOTE, Candidate, Screen, held_out_gain
+from hil.model.calibrated_model import CalibratedModel
+from hil.model.effects import EffectContext, make_effect
 
 RIVAL_SHARE = 0.3  # a rival passed in the effect's round with at least this share of the winner's gain
 DECIDED_P = 0.01  # the chosen effect must beat each rival at this level, or the question stays open

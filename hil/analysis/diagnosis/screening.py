@@ -1,6 +1,6 @@
 """Candidate screening for the diagnosis: linearised held-out (cross-validated) fits, the tests a candidate
 effect must pass to be added, near-ties and the thermal preference, and the test that removes an earlier
-effect a later one made redundant. The selection rule itself is told in hil/analysis/diagnosis.py's docstring.
+effect a later one made redundant. The selection rule itself is told in hil/analysis/diagnosis/pipeline.py's docstring.
 
 Batched screening (`Screen.test`): the current model's Jacobian, its identifiability basis and every fold's
 held-out solve are computed once per round; a candidate only adds its own few columns, which are
@@ -16,9 +16,10 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy import stats
 
-from hil.analysis.calibrated_model import CalibratedModel
-from hil.analysis.calibration import Problem, flatten_jacobian
-from hil.analysis.effects import (
+from hil.analysis.calibration.identifiability import analyse, scale_columns
+from hil.analysis.calibration.solve import Problem, flatten_jacobian
+from hil.model.calibrated_model import CalibratedModel
+from hil.model.effects import (
     PHYSICAL_RANK,
     THERMAL_FAMILIES,
     Effect,
@@ -26,7 +27,6 @@ from hil.analysis.effects import (
     physical,
     temperature_driven,
 )
-from hil.analysis.identifiability import analyse, scale_columns
 
 
 def effect_label(name: str, joint: int | None) -> str:
@@ -184,7 +184,7 @@ class Screen:
         fit0, self.e0 = linear_fit_heldout(flatten_jacobian(self._J)[:, free], self._r, partitions)
         self.sse0 = float(np.sum(fit0**2))
         # each tested candidate's held-out squared error per row (N,), for comparing two candidates point by
-        # point (hil.analysis.rivals); keys: `group_key` of what was added
+        # point (hil.analysis.diagnosis.rivals); keys: `group_key` of what was added
         self.heldout_errors: dict[tuple, np.ndarray] = {}
         self._batch: _Batch | None = None
 

@@ -4,7 +4,6 @@ poses of a single-joint sweep dealt to the folds in turn (interpolation along th
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 
 def kfold(n: int, k: int, seed: int) -> list[np.ndarray]:
@@ -38,21 +37,6 @@ def spatial_folds(points: np.ndarray, k: int, seed: int, iters: int = 25) -> lis
         centres = new
     folds = [np.flatnonzero(label == c) for c in range(k)]
     return [f for f in folds if len(f) > 0]
-
-
-# Points closer than this are one location (several orientations measured at one grid node).
-SAME_LOCATION_M = 5e-3
-
-
-def location_spacing(points: np.ndarray) -> float:
-    """Median distance from each point to the nearest point at another location (m): repeated
-    orientations at a grid node do not shrink it."""
-    tree = cKDTree(points)
-    k = min(len(points), 16)
-    dist = tree.query(points, k=k)[0][:, 1:]
-    far = np.where(dist > SAME_LOCATION_M, dist, np.inf).min(axis=1)
-    far = far[np.isfinite(far)]
-    return float(np.median(far)) if far.size else SAME_LOCATION_M
 
 
 # A joint counts as moved between two consecutive poses when it turned more than this (rad): well above a

@@ -17,8 +17,6 @@ import numpy as np
 import pandas as pd
 from scipy.spatial.transform import Rotation
 
-from hil.analysis.effects import Effect, EffectContext, effect_from_dict, growth_direction, tool_points_rows
-from hil.analysis.residual_maps import map_from_dict
 from hil.data.dataset import joints_rad, make_dataset, orientations, points_m, smr_ids
 from hil.data.jsonable import to_jsonable
 from hil.geometry.ik import solve_ik
@@ -32,6 +30,8 @@ from hil.geometry.kinematics import (
 )
 from hil.geometry.robots import get_robot
 from hil.geometry.se3 import fit_rigid, invert, make_transform, transform_points
+from hil.model.effects import Effect, EffectContext, effect_from_dict, growth_direction, tool_points_rows
+from hil.model.residual_maps import map_from_dict
 
 FORMAT = "hil-calibrated-model/1"
 
@@ -47,9 +47,7 @@ class CalibratedModel:
     tools: dict[int, np.ndarray]  # SMR nest id -> tool point in the flange (m)
     effects: list[Effect] = field(default_factory=list)
     info: dict = field(default_factory=dict)  # solver report: std errors, dropped parameters, outliers...
-    residual_map: dict | None = (
-        None  # fallback residual map (hil.analysis.residual_maps), applied by `predict`
-    )
+    residual_map: dict | None = None  # fallback residual map (hil.model.residual_maps), applied by `predict`
     probes: dict[int, np.ndarray] = field(default_factory=dict)  # SMR nest id -> R_flange_probe (3, 3)
 
     # ----- parameter vector ---------------------------------------------------------------------

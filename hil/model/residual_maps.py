@@ -2,14 +2,14 @@
 
 - ``idw``: inverse-distance weighting over the 8 vertices of the grid cube holding the target
   (grid paper, methods.md 2c; power 2; a target on a vertex takes that vertex's residual). The grid's own
-  frame (any rotation, a step per axis) is recovered from the measured points (hil.analysis.grid_frame):
+  frame (any rotation, a step per axis) is recovered from the measured points (hil.model.grid_frame):
   the planner turns its box to face the tracker, and a foreign campaign records no grid frame.
 - ``svr``: RBF-kernel support-vector regressors per axis on the six joint angles (SVR paper, methods.md 3:
   kernel width sigma = 2 rad -> gamma = 1/(2 sigma^2)), in two modes. "global" (ours): one model over the
   volume on the residual after calibration; targets in units of the noise sigma, epsilon = 0.5 sigma, and C
   by 3-fold cross-validation from 0.1 ... 100: the paper's C = 100 and epsilon = 0.2 mm suit errors of
   millimetres, not residuals near the noise floor. "per_cube" (the paper's): one model per cube on the raw
-  error against the nominal model, C = 100, epsilon = 0.2 mm (hil.analysis.cube_svr).
+  error against the nominal model, C = 100, epsilon = 0.2 mm (hil.analysis.calibration.cube_svr).
 - ``gp``: a Gaussian process on the six joint angles (constant x RBF + white noise, hyper-parameters by
   marginal likelihood), all three axes together.
 
@@ -24,8 +24,7 @@ import warnings
 import numpy as np
 from scipy.spatial import cKDTree
 
-from hil.analysis.folds import location_spacing
-from hil.analysis.grid_frame import GridFrame, estimate_grid_frame
+from hil.model.grid_frame import GridFrame, estimate_grid_frame, location_spacing
 
 MAP_KINDS: tuple[str, ...] = ("idw", "svr", "gp")
 
@@ -207,7 +206,7 @@ class SVRMap(ResidualMap):
     the kinematic calibration leaves; targets in noise sigmas, C by cross-validation. "per_cube" (the SVR
     paper): the volume cut into cubes of `cube_m` on a lattice through the base origin, one model per cube
     with the paper's C = 100, epsilon = 0.2 mm, sigma = 2; the cube holding the target picks the model. The
-    paper fits the raw error against the nominal model: hil.analysis.cube_svr builds that model.
+    paper fits the raw error against the nominal model: hil.analysis.calibration.cube_svr builds that model.
     """
 
     kind = "svr"

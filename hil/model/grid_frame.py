@@ -157,3 +157,18 @@ def _refine(frame: GridFrame, loc: np.ndarray, fixed_step: bool, tolerance: floa
     if np.linalg.det(R) < 0:
         return frame
     return GridFrame(R, origin, steps)
+
+
+# Points closer than this are one location (several orientations measured at one grid node).
+SAME_LOCATION_M = 5e-3
+
+
+def location_spacing(points: np.ndarray) -> float:
+    """Median distance from each point to the nearest point at another location (m): repeated
+    orientations at a grid node do not shrink it."""
+    tree = cKDTree(points)
+    k = min(len(points), 16)
+    dist = tree.query(points, k=k)[0][:, 1:]
+    far = np.where(dist > SAME_LOCATION_M, dist, np.inf).min(axis=1)
+    far = far[np.isfinite(far)]
+    return float(np.median(far)) if far.size else SAME_LOCATION_M

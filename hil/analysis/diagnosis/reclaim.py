@@ -7,23 +7,17 @@ from __future__ import annotations
 
 import numpy as np
 
-from hil.analysis.calibrated_model import CalibratedModel
-from hil.analysis.calibration import (
+from hil.analysis.calibration.solve import (
     K1,
     CalibrationResult,
     flatten_jacobian,
     robust_scales,
     solve_ridge_igg3,
 )
-from hil.analysis.diagnosis_baseline import Baseline, fit_plain, free_mask
-from hil.analysis.effects import (
-    Effect,
-    make_effect,
-)
-from hil.analysis.screening import (
-    Candidate,
-    Screen,
-)
+from hil.analysis.diagnosis.baseline import Baseline, fit_plain, free_mask
+from hil.analysis.diagnosis.screening import Candidate, Screen
+from hil.model.calibrated_model import CalibratedModel
+from hil.model.effects import Effect, make_effect
 
 
 def reclaimed(

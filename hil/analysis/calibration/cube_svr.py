@@ -4,7 +4,7 @@ The paper (methods.md 3) registers the tracker to the robot, then learns the who
 the nominal model (no kinematic calibration) with one SVR per 100 mm cube. Here: the nominal geometry with
 only the base frame and the tool points fitted (what "uncompensated" means in both papers' tables), and a
 per-cube SVRMap on that model's error as its residual map, so `predict` and the compensation use it as
-they use any calibrated model. Ours (hil.analysis.diagnosis) calibrates first and maps what is left.
+they use any calibrated model. Ours (hil.analysis.diagnosis.pipeline) calibrates first and maps what is left.
 """
 
 from __future__ import annotations
@@ -12,11 +12,11 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from hil.analysis.calibrated_model import CalibratedModel, initial_model
-from hil.analysis.calibration import Problem, solve_ridge_igg3
-from hil.analysis.effects import tool_points_rows
-from hil.analysis.residual_maps import SVRMap
+from hil.analysis.calibration.solve import Problem, solve_ridge_igg3
 from hil.geometry.kinematics import KinematicModel
+from hil.model.calibrated_model import CalibratedModel, initial_model
+from hil.model.effects import tool_points_rows
+from hil.model.residual_maps import SVRMap
 
 
 def registered_nominal(

@@ -2,17 +2,17 @@
 
 Every fit and test uses every equation the data has: each SMR's position and, from a 6-DoF probe, its
 orientation, each weighted by its noise (the tracker's MPE, the probe's stated angle noise; see
-hil.analysis.calibration.Problem); the held-out figures (mm) are of positions. A probe whose rotation residual
+hil.analysis.calibration.solve.Problem); the held-out figures (mm) are of positions. A probe whose rotation residual
 after the geometric fit is beyond its stated noise (ORIENTATION_SELECTION_FACTOR) refutes that weight: the
 effects are then tested on positions only, and a caution says so. Several SMRs at one pose are
 one sample of the pose's error (they share its fold and count once in the tests).
 
-Selection rule for each round (every candidate from `hil.analysis.effects` the data could reveal):
+Selection rule for each round (every candidate from `hil.model.effects` the data could reveal):
 1. add the candidate to the current model and re-run the identifiability analysis on the joint
    (geometry + effects) Jacobian, so coefficients the data cannot separate from the geometry are merged;
 2. k-fold cross-validation on blocks of the workspace (default 5 folds, the same for every candidate;
    CV_REPEATS partitions, each point's held-out squared error averaged over them; the poses of a
-   single-joint sweep dealt to the folds in turn, hil.analysis.folds.campaign_folds): each fold refits all
+   single-joint sweep dealt to the folds in turn, hil.analysis.calibration.folds.campaign_folds): each fold refits all
    free parameters on the other folds and predicts the held-out points;
 3. the candidate must (a) lower the held-out squared error per point, tested pairwise against the current
    model (one-sided t-test, p < alpha), and (b) explain more than measurement noise on the full fit:
@@ -25,11 +25,11 @@ Selection rule for each round (every candidate from `hil.analysis.effects` the d
    models are judged on the rows either fits, a row both reject is a blunder: `reclaimed`).
 The loop stops when nothing passes. The links' thermal growth is physics, not a candidate, when the robot
 names its material and the campaign records a temperature: it is in the model from the geometric fit on,
-fitted with the material's coefficient as its prior (hil.analysis.effects.material_expansion), never removed,
+fitted with the material's coefficient as its prior (hil.model.effects.material_expansion), never removed,
 and the report gives the fitted coefficient beside the material's (`thermal_summary`). So is the joints' yield
 under gravity when the robot file gives the links' masses: one compliance per joint that carries a gravity
 torque, the torque computed from the masses, fitted with a prior centred on a rigid joint
-(hil.analysis.effects.gravity_physics); the report gives each joint's stiffness and whether the data found
+(hil.model.effects.gravity_physics); the report gives each joint's stiffness and whether the data found
 its yield (`gravity_summary`). The residual left is
 then tested against the noise floor; if it is larger and a residual map predicts it on held-out blocks of the
 volume (the spatial folds: better than no map, p < alpha), the report says structure remains that no
@@ -48,14 +48,10 @@ import pandas as pd
 from scipy import stats
 from threadpoolctl import threadpool_limits
 
-from hil.analysis.calibrated_model import CalibratedModel
-from hil.analysis.calibration import (
-    CONFOUNDED_NOTE,
-    Problem,
-    confounded_pairs,
-)
-from hil.analysis.calibration import reregister as reregister_model
-from hil.analysis.diagnosis_baseline import (
+from hil.analysis.calibration.noise_floor import TRACKER_MPE_M, NoiseFloor
+from hil.analysis.calibration.solve import CONFOUNDED_NOTE, Problem, confounded_pairs
+from hil.analysis.calibration.solve import reregister as reregister_model
+from hil.analysis.diagnosis.baseline import (
     Baseline,
     Progress,
     baseline_fit,
@@ -65,23 +61,12 @@ from hil.analysis.diagnosis_baseline import (
     quiet,
     registration,
 )
-from hil.analysis.drift_monitor import reference_drift
-from hil.analysis.effects import (
-    Effect,
-    material_conflict,
-    material_growth,
-    physical,
-    tool_points_rows,
-    yields_against_gravity,
-)
-from hil.analysis.noise_floor import TRACKER_MPE_M, NoiseFloor
-from hil.analysis.physics_terms import gravity_summary, thermal_summary
-from hil.analysis.residual_maps import MAP_KINDS, MAP_MODES, kfold_map_errors, make_map, map_from_dict
-from hil.analysis.screening import (
-    Candidate,
-    held_out_gain,
-)
-from hil.analysis.selection import (
+from hil.analysis.diagnosis.drift_monitor import reference_drift
+from hil.analysis.diagnosis.evidence import evidence
+from hil.analysis.diagnosis.physics_terms import gravity_summary, thermal_summary
+from hil.analysis.diagnosis.questions import open_questions
+from hil.analysis.diagnosis.screening import Candidate, held_out_gain
+from hil.analysis.diagnosis.selection import (
     SelectionPath,
     Step,
     cv_positions,
@@ -92,6 +77,16 @@ from hil.analysis.selection import (
 )
 from hil.data.dataset import drop_duplicate_rows, joints_rad
 from hil.geometry.kinematics import KinematicModel
+from hil.model.calibrated_model import CalibratedModel
+from hil.model.effects import (
+    Effect,
+    material_conflict,
+    material_growth,
+    physical,
+    tool_points_rows,
+    yields_against_gravity,
+)
+from hil.model.residual_maps import MAP_KINDS, MAP_MODES, kfold_map_errors, make_map, map_from_dict
 
 
 @dataclass
@@ -109,13 +104,15 @@ class DiagnosisReport:
     histograms: dict = field(default_factory=dict)  # stage -> held-out error norms (mm)
     final_round: list[Candidate] = field(default_factory=list)
     ambiguities: list[dict] = field(default_factory=list)  # effects this data could not tell apart
-    undecided: list[dict] = field(default_factory=list)  # open questions (hil.analysis.undecided)
-    plan: dict | None = None  # the proposed measurements' groups (hil.analysis.discrimination.Plan.to_dict)
+    undecided: list[dict] = field(default_factory=list)  # open questions (hil.analysis.diagnosis.questions)
+    plan: dict | None = None  # the proposed measurements' groups (hil.analysis.design.plan.Plan.to_dict)
     run: dict = field(default_factory=dict)  # robot, input files (hash, rows), date, software version
     thermal: dict | None = None  # the material's thermal growth, fitted against its prior (`thermal_summary`)
     # the joints' yield from the link masses (`gravity_summary`)
     gravity: list[dict] = field(default_factory=list)
-    drift: dict | None = None  # reference poses re-measured (hil.analysis.drift_monitor.reference_drift)
+    drift: dict | None = (
+        None  # reference poses re-measured (hil.analysis.diagnosis.drift_monitor.reference_drift)
+    )
 
     @property
     def effects_added(self) -> list[dict]:
@@ -202,7 +199,7 @@ def run_diagnosis(
     base frame (and tool) of every stage on the validation campaign first, for a campaign taken from
     another tracker placement; the report then shows both. `progress(phase, done, total)` is called as
     the work advances (the CLI draws it with an ETA). `screening` "batched" judges a round's candidates
-    from one shared factorisation (hil.analysis.screening); "refit" fits each candidate on its own (the
+    from one shared factorisation (hil.analysis.diagnosis.screening); "refit" fits each candidate on its own (the
     slow reference the batched path reproduces). `previous_effects` ({name, joint}, the effects the
     diagnosis of an earlier part of this campaign named, as an active loop's round has): when the selection
     here drops any of them, a selection that starts from them is run too and the one whose model predicts
@@ -264,11 +261,8 @@ def run_diagnosis(
 
 
 def undecided_questions(df: pd.DataFrame, path: SelectionPath, alpha: float, sigma_m: float) -> list[dict]:
-    """What the campaign leaves undecided (hil.analysis.undecided); a statistical question whose evidence
-    already passes hil.analysis.discrimination's threshold is decided and left out."""
-    from hil.analysis.discrimination import evidence
-    from hil.analysis.undecided import open_questions
-
+    """What the campaign leaves undecided (hil.analysis.diagnosis.questions); a statistical question whose evidence
+    already passes hil.analysis.design.plan's threshold is decided and left out."""
     pairs = confounded_pairs(path.current, path.prob)
     found = open_questions(df, path.final_round, path.ambiguities, pairs, alpha, path.current.model.effects)
     decided = set()

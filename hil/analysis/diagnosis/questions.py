@@ -26,7 +26,7 @@ After selection a campaign can leave an effect undecided for reasons no test on 
   and the temperature spans at least `MIN_TEMPERATURE_SPAN_K`: the growth (about the base, along the links)
   may have absorbed the tracker's stretch. Poses measured now, at the temperature the cell has reached, where
   the two move the SMR differently separate them.
-The last five are decided when the campaign separates the rivals: hil.analysis.discrimination's evidence
+The last five are decided when the campaign separates the rivals: hil.analysis.design.plan's evidence
 (every rival coefficient's smallest relevant size at `DECISIVE_Z` standard errors or more) passes; except a
 marginal candidate the full fit finds, whose evidence is the held-out test's z (below the test's own level by
 definition), so that it stays open until the selection's own test decides it.
@@ -40,17 +40,17 @@ from __future__ import annotations
 import numpy as np
 import pandas as pd
 
-from hil.analysis.effects import CYCLIC_MIN_PERIODS, Effect, approach_signs, temperature_driven
 from hil.data.dataset import joints_rad, pose_ids
+from hil.model.effects import CYCLIC_MIN_PERIODS, Effect, approach_signs, temperature_driven
 
 MARGINAL_P = 0.01  # held-out p-value below this but not below alpha: the data leans, it does not decide
-MIN_ROWS_PER_DIRECTION = 5  # the backlash candidate's own requirement (hil.analysis.effects.Backlash)
+MIN_ROWS_PER_DIRECTION = 5  # the backlash candidate's own requirement (hil.model.effects.Backlash)
 MIN_REVISITS = 4
 REVISIT_GAP = (
     0.5  # fraction of the campaign's duration (time, else rows) between a pose's first and last visit
 )
 MIN_TEMPERATURE_SPAN_K = 1.0
-CONFOUNDED_CORRELATION = 0.95  # hil.analysis.calibration.confounded_pairs' limit
+CONFOUNDED_CORRELATION = 0.95  # hil.analysis.calibration.solve.confounded_pairs' limit
 
 # Kinds that measurements at other poses can decide (the plan serves them); the rest need another run.
 PLANNABLE = (
@@ -66,7 +66,7 @@ PLANNABLE = (
 
 
 def question(kind: str, **data) -> dict:
-    """One open question as data: `kind`, what it is about, its evidence; hil.analysis.report words it."""
+    """One open question as data: `kind`, what it is about, its evidence; hil.report.html words it."""
     return {"kind": kind, "plannable": kind in PLANNABLE, **data}
 
 
@@ -184,7 +184,7 @@ def selection_questions(final_round: list, ambiguities: list[dict], alpha: float
 
 
 def parameter_questions(pairs: list[tuple]) -> list[dict]:
-    """Geometric parameters reported as confounded (hil.analysis.calibration.confounded_pairs)."""
+    """Geometric parameters reported as confounded (hil.analysis.calibration.solve.confounded_pairs)."""
     return [question("confounded_parameters", parameters=[a, b], correlation=float(c)) for a, b, c in pairs]
 
 

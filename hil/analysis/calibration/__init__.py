@@ -1,0 +1,1 @@
+"""Calibration: the identification problem, its solvers, identifiability, the noise floor and the folds."""

@@ -1,0 +1,1 @@
+"""Active design: the poses that decide a diagnosis' open questions and the rounds that measure them."""

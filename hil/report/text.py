@@ -1,0 +1,240 @@
+"""A diagnosis in words for the terminal: its conclusion, cautions, physics terms and open questions. The
+diagnosis returns its verdict as data; the wording is here (and the HTML page and JSON file reuse it)."""
+
+from __future__ import annotations
+
+from hil.analysis.diagnosis.pipeline import DiagnosisReport
+from hil.analysis.diagnosis.screening import effect_label
+from hil.model.residual_maps import MAP_MODES
+
+
+def _effect(e: dict) -> str:
+    return effect_label(e["name"], e["joint"])
+
+
+def caution_text(c: dict) -> str:
+    """One caution of the verdict (`hil.analysis.diagnosis.baseline.caution`) in words."""
+    kind = c["kind"]
+    if kind == "calibration_note":
+        return c["text"]
+    if kind == "first_choice_set_aside":
+        return (
+            f"a first choice of {_effect(c['effect'])} led to a worse final model ({c['heldout_rms_mm']:.4f} vs "
+            f"{c['heldout_rms_without_mm']:.4f} mm held-out); it was set aside"
+        )
+    if kind == "previous_effects_kept":
+        return (
+            f"a selection that started from the earlier diagnosis' effects ({', '.join(_effect(e) for e in c['effects'])}) "
+            f"predicted held-out points better ({c['heldout_rms_kept_mm']:.4f} mm, p = {c['p_value']:.2g}) than one that "
+            f"dropped {', '.join(_effect(e) for e in c['dropped'])} ({c['heldout_rms_mm']:.4f} mm); it was kept"
+        )
+    if kind == "stage_worse_than_previous":
+        return f"stage '{c['stage']}' predicts held-out points worse than the stage before it ({c['rms_mm']:.4f} mm)"
+    if kind == "ambiguous_effects":
+        return (
+            f"on this data {_effect(c['chosen'])} and {_effect(c['confounded_with'])} explain the same residual; "
+            "the choice between them is not reliable (measure poses or approach directions that separate them, "
+            "e.g. a random visiting order)."
+        )
+    if kind == "validation_unrepresented":
+        v, h = c["validate_rms_mm"], c["heldout_rms_mm"]
+        return (
+            f"the validation campaign's RMS ({v:.4f} mm) is {v / h:.1f}x the held-out one: the training campaign "
+            "does not represent it (poses, visiting order, time, tracker placement), so an effect may be hidden "
+            "in the training data by another one; measure a campaign in a random order"
+            + ("" if c["reregistered"] else ", or re-register the base on it")
+        )
+    if kind == "validation_worse_than_geometric":
+        return (
+            f"on the validation campaign the final model ({c['final_rms_mm']:.4f} mm) predicts worse than the "
+            f"geometric one ({c['geometric_rms_mm']:.4f} mm): use the geometric model there"
+        )
+    if kind == "validation_temperatures_outside":
+        (vlo, vhi), (lo, hi) = c["validate_c"], c["training_c"]
+        return (
+            f"validation temperatures {vlo:.1f}..{vhi:.1f} C lie outside the training's {lo:.1f}..{hi:.1f} C: "
+            "the model extrapolates thermal effects (measure the training over the working temperatures)"
+        )
+    if kind == "thermal_growth_held":
+        return (
+            f"the temperature's term came out at {c['fitted_per_k'] * 1e6:.1f} ppm/K, far from the links' material "
+            f"({c['material_per_k'] * 1e6:.1f} ppm/K): on this campaign the recorded temperature follows something "
+            "else (a drift in time, the air's temperature rather than the arm's), so the growth is held at the "
+            "material's value; if the arm is of another material, give its expansion_per_k in the robot file"
+        )
+    if kind == "validation_joints_outside":
+        return (
+            f"validation joint(s) {', '.join(map(str, c['joints']))} leave the training's range by more than "
+            f"{c['margin_deg']:g} deg: the model extrapolates there"
+        )
+    raise ValueError(f"no wording for the caution kind '{kind}'")
+
+
+def conclusion(report: DiagnosisReport) -> str:
+    """The verdict in words: what was added, what is left, then one caution a line."""
+    return conclusion_text(report.verdict, report.effects_added)
+
+
+def conclusion_text(v: dict, effects_added: list[dict]) -> str:
+    """`conclusion` from the verdict data and the effects ({name, joint}) the final model holds."""
+    added = ", ".join(_effect(e) for e in effects_added) or "nothing"
+    if v["residual"] == "structured":
+        text = (
+            f"Added: {added}. Structured residual remains that no candidate effect explains (residual sigma "
+            f"{v['ratio']:.2f}x the noise floor; a {v['map']} residual map predicts it on held-out points), so a "
+            f"residual map is used as the fallback ({MAP_MODES.get(v['map'], v['map'])})."
+        )
+    elif v["residual"] == "local":
+        text = (
+            f"Added: {added}. Structured residual remains that no candidate effect explains (residual sigma "
+            f"{v['ratio']:.2f}x the noise floor), but only locally: a {v['map']} residual map predicts it between "
+            "measured points, not in blocks of the volume held out, so no map is added (it would extrapolate "
+            "worse than the model alone). Measure densely where the model is to be used to map it there."
+        )
+    elif v["residual"] == "excess":
+        text = (
+            f"Added: {added}. The residual is {v['ratio']:.2f}x the noise floor but shows no structure a residual "
+            "map can predict: the noise floor is probably underestimated (robot repeatability?)."
+        )
+    else:
+        text = f"Added: {added}. The residual is at the noise floor ({v['ratio']:.2f}x)."
+    return "\n".join([text, *(f"Caution: {caution_text(c)}" for c in v["cautions"])])
+
+
+def final_orientation_text(report: DiagnosisReport) -> str | None:
+    """The final model's orientation residual in words, when a 6-DoF probe was fitted and effects were added
+    (without effects the geometric fits' figures say it)."""
+    final = report.model.info.get("orientation")
+    if not final or not report.model.effects:
+        return None
+    return f"6-DoF probe, final model (effects included): orientation RMS {final['rms_deg']:.4f} deg"
+
+
+def thermal_text(thermal: dict | None) -> str | None:
+    """The links' thermal growth in words: the fitted coefficient beside the material's, and whether the
+    campaign's temperature span or the material's prior set it (None without a material term)."""
+    if not thermal:
+        return None
+    share = thermal["data_share"]
+    if "held_conflicting_per_k" in thermal:
+        who = (
+            f"held at the material's value: the data made {thermal['held_conflicting_per_k'] * 1e6:.0f} ppm/K of "
+            "it, which is no growth of the links (see the cautions)"
+        )
+    elif thermal["data_led"]:
+        who = "measured by this campaign"
+    elif share < 0.05:
+        who = "held at the material's value: the campaign spans too little temperature to measure it"
+    else:
+        who = "mostly the material's value: the campaign spans too little temperature to measure it well"
+    return (
+        f"Thermal growth of the links: {thermal['fitted_per_k'] * 1e6:.1f} +- {thermal['std_per_k'] * 1e6:.1f} "
+        f"ppm/K fitted, material {thermal['material_per_k'] * 1e6:.1f} ppm/K (temperature span "
+        f"{thermal['span_k']:.2f} K, the data carry {100 * share:.0f} % of what is known of it; {who})."
+    )
+
+
+def gravity_text(gravity: list[dict]) -> str | None:
+    """The joints' yield under the link masses' gravity in words: each joint's stiffness with its standard
+    error, and whether the data found it or the prior (a rigid joint) holds it (None without such terms)."""
+    if not gravity:
+        return None
+    parts = []
+    for g in gravity:
+        k, dk = g["stiffness_knm_per_rad"], g["stiffness_std_knm_per_rad"]
+        if "held_negative_compliance" in g:
+            what = (
+                f"held rigid: the data made its compliance negative "
+                f"({g['held_negative_compliance'] * 1e6:.2g} urad/(N m), the joint yielding against gravity), so "
+                "the term stood in for something else"
+            )
+        elif g["found"]:
+            size = f"{k:.0f} +- {dk:.0f} kN m/rad" if dk is not None and dk < k else f"{k:.0f} kN m/rad"
+            what = f"{size}, found by the data"
+        elif g["data_led"]:
+            what = f"no yield seen (compliance {g['compliance_rad_per_nm'] * 1e6:.2g} +- {g['std_rad_per_nm'] * 1e6:.2g} urad/(N m))"
+        else:
+            what = f"the prior holds it (the data carry {100 * g['data_share']:.0f} %)"
+        parts.append(f"joint {g['joint']}: {what}")
+    return "Gravity yield from the link masses (joint stiffness): " + "; ".join(parts) + "."
+
+
+def question_text(q: dict) -> str:
+    """One open question of the diagnosis (hil.analysis.diagnosis.questions) in words: what is undecided and why."""
+    kind = q["kind"]
+    eff = q.get("effect") or {}
+    if kind == "period_not_covered":
+        return (
+            f"a once-per-turn error of joint {eff['joint']}: its sampled range covers {q['range_deg']:.0f} deg, "
+            f"a test needs {q['needs_deg']:.0f} (over a shorter arc it looks like geometry)"
+        )
+    if kind == "one_approach_direction":
+        return (
+            f"backlash of joint {eff['joint']}: {q['rows_up']} rows approached it from below, {q['rows_down']} "
+            f"from above; a test needs {q['needs_rows']} each way"
+        )
+    if kind == "drift_unmonitored":
+        return (
+            f"drift of the cell over time: {q['revisited_poses']} poses were measured again late in the campaign, "
+            f"{q['needs_poses']} are needed"
+        )
+    if kind == "temperature_not_spanned":
+        if not q["recorded"]:
+            return "thermal growth: the campaign records no temperature; poses cannot decide it"
+        return (
+            f"thermal growth: the temperature spans {q['span_k']:.2f} K (needs {q['needs_k']:.0f} K); poses cannot "
+            "decide it, a run at another temperature can"
+        )
+    z = q.get("evidence_z")
+    ev = "" if z is None else f" (evidence z {z:.2g}, decided at {q['decisive_z']:.2g})"
+    if kind == "marginal":
+        return f"{_effect(eff)}: marginal, held-out p = {q['p_cv']:.2g}{ev}"
+    if kind == "confounded_with_geometry":
+        return f"{_effect(eff)}: the geometry imitates it on these poses{ev}"
+    if kind == "ambiguous_effects":
+        return f"{_effect(eff)} or {_effect(q['rival'])}: both explain the same residual{ev}"
+    if kind == "thermal_rivals":
+        return (
+            f"the tracker's scale or the links' growth: over {q['span_k']:.2g} K the growth may have taken the "
+            f"tracker's stretch (about the tracker, not the base){ev}"
+        )
+    if kind == "confounded_parameters":
+        a, b = q["parameters"]
+        return f"{a} and {b} correlate {q['correlation']:+.3f}: each alone is unreliable{ev}"
+    return kind
+
+
+def undecided_text(report: DiagnosisReport) -> str:
+    """The open questions in words, one a line (or a line that says nothing is undecided)."""
+    if not report.undecided:
+        return "undecided: nothing; the campaign decides every question the diagnosis asks"
+    lines = ["undecided:"]
+    lines += [f"  - {question_text(q)}" for q in report.undecided]
+    return "\n".join(lines)
+
+
+def group_text(group: dict) -> str:
+    """What one group of a plan's rows should decide."""
+    q = group["question"]
+    what = question_text(q).split(":")[0]
+    if q["kind"] == "period_not_covered":
+        extra = f", joint range {group['range_after_deg']:.0f} deg after" + (
+            " (and back down: backlash)" if group.get("also") else ""
+        )
+    elif "evidence_z_after" in group:
+        extra = f", evidence z {group['evidence_z_before']:.2g} -> {group['evidence_z_after']:.2g} (decided at {group['decisive_z']:.2g})"
+    else:
+        extra = ""
+    return f"  {group['purpose']:<28} {group['rows']:>3} rows: decides {what}{extra}"
+
+
+def plan_text(plan: dict) -> str:
+    """The plan's groups in words (terminal and HTML); a line that says so when nothing is to be measured."""
+    if plan["rows"] == 0:
+        lines = ["plan: nothing undecided that poses can decide; the plan holds the header only"]
+    else:
+        lines = [f"plan: {plan['rows']} poses, in this order:"]
+        lines += [group_text(g) for g in plan["groups"]]
+    for skipped in plan["not_planned"]:
+        lines.append(f"  not planned: {question_text(skipped['question']).split(':')[0]}: {skipped['why']}")
+    return "\n".join(lines)
