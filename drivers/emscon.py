@@ -319,7 +319,7 @@ class EmsconTracker:
         while True:
             if time.monotonic() >= deadline:  # checked first: a flood of events cannot outlast the timeout
                 self._needs_resync = True
-                raise TrackerTimeoutError(f"no {what} within the timeout")
+                raise TrackerTimeoutError(f"{what} did not come within the timeout")
             try:
                 packet = self._splitter.pop()
             except codec.CodecError as exc:

@@ -52,7 +52,12 @@ def effects_from_args(args: argparse.Namespace) -> EffectFlags:
 def add_sim_arguments(parser: argparse.ArgumentParser) -> None:
     """Every option of the simulated cell process."""
     parser.add_argument("--host", default="127.0.0.2", help="loopback address to bind (default 127.0.0.2)")
-    parser.add_argument("--robot", default="ur10", choices=[n for n in ROBOT_NAMES if n.startswith("ur")])
+    parser.add_argument(
+        "--robot",
+        default="ur10",
+        choices=[n for n in ROBOT_NAMES if n.startswith("ur")],
+        help="the simulated arm, a built-in Universal Robots model (default ur10)",
+    )
     parser.add_argument("--seed", type=int, default=0, help="seed of the simulated cell (default 0)")
     parser.add_argument(
         "--personality",
@@ -60,7 +65,9 @@ def add_sim_arguments(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="controller generation (default: eseries for ur*e robots, else cb3)",
     )
-    parser.add_argument("--tracker-port", type=int, default=7000, help="port of the tracker fake")
+    parser.add_argument(
+        "--tracker-port", type=int, default=7000, help="port of the tracker fake (default 7000)"
+    )
     parser.add_argument("--control-port", type=int, default=0, help="control channel port (0: any free)")
     parser.add_argument(
         "--time-scale",

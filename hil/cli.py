@@ -91,6 +91,15 @@ def _command_of(argv: list[str]) -> str | None:
     return word if word in COMMANDS else None
 
 
+def _deepest_parser(parser: argparse.ArgumentParser, argv: list[str]) -> argparse.ArgumentParser:
+    """The parser of the last subcommand named on the line (`hil campaign export`), or the top level."""
+    for word in argv:
+        subcommands = next((a for a in parser._actions if isinstance(a, argparse._SubParsersAction)), None)
+        if subcommands is not None and word in subcommands.choices:
+            parser = subcommands.choices[word]
+    return parser
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point of the console script; returns the process exit code."""
     typed = sys.argv[1:] if argv is None else list(argv)
@@ -101,7 +110,9 @@ def main(argv: list[str] | None = None) -> int:
     except CliError as exc:  # a command whose options come from a plug-in that is missing
         print(exc.render(command or ""), file=sys.stderr)
         return EXIT_USAGE
-    args = parser.parse_args(argv)
+    args, extras = parser.parse_known_args(argv)
+    if extras:  # named with the (sub)command that refused them, so its own --help is the remedy
+        _deepest_parser(parser, argv).error(f"unrecognized arguments: {' '.join(extras)}")
     args.verbose = len(argv) < len(typed)
     if not getattr(args, "func", None):
         parser.print_help()

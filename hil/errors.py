@@ -10,7 +10,7 @@ from __future__ import annotations
 class ActionableError(Exception):
     """What happened (`message`) and what to do next (`remedy`); a subclass may give a default remedy."""
 
-    remedy = "check the instrument and its connection, then retry"
+    remedy = "check the instrument and its connection, then run the command again"
 
     def __init__(self, message: str, remedy: str | None = None):
         if remedy is not None:

@@ -1,4 +1,4 @@
-"""Active loop: measure what the diagnosis leaves undecided, until it decides (issue 18; methods.md sections 2-4).
+"""Active loop: measure what the diagnosis leaves undecided, until it decides (issue 18; docs/loop/papers.md).
 
 Shop-floor instruction: after grid sampling (same campaign, SMR in the grid's nest), let the cell answer the
 questions the data could not: the campaign's grid is diagnosed, the open questions that poses can decide (a

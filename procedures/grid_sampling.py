@@ -1,4 +1,4 @@
-"""Grid sampling: measure the robot over its working volume (grid paper, SVR paper; methods.md sections 2-3).
+"""Grid sampling: measure the robot over its working volume (grid paper, SVR paper; docs/loop/papers.md).
 
 Shop-floor instruction: put the SMR in the tool nest. The robot visits every reachable vertex of a
 Cartesian grid (100-200 mm step) in a box of the working volume, with the SMR facing the tracker, in one or

@@ -1,4 +1,4 @@
-"""Pseudo-target loop: put the SMR on targets, measured (PT paper, methods.md section 4).
+"""Pseudo-target loop: put the SMR on targets, measured (PT paper; docs/loop/papers.md).
 
 Shop-floor instruction: the cell is registered (`hil run registration`) and, best, a calibrated model
 exists (`hil calibrate`). With one SMR, put SMR 1 in tool nest 1: the loop corrects the position. With

@@ -1,4 +1,4 @@
-"""Tool fit: where are the SMR nests of the tool in the flange frame? (tool paper, methods.md section 1)
+"""Tool fit: where are the SMR nests of the tool in the flange frame? (tool paper; docs/loop/papers.md)
 
 Shop-floor instruction, in the paper's order: the robot brings the flange to face the tracker and stays
 there. Take the tool off. Seat the SMR in each flange hole in turn (holes 1-6 on the circle, hole 7 off it

@@ -143,7 +143,7 @@ def test_export_never_overwrites_a_file_silently(files, capsys, tmp_path):
     "argv, message",
     [
         (["show", "{d}/missing.hilc"], "campaign file not found"),
-        (["show", "{d}/train.csv"], "not a hil campaign file"),
+        (["show", "{d}/train.csv"], "give it to hil calibrate or hil diagnose as it is"),
         (["export", "{d}/missing.hilc", "--csv", "{t}/x.csv"], "campaign file not found"),
         (["export", "{d}/train.csv", "--csv", "{t}/x.csv"], "not a hil campaign file"),
         (["export", "{d}/c.hilc"], "exactly one of --csv OUT or --parquet OUT"),

@@ -84,7 +84,15 @@ def test_cell_check_command(tmp_path, capsys):
     good = tmp_path / "cell.toml"
     good.write_text(sim_cell_toml())
     ok = run_hil("cell", "check", str(good), cwd=tmp_path, capsys=capsys)
-    assert ok.returncode == 0 and "OK" in ok.stdout and "ur10" in ok.stdout
+    assert ok.returncode == 0 and "the configuration is valid" in ok.stdout and "ur10" in ok.stdout
+    # instruments that do not answer: no "OK" before the failures, each with a remedy in the user's terms
+    down = run_hil("cell", "check", str(good), "--connect", cwd=tmp_path, capsys=capsys)
+    assert down.returncode == 2 and "OK" not in down.stdout
+    assert "2 of 2 instruments did not answer" in down.stderr and down.stderr.count("what to do:") == 2
+    assert "recover()" not in down.stderr and "-- next" not in down.stderr
+    missing = run_hil("cell", "check", str(tmp_path / "nowhere.toml"), cwd=tmp_path, capsys=capsys)
+    assert missing.returncode == 2 and "hil sim --write-cell" in missing.stderr
+    assert "fix each key" not in missing.stderr
     bad = tmp_path / "bad.toml"
     text = (
         sim_cell_toml()

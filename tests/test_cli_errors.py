@@ -35,4 +35,14 @@ def test_an_unknown_option_after_a_command_names_hil_once(capsys):
     with pytest.raises(SystemExit) as exit_info:
         main(["run", "grid_sampling", "--stepp", "3", "--cell", "c.toml", "--campaign", "c.sqlite"])
     err = capsys.readouterr().err
-    assert exit_info.value.code == 2 and err.startswith("hil: unrecognized arguments: --stepp 3"), err
+    assert exit_info.value.code == 2, err
+    assert err.startswith("hil run grid_sampling: unrecognized arguments: --stepp 3"), err
+    assert "see 'hil run grid_sampling --help'" in err  # the subcommand's own help, not the top level's
+
+
+def test_an_unknown_option_of_a_sub_subcommand_points_at_its_own_help(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["campaign", "export", "c.sqlite", "-o", "x.csv"])
+    err = capsys.readouterr().err
+    assert exit_info.value.code == 2 and "unrecognized arguments: -o x.csv" in err
+    assert "see 'hil campaign export --help'" in err and "see 'hil --help'" not in err

@@ -99,10 +99,26 @@ def test_a_model_fitted_with_the_wrong_robot_is_refused_unless_forced(campaign, 
     code = main(["calibrate", str(tmp_path / "ur10.csv"), "--robot", "ur5", "-o", str(model)])
     err = capsys.readouterr().err
     assert code == 2 and not model.exists()
-    assert "error: implausible: a2 moved" in err and "no model written" in err and "--force" in err
-    code = main(["calibrate", str(tmp_path / "ur10.csv"), "--robot", "ur5", "-o", str(model), "--force"])
+    assert (
+        "error: implausible: a2 moved" in err and "no model written" in err and "--accept-implausible" in err
+    )
+    argv = [
+        "calibrate",
+        str(tmp_path / "ur10.csv"),
+        "--robot",
+        "ur5",
+        "-o",
+        str(model),
+        "--accept-implausible",
+    ]
+    code = main(argv)
     err = capsys.readouterr().err
     assert code == 0 and model.exists() and "warning: implausible: a2 moved" in err
+    # the model written is kept: the same command again is refused before any work, --force overwrites
+    written = model.read_bytes()
+    assert main(argv) == 2 and model.read_bytes() == written
+    assert f"--output: {model} exists" in capsys.readouterr().err
+    assert main([*argv, "--force"]) == 0
 
 
 def test_calibrate_prints_changes_in_mm_and_degrees(campaign, tmp_path, capsys):
@@ -160,6 +176,8 @@ def test_diagnose_needs_no_json_and_refuses_the_wrong_robot_unless_forced(campai
     ]
     assert main(argv) == 2 and not model.exists()
     err = capsys.readouterr().err
-    assert "error: implausible: a2 moved" in err and "no model written" in err and "--force" in err
-    assert main([*argv, "--force"]) == 0 and model.exists()
+    assert (
+        "error: implausible: a2 moved" in err and "no model written" in err and "--accept-implausible" in err
+    )
+    assert main([*argv, "--accept-implausible"]) == 0 and model.exists()
     assert "warning: implausible: a2 moved" in capsys.readouterr().err

@@ -87,8 +87,20 @@ def input_file(path: str, option: str) -> Path:
     return p
 
 
-def check_paths(inputs: dict[str, str | None], outputs: dict[str, str | None]) -> None:
-    """Inputs exist; every output's folder exists and is writable; no output overwrites an input or another output.
+FORCE_HELP = "overwrite output files that exist (without it an existing file is refused before any work)"
+
+
+def add_force_option(parser: argparse.ArgumentParser) -> None:
+    """`--force`: the one flag that lets a command overwrite its existing output files."""
+    parser.add_argument("--force", action="store_true", help=FORCE_HELP)
+
+
+def check_paths(
+    inputs: dict[str, str | None], outputs: dict[str, str | None], overwrite: bool = False
+) -> None:
+    """Inputs exist; every output's folder exists and is writable; no output overwrites an input or another
+    output; an output that exists already is refused unless `overwrite` (the command's --force), so a model or
+    a report is never lost to a repeated command.
 
     Keys are what to name in the message (an option or 'DATA').
     """
@@ -110,6 +122,8 @@ def check_paths(inputs: dict[str, str | None], outputs: dict[str, str | None]) -
                 raise InputError(
                     f"{option}: {path} is the {in_opt} input and would be overwritten; write to another file"
                 )
+        if p.exists() and not overwrite:
+            raise InputError(f"{option}: {path} exists; choose another path, or give --force to overwrite it")
         if p.resolve() in seen:
             raise InputError(f"{option} and {seen[p.resolve()]} name the same file {path}; give two files")
         seen[p.resolve()] = option

@@ -8,7 +8,7 @@ import math
 from pathlib import Path
 
 from hil.analysis.standards.joint_axes import SweepError, identify_axes, robot_file_text
-from hil.commands.arg_checks import InputError, check_paths, float_in
+from hil.commands.arg_checks import InputError, add_force_option, check_paths, float_in
 from hil.commands.errors import CliError
 from hil.commands.help_format import DefaultsHelpFormatter
 from hil.data.dataset import DatasetError, load_dataset
@@ -40,6 +40,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default=10.0,
         help="per-axis 1-sigma of one reading, um: judges collinear points and an SMR too near its axis",
     )
+    add_force_option(p)
     p.set_defaults(func=run)
 
 
@@ -47,7 +48,9 @@ def run(args: argparse.Namespace) -> int:
     try:
         if not str(args.output).lower().endswith(".toml"):
             raise InputError(f"-o {args.output}: a robot file ends in .toml; give e.g. -o robot.toml")
-        check_paths({"CAMPAIGN": args.data}, {"--output": args.output, "--json": args.json_path})
+        check_paths(
+            {"CAMPAIGN": args.data}, {"--output": args.output, "--json": args.json_path}, overwrite=args.force
+        )
         df = load_dataset(args.data)
         name = args.name or Path(args.output).stem
         result = identify_axes(df, sigma_m=args.tracker_sigma_um * 1e-6, source=str(args.data), name=name)

@@ -18,7 +18,7 @@ from hil.analysis.calibration.solve import (
     in_user_units,
 )
 from hil.analysis.diagnosis.pipeline import run_record
-from hil.commands.arg_checks import InputError, check_paths, float_in, float_list
+from hil.commands.arg_checks import InputError, add_force_option, check_paths, float_in, float_list
 from hil.commands.errors import CliError
 from hil.commands.help_format import DefaultsHelpFormatter
 from hil.commands.inputs import read_measurements
@@ -94,10 +94,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--no-beta", action="store_true", help="plain DH on every joint (no Hayati beta)")
     p.add_argument(
-        "--force",
+        "--accept-implausible",
         action="store_true",
         help="write the model even when a parameter moved beyond a manufacturing tolerance (wrong robot or units?)",
     )
+    add_force_option(p)
     p.add_argument(
         "--residuals",
         default=None,
@@ -121,24 +122,28 @@ def print_parameter_table(result: CalibrationResult) -> None:
         print(f"{row['name']:<16}{delta:+12.5f}{std:11.5f}{std_ls_text}  {unit}")
 
 
-def refuse_implausible(implausible: list[str], force: bool) -> None:
+def refuse_implausible(implausible: list[str], accept: bool) -> None:
     """A fit that moves a length or an angle beyond a manufacturing tolerance is another robot's data, wrong
-    units or a wrong model: refuse to write it unless the user insists (--force)."""
+    units or a wrong model: refuse to write it unless the user insists (--accept-implausible)."""
     if not implausible:
         return
     for message in implausible:
-        print(("warning: " if force else "error: ") + message, file=sys.stderr)
-    if not force:
+        print(("warning: " if accept else "error: ") + message, file=sys.stderr)
+    if not accept:
         raise CliError.from_text(
             f"no model written: {len(implausible)} parameter(s) moved beyond a manufacturing tolerance "
             f"({TOLERANCE_LENGTH_M * 1e3:g} mm, {np.rad2deg(TOLERANCE_ANGLE_RAD):g} deg); check --robot and the "
-            "units of the data, or give --force to write the model anyway"
+            "units of the data, or give --accept-implausible to write the model anyway"
         )
 
 
 def run(args: argparse.Namespace) -> int:
     try:
-        check_paths({"DATA": args.data}, {"--output": args.output, "--residuals": args.residuals})
+        check_paths(
+            {"DATA": args.data},
+            {"--output": args.output, "--residuals": args.residuals},
+            overwrite=args.force,
+        )
         df = convert_orientation_convention(read_measurements(args.data), args.orientation_convention)
         tool = args.tool_mm
     except (InputError, DatasetError, ValueError) as exc:
@@ -172,7 +177,7 @@ def run(args: argparse.Namespace) -> int:
         if note not in implausible:
             print(f"warning: {note}", file=sys.stderr)
     print_parameter_table(chosen)
-    refuse_implausible(implausible, args.force)
+    refuse_implausible(implausible, args.accept_implausible)
     for smr, R in sorted(chosen.model.probes.items()):
         angles = ", ".join(f"{k} {float(v[0]):.4f}" for k, v in orientation_columns(R[None]).items())
         print(f"probe orientation SMR {smr} in the flange: {angles} ({DEFAULT_ORIENTATION_CONVENTION})")

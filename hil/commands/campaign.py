@@ -52,7 +52,7 @@ def _check_campaign(path: str) -> str | None:
     if not p.exists():
         return f"campaign file not found: {p}; give the path of a campaign a session wrote"
     if not is_campaign_file(p):
-        return f"{p} is not a hil campaign file; give the campaign file a session wrote (hil run --campaign FILE); a CSV is already a dataset"
+        return f"{p} is not a hil campaign file; give the campaign file a session wrote (hil run --campaign FILE); a CSV of measurements needs no campaign: give it to hil calibrate or hil diagnose as it is"
     return None
 
 

@@ -34,12 +34,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     check.set_defaults(func=run_check)
 
 
-def describe(config: CellConfig) -> str:
+def describe(config: CellConfig, connect: bool = False) -> str:
     env = config.envelope
     nests = ", ".join(f"({', '.join(f'{v * 1e3:.1f}' for v in p)})" for p in config.nests_flange_m)
     return "\n".join(
         [
-            f"{config.source}: OK",
+            f"{config.source}: the configuration is valid"
+            + (" (instruments not contacted: add --connect)" if not connect else ""),
             f"  robot   {config.robot_model} at {config.robot_host}",
             f"  tracker {config.tracker_url}, {config.shots_per_point} shot(s) of {config.meas_time_s:g} s per point, "
             f"about ({', '.join(f'{v * 1e3:.0f}' for v in config.p_base_tracker_m)}) mm from the robot base",
@@ -56,12 +57,19 @@ def describe(config: CellConfig) -> str:
     )
 
 
+def _config_remedy(exc: CellConfigError) -> str:
+    """What to do about a cell config that cannot be used: a missing file is not a key to fix."""
+    if exc.problems and exc.problems[0].startswith("file not found"):
+        return "give the path of the cell's TOML file (hil sim --write-cell FILE writes one for the simulated cell)"
+    return "fix each key listed, then check again"
+
+
 def run_check(args: argparse.Namespace) -> int:
     try:
         config = load_cell_config(args.config)
     except CellConfigError as exc:
-        raise CliError(str(exc), "fix each key listed, then check again") from exc
-    print(describe(config))
+        raise CliError(str(exc), _config_remedy(exc)) from exc
+    print(describe(config, args.connect))
     if not args.connect:
         return 0
     from hil.commands.instruments import drivers_of
@@ -84,7 +92,7 @@ def run_check(args: argparse.Namespace) -> int:
                 )
                 failures += 1
     except RobotError as exc:
-        print(f"  robot: {exc}", file=sys.stderr)
+        print(f"  robot: {exc.message}\n    what to do: {exc.remedy}", file=sys.stderr)
         failures += 1
     try:
         with closing(trackers.open(config.tracker_mapping())) as tracker:
@@ -94,6 +102,15 @@ def run_check(args: argparse.Namespace) -> int:
                 f"{tracker_state.target_locked}, reflector {tracker_state.reflector_id}"
             )
     except (TrackerError, OSError, ValueError) as exc:
-        print(f"  tracker: {exc}", file=sys.stderr)
+        remedy = getattr(exc, "remedy", "check the tracker URL in the cell config")
+        print(f"  tracker: {getattr(exc, 'message', exc)}\n    what to do: {remedy}", file=sys.stderr)
         failures += 1
-    return 2 if failures else 0
+    if failures:
+        print(
+            f"hil cell: {failures} of 2 instruments did not answer as a procedure needs; fix what each line above "
+            "says, then check again",
+            file=sys.stderr,
+        )
+        return 2
+    print("  both instruments answer: procedures can run on this cell")
+    return 0

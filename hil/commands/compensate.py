@@ -15,9 +15,10 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from hil.commands.arg_checks import InputError, check_paths, float_in
+from hil.commands.arg_checks import InputError, add_force_option, check_paths, float_in
 from hil.commands.campaign_targets import DEFAULT_ORDER, SOURCES, read_campaign_targets
 from hil.commands.errors import CliError
+from hil.commands.help_format import DefaultsHelpFormatter
 from hil.compensation.model_based import (
     ENSEMBLE,
     CompensationResult,
@@ -54,6 +55,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "(hil run / hil demo): the targets of one of its steps (--step), each with its point id and SMR "
         "nest. Writes one row per target: q1_rad..q6_rad, the predicted remaining error, the iterations "
         "used and a status; targets that cannot be compensated are kept and marked.",
+        formatter_class=DefaultsHelpFormatter,
     )
     p.add_argument("model", help="model JSON written by 'hil calibrate' or 'hil diagnose -o'")
     p.add_argument("targets", help="CSV of targets (see above), or a campaign file")
@@ -119,6 +121,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "its own temperature_c (loop targets have none) when the model has a temperature-driven thermal "
         "effect (default: none; such targets are refused)",
     )
+    add_force_option(p)
     p.set_defaults(func=run)
 
 
@@ -308,7 +311,9 @@ def _check_options(args: argparse.Namespace) -> None:
             "--threshold-mm and --length-scale-mm must be > 0, --max-iter >= 0", "give values in range"
         )
     try:
-        check_paths({"MODEL": args.model, "TARGETS": args.targets}, {"--output": args.output})
+        check_paths(
+            {"MODEL": args.model, "TARGETS": args.targets}, {"--output": args.output}, overwrite=args.force
+        )
     except InputError as exc:
         raise CliError.from_text(str(exc)) from exc
 

@@ -9,7 +9,7 @@ import pandas as pd
 
 from hil.analysis.calibration.solve import implausible_changes, position_noise_m
 from hil.analysis.diagnosis.pipeline import DiagnosisReport, run_diagnosis
-from hil.commands.arg_checks import InputError, check_paths, float_in, float_list, int_in
+from hil.commands.arg_checks import InputError, add_force_option, check_paths, float_in, float_list, int_in
 from hil.commands.calibrate import add_probe_options, orientation_summary, parse_mm_vector, refuse_implausible
 from hil.commands.errors import CliError
 from hil.commands.help_format import DefaultsHelpFormatter
@@ -47,10 +47,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("-o", "--output", default=None, help="write the final model (effects included) as JSON")
     p.add_argument("--json", default=None, dest="json_path", help="write the report as JSON")
     p.add_argument(
-        "--force",
+        "--accept-implausible",
         action="store_true",
         help="write the model even when a parameter moved beyond a manufacturing tolerance (wrong robot or units?)",
     )
+    add_force_option(p)
     p.add_argument("--html", default=None, help="write the report as a self-contained HTML page")
     p.add_argument("--folds", type=int_in(2, 50), default=5, help="k of the k-fold cross-validation, 2..50")
     p.add_argument(
@@ -122,6 +123,7 @@ def run(args: argparse.Namespace) -> int:
         check_paths(
             {"DATA": args.data, "--validate": args.validate, "--cell": args.cell},
             {"--output": args.output, "--json": args.json_path, "--html": args.html, "--plan": args.plan},
+            overwrite=args.force,
         )
         cell = _plan_cell(args)
         families = tuple(f.strip() for f in args.families.split(",") if f.strip())
@@ -154,7 +156,7 @@ def run(args: argparse.Namespace) -> int:
         raise CliError.from_text(str(exc)) from exc
     if plan is not None:
         report.plan = plan.to_dict()
-    refuse_implausible(implausible_changes(report.model), args.force)
+    refuse_implausible(implausible_changes(report.model), args.accept_implausible)
     _print_and_write(args, report)
     if plan is not None:
         plan.frame().to_csv(args.plan, index=False)

@@ -14,7 +14,7 @@ from hil.analysis.standards.iso9283 import (
     path_campaign_figures,
     pose_performance,
 )
-from hil.commands.arg_checks import InputError, check_paths, int_in
+from hil.commands.arg_checks import InputError, add_force_option, check_paths, int_in
 from hil.commands.errors import CliError
 from hil.commands.help_format import DefaultsHelpFormatter
 from hil.data.dataset import DatasetError, load_dataset
@@ -47,6 +47,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="path samples CSV for path accuracy AT / RT: path, run, x_mm, y_mm, z_mm (attained) and "
         "x_cmd_mm, y_cmd_mm, z_cmd_mm (commanded at the same instant), in time order",
     )
+    add_force_option(p)
     p.set_defaults(func=run)
 
 
@@ -71,7 +72,9 @@ def read_paths(path: str) -> pd.DataFrame:
 
 def run(args: argparse.Namespace) -> int:
     try:
-        check_paths({"CAMPAIGN": args.data, "--paths": args.paths}, {"--json": args.json_path})
+        check_paths(
+            {"CAMPAIGN": args.data, "--paths": args.paths}, {"--json": args.json_path}, overwrite=args.force
+        )
         df = load_dataset(args.data)
         report = pose_performance(df, source=str(args.data), smr=args.smr)
         paths = path_campaign_figures(read_paths(args.paths), args.paths) if args.paths else {}

@@ -9,7 +9,7 @@ import warnings
 import numpy as np
 import pandas as pd
 
-from hil.commands.arg_checks import InputError, check_paths
+from hil.commands.arg_checks import InputError, add_force_option, check_paths
 from hil.commands.errors import CliError
 from hil.commands.help_format import DefaultsHelpFormatter
 from hil.commands.inputs import read_measurements
@@ -21,6 +21,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "predict",
         help="predict x_mm, y_mm, z_mm (tracker frame) for the joints in a CSV with a calibrated model",
+        description="Where a calibrated model puts the SMR for each row of joints: reads a CSV with "
+        "q1_rad..q6_rad (and the columns the model's effects need, such as t_s and temperature_c), writes the "
+        "same rows with x_mm, y_mm, z_mm in the tracker frame as the model predicts them.",
         formatter_class=DefaultsHelpFormatter,
     )
     p.add_argument("model", help="model JSON written by 'hil calibrate' or 'hil diagnose -o'")
@@ -28,6 +31,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "data", help="CSV with q1_rad..q6_rad (and the drivers the model's effects need: t_s, ...)"
     )
     p.add_argument("-o", "--output", required=True, help="CSV to write: the input columns, x/y/z_mm replaced")
+    add_force_option(p)
     p.set_defaults(func=run)
 
 
@@ -57,7 +61,7 @@ def plausibility_notes(model: CalibratedModel, df: pd.DataFrame, p_m: np.ndarray
 
 def run(args: argparse.Namespace) -> int:
     try:
-        check_paths({"MODEL": args.model, "DATA": args.data}, {"--output": args.output})
+        check_paths({"MODEL": args.model, "DATA": args.data}, {"--output": args.output}, overwrite=args.force)
         model = CalibratedModel.load(args.model)
         df = read_measurements(args.data, require_positions=False)
         with warnings.catch_warnings(record=True) as caught:

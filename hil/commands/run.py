@@ -121,7 +121,7 @@ def _argparse_options(p: Parameter) -> dict[str, Any]:
         options["metavar"] = p.unit.upper()
     if p.count > 1:
         options["nargs"] = p.count
-        options["metavar"] = ("X", "Y", "Z") if p.count == 3 else None
+        options["metavar"] = ("X", "Y", "Z") if p.count == 3 else (p.unit.upper() or "VALUE")
     if p.required:
         options["required"] = True
     return options

@@ -6,6 +6,7 @@ import argparse
 import json
 
 from hil.commands.errors import CliError
+from hil.commands.help_format import DefaultsHelpFormatter
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -14,11 +15,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="laser tracker: state, aim and measure (Leica emScon)",
         description="Connect to an emScon tracker through a pyserial URL (socket://HOST:700, /dev/ttyUSB0, "
         "rfc2217://...), optionally aim at a point and lock the SMR there, measure, print JSON (SI units).",
+        formatter_class=DefaultsHelpFormatter,
     )
     parser.add_argument(
         "--url", required=True, help="pyserial URL of the tracker, e.g. socket://192.168.0.1:700"
     )
-    parser.add_argument("--shots", type=int, default=0, help="stationary measurements to average (0: none)")
+    parser.add_argument(
+        "--shots", type=int, default=0, help="stationary measurements to average (0: measure nothing)"
+    )
     parser.add_argument("--meas-time", type=float, default=1.0, help="seconds per stationary measurement")
     parser.add_argument(
         "--aim", type=float, nargs=3, metavar=("X_M", "Y_M", "Z_M"), help="aim here first (tracker frame, m)"
@@ -30,9 +34,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument("--wire-units", choices=["m", "mm"], default="m", help="length unit on the wire")
     parser.add_argument("--wire-angles", choices=["rad", "deg"], default="rad", help="angle unit on the wire")
     parser.add_argument(
-        "--coordinates", choices=["cartesian", "spherical"], default="cartesian", help="CS on the wire"
+        "--coordinates",
+        choices=["cartesian", "spherical"],
+        default="cartesian",
+        help="coordinate system on the wire",
     )
-    parser.add_argument("--timeout", type=float, default=10.0, help="per-command timeout, s")
+    parser.add_argument(
+        "--timeout", type=float, default=10.0, help="seconds to wait for each command's answer"
+    )
     parser.set_defaults(func=run)
 
 

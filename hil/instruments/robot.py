@@ -17,35 +17,44 @@ from hil.errors import ActionableError
 class RobotError(ActionableError, RuntimeError):
     """Base of every robot driver error; `remedy` tells the operator or procedure what to do next."""
 
-    remedy = "check the robot and its connection, then retry"
+    remedy = "check the robot and its connection, then run the command again"
 
 
 class ProtectiveStopError(RobotError):
-    remedy = "inspect the cell for the cause, then call robot.recover() (unlocks the stop after 5 s)"
+    remedy = (
+        "find and clear what stopped the arm, then run the command again (hil unlocks a protective stop 5 s "
+        "after it happened and goes on from the last recorded point)"
+    )
 
 
 class EmergencyStopError(RobotError):
-    remedy = "make the cell safe, release the emergency stop button, then call robot.recover()"
+    remedy = "make the cell safe and release the emergency stop button, then run the command again"
 
 
 class ProgramNotRunningError(RobotError):
-    remedy = "call robot.recover() to upload and start the control program again"
+    remedy = (
+        "the controller stopped hil's control program (a program started on the teach pendant, or local "
+        "control on an e-Series): put the controller in remote control, then run the command again"
+    )
 
 
 class RobotNotReadyError(RobotError):
-    remedy = "power on the arm and release its brakes, then retry"
+    remedy = "power on the arm and release its brakes on the teach pendant, then run the command again"
 
 
 class RobotTimeoutError(RobotError):
-    remedy = "check that the target is reachable and the speed sensible; robot.stop(), then retry"
+    remedy = "check that the target is reachable and the cell's speed sensible, then run the command again"
 
 
 class RobotConnectionError(RobotError):
-    remedy = "check the network and the controller, then call robot.recover() to rebuild the connection"
+    remedy = (
+        "check that the controller is on and reachable at the address the cell config gives (cable, network), "
+        "then run the command again"
+    )
 
 
 class StaleDataError(RobotConnectionError):
-    remedy = "the controller's data stream froze; call robot.recover() to rebuild the connection"
+    remedy = "the controller stopped sending its state: check the network and the controller, then run the command again"
 
 
 class RobotConfigError(RobotError, ValueError):

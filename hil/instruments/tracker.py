@@ -124,43 +124,43 @@ class StreamingTracker(Tracker, Protocol):
 class TrackerError(ActionableError):
     """Base of every tracker failure; `remedy` tells the operator or procedure what to do next."""
 
-    remedy = "check the tracker and its connection, then retry"
+    remedy = "check the tracker and its connection, then run the command again"
 
 
 class NoTargetError(TrackerError):
     """No target locked or the beam was broken."""
 
-    remedy = "re-aim at the SMR (point_at / find_target) and clear the line of sight"
+    remedy = "clear the line of sight between the tracker and the SMR and bring the beam back to the SMR, then run the command again"
 
 
 class NotInitializedError(TrackerError):
     """The tracker is not initialized."""
 
-    remedy = "initialize the tracker (its head moves), then retry"
+    remedy = "initialize the tracker (hil tracker, or the tracker's own software; its head moves), then run the command again"
 
 
 class MeteoOutOfRangeError(TrackerError):
     """Temperature, pressure or humidity out of the tracker's range."""
 
-    remedy = "check the temperature, pressure and humidity values and their units"
+    remedy = "check the air temperature, pressure and humidity given to the tracker and their units"
 
 
 class TrackerTimeoutError(TrackerError):
     """No answer within the command's timeout."""
 
-    remedy = "check that the tracker is on and not busy; the next call resynchronises"
+    remedy = "check that the tracker is on and not busy with another program, then run the command again"
 
 
 class TrackerConnectionError(TrackerError):
     """The byte stream could not be opened or was closed."""
 
-    remedy = "check the cable or network and the URL; the next call reconnects"
+    remedy = "check the cable or network and the tracker URL in the cell config, then run the command again"
 
 
 class TrackerProtocolError(TrackerError):
     """Bytes that are not a valid packet of the protocol; `data` holds the bytes seen."""
 
-    remedy = "check that the URL reaches an emScon server; the next call resynchronises the stream"
+    remedy = "check that the tracker URL in the cell config reaches an emScon server (port 700), then run the command again"
 
     def __init__(self, message: str, data: bytes = b""):
         super().__init__(message)
@@ -170,7 +170,7 @@ class TrackerProtocolError(TrackerError):
 class TrackerCommandError(TrackerError):
     """The tracker refused a command with a status that has no dedicated error class."""
 
-    remedy = "look the status up in the emScon manual, check the tracker's state, then retry"
+    remedy = "look the status up in the emScon manual, check the tracker's state, then run the command again"
 
     def __init__(self, message: str, command: int, status: int):
         super().__init__(message)
