@@ -16,6 +16,11 @@ def _mm(value: float | None) -> str:
     return "-" if value is None else f"{value:.4f}"
 
 
+def _count(n: int, noun: str) -> str:
+    """'1 pose', '8 poses'."""
+    return f"{n} {noun}" if n == 1 else f"{n} {noun}s"
+
+
 def round_text(record: dict) -> str:
     """One round in words: what was undecided, what was measured, what got decided, the error before and after."""
     m = record["measured"]
@@ -31,7 +36,7 @@ def round_text(record: dict) -> str:
     ]
     left = f" of {planned} planned ({'; '.join(why)})" if planned != m["poses"] else ""
     lines = [
-        f"round {record['round']}: {m['poses']} poses measured{left} ({m['rows_before']} -> {m['rows_after']} training rows)"
+        f"round {record['round']}: {_count(m['poses'], 'pose')} measured{left} ({m['rows_before']} -> {m['rows_after']} training rows)"
     ]
     lines.append("  undecided before:")
     lines += [f"    - {question_text(q)}" for q in record["undecided"]]
@@ -41,10 +46,11 @@ def round_text(record: dict) -> str:
         lines.append(f"    not planned: {question_text(skipped['question']).split(':')[0]}: {skipped['why']}")
     for b in m.get("blocks", []):
         lines.append(
-            f"    after block {b['block']} ({b['rows']} poses): effects {_effects(b['effects'])}; "
+            f"    after block {b['block']} ({_count(b['rows'], 'pose')}): effects {_effects(b['effects'])}; "
             f"still to measure: {', '.join(b['open']) or 'nothing'}"
         )
-    lines.append("  after:")
+    decided = sum(1 for s in record["settled"] if s["decided"])
+    lines.append(f"  after: decided {decided} of {_count(len(record['settled']), 'question')}")
     for s in record["settled"]:
         what = question_text(s["question"]).split(":")[0]
         if not s["decided"]:

@@ -159,6 +159,13 @@ def gravity_text(gravity: list[dict]) -> str | None:
     return "Gravity yield from the link masses (joint stiffness): " + "; ".join(parts) + "."
 
 
+def z_text(z: float, decisive: float) -> str:
+    """An evidence z to two figures, or three where two would read as the threshold it has not reached (4.56
+    against 4.6) or reached (4.6 against 4.6 for 4.62)."""
+    short = f"{z:.2g}"
+    return f"{z:.3g}" if short == f"{decisive:.2g}" and z != decisive else short
+
+
 def question_text(q: dict) -> str:
     """One open question of the diagnosis (hil.analysis.diagnosis.questions) in words: what is undecided and why."""
     kind = q["kind"]
@@ -186,7 +193,7 @@ def question_text(q: dict) -> str:
             "decide it, a run at another temperature can"
         )
     z = q.get("evidence_z")
-    ev = "" if z is None else f" (evidence z {z:.2g}, decided at {q['decisive_z']:.2g})"
+    ev = "" if z is None else f" (evidence z {z_text(z, q['decisive_z'])}, decided at {q['decisive_z']:.2g})"
     if kind == "marginal":
         return f"{_effect(eff)}: marginal, held-out p = {q['p_cv']:.2g}{ev}"
     if kind == "confounded_with_geometry":
@@ -222,7 +229,8 @@ def group_text(group: dict) -> str:
             " (and back down: backlash)" if group.get("also") else ""
         )
     elif "evidence_z_after" in group:
-        extra = f", evidence z {group['evidence_z_before']:.2g} -> {group['evidence_z_after']:.2g} (decided at {group['decisive_z']:.2g})"
+        before, after, decisive = group["evidence_z_before"], group["evidence_z_after"], group["decisive_z"]
+        extra = f", evidence z {z_text(before, decisive)} -> {z_text(after, decisive)} (decided at {decisive:.2g})"
     else:
         extra = ""
     return f"  {group['purpose']:<28} {group['rows']:>3} rows: decides {what}{extra}"
