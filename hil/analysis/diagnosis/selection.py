@@ -290,7 +290,17 @@ def _forward_selection(
             continue  # this campaign does not offer it (hil.model.effects' conditions)
         rep = refit(calibrate(df, path.current.model.with_effect(carried), "ridge"))
         note = "carried over from the earlier diagnosis"
-        cand = Candidate(name, joint, len(carried.params), float("nan"), 0.0, 1.0, 1.0, True, note)
+        cand = Candidate(
+            name=name,
+            joint=joint,
+            n_params=len(carried.params),
+            cv_rms_mm=float("nan"),
+            gain_mm2=0.0,
+            p_cv=1.0,
+            p_chi2=1.0,
+            passed=True,
+            note=note,
+        )
         _record_added(path, cand, [], rep)
     for _ in range(max_effects):
         results = _screen_round(base, path, alpha, families, banned, df)
