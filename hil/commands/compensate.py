@@ -44,7 +44,7 @@ from hil.model.effects import THERMAL_FAMILIES, material_growth, temperature_dri
 TEMPERATURE_RANGE_C = (-20.0, 60.0)  # --temperature-c: a cell's air, not a typo in kelvin or fahrenheit
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "compensate",
         help="joints that make a calibrated model put the SMR on target points or poses (pseudo-target loop)",

@@ -36,7 +36,7 @@ if TYPE_CHECKING:
 UR_ROBOTS = [name for name in ROBOT_NAMES if name.startswith("ur")]
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "demo",
         help="run the main job on a simulated cell: procedures through the drivers, diagnosis, report",

@@ -20,7 +20,7 @@ from hil.model.effects import EFFECT_FAMILIES
 from hil.runner.progress import Progress
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "diagnose",
         help="calibrate, trace the residual to missing effects, add them, report before/after",

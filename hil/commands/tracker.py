@@ -8,7 +8,7 @@ import json
 from hil.commands.errors import CliError
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "tracker",
         help="laser tracker: state, aim and measure (Leica emScon)",

@@ -62,8 +62,9 @@ Admissible = Callable[[np.ndarray], np.ndarray]  # (M, n) joints -> (M,) bool: r
 
 
 @dataclass
-class Plan:
-    """Rows to measure in order, the question each serves, and each group's expected evidence."""
+class Proposal:
+    """Rows a diagnosis proposes to measure, in order, the question each serves, and each group's expected
+    evidence (not hil.runner.plan.Plan, the poses a procedure runs)."""
 
     q: np.ndarray  # (M, n) rad
     purpose: list[str]
@@ -128,7 +129,7 @@ def propose(
     admissible: Admissible | None = None,
     seed: int = 0,
     block_rows: int = BLOCK_ROWS,
-) -> Plan:
+) -> Proposal:
     """At most `max_rows` joint configurations, in measurement order, that decide `questions` on `df`.
 
     `sigma_m`: 1-sigma tracker noise per axis; `admissible`: which configurations the cell can reach and
@@ -147,7 +148,7 @@ def propose(
 
     design = _Design(df, model, sigma_m, ok, np.random.default_rng(seed), block_rows)
     plannable = [qu for qu in questions if qu["plannable"]]
-    plan = Plan(np.zeros((0, q_camp.shape[1])), [])
+    plan = Proposal(np.zeros((0, q_camp.shape[1])), [])
     plan.not_planned = [
         {"question": qu, "why": "poses cannot decide it"} for qu in questions if not qu["plannable"]
     ]

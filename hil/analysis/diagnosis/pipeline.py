@@ -53,7 +53,7 @@ from hil.analysis.calibration.solve import CONFOUNDED_NOTE, Problem, confounded_
 from hil.analysis.calibration.solve import reregister as reregister_model
 from hil.analysis.diagnosis.baseline import (
     Baseline,
-    Progress,
+    PhaseProgress,
     baseline_fit,
     caution,
     error_stats,
@@ -105,7 +105,7 @@ class DiagnosisReport:
     final_round: list[Candidate] = field(default_factory=list)
     ambiguities: list[dict] = field(default_factory=list)  # effects this data could not tell apart
     undecided: list[dict] = field(default_factory=list)  # open questions (hil.analysis.diagnosis.questions)
-    plan: dict | None = None  # the proposed measurements' groups (hil.analysis.design.plan.Plan.to_dict)
+    plan: dict | None = None  # the proposed measurements' groups (hil.analysis.design.plan.Proposal.to_dict)
     run: dict = field(default_factory=dict)  # robot, input files (hash, rows), date, software version
     thermal: dict | None = None  # the material's thermal growth, fitted against its prior (`thermal_summary`)
     # the joints' yield from the link masses (`gravity_summary`)
@@ -206,7 +206,7 @@ def run_diagnosis(
     robot: str | KinematicModel,
     df_validate: pd.DataFrame | None = None,
     options: DiagnosisOptions = DiagnosisOptions(),
-    progress: Progress | None = None,
+    progress: PhaseProgress | None = None,
     previous_effects: list[dict] | None = None,
 ) -> DiagnosisReport:
     """The whole loop on a training dataset (and an optional validation dataset never used for fitting).
@@ -305,7 +305,7 @@ def without_decided_pairs(cautions: list[dict], undecided: list[dict]) -> list[d
     return [c for c in cautions if not decided(c)]
 
 
-def _evaluate_stages(path: SelectionPath, tell: Progress = quiet) -> tuple[list[dict], dict, list[Step]]:
+def _evaluate_stages(path: SelectionPath, tell: PhaseProgress = quiet) -> tuple[list[dict], dict, list[Step]]:
     """Step 3: every stage's held-out error on the final rows and folds; a stage worse than the one
     before it is flagged (`worse_than_previous`)."""
     stages: list[dict] = []
@@ -555,7 +555,7 @@ def _try_residual_maps(
     folds: list[np.ndarray],
     noise: NoiseFloor,
     alpha: float,
-    tell: Progress = quiet,
+    tell: PhaseProgress = quiet,
     phase: str = "residual maps: held-out comparison",
 ) -> dict:
     """Can a residual map predict the held-out residual `cv_res` (of `folds`)? The map kinds fitted on the
