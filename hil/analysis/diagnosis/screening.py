@@ -52,6 +52,21 @@ class Candidate:
         return dict(self.__dict__)
 
 
+def carried_over(name: str, joint: int | None, n_params: int) -> Candidate:
+    """An effect an earlier diagnosis named, put in the model before the screening: passed, not tested here."""
+    return Candidate(
+        name=name,
+        joint=joint,
+        n_params=n_params,
+        cv_rms_mm=float("nan"),
+        gain_mm2=0.0,
+        p_cv=1.0,
+        p_chi2=1.0,
+        passed=True,
+        note="carried over from the earlier diagnosis",
+    )
+
+
 def _not_judged(eff: Effect, n_params: int, note: str, correlation: float = float("nan")) -> Candidate:
     """A candidate refused before its tests (the geometry imitates it): no held-out figures, never passed."""
     return Candidate(
