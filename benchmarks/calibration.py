@@ -38,7 +38,7 @@ from fakes.physics import chain_frames, gravity_torques
 from hil.analysis.calibration.solve import Problem, calibrate, solve_ridge_igg3
 from hil.analysis.diagnosis.baseline import error_stats
 from hil.data.dataset import make_dataset
-from hil.geometry.ik import solve_ik
+from hil.geometry.ik import IKOptions, solve_ik
 from hil.geometry.kinematics import KinematicModel, measured_point
 from hil.geometry.robots import get_robot
 from hil.geometry.se3 import make_transform
@@ -134,7 +134,9 @@ def _joints_for(nominal: KinematicModel, points: np.ndarray) -> tuple[np.ndarray
     R_down = Rotation.from_rotvec([np.pi, 0.0, 0.0]).as_matrix()
     targets = make_transform(np.broadcast_to(R_down, (len(points), 3, 3)), points)
     q_near = np.deg2rad([0.0, 10.0, 10.0, 0.0, 60.0, 0.0])
-    res = solve_ik(nominal, targets, mode="pose", p_flange_tool=PAPER_TCP_M, q_near=q_near, rng=0)
+    res = solve_ik(
+        nominal, targets, mode="pose", p_flange_tool=PAPER_TCP_M, q_near=q_near, options=IKOptions(rng=0)
+    )
     return res.q[res.success], res.success
 
 

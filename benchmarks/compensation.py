@@ -23,7 +23,7 @@ import numpy as np
 from kinematics import Table, best_time, rtb_ets  # benchmarks/kinematics.py (same directory)
 from scipy.spatial.transform import Rotation
 
-from hil.compensation.model_based import IK_TOL_FRACTION, compensate
+from hil.compensation.model_based import IK_TOL_FRACTION, CompensationOptions, compensate
 from hil.compensation.target_update import pose_errors
 from hil.geometry.kinematics import forward_kinematics
 from hil.geometry.robots import get_robot
@@ -133,7 +133,7 @@ def main() -> None:
             targets = T_target if full_pose else T_target[:, :3, 3]
             t, res = best_time(
                 lambda x=targets, g=gen: compensate(
-                    model, x, generator=g, threshold_m=THRESHOLD_M, max_iter=MAX_ITER
+                    model, x, CompensationOptions(generator=g, threshold_m=THRESHOLD_M, max_iter=MAX_ITER)
                 ),
                 args.repeats,
             )
@@ -167,11 +167,18 @@ def main() -> None:
             t_hil, t = np.inf, np.inf
             for _ in range(args.repeats):
                 t_hil = min(
-                    t_hil, best_time(lambda x=targets, g=gen: compensate(model, x, generator=g), 1)[0]
+                    t_hil,
+                    best_time(
+                        lambda x=targets, g=gen: compensate(model, x, CompensationOptions(generator=g)), 1
+                    )[0],
                 )
                 dt, res = best_time(
                     lambda x=targets, g=gen, s=solve: compensate(
-                        model, x, generator=g, threshold_m=THRESHOLD_M, max_iter=MAX_ITER, ik_solver=s
+                        model,
+                        x,
+                        CompensationOptions(
+                            generator=g, threshold_m=THRESHOLD_M, max_iter=MAX_ITER, ik_solver=s
+                        ),
                     ),
                     1,
                 )

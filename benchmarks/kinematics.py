@@ -143,7 +143,10 @@ def main() -> None:
         variants.append(("unseeded (home + random restarts)", False))
         for vname, use_analytic in variants:
             t, res = best_time(
-                lambda m=model, T=targets, u=use_analytic: ik.solve_ik(m, T, use_analytic=u), args.repeats
+                lambda m=model, T=targets, u=use_analytic: ik.solve_ik(
+                    m, T, options=ik.IKOptions(use_analytic=u)
+                ),
+                args.repeats,
             )
             ok, pos = judged(model, res.q, targets)
             assert np.array_equal(ok, res.success), "solve_ik success disagrees with the independent check"

@@ -84,7 +84,7 @@ def run(
 ) -> int:
     """Both directions; returns 1 when a final model is worse than plain calibration on the other campaign."""
     from hil.analysis.design.plan import propose
-    from hil.analysis.diagnosis.pipeline import run_diagnosis
+    from hil.analysis.diagnosis.pipeline import DiagnosisOptions, run_diagnosis
 
     data = {s: to_contract(read_raw(data_dir, s), orientation) for s in ("B", "C")}
     if angle_noise_deg is not None:  # as `hil diagnose --probe-angle-noise-deg` passes it
@@ -97,7 +97,12 @@ def run(
     )
     for train, val in (("C", "B"), ("B", "C")):
         t0 = time.perf_counter()
-        report = run_diagnosis(data[train], "ur10", df_validate=data[val], reregister_validation=reregister)
+        report = run_diagnosis(
+            data[train],
+            "ur10",
+            df_validate=data[val],
+            options=DiagnosisOptions(reregister_validation=reregister),
+        )
         plain, final = _rms(report.stages, on)
         worse += final > plain * 1.0001
         named = ", ".join(

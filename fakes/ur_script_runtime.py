@@ -19,7 +19,7 @@ import numpy as np
 from fakes.fast_kinematics import pose_from_transform
 from fakes.ur_modes import NORMAL, PLAYING, RUNNING, STOPPED
 from fakes.ur_motion import JointMove, LinearMove, Motion, PathMove, SpeedMove, StopMove, track_pose
-from hil.geometry.ik import solve_ik
+from hil.geometry.ik import IKOptions, solve_ik
 from hil.geometry.kinematics import forward_kinematics, geometric_jacobian
 from hil.geometry.se3 import invert, pose_to_transform, transform_to_pose
 
@@ -377,7 +377,9 @@ class ScriptRuntime:
     def _ik(self, T_base_flange: np.ndarray, q_seed: np.ndarray | None = None) -> np.ndarray | None:
         """Joints reaching the flange pose on the nominal model, nearest the seed; None if unreachable."""
         seed = self.q_cmd if q_seed is None else np.asarray(q_seed, float)
-        result = solve_ik(self.model, T_base_flange[None], q_seed=seed[None], q_near=seed, restarts=5)
+        result = solve_ik(
+            self.model, T_base_flange[None], q_seed=seed[None], q_near=seed, options=IKOptions(restarts=5)
+        )
         return np.asarray(result.q[0], float) if bool(result.success[0]) else None
 
     def _inverse_kinematics(self, cmd: int) -> None:

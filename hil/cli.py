@@ -12,7 +12,7 @@ from collections.abc import Iterable
 
 from hil.commands.errors import EXIT_USAGE, CliError
 
-# Every command: its module and its one-line help. A module defines `register(subparsers)`, which adds its
+# Every command: its module and its one-line help. A module defines `add_parser(subparsers)`, which adds its
 # parser (with the same help) and sets `func(args) -> int`; it is imported only when its command runs or
 # its own --help is asked, so `hil --help` starts at once (no simulator, plotting or data libraries).
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -79,7 +79,7 @@ def build_parser(load: Iterable[str] | None = None) -> argparse.ArgumentParser:
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, (module_name, help_line) in COMMANDS.items():
         if name in loaded:
-            importlib.import_module(module_name).register(subparsers)
+            importlib.import_module(module_name).add_parser(subparsers)
         else:
             subparsers.add_parser(name, help=help_line)
     return parser

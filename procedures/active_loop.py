@@ -34,7 +34,7 @@ from hil.analysis.design.rounds import (
     round_record,
     still_to_measure,
 )
-from hil.analysis.diagnosis.pipeline import DiagnosisReport, run_diagnosis
+from hil.analysis.diagnosis.pipeline import DiagnosisOptions, DiagnosisReport, run_diagnosis
 from hil.data.dataset import DatasetError
 from hil.data.jsonable import to_jsonable
 from hil.data.store import CampaignStore, campaign_dataset
@@ -145,8 +145,7 @@ class _Campaign:
                 train,
                 self.config.nominal,
                 df_validate=validation,
-                seed=self.seed,
-                tool_guess_m=tool,
+                options=DiagnosisOptions(seed=self.seed, tool_guess_m=tool),
                 previous_effects=previous,
             )
         return _DIAGNOSED[key]

@@ -53,7 +53,7 @@ from hil.analysis.standards.iso9283 import (
     pose_performance,
     report_table,
 )
-from hil.compensation.model_based import compensate
+from hil.compensation.model_based import CompensationOptions, compensate
 from hil.data.dataset import orientation_columns
 from hil.data.store import campaign_dataset
 from hil.geometry.kinematics import forward_kinematics
@@ -145,9 +145,8 @@ def compensated_joints(config: CellConfig, model: CalibratedModel, cube: Cube) -
     """Joints that make the model put the SMR on the cube's points (its base frame seen by the tracker)."""
     T = model.T_tracker_base
     targets = cube.p_base_m @ T[:3, :3].T + T[:3, 3]
-    res = compensate(
-        model, targets, q_seed=cube.q_rad, q_near=config.q_home_rad, threshold_m=1e-6, max_iter=10
-    )
+    options = CompensationOptions(threshold_m=1e-6, max_iter=10)
+    res = compensate(model, targets, options, q_seed=cube.q_rad, q_near=config.q_home_rad)
     bad = ~np.all(np.isfinite(res.q), axis=1)
     if bad.any():
         raise ValueError(
@@ -244,9 +243,8 @@ def plan_paths(
             continue
         q_nominal = plan_joints(config.nominal, T @ _translation(p_nest), p_nest, q_near=q0).q
         M = model.T_tracker_base
-        res = compensate(
-            model, p @ M[:3, :3].T + M[:3, 3], q_seed=q_nominal, q_near=q0, threshold_m=1e-6, max_iter=10
-        )
+        options = CompensationOptions(threshold_m=1e-6, max_iter=10)
+        res = compensate(model, p @ M[:3, :3].T + M[:3, 3], options, q_seed=q_nominal, q_near=q0)
         if not np.all(np.isfinite(res.q)):
             raise ValueError(
                 f"the model finds no joints along the {name} path; choose a cube inside the calibrated volume"

@@ -40,8 +40,10 @@ import pandas as pd
 from hil.analysis.calibration.noise_floor import tracker_sigma_m
 from hil.compensation.model_based import (
     ENSEMBLE,
+    CompensationOptions,
     PosePredictor,
     PseudoTargetIK,
+    TargetConditions,
     compensate,
     ensemble_names,
     outside_fitted_temperatures,
@@ -362,11 +364,8 @@ def start_joints(config: CellConfig, ik_model: CalibratedModel, model: Calibrate
         plain = compensate(
             ik_model,
             T_d,
-            generator=gen,
-            max_iter=0,
-            threshold_m=threshold_m,
+            CompensationOptions(generator=gen, generators=ensemble, threshold_m=threshold_m, max_iter=0),
             q_near=home,
-            generators=ensemble,
         )
         q_plain, status = plain.q, plain.status.astype(object)
         seed = None
@@ -382,13 +381,14 @@ def start_joints(config: CellConfig, ik_model: CalibratedModel, model: Calibrate
         res = compensate(
             model,
             T_d,
-            generator=gen,
-            max_iter=10,
-            threshold_m=min(threshold_m, 1e-5) / 10,
-            q_near=home,
+            CompensationOptions(
+                generator=gen, generators=ensemble, threshold_m=min(threshold_m, 1e-5) / 10, max_iter=10
+            ),
             q_seed=seed,
-            generators=ensemble,
-            temperature_c=None if temperature_c is None else np.full(len(T_d), temperature_c),
+            q_near=home,
+            conditions=TargetConditions(
+                temperature_c=None if temperature_c is None else np.full(len(T_d), temperature_c)
+            ),
         )
         q = res.q
         status = np.where(status == "ok", res.status, status).astype(object)

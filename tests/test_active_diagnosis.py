@@ -234,8 +234,26 @@ def test_a_marginal_effect_the_full_fit_finds_stays_open_until_its_own_test_deci
 
     _, train = first
     model = _model(train)
-    found = Candidate("gravity_compliance", 2, 1, 0.03, 1e-4, 0.002, 1e-40, False)
-    unseen = Candidate("gravity_compliance", 2, 1, 0.03, 1e-4, 0.002, 0.5, False)
+    found = Candidate(
+        name="gravity_compliance",
+        joint=2,
+        n_params=1,
+        cv_rms_mm=0.03,
+        gain_mm2=1e-4,
+        p_cv=0.002,
+        p_chi2=1e-40,
+        passed=False,
+    )
+    unseen = Candidate(
+        name="gravity_compliance",
+        joint=2,
+        n_params=1,
+        cv_rms_mm=0.03,
+        gain_mm2=1e-4,
+        p_cv=0.002,
+        p_chi2=0.5,
+        passed=False,
+    )
     leaning, weak = (selection_questions([c], [], 1e-3)[0] for c in (found, unseen))
     assert leaning["kind"] == weak["kind"] == "marginal"
     assert leaning["full_fit_passed"] and not weak["full_fit_passed"]
@@ -263,8 +281,26 @@ def test_a_marginal_question_the_budget_cannot_decide_is_not_planned(first):
 
     _, train = first
     model = _model(train)
-    hopeless = Candidate("gravity_compliance", 4, 1, 0.03, 1e-5, 0.08, 1e-20, False)
-    within = Candidate("gravity_compliance", 4, 1, 0.03, 1e-4, 0.002, 1e-20, False)
+    hopeless = Candidate(
+        name="gravity_compliance",
+        joint=4,
+        n_params=1,
+        cv_rms_mm=0.03,
+        gain_mm2=1e-5,
+        p_cv=0.08,
+        p_chi2=1e-20,
+        passed=False,
+    )
+    within = Candidate(
+        name="gravity_compliance",
+        joint=4,
+        n_params=1,
+        cv_rms_mm=0.03,
+        gain_mm2=1e-4,
+        p_cv=0.002,
+        p_chi2=1e-20,
+        passed=False,
+    )
     (q_hopeless,) = selection_questions([hopeless], [], 1e-3)
     (q_within,) = selection_questions([within], [], 1e-3)
     plan = propose(train, model, [q_hopeless], 40, 1e-6)
@@ -281,9 +317,36 @@ def test_a_candidate_the_full_fit_finds_stays_a_question_beyond_the_marginal_ban
     from hil.analysis.diagnosis.questions import MARGINAL_P, selection_questions
     from hil.analysis.diagnosis.screening import Candidate
 
-    found = Candidate("cyclic", 1, 2, 0.03, 1e-4, 2 * MARGINAL_P, 2e-14, False)
-    unseen = Candidate("cyclic", 1, 2, 0.03, 1e-4, 2 * MARGINAL_P, 0.3, False)
-    worse = Candidate("cyclic", 1, 2, 0.03, -1e-4, 2 * MARGINAL_P, 2e-14, False)  # held-out error rose
+    found = Candidate(
+        name="cyclic",
+        joint=1,
+        n_params=2,
+        cv_rms_mm=0.03,
+        gain_mm2=1e-4,
+        p_cv=2 * MARGINAL_P,
+        p_chi2=2e-14,
+        passed=False,
+    )
+    unseen = Candidate(
+        name="cyclic",
+        joint=1,
+        n_params=2,
+        cv_rms_mm=0.03,
+        gain_mm2=1e-4,
+        p_cv=2 * MARGINAL_P,
+        p_chi2=0.3,
+        passed=False,
+    )
+    worse = Candidate(
+        name="cyclic",
+        joint=1,
+        n_params=2,
+        cv_rms_mm=0.03,
+        gain_mm2=-1e-4,
+        p_cv=2 * MARGINAL_P,
+        p_chi2=2e-14,
+        passed=False,
+    )  # held-out error rose
     (q,) = selection_questions([found], [], 1e-3)
     assert q["kind"] == "marginal" and q["full_fit_passed"]
     assert selection_questions([unseen], [], 1e-3) == []

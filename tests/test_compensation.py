@@ -15,14 +15,16 @@ from scipy.spatial.transform import Rotation
 from hil.compensation.model_based import (
     ENSEMBLE,
     STATUSES,
+    CompensationOptions,
     PosePredictor,
     PseudoTargetIK,
+    TargetConditions,
     compensate,
     compensate_path,
 )
 from hil.compensation.target_update import GENERATORS, pose_errors, update_pseudo_target
 from hil.data.dataset import make_dataset, orientation_columns
-from hil.geometry.ik import default_home, newton_ik, same_branch_seed, ur_branch_index
+from hil.geometry.ik import NewtonOptions, default_home, newton_ik, same_branch_seed, ur_branch_index
 from hil.geometry.kinematics import forward_kinematics
 from hil.geometry.se3 import make_transform, transform_points
 from hil.model.calibrated_model import CalibratedModel
@@ -32,6 +34,7 @@ from tests.cli_in_process import hil_in_process
 
 pytestmark = pytest.mark.timeout(120)
 TOOL = np.array([0.03, -0.02, 0.11])
+LOOSE_NEWTON = NewtonOptions(max_steps=16, tol_position=1e-8, tol_rotation=1e-7)  # the loop's tolerances
 
 
 def ur10_model(seed: int = 0) -> CalibratedModel:
@@ -52,7 +55,7 @@ def reachable_targets(model: CalibratedModel, n: int, seed: int) -> np.ndarray:
 def test_true_model_leaves_under_a_micrometre(model, ik_model):
     T_target = reachable_targets(model, 300, seed=1)
     for targets in (T_target[:, :3, 3], T_target):
-        res = compensate(model, targets, threshold_m=1e-7, ik_model=ik_model)
+        res = compensate(model, targets, CompensationOptions(threshold_m=1e-7, ik_model=ik_model))
         assert np.all(res.status == "ok"), res.summary()
         reached = model.predict_poses(res.q)
         dp, dr = pose_errors(reached, T_target)
@@ -69,7 +72,7 @@ def test_true_model_leaves_under_a_micrometre(model, ik_model):
 @pytest.mark.parametrize("generator", GENERATORS)
 def test_every_generator_converges(model, generator):
     T_target = reachable_targets(model, 200, seed=2)
-    res = compensate(model, T_target, generator=generator, threshold_m=1e-6, max_iter=15)
+    res = compensate(model, T_target, CompensationOptions(generator=generator, threshold_m=1e-6, max_iter=15))
     reached = model.predict_poses(res.q)
     dp, dr = pose_errors(reached, T_target)
     assert dp.max() < 1e-6
@@ -86,8 +89,10 @@ def test_every_generator_converges(model, generator):
 def test_ensemble_is_never_worse_than_the_best_single_generator(model):
     T_target = reachable_targets(model, 200, seed=3)
     kw = {"threshold_m": 1e-12, "max_iter": 1}  # one update: the generators still differ
-    singles = np.stack([compensate(model, T_target, generator=g, **kw).cost_m for g in GENERATORS])
-    ens = compensate(model, T_target, generator=ENSEMBLE, **kw)
+    singles = np.stack(
+        [compensate(model, T_target, CompensationOptions(generator=g, **kw)).cost_m for g in GENERATORS]
+    )
+    ens = compensate(model, T_target, CompensationOptions(generator=ENSEMBLE, **kw))
     assert np.all(ens.cost_m <= singles.min(axis=0) * (1 + 1e-12))
     assert len(set(ens.generator)) > 1  # different generators win on different targets
     dp, dr = pose_errors(model.predict_poses(ens.q), T_target)
@@ -98,7 +103,7 @@ def test_a_2000_point_circle_stays_on_one_branch(model):
     angle = np.linspace(0.0, 2.0 * np.pi, 2000, endpoint=False)
     circle_base = np.array([0.7, 0.1, 0.3]) + 0.2 * np.stack([np.cos(angle), np.sin(angle), 0 * angle], 1)
     targets = transform_points(model.T_tracker_base, circle_base)
-    res = compensate_path(model, targets, threshold_m=1e-7)
+    res = compensate_path(model, targets, options=CompensationOptions(threshold_m=1e-7))
     assert np.all(res.status == "ok")
     assert not res.branch_jump.any()
     assert len(np.unique(ur_branch_index(model.kinematic, res.q))) == 1
@@ -130,7 +135,7 @@ def test_no_answer_is_silently_wrong_near_singularities(model):
     T_target = model.predict_poses(q)
     beyond = transform_points(model.T_tracker_base, np.array([[1.45 * np.cos(0.3), 1.45 * np.sin(0.3), 0.2]]))
     for targets in (T_target, np.concatenate([T_target[:, :3, 3], beyond])):
-        res = compensate(model, targets, threshold_m=1e-7)
+        res = compensate(model, targets, CompensationOptions(threshold_m=1e-7))
         assert set(res.status) <= set(STATUSES)
         poses = (
             make_transform(np.broadcast_to(np.eye(3), (len(targets), 3, 3)), targets)
@@ -156,7 +161,7 @@ def test_residual_map_is_compensated_and_its_volume_warns(model):
     gp = make_map("gp").fit(q, p_base, residual, 5e-6)
     with_map = replace(model, residual_map=gp.to_dict())
     targets = with_map.predict_poses(q[:40])[:, :3, 3]  # inside the volume the map was fitted in
-    res = compensate(with_map, targets, threshold_m=1e-7)
+    res = compensate(with_map, targets, CompensationOptions(threshold_m=1e-7))
     assert np.all(res.status == "ok")
     assert np.abs(with_map.predict(make_dataset(res.q, targets, smr=1)) - targets).max() < 1e-6
     outside = transform_points(model.T_tracker_base, np.array([[0.9, 0.0, 0.2]]))
@@ -193,7 +198,7 @@ def test_bad_targets_are_rejected(model):
     with pytest.raises(ValueError, match="NaN"):
         compensate(model, np.full((2, 3), np.nan))
     with pytest.raises(ValueError, match="generator"):
-        compensate(model, np.zeros((1, 4, 4)) + np.eye(4), generator="best")
+        compensate(model, np.zeros((1, 4, 4)) + np.eye(4), CompensationOptions(generator="best"))
 
 
 _hil = hil_in_process
@@ -311,7 +316,7 @@ def test_newton_rows_ended_by_the_convergence_bound_are_converged(model, mode):
     tool = None if mode == "pose" else TOOL
     for noise in (1e-2, 1e-3):
         seed = q_true + rng.normal(0.0, noise, q_true.shape)
-        res = newton_ik(kin, target, seed, mode, tool, 16, tol_position=1e-8, tol_rotation=1e-7)
+        res = newton_ik(kin, target, seed, mode, tool, LOOSE_NEWTON)
         assert res.converged.all()
         ended_by_bound = np.isnan(res.pose[:, 0, 0])
         assert 0 < ended_by_bound.sum() < len(seed)  # both ways of ending occur
@@ -331,19 +336,11 @@ def test_newton_warm_start_is_the_cold_start_without_its_first_evaluation(model)
     kin = model.kinematic
     q = ur10_joints(np.random.default_rng(22), 300)
     T = forward_kinematics(kin, q)
-    first = newton_ik(kin, T, q + 1e-3, max_steps=16, tol_position=1e-8, tol_rotation=1e-7)
+    first = newton_ik(kin, T, q + 1e-3, options=LOOSE_NEWTON)
     moved = T.copy()
     moved[:, :3, 3] += 2e-4  # the next pseudo targets, a little away
-    cold = newton_ik(kin, moved, first.q, max_steps=16, tol_position=1e-8, tol_rotation=1e-7)
-    warm = newton_ik(
-        kin,
-        moved,
-        first.q,
-        max_steps=16,
-        tol_position=1e-8,
-        tol_rotation=1e-7,
-        start=(first.pose, first.jacobian),
-    )
+    cold = newton_ik(kin, moved, first.q, options=LOOSE_NEWTON)
+    warm = newton_ik(kin, moved, first.q, options=LOOSE_NEWTON, start=(first.pose, first.jacobian))
     assert np.isnan(first.pose[:, 0, 0]).any()  # rows without a pose at the seed are evaluated then
     np.testing.assert_allclose(warm.q, cold.q, atol=1e-13)
     assert np.array_equal(warm.converged, cold.converged) and np.array_equal(warm.steps, cold.steps)
@@ -360,7 +357,11 @@ def test_large_batches_run_in_blocks_with_the_same_answer(model, monkeypatch):
     approach = rng.choice([-1.0, 1.0], size=q.shape)
     T_target = model.predict_poses(q)
     for generator in ("yin", ENSEMBLE):
-        kw = {"generator": generator, "approach": approach, "q_seed": q + 0.01}
+        kw = {
+            "options": CompensationOptions(generator=generator),
+            "conditions": TargetConditions(approach=approach),
+            "q_seed": q + 0.01,
+        }
         monkeypatch.setattr("hil.compensation.model_based.BLOCK_TARGETS", 2048)
         whole = compensate(with_backlash, T_target, **kw)
         monkeypatch.setattr("hil.compensation.model_based.BLOCK_TARGETS", 16)

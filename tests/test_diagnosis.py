@@ -304,7 +304,16 @@ def test_a_temperature_driven_thermal_candidate_goes_before_a_pose_effect_it_mat
         eff = make_effect(name, joint)
         if driver:
             eff.state = {"driver": driver, "reference": 0.0}
-        cand = Candidate(name, joint, k, 0.03, gain_mm2, 1e-6, 1e-9, True)
+        cand = Candidate(
+            name=name,
+            joint=joint,
+            n_params=k,
+            cv_rms_mm=0.03,
+            gain_mm2=gain_mm2,
+            p_cv=1e-6,
+            p_chi2=1e-9,
+            passed=True,
+        )
         return cand, SimpleNamespace(effects=[eff])  # the candidate's fitted model: only its effect is read
 
     pose = winner("gravity_compliance", 3, 4, 1.8e-3)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from calib_data import true_effect_model
 
-from hil.analysis.diagnosis.pipeline import run_diagnosis
+from hil.analysis.diagnosis.pipeline import DiagnosisOptions, run_diagnosis
 from hil.report.text import conclusion
 
 pytestmark = pytest.mark.timeout(180)
@@ -124,7 +124,9 @@ def test_two_effects_at_once_are_both_named(seed, config, expected):
 
 def test_on_a_campaign_from_another_tracker_placement_never_worse_than_geometric():
     train, other = _campaigns(seed=3, second_placement=True, thermal=True)
-    report = run_diagnosis(train, "ur10", df_validate=other, reregister_validation="base")
+    report = run_diagnosis(
+        train, "ur10", df_validate=other, options=DiagnosisOptions(reregister_validation="base")
+    )
     on = "validate, base re-registered"
     geometric, final = _validate(report, "kinematic", on), _validate(report, on=on)
     assert final <= geometric

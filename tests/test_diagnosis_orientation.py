@@ -1,12 +1,14 @@
 """Diagnosis uses every equation the data has: a 6-DoF probe's orientations reveal an effect its positions
 cannot show, and the batched screening reproduces the per-candidate refit on those 6-coordinate rows."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from calib_data import ur10_joints
 from scipy.spatial.transform import Rotation
 
-from hil.analysis.diagnosis.pipeline import run_diagnosis
+from hil.analysis.diagnosis.pipeline import DiagnosisOptions, run_diagnosis
 from hil.data.dataset import ORIENTATION_COLUMNS, make_dataset
 from hil.geometry.kinematics import forward_kinematics
 from hil.geometry.robots import get_robot
@@ -16,6 +18,7 @@ pytestmark = pytest.mark.timeout(180)
 
 ANGLE_NOISE_RAD = np.deg2rad(0.01)  # the probe's stated noise (hil's default)
 POSITION_NOISE_M = 15e-6  # the tracker's MPE model at ~2.5 m, 1 sigma
+CYCLIC = DiagnosisOptions(families=("cyclic",))  # only the cyclic errors are candidates
 
 
 def _wrist_cyclic_campaign(n: int = 250, seed: int = 4, angle_noise_rad: float = ANGLE_NOISE_RAD):
@@ -48,14 +51,14 @@ def _names(report):
 
 def test_an_effect_seen_only_in_the_probe_orientation_is_selected_with_orientations_and_not_without():
     df = _wrist_cyclic_campaign()
-    with_rot = run_diagnosis(df, "ur10", families=("cyclic",))
+    with_rot = run_diagnosis(df, "ur10", options=CYCLIC)
     assert ("cyclic", 6) in _names(with_rot)
     positions = df.drop(columns=list(ORIENTATION_COLUMNS))
     positions.attrs = dict(df.attrs)
-    without = run_diagnosis(positions, "ur10", families=("cyclic",))
+    without = run_diagnosis(positions, "ur10", options=CYCLIC)
     assert ("cyclic", 6) not in _names(without)
     # the batched screening on 6-coordinate rows (positions and weighted rotations) is the refit's answer
-    slow = run_diagnosis(df, "ur10", families=("cyclic",), screening="refit")
+    slow = run_diagnosis(df, "ur10", options=replace(CYCLIC, screening="refit"))
     assert _names(slow) == _names(with_rot)
     for x, y in zip(with_rot.final_round, slow.final_round, strict=True):
         assert (x.name, x.joint, x.passed) == (y.name, y.joint, y.passed)
@@ -64,7 +67,7 @@ def test_an_effect_seen_only_in_the_probe_orientation_is_selected_with_orientati
 
 def test_orientations_far_noisier_than_stated_are_left_out_of_the_tests_and_the_verdict_says_so():
     df = _wrist_cyclic_campaign(angle_noise_rad=3 * ANGLE_NOISE_RAD)  # the probe reads 3x worse than stated
-    report = run_diagnosis(df, "ur10", families=("cyclic",))
+    report = run_diagnosis(df, "ur10", options=CYCLIC)
     assert ("cyclic", 6) not in _names(report)
     notes = [c["text"] for c in report.verdict["cautions"] if c["kind"] == "calibration_note"]
     assert any("tested on positions only" in t for t in notes)

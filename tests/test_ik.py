@@ -114,7 +114,7 @@ def test_round_trip_unseeded_uses_random_restarts():
     m = get_robot("ur10")
     q_true = random_joints(m, 300, seed=4)
     T = forward_kinematics(m, q_true)
-    res = ik.solve_ik(m, T, use_analytic=False)
+    res = ik.solve_ik(m, T, options=ik.IKOptions(use_analytic=False))
     pos, rot = pose_errors(m, res.q, T)
     assert_honest(res, pos, rot)
     assert res.success.mean() >= 0.99
@@ -152,7 +152,7 @@ def test_models_with_errors_converge_from_nominal_analytic_seed(name):
     pos0, _ = pose_errors(real, q0[found], T[found])
     assert np.median(pos0) > 1e-4
     # ... and LM from it converges on the erroneous model without random restarts.
-    res = ik.solve_ik(real, T, restarts=0)
+    res = ik.solve_ik(real, T, options=ik.IKOptions(restarts=0))
     pos, rot = pose_errors(real, res.q, T)
     assert_honest(res, pos, rot)
     assert res.success.mean() >= 0.999
@@ -238,7 +238,7 @@ def test_unreachable_targets_are_failures_not_wrong_joints():
     # Slightly beyond (1.6 mm, within REACH_SLACK): tried from every seed, then reported as a failure.
     T_stretched = forward_kinematics(m, [0.0, -0.3, 0.0, -1.0, 1.2, 0.0])
     T_stretched[0, :3, 3] *= 1.002
-    res = ik.solve_ik(m, T_stretched, restarts=2)
+    res = ik.solve_ik(m, T_stretched, options=ik.IKOptions(restarts=2))
     assert not res.success[0] and res.attempts[0] >= 3 and res.error[0] > 1e-3
     assert res.reason[0] in ("singular", "max_iter")
     # Position mode: 3 m away.
@@ -250,7 +250,7 @@ def test_iteration_budget_exhausted_is_reported():
     m = get_robot("irb2600")
     q_true = random_joints(m, 50, seed=11)
     T = forward_kinematics(m, q_true)
-    res = ik.solve_ik(m, T, max_iter=2, restarts=0)
+    res = ik.solve_ik(m, T, options=ik.IKOptions(max_iter=2, restarts=0))
     pos, rot = pose_errors(m, res.q, T)
     assert_honest(res, pos, rot)
     assert (~res.success).sum() > 10
@@ -288,7 +288,7 @@ def test_bad_inputs_raise_clear_errors():
     with pytest.raises(ValueError, match="last row"):
         ik.solve_ik(m, last_row)
     with pytest.raises(ValueError, match="positive"):
-        ik.solve_ik(m, T, tol_position=0.0)
+        ik.solve_ik(m, T, options=ik.IKOptions(tol_position=0.0))
     with pytest.raises(ValueError, match=r"\(N, 3\)"):
         ik.solve_ik(m, np.zeros((2, 4)), mode="position")
     with pytest.raises(ValueError, match="NaN"):
@@ -367,7 +367,7 @@ def test_solutions_next_to_joint_limits_are_found():
     q_true[:, 1:3] = hi[1:3] - rng.uniform(0, 0.15, (300, 2))
     p_tool = np.array([0.0, 0.0, 0.1])
     P = tool_points(m, q_true, p_tool)
-    res = ik.solve_ik(m, P, mode="position", p_flange_tool=p_tool, restarts=5)
+    res = ik.solve_ik(m, P, mode="position", p_flange_tool=p_tool, options=ik.IKOptions(restarts=5))
     assert_honest(res, np.linalg.norm(tool_points(m, res.q, p_tool) - P, axis=1))
     assert res.success.mean() >= 0.85  # plain clipping of the step: about 0.45
     assert np.all(m.within_limits(res.q))

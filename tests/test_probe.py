@@ -361,7 +361,7 @@ def test_ridge_prior_leaves_the_probe_orientation_free(probe_campaign):
 
 def test_few_distinct_poses_give_no_fold_figures_instead_of_a_crash():
     """4 poses x 3 nests x 6 revisits: 72 rows but only 4 poses for the 5 spatial folds."""
-    from hil.analysis.diagnosis.pipeline import run_diagnosis
+    from hil.analysis.diagnosis.pipeline import DiagnosisOptions, run_diagnosis
 
     cell = _cell(1)
     q = np.tile(grid_joints(cell, step_m=0.3, seed=1)[:4], (6, 1))
@@ -372,7 +372,7 @@ def test_few_distinct_poses_give_no_fold_figures_instead_of_a_crash():
     folds = Problem.from_frame(res.model, df).spatial_folds(5, 0)
     assert len(folds) == 4 and sorted(np.concatenate(folds).tolist()) == list(range(72))
     with pytest.raises(ValueError, match="4 distinct robot poses .* too few for 5-fold"):
-        run_diagnosis(df, "ur10", families=("cyclic",))
+        run_diagnosis(df, "ur10", options=DiagnosisOptions(families=("cyclic",)))
 
 
 def test_spatial_folds_of_fewer_distinct_points_than_folds():

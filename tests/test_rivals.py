@@ -79,7 +79,17 @@ def test_a_campaign_that_cannot_separate_them_leaves_the_question_open():
 
 def test_rivals_of_a_round_are_the_candidates_with_a_share_of_the_winners_gain():
     def cand(name, joint, gain, passed=False, note=""):
-        return Candidate(name, joint, 2, 0.1, gain, 0.5, 0.5, passed, note)
+        return Candidate(
+            name=name,
+            joint=joint,
+            n_params=2,
+            cv_rms_mm=0.1,
+            gain_mm2=gain,
+            p_cv=0.5,
+            p_chi2=0.5,
+            passed=passed,
+            note=note,
+        )
 
     round_ = [
         cand("cyclic", 3, 0.007, passed=True),

@@ -17,9 +17,13 @@ from fakes.campaign import simulate_campaign
 from fakes.cell import SimCellConfig, SimulatedCell
 from hil.analysis.calibration.folds import campaign_folds, spatial_folds, sweep_runs
 from hil.analysis.design.plan import propose
-from hil.analysis.diagnosis.pipeline import run_diagnosis
+from hil.analysis.diagnosis.pipeline import DiagnosisOptions, run_diagnosis
 from hil.geometry.robots import get_robot
 from hil.report.text import caution_text
+
+GRAVITY_ONLY = DiagnosisOptions(
+    families=("gravity_compliance",)
+)  # only the joints' gravity yield is a candidate
 
 
 def _grid_and_sweep(k_sweep: int = 12) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -118,9 +122,9 @@ def test_a_round_keeps_the_earlier_effects_a_selection_without_them_predicts_wor
     round on the worse model: the selection that starts from them predicts held-out points better."""
     _, _, longer = two_on_joint2
     earlier = [{"name": n, "joint": j} for n, j in sorted(TRUE_JOINT2)]
-    alone = run_diagnosis(longer, "ur10", families=("gravity_compliance",))
+    alone = run_diagnosis(longer, "ur10", options=GRAVITY_ONLY)
     assert not _named(alone) >= TRUE_JOINT2
-    kept = run_diagnosis(longer, "ur10", families=("gravity_compliance",), previous_effects=earlier)
+    kept = run_diagnosis(longer, "ur10", options=GRAVITY_ONLY, previous_effects=earlier)
     assert _named(kept) >= TRUE_JOINT2
     said = [c for c in kept.verdict["cautions"] if c["kind"] == "previous_effects_kept"]
     assert len(said) == 1 and said[0]["heldout_rms_kept_mm"] < said[0]["heldout_rms_mm"]

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from calib_data import cell_datasets
 
-from hil.analysis.diagnosis.pipeline import run_diagnosis
+from hil.analysis.diagnosis.pipeline import DiagnosisOptions, run_diagnosis
 from hil.data.dataset import make_dataset
 
 pytestmark = pytest.mark.timeout(180)
@@ -35,15 +35,21 @@ def _same_screening(fast, slow):
 
 def test_batched_screening_selects_what_the_refit_selects_on_the_gravity_cell(gravity_cell_diagnosis):
     _, train, val, fast = gravity_cell_diagnosis  # run_diagnosis's default: batched
-    _same_screening(fast, run_diagnosis(train, "ur10", df_validate=val, screening="refit"))
+    _same_screening(
+        fast, run_diagnosis(train, "ur10", df_validate=val, options=DiagnosisOptions(screening="refit"))
+    )
 
 
 def test_batched_screening_selects_what_the_refit_selects_with_backlash_in_the_cell():
     _, train, _ = cell_datasets(seed=3, backlash=True, step_m=0.15)
-    fast = run_diagnosis(train, "ur10", screening="batched")
-    _same_screening(fast, run_diagnosis(train, "ur10", screening="refit"))
+    fast = run_diagnosis(train, "ur10", options=DiagnosisOptions(screening="batched"))
+    _same_screening(fast, run_diagnosis(train, "ur10", options=DiagnosisOptions(screening="refit")))
 
 
 def test_unknown_screening_is_refused():
     with pytest.raises(ValueError, match="screening"):
-        run_diagnosis(make_dataset(np.zeros((3, 6)), np.ones((3, 3))), "ur10", screening="fast")
+        run_diagnosis(
+            make_dataset(np.zeros((3, 6)), np.ones((3, 3))),
+            "ur10",
+            options=DiagnosisOptions(screening="fast"),
+        )

@@ -26,7 +26,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 def _run(argv: list[str]) -> int:
     parser = argparse.ArgumentParser()
-    tracker_command.register(parser.add_subparsers())
+    tracker_command.add_parser(parser.add_subparsers())
     args = parser.parse_args(["tracker", *argv])
     return args.func(args)
 

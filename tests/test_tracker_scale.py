@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from hil.analysis.diagnosis.drift_monitor import drift_text
-from hil.analysis.diagnosis.pipeline import run_diagnosis
+from hil.analysis.diagnosis.pipeline import DiagnosisOptions, run_diagnosis
 from hil.geometry.robots import get_robot
 from hil.model.effects import EFFECT_FAMILIES, make_effect
 from hil.report.html import render_html
@@ -92,7 +92,7 @@ def test_a_fixed_air_temperature_in_a_warming_hall_is_told_apart_from_the_arms_g
     assert report.thermal["fitted_per_k"] == pytest.approx(23e-6, rel=0.05)  # the growth is the arm's
     # Without the rival, the arm's growth takes the tracker's stretch for its own.
     others = tuple(f for f in EFFECT_FAMILIES if f != "tracker_scale")
-    alone = run_diagnosis(train, RIGID_UR10, families=others)
+    alone = run_diagnosis(train, RIGID_UR10, options=DiagnosisOptions(families=others))
     assert abs(alone.thermal["fitted_per_k"] - 23e-6) > 2 * abs(report.thermal["fitted_per_k"] - 23e-6)
     # The drift monitor's reference poses: the far one moves most, with the temperature (growth and scale).
     drift = report.drift

@@ -18,7 +18,7 @@ from hil.geometry.robots import load_robot_file
 HELP = "joint axes from single-joint sweeps (circle point analysis), written as a robot file calibration starts from"
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "axes",
         help=HELP,

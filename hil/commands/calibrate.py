@@ -67,7 +67,7 @@ def orientation_summary(res_dict: dict) -> str:
     return "" if rms is None else f", orientation RMS {rms:.4f} deg"
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "calibrate",
         help="identify base frame, tool point(s) and kinematic errors from a measurement dataset",

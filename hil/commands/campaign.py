@@ -16,7 +16,7 @@ from hil.data.store import CampaignError, CampaignStore, export_csv, export_parq
 SNAPSHOT_SECTIONS = ("cell", "robot", "tracker", "software")
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "campaign",
         help="inspect or export a campaign file (the SQLite store a measurement session writes)",

@@ -16,7 +16,7 @@ from hil.commands.errors import CliError
 from hil.runner.cell_config import CellConfig, CellConfigError, load_cell_config
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "cell",
         help="check a cell configuration (and optionally its instruments)",

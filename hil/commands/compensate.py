@@ -21,7 +21,9 @@ from hil.commands.errors import CliError
 from hil.commands.help_format import DefaultsHelpFormatter
 from hil.compensation.model_based import (
     ENSEMBLE,
+    CompensationOptions,
     CompensationResult,
+    TargetConditions,
     compensate,
     compensate_path,
     merge_results,
@@ -43,7 +45,7 @@ from hil.model.effects import THERMAL_FAMILIES, material_growth, temperature_dri
 TEMPERATURE_RANGE_C = (-20.0, 60.0)  # --temperature-c: a cell's air, not a typo in kelvin or fahrenheit
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "compensate",
         help="joints that make a calibrated model put the SMR on target points or poses (pseudo-target loop)",
@@ -126,17 +128,27 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def compensate_per_smr(
-    model: CalibratedModel, targets: np.ndarray, smr: np.ndarray, drivers: dict, path: bool, kwargs: dict
+    model: CalibratedModel,
+    targets: np.ndarray,
+    smr: np.ndarray,
+    drivers: dict,
+    path: bool,
+    options: CompensationOptions,
+    q_seed: np.ndarray | None = None,
 ) -> CompensationResult:
     """`compensate` (or `compensate_path`) once per SMR nest of the targets, merged back into target order;
-    per-target arrays among `kwargs` (q_seed) follow their rows."""
+    the per-target arrays (`drivers`, `q_seed`) follow their rows."""
     results: list[tuple[np.ndarray, CompensationResult]] = []
     for nest in np.unique(smr):
         rows = np.flatnonzero(smr == nest)
-        run_one = compensate_path if path else compensate
         d = {k: v[rows] for k, v in drivers.items()}
-        options = {k: v[rows] if k == "q_seed" else v for k, v in kwargs.items()}
-        results.append((rows, run_one(model, targets[rows], smr=int(nest), **d, **options)))
+        conditions = TargetConditions(smr=int(nest), **d)
+        if path:
+            res = compensate_path(model, targets[rows], options=options, conditions=conditions)
+        else:
+            seed = None if q_seed is None else q_seed[rows]
+            res = compensate(model, targets[rows], options, q_seed=seed, conditions=conditions)
+        results.append((rows, res))
     return results[0][1] if len(results) == 1 else merge_results(results, len(smr))
 
 
@@ -282,7 +294,7 @@ def run(args: argparse.Namespace) -> int:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             res = compensate_per_smr(
-                model, chosen.targets, chosen.smr, drivers, args.path, _options(args, chosen)
+                model, chosen.targets, chosen.smr, drivers, args.path, _options(args), _q_seed(args, chosen)
             )
     except (ValueError, OSError, KeyError) as exc:
         raise CliError.from_text(str(exc)) from exc
@@ -341,19 +353,20 @@ def _csv_targets(args: argparse.Namespace, model: CalibratedModel) -> _Targets:
     return _Targets(targets, df, None, smr, None)
 
 
-def _options(args: argparse.Namespace, chosen: _Targets) -> dict:
-    """compensate()'s options from the command line; a campaign's joints seed the IK (not along a path,
-    which seeds each target from its neighbour)."""
-    options = dict(
+def _options(args: argparse.Namespace) -> CompensationOptions:
+    """compensate()'s options from the command line."""
+    return CompensationOptions(
         generator=args.generator,
         threshold_m=args.threshold_mm / 1000.0,
         max_iter=args.max_iter,
         length_scale_m=args.length_scale_mm / 1000.0,
         ik_model=args.ik_model,
     )
-    if chosen.q_seed is not None and not args.path:
-        options["q_seed"] = chosen.q_seed
-    return options
+
+
+def _q_seed(args: argparse.Namespace, chosen: _Targets) -> np.ndarray | None:
+    """A campaign's joints seed the IK (not along a path, which seeds each target from its neighbour)."""
+    return chosen.q_seed if chosen.q_seed is not None and not args.path else None
 
 
 def _output_frame(

@@ -36,7 +36,7 @@ if TYPE_CHECKING:
 UR_ROBOTS = [name for name in ROBOT_NAMES if name.startswith("ur")]
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "demo",
         help="run the main job on a simulated cell: procedures through the drivers, diagnosis, report",
@@ -254,7 +254,7 @@ def analyse(args: argparse.Namespace, out: Path, campaign: Path):
     """Diagnose the grid against the validation set and write the JSON report and the model."""
     import numpy as np
 
-    from hil.analysis.diagnosis.pipeline import run_diagnosis
+    from hil.analysis.diagnosis.pipeline import DiagnosisOptions, run_diagnosis
     from hil.data.dataset import write_dataset
     from hil.data.store import CampaignStore, campaign_dataset
     from hil.geometry.robots import get_robot
@@ -269,9 +269,8 @@ def analyse(args: argparse.Namespace, out: Path, campaign: Path):
     write_dataset(validate, out / "validate.csv")
     print(f"exported {len(train)} grid and {len(validate)} validation points from the campaign")
     tool_guess = np.array(fit["nests_flange_mm"]["1"]) / 1e3 if fit else None
-    report = run_diagnosis(
-        train, get_robot(args.robot), df_validate=validate, seed=args.seed, tool_guess_m=tool_guess
-    )
+    options = DiagnosisOptions(seed=args.seed, tool_guess_m=tool_guess)
+    report = run_diagnosis(train, get_robot(args.robot), df_validate=validate, options=options)
     print()
     print(report.table())
     added = ", ".join(

@@ -8,7 +8,7 @@ import numpy as np
 import pandas as pd
 
 from hil.analysis.calibration.solve import implausible_changes, position_noise_m
-from hil.analysis.diagnosis.pipeline import DiagnosisReport, run_diagnosis
+from hil.analysis.diagnosis.pipeline import DiagnosisOptions, DiagnosisReport, run_diagnosis
 from hil.commands.arg_checks import InputError, add_force_option, check_paths, float_in, float_list, int_in
 from hil.commands.calibrate import add_probe_options, orientation_summary, parse_mm_vector, refuse_implausible
 from hil.commands.errors import CliError
@@ -20,7 +20,7 @@ from hil.model.effects import EFFECT_FAMILIES
 from hil.runner.progress import Progress
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "diagnose",
         help="calibrate, trace the residual to missing effects, add them, report before/after",
@@ -224,14 +224,16 @@ def _run(args, df, val, tool, families, mpe, progress) -> DiagnosisReport:
         df,
         get_robot(args.robot, use_beta=not args.no_beta),
         df_validate=val,
-        folds=args.folds,
-        alpha=args.alpha,
-        families=families,
-        repeatability_mm=args.repeatability_mm,
-        tool_guess_m=tool,
-        tracker_mpe_m=mpe,
-        compare_maps=args.compare_maps,
-        reregister_validation=args.validate_reregister,
+        options=DiagnosisOptions(
+            folds=args.folds,
+            alpha=args.alpha,
+            families=families,
+            repeatability_mm=args.repeatability_mm,
+            tool_guess_m=tool,
+            tracker_mpe_m=mpe,
+            compare_maps=args.compare_maps,
+            reregister_validation=args.validate_reregister,
+        ),
         progress=progress,
     )
 

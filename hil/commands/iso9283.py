@@ -23,7 +23,7 @@ from hil.data.jsonable import to_jsonable
 HELP = "ISO 9283 pose accuracy and repeatability (AP, RP, AD, RD; path AT, RT) of a recorded campaign"
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "iso9283",
         help=HELP,

@@ -17,7 +17,7 @@ from hil.data.dataset import POSITION_COLUMNS, DatasetError, joints_rad
 from hil.model.calibrated_model import CalibratedModel
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "predict",
         help="predict x_mm, y_mm, z_mm (tracker frame) for the joints in a CSV with a calibrated model",

@@ -25,7 +25,7 @@ from hil.runner.registry import UnknownProcedureError, load, registered
 from hil.runner.session import CampaignStopped
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "run", help="run a measurement procedure on a cell", description=__doc__, add_help=False,
         formatter_class=argparse.RawDescriptionHelpFormatter,

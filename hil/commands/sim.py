@@ -11,7 +11,7 @@ from hil.commands.errors import CliError
 from hil.instruments.plugins import PluginOptionError
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
     cell = simulator()
     parser = subparsers.add_parser(
         "sim", help="run a simulated robot cell on a loopback address", description=cell.description

@@ -9,7 +9,7 @@ from hil.commands.errors import CliError
 from hil.commands.help_format import DefaultsHelpFormatter
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
+def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "tracker",
         help="laser tracker: state, aim and measure (Leica emScon)",

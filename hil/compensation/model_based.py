@@ -29,6 +29,8 @@ from hil.geometry.ik import (
     REASON_MAX_ITER,
     REASON_OK,
     REASON_UNREACHABLE,
+    IKOptions,
+    NewtonOptions,
     branches_along_path,
     default_home,
     is_ur_like,
@@ -223,47 +225,69 @@ def outside_fitted_temperatures(model: CalibratedModel, temperature_c: np.ndarra
     )
 
 
-def compensate(
-    model: CalibratedModel,
-    targets: np.ndarray,
-    generator: str | None = None,
-    threshold_m: float = 1e-5,
-    max_iter: int = 10,
-    patience: int = 2,
-    length_scale_m: float = 0.1,
-    q_seed: np.ndarray | None = None,
-    q_near: np.ndarray | None = None,
-    smr: int | None = None,
-    ik_model: str = "kinematic",
-    t_s: np.ndarray | None = None,
-    temperature_c: np.ndarray | None = None,
-    approach: np.ndarray | None = None,
-    use_map: bool = True,
-    ik_solver: IKSolver | None = None,
-    generators: Sequence[str] | None = None,
-) -> CompensationResult:
-    """Joints that make the model put the SMR on the targets (tracker frame, m): points (N, 3) or poses.
+@dataclass(frozen=True)
+class CompensationOptions:
+    """How `compensate` runs its loop: the pseudo-target generator, when to stop, which model the IK solves.
 
-    Full-pose targets are T_tracker_tool (N, 4, 4): SMR centre and flange orientation; `generator` is
-    one of `hil.compensation.target_update.GENERATORS` (default "yin") or "ensemble" (all of them, best joints per
-    target; `generators` picks the ensemble's subset). Point targets (N, 3) leave the orientation free: the pseudo target is a point
-    (P_p <- P_p + P_d - P_a, the part all generators share). The first IK starts from `q_seed` (per
-    target) if given, else from the closed-form solution on the branch of `q_near` (default
-    `hil.geometry.ik.default_home`), for points in that posture's tool orientation. Stops per target below `threshold_m` of the error measure (position, or the
-    mm-equivalent pose error with `length_scale_m` per radian), after `max_iter` updates, or after
-    `patience` updates without improvement. `ik_model`: "kinematic" (the calibrated geometry) or
-    "nominal": the model the pseudo targets are solved with. `ik_solver` replaces hil's IK (closed-form
+    `generator`: one of `hil.compensation.target_update.GENERATORS` (default "yin" for poses) or "ensemble"
+    (all of them, best joints per target; `generators` picks the ensemble's subset). Stops per target below
+    `threshold_m` of the error measure (position, or the mm-equivalent pose error with `length_scale_m` per
+    radian), after `max_iter` updates, or after `patience` updates without improvement. `ik_model`:
+    "kinematic" (the calibrated geometry) or "nominal": the model the pseudo targets are solved with.
+    `use_map`: the model's residual map joins its prediction. `ik_solver` replaces hil's IK (closed-form
     seed, Newton, `solve_ik` fallback) after the seed: f(targets, q_seed) -> (q, ok) with targets the
     flange poses T_base_flange (k, 4, 4), or tool points (k, 3) in the base frame for point targets.
     """
-    if max_iter < 0 or patience < 1 or threshold_m <= 0 or length_scale_m <= 0:
+
+    generator: str | None = None
+    generators: Sequence[str] | None = None
+    threshold_m: float = 1e-5
+    max_iter: int = 10
+    patience: int = 2
+    length_scale_m: float = 0.1
+    ik_model: str = "kinematic"
+    use_map: bool = True
+    ik_solver: IKSolver | None = None
+
+
+@dataclass(frozen=True)
+class TargetConditions:
+    """What the model's effects read besides the joints: the SMR nest the targets are for (default the
+    model's lowest) and, per target (N,), the time t_s, the temperature and the approach signs (N, n)."""
+
+    smr: int | None = None
+    t_s: np.ndarray | None = None
+    temperature_c: np.ndarray | None = None
+    approach: np.ndarray | None = None
+
+
+def compensate(
+    model: CalibratedModel,
+    targets: np.ndarray,
+    options: CompensationOptions = CompensationOptions(),
+    q_seed: np.ndarray | None = None,
+    q_near: np.ndarray | None = None,
+    conditions: TargetConditions = TargetConditions(),
+) -> CompensationResult:
+    """Joints that make the model put the SMR on the targets (tracker frame, m): points (N, 3) or poses.
+
+    Full-pose targets are T_tracker_tool (N, 4, 4): SMR centre and flange orientation, updated by the
+    generator of `options`. Point targets (N, 3) leave the orientation free: the pseudo target is a point
+    (P_p <- P_p + P_d - P_a, the part all generators share). The first IK starts from `q_seed` (per
+    target) if given, else from the closed-form solution on the branch of `q_near` (default
+    `hil.geometry.ik.default_home`), for points in that posture's tool orientation. The model predicts
+    the pose under `conditions`.
+    """
+    threshold_m, length_scale_m = options.threshold_m, options.length_scale_m
+    if options.max_iter < 0 or options.patience < 1 or threshold_m <= 0 or length_scale_m <= 0:
         raise ValueError("max_iter must be >= 0, patience >= 1, threshold_m and length_scale_m > 0")
     full_pose, T_d_in = _check_targets(targets)
-    gen = generator or ("yin" if full_pose else "fixed")
-    names = ensemble_names(generators) if gen == ENSEMBLE else [check_generator(gen)]
+    gen = options.generator or ("yin" if full_pose else "fixed")
+    names = ensemble_names(options.generators) if gen == ENSEMBLE else [check_generator(gen)]
     if not full_pose:  # the generators differ only in the orientation, which points leave free
         names = [POINT_GENERATOR]
-    predictor = PosePredictor(model, smr, t_s, temperature_c, approach, use_map)
+    c = conditions
+    predictor = PosePredictor(model, c.smr, c.t_s, c.temperature_c, c.approach, options.use_map)
     N = len(T_d_in)
     if q_seed is not None:
         q_seed = np.asarray(q_seed, float)
@@ -284,18 +308,18 @@ def compensate(
         ctx = _Setup(
             model,
             predictor.rows(sl),
-            ik_model,
+            options.ik_model,
             full_pose,
             T_d_in[sl],
             q_seed if q_seed is None or q_seed.ndim == 1 else q_seed[sl],
             q_near,
-            ik_solver,
+            options.ik_solver,
             tol_m,
             tol_m / length_scale_m,
         )
         best: CompensationResult | None = None
         for name in names:
-            res = _run(ctx, name, threshold_m, max_iter, patience, length_scale_m)
+            res = _run(ctx, name, threshold_m, options.max_iter, options.patience, length_scale_m)
             best = res if best is None else _pick_better(best, res)
         if best is None:
             raise ValueError("no pseudo-target generator to run")
@@ -318,7 +342,8 @@ def compensate_path(
     targets: np.ndarray,
     q_start: np.ndarray | None = None,
     jump_rad: float = 0.2,
-    **kwargs,
+    options: CompensationOptions = CompensationOptions(),
+    conditions: TargetConditions = TargetConditions(),
 ) -> CompensationResult:
     """`compensate` for an ordered path of targets, with continuity.
 
@@ -328,19 +353,18 @@ def compensate_path(
     than `jump_rad`. Needs a UR-shaped model for the branch bookkeeping.
     """
     full_pose, T_d_in = _check_targets(targets)
-    kin = model.kinematic if kwargs.get("ik_model", "kinematic") == "kinematic" else model.nominal
+    kin = model.kinematic if options.ik_model == "kinematic" else model.nominal
     if not is_ur_like(kin):
         raise ValueError(f"compensate_path needs a UR-shaped arm, {kin.name} is not")
     q0 = default_home(kin) if q_start is None else np.asarray(q_start, float)
-    frames = PseudoTargetIK(model, kwargs.get("ik_model", "kinematic"), kwargs.get("smr"))
+    frames = PseudoTargetIK(model, options.ik_model, conditions.smr)
     if full_pose:
         T_d = T_d_in
     else:  # points: the start posture's orientation, only to pick the branches
         T_d = np.repeat(frames.from_flange(forward_kinematics(kin, q0[None])), len(T_d_in), axis=0)
         T_d[:, :3, 3] = T_d_in
     seeds = branches_along_path(kin, frames.to_flange(T_d), q0)
-    kwargs.pop("q_near", None)
-    res = compensate(model, targets, q_seed=seeds, q_near=q0, **kwargs)
+    res = compensate(model, targets, options, q_seed=seeds, q_near=q0, conditions=conditions)
     q = res.q
     good = np.all(np.isfinite(q), axis=1)
     jump = np.zeros(len(q), bool)
@@ -450,10 +474,9 @@ class PseudoTargetIK:
             q_prev,
             "pose" if self.full_pose else "position",
             None if self.full_pose else self.tool,
-            NEWTON_STEPS,
-            tol_position=self.tol_m,
-            tol_rotation=self.tol_rad,
-            validate=False,
+            NewtonOptions(
+                max_steps=NEWTON_STEPS, tol_position=self.tol_m, tol_rotation=self.tol_rad, validate=False
+            ),
             start=start,
         )
         q = res.q
@@ -463,7 +486,12 @@ class PseudoTargetIK:
         if bad.size:
             kw = {"mode": "pose"} if self.full_pose else {"mode": "position", "p_flange_tool": self.tool}
             slow = solve_ik(
-                self.kin, target[bad], q_seed=q_prev[bad], q_near=q_prev[bad[0]], restarts=5, **kw
+                self.kin,
+                target[bad],
+                q_seed=q_prev[bad],
+                q_near=q_prev[bad[0]],
+                options=IKOptions(restarts=5),
+                **kw,
             )
             q[bad] = slow.q
             reason[bad] = np.where(slow.reason == REASON_MAX_ITER, STATUS_NO_IK, slow.reason)

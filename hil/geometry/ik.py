@@ -474,6 +474,26 @@ def ur_seed(model: KinematicModel, T_base_flange: np.ndarray, q_near: np.ndarray
     return np.where(usable[:, 0, None], ranked[:, 0], q_ref)
 
 
+@dataclass(frozen=True)
+class IKOptions:
+    """How hard `solve_ik` searches and when it calls a target solved.
+
+    Success only if the final position error < `tol_position` (m) and, in pose mode, the rotation error
+    < `tol_rotation` (rad). W_E weighs position (m) against rotation (rad) as 1 rad <-> `length_scale` m;
+    `wbar` is LM's bias. Each LM attempt runs at most `max_iter` iterations; after the given and analytic
+    seeds (the latter only with `use_analytic`), `restarts` random joint sets within limits (seed `rng`).
+    """
+
+    max_iter: int = 100
+    tol_position: float = 1e-10
+    tol_rotation: float = 1e-9
+    length_scale: float = 0.3
+    wbar: float = 1e-3
+    restarts: int = 50
+    use_analytic: bool = True
+    rng: np.random.Generator | int | None = 0
+
+
 def solve_ik(
     model: KinematicModel,
     targets: np.ndarray,
@@ -482,25 +502,19 @@ def solve_ik(
     T_flange_tool: np.ndarray | None = None,
     p_flange_tool: np.ndarray | None = None,
     q_near: np.ndarray | None = None,
-    max_iter: int = 100,
-    tol_position: float = 1e-10,
-    tol_rotation: float = 1e-9,
-    length_scale: float = 0.3,
-    wbar: float = 1e-3,
-    restarts: int = 50,
-    use_analytic: bool = True,
-    rng: np.random.Generator | int | None = 0,
+    options: IKOptions = IKOptions(),
 ) -> IKResult:
     """Joints reaching N targets: T_base_tool (N,4,4) in "pose" mode, tool points (N,3) in "position" mode.
 
     Seeds, tried in order on the targets still unsolved: `q_seed` (N,n) or (n,) if given; on a UR-shaped
-    model (and `use_analytic`) the analytic branches, nearest to `q_near` (default `default_home`) first
-    (the first seed of all is tried with a few Newton steps before LM: most targets end there);
-    `q_near` itself when no q_seed is given; then `restarts` random joint sets within limits (seed `rng`).
-    W_E weighs position (m) against rotation (rad) as 1 rad <-> `length_scale` m.
-    Success only if the final position error < tol_position (m) and, in pose mode, the rotation error
-    < tol_rotation (rad); the joints are always within the model's limits.
+    model (and `options.use_analytic`) the analytic branches, nearest to `q_near` (default `default_home`)
+    first (the first seed of all is tried with a few Newton steps before LM: most targets end there);
+    `q_near` itself when no q_seed is given; then `options.restarts` random joint sets within limits.
+    The joints are always within the model's limits; success as `IKOptions` says.
     """
+    o = options
+    max_iter, restarts, length_scale, wbar = o.max_iter, o.restarts, o.length_scale, o.wbar
+    tol_position, tol_rotation = o.tol_position, o.tol_rotation
     if max_iter < 1 or restarts < 0:
         raise ValueError("max_iter must be >= 1 and restarts >= 0")
     if min(tol_position, tol_rotation, length_scale, wbar) <= 0:
@@ -512,9 +526,9 @@ def solve_ik(
     q_ref = default_home(model) if q_near is None else np.asarray(q_near, dtype=float)
     if q_ref.shape != (model.n_joints,) or not np.all(np.isfinite(q_ref)):
         raise ValueError(f"q_near must be a finite ({model.n_joints},) joint vector, got {q_ref.shape}")
-    generator = rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
+    generator = o.rng if isinstance(o.rng, np.random.Generator) else np.random.default_rng(o.rng)
 
-    seeds = _seeds(prob, q_seed, q_ref, use_analytic and is_ur_like(model), restarts)
+    seeds = _seeds(prob, q_seed, q_ref, o.use_analytic and is_ur_like(model), restarts)
     best = _Best.from_seed(prob, seeds.q[0])
     beyond = _beyond_reach(prob, seeds.no_branch)
     if q_seed is not None or seeds.analytic:
@@ -618,15 +632,16 @@ def _newton_from_first_seed(
     first_seed = np.asarray(first)  # the first seed's ok rows are False where it is missing
     if prob.mode == "pose":
         T_f = tgt[todo] @ invert(T_ft)
-        nr = newton_ik(
-            model, T_f, first_seed[todo], max_steps=NEWTON_STEPS, validate=False,
-            tol_position=0.5 * prob.tol_position, tol_rotation=0.5 * prob.tol_rotation,
-        )  # fmt: skip
-    else:
-        nr = newton_ik(
-            model, tgt[todo], first_seed[todo], "position", T_ft[:3, 3], NEWTON_STEPS,
+        options = NewtonOptions(
+            max_steps=NEWTON_STEPS,
             tol_position=0.5 * prob.tol_position,
-        )  # fmt: skip
+            tol_rotation=0.5 * prob.tol_rotation,
+            validate=False,
+        )
+        nr = newton_ik(model, T_f, first_seed[todo], options=options)
+    else:
+        options = NewtonOptions(max_steps=NEWTON_STEPS, tol_position=0.5 * prob.tol_position)
+        nr = newton_ik(model, tgt[todo], first_seed[todo], "position", T_ft[:3, 3], options)
     e = prob.residual(nr.q, todo)
     conv = prob.converged(e) & model.within_limits(nr.q, tol=1e-12)
     done = todo[conv]
@@ -712,17 +727,27 @@ class NewtonResult:
     jacobian: np.ndarray
 
 
+@dataclass(frozen=True)
+class NewtonOptions:
+    """When `newton_ik` stops: converged below `tol_position` (m) and, in pose mode, `tol_rotation` (rad),
+    or after `max_steps` steps. `damping` regularises the normal equations where a Jacobian is exactly
+    singular (pose mode) and the minimum-norm step (position mode). `validate=False` skips the input checks
+    (hot loops)."""
+
+    max_steps: int = 8
+    tol_position: float = 1e-11
+    tol_rotation: float = 1e-10
+    damping: float = 1e-12
+    validate: bool = True
+
+
 def newton_ik(
     model: KinematicModel,
     targets: np.ndarray,
     q_seed: np.ndarray,
     mode: str = "pose",
     p_flange_tool: np.ndarray | None = None,
-    max_steps: int = 8,
-    tol_position: float = 1e-11,
-    tol_rotation: float = 1e-10,
-    damping: float = 1e-12,
-    validate: bool = True,
+    options: NewtonOptions = NewtonOptions(),
     start: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> NewtonResult:
     """Finish IK from nearby seeds (N, n) with batched Gauss-Newton steps and the analytic Jacobian.
@@ -733,7 +758,7 @@ def newton_ik(
     a slightly different model, the previous solution of a nearby target) convergence is quadratic,
     typically 2-3 steps; targets leave the batch as they converge. No globalisation: a target that
     does not converge is reported, for the caller to fall back to `solve_ik`. Joints stay within the
-    limits (wrapped by 2 pi or clamped). `validate=False` skips the input checks (hot loops).
+    limits (wrapped by 2 pi or clamped).
 
     A step that solves the linearised error exactly leaves only the chain's second-order term, which
     the Jacobian bounds: |dp| <= V (sum |dq_i|)^2 / 2 with V the largest norm of a linear column along
@@ -746,7 +771,7 @@ def newton_ik(
     every row that is not NaN there.
     """
     pose = mode == "pose"
-    if validate:
+    if options.validate:
         targets = _check_targets(model, targets, mode)
         q_seed = model.check_joints(q_seed)
         if len(q_seed) != len(targets):
@@ -754,106 +779,182 @@ def newton_ik(
     q = project_to_limits(model, q_seed)
     N, n = q.shape
     tool = None if pose else (np.zeros(3) if p_flange_tool is None else np.asarray(p_flange_tool, float))
-    target = np.asarray(targets, float)
     if start is not None and (np.shape(start[0]) != (N, 4, 4) or np.shape(start[1]) != (N, 6, n)):
         raise ValueError(f"start must be poses ({N}, 4, 4) and Jacobians ({N}, 6, {n}) at the seeds")
-    lo, hi = model.joint_limits[:, 0], model.joint_limits[:, 1]
-    # L bounds every second derivative of the tip, |z_i x (z_j x (p - o_j))| <= |p - o_j|: the joint
-    # axes and the tip lie within the reach of the base.
-    L = 2.0 * reach_bound(model, 0.0 if tool is None else float(np.linalg.norm(tool)))
-    cert_p, cert_r = 0.5 * tol_position, 0.5 * tol_rotation
-    pos_err, rot_err = np.zeros(N), np.full(N, np.nan)
-    steps = np.zeros(N, int)
-    pose_out, J_out = np.empty((N, 4, 4)), np.empty((N, 6, n))
-    eye = np.eye(3 if not pose else n)
-    # The active rows live in their own compact arrays (idx: their rows in the batch); they are
-    # compressed only when some rows leave, and written back when they do.
-    idx, qa, tgt = np.arange(N), q.copy(), target
-    for step in range(max_steps + 1):
+    step_rule = _NewtonStep(model, tool, options)
+    rows = _NewtonRows.begin(q, np.asarray(targets, float), pose)
+    for step in range(options.max_steps + 1):
         if step == 0 and start is not None:
-            end, J = np.asarray(start[0], float), np.asarray(start[1], float)
-            missing = np.flatnonzero(np.isnan(end[:, 0, 0]) | np.isnan(J[:, 0, 0]))
-            if 2 * missing.size > N:  # most rows were certified without an evaluation last time
-                end, J = pose_and_jacobian(model, qa, tool)
-            elif missing.size:
-                end, J = end.copy(), J.copy()
-                end[missing], J[missing] = pose_and_jacobian(model, qa[missing], tool)
+            end, J = _evaluate_from_start(model, rows.qa, tool, start)
         else:
-            end, J = pose_and_jacobian(model, qa, tool)
-        if pose:
-            e = _frame_error(tgt, end)
+            end, J = pose_and_jacobian(model, rows.qa, tool)
+        e, p2, r2, done = step_rule.error(rows.tgt, end)
+        if step == options.max_steps:
+            done[:] = True
+        if done.any() or not done.size:
+            whole = done.all() and rows.all_active()
+            if whole and step == 0 and start is not None:  # the answers must not alias the caller's start
+                end, J = end.copy(), J.copy()
+            keep = rows.leave(done, step, np.sqrt(p2), None if r2 is None else np.sqrt(r2), end, J)
+            if keep is None:
+                break
+            J, e = J[keep], e[keep]
+        dq = step_rule.solve(J, e)
+        q_step = rows.qa + dq
+        inside = np.all((q_step >= step_rule.lo) & (q_step <= step_rule.hi), axis=1)
+        rows.qa = q_step if inside.all() else project_to_limits(model, q_step)
+        bound_p, bound_r = step_rule.bounds(J, e, dq)
+        cert = (bound_p < step_rule.cert_p) & inside
+        if bound_r is not None:
+            cert &= bound_r < step_rule.cert_r
+        if cert.any() and rows.leave(cert, step + 1, bound_p, bound_r, None, None) is None:
+            break
+    conv = (rows.pos_err < options.tol_position) & ((rows.rot_err < options.tol_rotation) if pose else True)
+    rot_err = rows.rot_err if pose else np.full(N, np.nan)
+    return NewtonResult(rows.q, rows.pos_err, rot_err, conv, rows.steps, rows.pose, rows.jacobian)
+
+
+def _evaluate_from_start(
+    model: KinematicModel, q: np.ndarray, tool: np.ndarray | None, start: tuple[np.ndarray, np.ndarray]
+) -> tuple[np.ndarray, np.ndarray]:
+    """The flange poses and Jacobians at the seeds: the caller's `start`, evaluated only where it is NaN
+    (all of them again when most rows are: evaluating everything is cheaper than gathering)."""
+    end, J = np.asarray(start[0], float), np.asarray(start[1], float)
+    missing = np.flatnonzero(np.isnan(end[:, 0, 0]) | np.isnan(J[:, 0, 0]))
+    if 2 * missing.size > len(q):  # most rows were certified without an evaluation last time
+        return pose_and_jacobian(model, q, tool)
+    if missing.size:
+        end, J = end.copy(), J.copy()
+        end[missing], J[missing] = pose_and_jacobian(model, q[missing], tool)
+    return end, J
+
+
+class _NewtonStep:
+    """One Gauss-Newton step of `newton_ik`: the error at the current joints, the step that solves its
+    linearisation, and the bound on what the step leaves (the certificate that saves an evaluation)."""
+
+    def __init__(self, model: KinematicModel, tool: np.ndarray | None, options: NewtonOptions) -> None:
+        self.tool, self.options = tool, options
+        self.pose = tool is None
+        self.lo, self.hi = model.joint_limits[:, 0], model.joint_limits[:, 1]
+        # L bounds every second derivative of the tip, |z_i x (z_j x (p - o_j))| <= |p - o_j|: the joint
+        # axes and the tip lie within the reach of the base.
+        self.L = 2.0 * reach_bound(model, 0.0 if tool is None else float(np.linalg.norm(tool)))
+        self.cert_p, self.cert_r = 0.5 * options.tol_position, 0.5 * options.tol_rotation
+        self.eye = np.eye(3 if not self.pose else model.n_joints)
+
+    def error(
+        self, target: np.ndarray, end: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray]:
+        """The error e (k, 6 or 3) taking the current flange poses `end` to the targets, its squared
+        position and rotation norms (rotation None in position mode), and which rows are within tolerance."""
+        tol_p, tol_r = self.options.tol_position, self.options.tol_rotation
+        if self.pose:
+            e = _frame_error(target, end)
             e2 = e * e
             p2, r2 = e2[:, :3].sum(1), e2[:, 3:].sum(1)
-            done = (p2 < tol_position**2) & (r2 < tol_rotation**2)
-        else:
-            e = tgt - (end[:, :3, :3] @ tool + end[:, :3, 3])
-            p2 = np.einsum("ki,ki->k", e, e)
-            done = p2 < tol_position**2
-        if step == max_steps:
-            done[:] = True
-        if done.all() and len(idx) == N:  # every row leaves at once: no gathers
-            q, steps[:], pos_err = qa, step, np.sqrt(p2)
-            if pose:
-                rot_err = np.sqrt(r2)
-            pose_out, J_out = (end.copy(), J.copy()) if step == 0 and start is not None else (end, J)
-            break
-        if done.any():
-            rows = idx[done]
-            q[rows], steps[rows], pos_err[rows] = qa[done], step, np.sqrt(p2[done])
-            if pose:
-                rot_err[rows] = np.sqrt(r2[done])
-            pose_out[rows], J_out[rows] = end[done], J[done]
-            if done.all():
-                break
-            keep = ~done
-            idx, qa, tgt, J, e = idx[keep], qa[keep], tgt[keep], J[keep], e[keep]
-        if pose:  # square: solve J dq = e; damped normal equations only if a J is exactly singular
+            return e, p2, r2, (p2 < tol_p**2) & (r2 < tol_r**2)
+        assert self.tool is not None
+        e = target - (end[:, :3, :3] @ self.tool + end[:, :3, 3])
+        p2 = np.einsum("ki,ki->k", e, e)
+        return e, p2, None, p2 < tol_p**2
+
+    def solve(self, J: np.ndarray, e: np.ndarray) -> np.ndarray:
+        """The step dq (k, n) that solves the linearised error."""
+        damping = self.options.damping
+        if self.pose:  # square: solve J dq = e; damped normal equations only if a J is exactly singular
             try:
-                dq = np.linalg.solve(J, e[..., None])[..., 0]
+                return np.linalg.solve(J, e[..., None])[..., 0]
             except np.linalg.LinAlgError:
                 Jt = np.swapaxes(J, 1, 2)
-                dq = np.linalg.solve(Jt @ J + damping * eye, np.einsum("kim,km->ki", Jt, e)[..., None])[
-                    ..., 0
-                ]
-        else:  # minimum norm: dq = J^T (J J^T)^-1 e
-            Jv = J[:, :3]
-            A = Jv @ np.swapaxes(Jv, 1, 2) + damping * eye
-            dq = np.einsum("kmi,km->ki", Jv, np.linalg.solve(A, e[..., None])[..., 0])
-        q_step = qa + dq
-        inside = np.all((q_step >= lo) & (q_step <= hi), axis=1)
-        qa = q_step if inside.all() else project_to_limits(model, q_step)
-        # Certified rows: the step stayed inside the limits and its bound is far below the tolerances.
-        # The tip's second derivatives z_i x v_j are bounded by the largest |v_j| (the Jacobian's linear
-        # columns here), which moves by at most L sum |dq| along the step.
-        # What the step leaves of the linearised error itself (rounding; damping at a singularity,
-        # where a tiny step may leave most of the error) adds to the bound as it is.
+                normal = Jt @ J + damping * self.eye
+                return np.linalg.solve(normal, np.einsum("kim,km->ki", Jt, e)[..., None])[..., 0]
+        # minimum norm: dq = J^T (J J^T)^-1 e
+        Jv = J[:, :3]
+        A = Jv @ np.swapaxes(Jv, 1, 2) + damping * self.eye
+        return np.einsum("kmi,km->ki", Jv, np.linalg.solve(A, e[..., None])[..., 0])
+
+    def bounds(self, J: np.ndarray, e: np.ndarray, dq: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """Bounds on the position (m) and rotation (rad; None in position mode) errors the step leaves.
+
+        The tip's second derivatives z_i x v_j are bounded by the largest |v_j| (the Jacobian's linear
+        columns here), which moves by at most L sum |dq| along the step. What the step leaves of the
+        linearised error itself (rounding; damping at a singularity, where a tiny step may leave most of
+        the error) adds to the bound as it is.
+        """
         s1 = np.abs(dq).sum(1)
         s2 = s1 * s1
         v_max = np.sqrt((J[:, :3] ** 2).sum(1).max(1))
-        left = e - ((J if pose else J[:, :3]) @ dq[..., None])[..., 0]
-        bound_p = (v_max + L * s1) * s2 + np.sqrt((left[:, :3] ** 2).sum(1))
-        cert = (bound_p < cert_p) & inside
-        if pose:
-            bound_r = 2.0 * s2 + np.sqrt((left[:, 3:] ** 2).sum(1))
-            cert &= bound_r < cert_r
-        if cert.all() and len(idx) == N:
-            q, steps[:], pos_err = qa, step + 1, bound_p
-            if pose:
-                rot_err = bound_r
-            pose_out[:], J_out[:] = np.nan, np.nan
-            break
-        if cert.any():
-            rows = idx[cert]
-            q[rows], steps[rows], pos_err[rows] = qa[cert], step + 1, bound_p[cert]
-            if pose:
-                rot_err[rows] = bound_r[cert]
-            pose_out[rows], J_out[rows] = np.nan, np.nan
-            if cert.all():
-                break
-            keep = ~cert
-            idx, qa, tgt = idx[keep], qa[keep], tgt[keep]
-    conv = (pos_err < tol_position) & ((rot_err < tol_rotation) if pose else True)
-    return NewtonResult(q, pos_err, rot_err if pose else np.full(N, np.nan), conv, steps, pose_out, J_out)
+        left = e - ((J if self.pose else J[:, :3]) @ dq[..., None])[..., 0]
+        bound_p = (v_max + self.L * s1) * s2 + np.sqrt((left[:, :3] ** 2).sum(1))
+        if not self.pose:
+            return bound_p, None
+        return bound_p, 2.0 * s2 + np.sqrt((left[:, 3:] ** 2).sum(1))
+
+
+@dataclass
+class _NewtonRows:
+    """`newton_ik`'s answers for the N rows of the batch, and the rows still iterating.
+
+    The active rows live in their own compact arrays (`idx`: their rows in the batch); they are
+    compressed only when some rows leave, and written back when they do.
+    """
+
+    q: np.ndarray  # (N, n) answers
+    pos_err: np.ndarray  # (N,)
+    rot_err: np.ndarray  # (N,) NaN in position mode
+    steps: np.ndarray  # (N,) int
+    pose: np.ndarray  # (N, 4, 4) at the answers, NaN where certified
+    jacobian: np.ndarray  # (N, 6, n)
+    idx: np.ndarray  # (k,) the active rows in the batch
+    qa: np.ndarray  # (k, n) their joints
+    tgt: np.ndarray  # (k, ...) their targets
+
+    @classmethod
+    def begin(cls, q: np.ndarray, target: np.ndarray, pose: bool) -> _NewtonRows:
+        """Every row active, at the seeds q (N, n)."""
+        N, n = q.shape
+        return cls(
+            q, np.zeros(N), np.full(N, np.nan), np.zeros(N, int), np.empty((N, 4, 4)), np.empty((N, 6, n)),
+            np.arange(N), q.copy(), target,
+        )  # fmt: skip
+
+    def all_active(self) -> bool:
+        return len(self.idx) == len(self.q)
+
+    def leave(
+        self,
+        mask: np.ndarray,
+        step: int,
+        pos_err: np.ndarray,
+        rot_err: np.ndarray | None,
+        end: np.ndarray | None,
+        J: np.ndarray | None,
+    ) -> np.ndarray | None:
+        """The active rows in `mask` leave with their joints, errors, step count and pose and Jacobian
+        (None: certified, NaN). Returns the mask of the rows kept, None when no row is left."""
+        if mask.all() and self.all_active():  # every row leaves at once: no gathers
+            self.q, self.steps[:], self.pos_err = self.qa, step, pos_err
+            if rot_err is not None:
+                self.rot_err = rot_err
+            if end is None or J is None:
+                self.pose[:], self.jacobian[:] = np.nan, np.nan
+            else:
+                self.pose, self.jacobian = end, J
+            return None
+        rows = self.idx[mask]
+        self.q[rows], self.steps[rows], self.pos_err[rows] = self.qa[mask], step, pos_err[mask]
+        if rot_err is not None:
+            self.rot_err[rows] = rot_err[mask]
+        if end is None or J is None:
+            self.pose[rows], self.jacobian[rows] = np.nan, np.nan
+        else:
+            self.pose[rows], self.jacobian[rows] = end[mask], J[mask]
+        if mask.all():
+            return None
+        keep = ~mask
+        self.idx, self.qa, self.tgt = self.idx[keep], self.qa[keep], self.tgt[keep]
+        return keep
 
 
 def _frame_error(target: np.ndarray, current: np.ndarray) -> np.ndarray:

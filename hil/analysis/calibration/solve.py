@@ -416,59 +416,28 @@ def solve_ridge_igg3(
     `frozen_jacobian` linearises once at `model` (which must be near the optimum, e.g. a subset's
     solution): the iterations then cost no kinematics, the model is updated once at the end.
     """
-    free = np.asarray(free, bool)
-    names = model.param_names
+    fit = _RidgeFit(model, problem, np.asarray(free, bool), ridge, frozen_jacobian)
     start = model
-    if frozen_jacobian:
-        r0v, J0f = _linearised(problem, model, free)
-    # The prior holds the robot's geometry and effects, not the set-up (base frame, tool points, probes).
-    prior_mask = np.array([not n.startswith(("base_", "tool", "probe")) for n in names])[free]
-    w_prior, off_prior = prior_terms(model, free, position_noise_m(problem.measured))
-    N_pts = problem.measured.shape[0]
-    d = problem.n_obs  # coordinates per point: position, and a probe's scaled rotation
-    w_pts = np.ones(N_pts)
-    dev = np.zeros(int(free.sum()))  # accumulated change of the free parameters since the start
+    w_pts = np.ones(fit.n_points)
+    dev = np.zeros(int(fit.free.sum()))  # accumulated change of the free parameters since the start
     warm = 0
     it = 0
     sigma_robust: np.ndarray | None = None
     for it in range(1, max_iter + 1):  # noqa: B007
-        if frozen_jacobian:
-            r, Jf = (r0v - J0f @ dev).reshape(N_pts, d), J0f
-        else:
-            r, J = problem.evaluate(model)
-            Jf = flatten_jacobian(J)[:, free]
+        r, Jf = fit.linearise(model, dev)
         Js, norms = scale_columns(Jf)
         rv = r.reshape(-1)
-        w_rows = np.repeat(w_pts, d)
-        Nm = (Js * w_rows[:, None]).T @ Js
-        mu = ridge * np.linalg.eigvalsh(Nm)[-1]
-        M = Nm + mu * np.diag(prior_mask.astype(float)) + np.diag(w_prior / norms**2)
-        rhs = Js.T @ (w_rows * rv) - mu * prior_mask * (dev * norms) - w_prior * (off_prior + dev) / norms
-        step_s = np.linalg.solve(M + 1e-14 * np.trace(M) / len(M) * np.eye(len(M)), rhs)
-        step = step_s / norms
-        # Backtrack when the step does not lower the penalised weighted cost (guards weak directions).
-        cost0 = float(
-            np.sum(w_rows * rv**2)
-            + mu * np.sum(prior_mask * (dev * norms) ** 2)
-            + np.sum(w_prior * (off_prior + dev) ** 2)
+        w_rows = np.repeat(w_pts, fit.d)
+        M, mu = fit.normal_matrix(Js, w_rows, norms)
+        prior = fit.prior
+        rhs = (
+            Js.T @ (w_rows * rv)
+            - mu * prior.mask * (dev * norms)
+            - prior.weight * (prior.offset + dev) / norms
         )
-        for _ in range(12):
-            dx = np.zeros(len(names))
-            dx[free] = step
-            if frozen_jacobian:
-                trial, r_new = model, r0v - J0f @ (dev + step)
-            else:
-                trial = model.apply_increment(dx)
-                r_new = problem.residuals(trial).reshape(-1)
-            cost = float(
-                np.sum(w_rows * r_new**2)
-                + mu * np.sum(prior_mask * ((dev + step) * norms) ** 2)
-                + np.sum(w_prior * (off_prior + dev + step) ** 2)
-            )
-            if cost <= cost0 * (1 + 1e-12):
-                break
-            step, step_s = step / 2, step_s / 2
-        model = trial
+        step_s = np.linalg.solve(M + 1e-14 * np.trace(M) / len(M) * np.eye(len(M)), rhs)
+        cost0 = prior.cost(float(np.sum(w_rows * rv**2)), mu, dev, norms)
+        model, r_new, step, step_s, cost = fit.backtrack(model, w_rows, mu, dev, norms, step_s, cost0)
         dev += step
         small = np.max(np.abs(step_s)) < 1e-8 or cost >= cost0 * (1 - 1e-10)  # converged
         if not robust:
@@ -478,50 +447,156 @@ def solve_ridge_igg3(
         warm += 1
         if warm < 15 and not small and np.all(w_pts == 1):
             continue  # plain Gauss-Newton to convergence before judging points (IGG3 is not convex)
-        Minv = np.linalg.pinv(M)
-        red = _redundancy(Js, Minv)
         # Robust scale, fixed once from the least-squares solution (1.4826 x median absolute residual of
         # all coordinates; positions and a probe's rotations each their own): a weighted sigma0 re-estimated
         # each step shrinks as points are rejected and lets the re-weighting reject ever more points.
         if sigma_robust is None:
             cw = problem.copy_weight
-            sigma_robust = (robust_scales(r_new.reshape(N_pts, d) / cw, centred=False) * cw).reshape(-1)
-        t_rows = r_new / (sigma_robust * np.sqrt(red))
-        t_pts = np.sqrt(np.mean(t_rows.reshape(N_pts, d) ** 2, axis=1))
-        w_new = igg3_weight(t_pts, k0, k1)
+            sigma_robust = (
+                robust_scales(r_new.reshape(fit.n_points, fit.d) / cw, centred=False) * cw
+            ).reshape(-1)
+        w_new = fit.igg3_weights(Js, M, r_new, sigma_robust, k0, k1)
         changed = np.max(np.abs(w_new - w_pts)) > 1e-6
         w_pts = w_new
         if small and not changed:
             break
     if frozen_jacobian:
-        dx = np.zeros(len(names))
-        dx[free] = dev
+        dx = np.zeros(len(fit.names))
+        dx[fit.free] = dev
         model = start.apply_increment(dx)
-    r, J = problem.evaluate(model)
-    Jf = flatten_jacobian(J)[:, free]
-    Js, norms = scale_columns(Jf)
-    w_rows = np.repeat(w_pts, d)
-    Nm = (Js * w_rows[:, None]).T @ Js
-    mu = ridge * np.linalg.eigvalsh(Nm)[-1]
-    dof = max(int(np.count_nonzero(w_rows)) - int(free.sum()), 1)
-    sigma0 = float(np.sqrt(np.sum(w_rows * r.reshape(-1) ** 2) / dof))
-    cov_s = np.linalg.inv(
-        Nm + mu * np.diag(prior_mask.astype(float)) + np.diag(w_prior / norms**2) + 1e-14 * np.eye(len(Nm))
-    )
-    std = sigma0 * np.sqrt(np.diag(cov_s)) / norms
-    free_names = [n for n, f in zip(names, free, strict=True) if f]
-    return CalibrationResult(
-        model=model,
-        solver="ridge-igg3" if robust else "ridge",
-        free=free_names,
-        std=dict(zip(free_names, map(float, std), strict=True)),
-        sigma0_m=sigma0,
-        weights=w_pts,
-        outliers=w_pts == 0,
-        residual_m=r[:, :3],
-        iterations=it,
-        residual_rot_rad=_rotation_part(problem, r),
-    )
+    return fit.result(model, w_pts, it, "ridge-igg3" if robust else "ridge")
+
+
+@dataclass(frozen=True)
+class _Prior:
+    """What `solve_ridge_igg3` adds to the least-squares cost: the ridge on the robot's parameters (`mask`:
+    not the set-up's base frame, tool points and probes) and the prior's weights and offsets (`prior_terms`)."""
+
+    mask: np.ndarray  # (p,) bool over the free parameters
+    weight: np.ndarray  # (p,)
+    offset: np.ndarray  # (p,)
+
+    def matrix(self, Nm: np.ndarray, mu: float, norms: np.ndarray) -> np.ndarray:
+        """The penalised normal matrix of the scaled columns."""
+        return Nm + mu * np.diag(self.mask.astype(float)) + np.diag(self.weight / norms**2)
+
+    def cost(
+        self, data_cost: float, mu: float, dev: np.ndarray, norms: np.ndarray, step: np.ndarray | None = None
+    ) -> float:
+        """The penalised weighted cost at the parameters moved by `dev` (and `step`, when given) from the
+        start; `data_cost` is the weighted sum of squared residuals there."""
+        if step is None:
+            return float(
+                data_cost
+                + mu * np.sum(self.mask * (dev * norms) ** 2)
+                + np.sum(self.weight * (self.offset + dev) ** 2)
+            )
+        return float(
+            data_cost
+            + mu * np.sum(self.mask * ((dev + step) * norms) ** 2)
+            + np.sum(self.weight * (self.offset + dev + step) ** 2)
+        )
+
+
+class _RidgeFit:
+    """One `solve_ridge_igg3` fit: the problem's residuals and Jacobian of the free columns (at each model,
+    or frozen at the start), the ridge and prior penalties, the step's backtracking, the IGG3 weights and
+    the final statistics."""
+
+    def __init__(
+        self, model: CalibratedModel, problem: Problem, free: np.ndarray, ridge: float, frozen_jacobian: bool
+    ) -> None:
+        self.problem, self.free, self.ridge = problem, free, ridge
+        self.names = model.param_names
+        self.frozen = _linearised(problem, model, free) if frozen_jacobian else None
+        # The prior holds the robot's geometry and effects, not the set-up (base frame, tool points, probes).
+        prior_mask = np.array([not n.startswith(("base_", "tool", "probe")) for n in self.names])[free]
+        w_prior, off_prior = prior_terms(model, free, position_noise_m(problem.measured))
+        self.prior = _Prior(prior_mask, w_prior, off_prior)
+        self.n_points = problem.measured.shape[0]
+        self.d = problem.n_obs  # coordinates per point: position, and a probe's scaled rotation
+
+    def linearise(self, model: CalibratedModel, dev: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Residuals (N, d) and the free columns of the flattened Jacobian at `model` (`dev` from the start)."""
+        if self.frozen is not None:
+            r0v, J0f = self.frozen
+            return (r0v - J0f @ dev).reshape(self.n_points, self.d), J0f
+        r, J = self.problem.evaluate(model)
+        return r, flatten_jacobian(J)[:, self.free]
+
+    def normal_matrix(
+        self, Js: np.ndarray, w_rows: np.ndarray, norms: np.ndarray
+    ) -> tuple[np.ndarray, float]:
+        """The penalised normal matrix of the scaled columns `Js` under the row weights, and the ridge mu
+        (`ridge` times the largest eigenvalue of the unpenalised one)."""
+        Nm = (Js * w_rows[:, None]).T @ Js
+        mu = self.ridge * np.linalg.eigvalsh(Nm)[-1]
+        return self.prior.matrix(Nm, mu, norms), mu
+
+    def backtrack(
+        self,
+        model: CalibratedModel,
+        w_rows: np.ndarray,
+        mu: float,
+        dev: np.ndarray,
+        norms: np.ndarray,
+        step_s: np.ndarray,
+        cost0: float,
+    ) -> tuple[CalibratedModel, np.ndarray, np.ndarray, np.ndarray, float]:
+        """The scaled step halved until it does not raise the penalised weighted cost (guards weak
+        directions), at most 12 times: the model there, its residual vector, the step (unscaled and
+        scaled) and its cost."""
+        step = step_s / norms
+        for _ in range(12):
+            dx = np.zeros(len(self.names))
+            dx[self.free] = step
+            if self.frozen is not None:
+                trial, r_new = model, self.frozen[0] - self.frozen[1] @ (dev + step)
+            else:
+                trial = model.apply_increment(dx)
+                r_new = self.problem.residuals(trial).reshape(-1)
+            cost = self.prior.cost(float(np.sum(w_rows * r_new**2)), mu, dev, norms, step)
+            if cost <= cost0 * (1 + 1e-12):
+                break
+            step, step_s = step / 2, step_s / 2
+        return trial, r_new, step, step_s, cost
+
+    def igg3_weights(
+        self, Js: np.ndarray, M: np.ndarray, r: np.ndarray, sigma_robust: np.ndarray, k0: float, k1: float
+    ) -> np.ndarray:
+        """Each point's IGG3 weight from its residual standardised by the robust scale and its redundancy."""
+        red = _redundancy(Js, np.linalg.pinv(M))
+        t_rows = r / (sigma_robust * np.sqrt(red))
+        t_pts = np.sqrt(np.mean(t_rows.reshape(self.n_points, self.d) ** 2, axis=1))
+        return igg3_weight(t_pts, k0, k1)
+
+    def result(
+        self, model: CalibratedModel, w_pts: np.ndarray, iterations: int, solver: str
+    ) -> CalibrationResult:
+        """The fit at `model`: sigma0 from the weighted residuals, the parameters' standard deviations from
+        the penalised normal matrix, the outliers (weight 0)."""
+        r, J = self.problem.evaluate(model)
+        Jf = flatten_jacobian(J)[:, self.free]
+        Js, norms = scale_columns(Jf)
+        w_rows = np.repeat(w_pts, self.d)
+        M, _ = self.normal_matrix(Js, w_rows, norms)
+        dof = max(int(np.count_nonzero(w_rows)) - int(self.free.sum()), 1)
+        sigma0 = float(np.sqrt(np.sum(w_rows * r.reshape(-1) ** 2) / dof))
+        cov_s = np.linalg.inv(M + 1e-14 * np.eye(len(M)))
+        std = sigma0 * np.sqrt(np.diag(cov_s)) / norms
+        free_names = [n for n, f in zip(self.names, self.free, strict=True) if f]
+        return CalibrationResult(
+            model=model,
+            solver=solver,
+            free=free_names,
+            std=dict(zip(free_names, map(float, std), strict=True)),
+            sigma0_m=sigma0,
+            weights=w_pts,
+            outliers=w_pts == 0,
+            residual_m=r[:, :3],
+            iterations=iterations,
+            residual_rot_rad=_rotation_part(self.problem, r),
+        )
 
 
 def robust_scales(r: np.ndarray, centred: bool) -> np.ndarray:

@@ -62,8 +62,9 @@ Admissible = Callable[[np.ndarray], np.ndarray]  # (M, n) joints -> (M,) bool: r
 
 
 @dataclass
-class Plan:
-    """Rows to measure in order, the question each serves, and each group's expected evidence."""
+class Proposal:
+    """Rows a diagnosis proposes to measure, in order, the question each serves, and each group's expected
+    evidence (not hil.runner.plan.Plan, the poses a procedure runs)."""
 
     q: np.ndarray  # (M, n) rad
     purpose: list[str]
@@ -81,6 +82,44 @@ class Plan:
         return {"rows": len(self.purpose), "groups": self.groups, "not_planned": self.not_planned}
 
 
+@dataclass(frozen=True)
+class _Design:
+    """What every part of a plan is designed against: the campaign, its model, the tracker noise, which
+    configurations are admissible, the random draws and the blocks a round is measured in."""
+
+    df: pd.DataFrame
+    model: CalibratedModel
+    sigma_m: float
+    ok: Admissible
+    rng: np.random.Generator
+    block_rows: int
+
+    @property
+    def q_camp(self) -> np.ndarray:
+        return joints_rad(self.df)
+
+    @property
+    def limits(self) -> np.ndarray:
+        return np.asarray(self.model.nominal.joint_limits, float)
+
+
+@dataclass
+class _Draft:
+    """A plan being built: its rows so far (joints, purpose), their groups, the questions it leaves and the
+    rows still in the budget."""
+
+    budget: int
+    rows: list[tuple[np.ndarray, str]] = field(default_factory=list)
+    groups: list[dict] = field(default_factory=list)
+    not_planned: list[dict] = field(default_factory=list)
+
+    def add(self, q: np.ndarray, purpose: str, group: dict) -> None:
+        """Rows q (k, n) that serve `purpose`, out of the budget, with their group."""
+        self.rows += [(row, purpose) for row in q]
+        self.budget -= len(q)
+        self.groups.append({"purpose": purpose, "rows": len(q), **group})
+
+
 def propose(
     df: pd.DataFrame,
     model: CalibratedModel,
@@ -90,7 +129,7 @@ def propose(
     admissible: Admissible | None = None,
     seed: int = 0,
     block_rows: int = BLOCK_ROWS,
-) -> Plan:
+) -> Proposal:
     """At most `max_rows` joint configurations, in measurement order, that decide `questions` on `df`.
 
     `sigma_m`: 1-sigma tracker noise per axis; `admissible`: which configurations the cell can reach and
@@ -107,85 +146,90 @@ def propose(
         inside = np.all((q >= limits[:, 0]) & (q <= limits[:, 1]), axis=1)
         return inside & (np.ones(len(q), bool) if admissible is None else np.asarray(admissible(q), bool))
 
-    rng = np.random.default_rng(seed)
+    design = _Design(df, model, sigma_m, ok, np.random.default_rng(seed), block_rows)
     plannable = [qu for qu in questions if qu["plannable"]]
-    plan = Plan(np.zeros((0, q_camp.shape[1])), [])
+    plan = Proposal(np.zeros((0, q_camp.shape[1])), [])
     plan.not_planned = [
         {"question": qu, "why": "poses cannot decide it"} for qu in questions if not qu["plannable"]
     ]
     if not plannable:
         return plan
-    budget = max_rows
     drift = [qu for qu in plannable if qu["kind"] == "drift_unmonitored"]
-    reserve = min(MIN_REVISITS, budget // 2 if len(plannable) > len(drift) else budget) if drift else 0
-    budget -= reserve
-    rows: list[tuple[np.ndarray, str]] = []
-    groups: list[dict] = []
+    reserve = min(MIN_REVISITS, max_rows // 2 if len(plannable) > len(drift) else max_rows) if drift else 0
+    draft = _Draft(max_rows - reserve, not_planned=plan.not_planned)
     centre = _central_pose(q_camp)
-    backlash_joints = {qu["effect"]["joint"] for qu in plannable if qu["kind"] == "one_approach_direction"}
-    for qu in [qu for qu in plannable if qu["kind"] == "period_not_covered"]:
-        j = qu["effect"]["joint"] - 1
-        both = (j + 1) in backlash_joints
-        sweep = _sweep(q_camp, centre, j, limits, ok, both, rng)
-        if sweep is None:
-            plan.not_planned.append(
-                {"question": qu, "why": "no reachable, visible sweep covers enough of a turn"}
-            )
-            continue
-        if len(sweep) > budget:
-            plan.not_planned.append(
-                {"question": qu, "why": f"the budget leaves {budget} rows, a sweep needs {len(sweep)}"}
-            )
-            continue
-        purpose = f"sweep_j{j + 1}"
-        rows += [(q, purpose) for q in sweep]
-        budget -= len(sweep)
-        span = float(np.rad2deg(np.ptp(np.concatenate([q_camp[:, j], sweep[:, j]]))))
-        groups.append({"purpose": purpose, "rows": len(sweep), "question": qu, "range_after_deg": span})
-        if both:
-            backlash_joints.discard(j + 1)
-            groups[-1]["also"] = f"backlash_j{j + 1}"
-            groups[-1]["also_question"] = next(
-                b
-                for b in plannable
-                if b["kind"] == "one_approach_direction" and b["effect"]["joint"] == j + 1
-            )
-    for qu in [qu for qu in plannable if qu["kind"] == "one_approach_direction"]:
-        j = qu["effect"]["joint"] - 1
-        if (j + 1) not in backlash_joints:
-            continue
-        there = _back_and_forth(centre, j, limits, ok)
-        if there is None or len(there) > budget:
-            plan.not_planned.append(
-                {"question": qu, "why": "no room (limits, envelope or budget) to move it both ways"}
-            )
-            continue
-        purpose = f"backlash_j{j + 1}"
-        rows += [(q, purpose) for q in there]
-        budget -= len(there)
-        groups.append({"purpose": purpose, "rows": len(there), "question": qu})
-    physics_q = np.array([r[0] for r in rows]).reshape(-1, q_camp.shape[1])
+    backlash_joints = _plan_sweeps(draft, design, plannable, centre)
+    _plan_back_and_forth(draft, design, plannable, centre, backlash_joints)
+    physics_q = np.array([r[0] for r in draft.rows]).reshape(-1, q_camp.shape[1])
     stat = [
         qu
         for qu in plannable
         if qu["kind"] not in ("period_not_covered", "one_approach_direction", "drift_unmonitored")
     ]
     if stat:
-        first_block = block_rows - len(rows) % block_rows
-        design_rows, design_groups, skipped = _separate(
-            df, model, stat, physics_q, budget, sigma_m, ok, rng, block_rows, first_block
-        )
-        rows += design_rows
-        groups += design_groups
-        plan.not_planned += skipped
+        first_block = block_rows - len(draft.rows) % block_rows
+        design_rows, design_groups, skipped = _separate(design, stat, physics_q, draft.budget, first_block)
+        draft.rows += design_rows
+        draft.groups += design_groups
+        draft.not_planned += skipped
     if drift:
         first = _first_poses(df, q_camp, reserve, ok)
-        rows += [(q, "revisit") for q in first]
-        groups.append({"purpose": "revisit", "rows": len(first), "question": drift[0]})
-    plan.q = np.array([r[0] for r in rows]).reshape(-1, q_camp.shape[1])
-    plan.purpose = [r[1] for r in rows]
-    plan.groups = groups
+        draft.rows += [(q, "revisit") for q in first]
+        draft.groups.append({"purpose": "revisit", "rows": len(first), "question": drift[0]})
+    plan.q = np.array([r[0] for r in draft.rows]).reshape(-1, q_camp.shape[1])
+    plan.purpose = [r[1] for r in draft.rows]
+    plan.groups = draft.groups
     return plan
+
+
+def _plan_sweeps(draft: _Draft, design: _Design, plannable: list[dict], centre: np.ndarray) -> set[int]:
+    """A sweep over most of a turn for each uncovered period; where the joint's backlash has one approach
+    direction too, the sweep comes back down and serves both. Returns the joints whose backlash is left."""
+    backlash_joints = {qu["effect"]["joint"] for qu in plannable if qu["kind"] == "one_approach_direction"}
+    q_camp, limits = design.q_camp, design.limits
+    for qu in [qu for qu in plannable if qu["kind"] == "period_not_covered"]:
+        j = qu["effect"]["joint"] - 1
+        both = (j + 1) in backlash_joints
+        sweep = _sweep(q_camp, centre, j, limits, design.ok, both, design.rng)
+        if sweep is None:
+            draft.not_planned.append(
+                {"question": qu, "why": "no reachable, visible sweep covers enough of a turn"}
+            )
+            continue
+        if len(sweep) > draft.budget:
+            draft.not_planned.append(
+                {"question": qu, "why": f"the budget leaves {draft.budget} rows, a sweep needs {len(sweep)}"}
+            )
+            continue
+        span = float(np.rad2deg(np.ptp(np.concatenate([q_camp[:, j], sweep[:, j]]))))
+        draft.add(sweep, f"sweep_j{j + 1}", {"question": qu, "range_after_deg": span})
+        if both:
+            backlash_joints.discard(j + 1)
+            draft.groups[-1]["also"] = f"backlash_j{j + 1}"
+            draft.groups[-1]["also_question"] = next(
+                b
+                for b in plannable
+                if b["kind"] == "one_approach_direction" and b["effect"]["joint"] == j + 1
+            )
+    return backlash_joints
+
+
+def _plan_back_and_forth(
+    draft: _Draft, design: _Design, plannable: list[dict], centre: np.ndarray, backlash_joints: set[int]
+) -> None:
+    """The joint moved up then down through the same range for each backlash with one approach direction
+    that no sweep serves."""
+    for qu in [qu for qu in plannable if qu["kind"] == "one_approach_direction"]:
+        j = qu["effect"]["joint"] - 1
+        if (j + 1) not in backlash_joints:
+            continue
+        there = _back_and_forth(centre, j, design.limits, design.ok)
+        if there is None or len(there) > draft.budget:
+            draft.not_planned.append(
+                {"question": qu, "why": "no room (limits, envelope or budget) to move it both ways"}
+            )
+            continue
+        draft.add(there, f"backlash_j{j + 1}", {"question": qu})
 
 
 def _central_pose(q: np.ndarray) -> np.ndarray:
@@ -270,10 +314,11 @@ def _pool(q_camp: np.ndarray, limits: np.ndarray, ok, rng) -> np.ndarray:
     return q[ok(q)]
 
 
-def _separate(df, model, questions, physics_q, budget, sigma_m, ok, rng, block_rows, first_block):
+def _separate(design: _Design, questions: list[dict], physics_q: np.ndarray, budget: int, first_block: int):
     """Greedy Bayesian T-optimal rows for the statistical questions (see the module docstring), in blocks of
-    `block_rows` (the first `first_block` long) that follow the greedy order."""
-    q_camp = joints_rad(df)
+    `design.block_rows` (the first `first_block` long) that follow the greedy order."""
+    df, model, sigma_m = design.df, design.model, design.sigma_m
+    q_camp = design.q_camp
     camp = Problem.from_frame(model, df)
     rivals, skipped = [], []
     for qu in questions:
@@ -284,8 +329,7 @@ def _separate(df, model, questions, physics_q, budget, sigma_m, ok, rng, block_r
             rivals.append(r)
     if not rivals:
         return [], [], skipped
-    limits = np.asarray(model.nominal.joint_limits, float)
-    pool = _pool(q_camp, limits, ok, rng)
+    pool = _pool(q_camp, design.limits, design.ok, design.rng)
     if len(physics_q):  # the physics rows are measured too: count their information
         for r in rivals:
             r.cov = _woodbury_update(
@@ -295,6 +339,21 @@ def _separate(df, model, questions, physics_q, budget, sigma_m, ok, rng, block_r
                 ),
             )
     blocks = [scaled_rows(r.trial, unmeasured_problem(model, df, pool), r.keep, r.norms) for r in rivals]
+    rivals, blocks, z_before = _decidable(rivals, blocks, budget, sigma_m, skipped)
+    chosen, serves = _greedy_rows(rivals, blocks, len(pool), budget, sigma_m)
+    order = _block_order(
+        pool[chosen], physics_q[-1] if len(physics_q) else q_camp[-1], first_block, design.block_rows
+    )
+    rows = [(pool[chosen[i]], f"separate_{rivals[serves[i]].label}") for i in order]
+    groups = _separation_groups(rivals, serves, z_before, sigma_m, skipped)
+    return rows, groups, skipped
+
+
+def _decidable(
+    rivals: list[Rival], blocks: list[np.ndarray], budget: int, sigma_m: float, skipped: list[dict]
+) -> tuple[list[Rival], list[np.ndarray], list[float]]:
+    """The rivals (with their pool rows and evidence z before the plan) that the whole budget could decide;
+    the others join `skipped` with the evidence they would reach."""
     z_before = [float(r.z(np.diag(r.cov)[r.cols], sigma_m)) for r in rivals]
     reach = [
         r.test_z_after(MAX_DESIGN_ROW_WORTH * budget)
@@ -316,14 +375,17 @@ def _separate(df, model, questions, physics_q, budget, sigma_m, ok, rng, block_r
             }
         )
     keep_k = [k for k, z in enumerate(reach) if z >= DECISIVE_Z]
-    rivals, blocks, z_before = (
-        [rivals[k] for k in keep_k],
-        [blocks[k] for k in keep_k],
-        [z_before[k] for k in keep_k],
-    )
+    return [rivals[k] for k in keep_k], [blocks[k] for k in keep_k], [z_before[k] for k in keep_k]
+
+
+def _greedy_rows(
+    rivals: list[Rival], blocks: list[np.ndarray], pool_size: int, budget: int, sigma_m: float
+) -> tuple[list[int], list[int]]:
+    """Pool rows chosen one at a time by their summed evidence gain over the questions still open, and the
+    rival each serves most; each rival's covariance takes in every chosen row."""
     chosen: list[int] = []
     serves: list[int] = []
-    available = np.ones(len(pool), bool)
+    available = np.ones(pool_size, bool)
     needed = [min(r.rows_needed(), budget) for r in rivals]
     for _ in range(budget):
         z_now = np.array([float(r.z(np.diag(r.cov)[r.cols], sigma_m)) for r in rivals])
@@ -334,7 +396,7 @@ def _separate(df, model, questions, physics_q, budget, sigma_m, ok, rng, block_r
         ]
         if not any(open_) or not available.any():
             break
-        gains = np.zeros((len(rivals), len(pool)))
+        gains = np.zeros((len(rivals), pool_size))
         for k, (r, A) in enumerate(zip(rivals, blocks, strict=True)):
             if not open_[k]:
                 continue
@@ -352,10 +414,14 @@ def _separate(df, model, questions, physics_q, budget, sigma_m, ok, rng, block_r
         available[best] = False
         for r, A in zip(rivals, blocks, strict=True):
             r.cov = _woodbury_update(r.cov, A[best])
-    order = _block_order(
-        pool[chosen], physics_q[-1] if len(physics_q) else q_camp[-1], first_block, block_rows
-    )
-    rows = [(pool[chosen[i]], f"separate_{rivals[serves[i]].label}") for i in order]
+    return chosen, serves
+
+
+def _separation_groups(
+    rivals: list[Rival], serves: list[int], z_before: list[float], sigma_m: float, skipped: list[dict]
+) -> list[dict]:
+    """Each rival's group: the rows that serve it and its evidence before and after; a rival no row serves
+    and still undecided joins `skipped`."""
     groups = []
     for k, r in enumerate(rivals):
         count = int(np.sum(np.asarray(serves) == k))
@@ -377,7 +443,7 @@ def _separate(df, model, questions, physics_q, budget, sigma_m, ok, rng, block_r
                 "decisive_z": DECISIVE_Z,
             }
         )
-    return rows, groups, skipped
+    return groups
 
 
 def _solo_reach(r: Rival, A: np.ndarray, budget: int, sigma_m: float) -> float:

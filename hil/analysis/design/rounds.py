@@ -21,7 +21,7 @@ from collections.abc import Callable
 import numpy as np
 import pandas as pd
 
-from hil.analysis.design.plan import BLOCK_ROWS, Plan, propose
+from hil.analysis.design.plan import BLOCK_ROWS, Proposal, propose
 from hil.analysis.diagnosis.pipeline import DiagnosisReport
 from hil.analysis.diagnosis.questions import question_subject, settled
 
@@ -33,7 +33,7 @@ def plan_round(
     admissible: Callable[[np.ndarray], np.ndarray] | None,
     seed: int,
     block: int = BLOCK_ROWS,
-) -> Plan:
+) -> Proposal:
     """The poses (at most `max_rows`, in measurement order, most informative first in each `block`) that
     decide what `report` leaves open on `df`."""
     sigma_m = float(np.sqrt(np.mean(np.asarray(report.noise.sigma_axis_m) ** 2)))

@@ -41,7 +41,8 @@ def caution(kind: str, **data: Any) -> dict:
     return {"kind": kind, **data}
 
 
-Progress = Callable[[str, int, int], None]  # (phase, done, total)
+# What the diagnosis tells as it advances: (phase, done, total); the CLI's hil.runner.progress.Progress draws it.
+PhaseProgress = Callable[[str, int, int], None]
 
 
 def fit_plain(model: CalibratedModel, problem: Problem, free: np.ndarray, iters: int = 8) -> CalibratedModel:
@@ -100,7 +101,7 @@ class Baseline:
     reg_free: np.ndarray
     n_folds: int
     seed: int
-    progress: Progress = field(default=lambda phase, done, total: None)
+    progress: PhaseProgress = field(default=lambda phase, done, total: None)
     screening: str = "batched"  # or "refit": each candidate fitted on its own (the reference)
     notes: list[str] = field(default_factory=list)  # said in the verdict's cautions
     held_gravity: dict = field(default_factory=dict)  # {joint: negative compliance}: gravity terms held rigid

@@ -50,8 +50,9 @@ class Rival:
             return 0
         return int(np.ceil(self.n_poses * ((DECISIVE_Z / max(self.z_test, 1e-3)) ** 2 - 1)))
 
-    def test_z_after(self, rows: int) -> float:
-        """The held-out z expected after `rows` more poses (see `rows_needed`)."""
+    def test_z_after(self, rows: float) -> float:
+        """The held-out z expected after `rows` more poses (see `rows_needed`; a bound on a plan's worth
+        counts its rows as campaign-average poses, not a whole number)."""
         return float((self.z_test or 0.0) * np.sqrt((self.n_poses + rows) / max(self.n_poses, 1)))
 
     def z(self, diag: np.ndarray, sigma_m: float) -> np.ndarray:

@@ -53,7 +53,7 @@ from hil.analysis.calibration.solve import CONFOUNDED_NOTE, Problem, confounded_
 from hil.analysis.calibration.solve import reregister as reregister_model
 from hil.analysis.diagnosis.baseline import (
     Baseline,
-    Progress,
+    PhaseProgress,
     baseline_fit,
     caution,
     error_stats,
@@ -105,7 +105,7 @@ class DiagnosisReport:
     final_round: list[Candidate] = field(default_factory=list)
     ambiguities: list[dict] = field(default_factory=list)  # effects this data could not tell apart
     undecided: list[dict] = field(default_factory=list)  # open questions (hil.analysis.diagnosis.questions)
-    plan: dict | None = None  # the proposed measurements' groups (hil.analysis.design.plan.Plan.to_dict)
+    plan: dict | None = None  # the proposed measurements' groups (hil.analysis.design.plan.Proposal.to_dict)
     run: dict = field(default_factory=dict)  # robot, input files (hash, rows), date, software version
     thermal: dict | None = None  # the material's thermal growth, fitted against its prior (`thermal_summary`)
     # the joints' yield from the link masses (`gravity_summary`)
@@ -173,48 +173,64 @@ def _stage(name: str, on: str, err: np.ndarray) -> dict:
     return {"stage": name, "on": on, **error_stats(err)}
 
 
+@dataclass(frozen=True)
+class DiagnosisOptions:
+    """How `run_diagnosis` fits, selects and judges.
+
+    `folds` spatial folds (split with `seed`) for the held-out figures; `alpha` the selection's
+    significance; `families` the candidate effects (None: all) and `max_effects` the most it adds.
+    `repeatability_mm`, `tool_guess_m` and `tracker_mpe_m` go to the baseline fit. `compare_maps` runs the
+    k-fold residual-map comparison (IDW / SVR / GP) even when the residual is at the noise floor.
+    `reregister_validation` ("none", "base", "base+tool") refits the base frame (and tool) of every stage
+    on the validation campaign first, for a campaign taken from another tracker placement; the report then
+    shows both. `screening` "batched" judges a round's candidates from one shared factorisation
+    (hil.analysis.diagnosis.screening); "refit" fits each candidate on its own (the slow reference the
+    batched path reproduces).
+    """
+
+    folds: int = 5
+    alpha: float = 1e-3
+    seed: int = 0
+    families: tuple[str, ...] | None = None
+    max_effects: int = 15
+    repeatability_mm: float = 0.0
+    tool_guess_m: np.ndarray | None = None
+    tracker_mpe_m: tuple[float, float] = TRACKER_MPE_M
+    compare_maps: bool = False
+    reregister_validation: str = "none"
+    screening: str = "batched"
+
+
 def run_diagnosis(
     df: pd.DataFrame,
     robot: str | KinematicModel,
     df_validate: pd.DataFrame | None = None,
-    folds: int = 5,
-    alpha: float = 1e-3,
-    seed: int = 0,
-    families: tuple[str, ...] | None = None,
-    max_effects: int = 15,
-    repeatability_mm: float = 0.0,
-    tool_guess_m: np.ndarray | None = None,
-    tracker_mpe_m: tuple[float, float] = TRACKER_MPE_M,
-    compare_maps: bool = False,
-    reregister_validation: str = "none",
-    progress: Progress | None = None,
-    screening: str = "batched",
+    options: DiagnosisOptions = DiagnosisOptions(),
+    progress: PhaseProgress | None = None,
     previous_effects: list[dict] | None = None,
 ) -> DiagnosisReport:
     """The whole loop on a training dataset (and an optional validation dataset never used for fitting).
 
     Named steps: baseline fit, forward selection (candidate screening each round), stage evaluation,
-    verdict. `compare_maps` runs the k-fold residual-map comparison (IDW / SVR / GP) even when the
-    residual is at the noise floor. `reregister_validation` ("none", "base", "base+tool") refits the
-    base frame (and tool) of every stage on the validation campaign first, for a campaign taken from
-    another tracker placement; the report then shows both. `progress(phase, done, total)` is called as
-    the work advances (the CLI draws it with an ETA). `screening` "batched" judges a round's candidates
-    from one shared factorisation (hil.analysis.diagnosis.screening); "refit" fits each candidate on its own (the
-    slow reference the batched path reproduces). `previous_effects` ({name, joint}, the effects the
-    diagnosis of an earlier part of this campaign named, as an active loop's round has): when the selection
-    here drops any of them, a selection that starts from them is run too and the one whose model predicts
-    held-out points better is kept (`keep_previous`): a round's measurements must not make the model worse.
+    verdict, as `options` says. `progress(phase, done, total)` is called as the work advances (the CLI
+    draws it with an ETA). `previous_effects` ({name, joint}, the effects the diagnosis of an earlier part
+    of this campaign named, as an active loop's round has): when the selection here drops any of them, a
+    selection that starts from them is run too and the one whose model predicts held-out points better is
+    kept (`keep_previous`): a round's measurements must not make the model worse.
 
     Held-out figures of every stage are computed at the end on the same rows and spatial folds: all
     points except those the final model rejects as outliers.
     """
+    o = options
+    alpha, families, max_effects, screening = o.alpha, o.families, o.max_effects, o.screening
+    reregister_validation = o.reregister_validation
     if screening not in ("batched", "refit"):
         raise ValueError(f"screening '{screening}': use batched or refit")
     if reregister_validation not in ("none", "base", "base+tool"):
         raise ValueError(f"reregister_validation '{reregister_validation}': use none, base or base+tool")
     df = drop_duplicate_rows(df, "training data")  # copies would count twice in every test
     with threadpool_limits(1):  # small dense problems: threads only contend
-        fit_args = (df, robot, folds, seed, repeatability_mm, tool_guess_m, tracker_mpe_m, progress)
+        fit_args = (df, robot, o.folds, o.seed, o.repeatability_mm, o.tool_guess_m, o.tracker_mpe_m, progress)
         base = baseline_fit(*fit_args)
         base.screening = screening
         path = select_effects(base, df, alpha, families, max_effects)
@@ -240,7 +256,7 @@ def run_diagnosis(
         if previous_effects:
             path = keep_previous(base, df, path, previous_effects, alpha, families, max_effects)
         stages, hist, steps = _evaluate_stages(path, base.progress)
-        report = _verdict(base, path, stages, hist, steps, alpha, compare_maps)
+        report = _verdict(base, path, stages, hist, steps, alpha, o.compare_maps)
         report.thermal = thermal_summary(path.current, path.prob)
         report.gravity = gravity_summary(path.current, path.prob, alpha)
         if report.thermal and "held_conflicting_per_k" in report.thermal:
@@ -289,7 +305,7 @@ def without_decided_pairs(cautions: list[dict], undecided: list[dict]) -> list[d
     return [c for c in cautions if not decided(c)]
 
 
-def _evaluate_stages(path: SelectionPath, tell: Progress = quiet) -> tuple[list[dict], dict, list[Step]]:
+def _evaluate_stages(path: SelectionPath, tell: PhaseProgress = quiet) -> tuple[list[dict], dict, list[Step]]:
     """Step 3: every stage's held-out error on the final rows and folds; a stage worse than the one
     before it is flagged (`worse_than_previous`)."""
     stages: list[dict] = []
@@ -539,7 +555,7 @@ def _try_residual_maps(
     folds: list[np.ndarray],
     noise: NoiseFloor,
     alpha: float,
-    tell: Progress = quiet,
+    tell: PhaseProgress = quiet,
     phase: str = "residual maps: held-out comparison",
 ) -> dict:
     """Can a residual map predict the held-out residual `cv_res` (of `folds`)? The map kinds fitted on the

@@ -34,7 +34,7 @@ def effect_label(name: str, joint: int | None) -> str:
     return name + (f" (joint {joint})" if joint else "")
 
 
-@dataclass
+@dataclass(kw_only=True)
 class Candidate:
     name: str
     joint: int | None
@@ -50,6 +50,37 @@ class Candidate:
 
     def to_dict(self) -> dict:
         return dict(self.__dict__)
+
+
+def carried_over(name: str, joint: int | None, n_params: int) -> Candidate:
+    """An effect an earlier diagnosis named, put in the model before the screening: passed, not tested here."""
+    return Candidate(
+        name=name,
+        joint=joint,
+        n_params=n_params,
+        cv_rms_mm=float("nan"),
+        gain_mm2=0.0,
+        p_cv=1.0,
+        p_chi2=1.0,
+        passed=True,
+        note="carried over from the earlier diagnosis",
+    )
+
+
+def _not_judged(eff: Effect, n_params: int, note: str, correlation: float = float("nan")) -> Candidate:
+    """A candidate refused before its tests (the geometry imitates it): no held-out figures, never passed."""
+    return Candidate(
+        name=eff.family,
+        joint=eff.joint,
+        n_params=n_params,
+        cv_rms_mm=float("nan"),
+        gain_mm2=0.0,
+        p_cv=1.0,
+        p_chi2=1.0,
+        passed=False,
+        note=note,
+        geometry_correlation=correlation,
+    )
 
 
 def cv_residuals(
@@ -236,7 +267,7 @@ class Screen:
     @staticmethod
     def _inseparable(eff: Effect) -> tuple[Candidate, None]:
         note = "inseparable from the geometry"
-        return Candidate(eff.family, eff.joint, 0, float("nan"), 0.0, 1.0, 1.0, False, note), None
+        return _not_judged(eff, 0, note), None
 
     @staticmethod
     def _collinear(eff: Effect, n_new: int, corr: float) -> tuple[Candidate, None]:
@@ -244,7 +275,7 @@ class Screen:
             f"collinear with the geometric parameters (correlation {corr:.3f}): on these poses it would "
             "fake geometry and extrapolate badly"
         )
-        return Candidate(eff.family, eff.joint, n_new, float("nan"), 0.0, 1.0, 1.0, False, note, corr), None
+        return _not_judged(eff, n_new, note, corr), None
 
     def _judge(
         self,
@@ -272,16 +303,16 @@ class Screen:
         with_ = ", ".join(effect_label(x.family, x.joint) for x in together)
         why_not_alone = f"tested together with {with_}" if together else ""
         cand = Candidate(
-            eff.family,
-            eff.joint,
-            n_new,
-            float(np.sqrt(np.mean(e))) * 1000.0,
-            gain * 1e6,
-            p_cv,
-            p_chi2,
-            passed and why is None,
-            "; ".join(x for x in (why or "", why_not_alone) if x),
-            corr,
+            name=eff.family,
+            joint=eff.joint,
+            n_params=n_new,
+            cv_rms_mm=float(np.sqrt(np.mean(e))) * 1000.0,
+            gain_mm2=gain * 1e6,
+            p_cv=p_cv,
+            p_chi2=p_chi2,
+            passed=passed and why is None,
+            note="; ".join(x for x in (why or "", why_not_alone) if x),
+            geometry_correlation=corr,
         )
         return cand, fitted if cand.passed else None
 
@@ -505,15 +536,15 @@ def weakest_effect(
         if gain > 0 and p_cv < level and p_chi2 < level:
             continue
         cand = Candidate(
-            eff.family,
-            eff.joint,
-            k,
-            float(np.sqrt(np.mean(e_r))) * 1000.0,
-            gain * 1e6,
-            p_cv,
-            p_chi2,
-            False,
-            "redundant once a later effect is in the model",
+            name=eff.family,
+            joint=eff.joint,
+            n_params=k,
+            cv_rms_mm=float(np.sqrt(np.mean(e_r))) * 1000.0,
+            gain_mm2=gain * 1e6,
+            p_cv=p_cv,
+            p_chi2=p_chi2,
+            passed=False,
+            note="redundant once a later effect is in the model",
         )
         if weakest is None or gain < weakest[1].gain_mm2 / 1e6:
             weakest = (i, cand)

@@ -28,6 +28,7 @@ from hil.analysis.diagnosis.screening import (
     EXTRAPOLATING_FAMILIES,
     Candidate,
     Screen,
+    carried_over,
     cv_residuals,
     effect_label,
     group_key,
@@ -289,8 +290,7 @@ def _forward_selection(
         if not carried.prepare(base.full.ctx, path.current.model.nominal):
             continue  # this campaign does not offer it (hil.model.effects' conditions)
         rep = refit(calibrate(df, path.current.model.with_effect(carried), "ridge"))
-        note = "carried over from the earlier diagnosis"
-        cand = Candidate(name, joint, len(carried.params), float("nan"), 0.0, 1.0, 1.0, True, note)
+        cand = carried_over(name, joint, len(carried.params))
         _record_added(path, cand, [], rep)
     for _ in range(max_effects):
         results = _screen_round(base, path, alpha, families, banned, df)
