@@ -184,7 +184,9 @@ def main() -> None:
             )
         ok = sum(r["named"] and r["validate_mm"] <= 1.1 * r["truth_mm"] for r in rows)
         false = sum(bool(r["false"]) for r in rows)
-        print(f"named and within 1.1x: {ok} of {len(rows)}; naming an effect the cell lacks: {false} of {len(rows)}")
+        print(
+            f"named and within 1.1x: {ok} of {len(rows)}; naming an effect the cell lacks: {false} of {len(rows)}"
+        )
         if name in BROKEN_ASSUMPTIONS:
             broken.extend(rows)
     if broken:
