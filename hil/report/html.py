@@ -327,12 +327,13 @@ def _compensation_html(summary: dict) -> str:
     names = {
         "uncompensated": "uncompensated",
         "start": summary.get("start", "start"),
-        "final": "measured loop",
+        "best_of_iterations": "loop, best read (min over iterations)",
+        "final": "measured loop (kept joints, measured again)",
     }
     rows = []
     for key, label in names.items():
-        p = summary["position_mm"][key]
-        if not p["n"]:
+        p = summary["position_mm"].get(key)
+        if not p or not p["n"]:  # a summary of before the fresh measurement has no best_of_iterations
             continue
         row = {"stage": label, "targets": p["n"], **{f"{k}_mm": p[k] for k in ("mean", "rms", "max", "p95")}}
         if "orientation_deg" in summary:
