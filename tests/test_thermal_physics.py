@@ -129,9 +129,9 @@ def test_a_model_carrying_the_material_growth_compensates_targets_without_a_temp
     assert np.all(hot == 30.0) and "outside" not in capsys.readouterr().err  # no run record: no range known
 
 
-def test_data_that_contradict_the_material_are_followed_and_the_report_says_so_with_both_values():
+def test_a_temperature_term_no_material_gives_is_rejected_as_growth_with_both_values():
     # The links shrink 20 ppm per K of the recorded temperature (no metal does: the temperature follows
-    # something else): the model follows the data, not the material's 23 ppm/K, and says so with both values.
+    # something else): no growth of the links, never the material's 23 ppm/K, and the report says so with both.
     from calib_data import synthetic
 
     from hil.data.dataset import joints_rad
@@ -145,13 +145,14 @@ def test_data_that_contradict_the_material_are_followed_and_the_report_says_so_w
     df[["x_mm", "y_mm", "z_mm"]] += -20e-6 * dT[:, None] * G * 1000.0
     report = run_diagnosis(df, "ur10")
     thermal = report.thermal
-    assert thermal["fitted_per_k"] == pytest.approx(-20e-6, abs=3e-6)
-    assert thermal["standing"] == "found" and thermal["prior_contradicted"]
-    assert thermal["with_prior_per_k"] > thermal["fitted_per_k"]  # the prior had pulled it towards 23 ppm/K
-    assert "thermal_expansion" in {e["name"] for e in report.effects_added}
+    assert thermal["data_per_k"] == pytest.approx(-20e-6, abs=3e-6)
+    assert (
+        thermal["fitted_per_k"] == 0.0 and thermal["standing"] == "rejected" and thermal["prior_contradicted"]
+    )
+    assert "thermal_expansion" not in {e["name"] for e in report.effects_added}
     assert "held at the material" not in conclusion(report)
-    assert "against the material's 23.0 ppm/K" in conclusion(report)
-    assert "the model follows the data" in thermal_text(thermal)
+    assert f"{thermal['data_per_k'] * 1e6:.1f} ppm/K, against the material's 23.0 ppm/K" in conclusion(report)
+    assert "rejected" in thermal_text(thermal)
 
 
 def test_a_plausible_coefficient_far_from_the_files_material_is_the_datas():

@@ -14,6 +14,7 @@ from scipy import stats
 
 from hil.analysis.calibration.solve import CalibrationResult, Problem, position_noise_m
 from hil.geometry.kinematics import KinematicModel
+from hil.geometry.robots import EXPANSION_RANGE_PER_K
 from hil.model.calibrated_model import CalibratedModel, initial_model
 from hil.model.effects import (
     PRIOR_CONFLICT_SIGMAS,
@@ -149,7 +150,8 @@ def material_decision(result: CalibrationResult, prob: Problem, alpha: float) ->
     the fit stands). Data that contradict the material (`Coefficient.contradicts_prior`) drop its prior
     (`without_prior`); data that carry most of what is known and find no growth clearly away from zero (the
     two-sided `alpha` level; the data's own value where they contradict the prior) hold it at zero
-    (`hold_absent`). An arm whose links do not grow while the hall warms (the recorded temperature follows
+    (`hold_absent`), as do data whose own value is no growth of any material (EXPANSION_RANGE_PER_K: a
+    temperature that follows a drift in time or the air). An arm whose links do not grow while the hall warms (the recorded temperature follows
     the air, not the arm) is so found out rather than given the material's growth."""
     eff = next((e for e in result.model.effects if material_growth(e)), None)
     if eff is None or eff.held:
@@ -162,8 +164,11 @@ def material_decision(result: CalibrationResult, prob: Problem, alpha: float) ->
         return None if c.away_from_zero(z) else hold_absent(eff, c.fitted)
     if c.contradicts_prior():
         assert c.data_alone is not None and c.data_alone_std is not None
-        if abs(c.data_alone) > z * c.data_alone_std:
+        lo, hi = EXPANSION_RANGE_PER_K
+        if abs(c.data_alone) > z * c.data_alone_std and lo <= c.data_alone <= hi:
             return without_prior(eff, c.fitted)
+        # no growth, or none of any material (the temperature's term follows a drift, the air): the links
+        # are held at no growth and the selection tests what the temperature follows
         return hold_absent(eff, c.data_alone)
     if c.away_from_zero(z):
         return None
