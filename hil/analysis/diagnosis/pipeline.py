@@ -25,12 +25,15 @@ Selection rule for each round (every candidate from `hil.model.effects` the data
    models are judged on the rows either fits, a row both reject is a blunder: `reclaimed`).
 The loop stops when nothing passes. The links' thermal growth is physics, not a candidate, when the robot
 names its material and the campaign records a temperature: it is in the model from the geometric fit on,
-fitted with the material's coefficient as its prior (hil.model.effects.material_expansion), never removed,
-and the report gives the fitted coefficient beside the material's (`thermal_summary`). So is the joints' yield
+fitted with the material's coefficient as its prior (hil.model.effects.material_expansion); data that
+contradict the material drop the prior, data that find no growth hold it at zero (`material_decision`), and
+the report gives the fitted coefficient beside the material's and calls it found, assumed or rejected
+(`thermal_summary`). So is the joints' yield
 under gravity when the robot file gives the links' masses: one compliance per joint that carries a gravity
 torque, the torque computed from the masses, fitted with a prior centred on a rigid joint
-(hil.model.effects.gravity_physics); the report gives each joint's stiffness and whether the data found
-its yield (`gravity_summary`). The residual left is
+(hil.model.effects.gravity_physics); a yield the data carry but do not find stays only while it predicts
+held-out points better than a rigid joint (`yields_no_better`); the report gives each joint's stiffness and
+its standing (`gravity_summary`). The residual left is
 then tested against the noise floor; if it is larger and a residual map predicts it on held-out blocks of the
 volume (the spatial folds: better than no map, p < alpha), the report says structure remains that no
 candidate explains and adds the map as a fallback stage. A map that only interpolates (wins on random folds,
