@@ -70,7 +70,7 @@ def test_a_long_warm_up_follows_the_data_against_a_wrong_material():
     assert thermal["data_led"] and thermal["data_share"] > 0.9
     assert thermal["fitted_per_k"] == pytest.approx(1e-5, rel=0.1)
     assert "thermal_expansion" in {e["name"] for e in report.effects_added}  # measured, so named
-    assert "measured by this campaign" in thermal_text(thermal)
+    assert "found by this campaign" in thermal_text(thermal)
 
 
 def test_a_campaign_at_one_temperature_keeps_the_material_and_still_finds_a_drift_in_time():
@@ -129,9 +129,9 @@ def test_a_model_carrying_the_material_growth_compensates_targets_without_a_temp
     assert np.all(hot == 30.0) and "outside" not in capsys.readouterr().err  # no run record: no range known
 
 
-def test_a_temperature_term_no_material_gives_is_held_at_the_material_with_a_caution():
+def test_a_temperature_term_no_material_gives_is_rejected_as_growth_with_both_values():
     # The links shrink 20 ppm per K of the recorded temperature (no metal does: the temperature follows
-    # something else): the growth is held at the material's value and the report says why.
+    # something else): no growth of the links, never the material's 23 ppm/K, and the report says so with both.
     from calib_data import synthetic
 
     from hil.data.dataset import joints_rad
@@ -145,16 +145,18 @@ def test_a_temperature_term_no_material_gives_is_held_at_the_material_with_a_cau
     df[["x_mm", "y_mm", "z_mm"]] += -20e-6 * dT[:, None] * G * 1000.0
     report = run_diagnosis(df, "ur10")
     thermal = report.thermal
-    assert thermal["held_conflicting_per_k"] == pytest.approx(-20e-6, abs=3e-6)
-    assert thermal["fitted_per_k"] == 23e-6 and thermal["data_share"] == 0.0
+    assert thermal["data_per_k"] == pytest.approx(-20e-6, abs=3e-6)
+    assert (
+        thermal["fitted_per_k"] == 0.0 and thermal["standing"] == "rejected" and thermal["prior_contradicted"]
+    )
     assert "thermal_expansion" not in {e["name"] for e in report.effects_added}
-    assert "held at the material's value" in conclusion(report)
-    assert "which is no growth" in thermal_text(thermal)
+    assert "held at the material" not in conclusion(report)
+    assert f"{thermal['data_per_k'] * 1e6:.1f} ppm/K, against the material's 23.0 ppm/K" in conclusion(report)
+    assert "rejected" in thermal_text(thermal)
 
 
 def test_a_plausible_coefficient_far_from_the_files_material_is_the_datas():
     # A carbon-fibre arm (1.5 ppm/K) described as aluminium (23 ppm/K), warming 7 K: the data's value stands.
     train, _ = _warm_campaigns(5, expansion_per_k=1.5e-6, warmup_tau_s=1000.0, warmer_k=0.0, step_m=0.1)
     report = run_diagnosis(train, "ur10")
-    assert "held_conflicting_per_k" not in report.thermal
     assert report.thermal["fitted_per_k"] == pytest.approx(1.5e-6, abs=1.5e-6) and report.thermal["data_led"]

@@ -22,9 +22,11 @@ Every family is written from its physics, independently of any simulator:
   or encoder scale error), i.e. an offset ``s * q``.
 - ``thermal_expansion``: every link length (a, d) grows by ``k * dT``; the tool does not. When the robot file
   gives the links' material (`KinematicModel.expansion_per_k`) and the campaign records a temperature, the
-  term is physics, not a candidate (`material_expansion`): always in the model, its coefficient fitted with
-  a Gaussian prior centred on the material's (`Effect.prior`), so a campaign spanning little temperature
-  keeps the material's value and one spanning a lot follows the data.
+  term is physics, not a candidate (`material_expansion`): it enters the model with a Gaussian prior centred
+  on the material's coefficient (`Effect.prior`), so a campaign spanning little temperature keeps about the
+  material's value (the growth is assumed) and one spanning a lot follows the data: where they contradict
+  the material the prior is dropped (`without_prior`), where they find no growth it is held at zero
+  (`hold_absent`; hil.analysis.diagnosis.physics_terms decides).
 - ``thermal_drift``: the tracker sees the base translate by ``v * dT`` (floor, stand or tracker drift).
 - ``tracker_scale``: the tracker's distances scale by ``1 + s * dT`` about the tracker itself: the refractive
   index of the air it computes from a wrong air temperature (a manual setting while the hall warms, a weather
@@ -46,7 +48,6 @@ import pandas as pd
 
 from hil.data.jsonable import to_jsonable
 from hil.geometry.kinematics import KinematicModel, chain_axes, forward_kinematics, tool_points
-from hil.geometry.robots import EXPANSION_RANGE_PER_K
 
 # Names used in reports and model files (the documented vocabulary).
 EFFECT_FAMILIES: tuple[str, ...] = (
@@ -350,7 +351,7 @@ class GravityCompliance(Effect):
         return super().implausible(ctx, nominal)
 
     def prior(self) -> tuple[np.ndarray, np.ndarray] | None:
-        if not physical(self):
+        if not physical(self) or self.state.get("prior_dropped"):
             return None
         return np.zeros(1), np.array([self.state["prior_std"]])
 
@@ -529,7 +530,7 @@ class ThermalExpansion(_Thermal):
         return ["per_unit"]
 
     def prior(self) -> tuple[np.ndarray, np.ndarray] | None:
-        if not material_growth(self):
+        if not material_growth(self) or self.state.get("prior_dropped"):
             return None
         return np.array([self.state["material_per_k"]]), np.array([self.state["prior_std_per_k"]])
 
@@ -592,12 +593,11 @@ def temperature_driven(eff: Effect) -> bool:
     return eff.family in THERMAL_FAMILIES and eff.state.get("driver") == "temperature_c"
 
 
-# A campaign whose temperature term comes out more than this many prior sigmas from the material's value and
-# outside what any material gives (EXPANSION_RANGE_PER_K) is not measuring the links' growth (the recorded
-# temperature follows something else: a drift in time, the air rather than the arm): the growth is then held
-# at the material's value (`hold_at_material`). A plausible value far from the file's (a carbon arm described
-# as aluminium) is the data's to keep.
-MATERIAL_CONFLICT_SIGMAS = 3.0
+# A physics term's data contradict its prior when the value the data alone give lies more than this many
+# standard deviations (of the difference: data's and prior's combined) from the prior's mean: the model then
+# follows the data (`without_prior`) and the report says so with both values. About 1 in 100 campaigns that
+# agree with their prior cross it by chance, and crossing it only drops the prior the data outweigh anyway.
+PRIOR_CONFLICT_SIGMAS = 2.5
 
 # 1-sigma of the material prior, as a fraction of the material's coefficient: an arm is not one alloy (steel
 # gears and bearings in aluminium tubes), and the temperature read (a probe on one link, or the air) is not
@@ -636,19 +636,20 @@ def material_expansion(ctx: EffectContext, nominal: KinematicModel) -> ThermalEx
     return eff
 
 
-def material_conflict(eff: Effect) -> bool:
-    """Whether the material term's fitted coefficient is no growth of any material: more than
-    MATERIAL_CONFLICT_SIGMAS prior sigmas from the material's value and outside EXPANSION_RANGE_PER_K."""
-    k = float(eff.params[0])
-    sigmas = abs(k - eff.state["material_per_k"]) / eff.state["prior_std_per_k"]
-    lo, hi = EXPANSION_RANGE_PER_K
-    return sigmas > MATERIAL_CONFLICT_SIGMAS and not lo <= k <= hi
+def without_prior(eff: Effect, prior_value: float) -> Effect:
+    """A physics term whose data contradict its prior: fitted from the data alone (no prior), remembering the
+    value the prior-weighted fit had made of it."""
+    free = type(eff)(joint=eff.joint, params=eff.params.copy(), state=dict(eff.state))
+    free.state.update(prior_dropped=True, with_prior=float(prior_value))
+    return free
 
 
-def hold_at_material(eff: Effect, conflicting_per_k: float) -> Effect:
-    """The material term held at the material's coefficient, remembering what the data had made of it."""
-    held = type(eff)(joint=eff.joint, params=np.array([eff.state["material_per_k"]]), state=dict(eff.state))
-    held.state.update(held=True, conflicting_per_k=float(conflicting_per_k))
+def hold_absent(eff: Effect, data_value: float) -> Effect:
+    """A physics term the data reject (they carry most of what is known of it and find it no different from
+    zero): held at zero (no growth, a rigid joint: the geometric model's own assumption), remembering what
+    the data had made of it."""
+    held = type(eff)(joint=eff.joint, params=np.zeros(len(eff.params)), state=dict(eff.state))
+    held.state.update(held=True, rejected=True, data_value=float(data_value))
     return held
 
 

@@ -214,9 +214,9 @@ def _gravity_html(gravity: list[dict]) -> list[str]:
     if not gravity:
         return []
     keys = ["joint", "stiffness_knm_per_rad", "stiffness_std_knm_per_rad", "compliance_rad_per_nm"]
-    keys += ["std_rad_per_nm", "torque_min_nm", "torque_max_nm", "data_share", "found"]
+    keys += ["std_rad_per_nm", "torque_min_nm", "torque_max_nm", "data_share", "standing"]
     return [
-        "<h2>Gravity yield of the joints (physics from the link masses: always in the model)</h2>",
+        "<h2>Gravity yield of the joints (physics from the link masses: found, assumed or rejected)</h2>",
         f"<p>{html.escape(gravity_text(gravity) or '')}</p>",
         _table(gravity, keys, dict.fromkeys(keys[1:-1], ".3g")),
     ]
@@ -235,7 +235,7 @@ def _thermal_html(thermal: dict | None) -> list[str]:
         "data_share": thermal["data_share"],
     }
     return [
-        "<h2>Thermal growth of the links (physics: always in the model)</h2>",
+        "<h2>Thermal growth of the links (physics: found, assumed or rejected)</h2>",
         f"<p>{html.escape(thermal_text(thermal) or '')}</p>",
         _table([row], list(row), dict.fromkeys(row, ".3g")),
     ]
@@ -327,12 +327,13 @@ def _compensation_html(summary: dict) -> str:
     names = {
         "uncompensated": "uncompensated",
         "start": summary.get("start", "start"),
-        "final": "measured loop",
+        "best_of_iterations": "loop, best read (min over iterations)",
+        "final": "measured loop (kept joints, measured again)",
     }
     rows = []
     for key, label in names.items():
-        p = summary["position_mm"][key]
-        if not p["n"]:
+        p = summary["position_mm"].get(key)
+        if not p or not p["n"]:  # a summary of before the fresh measurement has no best_of_iterations
             continue
         row = {"stage": label, "targets": p["n"], **{f"{k}_mm": p[k] for k in ("mean", "rms", "max", "p95")}}
         if "orientation_deg" in summary:

@@ -55,12 +55,17 @@ def caution_text(c: dict) -> str:
             f"validation temperatures {vlo:.1f}..{vhi:.1f} C lie outside the training's {lo:.1f}..{hi:.1f} C: "
             "the model extrapolates thermal effects (measure the training over the working temperatures)"
         )
-    if kind == "thermal_growth_held":
+    if kind == "thermal_prior_contradicted":
+        follows = (
+            "holds no growth (the recorded temperature follows something else: the air rather than the arm, a "
+            "drift in time)"
+            if c["standing"] == "rejected"
+            else "follows the data"
+        )
         return (
-            f"the temperature's term came out at {c['fitted_per_k'] * 1e6:.1f} ppm/K, far from the links' material "
-            f"({c['material_per_k'] * 1e6:.1f} ppm/K): on this campaign the recorded temperature follows something "
-            "else (a drift in time, the air's temperature rather than the arm's), so the growth is held at the "
-            "material's value; if the arm is of another material, give its expansion_per_k in the robot file"
+            f"the data make the links' thermal growth {c['data_per_k'] * 1e6:.1f} ppm/K, against the material's "
+            f"{c['material_per_k'] * 1e6:.1f} ppm/K in the robot file: the model {follows}; if the arm is of "
+            "another material, give its expansion_per_k in the robot file"
         )
     if kind == "validation_joints_outside":
         return (
@@ -116,20 +121,30 @@ def thermal_text(thermal: dict | None) -> str | None:
     if not thermal:
         return None
     share = thermal["data_share"]
-    if "held_conflicting_per_k" in thermal:
-        who = (
-            f"held at the material's value: the data made {thermal['held_conflicting_per_k'] * 1e6:.0f} ppm/K of "
-            "it, which is no growth of the links (see the cautions)"
+    material = thermal["material_per_k"] * 1e6
+    if thermal["standing"] == "rejected":
+        data = thermal.get("data_per_k", thermal["fitted_per_k"]) * 1e6
+        return (
+            f"Thermal growth of the links: rejected, the data find none (they make it {data:.1f} ppm/K, no "
+            f"different from zero; material {material:.1f} ppm/K; temperature span {thermal['span_k']:.2f} K): "
+            "the model holds no growth."
         )
-    elif thermal["data_led"]:
-        who = "measured by this campaign"
-    elif share < 0.05:
-        who = "held at the material's value: the campaign spans too little temperature to measure it"
+    if thermal["standing"] == "found":
+        who = "found by this campaign"
+        if thermal["prior_contradicted"]:
+            who += (
+                f"; the model follows the data, not the material (with the material's prior the fit made "
+                f"{thermal['with_prior_per_k'] * 1e6:.1f} ppm/K of it)"
+            )
     else:
-        who = "mostly the material's value: the campaign spans too little temperature to measure it well"
+        who = (
+            f"assumed: the campaign spans too little temperature to measure it, so the material's value carries "
+            f"it; it moves the prediction by {thermal['shift_mm']:.4f} mm RMS on these rows, more where the "
+            "temperature leaves their span"
+        )
     return (
         f"Thermal growth of the links: {thermal['fitted_per_k'] * 1e6:.1f} +- {thermal['std_per_k'] * 1e6:.1f} "
-        f"ppm/K fitted, material {thermal['material_per_k'] * 1e6:.1f} ppm/K (temperature span "
+        f"ppm/K fitted, material {material:.1f} ppm/K (temperature span "
         f"{thermal['span_k']:.2f} K, the data carry {100 * share:.0f} % of what is known of it; {who})."
     )
 
@@ -148,13 +163,25 @@ def gravity_text(gravity: list[dict]) -> str | None:
                 f"({g['held_negative_compliance'] * 1e6:.2g} urad/(N m), the joint yielding against gravity), so "
                 "the term stood in for something else"
             )
+        elif "rejected_compliance" in g:
+            what = (
+                f"rejected, held rigid: the data find no yield (compliance {g['rejected_compliance'] * 1e6:.2g} "
+                "urad/(N m), no different from zero) and a rigid joint predicts held-out points as well"
+            )
         elif g["found"]:
             size = f"{k:.0f} +- {dk:.0f} kN m/rad" if dk is not None and dk < k else f"{k:.0f} kN m/rad"
             what = f"{size}, found by the data"
         elif g["data_led"]:
-            what = f"no yield seen (compliance {g['compliance_rad_per_nm'] * 1e6:.2g} +- {g['std_rad_per_nm'] * 1e6:.2g} urad/(N m))"
+            what = (
+                f"assumed: no yield clearly seen (compliance {g['compliance_rad_per_nm'] * 1e6:.2g} +- "
+                f"{g['std_rad_per_nm'] * 1e6:.2g} urad/(N m)) but it predicts held-out points better than a "
+                f"rigid joint; it moves the prediction by {g['shift_mm']:.4f} mm RMS"
+            )
         else:
-            what = f"the prior holds it (the data carry {100 * g['data_share']:.0f} %)"
+            what = (
+                f"assumed: the prior holds it (the data carry {100 * g['data_share']:.0f} %); it moves the "
+                f"prediction by {g['shift_mm']:.4f} mm RMS"
+            )
         parts.append(f"joint {g['joint']}: {what}")
     return "Gravity yield from the link masses (joint stiffness): " + "; ".join(parts) + "."
 

@@ -22,7 +22,7 @@ from hil.analysis.calibration.solve import (
 )
 from hil.analysis.diagnosis.physics_terms import held_rigid_start, physics_start
 from hil.model.calibrated_model import CalibratedModel, initial_model, with_initial_probes
-from hil.model.effects import gravity_physics_term, hold_at_material, material_growth, yields_against_gravity
+from hil.model.effects import gravity_physics_term, material_growth, yields_against_gravity
 
 
 def error_stats(err_m: np.ndarray) -> dict[str, float]:
@@ -159,22 +159,25 @@ def baseline_fit(
     tool_guess_m,
     tracker_mpe_m,
     progress=None,
-    hold_material=None,
+    material=None,
     hold_gravity=None,
 ) -> Baseline:
-    """`hold_material` (the coefficient a first selection made of it): the links' material growth held at the
-    material's coefficient (hil.model.effects.hold_at_material). `hold_gravity` ({joint: the negative
-    compliance a fit made of it}): those joints' gravity terms held rigid (hil.model.effects.hold_rigid);
-    a gravity term the geometric fit makes negative is held rigid too, and the fit repeated."""
+    """`material`: the links' material growth to fit instead of the one the robot file starts (what an
+    earlier selection's data made of it: hil.analysis.diagnosis.physics_terms.material_decision).
+    `hold_gravity` ({joint: the compliance a fit made of it}): those joints' gravity terms held rigid
+    (`held_rigid_start`); a gravity term the geometric fit makes negative is held rigid too, and the fit
+    repeated."""
     tell = progress or quiet
     noise = estimate_noise_floor(
         df, mpe_const_m=tracker_mpe_m[0], mpe_per_m=tracker_mpe_m[1], repeatability_mm=repeatability_mm
     )
     tell("geometric calibration", 0, 2)
     start = physics_start(robot, df, tool_guess_m)
-    if hold_material is not None and isinstance(start, CalibratedModel):
-        held = [hold_at_material(e, hold_material) if material_growth(e) else e for e in start.effects]
-        start = replace(start, effects=held)
+    if material is not None and isinstance(start, CalibratedModel):
+        fresh = type(material)(
+            joint=material.joint, params=material.params.copy(), state=dict(material.state)
+        )
+        start = replace(start, effects=[fresh if material_growth(e) else e for e in start.effects])
     hold_gravity = dict(hold_gravity or {})
     ridge = calibrate(df, held_rigid_start(start, hold_gravity), "ridge", tool_guess_m=tool_guess_m)
     against = {e.joint: float(e.params[0]) for e in ridge.model.effects if yields_against_gravity(e)}

@@ -6,7 +6,7 @@ The selection never adds or removes these terms; hil.analysis.diagnosis.pipeline
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 import pandas as pd
@@ -14,25 +14,33 @@ from scipy import stats
 
 from hil.analysis.calibration.solve import CalibrationResult, Problem, position_noise_m
 from hil.geometry.kinematics import KinematicModel
+from hil.geometry.robots import EXPANSION_RANGE_PER_K
 from hil.model.calibrated_model import CalibratedModel, initial_model
 from hil.model.effects import (
+    PRIOR_CONFLICT_SIGMAS,
+    Effect,
     GravityCompliance,
     gravity_physics,
     gravity_physics_term,
+    hold_absent,
     hold_rigid,
     material_expansion,
     material_growth,
+    without_prior,
 )
 
 
 def held_rigid_start(
     start: str | KinematicModel | CalibratedModel, joints: dict
 ) -> str | KinematicModel | CalibratedModel:
-    """`start` with the gravity physics terms of `joints` ({joint: negative compliance}) held rigid."""
+    """`start` with the gravity physics terms of `joints` ({joint: the compliance a fit made of it}) held rigid:
+    a negative one as yielding against gravity (`hold_rigid`), another as rejected (`hold_absent`)."""
     if not joints or not isinstance(start, CalibratedModel):
         return start
     effects = [
-        hold_rigid(e, joints[e.joint]) if gravity_physics_term(e) and e.joint in joints else e
+        (hold_rigid if joints[e.joint] < 0 else hold_absent)(e, joints[e.joint])
+        if gravity_physics_term(e) and e.joint in joints
+        else e
         for e in start.effects
     ]
     return replace(start, effects=effects)
@@ -54,50 +62,180 @@ def physics_start(
 
 
 # A physics term (the material's growth, a joint's gravity yield) counts as measured when the data carry at
-# least this share of the information on its coefficient (1 - posterior variance / prior variance), else the prior holds it.
+# least this share of the information on its coefficient (1 - posterior variance / prior variance), else the
+# prior carries it (the term is assumed).
 DATA_LED_SHARE = 0.5
 
+# What the report says of a physics term: the data show it (found), the prior carries it (assumed), or the
+# data tested it and it is not there (rejected: held at zero, the geometric model's assumption).
+FOUND, ASSUMED, REJECTED = "found", "assumed", "rejected"
 
-def thermal_summary(result: CalibrationResult, prob: Problem) -> dict | None:
-    """The material's thermal growth in the fitted model: the coefficient fitted beside the material's, its
-    standard error, the temperature the rows span and the data's share of what is known of it (0: the prior
-    alone, the campaign spanned too little temperature; 1: the data alone). None without such a term."""
-    eff = next((e for e in result.model.effects if material_growth(e)), None)
-    if eff is None:
-        return None
-    prior_std = float(eff.state["prior_std_per_k"])
-    std, share = data_share(result, prob, eff.param_names[0], prior_std)
-    temps = prob.ctx.temperature_c
-    held = {"held_conflicting_per_k": eff.state["conflicting_per_k"]} if eff.held else {}
-    return {
-        **held,
-        "material_per_k": float(eff.state["material_per_k"]),
-        "fitted_per_k": float(eff.params[0]),
-        "std_per_k": std,
-        "prior_std_per_k": prior_std,
-        "span_k": float(np.ptp(temps)) if temps is not None and len(temps) else 0.0,
-        "reference_c": float(eff.state["reference"]),
-        "data_share": share,
-        "data_led": share >= DATA_LED_SHARE,
-    }
+
+@dataclass(frozen=True)
+class Coefficient:
+    """A physics term's coefficient after a fit with its Gaussian prior, and what the data alone make of it."""
+
+    fitted: float  # the posterior mean (the fit with its prior; the data alone once the prior is dropped)
+    std: float  # the posterior standard error (scaled by the fit's sigma0)
+    prior_mean: float
+    prior_std: float
+    data_share: float  # 1 - posterior variance / prior variance (a-priori noise)
+    data_alone: float | None  # the value the data alone give (None: they carry nothing of it)
+    data_alone_std: float | None
+
+    def contradicts_prior(self) -> bool:
+        """The data alone lie more than PRIOR_CONFLICT_SIGMAS from the prior (and carry most of what is known:
+        a campaign that hardly sees the term cannot contradict it)."""
+        if self.data_alone is None or self.data_alone_std is None or self.data_share < DATA_LED_SHARE:
+            return False
+        spread = float(np.hypot(self.data_alone_std, self.prior_std))
+        return abs(self.data_alone - self.prior_mean) > PRIOR_CONFLICT_SIGMAS * spread
+
+    def away_from_zero(self, z: float, positive: bool = False) -> bool:
+        """The fitted value is clearly not zero: beyond `z` standard errors (above zero with `positive`)."""
+        value = self.fitted if positive else abs(self.fitted)
+        return value > z * self.std
+
+
+def coefficient(result: CalibrationResult, prob: Problem, eff: Effect) -> Coefficient:
+    """`eff`'s (a physics term's, one coefficient) fitted value, standard error and the data's own value:
+    a Gaussian posterior is the precision-weighted mean of prior and data, so the data's value follows from
+    the posterior and the prior (var_data = 1 / (1 / var_post - 1 / var_prior))."""
+    prior = eff.prior()
+    if prior is None:  # the prior dropped: the fit is the data's
+        prior_mean = float(eff.state.get("material_per_k", 0.0))
+        prior_std = float(eff.state.get("prior_std_per_k", eff.state.get("prior_std", 0.0)))
+    else:
+        prior_mean, prior_std = float(prior[0][0]), float(prior[1][0])
+    std, share, std_apriori = _posterior(result, prob, eff.param_names[0], prior_std)
+    fitted = float(eff.params[0])
+    if eff.held:
+        return Coefficient(fitted, std, prior_mean, prior_std, 0.0, None, None)
+    if prior is None:
+        return Coefficient(fitted, std, prior_mean, prior_std, 1.0, fitted, std)
+    if share <= 0.0:
+        return Coefficient(fitted, std, prior_mean, prior_std, share, None, None)
+    var_post, var_prior = std_apriori**2, prior_std**2
+    var_data = 1.0 / (1.0 / var_post - 1.0 / var_prior)
+    alone = var_data * (fitted / var_post - prior_mean / var_prior)
+    # the data's standard error in the fit's own scale (sigma0), as the posterior's
+    scale = std / std_apriori if std_apriori > 0 else 1.0
+    return Coefficient(
+        fitted, std, prior_mean, prior_std, share, float(alone), float(np.sqrt(var_data) * scale)
+    )
+
+
+def _posterior(
+    result: CalibrationResult, prob: Problem, name: str, prior_std: float
+) -> tuple[float, float, float]:
+    """(standard error scaled by sigma0, data's share of what is known, standard error at the a-priori noise)
+    of a coefficient fitted with a Gaussian prior of `prior_std`: the share is 1 - posterior variance / prior
+    variance (0: the prior alone, 1: the data alone)."""
+    std = result.std.get(name)
+    if std is None or result.sigma0_m <= 0:
+        return prior_std, 0.0, prior_std
+    std_apriori = std * position_noise_m(prob.measured) / result.sigma0_m  # std is scaled by sigma0
+    return float(std), float(np.clip(1.0 - (std_apriori / prior_std) ** 2, 0.0, 1.0)), float(std_apriori)
 
 
 def data_share(result: CalibrationResult, prob: Problem, name: str, prior_std: float) -> tuple[float, float]:
     """(standard error, data's share of what is known) of a coefficient fitted with a Gaussian prior of
-    `prior_std`: 1 - posterior variance / prior variance (0: the prior alone, 1: the data alone)."""
-    std = result.std.get(name)
-    if std is None or result.sigma0_m <= 0:
-        return prior_std, 0.0
-    std_apriori = std * position_noise_m(prob.measured) / result.sigma0_m  # std is scaled by sigma0
-    return float(std), float(np.clip(1.0 - (std_apriori / prior_std) ** 2, 0.0, 1.0))
+    `prior_std` (`_posterior`)."""
+    std, share, _ = _posterior(result, prob, name, prior_std)
+    return std, share
+
+
+def material_decision(result: CalibrationResult, prob: Problem, alpha: float) -> Effect | None:
+    """What the data make of the links' material growth in a fitted model, as the term to fit instead (None:
+    the fit stands). Data that contradict the material (`Coefficient.contradicts_prior`) drop its prior
+    (`without_prior`); data that carry most of what is known and find no growth clearly away from zero (the
+    two-sided `alpha` level; the data's own value where they contradict the prior) hold it at zero
+    (`hold_absent`), as do data whose own value is no growth of any material (EXPANSION_RANGE_PER_K: a
+    temperature that follows a drift in time or the air). An arm whose links do not grow while the hall warms (the recorded temperature follows
+    the air, not the arm) is so found out rather than given the material's growth."""
+    eff = next((e for e in result.model.effects if material_growth(e)), None)
+    if eff is None or eff.held:
+        return None
+    c = coefficient(result, prob, eff)
+    z = float(stats.norm.isf(alpha / 2))
+    if c.data_share < DATA_LED_SHARE:
+        return None  # assumed: the prior carries it
+    if eff.state.get("prior_dropped"):
+        return None if c.away_from_zero(z) else hold_absent(eff, c.fitted)
+    if c.contradicts_prior():
+        assert c.data_alone is not None and c.data_alone_std is not None
+        lo, hi = EXPANSION_RANGE_PER_K
+        if abs(c.data_alone) > z * c.data_alone_std and lo <= c.data_alone <= hi:
+            return without_prior(eff, c.fitted)
+        # no growth, or none of any material (the temperature's term follows a drift, the air): the links
+        # are held at no growth and the selection tests what the temperature follows
+        return hold_absent(eff, c.data_alone)
+    if c.away_from_zero(z):
+        return None
+    return hold_absent(eff, c.fitted if c.data_alone is None else c.data_alone)
+
+
+def term_shift_mm(model: CalibratedModel, prob: Problem, eff: Effect) -> float:
+    """How much a term moves the prediction on the rows of `prob`: the RMS (mm) of the model's positions with
+    it minus without it."""
+    without = replace(model, effects=[e for e in model.effects if e is not eff])
+    prob.ctx.p_flange_tool = model._row_tools(prob.smr)
+    d = model.predict_ctx(prob.ctx) - without.predict_ctx(prob.ctx)
+    return float(np.sqrt(np.mean(np.sum(d**2, axis=1))) * 1000.0)
+
+
+def thermal_summary(result: CalibrationResult, prob: Problem, alpha: float = 1e-3) -> dict | None:
+    """The material's thermal growth in the fitted model: the coefficient fitted beside the material's, its
+    standard error, the temperature the rows span, the data's share of what is known of it (0: the prior
+    alone, the campaign spanned too little temperature; 1: the data alone), what the data alone make of it
+    and its `standing`: found, assumed (with `shift_mm`, how much it moves the prediction on the rows) or
+    rejected. None without such a term."""
+    eff = next((e for e in result.model.effects if material_growth(e)), None)
+    if eff is None:
+        return None
+    c = coefficient(result, prob, eff)
+    z = float(stats.norm.isf(alpha / 2))
+    temps = prob.ctx.temperature_c
+    if eff.held:
+        standing = REJECTED
+    elif c.data_share < DATA_LED_SHARE:
+        standing = ASSUMED
+    else:
+        standing = FOUND if c.away_from_zero(z) else REJECTED
+    extra: dict = {}
+    if eff.state.get("rejected"):
+        extra["data_per_k"] = float(eff.state["data_value"])
+    if eff.state.get("prior_dropped"):
+        extra["with_prior_per_k"] = float(eff.state["with_prior"])
+    # the data's own value beyond PRIOR_CONFLICT_SIGMAS prior sigmas from the material's
+    off = abs(extra.get("data_per_k", c.fitted) - float(eff.state["material_per_k"]))
+    contradicted = bool(eff.state.get("prior_dropped")) or (
+        "data_per_k" in extra and off > PRIOR_CONFLICT_SIGMAS * c.prior_std
+    )
+    return {
+        **extra,
+        "material_per_k": float(eff.state["material_per_k"]),
+        "fitted_per_k": c.fitted,
+        "std_per_k": c.std,
+        "prior_std_per_k": float(eff.state["prior_std_per_k"]),
+        "span_k": float(np.ptp(temps)) if temps is not None and len(temps) else 0.0,
+        "reference_c": float(eff.state["reference"]),
+        "data_share": 1.0 if eff.state.get("rejected") else c.data_share,
+        "data_led": standing != ASSUMED,
+        "prior_contradicted": contradicted,
+        "standing": standing,
+        "shift_mm": term_shift_mm(result.model, prob, eff),
+    }
 
 
 def gravity_summary(result: CalibrationResult, prob: Problem, alpha: float) -> list[dict]:
     """Each joint's yield under the link masses' gravity in the fitted model (one per physics term): the
     compliance and its standard error, the stiffness it means (kN m/rad), the torque the rows span, the data's
-    share of what is known of it (as `thermal_summary`) and whether the data found the yield: data-led and a
-    compliance above zero by more than the two-sided `alpha` quantile of its standard error. A term held rigid
-    (the data made it negative: `hold_rigid`) says what the data had made of it."""
+    share of what is known of it (as `thermal_summary`), whether the data found the yield (data-led and a
+    compliance above zero by more than the two-sided `alpha` quantile of its standard error) and its
+    `standing` (found, assumed with `shift_mm`, rejected). A term held rigid says what the data had made of
+    it: negative (the joint yielding against gravity: `hold_rigid`) or no better than a rigid joint on held-out
+    points (`hold_absent`)."""
     out = []
     z = float(stats.norm.isf(alpha / 2))
     for eff in result.model.effects:
@@ -110,6 +248,13 @@ def gravity_summary(result: CalibrationResult, prob: Problem, alpha: float) -> l
         stiffness = 1e-3 / c if c > 0 else None
         # d(1/c) = dc / c^2: the stiffness' standard error where the compliance is well above its own
         stiffness_std = 1e-3 * std / c**2 if c > 0 else None
+        found = not eff.held and share >= DATA_LED_SHARE and c > z * std
+        standing = REJECTED if eff.held else FOUND if found else ASSUMED
+        held: dict = {}
+        if "negative_compliance" in eff.state:
+            held["held_negative_compliance"] = eff.state["negative_compliance"]
+        if eff.state.get("rejected"):
+            held["rejected_compliance"] = eff.state["data_value"]
         out.append(
             {
                 "joint": eff.joint,
@@ -122,8 +267,10 @@ def gravity_summary(result: CalibrationResult, prob: Problem, alpha: float) -> l
                 "torque_max_nm": float(torque.max()),
                 "data_share": share,
                 "data_led": share >= DATA_LED_SHARE,
-                "found": share >= DATA_LED_SHARE and c > z * std,
-                **({"held_negative_compliance": eff.state["negative_compliance"]} if eff.held else {}),
+                "found": found,
+                "standing": standing,
+                "shift_mm": term_shift_mm(result.model, prob, eff),
+                **held,
             }
         )
     return out

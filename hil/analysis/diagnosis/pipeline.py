@@ -25,12 +25,15 @@ Selection rule for each round (every candidate from `hil.model.effects` the data
    models are judged on the rows either fits, a row both reject is a blunder: `reclaimed`).
 The loop stops when nothing passes. The links' thermal growth is physics, not a candidate, when the robot
 names its material and the campaign records a temperature: it is in the model from the geometric fit on,
-fitted with the material's coefficient as its prior (hil.model.effects.material_expansion), never removed,
-and the report gives the fitted coefficient beside the material's (`thermal_summary`). So is the joints' yield
+fitted with the material's coefficient as its prior (hil.model.effects.material_expansion); data that
+contradict the material drop the prior, data that find no growth hold it at zero (`material_decision`), and
+the report gives the fitted coefficient beside the material's and calls it found, assumed or rejected
+(`thermal_summary`). So is the joints' yield
 under gravity when the robot file gives the links' masses: one compliance per joint that carries a gravity
 torque, the torque computed from the masses, fitted with a prior centred on a rigid joint
-(hil.model.effects.gravity_physics); the report gives each joint's stiffness and whether the data found
-its yield (`gravity_summary`). The residual left is
+(hil.model.effects.gravity_physics); a yield the data carry but do not find stays only while it predicts
+held-out points better than a rigid joint (`yields_no_better`); the report gives each joint's stiffness and
+its standing (`gravity_summary`). The residual left is
 then tested against the noise floor; if it is larger and a residual map predicts it on held-out blocks of the
 volume (the spatial folds: better than no map, p < alpha), the report says structure remains that no
 candidate explains and adds the map as a fallback stage. A map that only interpolates (wins on random folds,
@@ -63,7 +66,14 @@ from hil.analysis.diagnosis.baseline import (
 )
 from hil.analysis.diagnosis.drift_monitor import reference_drift
 from hil.analysis.diagnosis.evidence import evidence
-from hil.analysis.diagnosis.physics_terms import gravity_summary, thermal_summary
+from hil.analysis.diagnosis.physics_check import yields_no_better
+from hil.analysis.diagnosis.physics_terms import (
+    ASSUMED,
+    FOUND,
+    gravity_summary,
+    material_decision,
+    thermal_summary,
+)
 from hil.analysis.diagnosis.questions import open_questions
 from hil.analysis.diagnosis.screening import Candidate, held_out_gain
 from hil.analysis.diagnosis.selection import (
@@ -80,7 +90,6 @@ from hil.geometry.kinematics import KinematicModel
 from hil.model.calibrated_model import CalibratedModel
 from hil.model.effects import (
     Effect,
-    material_conflict,
     material_growth,
     physical,
     tool_points_rows,
@@ -116,19 +125,37 @@ class DiagnosisReport:
 
     @property
     def effects_added(self) -> list[dict]:
-        """The effects the final model holds, in the order they were added; the material's thermal growth
-        only where the data, not its prior, set its coefficient (else it is held at the material's value and
-        reported under `thermal`), a joint's gravity yield from the link masses only where the data found it
-        (`gravity_summary`'s `found`; else it is reported under `gravity` only)."""
-        led = bool(self.thermal and self.thermal["data_led"])
-        found = {g["joint"] for g in self.gravity if g["found"]}
+        """The effects the data found, in the order the final model holds them (the verdict's "Added"): every
+        effect the selection added, and a physics term (the material's growth, a joint's gravity yield from
+        the link masses) only where `thermal` or `gravity` calls it found."""
+        return [
+            {"name": e.family, "joint": e.joint} for e in self.model.effects if self._standing(e) == FOUND
+        ]
 
-        def named(e: Effect) -> bool:
-            if not physical(e):
-                return True
-            return led if material_growth(e) else e.joint in found
+    @property
+    def effects_assumed(self) -> list[dict]:
+        """The physics terms the final model holds on their prior rather than on the data ({name, joint,
+        shift_mm}: how much each moves the prediction on the training rows, RMS mm)."""
+        out = []
+        for e in self.model.effects:
+            summary = self._summary(e)
+            if summary is not None and summary["standing"] == ASSUMED:
+                out.append({"name": e.family, "joint": e.joint, "shift_mm": summary["shift_mm"]})
+        return out
 
-        return [{"name": e.family, "joint": e.joint} for e in self.model.effects if named(e)]
+    def _summary(self, e: Effect) -> dict | None:
+        """The physics summary (`thermal` or a `gravity` entry) of `e`; None for a selected effect."""
+        if not physical(e):
+            return None
+        if material_growth(e):
+            return self.thermal
+        return next((g for g in self.gravity if g["joint"] == e.joint), None)
+
+    def _standing(self, e: Effect) -> str:
+        summary = self._summary(e)
+        if not physical(e):
+            return FOUND
+        return summary["standing"] if summary is not None else ASSUMED
 
     @property
     def noise_floor_mm(self) -> float:
@@ -137,6 +164,7 @@ class DiagnosisReport:
     def to_dict(self) -> dict:
         return {
             "effects_added": self.effects_added,
+            "effects_assumed": self.effects_assumed,
             "stages": self.stages,
             "unexplained_structure": self.unexplained_structure,
             "noise_floor_mm": self.noise.floor_mm,
@@ -234,22 +262,23 @@ def run_diagnosis(
         base = baseline_fit(*fit_args)
         base.screening = screening
         path = select_effects(base, df, alpha, families, max_effects)
-        hold: float | None = None
-        for _ in range(base.nominal.nominal.n_joints + 1):  # each pass holds the growth or more joints
-            material = next((e for e in path.current.model.effects if material_growth(e)), None)
-            conflict = material is not None and material_conflict(material)
+        material: Effect | None = None
+        for _ in range(base.nominal.nominal.n_joints + 2):  # each pass settles the growth or more joints
+            decided = material_decision(path.current, path.prob, alpha)
             against = {
                 e.joint: float(e.params[0]) for e in path.current.model.effects if yields_against_gravity(e)
             }
-            if not (conflict or against):
-                break
-            # The temperature's term took something that is no growth of the links (a drift in time, the
-            # air's temperature rather than the arm's), or a joint's gravity term yields against gravity once
-            # the selected effects are in: select again with the growth held at the material's and those
-            # joints held rigid (and again if that selection turns another joint against gravity).
-            if conflict and material is not None:
-                hold = float(material.params[0])
-            base = baseline_fit(*fit_args, hold_material=hold, hold_gravity={**base.held_gravity, **against})
+            if decided is None and not against:
+                # the yields the data carry but do not find stay only while they beat a rigid joint
+                against = yields_no_better(df, path, alpha)
+                if not against:
+                    break
+            # The data contradict the material's growth or find none (the recorded temperature follows the
+            # air, not the arm), or a joint's gravity term yields against gravity once the selected effects
+            # are in, or predicts no better than a rigid joint: select again with the growth as the data have
+            # it and those joints held rigid (and again if that selection turns another joint).
+            material = decided or material
+            base = baseline_fit(*fit_args, material=material, hold_gravity={**base.held_gravity, **against})
             base.screening = screening
             path = select_effects(base, df, alpha, families, max_effects)
         settle_rivals(base, df, path, alpha)
@@ -257,14 +286,15 @@ def run_diagnosis(
             path = keep_previous(base, df, path, previous_effects, alpha, families, max_effects)
         stages, hist, steps = _evaluate_stages(path, base.progress)
         report = _verdict(base, path, stages, hist, steps, alpha, o.compare_maps)
-        report.thermal = thermal_summary(path.current, path.prob)
+        report.thermal = thermal_summary(path.current, path.prob, alpha)
         report.gravity = gravity_summary(path.current, path.prob, alpha)
-        if report.thermal and "held_conflicting_per_k" in report.thermal:
+        if report.thermal and report.thermal["prior_contradicted"]:
             report.verdict["cautions"].append(
                 caution(
-                    "thermal_growth_held",
-                    fitted_per_k=report.thermal["held_conflicting_per_k"],
+                    "thermal_prior_contradicted",
+                    data_per_k=report.thermal.get("data_per_k", report.thermal["fitted_per_k"]),
                     material_per_k=report.thermal["material_per_k"],
+                    standing=report.thermal["standing"],
                 )
             )
         report.drift = reference_drift(df)

@@ -1,0 +1,75 @@
+"""Cells that break the program's own assumptions (issue 30): the diagnosis names nothing the cell does not have
+and predicts a later, warmer validation about as well as the model a user who knew the cell would fit."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from calib_data import true_effect_model
+
+from hil.analysis.calibration.solve import calibrate
+from hil.analysis.diagnosis.pipeline import run_diagnosis
+from hil.geometry.robots import get_robot
+
+pytestmark = pytest.mark.timeout(180)
+
+
+def _cell_campaigns(seed: int, pause_s: float, **config):
+    from sim_campaigns import grid_joints, held_out_joints
+
+    from fakes.campaign import simulate_campaign
+    from fakes.cell import SimCellConfig, SimulatedCell
+
+    cell = SimulatedCell(SimCellConfig(robot="ur10", seed=seed, **config))
+    train = simulate_campaign(cell, grid_joints(cell, step_m=0.15, seed=seed))
+    cell.advance_time(pause_s)
+    return train, simulate_campaign(cell, held_out_joints(cell, 100, seed=seed + 1))
+
+
+def _rms_mm(model, df) -> float:
+    err = model.predict(df) - df[["x_mm", "y_mm", "z_mm"]].to_numpy() / 1000.0
+    return float(np.sqrt(np.mean(np.sum(err**2, axis=1))) * 1000)
+
+
+def _diagnose(train, val, robot):
+    report = run_diagnosis(train, robot, df_validate=val)
+    validate = [s for s in report.stages if s["on"] == "validate"][-1]["rms_mm"]
+    return report, {e["name"] for e in report.effects_added}, validate
+
+
+def test_an_arm_that_does_not_grow_in_a_warming_hall_is_not_given_the_materials_growth():
+    train, val = _cell_campaigns(1, 3600.0, thermal=True, expansion_per_k=0.0, compliance=False)
+    assert np.ptp(train["temperature_c"]) > 2.0  # the hall warms over the campaign
+    report, named, validate = _diagnose(train, val, "ur10")
+    assert named == set() and report.thermal["standing"] == "rejected"
+    assert report.thermal["fitted_per_k"] == 0.0 and "held at the material" not in str(report.verdict)
+    assert validate <= 1.1 * _rms_mm(calibrate(train, "ur10", "ridge").model, val)
+
+
+def test_joints_that_do_not_yield_keep_no_gravity_yield_as_a_finding():
+    train, val = _cell_campaigns(1, 0.0, compliance=False)
+    report, named, validate = _diagnose(train, val, "ur10")
+    assert named == set()
+    assert all(g["standing"] != "found" for g in report.gravity)
+    assert validate <= 1.1 * _rms_mm(calibrate(train, "ur10", "ridge").model, val)
+
+
+def test_a_robot_file_with_wrong_masses_names_nothing_but_the_yield():
+    robot = get_robot("ur10")
+    wrong = np.asarray(robot.link_masses_kg) * np.array([0.5, 2.0, 0.5, 2.0, 0.5, 2.0])
+    robot = replace(robot, link_masses_kg=tuple(wrong.tolist()))
+    train, val = _cell_campaigns(1, 0.0)
+    report, named, validate = _diagnose(train, val, robot)
+    assert named <= {"gravity_compliance"}
+    assert validate <= 1.1 * _rms_mm(true_effect_model(train, robot, ("gravity_compliance",)), val)
+
+
+def test_a_tracker_whose_air_reading_is_wrong_is_never_the_arms_growth():
+    # The station reads 20 degC while the hall warms: the tracker's distances scale, the arm does not grow.
+    train, val = _cell_campaigns(
+        1, 3600.0, thermal=True, expansion_per_k=0.0, compliance=False, tracker_air_c=20.0
+    )
+    report, named, validate = _diagnose(train, val, "ur10")
+    assert "thermal_expansion" not in named and named <= {"tracker_scale"}
+    assert report.thermal["standing"] != "found"
+    assert validate <= 1.1 * _rms_mm(true_effect_model(train, "ur10", ("tracker_scale",)), val)
