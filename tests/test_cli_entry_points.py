@@ -19,7 +19,7 @@ def test_the_hil_console_script_runs_a_command(tmp_path):
     ok = subprocess.run(
         [str(script), "cell", "check", str(good)], capture_output=True, text=True, timeout=120
     )
-    assert ok.returncode == 0 and "OK" in ok.stdout and "ur10" in ok.stdout, ok.stderr
+    assert ok.returncode == 0 and "the configuration is valid" in ok.stdout and "ur10" in ok.stdout, ok.stderr
     broken = tmp_path / "broken.toml"
     broken.write_text("[robot\nmodel = ")
     out = subprocess.run(

@@ -148,11 +148,11 @@ def test_grid_and_validation_targets_are_the_commanded_points_compensated_per_ne
     assert list(df["point_id"]) == layout["validation"]["ids"] and set(df["step_id"]) == {"validation"}
 
     code, out, err = hil_in_process(
-        "compensate", "model.json", "job.sqlite", "-o", "grid.csv", "--step", "grid", "--threshold-mm", "0.001",
+        "compensate", "model.json", "job.sqlite", "-o", "grid_joints.csv", "--step", "grid", "--threshold-mm", "0.001",
         cwd=tmp_path, capsys=capsys,
     )  # fmt: skip
     assert code == 0, err
-    df = pd.read_csv(tmp_path / "grid.csv")
+    df = pd.read_csv(tmp_path / "grid_joints.csv")
     grid = layout["grid"]
     assert list(df["point_id"]) == grid["ids"]  # the face probe has no nest: no target
     np.testing.assert_array_equal(df["smr"], grid["smr"])
@@ -293,6 +293,7 @@ def test_a_robot_file_campaign_rebuilds_its_robot_from_the_copy_it_keeps(model, 
             campaign,
             "-o",
             "grid.csv",
+            "--force",  # each call writes the same file again
             "--step",
             "grid",
             cwd=tmp_path,
@@ -336,7 +337,15 @@ def test_thermal_models_take_the_cell_temperature_and_refuse_time_from_another_c
 
     def run(*args):
         return hil_in_process(
-            "compensate", *args, "-o", "j.csv", "--threshold-mm", "0.002", cwd=tmp_path, capsys=capsys
+            "compensate",
+            *args,
+            "-o",
+            "j.csv",
+            "--force",
+            "--threshold-mm",
+            "0.002",
+            cwd=tmp_path,
+            capsys=capsys,
         )
 
     code, out, err = run("hot.json", "job.sqlite")  # loop targets carry no temperature
@@ -426,7 +435,7 @@ def test_targets_warmer_than_the_fitted_range_are_warned_about(model, tmp_path, 
     write_campaign(tmp_path / "job.sqlite", model, loop_targets=loop_poses(model))
     for temperature, warned in ((21.0, False), (23.4, False), (30.0, True)):
         code, _, err = hil_in_process(
-            "compensate", "hot.json", "job.sqlite", "-o", "j.csv", "--temperature-c", str(temperature),
+            "compensate", "hot.json", "job.sqlite", "-o", "j.csv", "--force", "--temperature-c", str(temperature),
             cwd=tmp_path, capsys=capsys,
         )  # fmt: skip
         assert code == 0, err
