@@ -40,10 +40,11 @@ from hil.data.jsonable import to_jsonable
 from hil.data.store import CampaignStore, campaign_dataset
 from hil.report.rounds import rounds_text
 from hil.runner.cell_config import CellConfig
+from hil.runner.engine import CampaignStopped, Measuring
 from hil.runner.operator import OperatorStep
 from hil.runner.plan import Plan, PlannedPose
 from hil.runner.procedure import SHOTS, Parameter, Procedure
-from hil.runner.session import CampaignStopped, Session
+from hil.runner.session import Session
 from hil.runner.sight import measurable
 
 NAME = "active_loop"
@@ -261,22 +262,26 @@ def _measure_round(
     before: DiagnosisReport,
     train: pd.DataFrame,
     shots: int | None,
-) -> list[dict]:
-    """Measure a round's plan block by block; after each block the longer campaign is diagnosed and the rows
-    whose questions it decided are dropped (hil.analysis.design.rounds). Each judgement is recorded
+) -> Measuring[list[dict]]:
+    """Measure a round's plan block by block (requests to the engine); after each block the longer campaign
+    is diagnosed and the rows whose questions it decided are dropped (hil.analysis.design.rounds). Each judgement is recorded
     (`roundN/blockK`) before the next motion, so a resumed round drops the same rows; returns them all.
     `train`: the campaign before the round (the round measures in its nest)."""
     nest = state.nest(train)
     todo = rows.keep.copy()
     judged: list[dict] = []
-    ask = True  # the operator places the SMR before this process' first pose, not before every block
     for k, idx in enumerate(plan_blocks(len(rows.purpose), rows.block), start=1):
         idx = idx[todo[idx]]
         if not len(idx):
             continue
-        plan = motion_plan(session.config, rows, nest, only=idx, setup=ask)
-        if session.visit(plan, shots=shots, extra={"round": rows.number}):
-            ask = False
+        # the operator places the SMR before this process' first new pose, not before every block
+        plan = motion_plan(session.config, rows, nest, only=idx)
+        with session.progress.task(NAME.replace("_", " "), total=len(plan.poses)) as advance:
+            for request in session.engine.requests(
+                plan, shots=shots, extra={"round": rows.number}, strict=False
+            ):
+                yield request
+                advance()
         step = f"round{rows.number}/block{k}"
         record = session.step_result(NAME, step)
         if record is None:
@@ -303,8 +308,18 @@ def run_loop(
     shots: int | None = None,
 ) -> ActiveLoopResult:
     """Diagnose, plan, measure block by block, diagnose again, for at most `rounds` rounds of at most `poses`
-    poses; resumable."""
+    poses; resumable. The engine measures what the rounds ask for."""
     session.require_registration()
+    return session.engine.run(
+        _rounds(session, rounds=rounds, poses=poses, seed=seed, block=block, shots=shots)
+    )
+
+
+def _rounds(
+    session: Session, *, rounds: int, poses: int, seed: int, block: int, shots: int | None
+) -> Measuring[ActiveLoopResult]:
+    """The rounds as requests to the engine: each round's poses are yielded block by block, and the
+    campaign, longer by what was measured, is diagnosed between them."""
     state = _Campaign(session.store, session.config, seed)
     records = state.records()
     train = state.training(len(records))
@@ -316,7 +331,7 @@ def run_loop(
             break
         if session.step_result(NAME, f"round{number}/plan") is None:
             session.finish_step(NAME, f"round{number}/plan", rows.to_dict())  # pinned before the first motion
-        blocks = _measure_round(session, state, rows, before, train, shots)
+        blocks = yield from _measure_round(session, state, rows, before, train, shots)
         longer = state.training(number)
         after = state.diagnose(longer, before.effects_added)
         unmeasurable = int(np.sum(~rows.keep))

@@ -207,7 +207,7 @@ def sample(session: Session, *, order: str, shots: int | None = None, **options)
     """Measure the grid, then the held-out validation poses, on a registered cell; resumable."""
     session.require_registration()
     the_plan = plan(session.config, order=order, **options)
-    session.visit(the_plan, shots=shots, extra={"order": order}, pin=True)
+    session.engine.visit(the_plan, shots=shots, extra={"order": order}, pin=True)
     steps = [p.step for p in the_plan.poses]
     recorded = session.store.measurements(NAME)
     counts = recorded["step"].value_counts().to_dict() if len(recorded) else {}

@@ -470,7 +470,7 @@ def assess(
     paths = plan_paths(session.config, cube, nest, the_model, path_speed_m_s) if path_runs > 0 else {}
     if paths:
         session.streaming_tracker(STREAM_INTERVAL_S)  # refuse a tracker that cannot stream before any motion
-    session.visit(the_plan, shots=shots, pin=True)
+    session.engine.visit(the_plan, shots=shots, pin=True)
     frames = {"before": reg.T_tracker_base}
     if the_model is not None:
         frames["after"] = the_model.T_tracker_base

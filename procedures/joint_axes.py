@@ -370,7 +370,7 @@ def identify(
     reg = session.require_registration()
     config = session.config
     the_plan = plan(config, span_rad=span_rad, points=points, q_ref_rad=q_ref_rad, smrs=smrs)
-    session.visit(the_plan, shots=shots, pin=True)
+    session.engine.visit(the_plan, shots=shots, pin=True)
     df = campaign_dataset(session.store, NAME, STEP)
     df["sweep"] = [p.split("/")[0] for p in df["point_id"]]
     distance = float(np.median(np.linalg.norm(df[["x_mm", "y_mm", "z_mm"]].to_numpy(float), axis=1))) / 1e3

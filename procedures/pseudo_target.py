@@ -31,6 +31,7 @@ another side of the gap (about 0.1 mm on the simulated UR10 with backlash).
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -54,6 +55,7 @@ from hil.geometry.kinematics import forward_kinematics
 from hil.geometry.se3 import fit_rigid
 from hil.model.calibrated_model import CalibratedModel
 from hil.runner.cell_config import CellConfig
+from hil.runner.engine import CampaignStopped, MeasurePose, Measuring
 from hil.runner.envelope import EnvelopeError
 from hil.runner.operator import OperatorStep
 from hil.runner.plan import Plan, PlannedPose
@@ -66,7 +68,7 @@ from hil.runner.planners import (
     workspace_box,
 )
 from hil.runner.procedure import SHOTS, Parameter, ParameterError, Procedure
-from hil.runner.session import CampaignStopped, Session
+from hil.runner.session import Session
 
 NAME = "pseudo_target"
 STEP = "loop"
@@ -530,14 +532,8 @@ def close_the_loop(session: Session, *, model: CalibratedModel | str | None, tar
     todo = [k for k, r in enumerate(results) if r.status == "ok"]
     loop.ask_operator()
     with session.progress.task("pseudo-target loop", total=len(todo)) as advance:
-        for k in todo:
-            if measure_uncompensated:
-                T_u = loop.measure(f"{ids[k]}/u", start.q_uncompensated[k])
-                _, results[k].uncompensated_error_m, results[k].uncompensated_rotation_rad = (
-                    x[0] for x in pose_cost(T_u[None], loop.T_d4[k : k + 1], smrs == 3, LENGTH_SCALE_M)
-                )
-            loop.run_target(k, ids[k], start.q[k], results[k])
-            advance()
+        uncompensated = start.q_uncompensated if measure_uncompensated else None
+        session.engine.run(loop.targets(todo, start.q, uncompensated, results, advance))
     result = LoopResult(results, smrs, generator, the_model is not None)
     session.finish_step(
         NAME, "summary", {"summary": result.summary(), "targets": [r.to_dict() for r in results]}
@@ -623,11 +619,37 @@ class _Loop:
                 OperatorStep(f"Put SMR {k} in tool nest {k}.", "place_smr", smr=k, location=f"nest{k}")
             )
 
-    def _point(self, point_id: str, q: np.ndarray, nest: int) -> np.ndarray:
-        record = self.session.recall_or_measure(
-            NAME, STEP, point_id, q, smr=nest, location=f"nest{nest}", p_flange_m=self.nests[nest - 1],
-            shots=self.shots, extra={"target": point_id.split("/")[0]},
-        )  # fmt: skip
+    def targets(
+        self,
+        todo: list[int],
+        q_start: np.ndarray,
+        q_uncompensated: np.ndarray | None,
+        results: list[TargetResult],
+        advance: Callable[[], None],
+    ) -> Measuring[None]:
+        """The loop over the targets `todo` (indices into `results`), as requests to the engine: each target
+        from its start joints, after its plain nominal IK (`q_uncompensated`) when that is measured too."""
+        for k in todo:
+            out = results[k]
+            if q_uncompensated is not None:
+                T_u = yield from self.measure(f"{out.target_id}/u", q_uncompensated[k])
+                _, out.uncompensated_error_m, out.uncompensated_rotation_rad = (
+                    x[0] for x in pose_cost(T_u[None], self.T_d4[k : k + 1], self.full_pose, LENGTH_SCALE_M)
+                )
+            yield from self.run_target(k, out.target_id, q_start[k], out)
+            advance()
+
+    def _point(self, point_id: str, q: np.ndarray, nest: int) -> Measuring[np.ndarray]:
+        pose = PlannedPose(
+            point_id,
+            NAME,
+            STEP,
+            np.asarray(q, float),
+            f"nest{nest}",
+            smr=nest,
+            p_flange_m=self.nests[nest - 1],
+        )
+        record = yield MeasurePose(pose, shots=self.shots, extra={"target": point_id.split("/")[0]})
         self.sigma_m = max(
             self.sigma_m, measurement_sigma_m(record.p_tracker_m, record.spread_m, record.shots)
         )
@@ -642,27 +664,31 @@ class _Loop:
             except EnvelopeError as exc:  # checked before any motion: go straight instead
                 self.session.event("approach_skipped", f"{point_id}: {exc}", point_id=point_id)
 
-    def measure(self, base_id: str, q: np.ndarray) -> np.ndarray:
+    def measure(self, base_id: str, q: np.ndarray) -> Measuring[np.ndarray]:
         """Measured T_tracker_tool (4, 4): SMR 1's point, and with three SMRs the flange orientation from
         the nest layout fitted to the three measured nests (Kabsch). Sets `sigma_m`, its per-axis noise."""
         self.sigma_m = 0.0
         self._approach(f"{base_id}/n1" if self.smrs > 1 else base_id, q)
         T = np.eye(4)
         if self.smrs == 1:
-            T[:3, 3] = self._point(base_id, q, 1)
+            T[:3, 3] = yield from self._point(base_id, q, 1)
             return T
-        p = np.array([self._point(f"{base_id}/n{k}", q, k) for k in range(1, self.smrs + 1)])
+        measured = []
+        for k in range(1, self.smrs + 1):
+            measured.append((yield from self._point(f"{base_id}/n{k}", q, k)))
+        p = np.array(measured)
         T_tracker_flange, _ = fit_rigid(self.nests, p)
         T[:3, :3] = T_tracker_flange[:3, :3]
         T[:3, 3] = p[0]
         return T
 
-    def run_target(self, k: int, tid: str, q0: np.ndarray, out: TargetResult) -> None:
+    def run_target(self, k: int, tid: str, q0: np.ndarray, out: TargetResult) -> Measuring[None]:
         q = np.asarray(q0, float)
         T_p = self.ik.from_flange(forward_kinematics(self.ik.kin, q[None]))  # the pseudo target FK(q)
         T_d = self.T_d4[k : k + 1]
         best, stale = np.inf, 0  # best error measure so far; corrections in a row without a real gain
-        T_a, sigma = self.measure(f"{tid}/i0", q)[None], self.sigma_m
+        T_a = (yield from self.measure(f"{tid}/i0", q))[None]
+        sigma = self.sigma_m
         for i in range(self.max_iter + 1):
             cost, dp, dr = pose_cost(T_a, T_d, self.full_pose, LENGTH_SCALE_M)
             out.errors_m.append(float(dp[0]))
@@ -684,7 +710,7 @@ class _Loop:
             if not proposals:
                 out.status = reason
                 return
-            T_a, q, T_p, sigma = self._measure_best(f"{tid}/i{i + 1}", T_d, proposals)
+            T_a, q, T_p, sigma = yield from self._measure_best(f"{tid}/i{i + 1}", T_d, proposals)
 
     def _propose(
         self, T_d: np.ndarray, T_a: np.ndarray, T_p: np.ndarray, q: np.ndarray
@@ -710,12 +736,12 @@ class _Loop:
 
     def _measure_best(
         self, base_id: str, T_d: np.ndarray, proposals: list[tuple[str, np.ndarray, np.ndarray]]
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    ) -> Measuring[tuple[np.ndarray, np.ndarray, np.ndarray, float]]:
         """Measure each proposal (one: `t007/i2`; an ensemble: `t007/i2/zyz`, ...), keep the best: (T_a, q, T_p, noise)."""
         found = []
         for name, T_p, q in proposals:
             point_id = base_id if self.generator != ENSEMBLE else f"{base_id}/{name}"
-            T_a = self.measure(point_id, q)[None]
+            T_a = (yield from self.measure(point_id, q))[None]
             cost = pose_cost(T_a, T_d, self.full_pose, LENGTH_SCALE_M)[0][0]
             found.append((float(cost), T_a, q, T_p, self.sigma_m))
         _, T_a, q, T_p, sigma = min(found, key=lambda f: f[0])

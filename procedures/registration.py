@@ -17,11 +17,12 @@ from hil.geometry.kinematics import tool_points
 from hil.geometry.rigid_fit import RigidFit, ransac_rigid
 from hil.geometry.se3 import fit_rigid, transform_points
 from hil.runner.cell_config import CellConfig
+from hil.runner.engine import CampaignStopped
 from hil.runner.operator import OperatorStep
 from hil.runner.plan import Plan, PlannedPose
 from hil.runner.planners import Box, facing_poses, plan_joints, workspace_box
 from hil.runner.procedure import Parameter, Procedure
-from hil.runner.session import CampaignStopped, Session
+from hil.runner.session import Session
 
 NAME = "registration"
 
@@ -81,7 +82,7 @@ def register(session: Session, *, poses: int, nest: int, seed: int, inlier_m: fl
         q_now = session.robot.joints()
         session.tracker.point_at(transform_points(T, tool_points(session.nominal, q_now[None], p_nest))[0])
 
-    session.visit(the_plan, aim=False, reaim=reaim)
+    session.engine.visit(the_plan, aim=False, reaim=reaim)
     records = session.recorded_points(NAME, "poses")
     if len(records.point_id) < 6:
         raise CampaignStopped(

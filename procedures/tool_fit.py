@@ -55,11 +55,12 @@ from hil.analysis.standards.flange_geometry import (
 from hil.geometry.kinematics import KinematicModel, tool_points
 from hil.geometry.rigid_fit import ransac_rigid
 from hil.runner.cell_config import CellConfig
+from hil.runner.engine import CampaignStopped
 from hil.runner.operator import OperatorStep
 from hil.runner.plan import Plan, PlannedPose
 from hil.runner.planners import Box, facing_poses, plan_joints, workspace_box
 from hil.runner.procedure import Limit, Parameter, Procedure
-from hil.runner.session import CampaignStopped, RecordedPoints, Session
+from hil.runner.session import RecordedPoints, Session
 
 NAME = "tool_fit"
 HOLES = tuple(range(1, 8))
@@ -207,7 +208,7 @@ def fit_tool(
     """Measure in the paper's order on a registered cell, judge, record the fit, then redo the registration."""
     session.require_registration()
     the_plan = plan(session.config, check_poses=check_poses, validation_poses=validation_poses, seed=seed)
-    session.visit(the_plan, shots=shots)
+    session.engine.visit(the_plan, shots=shots)
     judged = evaluate(session.config, session.recorded_points(NAME), _limits(limits), shots)
     if judged.problems:
         session.event("tool_fit_rejected", "; ".join(judged.problems), procedure=NAME)

@@ -47,7 +47,7 @@ def plan(config, *, poses, spacing_m):
 def check(session, *, poses, spacing_m, max_distance_error_m):
     the_plan = plan(session.config, poses=poses, spacing_m=spacing_m)
     relock = the_plan.poses[0].at_pose[0]  # no registration needed: the operator guides a broken beam back
-    session.visit(the_plan, aim=False, reaim=lambda: session.ask(relock))
+    session.engine.visit(the_plan, aim=False, reaim=lambda: session.ask(relock))
     points = session.recorded_points(NAME, "poses")
     nominal = tool_points(session.nominal, points.q_rad, session.config.nests_flange_m[0])
     i, j = np.triu_indices(len(nominal), 1)

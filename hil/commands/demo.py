@@ -106,7 +106,7 @@ def run(args: argparse.Namespace) -> int:
         f"campaign {campaign}{' (resuming)' if resumed else ''}"
     )
     from hil.commands.interrupts import interrupt_guard
-    from hil.runner.session import CampaignStopped
+    from hil.runner.engine import CampaignStopped
 
     started = time.monotonic()
     with interrupt_guard():

@@ -18,11 +18,11 @@ from typing import Any
 from hil.commands.errors import CliError
 from hil.commands.interrupts import interrupt_guard
 from hil.runner.cell_config import CellConfigError, load_cell_config
+from hil.runner.engine import CampaignStopped
 from hil.runner.envelope import EnvelopeError
 from hil.runner.operator import OperatorAbortError
 from hil.runner.procedure import WRONG_UNITS, Parameter, ParameterError, Procedure, from_user_values
 from hil.runner.registry import UnknownProcedureError, load, registered
-from hil.runner.session import CampaignStopped
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
