@@ -59,7 +59,7 @@ from hil.runner.engine import CampaignStopped
 from hil.runner.operator import OperatorStep
 from hil.runner.plan import Plan, PlannedPose
 from hil.runner.planners import Box, facing_poses, plan_joints, workspace_box
-from hil.runner.procedure import Limit, Parameter, Procedure
+from hil.runner.procedure import Limit, Measurement, Parameter, Procedure
 from hil.runner.session import RecordedPoints, Session
 
 NAME = "tool_fit"
@@ -210,6 +210,8 @@ def fit_tool(
     the_plan = plan(session.config, check_poses=check_poses, validation_poses=validation_poses, seed=seed)
     session.engine.visit(the_plan, shots=shots)
     judged = evaluate(session.config, session.recorded_points(NAME), _limits(limits), shots)
+    for name, value_m, gate_m in judged_figures(session.config, judged):
+        session.engine.measured(name, value_m, limit_si=gate_m)
     if judged.problems:
         session.event("tool_fit_rejected", "; ".join(judged.problems), procedure=NAME)
         raise ToolFitRejected(
@@ -219,6 +221,29 @@ def fit_tool(
     judged.result["registration"] = redo_registration(session, judged.nests_flange_m)
     session.finish_step(NAME, "fit", judged.result)
     return judged
+
+
+def judged_figures(config: CellConfig, judged: ToolFitResult) -> list[tuple[str, float | None, float | None]]:
+    """The declared measurements of a fit (SI), as the engine judges them: (name, value, the limit computed
+    at run time or None for the declared one). A figure the fit could not measure has no value."""
+    flange = judged.result["flange"]
+    turn = judged.result["tool_orientation"]
+    angles_deg = [*flange["hole_angle_errors_deg"].values(), flange["bisector_error_deg"]]
+    expected_m = flange["face_height_expected_mm"] / 1e3
+    return [
+        ("circle_residual", judged.circle_residual_m, None),
+        ("radius_error", abs(judged.circle_radius_m - config.hole_circle_radius_m), None),
+        ("hole_angle_error", float(np.deg2rad(np.max(np.abs(angles_deg)))), None),
+        ("face_height_error", abs(flange["face_height_mm"] / 1e3 - expected_m), None),
+        ("tool_rotation", float(np.deg2rad(turn["rotation_deg"])) if "rotation_deg" in turn else None, None),
+        (
+            "nest_layout_error",
+            turn["nest_layout_error_mm"] / 1e3 if "nest_layout_error_mm" in turn else None,
+            None,
+        ),
+        ("method_disagreement", judged.distance_check_m, judged.method_gate_m),
+        ("validation_rms", judged.validation_rms_m, None),
+    ]
 
 
 def _limits(values: dict[str, float]) -> Limits:
@@ -507,4 +532,31 @@ PROCEDURE = Procedure(
     ),
     steps=(*STAGES, "fit"),
     summary=summary,
+    measurements=(
+        Measurement("circle_residual", "hole balls off their circle, RMS", "mm", "max_circle_residual"),
+        Measurement("radius_error", "hole circle's radius against the drawing", "mm", "max_radius_error"),
+        Measurement(
+            "hole_angle_error",
+            "worst hole off its place (hole 7: off the 3-4 bisector)",
+            "deg",
+            "max_hole_angle_error",
+        ),
+        Measurement(
+            "face_height_error",
+            "face ball's height against the seating geometry",
+            "mm",
+            "max_face_height_error",
+        ),
+        Measurement("tool_rotation", "the tool turned against its drawing", "deg", "max_tool_rotation"),
+        Measurement(
+            "nest_layout_error", "worst nest off the drawing's layout", "mm", "max_nest_layout_error"
+        ),
+        Measurement(
+            "method_disagreement",
+            "nest 1 by flange holes against the distance method (gate: method_gate_sigmas x its standard "
+            "error, at least min_method_gate)",
+            "mm",
+        ),
+        Measurement("validation_rms", "validation poses with the fitted nest 1, RMS (not judged)", "mm"),
+    ),
 )

@@ -132,14 +132,15 @@ def run(args: argparse.Namespace) -> int:
                 raise CliError(exc.message, exc.remedy + " (run hil demo again to resume)") from exc
     from hil.data.store import CampaignStore
     from hil.report.html import write_html
-    from hil.report.json_report import write_json
+    from hil.report.json_report import outcomes_section, write_json
 
     with CampaignStore(campaign, create=False) as store:
         tool = store.step_result("tool_fit", "fit")
+        outcomes = outcomes_section(store.outcomes())
     write_html(
         report, out / "report.html", compensation=loop, active=active and active["html"], tool_fit=tool
     )
-    extra = {"tool_fit": tool, "measured_loop": loop}
+    extra = {"tool_fit": tool, "measured_loop": loop, "outcomes": outcomes or None}
     if active:
         extra["active_loop"] = {"rounds": active["rounds"], "stop": active["stop"]}
     write_json(report, out / "report.json", {k: v for k, v in extra.items() if v is not None})

@@ -13,15 +13,17 @@ path). Recording stays where it was: each measurement is committed by the sessio
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from collections.abc import Callable, Generator, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Protocol, TypeVar
 
 import numpy as np
 
-from hil.data.store import CampaignStore, MeasurementRecord
+from hil.data.store import CampaignStore, MeasurementRecord, OutcomeRecord, Verdict
 from hil.errors import ActionableError
 from hil.instruments.robot import RobotError
 from hil.instruments.tracker import (
@@ -33,6 +35,7 @@ from hil.instruments.tracker import (
 )
 from hil.runner.operator import OperatorStep
 from hil.runner.plan import Plan, PlannedPose
+from hil.runner.procedure import Bound, Measurement
 from hil.runner.progress import Progress
 
 MEASURE_ATTEMPTS = (
@@ -143,6 +146,7 @@ class Engine:
         self.holding = threading.Event()  # set while a pause holds the run (for a button to show it)
         self._setup: tuple[OperatorStep, ...] | None = None  # the SMR setup the operator last made
         self._recorded: dict[tuple[str, str], dict[str, MeasurementRecord]] = {}
+        self._judging: Judging | None = None
 
     # ------------------------------------------------------------------ pause and stop (any thread)
     def request_stop(self, reason: str = "stopped by the operator") -> None:
@@ -289,6 +293,50 @@ class Engine:
         """Forget the setup the operator last made: the next pose asks for its setup again."""
         self._setup = None
 
+    # ------------------------------------------------------------------ declared measurements, judged
+    @contextmanager
+    def judging(
+        self, procedure: str, measurements: tuple[Measurement, ...], limits_si: dict[str, float]
+    ) -> Iterator[None]:
+        """While a procedure runs: the measurements it declared and its limits (SI, by limit name). When it
+        ends normally, each declared measurement it did not report is recorded as not judged."""
+        self._judging = Judging(procedure, {m.name: m for m in measurements}, limits_si)
+        try:
+            yield
+            for m in measurements:
+                if m.name not in self._judging.reported:
+                    self._record(self._judging.judge(m, None, None, "the run gave no value"))
+        finally:
+            self._judging = None
+
+    def measured(
+        self, name: str, value_si: float | None, *, limit_si: float | None = None, note: str = ""
+    ) -> OutcomeRecord:
+        """A declared measurement's value (SI): judged against its declared limit (or `limit_si`, a limit the
+        procedure computed at run time), recorded in the campaign before this returns, and returned."""
+        if self._judging is None:
+            raise RuntimeError(f"measurement {name} reported outside a procedure's run")
+        declared = self._judging.declared.get(name)
+        if declared is None:
+            known = ", ".join(self._judging.declared) or "none"
+            raise ValueError(
+                f"{self._judging.procedure} declares no measurement {name!r} (declared: {known})"
+            )
+        outcome = self._judging.judge(declared, value_si, limit_si, note)
+        self._judging.reported.add(name)
+        self._record(outcome)
+        return outcome
+
+    def _record(self, outcome: OutcomeRecord) -> None:
+        self.cell.store.record_outcome(outcome)
+        if outcome.verdict is Verdict.FAIL:
+            self.cell.event(
+                "limit_failed",
+                f"{outcome.measurement} {outcome.value:g} {outcome.unit} against the limit "
+                f"{outcome.bound} {outcome.limit_value:g} {outcome.unit}",
+                procedure=outcome.procedure,
+            )
+
     # ------------------------------------------------------------------ a fixed plan
     def visit(self, plan: Plan, *, pin: bool = False, **options: object) -> int:
         """Visit every pose of a fixed plan that is not recorded yet, in order; returns how many were measured.
@@ -325,3 +373,31 @@ def _pose_joints(pose: PlannedPose) -> np.ndarray:
     if pose.approach_q_rad is not None:
         q.append(np.asarray(pose.approach_q_rad, float))
     return np.array(q)
+
+
+@dataclass
+class Judging:
+    """The declared measurements of the procedure that runs, and what it reported so far."""
+
+    procedure: str
+    declared: dict[str, Measurement]
+    limits_si: dict[str, float]
+    reported: set[str] = field(default_factory=set)
+
+    def judge(
+        self, m: Measurement, value_si: float | None, limit_si: float | None, note: str
+    ) -> OutcomeRecord:
+        limit = limit_si if limit_si is not None else self.limits_si.get(m.limit) if m.limit else None
+        return OutcomeRecord(
+            self.procedure, m.name, value_si, m.si_unit, limit, m.bound.value, verdict(value_si, limit, m.bound),
+            note or m.help,
+        )  # fmt: skip
+
+
+def verdict(value: float | None, limit: float | None, bound: Bound) -> Verdict:
+    """Pass when the value keeps to its limit on the bounded side (equal passes); not judged without a
+    finite value or a limit."""
+    if value is None or limit is None or not math.isfinite(value):
+        return Verdict.NOT_JUDGED
+    within = value <= limit if bound is Bound.MAX else value >= limit
+    return Verdict.PASS if within else Verdict.FAIL

@@ -13,6 +13,7 @@ import inspect
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from enum import StrEnum
 from typing import Any
 
 from hil.runner.cell_config import CellConfig
@@ -140,6 +141,39 @@ class Limit:
         return UNITS[self.unit][1](self.value)
 
 
+class Bound(StrEnum):
+    """Which side of a measurement its limit bounds."""
+
+    MAX = "max"  # the measurement passes at or below the limit
+    MIN = "min"  # ... at or above it
+
+
+@dataclass(frozen=True)
+class Measurement:
+    """A figure a procedure measures, declared with the limit it is judged against (the engine judges it and
+    records the outcome: pass, fail, or not judged when no limit is declared or no finite value came).
+
+    `name` is the figure's stem, reported in SI under `keyword` (circle_residual + mm -> circle_residual_m);
+    `limit`, the name of one of the procedure's Limits (None: recorded, not judged, unless the procedure
+    gives the limit it computed at run time); `bound`: which side the limit bounds.
+    """
+
+    name: str
+    help: str
+    unit: str = ""
+    limit: str | None = None
+    bound: Bound = Bound.MAX
+
+    @property
+    def keyword(self) -> str:
+        return self.name + UNITS[self.unit][0]
+
+    @property
+    def si_unit(self) -> str:
+        """The SI unit the value is reported in: m, rad, s, or "" (a count, a ratio)."""
+        return UNITS[self.unit][0].removeprefix("_")
+
+
 @dataclass(frozen=True)
 class Procedure:
     """A shop-floor procedure: what it is for, what it takes, what it plans, what it judges and records.
@@ -158,10 +192,18 @@ class Procedure:
     limits: tuple[Limit, ...] = ()
     steps: tuple[str, ...] = ()
     summary: Callable[[Any], str] = str
+    measurements: tuple[Measurement, ...] = ()
     _names: frozenset[str] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "_names", frozenset(p.keyword for p in self.parameters))
+        limits = {limit.name for limit in self.limits}
+        for m in self.measurements:
+            if m.limit is not None and m.limit not in limits:
+                raise ValueError(
+                    f"{self.name}: measurement {m.name} names limit {m.limit!r}, which is not declared "
+                    f"(declared: {', '.join(sorted(limits)) or 'none'})"
+                )
 
     def resolve(self, values: dict[str, Any]) -> dict[str, Any]:
         """Every parameter in SI: the given values (SI keywords) over the declared defaults, each checked."""
@@ -191,8 +233,12 @@ class Procedure:
         return self.plan(config, **{k: v for k, v in resolved.items() if k in accepted})
 
     def __call__(self, session: Any, **values: Any) -> Any:
-        """Run the procedure on a Session with these parameters (SI keywords; defaults filled in and checked)."""
-        return self.body(session, **self.resolve(values), **self.limit_values())
+        """Run the procedure on a Session with these parameters (SI keywords; defaults filled in and checked);
+        its engine judges the declared measurements the body reports (`session.engine.measured`)."""
+        resolved = self.resolve(values)
+        limits = {limit.name: limit.to_si() for limit in self.limits}
+        with session.engine.judging(self.name, self.measurements, limits):
+            return self.body(session, **resolved, **self.limit_values())
 
     def describe(self) -> str:
         """The shop-floor instruction, the measurement limits and the steps, for `hil run NAME --help`."""
@@ -200,6 +246,9 @@ class Procedure:
         if self.limits:
             lines += ["", "measurement limits (the result is refused beyond them):"]
             lines += [f"  {limit.help}: {limit.value:g} {limit.unit}".rstrip() for limit in self.limits]
+        if self.measurements:
+            lines += ["", "judged measurements (the outcome is recorded in the campaign):"]
+            lines += [f"  {m.help}" + (f" (limit {m.limit})" if m.limit else "") for m in self.measurements]
         if self.steps:
             lines += ["", "campaign steps: " + ", ".join(self.steps)]
         return "\n".join(lines)
