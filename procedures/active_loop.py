@@ -43,12 +43,12 @@ from hil.runner.cell_config import CellConfig
 from hil.runner.engine import CampaignStopped, Measuring
 from hil.runner.operator import OperatorStep
 from hil.runner.plan import Plan, PlannedPose
-from hil.runner.procedure import SHOTS, Parameter, Procedure
+from hil.runner.procedure import SHOTS, Parameter, Procedure, Role
+from hil.runner.registry import publisher
 from hil.runner.session import Session
 from hil.runner.sight import measurable
 
 NAME = "active_loop"
-GRID = "grid_sampling"
 
 
 @dataclass(frozen=True)
@@ -98,7 +98,7 @@ class _Campaign:
     def training(self, rounds: int) -> pd.DataFrame:
         """The grid, then the rows of rounds 1..`rounds` in the order they were measured."""
         try:
-            grid = campaign_dataset(self.store, GRID, "grid")
+            grid = campaign_dataset(self.store, *publisher(Role.GRID))
         except DatasetError as exc:
             raise CampaignStopped(
                 f"the active loop diagnoses the campaign's grid, and there is none: {exc}",
@@ -111,7 +111,7 @@ class _Campaign:
 
     def validation(self) -> pd.DataFrame | None:
         try:
-            return campaign_dataset(self.store, GRID, "validation")
+            return campaign_dataset(self.store, *publisher(Role.VALIDATION))
         except DatasetError:
             return None
 
@@ -124,7 +124,7 @@ class _Campaign:
         round before named (hil.analysis.diagnosis.pipeline keeps them when the new selection would predict worse without
         them). The same data diagnosed again in this process (the plan shown before connecting, then the
         loop's first round) is not diagnosed twice."""
-        fit = self.store.step_result("tool_fit", "fit")
+        fit = self.store.step_result(*publisher(Role.TOOL))
         nest = str(self.nest(train))
         tool = (
             np.array(fit["nests_flange_mm"][nest], float) / 1e3

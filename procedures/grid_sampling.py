@@ -43,7 +43,7 @@ from hil.runner.planners import (
     travel_order,
     workspace_box,
 )
-from hil.runner.procedure import SHOTS, Parameter, Procedure
+from hil.runner.procedure import SHOTS, Parameter, Procedure, Role
 from hil.runner.session import Session
 
 NAME = "grid_sampling"
@@ -283,4 +283,5 @@ PROCEDURE = Procedure(
     body=sample,
     steps=("plan", "grid", "reference", "validation"),
     summary=summary,
+    publishes=((Role.GRID, "grid"), (Role.VALIDATION, "validation")),
 )

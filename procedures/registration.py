@@ -21,7 +21,7 @@ from hil.runner.engine import CampaignStopped
 from hil.runner.operator import OperatorStep
 from hil.runner.plan import Plan, PlannedPose
 from hil.runner.planners import Box, facing_poses, plan_joints, workspace_box
-from hil.runner.procedure import Parameter, Procedure
+from hil.runner.procedure import Parameter, Procedure, Role
 from hil.runner.session import Session
 
 NAME = "registration"
@@ -124,4 +124,5 @@ PROCEDURE = Procedure(
     body=register,
     steps=("poses", "fit"),
     summary=summary,
+    publishes=((Role.REGISTRATION, "fit"),),
 )

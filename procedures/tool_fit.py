@@ -59,7 +59,7 @@ from hil.runner.engine import CampaignStopped
 from hil.runner.operator import OperatorStep
 from hil.runner.plan import Plan, PlannedPose
 from hil.runner.planners import Box, facing_poses, plan_joints, workspace_box
-from hil.runner.procedure import Limit, Measurement, Parameter, Procedure
+from hil.runner.procedure import Limit, Measurement, Parameter, Procedure, Role
 from hil.runner.session import RecordedPoints, Session
 
 NAME = "tool_fit"
@@ -532,6 +532,7 @@ PROCEDURE = Procedure(
     ),
     steps=(*STAGES, "fit"),
     summary=summary,
+    publishes=((Role.TOOL, "fit"),),
     measurements=(
         Measurement("circle_residual", "hole balls off their circle, RMS", "mm", "max_circle_residual"),
         Measurement("radius_error", "hole circle's radius against the drawing", "mm", "max_radius_error"),

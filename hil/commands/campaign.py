@@ -43,7 +43,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     export.add_argument("--csv", default=None, help="CSV file to write (dataset contract)")
     export.add_argument("--parquet", default=None, help="Parquet file to write (same columns)")
     export.add_argument(
-        "--procedure", default="grid_sampling", help="procedure to export (default grid_sampling)"
+        "--procedure", default=None, help="procedure to export (default: the one that measures the grid)"
     )
     export.add_argument("--step", default=None, help="export only this step (default: all of them)")
     export.add_argument("--force", action="store_true", help="overwrite the output file if it exists")
@@ -211,6 +211,10 @@ def _in_user_units(value: float | None, si_unit: str) -> str:
 
 
 def run_export(args: argparse.Namespace) -> int:
+    if args.procedure is None:
+        from hil.commands.inputs import grid_procedure
+
+        args.procedure = grid_procedure()
     problem = _check_campaign(args.file)
     if problem:
         raise CliError.from_text(problem)

@@ -169,7 +169,7 @@ def _vector(name: str, value: object, shape: tuple[int, ...], finite: bool) -> n
 class MeasurementRecord:
     """One measured robot pose: what was commanded, what the robot and the tracker reported, conditions."""
 
-    procedure: str  # "registration", "tool_fit", "grid_sampling", ...
+    procedure: str  # the procedure's registered name
     step: str  # e.g. "grid", "validation", "pose2/hole3"
     point_id: str  # unique within (procedure, step)
     q_target_rad: np.ndarray  # (6,) commanded joints
@@ -728,7 +728,7 @@ def load_campaign(
 
 def campaign_dataset(
     path_or_store: str | Path | CampaignStore,
-    procedure: str = "grid_sampling",
+    procedure: str,
     step: str | Sequence[str] | None = None,
 ) -> pd.DataFrame:
     """The measurements of one procedure (one or several steps) in the hil.data.dataset contract, validated."""
@@ -818,7 +818,7 @@ def _extra_temperatures(extra: pd.Series, key: str) -> np.ndarray:
 def export_csv(
     path: str | Path,
     out: str | Path,
-    procedure: str = "grid_sampling",
+    procedure: str,
     step: str | Sequence[str] | None = None,
 ) -> int:
     """Write one procedure's measurements as a dataset CSV; returns the number of rows written."""
@@ -828,7 +828,7 @@ def export_csv(
 def export_parquet(
     path: str | Path,
     out: str | Path,
-    procedure: str = "grid_sampling",
+    procedure: str,
     step: str | Sequence[str] | None = None,
 ) -> int:
     """Write one procedure's measurements (dataset columns) as a Parquet file; returns rows written."""

@@ -141,6 +141,16 @@ class Limit:
         return UNITS[self.unit][1](self.value)
 
 
+class Role(StrEnum):
+    """What a procedure's step holds that the rest of hil reads: a procedure publishes which of its steps
+    plays which role (`Procedure.publishes`), so the core finds them through the registry, never by name."""
+
+    REGISTRATION = "registration"  # a step result: T_tracker_base (4x4, m) and rms_mm
+    TOOL = "tool"  # a step result: nests_flange_mm, each nest's centre in the flange frame
+    GRID = "grid"  # measurements: the calibration grid the analysis reads
+    VALIDATION = "validation"  # measurements: held-out poses in the grid's volume
+
+
 class Bound(StrEnum):
     """Which side of a measurement its limit bounds."""
 
@@ -193,6 +203,7 @@ class Procedure:
     steps: tuple[str, ...] = ()
     summary: Callable[[Any], str] = str
     measurements: tuple[Measurement, ...] = ()
+    publishes: tuple[tuple[Role, str], ...] = ()
     _names: frozenset[str] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -204,6 +215,10 @@ class Procedure:
                     f"{self.name}: measurement {m.name} names limit {m.limit!r}, which is not declared "
                     f"(declared: {', '.join(sorted(limits)) or 'none'})"
                 )
+
+    def step_for(self, role: Role) -> str | None:
+        """The step of this procedure that plays `role`, None when it publishes none."""
+        return next((step for r, step in self.publishes if r is role), None)
 
     def resolve(self, values: dict[str, Any]) -> dict[str, Any]:
         """Every parameter in SI: the given values (SI keywords) over the declared defaults, each checked."""

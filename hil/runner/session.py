@@ -37,7 +37,9 @@ from hil.runner.envelope import Envelope, EnvelopeError
 from hil.runner.operator import Operator, OperatorStep
 from hil.runner.plan import Plan, PlannedPose
 from hil.runner.planners import linear_path_joints
+from hil.runner.procedure import Role
 from hil.runner.progress import Progress
+from hil.runner.registry import publisher
 
 log = logging.getLogger("hil")
 
@@ -170,7 +172,7 @@ class Session:
     @property
     def registration(self) -> Registration | None:
         """The latest tracker <-> base registration recorded in this campaign, if any."""
-        result = self.step_result("registration", "fit")
+        result = self.step_result(*publisher(Role.REGISTRATION))
         if result is None:
             return None
         return Registration(np.array(result["T_tracker_base"], float), float(result["rms_mm"]) / 1e3)
@@ -186,7 +188,7 @@ class Session:
 
     def nest_flange_m(self, nest: int) -> np.ndarray:
         """SMR nest centre in the flange frame: the tool fit's value when this campaign has one, else the drawing."""
-        fit = self.step_result("tool_fit", "fit")
+        fit = self.step_result(*publisher(Role.TOOL))
         if fit is not None and str(nest) in fit.get("nests_flange_mm", {}):
             return np.array(fit["nests_flange_mm"][str(nest)], float) / 1e3
         return np.asarray(self.config.nests_flange_m[nest - 1], float)
