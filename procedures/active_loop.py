@@ -52,6 +52,17 @@ NAME = "active_loop"
 
 
 @dataclass(frozen=True)
+class ActiveLoopOptions:
+    """The declared parameters, SI."""
+
+    rounds: int
+    poses: int
+    block: int
+    seed: int
+    shots: int | None
+
+
+@dataclass(frozen=True)
 class ActiveLoopResult:
     records: list[dict]  # one per round, as stored (hil.analysis.design.rounds.round_record)
     stop: dict  # {"rounds": n, "why": ...}
@@ -228,16 +239,10 @@ def motion_plan(
     return Plan(NAME, poses, config, operator_steps=1, dropped=dropped)
 
 
-def plan(
-    config: CellConfig,
-    *,
-    campaign: str | Path | None = None,
-    rounds: int,
-    poses: int,
-    seed: int,
-    block: int = BLOCK_ROWS,
-) -> Plan:
-    """The next round's poses on this campaign (for --dry-run): the campaign is diagnosed, nothing moves."""
+def plan(config: CellConfig, options: ActiveLoopOptions, campaign: str | Path | None = None) -> Plan:
+    """The next round's poses on this campaign (for --dry-run): the campaign is diagnosed, nothing moves;
+    the plan's bounds say what may follow (the rounds after it are planned from what this one measures)."""
+    rounds, poses, seed, block = options.rounds, options.poses, options.seed, options.block
     if campaign is None or not Path(campaign).exists():
         raise ValueError("the active loop plans from a campaign's grid: give --campaign with a measured grid")
     with CampaignStore(campaign, create=False) as store:
@@ -252,7 +257,12 @@ def plan(
         nest = state.nest(train)
     if rows is None:
         return Plan(NAME, [], config, dropped={f"no round {done + 1}: {why}": 1})
-    return motion_plan(config, rows, nest)
+    the_plan = motion_plan(config, rows, nest)
+    the_plan.bounds = (
+        f"round {done + 1} of at most {rounds}, measured in blocks of {rows.block} (a block whose questions are "
+        f"decided ends it early); each later round: at most {poses} poses, planned from what this one measures"
+    )
+    return the_plan
 
 
 def _measure_round(
@@ -298,28 +308,23 @@ def _measure_round(
     return judged
 
 
-def run_loop(
-    session: Session,
-    *,
-    rounds: int,
-    poses: int,
-    seed: int,
-    block: int = BLOCK_ROWS,
-    shots: int | None = None,
-) -> ActiveLoopResult:
+def run_loop(session: Session, options: ActiveLoopOptions) -> ActiveLoopResult:
     """Diagnose, plan, measure block by block, diagnose again, for at most `rounds` rounds of at most `poses`
     poses; resumable. The engine measures what the rounds ask for."""
     session.require_registration()
-    return session.engine.run(
-        _rounds(session, rounds=rounds, poses=poses, seed=seed, block=block, shots=shots)
-    )
+    return session.engine.run(_rounds(session, options))
 
 
-def _rounds(
-    session: Session, *, rounds: int, poses: int, seed: int, block: int, shots: int | None
-) -> Measuring[ActiveLoopResult]:
+def _rounds(session: Session, options: ActiveLoopOptions) -> Measuring[ActiveLoopResult]:
     """The rounds as requests to the engine: each round's poses are yielded block by block, and the
     campaign, longer by what was measured, is diagnosed between them."""
+    rounds, poses, seed, block, shots = (
+        options.rounds,
+        options.poses,
+        options.seed,
+        options.block,
+        options.shots,
+    )
     state = _Campaign(session.store, session.config, seed)
     records = state.records()
     train = state.training(len(records))
@@ -382,4 +387,5 @@ PROCEDURE = Procedure(
     body=run_loop,
     steps=("round1/plan", "round1/block1", "...", "round1", "round2/plan", "...", "stop"),
     summary=summary,
+    options=ActiveLoopOptions,
 )

@@ -464,13 +464,48 @@ def _campaign_model(config: CellConfig, campaign: str | Path | None) -> Calibrat
     return nominal_model(config, np.asarray(reg["T_tracker_base"], float), p_nest)
 
 
-def plan(config: CellConfig, *, model: CalibratedModel | str | None, targets: int | str, generator: str,
-         threshold_m: float, max_iter: int, patience: int, smrs: int, seed: int, ensemble: str,
-         pt_paper: bool, campaign: str | Path | None = None) -> Plan:  # fmt: skip
-    """The first pose of every usable target (model-based start), for --dry-run and the envelope check."""
+@dataclass(frozen=True)
+class PseudoTargetOptions:
+    """The declared parameters, SI. `model`: a model.json path or a CalibratedModel; `targets`: a count, a
+    circle:N, a CSV path, or an array of targets (tracker frame, m)."""
+
+    model: CalibratedModel | str | None
+    targets: int | str | np.ndarray
+    generator: str
+    ensemble: str
+    approach_rad: float
+    pt_paper: bool
+    threshold_m: float
+    max_iter: int
+    patience: int
+    smrs: int
+    seed: int
+    shots: int | None
+    measure_uncompensated: bool
+
+
+@dataclass(frozen=True)
+class LoopSettings:
+    """How the loop runs each target, once --pt-paper has had its say (see paper_options)."""
+
+    generator: str
+    threshold_m: float
+    max_iter: int
+    smrs: int
+    shots: int | None
+    patience: int
+    ensemble: list[str] | None = None
+    approach_rad: float = 0.0
+
+
+def plan(config: CellConfig, options: PseudoTargetOptions, campaign: str | Path | None = None) -> Plan:
+    """The first pose of every usable target (model-based start), for --dry-run and the envelope check; the
+    plan's bounds say how often each target may be measured again."""
+    model, targets, seed, ensemble = options.model, options.targets, options.seed, options.ensemble
     smrs, generator, max_iter, patience, threshold_m = paper_options(
-        pt_paper, model, smrs, generator, max_iter, patience, threshold_m
-    )
+        options.pt_paper, model, options.smrs, options.generator, options.max_iter, options.patience,
+        options.threshold_m,
+    )  # fmt: skip
     ensemble_subset(ensemble)
     the_model = load_model(model)
     base = the_model if the_model is not None else _campaign_model(config, campaign)
@@ -487,14 +522,17 @@ def plan(config: CellConfig, *, model: CalibratedModel | str | None, targets: in
         raise ValueError("no target is usable (see the statuses): give targets inside the calibrated volume")
     dropped = {str(s): int(np.sum(start.status == s)) for s in np.unique(start.status) if s != "ok"}
     per_point = smrs * (config.settle_s + config.shots_per_point * config.meas_time_s + 0.5) * (max_iter + 1)
-    return Plan(NAME, poses, config, operator_steps=smrs, dropped=dropped, per_point_s=per_point)
+    bounds = (
+        f"each target's first pose is shown; up to {max_iter} corrections follow, each a pose the "
+        f"measurement decides ({smrs} SMR reading(s) a pose), every one checked against the envelope first"
+    )
+    return Plan(
+        NAME, poses, config, operator_steps=smrs, dropped=dropped, per_point_s=per_point, bounds=bounds
+    )
 
 
 # ------------------------------------------------------------------------------------------ the loop
-def close_the_loop(session: Session, *, model: CalibratedModel | str | None, targets: int | str | np.ndarray,
-                   generator: str, threshold_m: float, max_iter: int, smrs: int, seed: int, shots: int | None,
-                   measure_uncompensated: bool, patience: int, ensemble: str = ",".join(GENERATORS),
-                   pt_paper: bool = False, approach_rad: float = 0.0) -> LoopResult:  # fmt: skip
+def close_the_loop(session: Session, options: PseudoTargetOptions) -> LoopResult:
     """Run the measured pseudo-target loop on every target (see the module docstring); resumable.
 
     `targets`: a count of random held-out targets in the sampled volume, a CSV path, or an array (tracker
@@ -504,9 +542,12 @@ def close_the_loop(session: Session, *, model: CalibratedModel | str | None, tar
     `pt_paper` runs the PT paper's experiment (PT_PAPER); `ensemble` names the generators of --generator ensemble;
     `approach_rad` > 0 makes every measured pose approached from the same side on every joint (backlash).
     """
+    model, targets, seed = options.model, options.targets, options.seed
     smrs, generator, max_iter, patience, threshold_m = paper_options(
-        pt_paper, model, smrs, generator, max_iter, patience, threshold_m
-    )
+        options.pt_paper, model, options.smrs, options.generator, options.max_iter, options.patience,
+        options.threshold_m,
+    )  # fmt: skip
+    ensemble = options.ensemble
     subset = ensemble_subset(ensemble) if generator == ENSEMBLE else None
     the_model = load_model(model)
     reg = session.require_registration()
@@ -524,15 +565,16 @@ def close_the_loop(session: Session, *, model: CalibratedModel | str | None, tar
     start = start_joints(
         session.config, nominal_ik, the_model, T_d, generator, threshold_m, subset, temperature_c
     )
-    loop = _Loop(
-        session, ik_model, T_d, generator, threshold_m, max_iter, smrs, shots, patience, subset, approach_rad
+    settings = LoopSettings(
+        generator, threshold_m, max_iter, smrs, options.shots, patience, subset, options.approach_rad
     )
+    loop = _Loop(session, ik_model, T_d, settings)
     ids = target_ids(len(T_d))
     results = [TargetResult(i, str(s)) for i, s in zip(ids, start.status, strict=True)]
     todo = [k for k, r in enumerate(results) if r.status == "ok"]
     loop.ask_operator()
     with session.progress.task("pseudo-target loop", total=len(todo)) as advance:
-        uncompensated = start.q_uncompensated if measure_uncompensated else None
+        uncompensated = start.q_uncompensated if options.measure_uncompensated else None
         session.engine.run(loop.targets(todo, start.q, uncompensated, results, advance))
     result = LoopResult(results, smrs, generator, the_model is not None)
     session.finish_step(
@@ -596,13 +638,15 @@ def _pin_targets(
 class _Loop:
     """Measure (or recall what is recorded), update the pseudo target, solve its IK: one target at a time."""
 
-    def __init__(self, session: Session, ik_model: CalibratedModel, T_d: np.ndarray, generator: str,
-                 threshold_m: float, max_iter: int, smrs: int, shots: int | None, patience: int,
-                 ensemble: list[str] | None = None, approach_rad: float = 0.0) -> None:  # fmt: skip
-        self.session, self.generator, self.threshold_m = session, generator, threshold_m
-        self.approach_rad = approach_rad
-        self.generators = (ensemble or list(GENERATORS)) if generator == ENSEMBLE else [generator]
-        self.max_iter, self.smrs, self.shots, self.patience = max_iter, smrs, shots, patience
+    def __init__(
+        self, session: Session, ik_model: CalibratedModel, T_d: np.ndarray, settings: LoopSettings
+    ) -> None:
+        s = settings
+        self.session, self.generator, self.threshold_m = session, s.generator, s.threshold_m
+        self.approach_rad = s.approach_rad
+        self.generators = (s.ensemble or list(GENERATORS)) if s.generator == ENSEMBLE else [s.generator]
+        self.max_iter, self.smrs, self.shots, self.patience = s.max_iter, s.smrs, s.shots, s.patience
+        smrs = s.smrs
         self.full_pose = smrs == 3
         self.ik = PseudoTargetIK(ik_model, "kinematic", smr=1, full_pose=self.full_pose)
         if self.full_pose:
@@ -825,4 +869,5 @@ PROCEDURE = Procedure(
     body=close_the_loop,
     steps=("targets", "loop", "summary"),
     summary=summary,
+    options=PseudoTargetOptions,
 )

@@ -95,6 +95,37 @@ class Limits:
 
 
 @dataclass(frozen=True)
+class ToolFitOptions:
+    """The declared parameters and limits, SI."""
+
+    check_poses: int
+    validation_poses: int
+    shots: int
+    seed: int
+    max_circle_residual_m: float
+    max_radius_error_m: float
+    max_hole_angle_error_rad: float
+    max_face_height_error_m: float
+    max_tool_rotation_rad: float
+    max_nest_layout_error_m: float
+    min_method_gate_m: float
+    method_gate_sigmas: float
+
+    def limits(self) -> Limits:
+        """What the fit is judged against."""
+        return Limits(
+            circle_residual_m=self.max_circle_residual_m,
+            radius_error_m=self.max_radius_error_m,
+            hole_angle_error_rad=self.max_hole_angle_error_rad,
+            face_height_error_m=self.max_face_height_error_m,
+            tool_rotation_rad=self.max_tool_rotation_rad,
+            nest_layout_error_m=self.max_nest_layout_error_m,
+            method_disagreement_floor_m=self.min_method_gate_m,
+            method_disagreement_sigmas=self.method_gate_sigmas,
+        )
+
+
+@dataclass(frozen=True)
 class ToolFitResult:
     nests_flange_m: dict[int, np.ndarray]
     uncertainty_m: dict[int, float]  # 1-sigma (3-D) of each nest, propagated from the hole balls' scatter
@@ -143,9 +174,10 @@ def _usable(config: CellConfig, T: np.ndarray, p_flange: np.ndarray) -> np.ndarr
     return joints.q[ok]
 
 
-def plan(config: CellConfig, *, check_poses: int, validation_poses: int, seed: int) -> Plan:
+def plan(config: CellConfig, options: ToolFitOptions) -> Plan:
     """One flange pose facing the tracker (bare flange, then the tool mounted there), then the distance-check
     and validation poses with the SMR in nest 1."""
+    check_poses, validation_poses, seed = options.check_poses, options.validation_poses, options.seed
     if len(config.nests_flange_m) < 1:
         raise ValueError("the tool has no nests: give [tool] nests_flange_mm in the cell config")
     rng = np.random.default_rng(seed)
@@ -196,20 +228,11 @@ def _seat(config: CellConfig, location: str) -> OperatorStep:
     return OperatorStep(text, "place_smr", smr=1, location=location, face_point_m=face_point(config))
 
 
-def fit_tool(
-    session: Session,
-    *,
-    check_poses: int,
-    validation_poses: int,
-    shots: int,
-    seed: int,
-    **limits: float,
-) -> ToolFitResult:
+def fit_tool(session: Session, options: ToolFitOptions, the_plan: Plan) -> ToolFitResult:
     """Measure in the paper's order on a registered cell, judge, record the fit, then redo the registration."""
     session.require_registration()
-    the_plan = plan(session.config, check_poses=check_poses, validation_poses=validation_poses, seed=seed)
-    session.engine.visit(the_plan, shots=shots)
-    judged = evaluate(session.config, session.recorded_points(NAME), _limits(limits), shots)
+    session.engine.visit(the_plan, shots=options.shots)
+    judged = evaluate(session.config, session.recorded_points(NAME), options.limits(), options.shots)
     for name, value_m, gate_m in judged_figures(session.config, judged):
         session.engine.measured(name, value_m, limit_si=gate_m)
     if judged.problems:
@@ -244,21 +267,6 @@ def judged_figures(config: CellConfig, judged: ToolFitResult) -> list[tuple[str,
         ("method_disagreement", judged.distance_check_m, judged.method_gate_m),
         ("validation_rms", judged.validation_rms_m, None),
     ]
-
-
-def _limits(values: dict[str, float]) -> Limits:
-    """Limits from the procedure's SI keywords (max_face_height_error_m -> face_height_error_m)."""
-    names = {
-        "max_circle_residual_m": "circle_residual_m",
-        "max_radius_error_m": "radius_error_m",
-        "max_hole_angle_error_rad": "hole_angle_error_rad",
-        "max_face_height_error_m": "face_height_error_m",
-        "max_tool_rotation_rad": "tool_rotation_rad",
-        "max_nest_layout_error_m": "nest_layout_error_m",
-        "min_method_gate_m": "method_disagreement_floor_m",
-        "method_gate_sigmas": "method_disagreement_sigmas",
-    }
-    return Limits(**{names[k]: v for k, v in values.items()})
 
 
 def redo_registration(session: Session, nests_m: dict[int, np.ndarray]) -> dict:
@@ -533,6 +541,7 @@ PROCEDURE = Procedure(
     steps=(*STAGES, "fit"),
     summary=summary,
     publishes=((Role.TOOL, "fit"),),
+    options=ToolFitOptions,
     measurements=(
         Measurement("circle_residual", "hole balls off their circle, RMS", "mm", "max_circle_residual"),
         Measurement("radius_error", "hole circle's radius against the drawing", "mm", "max_radius_error"),

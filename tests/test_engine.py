@@ -14,7 +14,9 @@ from hil.instruments.tracker import NoTargetError
 from hil.runner.engine import AttemptPolicy, CampaignStopped, MeasurePose, Measuring, StopRequested
 from hil.runner.envelope import EnvelopeError
 from hil.runner.plan import PlannedPose
-from procedures.registration import plan as registration_plan
+from hil.runner.procedure import Procedure
+from procedures.registration import PROCEDURE as REGISTRATION
+from tests.cli_in_process import run_hil
 from tests.sim_session import running_cell, session_on
 
 pytestmark = pytest.mark.sim
@@ -27,7 +29,7 @@ def cell(tmp_path_factory):
 
 
 def _poses(config) -> list[PlannedPose]:
-    return registration_plan(config, poses=6, nest=1, seed=0).poses
+    return REGISTRATION.make_plan(config, poses=6).poses
 
 
 def _adaptive(session, poses: list[PlannedPose], after_each=None) -> Measuring[list[MeasurementRecord]]:
@@ -140,3 +142,33 @@ def test_one_attempt_loop_retries_a_beam_break_and_gives_up_with_the_last_error(
             session.engine.attempt(always_breaks, policy)
         events = session.store.events()
     assert (events["kind"] == "beam_break").sum() == 2 + 4
+
+
+def test_the_body_measures_the_plan_it_is_handed(cell, tmp_path):
+    """A fixed plan is built once: the body executes the plan given to it, not one of its own."""
+    _, config = cell
+    campaign = tmp_path / "c.sqlite"
+    planned = REGISTRATION.make_plan(config, poses=9)
+    planned.poses = planned.poses[:7]  # what the caller checked and showed
+    with session_on(config, campaign) as session:
+        REGISTRATION(session, planned=planned, poses=9)
+    assert _measured(campaign) == [p.point_id for p in planned.poses]
+
+
+def test_hil_run_builds_the_plan_once_for_the_dry_run_check_and_the_run(cell, tmp_path, capsys, monkeypatch):
+    _, config = cell
+    built: list[str] = []
+    plan_for = Procedure.plan_for
+
+    def counted(self, *args, **kwargs):
+        built.append(self.name)
+        return plan_for(self, *args, **kwargs)
+
+    monkeypatch.setattr(Procedure, "plan_for", counted)
+    cell_toml = str(config.source)
+    done = run_hil(
+        "run", "registration", "--cell", cell_toml, "--campaign", str(tmp_path / "c.sqlite"), "--poses", "6",
+        cwd=tmp_path, capsys=capsys,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert built == ["registration"]

@@ -22,7 +22,7 @@ def test_each_role_the_core_reads_is_published_by_one_registered_procedure():
 def test_a_measurement_naming_an_undeclared_limit_is_refused_when_declared():
     with pytest.raises(ValueError, match="names limit 'max_gap', which is not declared .*max_error"):
         Procedure(
-            name="p", purpose="", instruction="", parameters=(), plan=lambda config: None, body=lambda s: None,
+            name="p", purpose="", instruction="", parameters=(), plan=lambda config, options: None, body=lambda session, options: None,
             limits=(Limit("max_error", "error", 1.0, "mm"),),
             measurements=(Measurement("gap", "gap", "mm", "max_gap"),),
         )  # fmt: skip

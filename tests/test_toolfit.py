@@ -102,7 +102,7 @@ def _synthetic_tool_fit(
     for to the one the SMR really goes into (a mistake). Returns the cell config, the records and the cell."""
     config = parse_cell_config(tomllib.loads(sim_cell_toml(seed)))
     cell = SimulatedCell(SimCellConfig(seed=seed))
-    the_plan = tool_fit.plan(config, check_poses=check_poses, validation_poses=6, seed=0)
+    the_plan = tool_fit.PROCEDURE.make_plan(config, check_poses=check_poses, validation_poses=6, seed=0)
     rows, setup = [], None
     for pose in the_plan.poses:
         if pose.setup != setup:
