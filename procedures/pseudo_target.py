@@ -56,7 +56,6 @@ from hil.geometry.se3 import fit_rigid
 from hil.model.calibrated_model import CalibratedModel
 from hil.runner.cell_config import CellConfig
 from hil.runner.engine import CampaignStopped, MeasurePose, Measuring
-from hil.runner.envelope import EnvelopeError
 from hil.runner.operator import OperatorStep
 from hil.runner.plan import Plan, PlannedPose
 from hil.runner.planners import (
@@ -683,43 +682,33 @@ class _Loop:
             yield from self.run_target(k, out.target_id, q_start[k], out)
             advance()
 
-    def _point(self, point_id: str, q: np.ndarray, nest: int) -> Measuring[np.ndarray]:
+    def _point(self, point_id: str, q: np.ndarray, nest: int, approach: bool) -> Measuring[np.ndarray]:
+        """One SMR's point at joints q; `approach`: reach q through q - approach on every joint, so each joint
+        arrives moving the same way every time (a backlash-free approach; skipped where the envelope refuses)."""
+        q = np.asarray(q, float)
         pose = PlannedPose(
-            point_id,
-            NAME,
-            STEP,
-            np.asarray(q, float),
-            f"nest{nest}",
-            smr=nest,
-            p_flange_m=self.nests[nest - 1],
+            point_id, NAME, STEP, q, f"nest{nest}", smr=nest, p_flange_m=self.nests[nest - 1],
+            approach_q_rad=q - self.approach_rad if approach and self.approach_rad > 0 else None,
+        )  # fmt: skip
+        record = yield MeasurePose(
+            pose, shots=self.shots, extra={"target": point_id.split("/")[0]}, approach_optional=True
         )
-        record = yield MeasurePose(pose, shots=self.shots, extra={"target": point_id.split("/")[0]})
         self.sigma_m = max(
             self.sigma_m, measurement_sigma_m(record.p_tracker_m, record.spread_m, record.shots)
         )
         return np.asarray(record.p_tracker_m, float)
 
-    def _approach(self, point_id: str, q: np.ndarray) -> None:
-        """Before a point not yet recorded, pass through q - approach on every joint, so each joint reaches q
-        moving the same way every time (a backlash-free approach); nothing when off or recorded."""
-        if self.approach_rad > 0 and not self.session.recorded(NAME, STEP, point_id):
-            try:
-                self.session.move_joints(q - self.approach_rad, label=point_id + " approach")
-            except EnvelopeError as exc:  # checked before any motion: go straight instead
-                self.session.event("approach_skipped", f"{point_id}: {exc}", point_id=point_id)
-
     def measure(self, base_id: str, q: np.ndarray) -> Measuring[np.ndarray]:
         """Measured T_tracker_tool (4, 4): SMR 1's point, and with three SMRs the flange orientation from
         the nest layout fitted to the three measured nests (Kabsch). Sets `sigma_m`, its per-axis noise."""
         self.sigma_m = 0.0
-        self._approach(f"{base_id}/n1" if self.smrs > 1 else base_id, q)
         T = np.eye(4)
         if self.smrs == 1:
-            T[:3, 3] = yield from self._point(base_id, q, 1)
+            T[:3, 3] = yield from self._point(base_id, q, 1, approach=True)
             return T
         measured = []
-        for k in range(1, self.smrs + 1):
-            measured.append((yield from self._point(f"{base_id}/n{k}", q, k)))
+        for k in range(1, self.smrs + 1):  # the other nests: read where it stands
+            measured.append((yield from self._point(f"{base_id}/n{k}", q, k, approach=k == 1)))
         p = np.array(measured)
         T_tracker_flange, _ = fit_rigid(self.nests, p)
         T[:3, :3] = T_tracker_flange[:3, :3]

@@ -172,3 +172,31 @@ def test_hil_run_builds_the_plan_once_for_the_dry_run_check_and_the_run(cell, tm
     )  # fmt: skip
     assert done.returncode == 0, done.stderr
     assert built == ["registration"]
+
+
+def test_an_optional_approach_the_envelope_refuses_is_skipped_and_a_required_one_refuses_the_pose(
+    cell, tmp_path
+):
+    _, config = cell
+    campaign = tmp_path / "c.sqlite"
+    first, second = _poses(config)[:2]
+    turned = np.tile(second.q_rad, (72, 1))
+    turned[:, 1] += np.linspace(-np.pi, np.pi, 72)
+    q_out = turned[config.envelope.outside(config.nominal, turned, config.nests_flange_m)][0]
+    via_outside = PlannedPose(
+        second.point_id, "registration", "poses", second.q_rad, "nest1", approach_q_rad=q_out
+    )
+
+    def requests(optional: bool) -> Measuring[None]:
+        yield MeasurePose(first, aim=False)
+        yield MeasurePose(via_outside, aim=False, approach_optional=optional)
+
+    with session_on(config, campaign) as session:
+        with pytest.raises(EnvelopeError):
+            session.engine.run(requests(optional=False))
+        assert _measured(campaign) == [first.point_id]
+        session.engine.run(requests(optional=True))
+        events = session.store.events()
+    assert _measured(campaign) == [first.point_id, second.point_id]
+    skipped = events[events["kind"] == "approach_skipped"]
+    assert skipped["point_id"].tolist() == [second.point_id]

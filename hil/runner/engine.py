@@ -33,6 +33,7 @@ from hil.instruments.tracker import (
     TrackerError,
     TrackerTimeoutError,
 )
+from hil.runner.envelope import EnvelopeError
 from hil.runner.operator import OperatorStep
 from hil.runner.plan import Plan, PlannedPose
 from hil.runner.procedure import Bound, Measurement
@@ -71,7 +72,9 @@ class MeasurePose:
     pose (False: keep the lock it has, before a registration exists); `reaim`: how to recover a lost beam
     without aiming (ask the operator, ...); `extra`: JSON-able notes recorded with the point; `strict`: a
     recorded point commanded at other joints is refused (an adaptive loop replaying a campaign); a plan
-    pinned elsewhere skips its recorded points as they are.
+    pinned elsewhere skips its recorded points as they are. `approach_optional`: the pose's approach pose is
+    passed when the move there stays inside the envelope, else skipped (an event) and the pose reached
+    straight; otherwise an approach outside the envelope refuses the request before anything moves.
     """
 
     pose: PlannedPose
@@ -80,6 +83,7 @@ class MeasurePose:
     reaim: Callable[[], None] | None = None
     extra: dict = field(default_factory=dict)
     strict: bool = True
+    approach_optional: bool = False
 
 
 Measuring = Generator[MeasurePose, MeasurementRecord, T]  # a procedure's loop: yields requests, returns T
@@ -254,12 +258,13 @@ class Engine:
                 )
             return recorded
         self.checkpoint()
-        self.cell.check_poses(_pose_joints(pose), [pose.point_id] * (1 + (pose.approach_q_rad is not None)))
+        checked = _pose_joints(pose, with_approach=not request.approach_optional)
+        self.cell.check_poses(checked, [pose.point_id] * len(checked))
         if pose.setup != self._setup:
             self._set_up(pose)
             self._setup = pose.setup
         if pose.approach_q_rad is not None:
-            self.cell.move_joints(pose.approach_q_rad, label=pose.point_id + " approach")
+            self._approach(pose, optional=request.approach_optional)
         record = self.cell.measure_point(
             pose.procedure, pose.step, pose.point_id, pose.q_rad, smr=pose.smr, location=pose.location,
             p_flange_m=self.cell.aim_point(pose) if request.aim else None, shots=request.shots,
@@ -271,6 +276,16 @@ class Engine:
             assert record is not None
         self._recorded[(pose.procedure, pose.step)][pose.point_id] = record
         return record
+
+    def _approach(self, pose: PlannedPose, optional: bool) -> None:
+        """Pass the pose's approach pose; an optional one the envelope refuses is skipped, as an event."""
+        assert pose.approach_q_rad is not None
+        try:
+            self.cell.move_joints(pose.approach_q_rad, label=pose.point_id + " approach")
+        except EnvelopeError as exc:  # checked before any motion: go straight instead
+            if not optional:
+                raise
+            self.cell.event("approach_skipped", f"{pose.point_id}: {exc}", point_id=pose.point_id)
 
     def recorded_record(self, pose: PlannedPose) -> MeasurementRecord | None:
         """The pose's point as recorded in the campaign (read once per step, then kept), None if not yet."""
@@ -367,10 +382,10 @@ class Engine:
             yield MeasurePose(pose, **options)  # type: ignore[arg-type]
 
 
-def _pose_joints(pose: PlannedPose) -> np.ndarray:
+def _pose_joints(pose: PlannedPose, with_approach: bool = True) -> np.ndarray:
     """The joints a request commands (its pose, and its approach pose when it has one), (K, 6)."""
     q = [np.asarray(pose.q_rad, float)]
-    if pose.approach_q_rad is not None:
+    if with_approach and pose.approach_q_rad is not None:
         q.append(np.asarray(pose.approach_q_rad, float))
     return np.array(q)
 
