@@ -85,6 +85,7 @@ def test_demo_runs_the_procedures_through_the_drivers_and_finds_compliance(demo)
         "limit"
     ] == pytest.approx(0.03)
     assert judged["validation_rms"]["outcome"] == "not judged" and judged["hole_angle_error"]["unit"] == "deg"
+    assert "Judged measurements" in (tmp_path / "report.html").read_text()
 
 
 @pytest.mark.slow

@@ -138,8 +138,9 @@ def run(args: argparse.Namespace) -> int:
         tool = store.step_result("tool_fit", "fit")
         outcomes = outcomes_section(store.outcomes())
     write_html(
-        report, out / "report.html", compensation=loop, active=active and active["html"], tool_fit=tool
-    )
+        report, out / "report.html", compensation=loop, active=active and active["html"], tool_fit=tool,
+        outcomes=outcomes,
+    )  # fmt: skip
     extra = {"tool_fit": tool, "measured_loop": loop, "outcomes": outcomes or None}
     if active:
         extra["active_loop"] = {"rounds": active["rounds"], "stop": active["stop"]}
