@@ -196,6 +196,9 @@ def test_an_optional_approach_the_envelope_refuses_is_skipped_and_a_required_one
             session.engine.run(requests(optional=False))
         assert _measured(campaign) == [first.point_id]
         session.engine.run(requests(optional=True))
+        session.engine.run(
+            requests(optional=True)
+        )  # a resume replays both: nothing moves, nothing is skipped
         events = session.store.events()
     assert _measured(campaign) == [first.point_id, second.point_id]
     skipped = events[events["kind"] == "approach_skipped"]
