@@ -40,14 +40,26 @@ from hil.data.jsonable import to_jsonable
 from hil.data.store import CampaignStore, campaign_dataset
 from hil.report.rounds import rounds_text
 from hil.runner.cell_config import CellConfig
+from hil.runner.engine import CampaignStopped, Measuring
 from hil.runner.operator import OperatorStep
 from hil.runner.plan import Plan, PlannedPose
-from hil.runner.procedure import SHOTS, Parameter, Procedure
-from hil.runner.session import CampaignStopped, Session
+from hil.runner.procedure import SHOTS, Parameter, Procedure, Role
+from hil.runner.registry import publisher
+from hil.runner.session import Session
 from hil.runner.sight import measurable
 
 NAME = "active_loop"
-GRID = "grid_sampling"
+
+
+@dataclass(frozen=True)
+class ActiveLoopOptions:
+    """The declared parameters, SI."""
+
+    rounds: int
+    poses: int
+    block: int
+    seed: int
+    shots: int | None
 
 
 @dataclass(frozen=True)
@@ -97,7 +109,7 @@ class _Campaign:
     def training(self, rounds: int) -> pd.DataFrame:
         """The grid, then the rows of rounds 1..`rounds` in the order they were measured."""
         try:
-            grid = campaign_dataset(self.store, GRID, "grid")
+            grid = campaign_dataset(self.store, *publisher(Role.GRID))
         except DatasetError as exc:
             raise CampaignStopped(
                 f"the active loop diagnoses the campaign's grid, and there is none: {exc}",
@@ -110,7 +122,7 @@ class _Campaign:
 
     def validation(self) -> pd.DataFrame | None:
         try:
-            return campaign_dataset(self.store, GRID, "validation")
+            return campaign_dataset(self.store, *publisher(Role.VALIDATION))
         except DatasetError:
             return None
 
@@ -123,7 +135,7 @@ class _Campaign:
         round before named (hil.analysis.diagnosis.pipeline keeps them when the new selection would predict worse without
         them). The same data diagnosed again in this process (the plan shown before connecting, then the
         loop's first round) is not diagnosed twice."""
-        fit = self.store.step_result("tool_fit", "fit")
+        fit = self.store.step_result(*publisher(Role.TOOL))
         nest = str(self.nest(train))
         tool = (
             np.array(fit["nests_flange_mm"][nest], float) / 1e3
@@ -226,16 +238,10 @@ def motion_plan(
     return Plan(NAME, poses, config, operator_steps=1, dropped=dropped)
 
 
-def plan(
-    config: CellConfig,
-    *,
-    campaign: str | Path | None = None,
-    rounds: int,
-    poses: int,
-    seed: int,
-    block: int = BLOCK_ROWS,
-) -> Plan:
-    """The next round's poses on this campaign (for --dry-run): the campaign is diagnosed, nothing moves."""
+def plan(config: CellConfig, options: ActiveLoopOptions, campaign: str | Path | None = None) -> Plan:
+    """The next round's poses on this campaign (for --dry-run): the campaign is diagnosed, nothing moves;
+    the plan's bounds say what may follow (the rounds after it are planned from what this one measures)."""
+    rounds, poses, seed, block = options.rounds, options.poses, options.seed, options.block
     if campaign is None or not Path(campaign).exists():
         raise ValueError("the active loop plans from a campaign's grid: give --campaign with a measured grid")
     with CampaignStore(campaign, create=False) as store:
@@ -250,7 +256,12 @@ def plan(
         nest = state.nest(train)
     if rows is None:
         return Plan(NAME, [], config, dropped={f"no round {done + 1}: {why}": 1})
-    return motion_plan(config, rows, nest)
+    the_plan = motion_plan(config, rows, nest)
+    the_plan.bounds = (
+        f"round {done + 1} of at most {rounds}, measured in blocks of {rows.block} (a block whose questions are "
+        f"decided ends it early); each later round: at most {poses} poses, planned from what this one measures"
+    )
+    return the_plan
 
 
 def _measure_round(
@@ -260,22 +271,26 @@ def _measure_round(
     before: DiagnosisReport,
     train: pd.DataFrame,
     shots: int | None,
-) -> list[dict]:
-    """Measure a round's plan block by block; after each block the longer campaign is diagnosed and the rows
-    whose questions it decided are dropped (hil.analysis.design.rounds). Each judgement is recorded
+) -> Measuring[list[dict]]:
+    """Measure a round's plan block by block (requests to the engine); after each block the longer campaign
+    is diagnosed and the rows whose questions it decided are dropped (hil.analysis.design.rounds). Each judgement is recorded
     (`roundN/blockK`) before the next motion, so a resumed round drops the same rows; returns them all.
     `train`: the campaign before the round (the round measures in its nest)."""
     nest = state.nest(train)
     todo = rows.keep.copy()
     judged: list[dict] = []
-    ask = True  # the operator places the SMR before this process' first pose, not before every block
     for k, idx in enumerate(plan_blocks(len(rows.purpose), rows.block), start=1):
         idx = idx[todo[idx]]
         if not len(idx):
             continue
-        plan = motion_plan(session.config, rows, nest, only=idx, setup=ask)
-        if session.visit(plan, shots=shots, extra={"round": rows.number}):
-            ask = False
+        # the operator places the SMR before this process' first new pose, not before every block
+        plan = motion_plan(session.config, rows, nest, only=idx)
+        with session.progress.task(NAME.replace("_", " "), total=len(plan.poses)) as advance:
+            for request in session.engine.requests(
+                plan, shots=shots, extra={"round": rows.number}, strict=False
+            ):
+                yield request
+                advance()
         step = f"round{rows.number}/block{k}"
         record = session.step_result(NAME, step)
         if record is None:
@@ -292,18 +307,23 @@ def _measure_round(
     return judged
 
 
-def run_loop(
-    session: Session,
-    *,
-    rounds: int,
-    poses: int,
-    seed: int,
-    block: int = BLOCK_ROWS,
-    shots: int | None = None,
-) -> ActiveLoopResult:
+def run_loop(session: Session, options: ActiveLoopOptions) -> ActiveLoopResult:
     """Diagnose, plan, measure block by block, diagnose again, for at most `rounds` rounds of at most `poses`
-    poses; resumable."""
+    poses; resumable. The engine measures what the rounds ask for."""
     session.require_registration()
+    return session.engine.run(_rounds(session, options))
+
+
+def _rounds(session: Session, options: ActiveLoopOptions) -> Measuring[ActiveLoopResult]:
+    """The rounds as requests to the engine: each round's poses are yielded block by block, and the
+    campaign, longer by what was measured, is diagnosed between them."""
+    rounds, poses, seed, block, shots = (
+        options.rounds,
+        options.poses,
+        options.seed,
+        options.block,
+        options.shots,
+    )
     state = _Campaign(session.store, session.config, seed)
     records = state.records()
     train = state.training(len(records))
@@ -315,7 +335,7 @@ def run_loop(
             break
         if session.step_result(NAME, f"round{number}/plan") is None:
             session.finish_step(NAME, f"round{number}/plan", rows.to_dict())  # pinned before the first motion
-        blocks = _measure_round(session, state, rows, before, train, shots)
+        blocks = yield from _measure_round(session, state, rows, before, train, shots)
         longer = state.training(number)
         after = state.diagnose(longer, before.effects_added)
         unmeasurable = int(np.sum(~rows.keep))
@@ -366,4 +386,5 @@ PROCEDURE = Procedure(
     body=run_loop,
     steps=("round1/plan", "round1/block1", "...", "round1", "round2/plan", "...", "stop"),
     summary=summary,
+    options=ActiveLoopOptions,
 )

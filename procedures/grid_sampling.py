@@ -43,12 +43,31 @@ from hil.runner.planners import (
     travel_order,
     workspace_box,
 )
-from hil.runner.procedure import SHOTS, Parameter, Procedure
+from hil.runner.procedure import SHOTS, Parameter, Procedure, Role
 from hil.runner.session import Session
 
 NAME = "grid_sampling"
 APPROACH_RAD = np.deg2rad(2.0)  # pre-position offset on every joint for a known approach direction
 ORDERS = ("travel", "random")
+
+
+@dataclass(frozen=True)
+class GridOptions:
+    """The declared parameters, SI (None: absent, the procedure picks)."""
+
+    step_m: float
+    box_min_m: tuple[float, float, float] | None
+    box_max_m: tuple[float, float, float] | None
+    orientations: int
+    order: str
+    both_directions: bool
+    validation: int
+    nest: int
+    tilt_rad: float
+    orientation: str | None
+    fixed_rpy_rad: tuple[float, float, float] | None
+    seed: int
+    shots: int | None
 
 
 @dataclass(frozen=True)
@@ -73,34 +92,22 @@ def sampling_box(
     return Box.from_limits(np.asarray(box_min_m, float), np.asarray(box_max_m, float))
 
 
-def plan(
-    config: CellConfig,
-    *,
-    step_m: float,
-    box_min_m: Sequence[float] | None,
-    box_max_m: Sequence[float] | None,
-    orientations: int,
-    order: str,
-    both_directions: bool,
-    validation: int,
-    nest: int,
-    tilt_rad: float,
-    seed: int,
-    orientation: str | None = None,
-    fixed_rpy_rad: Sequence[float] | None = None,
-) -> Plan:
+def plan(config: CellConfig, options: GridOptions) -> Plan:
     """The grid and validation poses, filtered for reachability, singularity and the envelope, in order."""
+    nest, orientations, validation = options.nest, options.orientations, options.validation
     if not 1 <= nest <= len(config.nests_flange_m):
         raise ValueError(f"--nest {nest}: the tool has nests 1..{len(config.nests_flange_m)}")
-    rng = np.random.default_rng(seed)
-    box = sampling_box(config, box_min_m, box_max_m)
+    rng = np.random.default_rng(options.seed)
+    box = sampling_box(config, options.box_min_m, options.box_max_m)
     p_nest = config.nests_flange_m[nest - 1]
     dropped: dict[str, int] = {}
-    R_fixed = fixed_orientation(config, box, orientation, fixed_rpy_rad, orientations)
+    R_fixed = fixed_orientation(config, box, options.orientation, options.fixed_rpy_rad, orientations)
 
     def usable_joints(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         if R_fixed is None:
-            T = facing_poses(points, config.p_base_tracker_m, rng, tilt_deg=float(np.rad2deg(tilt_rad)))
+            T = facing_poses(
+                points, config.p_base_tracker_m, rng, tilt_deg=float(np.rad2deg(options.tilt_rad))
+            )
         else:
             T = fixed_poses(points, R_fixed)
         joints = plan_joints(config.nominal, T, p_nest, q_near=config.q_home_rad)
@@ -113,14 +120,18 @@ def plan(
         keep = reason == "ok"
         return joints.q[keep], np.flatnonzero(keep)
 
-    grid = grid_points(box, step_m)
+    grid = grid_points(box, options.step_m)
     q_list, ids = [], []
     for k in range(orientations):
         q, kept = usable_joints(grid)
         q_list.append(q)
         ids += [f"g{k + 1}-{i:04d}" for i in kept]
     q_grid = np.vstack(q_list) if q_list else np.zeros((0, 6))
-    visit = travel_order(q_grid, config.q_home_rad) if order == "travel" else random_order(len(q_grid), rng)
+    visit = (
+        travel_order(q_grid, config.q_home_rad)
+        if options.order == "travel"
+        else random_order(len(q_grid), rng)
+    )
     location = f"nest{nest}"
     setup = (OperatorStep(f"Put SMR 1 in tool nest {nest}.", "place_smr", smr=1, location=location),)
 
@@ -136,7 +147,7 @@ def plan(
             setup=setup,
         )
 
-    suffixes = ("+", "-") if both_directions else ("",)
+    suffixes = ("+", "-") if options.both_directions else ("",)
     poses = [pose(ids[i] + s, "grid", q_grid[i]) for i in visit for s in suffixes]
     poses = with_reference_rounds(poses, config.drift_poses, config.drift_every_points, pose)
     if validation:
@@ -203,11 +214,10 @@ def approach_pose(point_id: str, q: np.ndarray) -> np.ndarray | None:
     return None
 
 
-def sample(session: Session, *, order: str, shots: int | None = None, **options) -> GridResult:
+def sample(session: Session, options: GridOptions, the_plan: Plan) -> GridResult:
     """Measure the grid, then the held-out validation poses, on a registered cell; resumable."""
     session.require_registration()
-    the_plan = plan(session.config, order=order, **options)
-    session.visit(the_plan, shots=shots, extra={"order": order}, pin=True)
+    session.engine.visit(the_plan, shots=options.shots, extra={"order": options.order}, pin=True)
     steps = [p.step for p in the_plan.poses]
     recorded = session.store.measurements(NAME)
     counts = recorded["step"].value_counts().to_dict() if len(recorded) else {}
@@ -283,4 +293,6 @@ PROCEDURE = Procedure(
     body=sample,
     steps=("plan", "grid", "reference", "validation"),
     summary=summary,
+    publishes=((Role.GRID, "grid"), (Role.VALIDATION, "validation")),
+    options=GridOptions,
 )

@@ -261,21 +261,30 @@ def _translation(p_m: np.ndarray) -> np.ndarray:
     return T
 
 
-def plan(
-    config: CellConfig,
-    *,
-    centre_m: tuple[float, ...] | None,
-    side_m: float | None,
-    cycles: int,
-    nest: int,
-    model: str | None,
-    path_runs: int = 0,
-    path_speed_m_s: float = 0.25,
-    smrs: int = 1,
-) -> Plan:
+@dataclass(frozen=True)
+class IsoOptions:
+    """The declared parameters, SI (None: absent, the procedure picks)."""
+
+    centre_m: tuple[float, float, float] | None
+    side_m: float | None
+    cycles: int
+    nest: int
+    smrs: int
+    model: str | None
+    path_runs: int
+    path_speed_m_s: float
+    csv: str | None
+    shots: int | None
+
+
+def plan(config: CellConfig, options: IsoOptions) -> Plan:
     """Every cycle's five poses (and their approach poses), before and, with a model, after compensation,
     each read in `nest` or, with `smrs` > 1, in nests 1..smrs; with path runs, the paths are checked here too
     (reach, envelope, speed), so a refusal comes before motion."""
+    centre_m, side_m, cycles, nest, model = (
+        options.centre_m, options.side_m, options.cycles, options.nest, options.model
+    )  # fmt: skip
+    path_runs, path_speed_m_s, smrs = options.path_runs, options.path_speed_m_s, options.smrs
     nests = pose_nests(config, nest, smrs)
     cube = choose_cube(config, centre_m, side_m, nest)
     runs = [("before", cube.q_rad)]
@@ -443,32 +452,28 @@ def _named(csv: str, suffix: str) -> Path:
     return Path(csv).with_name(f"{Path(csv).stem}{suffix}{Path(csv).suffix}")
 
 
-def assess(
-    session: Session,
-    *,
-    centre_m: tuple[float, ...] | None,
-    side_m: float | None,
-    cycles: int,
-    nest: int,
-    model: str | None,
-    csv: str | None,
-    shots: int | None,
-    path_runs: int = 0,
-    path_speed_m_s: float = 0.25,
-    smrs: int = 1,
-) -> IsoResult:
+def assess(session: Session, options: IsoOptions, the_plan: Plan) -> IsoResult:
     """Run the cycles and the path runs (resumable), then compute each step's figures and record them."""
     reg = session.require_registration()
-    the_plan = plan(
-        session.config, centre_m=centre_m, side_m=side_m, cycles=cycles, nest=nest, model=model,
-        path_runs=path_runs, path_speed_m_s=path_speed_m_s, smrs=smrs,
-    )  # fmt: skip
+    centre_m, side_m, nest, model, csv = (
+        options.centre_m,
+        options.side_m,
+        options.nest,
+        options.model,
+        options.csv,
+    )
+    path_runs, path_speed_m_s, smrs, shots = (
+        options.path_runs,
+        options.path_speed_m_s,
+        options.smrs,
+        options.shots,
+    )
     cube = choose_cube(session.config, centre_m, side_m, nest)
     the_model = load_model(model)
     paths = plan_paths(session.config, cube, nest, the_model, path_speed_m_s) if path_runs > 0 else {}
     if paths:
         session.streaming_tracker(STREAM_INTERVAL_S)  # refuse a tracker that cannot stream before any motion
-    session.visit(the_plan, shots=shots, pin=True)
+    session.engine.visit(the_plan, shots=shots, pin=True)
     frames = {"before": reg.T_tracker_base}
     if the_model is not None:
         frames["after"] = the_model.T_tracker_base
@@ -566,4 +571,5 @@ PROCEDURE = Procedure(
     body=assess,
     steps=STEPS,
     summary=summary,
+    options=IsoOptions,
 )

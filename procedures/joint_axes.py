@@ -69,6 +69,18 @@ REFERENCE_TRIALS = 8  # reference poses (best first) tried for a free joint's sw
 SENSITIVITY_GAIN = 0.5  # a free joint's sweep pose must halve the yield sensitivity of the reference
 
 
+@dataclass(frozen=True)
+class AxesOptions:
+    """The declared parameters, SI (None: absent, the procedure picks)."""
+
+    span_rad: float
+    points: int
+    q_ref_rad: tuple[float, ...] | None
+    smrs: int | None
+    output: str | None
+    shots: int | None
+
+
 @dataclass
 class AxesProcedureResult:
     """The identified axes, each against the nominal axis (angle deg, offset mm), and where the file went."""
@@ -307,11 +319,10 @@ def sweep_pose(
     return Q[top[best]], float(spans[best])
 
 
-def plan(
-    config: CellConfig, *, span_rad: float, points: int, q_ref_rad: tuple[float, ...] | None, smrs: int | None
-) -> Plan:
+def plan(config: CellConfig, options: AxesOptions) -> Plan:
     """The sweeps: each joint alone, `points` poses over its arc, from the reference pose (a free joint, see
     `free_joints`, from the pose its gravity sag distorts least: `sweep_pose`); every SMR read at every pose."""
+    span_rad, points, q_ref_rad, smrs = options.span_rad, options.points, options.q_ref_rad, options.smrs
     nests = smr_count(config, smrs)
     p_nest = config.nests_flange_m[:nests]
     if q_ref_rad is None:
@@ -356,21 +367,12 @@ def smr_count(config: CellConfig, smrs: int | None) -> int:
     return smrs
 
 
-def identify(
-    session: Session,
-    *,
-    span_rad: float,
-    points: int,
-    q_ref_rad: tuple[float, ...] | None,
-    smrs: int | None,
-    output: str | None,
-    shots: int | None,
-) -> AxesProcedureResult:
+def identify(session: Session, options: AxesOptions, the_plan: Plan) -> AxesProcedureResult:
     """Measure the sweeps (resumable), fit the axes, write the robot file, compare with the nominal axes."""
     reg = session.require_registration()
     config = session.config
-    the_plan = plan(config, span_rad=span_rad, points=points, q_ref_rad=q_ref_rad, smrs=smrs)
-    session.visit(the_plan, shots=shots, pin=True)
+    shots, output = options.shots, options.output
+    session.engine.visit(the_plan, shots=shots, pin=True)
     df = campaign_dataset(session.store, NAME, STEP)
     df["sweep"] = [p.split("/")[0] for p in df["point_id"]]
     distance = float(np.median(np.linalg.norm(df[["x_mm", "y_mm", "z_mm"]].to_numpy(float), axis=1))) / 1e3
@@ -422,4 +424,5 @@ PROCEDURE = Procedure(
     body=identify,
     steps=("sweeps", "axes"),
     summary=summary,
+    options=AxesOptions,
 )

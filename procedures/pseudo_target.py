@@ -31,6 +31,7 @@ another side of the gap (about 0.1 mm on the simulated UR10 with backlash).
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -56,7 +57,7 @@ from hil.geometry.kinematics import forward_kinematics
 from hil.geometry.se3 import fit_rigid
 from hil.model.calibrated_model import CalibratedModel
 from hil.runner.cell_config import CellConfig
-from hil.runner.envelope import EnvelopeError
+from hil.runner.engine import CampaignStopped, MeasurePose, Measuring
 from hil.runner.operator import OperatorStep
 from hil.runner.plan import Plan, PlannedPose
 from hil.runner.planners import (
@@ -68,7 +69,7 @@ from hil.runner.planners import (
     workspace_box,
 )
 from hil.runner.procedure import SHOTS, Parameter, ParameterError, Procedure
-from hil.runner.session import CampaignStopped, Session
+from hil.runner.session import Session
 
 NAME = "pseudo_target"
 STEP = "loop"
@@ -477,13 +478,48 @@ def _campaign_model(config: CellConfig, campaign: str | Path | None) -> Calibrat
     return nominal_model(config, np.asarray(reg["T_tracker_base"], float), p_nest)
 
 
-def plan(config: CellConfig, *, model: CalibratedModel | str | None, targets: int | str, generator: str,
-         threshold_m: float, max_iter: int, patience: int, smrs: int, seed: int, ensemble: str,
-         pt_paper: bool, campaign: str | Path | None = None) -> Plan:  # fmt: skip
-    """The first pose of every usable target (model-based start), for --dry-run and the envelope check."""
+@dataclass(frozen=True)
+class PseudoTargetOptions:
+    """The declared parameters, SI. `model`: a model.json path or a CalibratedModel; `targets`: a count, a
+    circle:N, a CSV path, or an array of targets (tracker frame, m)."""
+
+    model: CalibratedModel | str | None
+    targets: int | str | np.ndarray
+    generator: str
+    ensemble: str
+    approach_rad: float
+    pt_paper: bool
+    threshold_m: float
+    max_iter: int
+    patience: int
+    smrs: int
+    seed: int
+    shots: int | None
+    measure_uncompensated: bool
+
+
+@dataclass(frozen=True)
+class LoopSettings:
+    """How the loop runs each target, once --pt-paper has had its say (see paper_options)."""
+
+    generator: str
+    threshold_m: float
+    max_iter: int
+    smrs: int
+    shots: int | None
+    patience: int
+    ensemble: list[str] | None = None
+    approach_rad: float = 0.0
+
+
+def plan(config: CellConfig, options: PseudoTargetOptions, campaign: str | Path | None = None) -> Plan:
+    """The first pose of every usable target (model-based start), for --dry-run and the envelope check; the
+    plan's bounds say how often each target may be measured again."""
+    model, targets, seed, ensemble = options.model, options.targets, options.seed, options.ensemble
     smrs, generator, max_iter, patience, threshold_m = paper_options(
-        pt_paper, model, smrs, generator, max_iter, patience, threshold_m
-    )
+        options.pt_paper, model, options.smrs, options.generator, options.max_iter, options.patience,
+        options.threshold_m,
+    )  # fmt: skip
     ensemble_subset(ensemble)
     the_model = load_model(model)
     base = the_model if the_model is not None else _campaign_model(config, campaign)
@@ -500,14 +536,17 @@ def plan(config: CellConfig, *, model: CalibratedModel | str | None, targets: in
         raise ValueError("no target is usable (see the statuses): give targets inside the calibrated volume")
     dropped = {str(s): int(np.sum(start.status == s)) for s in np.unique(start.status) if s != "ok"}
     per_point = smrs * (config.settle_s + config.shots_per_point * config.meas_time_s + 0.5) * (max_iter + 1)
-    return Plan(NAME, poses, config, operator_steps=smrs, dropped=dropped, per_point_s=per_point)
+    bounds = (
+        f"each target's first pose is shown; up to {max_iter} corrections follow, each a pose the "
+        f"measurement decides ({smrs} SMR reading(s) a pose), every one checked against the envelope first"
+    )
+    return Plan(
+        NAME, poses, config, operator_steps=smrs, dropped=dropped, per_point_s=per_point, bounds=bounds
+    )
 
 
 # ------------------------------------------------------------------------------------------ the loop
-def close_the_loop(session: Session, *, model: CalibratedModel | str | None, targets: int | str | np.ndarray,
-                   generator: str, threshold_m: float, max_iter: int, smrs: int, seed: int, shots: int | None,
-                   measure_uncompensated: bool, patience: int, ensemble: str = ",".join(GENERATORS),
-                   pt_paper: bool = False, approach_rad: float = 0.0) -> LoopResult:  # fmt: skip
+def close_the_loop(session: Session, options: PseudoTargetOptions) -> LoopResult:
     """Run the measured pseudo-target loop on every target (see the module docstring); resumable.
 
     `targets`: a count of random held-out targets in the sampled volume, a CSV path, or an array (tracker
@@ -517,9 +556,12 @@ def close_the_loop(session: Session, *, model: CalibratedModel | str | None, tar
     `pt_paper` runs the PT paper's experiment (PT_PAPER); `ensemble` names the generators of --generator ensemble;
     `approach_rad` > 0 makes every measured pose approached from the same side on every joint (backlash).
     """
+    model, targets, seed = options.model, options.targets, options.seed
     smrs, generator, max_iter, patience, threshold_m = paper_options(
-        pt_paper, model, smrs, generator, max_iter, patience, threshold_m
-    )
+        options.pt_paper, model, options.smrs, options.generator, options.max_iter, options.patience,
+        options.threshold_m,
+    )  # fmt: skip
+    ensemble = options.ensemble
     subset = ensemble_subset(ensemble) if generator == ENSEMBLE else None
     the_model = load_model(model)
     reg = session.require_registration()
@@ -537,23 +579,17 @@ def close_the_loop(session: Session, *, model: CalibratedModel | str | None, tar
     start = start_joints(
         session.config, nominal_ik, the_model, T_d, generator, threshold_m, subset, temperature_c
     )
-    loop = _Loop(
-        session, ik_model, T_d, generator, threshold_m, max_iter, smrs, shots, patience, subset, approach_rad
+    settings = LoopSettings(
+        generator, threshold_m, max_iter, smrs, options.shots, patience, subset, options.approach_rad
     )
+    loop = _Loop(session, ik_model, T_d, settings)
     ids = target_ids(len(T_d))
     results = [TargetResult(i, str(s)) for i, s in zip(ids, start.status, strict=True)]
     todo = [k for k, r in enumerate(results) if r.status == "ok"]
     loop.ask_operator()
     with session.progress.task("pseudo-target loop", total=len(todo)) as advance:
-        for k in todo:
-            if measure_uncompensated:
-                T_u = loop.measure(f"{ids[k]}/u", start.q_uncompensated[k])
-                _, results[k].uncompensated_error_m, results[k].uncompensated_rotation_rad = (
-                    x[0] for x in pose_cost(T_u[None], loop.T_d4[k : k + 1], smrs == 3, LENGTH_SCALE_M)
-                )
-            loop.run_target(k, ids[k], start.q[k], results[k])
-            remeasure_kept(loop, k, ids[k], results[k])
-            advance()
+        uncompensated = start.q_uncompensated if options.measure_uncompensated else None
+        session.engine.run(loop.targets(todo, start.q, uncompensated, results, advance))
     result = LoopResult(results, smrs, generator, the_model is not None)
     session.finish_step(
         NAME, "summary", {"summary": result.summary(), "targets": [r.to_dict() for r in results]}
@@ -613,13 +649,13 @@ def _pin_targets(
         )
 
 
-def remeasure_kept(loop: _Loop, k: int, tid: str, out: TargetResult) -> None:
+def remeasure_kept(loop: _Loop, k: int, tid: str, out: TargetResult) -> Measuring[None]:
     """Measure target `k`'s kept joints once more (`t007/f`) and record the error as `out.fresh`: the loop keeps
     the iteration whose reading was smallest, so that reading is biased low by the selection; a fresh one is
     not."""
     if out.q_rad is None:
         return
-    T_a = loop.measure(f"{tid}/f", out.q_rad)[None]
+    T_a = (yield from loop.measure(f"{tid}/f", out.q_rad))[None]
     _, dp, dr = pose_cost(T_a, loop.T_d4[k : k + 1], loop.full_pose, LENGTH_SCALE_M)
     out.fresh = (float(dp[0]), float(dr[0]))
 
@@ -627,13 +663,15 @@ def remeasure_kept(loop: _Loop, k: int, tid: str, out: TargetResult) -> None:
 class _Loop:
     """Measure (or recall what is recorded), update the pseudo target, solve its IK: one target at a time."""
 
-    def __init__(self, session: Session, ik_model: CalibratedModel, T_d: np.ndarray, generator: str,
-                 threshold_m: float, max_iter: int, smrs: int, shots: int | None, patience: int,
-                 ensemble: list[str] | None = None, approach_rad: float = 0.0) -> None:  # fmt: skip
-        self.session, self.generator, self.threshold_m = session, generator, threshold_m
-        self.approach_rad = approach_rad
-        self.generators = (ensemble or list(GENERATORS)) if generator == ENSEMBLE else [generator]
-        self.max_iter, self.smrs, self.shots, self.patience = max_iter, smrs, shots, patience
+    def __init__(
+        self, session: Session, ik_model: CalibratedModel, T_d: np.ndarray, settings: LoopSettings
+    ) -> None:
+        s = settings
+        self.session, self.generator, self.threshold_m = session, s.generator, s.threshold_m
+        self.approach_rad = s.approach_rad
+        self.generators = (s.ensemble or list(GENERATORS)) if s.generator == ENSEMBLE else [s.generator]
+        self.max_iter, self.smrs, self.shots, self.patience = s.max_iter, s.smrs, s.shots, s.patience
+        smrs = s.smrs
         self.full_pose = smrs == 3
         self.ik = PseudoTargetIK(ik_model, "kinematic", smr=1, full_pose=self.full_pose)
         if self.full_pose:
@@ -650,46 +688,67 @@ class _Loop:
                 OperatorStep(f"Put SMR {k} in tool nest {k}.", "place_smr", smr=k, location=f"nest{k}")
             )
 
-    def _point(self, point_id: str, q: np.ndarray, nest: int) -> np.ndarray:
-        record = self.session.recall_or_measure(
-            NAME, STEP, point_id, q, smr=nest, location=f"nest{nest}", p_flange_m=self.nests[nest - 1],
-            shots=self.shots, extra={"target": point_id.split("/")[0]},
+    def targets(
+        self,
+        todo: list[int],
+        q_start: np.ndarray,
+        q_uncompensated: np.ndarray | None,
+        results: list[TargetResult],
+        advance: Callable[[], None],
+    ) -> Measuring[None]:
+        """The loop over the targets `todo` (indices into `results`), as requests to the engine: each target
+        from its start joints, after its plain nominal IK (`q_uncompensated`) when that is measured too."""
+        for k in todo:
+            out = results[k]
+            if q_uncompensated is not None:
+                T_u = yield from self.measure(f"{out.target_id}/u", q_uncompensated[k])
+                _, out.uncompensated_error_m, out.uncompensated_rotation_rad = (
+                    x[0] for x in pose_cost(T_u[None], self.T_d4[k : k + 1], self.full_pose, LENGTH_SCALE_M)
+                )
+            yield from self.run_target(k, out.target_id, q_start[k], out)
+            yield from remeasure_kept(self, k, out.target_id, out)
+            advance()
+
+    def _point(self, point_id: str, q: np.ndarray, nest: int, approach: bool) -> Measuring[np.ndarray]:
+        """One SMR's point at joints q; `approach`: reach q through q - approach on every joint, so each joint
+        arrives moving the same way every time (a backlash-free approach; skipped where the envelope refuses)."""
+        q = np.asarray(q, float)
+        pose = PlannedPose(
+            point_id, NAME, STEP, q, f"nest{nest}", smr=nest, p_flange_m=self.nests[nest - 1],
+            approach_q_rad=q - self.approach_rad if approach and self.approach_rad > 0 else None,
         )  # fmt: skip
+        record = yield MeasurePose(
+            pose, shots=self.shots, extra={"target": point_id.split("/")[0]}, approach_optional=True
+        )
         self.sigma_m = max(
             self.sigma_m, measurement_sigma_m(record.p_tracker_m, record.spread_m, record.shots)
         )
         return np.asarray(record.p_tracker_m, float)
 
-    def _approach(self, point_id: str, q: np.ndarray) -> None:
-        """Before a point not yet recorded, pass through q - approach on every joint, so each joint reaches q
-        moving the same way every time (a backlash-free approach); nothing when off or recorded."""
-        if self.approach_rad > 0 and not self.session.recorded(NAME, STEP, point_id):
-            try:
-                self.session.move_joints(q - self.approach_rad, label=point_id + " approach")
-            except EnvelopeError as exc:  # checked before any motion: go straight instead
-                self.session.event("approach_skipped", f"{point_id}: {exc}", point_id=point_id)
-
-    def measure(self, base_id: str, q: np.ndarray) -> np.ndarray:
+    def measure(self, base_id: str, q: np.ndarray) -> Measuring[np.ndarray]:
         """Measured T_tracker_tool (4, 4): SMR 1's point, and with three SMRs the flange orientation from
         the nest layout fitted to the three measured nests (Kabsch). Sets `sigma_m`, its per-axis noise."""
         self.sigma_m = 0.0
-        self._approach(f"{base_id}/n1" if self.smrs > 1 else base_id, q)
         T = np.eye(4)
         if self.smrs == 1:
-            T[:3, 3] = self._point(base_id, q, 1)
+            T[:3, 3] = yield from self._point(base_id, q, 1, approach=True)
             return T
-        p = np.array([self._point(f"{base_id}/n{k}", q, k) for k in range(1, self.smrs + 1)])
+        measured = []
+        for k in range(1, self.smrs + 1):  # the other nests: read where it stands
+            measured.append((yield from self._point(f"{base_id}/n{k}", q, k, approach=k == 1)))
+        p = np.array(measured)
         T_tracker_flange, _ = fit_rigid(self.nests, p)
         T[:3, :3] = T_tracker_flange[:3, :3]
         T[:3, 3] = p[0]
         return T
 
-    def run_target(self, k: int, tid: str, q0: np.ndarray, out: TargetResult) -> None:
+    def run_target(self, k: int, tid: str, q0: np.ndarray, out: TargetResult) -> Measuring[None]:
         q = np.asarray(q0, float)
         T_p = self.ik.from_flange(forward_kinematics(self.ik.kin, q[None]))  # the pseudo target FK(q)
         T_d = self.T_d4[k : k + 1]
         best, stale = np.inf, 0  # best error measure so far; corrections in a row without a real gain
-        T_a, sigma = self.measure(f"{tid}/i0", q)[None], self.sigma_m
+        T_a = (yield from self.measure(f"{tid}/i0", q))[None]
+        sigma = self.sigma_m
         for i in range(self.max_iter + 1):
             cost, dp, dr = pose_cost(T_a, T_d, self.full_pose, LENGTH_SCALE_M)
             out.errors_m.append(float(dp[0]))
@@ -711,7 +770,7 @@ class _Loop:
             if not proposals:
                 out.status = reason
                 return
-            T_a, q, T_p, sigma = self._measure_best(f"{tid}/i{i + 1}", T_d, proposals)
+            T_a, q, T_p, sigma = yield from self._measure_best(f"{tid}/i{i + 1}", T_d, proposals)
 
     def _propose(
         self, T_d: np.ndarray, T_a: np.ndarray, T_p: np.ndarray, q: np.ndarray
@@ -737,12 +796,12 @@ class _Loop:
 
     def _measure_best(
         self, base_id: str, T_d: np.ndarray, proposals: list[tuple[str, np.ndarray, np.ndarray]]
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    ) -> Measuring[tuple[np.ndarray, np.ndarray, np.ndarray, float]]:
         """Measure each proposal (one: `t007/i2`; an ensemble: `t007/i2/zyz`, ...), keep the best: (T_a, q, T_p, noise)."""
         found = []
         for name, T_p, q in proposals:
             point_id = base_id if self.generator != ENSEMBLE else f"{base_id}/{name}"
-            T_a = self.measure(point_id, q)[None]
+            T_a = (yield from self.measure(point_id, q))[None]
             cost = pose_cost(T_a, T_d, self.full_pose, LENGTH_SCALE_M)[0][0]
             found.append((float(cost), T_a, q, T_p, self.sigma_m))
         _, T_a, q, T_p, sigma = min(found, key=lambda f: f[0])
@@ -826,4 +885,5 @@ PROCEDURE = Procedure(
     body=close_the_loop,
     steps=("targets", "loop", "summary"),
     summary=summary,
+    options=PseudoTargetOptions,
 )

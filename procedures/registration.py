@@ -17,13 +17,24 @@ from hil.geometry.kinematics import tool_points
 from hil.geometry.rigid_fit import RigidFit, ransac_rigid
 from hil.geometry.se3 import fit_rigid, transform_points
 from hil.runner.cell_config import CellConfig
+from hil.runner.engine import CampaignStopped
 from hil.runner.operator import OperatorStep
 from hil.runner.plan import Plan, PlannedPose
 from hil.runner.planners import Box, facing_poses, plan_joints, workspace_box
-from hil.runner.procedure import Parameter, Procedure
-from hil.runner.session import CampaignStopped, Session
+from hil.runner.procedure import Parameter, Procedure, Role
+from hil.runner.session import Session
 
 NAME = "registration"
+
+
+@dataclass(frozen=True)
+class RegistrationOptions:
+    """The declared parameters, SI."""
+
+    poses: int
+    nest: int
+    inlier_m: float
+    seed: int
 
 
 @dataclass(frozen=True)
@@ -32,9 +43,10 @@ class RegistrationResult:
     poses_measured: int
 
 
-def plan(config: CellConfig, *, poses: int, nest: int, seed: int) -> Plan:
+def plan(config: CellConfig, options: RegistrationOptions) -> Plan:
     """The registration poses: the corners and centre of the working box, then random points in it,
     each with the SMR in `nest` facing the tracker; unreachable, singular or out-of-envelope ones dropped."""
+    poses, nest, seed = options.poses, options.nest, options.seed
     if not 1 <= nest <= len(config.nests_flange_m):
         raise ValueError(f"--nest {nest}: the tool has nests 1..{len(config.nests_flange_m)}")
     rng = np.random.default_rng(seed)
@@ -65,10 +77,9 @@ def plan(config: CellConfig, *, poses: int, nest: int, seed: int) -> Plan:
     return Plan(NAME, steps, config, operator_steps=2)
 
 
-def register(session: Session, *, poses: int, nest: int, seed: int, inlier_m: float) -> RegistrationResult:
+def register(session: Session, options: RegistrationOptions, the_plan: Plan) -> RegistrationResult:
     """Measure the poses with the SMR in its nest, then fit the tracker-to-base transform with RANSAC."""
-    the_plan = plan(session.config, poses=poses, nest=nest, seed=seed)
-    p_nest = session.config.nests_flange_m[nest - 1]
+    p_nest = session.config.nests_flange_m[options.nest - 1]
 
     def reaim() -> None:
         """Aim where an interim fit of the points so far puts the SMR; ask the operator before there are 4."""
@@ -81,7 +92,7 @@ def register(session: Session, *, poses: int, nest: int, seed: int, inlier_m: fl
         q_now = session.robot.joints()
         session.tracker.point_at(transform_points(T, tool_points(session.nominal, q_now[None], p_nest))[0])
 
-    session.visit(the_plan, aim=False, reaim=reaim)
+    session.engine.visit(the_plan, aim=False, reaim=reaim)
     records = session.recorded_points(NAME, "poses")
     if len(records.point_id) < 6:
         raise CampaignStopped(
@@ -89,7 +100,7 @@ def register(session: Session, *, poses: int, nest: int, seed: int, inlier_m: fl
             "re-run registration to measure the rest",
         )
     p_base = tool_points(session.nominal, records.q_rad, p_nest)
-    fit = ransac_rigid(p_base, records.p_tracker_m, inlier_m=inlier_m, seed=seed)
+    fit = ransac_rigid(p_base, records.p_tracker_m, inlier_m=options.inlier_m, seed=options.seed)
     session.finish_step(NAME, "fit", fit.as_result(records.point_id))
     session.log.info(
         "registration: %d of %d points fit, RMS %.3f mm, max %.3f mm",
@@ -123,4 +134,6 @@ PROCEDURE = Procedure(
     body=register,
     steps=("poses", "fit"),
     summary=summary,
+    publishes=((Role.REGISTRATION, "fit"),),
+    options=RegistrationOptions,
 )

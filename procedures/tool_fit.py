@@ -55,11 +55,12 @@ from hil.analysis.standards.flange_geometry import (
 from hil.geometry.kinematics import KinematicModel, tool_points
 from hil.geometry.rigid_fit import ransac_rigid
 from hil.runner.cell_config import CellConfig
+from hil.runner.engine import CampaignStopped
 from hil.runner.operator import OperatorStep
 from hil.runner.plan import Plan, PlannedPose
 from hil.runner.planners import Box, facing_poses, plan_joints, workspace_box
-from hil.runner.procedure import Limit, Parameter, Procedure
-from hil.runner.session import CampaignStopped, RecordedPoints, Session
+from hil.runner.procedure import Limit, Measurement, Parameter, Procedure, Role
+from hil.runner.session import RecordedPoints, Session
 
 NAME = "tool_fit"
 HOLES = tuple(range(1, 8))
@@ -91,6 +92,37 @@ class Limits:
     def method_gate_m(self, sigma_m: float) -> float:
         """The two methods' gate: `method_disagreement_sigmas` x the distance method's standard error, at least the floor."""
         return max(self.method_disagreement_floor_m, self.method_disagreement_sigmas * sigma_m)
+
+
+@dataclass(frozen=True)
+class ToolFitOptions:
+    """The declared parameters and limits, SI."""
+
+    check_poses: int
+    validation_poses: int
+    shots: int
+    seed: int
+    max_circle_residual_m: float
+    max_radius_error_m: float
+    max_hole_angle_error_rad: float
+    max_face_height_error_m: float
+    max_tool_rotation_rad: float
+    max_nest_layout_error_m: float
+    min_method_gate_m: float
+    method_gate_sigmas: float
+
+    def limits(self) -> Limits:
+        """What the fit is judged against."""
+        return Limits(
+            circle_residual_m=self.max_circle_residual_m,
+            radius_error_m=self.max_radius_error_m,
+            hole_angle_error_rad=self.max_hole_angle_error_rad,
+            face_height_error_m=self.max_face_height_error_m,
+            tool_rotation_rad=self.max_tool_rotation_rad,
+            nest_layout_error_m=self.max_nest_layout_error_m,
+            method_disagreement_floor_m=self.min_method_gate_m,
+            method_disagreement_sigmas=self.method_gate_sigmas,
+        )
 
 
 @dataclass(frozen=True)
@@ -142,9 +174,10 @@ def _usable(config: CellConfig, T: np.ndarray, p_flange: np.ndarray) -> np.ndarr
     return joints.q[ok]
 
 
-def plan(config: CellConfig, *, check_poses: int, validation_poses: int, seed: int) -> Plan:
+def plan(config: CellConfig, options: ToolFitOptions) -> Plan:
     """One flange pose facing the tracker (bare flange, then the tool mounted there), then the distance-check
     and validation poses with the SMR in nest 1."""
+    check_poses, validation_poses, seed = options.check_poses, options.validation_poses, options.seed
     if len(config.nests_flange_m) < 1:
         raise ValueError("the tool has no nests: give [tool] nests_flange_mm in the cell config")
     rng = np.random.default_rng(seed)
@@ -195,20 +228,13 @@ def _seat(config: CellConfig, location: str) -> OperatorStep:
     return OperatorStep(text, "place_smr", smr=1, location=location, face_point_m=face_point(config))
 
 
-def fit_tool(
-    session: Session,
-    *,
-    check_poses: int,
-    validation_poses: int,
-    shots: int,
-    seed: int,
-    **limits: float,
-) -> ToolFitResult:
+def fit_tool(session: Session, options: ToolFitOptions, the_plan: Plan) -> ToolFitResult:
     """Measure in the paper's order on a registered cell, judge, record the fit, then redo the registration."""
     session.require_registration()
-    the_plan = plan(session.config, check_poses=check_poses, validation_poses=validation_poses, seed=seed)
-    session.visit(the_plan, shots=shots)
-    judged = evaluate(session.config, session.recorded_points(NAME), _limits(limits), shots)
+    session.engine.visit(the_plan, shots=options.shots)
+    judged = evaluate(session.config, session.recorded_points(NAME), options.limits(), options.shots)
+    for name, value_m, gate_m in judged_figures(session.config, judged):
+        session.engine.measured(name, value_m, limit_si=gate_m)
     if judged.problems:
         session.event("tool_fit_rejected", "; ".join(judged.problems), procedure=NAME)
         raise ToolFitRejected(
@@ -220,19 +246,27 @@ def fit_tool(
     return judged
 
 
-def _limits(values: dict[str, float]) -> Limits:
-    """Limits from the procedure's SI keywords (max_face_height_error_m -> face_height_error_m)."""
-    names = {
-        "max_circle_residual_m": "circle_residual_m",
-        "max_radius_error_m": "radius_error_m",
-        "max_hole_angle_error_rad": "hole_angle_error_rad",
-        "max_face_height_error_m": "face_height_error_m",
-        "max_tool_rotation_rad": "tool_rotation_rad",
-        "max_nest_layout_error_m": "nest_layout_error_m",
-        "min_method_gate_m": "method_disagreement_floor_m",
-        "method_gate_sigmas": "method_disagreement_sigmas",
-    }
-    return Limits(**{names[k]: v for k, v in values.items()})
+def judged_figures(config: CellConfig, judged: ToolFitResult) -> list[tuple[str, float | None, float | None]]:
+    """The declared measurements of a fit (SI), as the engine judges them: (name, value, the limit computed
+    at run time or None for the declared one). A figure the fit could not measure has no value."""
+    flange = judged.result["flange"]
+    turn = judged.result["tool_orientation"]
+    angles_deg = [*flange["hole_angle_errors_deg"].values(), flange["bisector_error_deg"]]
+    expected_m = flange["face_height_expected_mm"] / 1e3
+    return [
+        ("circle_residual", judged.circle_residual_m, None),
+        ("radius_error", abs(judged.circle_radius_m - config.hole_circle_radius_m), None),
+        ("hole_angle_error", float(np.deg2rad(np.max(np.abs(angles_deg)))), None),
+        ("face_height_error", abs(flange["face_height_mm"] / 1e3 - expected_m), None),
+        ("tool_rotation", float(np.deg2rad(turn["rotation_deg"])) if "rotation_deg" in turn else None, None),
+        (
+            "nest_layout_error",
+            turn["nest_layout_error_mm"] / 1e3 if "nest_layout_error_mm" in turn else None,
+            None,
+        ),
+        ("method_disagreement", judged.distance_check_m, judged.method_gate_m),
+        ("validation_rms", judged.validation_rms_m, None),
+    ]
 
 
 def redo_registration(session: Session, nests_m: dict[int, np.ndarray]) -> dict:
@@ -506,4 +540,33 @@ PROCEDURE = Procedure(
     ),
     steps=(*STAGES, "fit"),
     summary=summary,
+    publishes=((Role.TOOL, "fit"),),
+    options=ToolFitOptions,
+    measurements=(
+        Measurement("circle_residual", "hole balls off their circle, RMS", "mm", "max_circle_residual"),
+        Measurement("radius_error", "hole circle's radius against the drawing", "mm", "max_radius_error"),
+        Measurement(
+            "hole_angle_error",
+            "worst hole off its place (hole 7: off the 3-4 bisector)",
+            "deg",
+            "max_hole_angle_error",
+        ),
+        Measurement(
+            "face_height_error",
+            "face ball's height against the seating geometry",
+            "mm",
+            "max_face_height_error",
+        ),
+        Measurement("tool_rotation", "the tool turned against its drawing", "deg", "max_tool_rotation"),
+        Measurement(
+            "nest_layout_error", "worst nest off the drawing's layout", "mm", "max_nest_layout_error"
+        ),
+        Measurement(
+            "method_disagreement",
+            "nest 1 by flange holes against the distance method (gate: method_gate_sigmas x its standard "
+            "error, at least min_method_gate)",
+            "mm",
+        ),
+        Measurement("validation_rms", "validation poses with the fitted nest 1, RMS (not judged)", "mm"),
+    ),
 )

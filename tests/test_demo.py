@@ -79,6 +79,13 @@ def test_demo_runs_the_procedures_through_the_drivers_and_finds_compliance(demo)
     (round1,) = report["active_loop"]["rounds"]
     assert round1["undecided"] and round1["measured"]["poses"] > 0 and report["active_loop"]["stop"]
     assert report["measured_loop"]["targets"] == 3 and "nests_flange_mm" in report["tool_fit"]
+    # the tool fit's declared measurements as the engine judged them, in mm and degrees
+    judged = {o["measurement"]: o for o in report["outcomes"] if o["procedure"] == "tool_fit"}
+    assert judged["circle_residual"]["outcome"] == "pass" and judged["circle_residual"][
+        "limit"
+    ] == pytest.approx(0.03)
+    assert judged["validation_rms"]["outcome"] == "not judged" and judged["hole_angle_error"]["unit"] == "deg"
+    assert "Judged measurements" in (tmp_path / "report.html").read_text()
 
 
 @pytest.mark.slow

@@ -58,7 +58,7 @@ def test_reference_poses_are_measured_and_exported_with_time_and_temperature(tmp
         with session_on(config, path) as session:
             registration.PROCEDURE(session)
             grid_sampling.PROCEDURE(session, step_m=0.25, validation=2)
-    df = campaign_dataset(path, step="reference")
+    df = campaign_dataset(path, "grid_sampling", step="reference")
     assert len(df) >= 4 and set(df["step_id"]) == {"reference"}
     assert np.all(np.diff(df["t_s"].to_numpy()) > 0)
     assert {"temperature_c", "air_temperature_c", "robot_temperature_c"} <= set(df.columns)

@@ -38,18 +38,18 @@ def _spread_deg(R: np.ndarray) -> float:
 
 def test_fixed_orientation_in_cell_toml_gives_one_orientation_at_every_vertex():
     config = _config(orientation="fixed")
-    plan = grid_sampling.plan(config, **OPTIONS)
+    plan = grid_sampling.PROCEDURE.make_plan(config, **OPTIONS)
     assert sum(p.step == "grid" for p in plan.poses) >= 8
     assert _spread_deg(_tool_rotations(config, plan)) < 1e-3  # degrees: the IK tolerance
     varied = _config()  # the default stays varied: what a calibration wants
     assert varied.grid_orientation == "varied"
-    assert _spread_deg(_tool_rotations(varied, grid_sampling.plan(varied, **OPTIONS))) > 10.0
+    assert _spread_deg(_tool_rotations(varied, grid_sampling.PROCEDURE.make_plan(varied, **OPTIONS))) > 10.0
 
 
 def test_fixed_orientation_from_the_parameter_and_given_angles():
     config = _config()
     rpy = np.deg2rad([180.0, 0.0, 90.0])  # tool z pointing down
-    plan = grid_sampling.plan(config, **OPTIONS, orientation="fixed", fixed_rpy_rad=rpy)
+    plan = grid_sampling.PROCEDURE.make_plan(config, **OPTIONS, orientation="fixed", fixed_rpy_rad=rpy)
     R = _tool_rotations(config, plan)
     assert _spread_deg(R) < 1e-3  # degrees: the IK tolerance
     np.testing.assert_allclose(R[0][:, 2], [0.0, 0.0, -1.0], atol=1e-9)
@@ -61,4 +61,4 @@ def test_bad_grid_settings_are_refused_with_what_to_do():
     with pytest.raises(CellConfigError, match="only used with orientation"):
         _config(fixed_rpy_deg=[0.0, 0.0, 0.0])
     with pytest.raises(ValueError, match="--orientations 1"):
-        grid_sampling.plan(_config(orientation="fixed"), **{**OPTIONS, "orientations": 2})
+        grid_sampling.PROCEDURE.make_plan(_config(orientation="fixed"), **{**OPTIONS, "orientations": 2})

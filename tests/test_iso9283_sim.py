@@ -17,9 +17,9 @@ from fakes.cell import SimCellConfig, SimulatedCell
 from hil.analysis.standards.iso9283 import commanded_tangents, crossings
 from hil.data.dataset import orientation_columns
 from hil.geometry.se3 import fit_rigid
+from hil.runner.engine import CampaignStopped
 from hil.runner.envelope import EnvelopeError
 from hil.runner.procedure import ParameterError
-from hil.runner.session import CampaignStopped
 from procedures import iso9283, registration
 from tests.cli_in_process import run_hil
 from tests.iso_truth import true_path as iso_truth_path

@@ -28,12 +28,13 @@ from hil.geometry.kinematics import tool_points
 from hil.runner.operator import OperatorStep
 from hil.runner.plan import Plan, PlannedPose
 from hil.runner.planners import facing_poses, plan_joints, workspace_box
-from hil.runner.procedure import Limit, Parameter, Procedure
+from hil.runner.procedure import Limit, Measurement, Parameter, Procedure
 
 NAME = "distance_check"
 
 
-def plan(config, *, poses, spacing_m):
+def plan(config, options):
+    poses, spacing_m = options.poses, options.spacing_m
     box = workspace_box(config.nominal, config.p_base_tracker_m)
     offsets = spacing_m * np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [-1, 0, 0], [0, -1, 0]])
     T = facing_poses(box.centre_m + offsets, config.p_base_tracker_m, np.random.default_rng(0), tilt_deg=0.0)
@@ -44,16 +45,16 @@ def plan(config, *, poses, spacing_m):
     return Plan(NAME, [PlannedPose(f"d{k + 1}", NAME, "poses", qk, "nest1", setup=place, at_pose=lock) for k, qk in enumerate(q)], config)
 
 
-def check(session, *, poses, spacing_m, max_distance_error_m):
-    the_plan = plan(session.config, poses=poses, spacing_m=spacing_m)
+def check(session, options, the_plan):
     relock = the_plan.poses[0].at_pose[0]  # no registration needed: the operator guides a broken beam back
-    session.visit(the_plan, aim=False, reaim=lambda: session.ask(relock))
+    session.engine.visit(the_plan, aim=False, reaim=lambda: session.ask(relock))
     points = session.recorded_points(NAME, "poses")
     nominal = tool_points(session.nominal, points.q_rad, session.config.nests_flange_m[0])
     i, j = np.triu_indices(len(nominal), 1)
     error = np.abs(np.linalg.norm(points.p_tracker_m[i] - points.p_tracker_m[j], axis=1)
                    - np.linalg.norm(nominal[i] - nominal[j], axis=1))
-    result = {"max_distance_error_mm": float(error.max() * 1e3), "passed": bool(error.max() <= max_distance_error_m)}
+    judged = session.engine.measured("distance_error", float(error.max()))  # judged against its limit, recorded
+    result = {"max_distance_error_mm": float(error.max() * 1e3), "passed": judged.verdict == "pass"}
     session.finish_step(NAME, "check", result)
     return result
 
@@ -69,10 +70,33 @@ PROCEDURE = Procedure(
     plan=plan,
     body=check,
     limits=(Limit("max_distance_error", "distance error between two points", 3.0, "mm"),),
+    measurements=(Measurement("distance_error", "worst distance error", "mm", "max_distance_error"),),
     steps=("poses", "check"),
     summary=lambda result: f"distance check: worst {result['max_distance_error_mm']:.3f} mm",
 )
 '''
+
+
+# The same kind of plug-in written for the hil before options records: its plan and body take every
+# parameter as a keyword. It is refused with what to change, and hides no other procedure.
+OLD_FORM_MODULE = """
+from hil.runner.plan import Plan
+from hil.runner.procedure import Parameter, Procedure
+
+
+def plan(config, *, poses):
+    return Plan("old_check", [], config)
+
+
+def check(session, *, poses):
+    return {}
+
+
+PROCEDURE = Procedure(
+    name="old_check", purpose="written for an older hil", instruction="",
+    parameters=(Parameter("poses", "poses to measure", 3, int),), plan=plan, body=check,
+)
+"""
 
 
 @pytest.fixture
@@ -81,10 +105,13 @@ def plugin_env(tmp_path):
     folder = tmp_path / "site"
     folder.mkdir()
     (folder / "shop_checks.py").write_text(textwrap.dedent(PLUGIN_MODULE))
+    (folder / "old_checks.py").write_text(OLD_FORM_MODULE)
     info = folder / "shop_checks-0.1.dist-info"
     info.mkdir()
     (info / "METADATA").write_text("Metadata-Version: 2.1\nName: shop-checks\nVersion: 0.1\n")
-    (info / "entry_points.txt").write_text("[hil.procedures]\ndistance_check = shop_checks:PROCEDURE\n")
+    (info / "entry_points.txt").write_text(
+        "[hil.procedures]\ndistance_check = shop_checks:PROCEDURE\nold_check = old_checks:PROCEDURE\n"
+    )
     return {**os.environ, "PYTHONPATH": os.pathsep.join([str(folder), os.environ.get("PYTHONPATH", "")])}
 
 
@@ -103,6 +130,16 @@ def test_an_installed_procedure_is_listed_with_its_purpose_and_parameters(plugin
     assert own.returncode == 0, own.stderr
     assert "--spacing-mm" in own.stdout and "20..300 mm" in own.stdout and "default 100" in own.stdout
     assert "distance error between two points: 3 mm" in own.stdout
+
+
+def test_a_procedure_written_to_the_old_form_is_refused_with_what_to_change(plugin_env, tmp_path):
+    listing = _hil(plugin_env, "run", "--help")
+    assert listing.returncode == 0 and "distance_check" in listing.stdout  # the others still load
+    assert "old_check" in listing.stdout and "cannot load" in listing.stdout
+    done = _hil(plugin_env, "run", "old_check", "--cell", "x.toml", "--campaign", str(tmp_path / "c.sqlite"))
+    assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr
+    assert "its plan plan(config, *, poses)" in done.stderr and "takes poses by keyword" in done.stderr
+    assert "Write it as `def plan(config, options)`" in done.stderr and "options.poses" in done.stderr
 
 
 def test_an_installed_procedure_refuses_bad_parameters_before_connecting(plugin_env, tmp_path):
@@ -143,4 +180,7 @@ def test_an_installed_procedure_runs_on_the_simulated_cell(plugin_env, tmp_path)
         result = store.step_result("distance_check", "check")
     assert sorted(rows["point_id"]) == ["d1", "d2", "d3", "d4"]  # four points, each measured once
     assert result is not None and result["passed"]
+    with CampaignStore(campaign) as store:
+        (judged,) = [o for o in store.outcomes() if o.procedure == "distance_check"][-1:]
+    assert judged.verdict == "pass" and judged.limit_value == pytest.approx(3e-3)
     assert 0.0 < result["max_distance_error_mm"] < 3.0  # a real measurement: the arm's error, not zero

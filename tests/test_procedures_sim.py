@@ -96,6 +96,28 @@ def test_tool_fit_runs_in_the_papers_order_validates_and_redoes_the_registration
     assert fit["validation"]["poses"] == 20 and 0.1 < fit["validation"]["rms_mm"] < 3
 
 
+def test_the_engine_judged_the_tool_fits_declared_measurements_and_the_campaign_shows_them(campaign, capsys):
+    """Each declared measurement is recorded with its outcome; the gate computed at run time is the limit of
+    the methods' disagreement; a measurement without a limit is recorded as not judged."""
+    with CampaignStore(campaign["path"]) as store:
+        outcomes = {o.measurement: o for o in store.outcomes() if o.procedure == "tool_fit"}
+        fit = store.step_result("tool_fit", "fit")
+    assert set(outcomes) == {m.name for m in tool_fit.PROCEDURE.measurements}
+    judged = {name: o.verdict.value for name, o in outcomes.items()}
+    assert judged == {**dict.fromkeys(outcomes, "pass"), "validation_rms": "not judged"}
+    circle = outcomes["circle_residual"]
+    assert circle.value == pytest.approx(
+        fit["flange"]["circle_residual_mm"] / 1e3
+    ) and circle.limit_value == pytest.approx(30e-6)
+    gate = outcomes["method_disagreement"]
+    assert gate.limit_value == pytest.approx(fit["distance_check"]["gate_mm"] / 1e3)
+    done = run_hil("campaign", "show", str(campaign["path"]), cwd=campaign["path"].parent, capsys=capsys)
+    assert done.returncode == 0, done.stderr
+    shown = done.stdout
+    assert "outcomes: 7 pass, 0 fail, 1 not judged" in shown
+    assert "tool_fit" in shown and "circle_residual" in shown
+
+
 def test_grid_records_every_planned_reachable_point_once(campaign):
     grid, plan = campaign["grid"], campaign["plan"]
     assert grid.recorded == grid.planned == sum(p.step == "grid" for p in plan.poses)

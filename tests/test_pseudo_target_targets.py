@@ -64,41 +64,20 @@ def test_the_pt_paper_option_and_the_ensemble_subset_are_checked():
         ensemble_subset(",")
 
 
-class _Session:
-    """Just what the loop's approach uses: which points are recorded, motions and events, written down."""
-
-    def __init__(self, recorded: set[str], refuse: bool = False):
-        self.recorded_ids, self.refuse = recorded, refuse
-        self.moves: list[np.ndarray] = []
-        self.events: list[str] = []
-
-    def recorded(self, procedure: str, step: str, point_id: str) -> bool:
-        return point_id in self.recorded_ids
-
-    def move_joints(self, q: np.ndarray, label: str = "") -> None:
-        from hil.runner.envelope import EnvelopeError
-
-        if self.refuse:
-            raise EnvelopeError(f"{label} would leave the envelope")
-        self.moves.append(np.asarray(q, float))
-
-    def event(self, kind: str, message: str, **where) -> None:
-        self.events.append(kind)
-
-
-def test_the_one_sided_approach_passes_below_every_joint_only_before_a_new_point():
+def test_the_one_sided_approach_is_asked_of_the_engine_below_every_joint_and_only_for_the_first_nest():
+    """The loop's request carries the approach pose (q - approach on every joint), optional: the engine passes
+    it before a point it measures, skips it (an event) where the envelope refuses it, and replays a recorded
+    point without moving (tests/test_engine.py)."""
     from procedures.pseudo_target import _Loop
 
-    loop = _Loop.__new__(_Loop)  # only the approach: no model, no targets
+    loop = _Loop.__new__(_Loop)  # only the request: no model, no targets
+    loop.nests, loop.shots = np.zeros((3, 3)), None
     q = np.array([0.1, -1.2, 1.3, -1.5, -1.6, 0.2])
-    for approach, recorded, refuse, moves, events in (
-        (0.01, set(), False, 1, []),
-        (0.01, {"t001/i1/n1"}, False, 0, []),  # a resume replays, it does not move
-        (0.0, set(), False, 0, []),  # off
-        (0.01, set(), True, 0, ["approach_skipped"]),  # outside the envelope: straight, with an event
-    ):
-        loop.session, loop.approach_rad = _Session(recorded, refuse), approach
-        loop._approach("t001/i1/n1", q)
-        assert len(loop.session.moves) == moves and loop.session.events == events
-        if moves:
-            np.testing.assert_allclose(loop.session.moves[0], q - 0.01)
+    for approach, first_nest, expected in ((0.01, True, q - 0.01), (0.01, False, None), (0.0, True, None)):
+        loop.approach_rad = approach
+        request = next(loop._point("t001/i1/n1", q, 1, approach=first_nest))
+        assert request.approach_optional and request.pose.point_id == "t001/i1/n1"
+        if expected is None:
+            assert request.pose.approach_q_rad is None
+        else:
+            np.testing.assert_allclose(request.pose.approach_q_rad, expected)

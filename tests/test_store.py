@@ -242,7 +242,7 @@ def test_dataset_export_csv_and_parquet(tmp_path):
             store.record_measurement(
                 make_record(i, step="validation", rng=np.random.default_rng(100 + i), t0=1.7e9 + 1000)
             )
-        df = campaign_dataset(store)
+        df = campaign_dataset(store, "grid_sampling")
     assert len(df) == 16
     np.testing.assert_allclose(df["t_s"].iloc[0], 100.0)  # since the campaign's first measurement
     assert list(df["step_id"]) == ["grid"] * 12 + ["validation"] * 4
@@ -258,14 +258,14 @@ def test_dataset_export_csv_and_parquet(tmp_path):
     csv = tmp_path / "grid.csv"
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # hil.data.dataset warns about unit-less columns
-        assert export_csv(path, csv, step="grid") == 12
+        assert export_csv(path, csv, "grid_sampling", step="grid") == 12
         back = load_dataset(csv)
     assert list(back["point_id"]) == [f"p{i:04d}" for i in range(12)]
     np.testing.assert_allclose(back["x_mm"], df["x_mm"].iloc[:12], rtol=1e-9)
     np.testing.assert_allclose(back["spread_x_mm"], df["spread_x_mm"].iloc[:12], rtol=1e-9)
 
     pq = tmp_path / "all.parquet"
-    assert export_parquet(path, pq) == 16
+    assert export_parquet(path, pq, "grid_sampling") == 16
     pd.testing.assert_frame_equal(pd.read_parquet(pq), df)
 
     with CampaignStore(path) as store:
@@ -273,8 +273,10 @@ def test_dataset_export_csv_and_parquet(tmp_path):
         store.record_measurement(make_record(1, step="warm"))
         store.record_measurement(make_record(0, step="cold", temperature_c=float("nan")))
         with pytest.warns(UserWarning, match="temperature_c missing in 1 of 2"):
-            assert "temperature_c" not in campaign_dataset(store, step="warm")
-        assert "temperature_c" not in campaign_dataset(store, step="cold")  # no sensor: no column
+            assert "temperature_c" not in campaign_dataset(store, "grid_sampling", step="warm")
+        assert "temperature_c" not in campaign_dataset(
+            store, "grid_sampling", step="cold"
+        )  # no sensor: no column
     with pytest.raises(ValueError, match="no measurements of tool_fit.*grid_sampling/grid \\(12\\)"):
         campaign_dataset(path, "tool_fit")
 
@@ -288,9 +290,12 @@ def test_dataset_temperature_is_the_arm_s_where_the_probe_read_every_point(tmp_p
             store.record_measurement(make_record(i, step="old"))
         store.record_measurement(make_record(0, step="mixed", extra={"object_temperature_c": 30.0}))
         store.record_measurement(make_record(1, step="mixed"))
-        probe, old = campaign_dataset(store, step="probe"), campaign_dataset(store, step="old")
+        probe, old = (
+            campaign_dataset(store, "grid_sampling", step="probe"),
+            campaign_dataset(store, "grid_sampling", step="old"),
+        )
         with pytest.warns(UserWarning, match="object probe read only 1 of 2"):
-            mixed = campaign_dataset(store, step="mixed")
+            mixed = campaign_dataset(store, "grid_sampling", step="mixed")
     np.testing.assert_allclose(probe["temperature_c"], 25.0 + np.arange(4))
     np.testing.assert_allclose(probe["air_temperature_c"], 20.0 + 0.01 * np.arange(4))
     np.testing.assert_allclose(old["temperature_c"], old["air_temperature_c"])
@@ -305,7 +310,10 @@ def test_dataset_temperature_is_the_robot_s_own_reading_where_no_probe_read_ever
             store.record_measurement(make_record(i, step="robot", extra={"robot_temperature_c": 31.0 + i}))
             both = {"robot_temperature_c": 31.0 + i, "object_temperature_c": 24.0 + i}
             store.record_measurement(make_record(i, step="both", extra=both))
-        robot, both_ = campaign_dataset(store, step="robot"), campaign_dataset(store, step="both")
+        robot, both_ = (
+            campaign_dataset(store, "grid_sampling", step="robot"),
+            campaign_dataset(store, "grid_sampling", step="both"),
+        )
     np.testing.assert_allclose(robot["temperature_c"], 31.0 + np.arange(3))
     np.testing.assert_allclose(robot["robot_temperature_c"], 31.0 + np.arange(3))
     np.testing.assert_allclose(robot["air_temperature_c"], 20.0 + 0.01 * np.arange(3))

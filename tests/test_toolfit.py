@@ -13,6 +13,7 @@ from hil.analysis.standards.flange_geometry import (
 )
 from hil.geometry.kinematics import forward_kinematics
 from hil.runner.cell_config import parse_cell_config
+from hil.runner.engine import Judging
 from hil.runner.session import RecordedPoints
 from procedures import tool_fit
 from tests.cell_fixtures import sim_cell_toml
@@ -101,7 +102,7 @@ def _synthetic_tool_fit(
     for to the one the SMR really goes into (a mistake). Returns the cell config, the records and the cell."""
     config = parse_cell_config(tomllib.loads(sim_cell_toml(seed)))
     cell = SimulatedCell(SimCellConfig(seed=seed))
-    the_plan = tool_fit.plan(config, check_poses=check_poses, validation_poses=6, seed=0)
+    the_plan = tool_fit.PROCEDURE.make_plan(config, check_poses=check_poses, validation_poses=6, seed=0)
     rows, setup = [], None
     for pose in the_plan.poses:
         if pose.setup != setup:
@@ -230,3 +231,32 @@ def test_the_report_shows_the_tool_fits_checks_and_its_validation_figure():
         and "hole 7 off the 3-4 bisector" in page
     )
     assert "Validation on 6 poses" in page and page.count('<img src="data:image/png;base64,') == 1
+
+
+def _engine_verdicts(config, result: tool_fit.ToolFitResult) -> dict[str, str]:
+    """How the engine judges a fit's declared measurements against the procedure's declared limits."""
+    limits = {limit.name: limit.to_si() for limit in tool_fit.PROCEDURE.limits}
+    declared = {m.name: m for m in tool_fit.PROCEDURE.measurements}
+    judging = Judging("tool_fit", declared, limits)
+    return {
+        name: judging.judge(declared[name], value, gate, "").verdict.value
+        for name, value, gate in tool_fit.judged_figures(config, result)
+    }
+
+
+@pytest.mark.parametrize(
+    ("mistake", "failed"),
+    [
+        ({}, set()),
+        ({"seat": lambda loc: "hole3" if loc == "hole4" else loc}, {"hole_angle_error"}),
+        ({"turned_rad": np.deg2rad(60.0)}, {"tool_rotation"}),
+    ],
+    ids=["careful", "hole-twice", "turned"],
+)
+def test_the_engine_fails_the_figure_the_tool_fits_gate_words(mistake, failed):
+    config, data, _ = _synthetic_tool_fit(**mistake)
+    result = tool_fit.evaluate(config, data, tool_fit.Limits(), shots=3)
+    verdicts = _engine_verdicts(config, result)
+    assert {name for name, v in verdicts.items() if v == "fail"} == failed
+    assert bool(failed) == bool(result.problems)
+    assert verdicts["validation_rms"] == "not judged"  # declared without a limit

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import math
 import sys
+from collections import Counter
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -11,7 +13,15 @@ import pandas as pd
 
 from hil.commands.errors import CliError
 from hil.data.dataset import DatasetError
-from hil.data.store import CampaignError, CampaignStore, export_csv, export_parquet, is_campaign_file
+from hil.data.store import (
+    CampaignError,
+    CampaignStore,
+    OutcomeRecord,
+    Verdict,
+    export_csv,
+    export_parquet,
+    is_campaign_file,
+)
 
 SNAPSHOT_SECTIONS = ("cell", "robot", "tracker", "software")
 
@@ -33,7 +43,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     export.add_argument("--csv", default=None, help="CSV file to write (dataset contract)")
     export.add_argument("--parquet", default=None, help="Parquet file to write (same columns)")
     export.add_argument(
-        "--procedure", default="grid_sampling", help="procedure to export (default grid_sampling)"
+        "--procedure", default=None, help="procedure to export (default: the one that measures the grid)"
     )
     export.add_argument("--step", default=None, help="export only this step (default: all of them)")
     export.add_argument("--force", action="store_true", help="overwrite the output file if it exists")
@@ -121,6 +131,7 @@ def run_show(args: argparse.Namespace) -> int:
             events = store.events()
             recorded = store.measurement_columns(("procedure", "point_id"))
             log = store.log_lines(last=max(args.log_lines, 0))
+            outcomes = store.outcomes()
             created_s = store.created_s
     except CampaignError as exc:
         raise CliError.from_text(str(exc)) from exc
@@ -156,6 +167,7 @@ def run_show(args: argparse.Namespace) -> int:
                 status = "open"
             print(f"  {key[0]:<18}{key[1]:<22}{points.get(key, 0):>7}  {status}")
 
+    _print_outcomes(outcomes)
     if events.empty:
         print("events: none")
     else:
@@ -171,7 +183,38 @@ def run_show(args: argparse.Namespace) -> int:
     return 0
 
 
+def _print_outcomes(outcomes: list[OutcomeRecord]) -> None:
+    """The declared measurements as last judged (a procedure run again judges again), in mm and degrees."""
+    latest = {(o.procedure, o.measurement): o for o in outcomes}
+    if not latest:
+        print("outcomes: none (no procedure with declared measurements has finished)")
+        return
+    tally = Counter(o.verdict for o in latest.values())
+    print("outcomes: " + ", ".join(f"{tally[v]} {v.value}" for v in Verdict))
+    for o in latest.values():
+        limit = (
+            f"{o.bound} {_in_user_units(o.limit_value, o.unit)}" if o.limit_value is not None else "no limit"
+        )
+        value = _in_user_units(o.value, o.unit)
+        print(f"  {o.procedure:<18}{o.measurement:<22}{value:>14}  {limit:<20} {o.verdict.value}")
+
+
+def _in_user_units(value: float | None, si_unit: str) -> str:
+    """A judged value as the edges show it: metres in mm, radians in degrees."""
+    if value is None:
+        return "-"
+    if si_unit == "m":
+        return f"{value * 1e3:.4g} mm"
+    if si_unit == "rad":
+        return f"{math.degrees(value):.4g} deg"
+    return f"{value:.4g} {si_unit}".rstrip()
+
+
 def run_export(args: argparse.Namespace) -> int:
+    if args.procedure is None:
+        from hil.commands.inputs import grid_procedure
+
+        args.procedure = grid_procedure()
     problem = _check_campaign(args.file)
     if problem:
         raise CliError.from_text(problem)

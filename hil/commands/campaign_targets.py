@@ -25,12 +25,15 @@ from hil.data.dataset import orientation_columns
 from hil.data.store import CampaignError, CampaignStore
 from hil.geometry.kinematics import KinematicModel, forward_kinematics
 from hil.geometry.robots import get_robot, is_robot_file, robot_from_text
+from hil.runner.procedure import Role
+from hil.runner.registry import publisher
 
-# --step NAME -> (procedure, step) in the campaign; the default is the first of DEFAULT_ORDER it holds
-SOURCES: dict[str, tuple[str, str]] = {
+# --step NAME -> (procedure, step) in the campaign, a role's publisher; the default is the first of
+# DEFAULT_ORDER it holds
+SOURCES: dict[str, tuple[str, str] | Role] = {
     "loop": ("pseudo_target", "targets"),
-    "validation": ("grid_sampling", "validation"),
-    "grid": ("grid_sampling", "grid"),
+    "validation": Role.VALIDATION,
+    "grid": Role.GRID,
 }
 DEFAULT_ORDER: tuple[str, ...] = ("loop", "validation", "grid")
 
@@ -49,10 +52,17 @@ class CampaignTargets:
     q_seed: np.ndarray | None = None  # (N, 6) joints to start each target's IK from (the commanded ones)
 
 
+def _source(name: str) -> tuple[str, str]:
+    """(procedure, step) of a --step name: named here, or the registered publisher of its role."""
+    source = SOURCES[name]
+    return publisher(source) if isinstance(source, Role) else source
+
+
 def available_steps(store: CampaignStore) -> dict[str, int]:
     """Target sources the campaign holds (--step names) and how many targets each has."""
     out: dict[str, int] = {}
-    for name, (procedure, step) in SOURCES.items():
+    for name in SOURCES:
+        procedure, step = _source(name)
         if procedure == "pseudo_target":
             pinned = store.step_result(procedure, step)
             n = len(pinned.get("targets_m", [])) if pinned is not None else 0
@@ -149,8 +159,8 @@ def _commanded_points(
     store: CampaignStore, path: str | Path, step: str, robot: KinematicModel
 ) -> CampaignTargets:
     """SMR centres the commanded joints aimed at, by nominal kinematics + nest + registration (tracker frame)."""
-    procedure, step_name = SOURCES[step]
-    reg = store.step_result("registration", "fit")
+    procedure, step_name = _source(step)
+    reg = store.step_result(*publisher(Role.REGISTRATION))
     if reg is None:
         raise CliError(
             f"campaign {path} has no registration: its commanded points have no place in the tracker frame",
@@ -158,7 +168,7 @@ def _commanded_points(
         )
     T_tracker_base = np.asarray(reg["T_tracker_base"], float)
     nests = _drawing_nests_m(store)
-    fit = store.step_result("tool_fit", "fit") or {}
+    fit = store.step_result(*publisher(Role.TOOL)) or {}
     nests.update({int(k): np.asarray(v, float) / 1e3 for k, v in fit.get("nests_flange_mm", {}).items()})
     m = store.measurements(procedure, step_name)
     m = m[m["smr"] > 0]
@@ -187,7 +197,7 @@ def _commanded_points(
 def _loop_targets(store: CampaignStore, robot: str, orientation_convention: str) -> CampaignTargets:
     """The pseudo-target loop's targets (SMR 1 in nest 1): points, or poses when it ran with three SMRs (no
     time or temperature: the loop pinned where, not when)."""
-    pinned = store.step_result(*SOURCES["loop"])
+    pinned = store.step_result(*_source("loop"))
     assert pinned is not None  # available_steps found it
     targets = np.asarray(pinned["targets_m"], float)
     ids = [f"t{k + 1:03d}" for k in range(len(targets))]

@@ -106,7 +106,7 @@ def run(args: argparse.Namespace) -> int:
         f"campaign {campaign}{' (resuming)' if resumed else ''}"
     )
     from hil.commands.interrupts import interrupt_guard
-    from hil.runner.session import CampaignStopped
+    from hil.runner.engine import CampaignStopped
 
     started = time.monotonic()
     with interrupt_guard():
@@ -132,14 +132,16 @@ def run(args: argparse.Namespace) -> int:
                 raise CliError(exc.message, exc.remedy + " (run hil demo again to resume)") from exc
     from hil.data.store import CampaignStore
     from hil.report.html import write_html
-    from hil.report.json_report import write_json
+    from hil.report.json_report import outcomes_section, write_json
 
     with CampaignStore(campaign, create=False) as store:
         tool = store.step_result("tool_fit", "fit")
+        outcomes = outcomes_section(store.outcomes())
     write_html(
-        report, out / "report.html", compensation=loop, active=active and active["html"], tool_fit=tool
-    )
-    extra = {"tool_fit": tool, "measured_loop": loop}
+        report, out / "report.html", compensation=loop, active=active and active["html"], tool_fit=tool,
+        outcomes=outcomes,
+    )  # fmt: skip
+    extra = {"tool_fit": tool, "measured_loop": loop, "outcomes": outcomes or None}
     if active:
         extra["active_loop"] = {"rounds": active["rounds"], "stop": active["stop"]}
     write_json(report, out / "report.json", {k: v for k, v in extra.items() if v is not None})

@@ -9,8 +9,9 @@ import pandas as pd
 
 from hil.data.dataset import load_dataset
 from hil.data.store import CampaignStore, campaign_dataset, is_campaign_file
+from hil.runner.procedure import Role
+from hil.runner.registry import publisher
 
-CAMPAIGN_PROCEDURE = "grid_sampling"  # the procedure whose measurements the analysis commands read
 TRAINING_STEP = "grid"
 VALIDATION_STEP = "validation"
 REFERENCE_STEP = "reference"  # the drift monitor's re-measured poses: training rows (evidence for drift)
@@ -19,11 +20,16 @@ REFERENCE_STEP = "reference"  # the drift monitor's re-measured poses: training 
 def read_measurements(
     path: str | Path, step: str | Sequence[str] | None = None, *, require_positions: bool = True
 ) -> pd.DataFrame:
-    """The dataset-contract frame of `path`: a campaign file (its grid_sampling measurements, one step or
-    all of them) or a dataset CSV (hil.data.dataset.load_dataset). Raises DatasetError/ValueError on bad input."""
+    """The dataset-contract frame of `path`: a campaign file (the measurements of the procedure that
+    publishes the grid, one step or all of them) or a dataset CSV (hil.data.dataset.load_dataset). Raises DatasetError/ValueError on bad input."""
     if is_campaign_file(path):
-        return campaign_dataset(path, CAMPAIGN_PROCEDURE, step)
+        return campaign_dataset(path, grid_procedure(), step)
     return load_dataset(path, require_positions=require_positions)
+
+
+def grid_procedure() -> str:
+    """The registered procedure whose measurements the analysis commands read: the one publishing the grid."""
+    return publisher(Role.GRID)[0]
 
 
 def _campaign_steps(path: str | Path) -> set[str]:
@@ -31,7 +37,7 @@ def _campaign_steps(path: str | Path) -> set[str]:
         return set()
     with CampaignStore(path, create=False) as store:
         counts = store.point_counts()
-    return set(counts.loc[counts["procedure"] == CAMPAIGN_PROCEDURE, "step"])
+    return set(counts.loc[counts["procedure"] == grid_procedure(), "step"])
 
 
 def read_training_and_validation(

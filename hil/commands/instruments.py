@@ -15,6 +15,7 @@ from contextlib import ExitStack
 from pathlib import Path
 
 from hil.commands.errors import CliError
+from hil.commands.interrupts import stop_on_interrupt
 from hil.data.store import CampaignStore
 from hil.instruments.plugins import (
     PluginError,
@@ -145,4 +146,5 @@ def open_session(
         )
         opening.pop_all()  # from here on the Session owns and releases them
     stack.callback(session.close)
+    stack.enter_context(stop_on_interrupt(session.engine.request_stop))
     return session

@@ -16,7 +16,7 @@ import os
 import signal
 import sys
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager, suppress
 from typing import Any
 
@@ -65,8 +65,26 @@ def interrupt_guard() -> Iterator[None]:
             _disarm_deadlines()
 
 
+_stop_paths: list[Callable[[str], None]] = []  # what a Ctrl-C asks to stop: the open sessions' engines
+CTRL_C = "stopped by the operator (Ctrl-C)"
+
+
+@contextmanager
+def stop_on_interrupt(request_stop: Callable[[str], None]) -> Iterator[None]:
+    """While inside, a Ctrl-C takes the same stop path as any other stop button: `request_stop` (the
+    engine's) is called with why, then the KeyboardInterrupt breaks the call in flight (a move, a
+    measurement), so the robot is stopped at once and the run cannot go on past its next checkpoint."""
+    _stop_paths.append(request_stop)
+    try:
+        yield
+    finally:
+        _stop_paths.remove(request_stop)
+
+
 def _raise_keyboard_interrupt(signum: int, frame: Any) -> None:
     _arm_deadlines()  # here too: after the handler the main thread may block holding the GIL, the watcher then never runs
+    for request_stop in list(_stop_paths):
+        request_stop(CTRL_C)
     raise KeyboardInterrupt
 
 

@@ -18,11 +18,18 @@ from typing import Any
 from hil.commands.errors import CliError
 from hil.commands.interrupts import interrupt_guard
 from hil.runner.cell_config import CellConfigError, load_cell_config
+from hil.runner.engine import CampaignStopped
 from hil.runner.envelope import EnvelopeError
 from hil.runner.operator import OperatorAbortError
-from hil.runner.procedure import WRONG_UNITS, Parameter, ParameterError, Procedure, from_user_values
+from hil.runner.procedure import (
+    WRONG_UNITS,
+    Parameter,
+    ParameterError,
+    Procedure,
+    ProcedureFormError,
+    from_user_values,
+)
 from hil.runner.registry import UnknownProcedureError, load, registered
-from hil.runner.session import CampaignStopped
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -54,12 +61,20 @@ class _DeclaredOptions(argparse.ArgumentParser):
             add_procedure_arguments(self, self.declaration)
         return self.declaration
 
+    def _load_or_refuse(self) -> None:
+        """Load the declaration; a plug-in that cannot be used (written for another hil) is refused with its
+        message, which says what to change."""
+        try:
+            self.load()
+        except (UnknownProcedureError, ProcedureFormError) as exc:
+            self.error(str(exc))
+
     def parse_known_args(self, args=None, namespace=None):  # type: ignore[override]
-        self.load()
+        self._load_or_refuse()
         return super().parse_known_args(args, namespace)
 
     def format_help(self) -> str:
-        self.load()
+        self._load_or_refuse()
         return super().format_help()
 
 
@@ -173,7 +188,7 @@ def run(args: argparse.Namespace) -> int:
         values = from_user_values(
             procedure, {p.keyword: getattr(args, p.keyword) for p in procedure.parameters}
         )
-    except (UnknownProcedureError, ParameterError) as exc:
+    except (UnknownProcedureError, ParameterError, ProcedureFormError) as exc:
         raise CliError(str(exc), f"see 'hil run {args.procedure} --help'; nothing moved") from exc
     try:
         config = load_cell_config(args.cell)
@@ -184,7 +199,7 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(
             f"campaign folder {campaign.parent} does not exist", "create it or choose another --campaign path"
         )
-    try:
+    try:  # built once: what --dry-run shows and the envelope check passed is what the run executes
         the_plan = procedure.make_plan(config, campaign=campaign, **values)
         config.envelope.check_poses(
             config.nominal, the_plan.joints(), config.nests_flange_m, [p.point_id for p in the_plan.poses]
@@ -207,7 +222,7 @@ def run(args: argparse.Namespace) -> int:
         session = open_instruments(config, campaign, operator, stack)
         try:
             with session:
-                result = procedure(session, **values)
+                result = procedure(session, planned=the_plan, **values)
         except CampaignStopped as exc:
             raise CliError(exc.message, exc.remedy) from exc
         except OperatorAbortError as exc:

@@ -18,6 +18,7 @@ import time
 import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from enum import StrEnum
 from pathlib import Path
 
 import numpy as np
@@ -26,7 +27,7 @@ import pandas as pd
 from hil.data.dataset import DatasetError, validate_dataset, write_dataset
 from hil.data.jsonable import to_jsonable
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2  # 2: the outcomes table (declared measurements judged against their limits)
 APPLICATION_ID = 0x48494C43  # "HILC" in the SQLite header (offset 68): marks the file as a hil campaign
 SQLITE_MAGIC = b"SQLite format 3\x00"
 
@@ -58,7 +59,7 @@ MEASUREMENT_COLUMNS: tuple[str, ...] = (
     + ("timestamp_s", "extra", "recorded_s")
 )
 
-_SCHEMA = f"""
+_SCHEMA_1 = f"""
 CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL);
 CREATE TABLE snapshots (id INTEGER PRIMARY KEY, recorded_s REAL NOT NULL, data TEXT NOT NULL);
 CREATE TABLE measurements (
@@ -83,15 +84,64 @@ CREATE TABLE log (
     id INTEGER PRIMARY KEY, recorded_s REAL NOT NULL, level TEXT NOT NULL, logger TEXT NOT NULL,
     message TEXT NOT NULL
 );
-""" + "".join(
-    f"""
+"""
+
+
+def _append_only(*tables: str) -> str:
+    """Triggers that refuse to change or delete a row of these tables."""
+    return "".join(
+        f"""
 CREATE TRIGGER {table}_no_update BEFORE UPDATE ON {table}
 BEGIN SELECT RAISE(ABORT, 'hil campaign store is append-only: {table} rows are never changed'); END;
 CREATE TRIGGER {table}_no_delete BEFORE DELETE ON {table}
 BEGIN SELECT RAISE(ABORT, 'hil campaign store is append-only: {table} rows are never deleted'); END;
 """
-    for table in ("meta", "snapshots", "measurements", "events", "steps", "log")
+        for table in tables
+    )
+
+
+# Each schema step: the SQL that takes a campaign of the version before to this one (applied in order, each in
+# one transaction with its user_version, so a campaign is never half-migrated).
+_MIGRATIONS: dict[int, str] = {
+    2: """
+CREATE TABLE outcomes (
+    id INTEGER PRIMARY KEY, recorded_s REAL NOT NULL, procedure TEXT NOT NULL, measurement TEXT NOT NULL,
+    value REAL, unit TEXT NOT NULL, limit_value REAL, bound TEXT NOT NULL, outcome TEXT NOT NULL
+        CHECK (outcome IN ('pass', 'fail', 'not judged')),
+    note TEXT NOT NULL
+);
+"""
+    + _append_only("outcomes"),
+}
+_SCHEMA = (
+    _SCHEMA_1
+    + _append_only("meta", "snapshots", "measurements", "events", "steps", "log")
+    + "".join(_MIGRATIONS[v] for v in range(2, SCHEMA_VERSION + 1))
 )
+
+
+class Verdict(StrEnum):
+    """A declared measurement's outcome against its limits."""
+
+    PASS = "pass"
+    FAIL = "fail"
+    NOT_JUDGED = "not judged"  # no limit declared for it, or no finite value to judge
+
+
+@dataclass(frozen=True)
+class OutcomeRecord:
+    """One declared measurement of a procedure, judged: its value and limit in SI (`unit` names the SI unit:
+    m, rad, or "" for a count or a ratio), which side the limit bounds (`bound`: "max" or "min") and why
+    (`note`: what was measured, what the outcome rests on)."""
+
+    procedure: str
+    measurement: str
+    value: float | None
+    unit: str
+    limit_value: float | None
+    bound: str
+    verdict: Verdict
+    note: str = ""
 
 
 class CampaignError(ValueError):
@@ -119,7 +169,7 @@ def _vector(name: str, value: object, shape: tuple[int, ...], finite: bool) -> n
 class MeasurementRecord:
     """One measured robot pose: what was commanded, what the robot and the tracker reported, conditions."""
 
-    procedure: str  # "registration", "tool_fit", "grid_sampling", ...
+    procedure: str  # the procedure's registered name
     step: str  # e.g. "grid", "validation", "pose2/hole3"
     point_id: str  # unique within (procedure, step)
     q_target_rad: np.ndarray  # (6,) commanded joints
@@ -248,6 +298,38 @@ def _remove_stale_temporaries(path: Path) -> None:
             pass
 
 
+def _migrate(conn: sqlite3.Connection, version: int) -> None:
+    """Take a campaign written by an older hil to SCHEMA_VERSION, one step per transaction. Nothing recorded
+    is changed: a step only adds tables; the meta table notes when each step was taken."""
+    for step in range(version + 1, SCHEMA_VERSION + 1):
+        conn.execute("BEGIN IMMEDIATE")  # another process migrating the same file waits here
+        try:
+            if conn.execute("PRAGMA user_version").fetchone()[0] < step:  # ... and finds it done
+                for statement in _statements(_MIGRATIONS[step]):
+                    conn.execute(statement)
+                conn.execute(
+                    "INSERT INTO meta (key, value) VALUES (?, ?)",
+                    (f"migrated_to_{step}_s", repr(time.time())),
+                )
+                conn.execute(f"PRAGMA user_version={step}")
+        except BaseException:
+            conn.execute("ROLLBACK")
+            raise
+        conn.execute("COMMIT")
+
+
+def _statements(sql: str) -> list[str]:
+    """The complete SQL statements of a script (a trigger's body holds semicolons of its own)."""
+    out, pending = [], ""
+    for piece in sql.split(";"):
+        pending += piece + ";"
+        if sqlite3.complete_statement(pending):
+            if pending.strip(" \n;"):
+                out.append(pending.strip())
+            pending = ""
+    return out
+
+
 class CampaignStore:
     """One campaign file: station snapshots, measurements, events, finished steps and the log."""
 
@@ -282,6 +364,8 @@ class CampaignStore:
                 )
             if version < 1:
                 raise CampaignError(f"{self.path}: campaign schema version {version} is not valid")
+            if version < SCHEMA_VERSION:
+                _migrate(self._conn, version)
             self._conn.execute("PRAGMA journal_mode=WAL")
             self._conn.execute("PRAGMA synchronous=FULL")
             meta = dict(self._conn.execute("SELECT key, value FROM meta").fetchall())
@@ -506,6 +590,35 @@ class CampaignStore:
             )
         return df
 
+    def record_outcome(self, outcome: OutcomeRecord) -> None:
+        """Append a judged measurement (committed when this returns)."""
+        self._insert(
+            "INSERT INTO outcomes (recorded_s, procedure, measurement, value, unit, limit_value, bound, outcome, "
+            "note) VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?)",
+            (
+                time.time(), outcome.procedure, outcome.measurement,
+                None if outcome.value is None else _nullable(float(outcome.value)), outcome.unit,
+                None if outcome.limit_value is None else float(outcome.limit_value), outcome.bound,
+                outcome.verdict.value, outcome.note,
+            ),
+        )  # fmt: skip
+
+    def outcomes(self) -> list[OutcomeRecord]:
+        """Every judged measurement in the order recorded (a procedure run again appends newer ones)."""
+        with self._lock:
+            rows = (
+                self._db()
+                .execute(
+                    "SELECT procedure, measurement, value, unit, limit_value, bound, outcome, note "
+                    "FROM outcomes ORDER BY id"
+                )
+                .fetchall()
+            )
+        return [
+            OutcomeRecord(procedure, measurement, value, unit, limit, bound, Verdict(verdict), note)
+            for procedure, measurement, value, unit, limit, bound, verdict, note in rows
+        ]
+
     def finish_step(self, procedure: str, step: str, result: dict) -> None:
         """Mark a step finished with its result; a later call for the same step appends a newer result."""
         self._insert(
@@ -615,7 +728,7 @@ def load_campaign(
 
 def campaign_dataset(
     path_or_store: str | Path | CampaignStore,
-    procedure: str = "grid_sampling",
+    procedure: str,
     step: str | Sequence[str] | None = None,
 ) -> pd.DataFrame:
     """The measurements of one procedure (one or several steps) in the hil.data.dataset contract, validated."""
@@ -705,7 +818,7 @@ def _extra_temperatures(extra: pd.Series, key: str) -> np.ndarray:
 def export_csv(
     path: str | Path,
     out: str | Path,
-    procedure: str = "grid_sampling",
+    procedure: str,
     step: str | Sequence[str] | None = None,
 ) -> int:
     """Write one procedure's measurements as a dataset CSV; returns the number of rows written."""
@@ -715,7 +828,7 @@ def export_csv(
 def export_parquet(
     path: str | Path,
     out: str | Path,
-    procedure: str = "grid_sampling",
+    procedure: str,
     step: str | Sequence[str] | None = None,
 ) -> int:
     """Write one procedure's measurements (dataset columns) as a Parquet file; returns rows written."""

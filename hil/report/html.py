@@ -91,10 +91,12 @@ def render_html(
     compensation: dict | None = None,
     active: str | None = None,
     tool_fit: dict | None = None,
+    outcomes: list[dict] | None = None,
 ) -> str:
     """The report page; `compensation` (procedures.pseudo_target's summary) adds the measured loop's table,
     `active` the active loop's rounds (an HTML section, hil.report.rounds.rounds_html), `tool_fit`
-    (the campaign's tool_fit step result) the tool fit's checks and its validation figure."""
+    (the campaign's tool_fit step result) the tool fit's checks and its validation figure, `outcomes`
+    (hil.report.json_report.outcomes_section) the declared measurements as the engine judged them."""
     d = report_dict(report)
     parts = [
         *_head_html(report, d),
@@ -108,6 +110,8 @@ def render_html(
     ]
     if tool_fit:
         parts.append(tool_fit_html(tool_fit))
+    if outcomes:
+        parts.append(outcomes_html(outcomes))
     if active:
         parts.append(active)
     if compensation:
@@ -379,9 +383,17 @@ def write_html(
     compensation: dict | None = None,
     active: str | None = None,
     tool_fit: dict | None = None,
+    outcomes: list[dict] | None = None,
 ) -> None:
     """Write the self-contained HTML report (tables + PNG plots embedded as base64)."""
-    Path(path).write_text(render_html(report, compensation, active, tool_fit))
+    Path(path).write_text(render_html(report, compensation, active, tool_fit, outcomes))
+
+
+def outcomes_html(outcomes: list[dict]) -> str:
+    """The declared measurements against their limits, each with its outcome (pass, fail, not judged)."""
+    rows = [{**o, "limit": "" if o["limit"] is None else f"{o['bound']} {o['limit']:.4g}"} for o in outcomes]
+    columns = ["procedure", "measurement", "value", "limit", "unit", "outcome"]
+    return "<h2>Judged measurements</h2>" + _table(rows, columns, {"value": ".4g"})
 
 
 def tool_fit_html(fit: dict) -> str:

@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 from hil.analysis.diagnosis.pipeline import DiagnosisReport
 from hil.data.jsonable import to_jsonable
+from hil.data.store import OutcomeRecord
 from hil.report.text import caution_text, conclusion, gravity_text, thermal_text
 
 
@@ -34,3 +36,26 @@ def write_json(report: DiagnosisReport, path: str | Path, extra: dict | None = N
     """
     text = json.dumps(to_jsonable({**report_dict(report), **(extra or {})}), indent=1, allow_nan=False)
     Path(path).write_text(text)
+
+
+def outcomes_section(outcomes: list[OutcomeRecord]) -> list[dict]:
+    """The judged measurements as last judged, for report.json: value and limit in mm or degrees (the
+    edges' units, named in `unit`), the bounded side and the outcome (pass, fail, not judged)."""
+    latest = {(o.procedure, o.measurement): o for o in outcomes}
+    scale = {"m": (1e3, "mm"), "rad": (180.0 / math.pi, "deg")}
+    section = []
+    for o in latest.values():
+        factor, unit = scale.get(o.unit, (1.0, o.unit))
+        section.append(
+            {
+                "procedure": o.procedure,
+                "measurement": o.measurement,
+                "value": None if o.value is None else o.value * factor,
+                "limit": None if o.limit_value is None else o.limit_value * factor,
+                "unit": unit,
+                "bound": o.bound,
+                "outcome": o.verdict.value,
+                "note": o.note,
+            }
+        )
+    return section

@@ -48,6 +48,7 @@ class Plan:
     operator_steps: int = 0
     dropped: dict[str, int] = field(default_factory=dict)  # reason -> poses left out (unreachable, ...)
     per_point_s: float | None = None  # settle + measurement time per pose (default from the config)
+    bounds: str = ""  # an adaptive procedure's plan is its first block: the bounds of what may follow
 
     def joints(self) -> np.ndarray:
         return np.array([p.q_rad for p in self.poses]).reshape(-1, 6)
@@ -104,6 +105,8 @@ class Plan:
             lines.append(f"  NOT REACHABLE inside the envelope: {', '.join(impossible[:10])}")
         minutes = self.estimated_duration_s() / 60.0
         lines.append(f"  estimated duration: {minutes:.1f} min (moves + settle + measurement)")
+        if self.bounds:
+            lines.append(f"  then: {self.bounds}")
         if len(q):
             T = forward_kinematics(cfg.nominal, q)
             points = np.einsum("nij,kj->nki", T[:, :3, :3], cfg.nests_flange_m) + T[:, None, :3, 3]

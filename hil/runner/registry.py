@@ -11,9 +11,11 @@ Listing the names reads installed metadata only; `load(name)` imports the one mo
 
 from __future__ import annotations
 
+import logging
+from functools import cache
 from importlib.metadata import EntryPoint, entry_points
 
-from hil.runner.procedure import Procedure
+from hil.runner.procedure import Procedure, Role
 
 GROUP = "hil.procedures"
 
@@ -42,3 +44,34 @@ def load(name: str) -> Procedure:
             f"the entry point {name} = {available[name].value} does not name the Procedure declaration {name!r}"
         )
     return declared
+
+
+class RoleNotPublishedError(LookupError):
+    """No registered procedure publishes a step in this role (or two do)."""
+
+
+@cache
+def _publishers() -> dict[Role, list[tuple[str, str]]]:
+    """Every role the registered procedures publish: (procedure, step) by role (each declaration loaded once;
+    one that cannot be loaded is left out with a warning, so a broken plug-in hides no other)."""
+    found: dict[Role, list[tuple[str, str]]] = {}
+    for name in registered():
+        try:
+            declared = load(name)
+        except Exception as exc:  # noqa: BLE001 - a broken plug-in must not hide the others
+            logging.getLogger("hil").warning("procedure %s cannot be loaded: %s", name, exc)
+            continue
+        for role, step in declared.publishes:
+            found.setdefault(role, []).append((name, step))
+    return found
+
+
+def publisher(role: Role) -> tuple[str, str]:
+    """(procedure, step) of the one registered procedure that publishes `role`."""
+    found = _publishers().get(role, [])
+    if len(found) != 1:
+        named = ", ".join(f"{p}/{s}" for p, s in found) or "none"
+        raise RoleNotPublishedError(
+            f"exactly one registered procedure must publish the {role.value} step; found {named}"
+        )
+    return found[0]

@@ -22,39 +22,28 @@ import numpy as np
 import pandas as pd
 
 from hil.data.store import P_COLUMNS, Q_COLUMNS, T_COLUMNS, CampaignStore, MeasurementRecord, StoreLogHandler
-from hil.errors import ActionableError
 from hil.geometry.kinematics import KinematicModel, forward_kinematics
 from hil.geometry.se3 import transform_points
 from hil.instruments.robot import Robot, RobotError
 from hil.instruments.tracker import (
-    NoTargetError,
-    OutlierError,
     StreamingTracker,
     Tracker,
-    TrackerConnectionError,
     TrackerError,
     TrackerMeasurement,
-    TrackerTimeoutError,
 )
 from hil.runner.cell_config import CellConfig
+from hil.runner.engine import AttemptPolicy, CampaignStopped, Engine
 from hil.runner.envelope import Envelope, EnvelopeError
 from hil.runner.operator import Operator, OperatorStep
 from hil.runner.plan import Plan, PlannedPose
 from hil.runner.planners import linear_path_joints
+from hil.runner.procedure import Role
 from hil.runner.progress import Progress
+from hil.runner.registry import publisher
 
 log = logging.getLogger("hil")
 
-MEASURE_ATTEMPTS = 4  # a point is given up after this many failed tries (beam breaks, dropped links)
 MOVE_ATTEMPTS = 3
-
-
-class CampaignStopped(ActionableError, RuntimeError):  # noqa: N818 - reads as what happened, like KeyboardInterrupt
-    """The campaign cannot go on by itself; `remedy` says what to do. Everything recorded stays recorded
-    and re-running the same command resumes where it stopped."""
-
-    def __init__(self, message: str, remedy: str):
-        super().__init__(message, remedy)
 
 
 @dataclass(frozen=True)
@@ -118,7 +107,7 @@ class Session:
         self._log_handler = StoreLogHandler(store)
         self._closed = False
         self._step_cache: dict[tuple[str, str], dict | None] = {}
-        self._recalled: dict[tuple[str, str], dict[str, MeasurementRecord]] = {}
+        self.engine = Engine(self)
 
     # ------------------------------------------------------------------ lifecycle
     def __enter__(self) -> Session:
@@ -145,7 +134,8 @@ class Session:
             return
         self._closed = True
         if interrupted:
-            self.event("interrupted", "stopped by the operator (Ctrl-C); re-run the command to resume")
+            why = self.engine.stop_reason or "stopped by the operator (Ctrl-C)"
+            self.event("interrupted", f"{why}; re-run the command to resume")
 
         def release_robot() -> None:
             try:
@@ -182,7 +172,7 @@ class Session:
     @property
     def registration(self) -> Registration | None:
         """The latest tracker <-> base registration recorded in this campaign, if any."""
-        result = self.step_result("registration", "fit")
+        result = self.step_result(*publisher(Role.REGISTRATION))
         if result is None:
             return None
         return Registration(np.array(result["T_tracker_base"], float), float(result["rms_mm"]) / 1e3)
@@ -198,7 +188,7 @@ class Session:
 
     def nest_flange_m(self, nest: int) -> np.ndarray:
         """SMR nest centre in the flange frame: the tool fit's value when this campaign has one, else the drawing."""
-        fit = self.step_result("tool_fit", "fit")
+        fit = self.step_result(*publisher(Role.TOOL))
         if fit is not None and str(nest) in fit.get("nests_flange_mm", {}):
             return np.array(fit["nests_flange_mm"][str(nest)], float) / 1e3
         return np.asarray(self.config.nests_flange_m[nest - 1], float)
@@ -305,84 +295,7 @@ class Session:
     def settle(self) -> None:
         self.robot.wait_settled(dwell_s=self.config.settle_s)
 
-    # ------------------------------------------------------------------ the loop over a plan
-    def visit(
-        self,
-        plan: Plan,
-        *,
-        shots: int | None = None,
-        aim: bool = True,
-        reaim: Callable[[], None] | None = None,
-        extra: dict | None = None,
-        pin: bool = False,
-    ) -> int:
-        """Visit every pose of a plan that is not recorded yet, in order; returns how many were measured.
-
-        The one loop every static plan runs through: the whole plan (and its approach poses) is checked
-        against the envelope first; `pin` records the plan, or refuses a resume with another one; recorded
-        points are skipped (re-running resumes); the operator is asked for each new setup of the SMR;
-        progress counts the plan's points; each point is measured and committed before the next motion
-        (see `measure_point`). `aim=False` leaves the tracker on its lock (before a registration exists).
-        """
-        self.check_poses(plan.joints(), [p.point_id for p in plan.poses])
-        approaches = [p.approach_q_rad for p in plan.poses if p.approach_q_rad is not None]
-        if approaches:
-            self.check_poses(np.array(approaches))
-        if pin:
-            self.pin_plan(plan)
-        pending = [p for p in plan.poses if not self.recorded(p.procedure, p.step, p.point_id)]
-        setup: tuple[OperatorStep, ...] | None = None
-        total = len(plan.poses)
-        with self.progress.task(
-            plan.procedure.replace("_", " "), total=total, done=total - len(pending)
-        ) as advance:
-            for pose in pending:
-                if pose.setup != setup:
-                    self._set_up(pose)
-                    setup = pose.setup
-                if pose.approach_q_rad is not None:
-                    self.move_joints(pose.approach_q_rad, label=pose.point_id + " approach")
-                p_flange_m = self._aim_point(pose) if aim else None
-                self.measure_point(
-                    pose.procedure, pose.step, pose.point_id, pose.q_rad, smr=pose.smr, location=pose.location,
-                    p_flange_m=p_flange_m, shots=shots, reaim=reaim, extra=extra,
-                )  # fmt: skip
-                advance()
-        return len(pending)
-
-    def recall_or_measure(
-        self, procedure: str, step: str, point_id: str, q_target: np.ndarray, **options
-    ) -> MeasurementRecord:
-        """The point's recorded measurement (an adaptive loop replays what a resumed campaign holds), else
-        measure it now (`measure_point` options). A recorded point commanded at other joints than these is
-        refused: the run would no longer be the one that recorded it."""
-        key = (procedure, step)
-        if key not in self._recalled:
-            self._recalled[key] = {r.point_id: r for r in self.store.records(procedure, step)}
-        recorded = self._recalled[key].get(point_id)
-        if recorded is None:
-            recorded = self.measure_point(procedure, step, point_id, q_target, **options)
-            if recorded is None:  # recorded between our read and now (not expected): read it back
-                recorded = next(r for r in self.store.records(procedure, step) if r.point_id == point_id)
-            self._recalled[key][point_id] = recorded
-        elif not np.allclose(recorded.q_target_rad, q_target, atol=1e-6):
-            raise CampaignStopped(
-                f"{point_id} was recorded at other joints than this run would command",
-                "re-run with the same model and options, or use a new --campaign file",
-            )
-        return recorded
-
-    def _set_up(self, pose: PlannedPose) -> None:
-        """Ask the pose's manual steps; for steps at the pose, move there and settle first."""
-        for step in pose.setup:
-            self.ask(step)
-        if pose.at_pose:
-            self.move_joints(pose.q_rad, label=pose.point_id)
-            self.settle()
-            for step in pose.at_pose:
-                self.ask(step)
-
-    def _aim_point(self, pose: PlannedPose) -> np.ndarray | None:
+    def aim_point(self, pose: PlannedPose) -> np.ndarray | None:
         """Where on the flange the SMR of a pose sits, for aiming: the plan's, else its nest's (tool fit)."""
         if pose.p_flange_m is not None:
             return np.asarray(pose.p_flange_m, float)
@@ -414,73 +327,55 @@ class Session:
         """
         if self.recorded(procedure, step, point_id):
             return None
-        where = {"procedure": procedure, "step": step, "point_id": point_id}
         self.move_joints(q_target, label=point_id)
         self.settle()
         shots = shots or self.config.shots_per_point
-        last_error: Exception | None = None
-        for attempt in range(1, MEASURE_ATTEMPTS + 1):
-            try:
-                q_rad = np.asarray(self.robot.joints(), float)
-                predicted = self.predict_tracker_point(q_rad, p_flange_m) if p_flange_m is not None else None
-                if predicted is not None:
-                    self.tracker.point_at(predicted)
-                elif attempt > 1 and reaim is not None:
-                    reaim()
-                m = self.tracker.measure(shots)
-                timestamp_s = m.timestamp_s if self._clock is None else self._clock()
-                record = MeasurementRecord(
-                    procedure=procedure,
-                    step=step,
-                    point_id=point_id,
-                    q_target_rad=np.asarray(q_target, float),
-                    q_rad=q_rad,
-                    T_base_flange=np.asarray(self.robot.flange_pose(), float),
-                    p_tracker_m=m.p_tracker_m,
-                    spread_m=m.spread_m,
-                    std_m=m.std_m,
-                    shots=len(m.shots_m),
-                    rejected_shots=tuple(m.rejected_shots),
-                    smr=smr if location.startswith("nest") else 0,
-                    location=location,
-                    temperature_c=m.temperature_c,
-                    pressure_hpa=m.pressure_hpa,
-                    humidity_pct=m.humidity_pct,
-                    timestamp_s=timestamp_s,
-                    extra={
-                        "attempts": attempt,
-                        **({"predicted_mm": (predicted * 1e3).tolist()} if predicted is not None else {}),
-                        **_object_temperature(m),
-                        **_robot_temperature(self.robot),
-                        **(extra or {}),
-                    },
-                )
-                self.store.record_measurement(record)
-                return record
-            except NoTargetError as exc:
-                last_error = exc
-                self.event("beam_break", f"no target at {point_id} (attempt {attempt}): {exc}", **where)
-            except (TrackerConnectionError, TrackerTimeoutError) as exc:
-                last_error = exc
-                self.event(
-                    "tracker_link", f"{type(exc).__name__} at {point_id} (attempt {attempt}): {exc}", **where
-                )
-                time.sleep(0.2 * attempt)  # the driver reconnects on the next call
-            except OutlierError as exc:
-                last_error = exc
-                self.event(
-                    "outliers", f"too few consistent shots at {point_id} (attempt {attempt}): {exc}", **where
-                )
-            except TrackerError as exc:
-                raise CampaignStopped(
-                    f"the tracker failed at {point_id}: {exc.message}",
-                    f"{exc.remedy}; then re-run the same command to resume",
-                ) from exc
-        raise CampaignStopped(
-            f"no measurement at {point_id} after {MEASURE_ATTEMPTS} attempts ({type(last_error).__name__}: {last_error})",
-            "clear the line of sight between tracker and SMR and check the tracker's connection, "
+
+        def once(attempt: int) -> MeasurementRecord:
+            q_rad = np.asarray(self.robot.joints(), float)
+            predicted = self.predict_tracker_point(q_rad, p_flange_m) if p_flange_m is not None else None
+            if predicted is not None:
+                self.tracker.point_at(predicted)
+            elif attempt > 1 and reaim is not None:
+                reaim()
+            m = self.tracker.measure(shots)
+            record = MeasurementRecord(
+                procedure=procedure,
+                step=step,
+                point_id=point_id,
+                q_target_rad=np.asarray(q_target, float),
+                q_rad=q_rad,
+                T_base_flange=np.asarray(self.robot.flange_pose(), float),
+                p_tracker_m=m.p_tracker_m,
+                spread_m=m.spread_m,
+                std_m=m.std_m,
+                shots=len(m.shots_m),
+                rejected_shots=tuple(m.rejected_shots),
+                smr=smr if location.startswith("nest") else 0,
+                location=location,
+                temperature_c=m.temperature_c,
+                pressure_hpa=m.pressure_hpa,
+                humidity_pct=m.humidity_pct,
+                timestamp_s=m.timestamp_s if self._clock is None else self._clock(),
+                extra={
+                    "attempts": attempt,
+                    **({"predicted_mm": (predicted * 1e3).tolist()} if predicted is not None else {}),
+                    **_object_temperature(m),
+                    **_robot_temperature(self.robot),
+                    **(extra or {}),
+                },
+            )
+            self.store.record_measurement(record)
+            return record
+
+        policy = AttemptPolicy(
+            what=f"measurement at {point_id}",
+            where=f"at {point_id}",
+            remedy="clear the line of sight between tracker and SMR and check the tracker's connection, "
             "then re-run the same command: recorded points are kept and skipped",
+            event_where={"procedure": procedure, "step": step, "point_id": point_id},
         )
+        return self.engine.attempt(once, policy)
 
     # ------------------------------------------------------------------ paths (the SMR sampled while moving)
     def streaming_tracker(self, interval_s: float) -> StreamingTracker:
@@ -535,32 +430,20 @@ class Session:
         if not joints.usable.all() or outside.any():
             raise EnvelopeError(f"{step}: the linear path leaves the reach or the envelope; nothing moved")
         tracker = self.streaming_tracker(interval_s)
-        where = {"procedure": procedure, "step": step}
-        for attempt in range(1, MEASURE_ATTEMPTS + 1):
+
+        def once(attempt: int) -> dict:
             if approach_q_rad is not None:
                 self.move_joints(approach_q_rad, label=step + " approach")
             self.move_joints(q_start, label=step)
             self.settle()
             predicted = self.predict_tracker_point(self.robot.joints(), p_flange_m)
+            if predicted is not None:
+                tracker.point_at(predicted)
+            tracker.start_stream(interval_s)
             try:
-                if predicted is not None:
-                    tracker.point_at(predicted)
-                tracker.start_stream(interval_s)
-                try:
-                    self.robot.move_path(T, speed_m_s, accel_m_s2)
-                finally:
-                    stream = tracker.stop_stream()
-            except NoTargetError as exc:
-                self.event("beam_break", f"no target during {step} (attempt {attempt}): {exc}", **where)
-                continue
-            except RobotError as exc:
-                self._robot_fault(exc, step, attempt)
-                continue
-            except TrackerError as exc:
-                raise CampaignStopped(
-                    f"the tracker failed during {step}: {exc.message}",
-                    f"{exc.remedy}; then re-run the same command to resume",
-                ) from exc
+                self.robot.move_path(T, speed_m_s, accel_m_s2)
+            finally:
+                stream = tracker.stop_stream()
             result = {
                 "speed_m_s": speed_m_s,
                 "accel_m_s2": accel_m_s2,
@@ -572,10 +455,15 @@ class Session:
             }
             self.finish_step(procedure, step, result)
             return result
-        raise CampaignStopped(
-            f"no complete run of {step} after {MEASURE_ATTEMPTS} attempts",
-            "clear the line of sight between tracker and SMR along the path, then re-run the same command",
+
+        policy = AttemptPolicy(
+            what=f"complete run of {step}",
+            where=f"during {step}",
+            remedy="clear the line of sight between tracker and SMR along the path, then re-run the same command",
+            event_where={"procedure": procedure, "step": step},
+            robot_fault=lambda exc, attempt: self._robot_fault(exc, step, attempt),
         )
+        return self.engine.attempt(once, policy)
 
 
 def _object_temperature(m: TrackerMeasurement) -> dict:
