@@ -63,6 +63,7 @@ from hil.analysis.diagnosis.baseline import (
 )
 from hil.analysis.diagnosis.drift_monitor import reference_drift
 from hil.analysis.diagnosis.evidence import evidence
+from hil.analysis.diagnosis.intervals import fit_spread, heldout_coverage, validation_coverage
 from hil.analysis.diagnosis.physics_terms import gravity_summary, thermal_summary
 from hil.analysis.diagnosis.questions import open_questions
 from hil.analysis.diagnosis.screening import Candidate, held_out_gain
@@ -87,6 +88,9 @@ from hil.model.effects import (
     yields_against_gravity,
 )
 from hil.model.residual_maps import MAP_KINDS, MAP_MODES, kfold_map_errors, make_map, map_from_dict
+
+# The probability of the intervals whose coverage the report shows.
+INTERVAL_PROBABILITY = 0.95
 
 
 @dataclass
@@ -113,6 +117,8 @@ class DiagnosisReport:
     drift: dict | None = (
         None  # reference poses re-measured (hil.analysis.diagnosis.drift_monitor.reference_drift)
     )
+    # the 95 % prediction intervals' coverage (hil.analysis.diagnosis.intervals.Coverage, held-out, validate)
+    intervals: list[dict] = field(default_factory=list)
 
     @property
     def effects_added(self) -> list[dict]:
@@ -150,6 +156,7 @@ class DiagnosisReport:
             "thermal": self.thermal,
             "gravity": self.gravity,
             "drift": self.drift,
+            "intervals": self.intervals,
             "calibration": self.calibration,
             "residual_map": self.residual_map,
             "run": self.run,
@@ -252,7 +259,18 @@ def run_diagnosis(
                 )
             )
         report.drift = reference_drift(df)
+        noise_m2 = float(np.mean(np.asarray(base.noise.sigma_axis_m) ** 2))
+        tell = base.progress
+        tell("prediction intervals", 0, 1)
+        report.model.spread = fit_spread(
+            path.current, path.free, path.prob, path.folds, noise_m2, path.cv_final
+        )
+        tell("prediction intervals", 1, 1)
+        report.intervals = [heldout_coverage(report.model.spread, INTERVAL_PROBABILITY).to_dict()]
         if df_validate is not None:
+            report.intervals.append(
+                validation_coverage(report.model, df_validate, INTERVAL_PROBABILITY).to_dict()
+            )
             _validate(report, path, df, df_validate, reregister_validation)
         report.run = run_record(base.nominal.nominal, {"training": df, "validation": df_validate})
         report.undecided = undecided_questions(df, path, alpha, float(np.sqrt(base.sigma2)))
