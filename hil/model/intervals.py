@@ -7,18 +7,20 @@ of |held-out residual| / s over those rows, so no distribution is assumed).
 
 The spread (per axis, squared, m^2) is
 
-    s^2(x) = s0^2 + a_joint d^2 + s0^2 ((d - D)+ / D)^2 + a_temp dT + a_time dt
-             + max(0, v_par(x) - v_par_train)
+    s^2(x) = s0^2 + a_joint d + a_temp dT + a_time dt + max(0, v_par(x) - v_par_train)
 
-- d: the distance (rad, the six joints) from x to the nearest training pose; dT, dt: how far x lies outside
+- d: the distance from x to the nearest training pose in joint space, each joint's angle weighted by its
+  lever arm to the SMR (m); dT, dt: how far x lies outside
   the temperatures and times the campaign spans (0 inside, and 0 for a row without that column: treated as
   anywhere in the span). s0 and the joint rate are a non-negative least-squares fit of the spatial folds'
   held-out squared residuals (blocks of the volume); the temperature and time rates are what the warmest
   and coldest (earliest and latest) 30 % of the rows, held out, show beyond that, per unit outside the
   span: the campaign's own measure of how a prediction degrades with distance
-  (hil.analysis.diagnosis.intervals). D is the farthest (95th percentile) the held-out blocks lay from
-  their training poses: beyond it the campaign has tested nothing, and the spread is assumed to grow in
-  proportion to the distance (twice D: s0 doubled on top) rather than trusted to stay flat.
+  (hil.analysis.diagnosis.intervals). Every growth is linear in the variance (a linear variogram, as of a
+  random walk): a rate read over the short distances a campaign's held-out rows lie from the rest is
+  extrapolated to a far pose or a warmer day, and a quadratic law would turn its noise into intervals many
+  times the error. A row farther from the training poses than the held-out blocks were (`tested_distance_m`,
+  their 95th percentile) is named in the notes: its interval rests on that extension.
 - v_par(x): the variance the fitted parameters' covariance puts on the point, trace(J C J^T) / 3 (the
   linearised least-squares covariance with each physics term's prior; a term held at an assumed value counts
   with its prior's width). It grows where the geometry or an effect is extrapolated: far from the measured
@@ -67,8 +69,9 @@ class PredictionSpread:
     """What a model needs to give intervals: the fitted spread model and the held-out scores."""
 
     s0_m2: float  # per-axis variance inside the campaign, m^2
-    joint_rate_m2_per_rad2: float
-    tested_distance_rad: float  # the farthest the held-out blocks lay from their training poses (95th pct)
+    joint_rate_m: float  # variance (m^2) per lever-weighted joint distance (m)
+    tested_distance_m: float  # the farthest the held-out blocks lay from their training poses (95th pct)
+    joint_levers_m: np.ndarray  # (n,) each joint's mean lever arm to the SMR over the training poses
     temperature_rate_m2_per_k: float
     time_rate_m2_per_s: float
     training_joints_rad: np.ndarray  # (M, n) poses for the nearest-pose distance
@@ -101,8 +104,9 @@ class PredictionSpread:
 
         return {
             "s0_m2": self.s0_m2,
-            "joint_rate_m2_per_rad2": self.joint_rate_m2_per_rad2,
-            "tested_distance_rad": self.tested_distance_rad,
+            "joint_rate_m": self.joint_rate_m,
+            "tested_distance_m": self.tested_distance_m,
+            "joint_levers_m": np.asarray(self.joint_levers_m).tolist(),
             "temperature_rate_m2_per_k": self.temperature_rate_m2_per_k,
             "time_rate_m2_per_s": self.time_rate_m2_per_s,
             "training_joints_rad": np.asarray(self.training_joints_rad).tolist(),
@@ -123,8 +127,9 @@ class PredictionSpread:
 
         return cls(
             s0_m2=float(d["s0_m2"]),
-            joint_rate_m2_per_rad2=float(d["joint_rate_m2_per_rad2"]),
-            tested_distance_rad=float(d["tested_distance_rad"]),
+            joint_rate_m=float(d["joint_rate_m"]),
+            tested_distance_m=float(d["tested_distance_m"]),
+            joint_levers_m=np.asarray(d["joint_levers_m"], float),
             temperature_rate_m2_per_k=float(d["temperature_rate_m2_per_k"]),
             time_rate_m2_per_s=float(d["time_rate_m2_per_s"]),
             training_joints_rad=np.asarray(d["training_joints_rad"], float),
@@ -143,7 +148,7 @@ class PredictionSpread:
 class Extrapolation:
     """Per row, how far it lies from what the model was trained on."""
 
-    joint_distance_rad: np.ndarray  # (N,) to the nearest training pose
+    joint_distance_m: np.ndarray  # (N,) lever-weighted joint distance to the nearest training pose
     temperature_outside_k: np.ndarray  # (N,) outside the training's temperatures (0 inside or unknown)
     time_outside_s: np.ndarray  # (N,) outside the training's times (0 inside or unknown)
 
@@ -156,9 +161,11 @@ def driver_outside(span: Span | None, values: np.ndarray | None, n: int) -> np.n
     return np.where(np.isfinite(out), out, 0.0)
 
 
-def nearest_distance(reference: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """Joint-space distance (rad) from each row of q to its nearest reference pose."""
-    return cKDTree(reference).query(q, k=1)[0]
+def nearest_distance(reference: np.ndarray, q: np.ndarray, levers_m: np.ndarray) -> np.ndarray:
+    """Lever-weighted joint distance (m) from each row of q to its nearest reference pose:
+    sqrt(sum_j (L_j dq_j)^2), each joint's angle difference times its lever arm to the SMR, so a turn of the
+    wrist counts for the little it moves the point and a turn of the base for the much it does."""
+    return cKDTree(reference * levers_m).query(q * levers_m, k=1)[0]
 
 
 def spread_variance(
@@ -167,10 +174,7 @@ def spread_variance(
     """s^2(x) per row (m^2, per axis)."""
     return (
         spread.s0_m2
-        + spread.joint_rate_m2_per_rad2 * ex.joint_distance_rad**2
-        + spread.s0_m2
-        * (np.maximum(ex.joint_distance_rad - spread.tested_distance_rad, 0.0) / spread.tested_distance_rad)
-        ** 2
+        + spread.joint_rate_m * ex.joint_distance_m
         + spread.temperature_rate_m2_per_k * ex.temperature_outside_k
         + spread.time_rate_m2_per_s * ex.time_outside_s
         + np.maximum(parameter_variance_m2 - spread.parameter_variance_train_m2, 0.0)
@@ -220,7 +224,7 @@ def extrapolation_of(
                 f"was trained on ({span.low:.6g}..{span.high:.6g}); outside it they would be wider"
             )
     ex = Extrapolation(
-        joint_distance_rad=nearest_distance(spread.training_joints_rad, q),
+        joint_distance_m=nearest_distance(spread.training_joints_rad, q, spread.joint_levers_m),
         temperature_outside_k=driver_outside(spread.temperature_span_c, temp, len(q)),
         time_outside_s=driver_outside(spread.time_span_s, time, len(q)),
     )

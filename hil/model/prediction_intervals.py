@@ -36,18 +36,24 @@ def spread_of(model: CalibratedModel) -> PredictionSpread:
     return model.spread
 
 
-def parameter_variance_rows(
-    model: CalibratedModel, spread: PredictionSpread, ctx: EffectContext, smr: np.ndarray
-) -> np.ndarray:
-    """v_par of every row (m^2 per axis), from the point's derivative by the spread's parameters; an effect
-    held at an assumed value takes part (its coefficient is uncertain too, by its prior's width)."""
-    unheld = replace(
+def with_effects_free(model: CalibratedModel) -> CalibratedModel:
+    """The model with no effect held: its Jacobian then has every effect's columns (a held coefficient is
+    uncertain too)."""
+    return replace(
         model,
         effects=[
             type(e)(joint=e.joint, params=e.params, state={k: v for k, v in e.state.items() if k != "held"})
             for e in model.effects
         ],
     )
+
+
+def parameter_variance_rows(
+    model: CalibratedModel, spread: PredictionSpread, ctx: EffectContext, smr: np.ndarray
+) -> np.ndarray:
+    """v_par of every row (m^2 per axis), from the point's derivative by the spread's parameters; an effect
+    held at an assumed value takes part (its coefficient is uncertain too, by its prior's width)."""
+    unheld = with_effects_free(model)
     _, J = unheld.jacobian_ctx(ctx, smr)
     names = unheld.param_names
     cols = [names.index(n) for n in spread.parameter_names]
@@ -62,6 +68,13 @@ def prediction_intervals(model: CalibratedModel, df: pd.DataFrame, probability: 
     ex, notes = extrapolation_of(spread, df, ctx.q)
     v_par = parameter_variance_rows(model, spread, ctx, smr_ids(df))
     radius = k * np.sqrt(spread_variance(spread, ex, v_par))
+    beyond = int(np.sum(ex.joint_distance_m > spread.tested_distance_m))
+    if beyond:
+        notes.append(
+            f"{beyond} of {len(radius)} rows lie farther from the training poses than its held-out blocks did "
+            f"({spread.tested_distance_m * 1000:.0f} mm lever-weighted): their intervals extend the growth the "
+            "campaign measured nearer; measure a few of them to check"
+        )
     if spread.assumed_effects:
         notes.append(
             "assumed, not found, by the data: "

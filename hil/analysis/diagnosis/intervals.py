@@ -27,6 +27,7 @@ from hil.analysis.calibration.solve import (
 )
 from hil.analysis.diagnosis.selection import cv_positions
 from hil.data.dataset import points_m
+from hil.geometry.kinematics import chain_axes
 from hil.model.calibrated_model import CalibratedModel
 from hil.model.effects import Effect
 from hil.model.intervals import (
@@ -39,7 +40,11 @@ from hil.model.intervals import (
     nearest_distance,
     spread_variance,
 )
-from hil.model.prediction_intervals import parameter_variance_rows, prediction_intervals
+from hil.model.prediction_intervals import (
+    parameter_variance_rows,
+    prediction_intervals,
+    with_effects_free,
+)
 
 # Share of the rows held out at each end of the temperature and of the time span.
 EXTREME_SHARE = 0.3
@@ -67,11 +72,20 @@ def _span(values: np.ndarray | None) -> Span | None:
     return Span(float(np.min(values)), float(np.max(values)))
 
 
-def _extrapolation(prob: Problem, test: np.ndarray) -> Extrapolation:
+def joint_levers(model: CalibratedModel, prob: Problem) -> np.ndarray:
+    """Each joint's mean lever arm (m) to the SMR over the rows: |z_j x (p - o_j)|."""
+    T, Z, O = chain_axes(model.kinematic, prob.ctx.q)
+    tools = model._row_tools(prob.smr)
+    p = np.einsum("nij,nj->ni", T[:, :3, :3], tools) + T[:, :3, 3]  # (N, 3)
+    arms = p.T[None] - O[:-1]  # (n, 3, N)
+    return np.linalg.norm(np.cross(Z, arms, axis=1), axis=1).mean(axis=1)
+
+
+def _extrapolation(prob: Problem, test: np.ndarray, levers_m: np.ndarray) -> Extrapolation:
     train = np.setdiff1d(np.arange(len(prob.measured)), test)
     q, temp, time = prob.ctx.q, prob.ctx.temperature_c, prob.ctx.t_s
     return Extrapolation(
-        joint_distance_rad=nearest_distance(np.unique(q[train], axis=0), q[test]),
+        joint_distance_m=nearest_distance(np.unique(q[train], axis=0), q[test], levers_m),
         temperature_outside_k=driver_outside(
             _span(None if temp is None else temp[train]), None if temp is None else temp[test], len(test)
         ),
@@ -99,15 +113,16 @@ def held_out(
     prob: Problem,
     folds: list[np.ndarray],
     cv_spatial: np.ndarray | None,
+    levers_m: np.ndarray,
 ) -> list[HeldOut]:
     """The held-out rows of every kind: the spatial folds (their residuals `cv_spatial` when given), each end
-    of the temperature span, each end of the time span."""
+    of the temperature span, each end of the time span; distances weighted by the joints' `levers_m`."""
     cv = cv_positions(model, free, prob, folds) if cv_spatial is None else cv_spatial
-    out = [HeldOut("spatial", f, cv[f], _extrapolation(prob, f)) for f in folds]
+    out = [HeldOut("spatial", f, cv[f], _extrapolation(prob, f, levers_m)) for f in folds]
     for kind, values in (("temperature", prob.ctx.temperature_c), ("time", prob.ctx.t_s)):
         for rows in _ends(values):
             r = cv_positions(model, free, prob, [rows])
-            out.append(HeldOut(kind, rows, r[rows], _extrapolation(prob, rows)))
+            out.append(HeldOut(kind, rows, r[rows], _extrapolation(prob, rows, levers_m)))
     return out
 
 
@@ -120,7 +135,10 @@ def parameter_covariance(
     (uncorrelated: no fit moved it); one without a prior left out of the fit counts as exact."""
     model = result.model
     names = model.param_names
-    _, J = prob.evaluate(model)
+    free = free.copy()
+    for eff, sl in zip(model.effects, model.effect_slices(), strict=True):
+        free[sl] |= eff.held  # a held term's columns: what the data say of it beside its prior
+    _, J = prob.evaluate(with_effects_free(model))
     Js, norms = scale_columns(flatten_jacobian(J)[:, free])
     w_prior, _ = prior_terms(model, free, position_noise_m(prob.measured))
     M = Js.T @ Js + np.diag(w_prior / norms**2)
@@ -133,7 +151,7 @@ def parameter_covariance(
         if prior is None:
             continue
         for name, std in zip(names[sl], np.asarray(prior[1], float), strict=True):
-            if name not in chosen:  # held, or not identifiable on these rows: the prior is all there is
+            if name not in chosen:  # not identifiable on these rows: the prior is all there is
                 held_names.append(name)
                 held_var.append(float(std) ** 2)
     full = np.zeros((len(chosen) + len(held_names),) * 2)
@@ -173,11 +191,13 @@ def fit_spread(
     axis, m^2) is the least s0^2 can be: no prediction is closer than the tracker measures."""
     model = result.model
     names, covariance = parameter_covariance(result, free, prob)
-    parts = held_out(model, free, prob, folds, cv_spatial)
+    levers_m = joint_levers(model, prob)
+    parts = held_out(model, free, prob, folds, cv_spatial, levers_m)
     base = PredictionSpread(
         s0_m2=0.0,
-        joint_rate_m2_per_rad2=0.0,
-        tested_distance_rad=1.0,
+        joint_rate_m=0.0,
+        joint_levers_m=levers_m,
+        tested_distance_m=1.0,
         temperature_rate_m2_per_k=0.0,
         time_rate_m2_per_s=0.0,
         training_joints_rad=_stored_poses(prob.ctx.q),
@@ -203,14 +223,14 @@ def fit_spread(
         return rows, r2 - np.maximum(v_par[rows] - v_train, 0.0), ex
 
     _, r2, ex = gather(("spatial",))
-    X = np.column_stack([np.ones_like(r2), ex.joint_distance_rad**2])
+    X = np.column_stack([np.ones_like(r2), ex.joint_distance_m])
     scale = np.maximum(np.abs(X).max(axis=0), 1e-300)
     s0_m2, joint_rate = nnls(X / scale, np.maximum(r2, 0.0))[0] / scale
     fitted = replace(
         base,
         s0_m2=max(float(s0_m2), noise_m2),
-        joint_rate_m2_per_rad2=float(joint_rate),
-        tested_distance_rad=max(float(np.quantile(ex.joint_distance_rad, 0.95)), 1e-3),
+        joint_rate_m=float(joint_rate),
+        tested_distance_m=max(float(np.quantile(ex.joint_distance_m, 0.95)), 1e-3),
         parameter_variance_train_m2=v_train,
     )
     if any(p.kind == "temperature" for p in parts):
