@@ -124,3 +124,28 @@ def test_model_file_round_trip_and_old_format_refused(warm_cell, tmp_path, capsy
     pred = pd.read_csv(tmp_path / "p.csv")
     expected = prediction_intervals(report.model, val, 0.9).radius_mm
     assert np.allclose(pred["interval_mm"].to_numpy(), expected, rtol=1e-6)
+
+
+def test_compensate_gives_each_target_its_interval(warm_cell, tmp_path, capsys):
+    _, val, report = warm_cell
+    report.model.save(tmp_path / "model.json")
+    targets = val.iloc[:8][["x_mm", "y_mm", "z_mm", "temperature_c"]]
+    targets.to_csv(tmp_path / "targets.csv", index=False)
+    out = run_hil("compensate", "model.json", "targets.csv", "-o", "q.csv", cwd=tmp_path, capsys=capsys)
+    assert out.returncode == 0, out.stderr
+    got = pd.read_csv(tmp_path / "q.csv")
+    assert np.all(np.isfinite(got["interval_mm"])) and "within error_mm + interval_mm" in out.stdout
+    # the interval is the model's at the compensated joints, at their temperature
+    at = got[[f"q{j}_rad" for j in range(1, 7)]].assign(
+        temperature_c=targets["temperature_c"].to_numpy(), smr=1
+    )
+    expected = prediction_intervals(report.model, at, 0.95).radius_mm
+    assert np.allclose(got["interval_mm"].to_numpy(), expected, rtol=1e-6)
+    data = json.loads((tmp_path / "model.json").read_text())
+    data["format"] = "hil-calibrated-model/1"
+    del data["spread"]
+    (tmp_path / "old.json").write_text(json.dumps(data))
+    out = run_hil("compensate", "old.json", "targets.csv", "-o", "q_old.csv", cwd=tmp_path, capsys=capsys)
+    assert out.returncode == 0, out.stderr
+    assert "no intervals" in out.stderr and "hil diagnose" in out.stderr
+    assert "interval_mm" not in pd.read_csv(tmp_path / "q_old.csv").columns
