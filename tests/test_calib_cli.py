@@ -79,6 +79,9 @@ def test_calibrate_diagnose_predict(campaign, capsys):
         assert {"stage", "mean_mm", "rms_mm", "max_mm", "p95_mm"} <= set(stage)
     page = (d / "report.html").read_text()
     assert "data:image/png;base64," in page and "gravity_compliance" in page
+    # the 95 % intervals' coverage: on held-out rows and on the validation campaign, printed and in the page
+    assert [c["on"] for c in report["intervals"]] == ["heldout", "validate"]
+    assert "Prediction intervals (95 %" in out.stdout and "Prediction intervals (95 %" in page
     # predict applies everything the model holds: on the validation joints it matches the tracker.
     joints = pd.read_csv(d / "val.csv").drop(columns=["x_mm", "y_mm", "z_mm"])
     joints.to_csv(d / "joints.csv", index=False)

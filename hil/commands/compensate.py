@@ -36,11 +36,14 @@ from hil.data.dataset import (
     ORIENTATION_CONVENTIONS,
     POSITION_COLUMNS,
     joint_columns,
+    make_dataset,
     orientations,
 )
 from hil.data.store import is_campaign_file
 from hil.model.calibrated_model import CalibratedModel
 from hil.model.effects import THERMAL_FAMILIES, material_growth, temperature_driven
+from hil.model.intervals import IntervalError
+from hil.model.prediction_intervals import prediction_intervals
 
 TEMPERATURE_RANGE_C = (-20.0, 60.0)  # --temperature-c: a cell's air, not a typo in kelvin or fahrenheit
 
@@ -123,8 +126,35 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "its own temperature_c (loop targets have none) when the model has a temperature-driven thermal "
         "effect (default: none; such targets are refused)",
     )
+    p.add_argument(
+        "--interval",
+        type=float,
+        default=0.95,
+        metavar="P",
+        help="probability of each target's interval_mm: the radius about the model's predicted point at the "
+        "compensated joints that holds the measured point with probability P (a model without a prediction "
+        "spread, e.g. of format 1, gives none and says so)",
+    )
     add_force_option(p)
     p.set_defaults(func=run)
+
+
+def target_intervals(
+    model: CalibratedModel, q: np.ndarray, smr: np.ndarray, drivers: dict, probability: float
+) -> np.ndarray:
+    """interval_mm of each target at its compensated joints (NaN where the IK found none)."""
+    radius = np.full(len(q), np.nan)
+    ok = np.all(np.isfinite(q), axis=1)
+    if not ok.any():
+        return radius
+    df = make_dataset(q[ok], np.zeros((int(ok.sum()), 3)), smr=smr[ok])
+    for name, values in drivers.items():
+        df[name] = values[ok]
+    iv = prediction_intervals(model, df, probability)
+    for note in iv.notes:
+        print(f"note: {note}", file=sys.stderr)
+    radius[ok] = iv.radius_mm
+    return radius
 
 
 def compensate_per_smr(
@@ -300,8 +330,18 @@ def run(args: argparse.Namespace) -> int:
         raise CliError.from_text(str(exc)) from exc
     for w in caught:
         print(f"warning: {w.message}", file=sys.stderr)
-    _output_frame(args, chosen, campaign, drivers, res).to_csv(args.output, index=False, float_format="%.10g")
+    out = _output_frame(args, chosen, campaign, drivers, res)
+    try:
+        out["interval_mm"] = target_intervals(model, res.q, chosen.smr, drivers, args.interval)
+    except IntervalError as exc:
+        print(f"warning: no intervals: {exc}", file=sys.stderr)
+    out.to_csv(args.output, index=False, float_format="%.10g")
     _print_summary(args, res)
+    if "interval_mm" in out.columns and np.isfinite(out["interval_mm"]).any():
+        print(
+            f"remaining error at the targets: the measured point within error_mm + interval_mm of the target "
+            f"with probability {args.interval:g} (median interval {np.nanmedian(out['interval_mm']):.4f} mm)"
+        )
     return 0
 
 
@@ -318,6 +358,10 @@ class _Targets:
 
 def _check_options(args: argparse.Namespace) -> None:
     """Option ranges and paths, before anything is read."""
+    if not 0.0 < args.interval < 1.0:
+        raise CliError(
+            f"--interval {args.interval}: a probability", "give a value between 0 and 1, e.g. 0.95"
+        )
     if args.threshold_mm <= 0 or args.max_iter < 0 or args.length_scale_mm <= 0:
         raise CliError(
             "--threshold-mm and --length-scale-mm must be > 0, --max-iter >= 0", "give values in range"

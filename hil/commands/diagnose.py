@@ -246,6 +246,7 @@ def _print_and_write(args: argparse.Namespace, report: DiagnosisReport) -> None:
         conclusion,
         final_orientation_text,
         gravity_text,
+        intervals_text,
         plan_text,
         thermal_text,
         undecided_text,
@@ -267,7 +268,12 @@ def _print_and_write(args: argparse.Namespace, report: DiagnosisReport) -> None:
         for p in map(in_report_units, step.parameters):
             std = "merged" if p["std"] is None else f"+- {p['std']:.2e}"
             print(f"    {p['name']:<34} {p['value']: .4e} {std} {p['unit']}")
-    for line in (thermal_text(report.thermal), gravity_text(report.gravity), drift_text(report.drift)):
+    for line in (
+        thermal_text(report.thermal),
+        gravity_text(report.gravity),
+        drift_text(report.drift),
+        intervals_text(report.intervals),
+    ):
         if line:
             print(line)
     print(undecided_text(report))

@@ -15,6 +15,8 @@ from hil.commands.help_format import DefaultsHelpFormatter
 from hil.commands.inputs import read_measurements
 from hil.data.dataset import POSITION_COLUMNS, DatasetError, joints_rad
 from hil.model.calibrated_model import CalibratedModel
+from hil.model.intervals import IntervalError, Intervals
+from hil.model.prediction_intervals import prediction_intervals
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
@@ -31,6 +33,16 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "data", help="CSV with q1_rad..q6_rad (and the drivers the model's effects need: t_s, ...)"
     )
     p.add_argument("-o", "--output", required=True, help="CSV to write: the input columns, x/y/z_mm replaced")
+    p.add_argument(
+        "--interval",
+        type=float,
+        nargs="?",
+        const=0.95,
+        default=None,
+        metavar="P",
+        help="add interval_mm: the radius about each predicted point that holds the measured point with "
+        "probability P (0.95 when P is left out); needs a model written by 'hil diagnose' (format 2)",
+    )
     add_force_option(p)
     p.set_defaults(func=run)
 
@@ -64,9 +76,14 @@ def run(args: argparse.Namespace) -> int:
         check_paths({"MODEL": args.model, "DATA": args.data}, {"--output": args.output}, overwrite=args.force)
         model = CalibratedModel.load(args.model)
         df = read_measurements(args.data, require_positions=False)
+        intervals: Intervals | None = None
+        if args.interval is not None:  # refused before any prediction is written
+            intervals = prediction_intervals(model, df, args.interval)
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             p = model.predict(df)
+    except IntervalError as exc:
+        raise CliError.from_text(f"--interval: {exc}") from exc
     except (InputError, DatasetError, ValueError, OSError, KeyError) as exc:
         raise CliError.from_text(str(exc)) from exc
     for w in caught:
@@ -76,6 +93,16 @@ def run(args: argparse.Namespace) -> int:
     out = df.copy()
     for i, col in enumerate(POSITION_COLUMNS):
         out[col] = p[:, i] * 1000.0
+    if intervals is not None:
+        out["interval_mm"] = intervals.radius_mm
+        for note in intervals.notes:
+            print(f"note: {note}", file=sys.stderr)
     out.to_csv(args.output, index=False, float_format="%.10g")
     print(f"{len(out)} predicted positions written to {args.output}")
+    if intervals is not None:
+        r = intervals.radius_mm
+        print(
+            f"interval_mm ({intervals.probability:g} probability): median {np.median(r):.4f}, "
+            f"max {np.max(r):.4f} mm"
+        )
     return 0

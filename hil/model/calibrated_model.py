@@ -31,9 +31,13 @@ from hil.geometry.kinematics import (
 from hil.geometry.robots import get_robot
 from hil.geometry.se3 import fit_rigid, invert, make_transform, transform_points
 from hil.model.effects import Effect, EffectContext, effect_from_dict, growth_direction, tool_points_rows
+from hil.model.intervals import PredictionSpread
 from hil.model.residual_maps import map_from_dict
 
-FORMAT = "hil-calibrated-model/1"
+# Format 2 adds the prediction spread (hil.model.intervals); a format-1 file still loads and predicts, but
+# gives no interval.
+FORMAT = "hil-calibrated-model/2"
+READABLE_FORMATS = ("hil-calibrated-model/1", FORMAT)
 
 
 @dataclass
@@ -49,6 +53,12 @@ class CalibratedModel:
     info: dict = field(default_factory=dict)  # solver report: std errors, dropped parameters, outliers...
     residual_map: dict | None = None  # fallback residual map (hil.model.residual_maps), applied by `predict`
     probes: dict[int, np.ndarray] = field(default_factory=dict)  # SMR nest id -> R_flange_probe (3, 3)
+    spread: PredictionSpread | None = None  # what prediction intervals need (hil.model.intervals)
+    file_format: str = FORMAT  # the format the model was read from (a format-1 file has no spread)
+
+    @property
+    def format_version(self) -> int:
+        return int(self.file_format.rsplit("/", 1)[1])
 
     # ----- parameter vector ---------------------------------------------------------------------
     @property
@@ -317,6 +327,7 @@ class CalibratedModel:
             "probes_flange": {str(k): v.tolist() for k, v in sorted(self.probes.items())},
             "residual_map": self.residual_map,
             "info": self.info,
+            "spread": None if self.spread is None else self.spread.to_dict(),
         }
 
     def save(self, path: str | Path) -> None:
@@ -324,10 +335,11 @@ class CalibratedModel:
 
     @classmethod
     def from_dict(cls, data: dict) -> CalibratedModel:
-        if data.get("format") != FORMAT:
+        if data.get("format") not in READABLE_FORMATS:
             raise ValueError(
                 f"not a calibrated model file (format {data.get('format')!r}, expected {FORMAT!r})"
             )
+        spread = data.get("spread")
         return cls(
             robot=data["robot"],
             nominal=model_from_dict(data["nominal"]),
@@ -338,6 +350,8 @@ class CalibratedModel:
             info=data.get("info", {}),
             residual_map=data.get("residual_map"),
             probes={int(k): np.asarray(v, float) for k, v in data.get("probes_flange", {}).items()},
+            spread=None if spread is None else PredictionSpread.from_dict(spread),
+            file_format=data["format"],
         )
 
     @classmethod

@@ -18,6 +18,7 @@ from hil.report.json_report import report_dict
 from hil.report.text import (
     final_orientation_text,
     gravity_text,
+    intervals_text,
     plan_text,
     thermal_text,
     undecided_text,
@@ -138,6 +139,7 @@ def _head_html(report: DiagnosisReport, d: dict) -> list[str]:
         ),
         "<p>held-out = k-fold cross-validation on the training campaign; validate = a separate campaign "
         "never used for fitting.</p>",
+        f"<p>{html.escape(intervals_text(report.intervals) or '')}</p>",
         _run_html(report.run),
     ]
 

@@ -273,3 +273,25 @@ def plan_text(plan: dict) -> str:
     for skipped in plan["not_planned"]:
         lines.append(f"  not planned: {question_text(skipped['question']).split(':')[0]}: {skipped['why']}")
     return "\n".join(lines)
+
+
+def intervals_text(intervals: list[dict]) -> str | None:
+    """The prediction intervals' coverage in words: on the held-out rows their factor was read from (at least
+    P by construction) and on the validation rows (the honest check)."""
+    if not intervals:
+        return None
+    parts = []
+    for c in intervals:
+        if c["on"] == "heldout":
+            parts.append(f"{100 * c['covered']:.1f} % of {c['rows']} held-out rows (their factor's own rows)")
+        else:
+            parts.append(
+                f"{100 * c['covered']:.1f} % of {c['rows']} validation rows, median interval "
+                f"{c['median_interval_mm']:.4f} mm against an RMS error of {c['rms_mm']:.4f} mm"
+            )
+    p = intervals[0]["probability"]
+    return (
+        f"Prediction intervals ({100 * p:.0f} %, hil predict --interval) hold the measured point on "
+        + "; ".join(parts)
+        + "."
+    )

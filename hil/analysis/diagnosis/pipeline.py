@@ -43,7 +43,7 @@ not on spatial ones) is not added: the verdict calls the structure local.
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -66,6 +66,7 @@ from hil.analysis.diagnosis.baseline import (
 )
 from hil.analysis.diagnosis.drift_monitor import reference_drift
 from hil.analysis.diagnosis.evidence import evidence
+from hil.analysis.diagnosis.intervals import fit_spread, heldout_coverage, validation_coverage
 from hil.analysis.diagnosis.physics_check import yields_no_better
 from hil.analysis.diagnosis.physics_terms import (
     ASSUMED,
@@ -97,6 +98,9 @@ from hil.model.effects import (
 )
 from hil.model.residual_maps import MAP_KINDS, MAP_MODES, kfold_map_errors, make_map, map_from_dict
 
+# The probability of the intervals whose coverage the report shows.
+INTERVAL_PROBABILITY = 0.95
+
 
 @dataclass
 class DiagnosisReport:
@@ -122,6 +126,8 @@ class DiagnosisReport:
     drift: dict | None = (
         None  # reference poses re-measured (hil.analysis.diagnosis.drift_monitor.reference_drift)
     )
+    # the 95 % prediction intervals' coverage (hil.analysis.diagnosis.intervals.Coverage, held-out, validate)
+    intervals: list[dict] = field(default_factory=list)
 
     @property
     def effects_added(self) -> list[dict]:
@@ -178,6 +184,7 @@ class DiagnosisReport:
             "thermal": self.thermal,
             "gravity": self.gravity,
             "drift": self.drift,
+            "intervals": self.intervals,
             "calibration": self.calibration,
             "residual_map": self.residual_map,
             "run": self.run,
@@ -298,7 +305,22 @@ def run_diagnosis(
                 )
             )
         report.drift = reference_drift(df)
+        noise_m2 = float(np.mean(np.asarray(base.noise.sigma_axis_m) ** 2))
+        tell = base.progress
+        tell("prediction intervals", 0, 1)
+        report.model.spread = fit_spread(
+            path.current, path.free, path.prob, path.folds, noise_m2, path.cv_final
+        )
+        assumed = [
+            e["name"] + (f" (joint {e['joint']})" if e["joint"] else "") for e in report.effects_assumed
+        ]
+        report.model.spread = replace(report.model.spread, assumed_effects=assumed)  # the diagnosis' own call
+        tell("prediction intervals", 1, 1)
+        report.intervals = [heldout_coverage(report.model.spread, INTERVAL_PROBABILITY).to_dict()]
         if df_validate is not None:
+            report.intervals.append(
+                validation_coverage(report.model, df_validate, INTERVAL_PROBABILITY).to_dict()
+            )
             _validate(report, path, df, df_validate, reregister_validation)
         report.run = run_record(base.nominal.nominal, {"training": df, "validation": df_validate})
         report.undecided = undecided_questions(df, path, alpha, float(np.sqrt(base.sigma2)))
