@@ -118,7 +118,16 @@ def test_model_file_round_trip_and_old_format_refused(warm_cell, tmp_path, capsy
     out = run_hil("predict", "old.json", "joints.csv", "-o", "p.csv", cwd=tmp_path, capsys=capsys)
     assert out.returncode == 0, out.stderr
     out = run_hil(
-        "predict", "model.json", "joints.csv", "-o", "p.csv", "--interval", "0.9", cwd=tmp_path, capsys=capsys
+        "predict",
+        "model.json",
+        "joints.csv",
+        "-o",
+        "p.csv",
+        "--force",
+        "--interval",
+        "0.9",
+        cwd=tmp_path,
+        capsys=capsys,
     )
     assert out.returncode == 0, out.stderr
     pred = pd.read_csv(tmp_path / "p.csv")
