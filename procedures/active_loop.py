@@ -151,8 +151,11 @@ class _Campaign:
             repr(self.config.nominal),
             repr(previous),
         )
-        if key not in _DIAGNOSED:
-            _DIAGNOSED.clear()  # one is enough: the loop only ever asks for the latest again
+        if key in _DIAGNOSED:
+            _DIAGNOSED[key] = _DIAGNOSED.pop(key)  # now the most recent
+        else:
+            while len(_DIAGNOSED) >= _DIAGNOSES_KEPT:
+                del _DIAGNOSED[next(iter(_DIAGNOSED))]  # the least recently asked for
             _DIAGNOSED[key] = run_diagnosis(
                 train,
                 self.config.nominal,
@@ -201,6 +204,9 @@ class _Campaign:
 
 
 _DIAGNOSED: dict[tuple, DiagnosisReport] = {}
+# A few, not one: a running loop only asks for the latest again, but a round resumed in the same process (a
+# loop run again after it was interrupted) asks again for the grid's diagnosis and its judged blocks' in turn.
+_DIAGNOSES_KEPT = 4
 
 
 def _previous(records: list[dict]) -> list[dict] | None:

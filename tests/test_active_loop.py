@@ -9,11 +9,9 @@ from __future__ import annotations
 
 import json
 import shutil
-import subprocess
-import sys
 
 import pytest
-from cli_in_process import hil_in_process
+from cli_in_process import hil_in_process, run_hil
 
 from hil.data.store import CampaignStore
 from hil.runner.session import Session
@@ -152,6 +150,26 @@ def test_a_round_is_judged_after_each_block_and_measures_only_what_is_still_open
 
 @pytest.mark.sim
 @pytest.mark.timeout(400)
+def test_dry_run_shows_the_next_round_and_moves_nothing(loop, tmp_path, capsys):
+    cell = tmp_path / "cell.toml"
+    cell.write_text(
+        (loop["folder"] / "cell.toml").read_text().replace(loop["config"].robot_host, OFFLINE_HOST)
+    )
+    with CampaignStore(loop["path"], create=False) as store:
+        count = len(store.measurements())
+    # In this process, before any other test diagnoses: the campaign's rows are those the fixture's loop
+    # diagnosed last, so the plan reuses that diagnosis (a subprocess repeated it: minutes on a loaded machine).
+    done = run_hil("run", "active_loop", "--cell", str(cell), "--campaign", str(loop["path"]), "--dry-run",
+                   "--rounds", "3", "--poses", "10", cwd=tmp_path, capsys=capsys)  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert "plan of active_loop" in done.stdout
+    with CampaignStore(loop["path"], create=False) as store:
+        assert len(store.measurements()) == count
+        assert store.step_result(active_loop.NAME, "round3/plan") is None  # a dry run records nothing
+
+
+@pytest.mark.sim
+@pytest.mark.timeout(400)
 def test_a_crash_between_a_block_and_its_judgement_loses_nothing_and_measures_nothing_twice(loop, tmp_path):
     """The other crash window of a round: block 1 fully measured, its judgement not yet recorded. The resumed
     round measures none of block 1 again, judges it from the rows it has, and goes on."""
@@ -178,27 +196,6 @@ def test_a_crash_between_a_block_and_its_judgement_loses_nothing_and_measures_no
         after = list(store.measurements(active_loop.NAME)["point_id"])
         assert store.step_result(active_loop.NAME, "round1/block1") is not None
     assert after[: len(before)] == before and len(after) == len(set(after))
-
-
-@pytest.mark.sim
-@pytest.mark.timeout(400)
-def test_dry_run_shows_the_next_round_and_moves_nothing(loop, tmp_path):
-    cell = tmp_path / "cell.toml"
-    cell.write_text(
-        (loop["folder"] / "cell.toml").read_text().replace(loop["config"].robot_host, OFFLINE_HOST)
-    )
-    with CampaignStore(loop["path"], create=False) as store:
-        count = len(store.measurements())
-    done = subprocess.run(
-        [sys.executable, "-m", "hil", "run", "active_loop", "--cell", str(cell), "--campaign", str(loop["path"]),
-         "--dry-run", "--rounds", "3", "--poses", "10"],
-        capture_output=True, text=True, timeout=360,  # a diagnosis of the campaign: minutes on a loaded machine
-    )  # fmt: skip
-    assert done.returncode == 0, done.stderr
-    assert "plan of active_loop" in done.stdout
-    with CampaignStore(loop["path"], create=False) as store:
-        assert len(store.measurements()) == count
-        assert store.step_result(active_loop.NAME, "round3/plan") is None  # a dry run records nothing
 
 
 @pytest.mark.parametrize(
@@ -261,3 +258,10 @@ def test_the_same_campaign_is_diagnosed_once_for_the_plan_and_the_first_round(mo
     moved = train.assign(x_mm=[1.0, 2.5])
     active_loop._Campaign(store, config, 0).diagnose(moved)
     assert calls == [2, 3, 2]
+    # a round resumed in the same process asks again for earlier rows' diagnoses: the last few are kept
+    assert active_loop._Campaign(store, config, 0).diagnose(train.copy()) == first and calls == [2, 3, 2]
+    for k in range(active_loop._DIAGNOSES_KEPT):
+        active_loop._Campaign(store, config, 0).diagnose(train.assign(x_mm=[1.0, 10.0 + k]))
+    assert len(calls) == 3 + active_loop._DIAGNOSES_KEPT  # a bounded cache: the oldest made room
+    active_loop._Campaign(store, config, 0).diagnose(train)
+    assert len(calls) == 4 + active_loop._DIAGNOSES_KEPT
