@@ -19,7 +19,7 @@ measured block by block, what got decided, the error before and after) is the st
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -67,6 +67,13 @@ class ActiveLoopResult:
     records: list[dict]  # one per round, as stored (hil.analysis.design.rounds.round_record)
     stop: dict  # {"rounds": n, "why": ...}
     report: DiagnosisReport  # the diagnosis of the campaign with every round's poses
+    model_path: Path | None = None  # where that diagnosis' model was written (beside the campaign)
+
+
+def model_path_for(campaign: Path) -> Path:
+    """Where the loop writes the model of its last round: beside the campaign, named after it
+    (job.sqlite -> job.active-model.json). The loop's own output, so a resumed loop writes it again."""
+    return campaign.with_name(campaign.stem + ".active-model.json")
 
 
 @dataclass(frozen=True)
@@ -317,7 +324,10 @@ def run_loop(session: Session, options: ActiveLoopOptions) -> ActiveLoopResult:
     """Diagnose, plan, measure block by block, diagnose again, for at most `rounds` rounds of at most `poses`
     poses; resumable. The engine measures what the rounds ask for."""
     session.require_registration()
-    return session.engine.run(_rounds(session, options))
+    result = session.engine.run(_rounds(session, options))
+    path = model_path_for(session.store.path)
+    result.report.model.save(path)  # the model the next steps use, not the one from before the rounds
+    return replace(result, model_path=path)
 
 
 def _rounds(session: Session, options: ActiveLoopOptions) -> Measuring[ActiveLoopResult]:
@@ -358,7 +368,13 @@ def _rounds(session: Session, options: ActiveLoopOptions) -> Measuring[ActiveLoo
 
 
 def summary(result: ActiveLoopResult) -> str:
-    return rounds_text(result.records, result.stop)
+    text = rounds_text(result.records, result.stop)
+    if result.model_path is None:
+        return text
+    return (
+        f"{text}\nmodel of the last round written to {result.model_path}: compensate and close the loop with it "
+        f"(hil run pseudo_target ... --model {result.model_path}); diagnose the campaign again for its report"
+    )
 
 
 PROCEDURE = Procedure(

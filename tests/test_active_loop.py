@@ -10,10 +10,12 @@ from __future__ import annotations
 import json
 import shutil
 
+import numpy as np
 import pytest
 from cli_in_process import hil_in_process, run_hil
 
 from hil.data.store import CampaignStore
+from hil.model.calibrated_model import CalibratedModel
 from hil.runner.session import Session
 from hil.runner.sight import measurable
 from procedures import active_loop, grid_sampling, registration, tool_fit
@@ -96,6 +98,23 @@ def test_each_round_decides_questions_it_measured_for(loop):
         for figures in (record["error_before"], record["error_after"]):
             assert figures["validation_rms_mm"] > 0 and figures["heldout_rms_mm"] > 0
     assert loop["result"].stop["rounds"] == len(records) <= 2
+
+
+@pytest.mark.sim
+@pytest.mark.timeout(400)
+def test_the_loop_writes_the_model_of_its_last_round_and_says_where(loop):
+    """The next steps (compensation, the pseudo-target loop) use the model the rounds made, not the one from
+    before them: it is written beside the campaign and the summary names it."""
+    result = loop["result"]
+    assert result.model_path == loop["path"].with_name("campaign.active-model.json")
+    written = CalibratedModel.load(result.model_path)
+    assert {(e.family, e.joint) for e in written.effects} == {
+        (e.family, e.joint) for e in result.report.model.effects
+    }
+    np.testing.assert_allclose(written.T_tracker_base, result.report.model.T_tracker_base, rtol=0, atol=1e-12)
+    for ours, theirs in zip(written.effects, result.report.model.effects, strict=True):
+        np.testing.assert_allclose(ours.params, theirs.params, rtol=1e-12)
+    assert f"model of the last round written to {result.model_path}" in active_loop.summary(result)
 
 
 @pytest.mark.sim
