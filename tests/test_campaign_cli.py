@@ -75,6 +75,7 @@ def files(tmp_path_factory):
         store.record_event("fault", "target lost", procedure="grid_sampling", step="grid", point_id="grid050")
         store.finish_step("registration", "nest_check", {"ok": True})
         store.finish_step("grid_sampling", "grid", {"points": len(train)})
+        store_dataset(store, train.head(2), "cycle", 1.7e9 + 2000, procedure="iso9283")  # no result yet
         store.log("WARNING", "SMR dirty?", "hil.runner.session")
     return d, train, val
 
@@ -83,14 +84,19 @@ def test_show_summarises_the_campaign(files, capsys):
     d, train, val = files
     assert main(["campaign", "show", str(d / "c.hilc")]) == 0
     out = capsys.readouterr().out
-    assert f"{len(train) + len(val) + 3} measurements" in out
+    assert f"{len(train) + len(val) + 5} measurements" in out
+    # when the points were recorded, by this computer's clock (the instruments' clock said 2023)
+    measured = next(line for line in out.splitlines() if "measured from" in line)
+    assert "2023-" not in measured and "recorded by this computer's clock" in measured
     assert "station snapshots: 2" in out
     assert "robot     model=ur10 host=10.0.0.2 controller_version=5.11.1" in out
     assert "tracker   url=socket://10.0.0.3:700 serial=AT960-123" in out
     assert "cell      source=cell.toml (+tool)" in out and "hil=0.1.0" in out
     rows = {tuple(line.split()[:4]) for line in out.splitlines()}
     assert ("grid_sampling", "grid", str(len(train)), "finished") in rows
-    assert ("grid_sampling", "validation", str(len(val)), "open") in rows
+    # a step without a result of its own is done once its procedure recorded one after its last point
+    assert ("grid_sampling", "validation", str(len(val)), "done:") in rows
+    assert ("iso9283", "cycle", "2", "open") in rows
     assert ("registration", "nest_check", "3", "finished") in rows
     assert "events: fault 2, retry 1" in out
     assert "SMR dirty?" in out

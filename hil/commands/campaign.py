@@ -119,6 +119,20 @@ def _plan_progress(steps: pd.DataFrame, recorded: pd.DataFrame) -> dict[str, str
     return out
 
 
+def _status_by_procedure(key: tuple[str, str], steps: pd.DataFrame, counts: pd.DataFrame) -> str:
+    """A measurement step without a result or plan of its own (the registration's poses, the tool fit's holes)
+    is done when its procedure recorded a result after its last point ("done: fit finished ..."), else open."""
+    procedure, step = key
+    row = counts[(counts["procedure"] == procedure) & (counts["step"] == step)]
+    later = steps[steps["procedure"] == procedure]
+    if not row.empty:
+        later = later[later["recorded_s"] >= float(row["last_recorded_s"].max())]
+    if later.empty:
+        return "open"
+    last = later.iloc[-1]
+    return f"done: {last['step']} finished {_utc(last['recorded_s'])}"
+
+
 def run_show(args: argparse.Namespace) -> int:
     problem = _check_campaign(args.file)
     if problem:
@@ -138,7 +152,8 @@ def run_show(args: argparse.Namespace) -> int:
 
     print(f"campaign {args.file}: created {_utc(created_s)}, {int(counts['points'].sum())} measurements")
     if counts.size:
-        print(f"  measured from {_utc(counts['first_s'].min())} to {_utc(counts['last_s'].max())}")
+        first, last = counts["first_recorded_s"].min(), counts["last_recorded_s"].max()
+        print(f"  measured from {_utc(first)} to {_utc(last)} (recorded by this computer's clock)")
     print(f"station snapshots: {len(snapshots)} (one per session start)")
     if snapshots:
         last = snapshots[-1]
@@ -164,7 +179,7 @@ def run_show(args: argparse.Namespace) -> int:
             elif key[0] in plans:
                 status = plans[key[0]]
             else:
-                status = "open"
+                status = _status_by_procedure(key, steps, counts)
             print(f"  {key[0]:<18}{key[1]:<22}{points.get(key, 0):>7}  {status}")
 
     _print_outcomes(outcomes)

@@ -511,9 +511,12 @@ class CampaignStore:
         return [record_from_row(row) for row in self.measurements(procedure, step).to_dict("records")]
 
     def point_counts(self) -> pd.DataFrame:
-        """Number of measurements per (procedure, step), in order of first measurement."""
+        """Number of measurements per (procedure, step), in order of first measurement: the first and last
+        instrument times (`first_s`, `last_s`: the cell's clock, which a simulated cell runs faster) and the
+        first and last times they were recorded (`first_recorded_s`, `last_recorded_s`: this computer's clock)."""
         return self._frame(
-            "SELECT procedure, step, COUNT(*) AS points, MIN(timestamp_s) AS first_s, MAX(timestamp_s) AS last_s "
+            "SELECT procedure, step, COUNT(*) AS points, MIN(timestamp_s) AS first_s, MAX(timestamp_s) AS last_s, "
+            "MIN(recorded_s) AS first_recorded_s, MAX(recorded_s) AS last_recorded_s "
             "FROM measurements GROUP BY procedure, step ORDER BY MIN(id)"
         )
 
