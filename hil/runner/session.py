@@ -522,6 +522,13 @@ def _bounded(actions: list[tuple[str, Callable[[], None]]], timeout_s: float) ->
     for (name, _), thread in zip(actions, threads, strict=True):
         thread.join(max(0.0, deadline - time.monotonic()))
         if thread.is_alive():
-            log.warning("releasing the %s did not finish within %.1f s; going on", name, timeout_s)
+            why = "the controller stops the arm when its connection drops; " if name == "robot" else ""
+            log.warning(
+                "the %s had not finished closing after %.1f s; hil leaves without waiting (%severy recorded "
+                "point is kept)",
+                name,
+                timeout_s,
+                why,
+            )
         elif name in errors:
             log.warning("releasing the %s failed: %s", name, errors[name])
