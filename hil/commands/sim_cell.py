@@ -45,7 +45,8 @@ def sim_cell_values(info: dict, truth: dict, time_scale: float) -> dict[str, dic
             "box_min_mm": [-round(reach_mm), -round(reach_mm), -200.0],
             "box_max_mm": [round(reach_mm), round(reach_mm), round(reach_mm)],
         },
-        "motion": {"settle_s": settle_s},
+        # the simulated cell needs no first motions at reduced speed (nothing there to hit)
+        "motion": {"settle_s": settle_s, "reduced_speed": False},
         "simulator": {"control": info["control"]},
     }
 

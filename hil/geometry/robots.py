@@ -37,13 +37,19 @@ from typing import Any
 
 import numpy as np
 
+from hil.geometry.body import ArmBody, body_from_dh
 from hil.geometry.kinematics import KinematicModel
 
 ROBOT_DIR = Path(__file__).with_name("robot_models")
 ROBOT_NAMES: tuple[str, ...] = (
     "ur5", "ur10", "ur5e", "ur10e", "irb2600", "kr6r900", "lrmate200id", "irb4600",
 )  # fmt: skip
-_FILE_KEYS = {"name", "convention", "joint", "expansion_per_k"}
+_FILE_KEYS = {"name", "convention", "joint", "expansion_per_k", "capsule", "body_radius_mm"}
+_CAPSULE_KEYS = {"name", "frame", "from_mm", "to_mm", "radius_mm"}
+# A body laid along the DH table when a file gives neither capsules nor body_radius_mm: this fraction of the
+# arm's summed link lengths as every link's radius (a tenth of a UR10's 1.6 m is 160 mm: generous, so a
+# file without figures refuses close poses rather than passing them).
+DEFAULT_BODY_RADIUS_FRACTION = 0.1
 EXPANSION_RANGE_PER_K = (1e-6, 5e-5)  # plausible materials: from carbon fibre / invar up to plastics
 _JOINT_KEYS = {"d_mm", "a_mm", "alpha_deg", "theta_offset_deg", "hayati_beta", "limits_deg", "mass_kg"}
 # Accepted spellings of `convention`, each mapped to "dh" or "mdh".
@@ -226,6 +232,71 @@ def _craig_to_internal(
             "the cell's base pose, which calibration identifies"
         )
     return a[1:] + [0.0], alpha[1:] + [0.0], beta[1:] + [False]
+
+
+def robot_body(name: str, text: str | None = None) -> ArmBody:
+    """The body of a built-in robot (by name) or of a robot file's text (`name` its path): its
+    `[[capsule]]` tables (each: `frame` 0..n, `from_mm`, `to_mm` in that link frame, `radius_mm`, `name`),
+    else a body along its DH table of `body_radius_mm`, else of DEFAULT_BODY_RADIUS_FRACTION of its size."""
+    if text is None:
+        key = name.lower().replace("-", "").replace("_", "").replace(" ", "")
+        path = Path(name) if is_robot_file(name) else ROBOT_DIR / f"{key}.toml"
+        text = path.read_text()
+    else:
+        path = Path(name)
+    model = robot_from_text(text, path)
+    data = tomllib.loads(text)
+    capsules = data.get("capsule")
+    if capsules is None:
+        if "body_radius_mm" in data:
+            radius_mm = _number(str(path), "body_radius_mm", data["body_radius_mm"])
+            if not 5.0 <= radius_mm <= 1000.0:
+                raise ValueError(f"{path}: body_radius_mm = {radius_mm:g} is outside 5..1000 mm")
+            return body_from_dh(model, radius_mm / 1e3, f"links along the DH table, {radius_mm:g} mm radius")
+        size_m = float(np.sum(np.abs(model.a)) + np.sum(np.abs(model.d)))
+        radius_m = DEFAULT_BODY_RADIUS_FRACTION * size_m
+        return body_from_dh(
+            model,
+            radius_m,
+            f"links along the DH table, {radius_m * 1e3:.0f} mm radius (the file gives no body: "
+            "add [[capsule]] tables from the maker's drawing)",
+        )
+    if not isinstance(capsules, list) or not capsules:
+        raise ValueError(f"{path}: capsule must be [[capsule]] tables")
+    rows = [_capsule_row(path, k, c, model.n_joints) for k, c in enumerate(capsules, start=1)]
+    names, frames, ends_a, ends_b, radii = zip(*rows, strict=True)
+    return ArmBody(
+        tuple(names),
+        np.array(frames, int),
+        np.array(ends_a) / 1e3,
+        np.array(ends_b) / 1e3,
+        np.array(radii) / 1e3,
+        "capsules of the robot file",
+    )
+
+
+def _capsule_row(path: Path, k: int, c: Any, n: int) -> tuple:
+    """One [[capsule]] table checked: (name, frame, from_mm, to_mm, radius_mm)."""
+    where = f"{path}: capsule {k}"
+    if (
+        not isinstance(c, dict)
+        or set(c) - _CAPSULE_KEYS
+        or {"frame", "from_mm", "to_mm", "radius_mm"} - set(c)
+    ):
+        raise ValueError(f"{where}: keys are {', '.join(sorted(_CAPSULE_KEYS))} (name optional)")
+    frame = c["frame"]
+    if isinstance(frame, bool) or not isinstance(frame, int) or not 0 <= frame <= n:
+        raise ValueError(f"{where}: frame must be a link number 0..{n} (0 the base), got {frame!r}")
+    ends = []
+    for key in ("from_mm", "to_mm"):
+        value = c[key]
+        if not isinstance(value, list) or len(value) != 3:
+            raise ValueError(f"{where}: {key} must be [x, y, z] in mm in link frame {frame}")
+        ends.append([_number(where, key, v) for v in value])
+    radius = _number(where, "radius_mm", c["radius_mm"])
+    if not 1.0 <= radius <= 1000.0:
+        raise ValueError(f"{where}: radius_mm = {radius:g} is outside 1..1000 mm")
+    return str(c.get("name", f"capsule {k}")), frame, ends[0], ends[1], radius
 
 
 def robot_arg(text: str) -> str:

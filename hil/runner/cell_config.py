@@ -15,12 +15,30 @@ from typing import Any
 
 import numpy as np
 
+from hil.geometry.body import ArmBody
 from hil.geometry.kinematics import KinematicModel
-from hil.geometry.robots import ROBOT_NAMES, get_robot, is_robot_file, robot_from_text
+from hil.geometry.robots import ROBOT_NAMES, get_robot, is_robot_file, robot_body, robot_from_text
 from hil.instruments.plugins import DEFAULT_ROBOT_DRIVER, DEFAULT_TRACKER_DRIVER
+from hil.runner.collision import CellBodies, KeepOutBox
 from hil.runner.envelope import Envelope
 
 SMR_RADIUS_MM = 19.05  # 1.5" sphere
+# The cell's collision margins: to the tracker and the keep-out boxes (what a tape measure and the nominal
+# model leave unknown: tens of mm), and between the arm's own links (the nominal model is good to a few mm;
+# the UR wrist housings face each other across d5 with ~20 mm between their capsules, so more would refuse
+# every pose).
+CLEARANCE_MM = 50.0
+SELF_CLEARANCE_MM = 10.0
+# The tracker's keep-out: a vertical capsule through its position, 250 mm above (the head) and 1500 mm below
+# (the stand), of this radius: a Leica AT9x0 head is about 230 mm wide and 480 mm tall (Leica's data sheet);
+# 300 mm covers the head turning and the top of the stand. Give your own with tracker.keep_out_radius_mm.
+TRACKER_KEEP_OUT_RADIUS_MM = 300.0
+TRACKER_HEAD_ABOVE_M, TRACKER_STAND_BELOW_M = 0.25, 1.5
+# The tool as a capsule from the flange to each nest: a 1.5" SMR in its nest on a holder about that wide.
+TOOL_RADIUS_MM = 25.0
+# The first motions of a new cell run at this fraction of the configured speeds until the operator confirms.
+REDUCED_SPEED_FRACTION = 0.25
+DEFAULT_JOINT_SPEED_RAD_S, DEFAULT_LINEAR_SPEED_M_S = 1.05, 0.25  # drivers.ur.URConfig's defaults
 
 # Settings of the robot section that belong to the robot driver (drivers.ur.URConfig), passed through.
 ROBOT_DRIVER_KEYS: tuple[str, ...] = (
@@ -74,6 +92,8 @@ class CellConfig:
     grid_fixed_rpy_rad: np.ndarray | None = (
         None  # [grid] fixed_rpy_deg: the fixed tool orientation, base frame
     )
+    reduced_speed: bool = True  # [motion] reduced_speed: new cell, speeds scaled until the operator confirms
+    reduced_speed_fraction: float = REDUCED_SPEED_FRACTION
 
     @cached_property
     def nominal(self) -> KinematicModel:
@@ -81,8 +101,15 @@ class CellConfig:
         return _nominal(self.robot_model, self.robot_file_text)
 
     def robot_mapping(self) -> dict[str, Any]:
-        """Settings for drivers.ur.URConfig.from_mapping: the host and the driver keys."""
-        return {"host": self.robot_host, **self.robot_driver}
+        """Settings for drivers.ur.URConfig.from_mapping: the host and the driver keys; with
+        `reduced_speed` on, the default joint and linear speeds scaled by `reduced_speed_fraction`."""
+        mapping = {"host": self.robot_host, **self.robot_driver}
+        if self.reduced_speed:
+            joint = float(mapping.get("joint_speed", DEFAULT_JOINT_SPEED_RAD_S))
+            linear = float(mapping.get("linear_speed", DEFAULT_LINEAR_SPEED_M_S))
+            mapping["joint_speed"] = joint * self.reduced_speed_fraction
+            mapping["linear_speed"] = linear * self.reduced_speed_fraction
+        return mapping
 
     def tracker_mapping(self) -> dict[str, Any]:
         """Settings for the tracker driver: its URL, measuring time and reflector."""
@@ -137,6 +164,11 @@ class _Reader:
                 self.problems.append(f"{full}: must be zero or positive, got {value!r}")
                 return default
             return float(value)
+        if kind == "bool":
+            if not isinstance(value, bool):
+                self.problems.append(f"{full}: must be true or false, got {value!r}")
+                return default
+            return value
         if kind == "int" and (isinstance(value, bool) or not isinstance(value, int) or value < 1):
             self.problems.append(f"{full}: must be a whole number >= 1, got {value!r}")
             return default
@@ -233,7 +265,20 @@ def parse_cell_config(data: dict, source: str = "cell.toml") -> CellConfig:
     tracker_driver_name = r.get("tracker", "driver", "str", default=DEFAULT_TRACKER_DRIVER)
     nests_arr, smr_radius_mm, circle_mm, hole7_mm, hole_d_mm = _read_tool(r)
     box_min, box_max, jmin, jmax = _read_envelope(r, nominal, n)
+    collisions = r.get("envelope", "collisions", "bool", default=False)
+    clearance_mm = r.get("envelope", "clearance_mm", "nonneg", default=CLEARANCE_MM)
+    self_clearance_mm = r.get("envelope", "self_clearance_mm", "nonneg", default=SELF_CLEARANCE_MM)
+    keep_out = _read_keep_out(r)
+    tracker_radius_mm = r.get("tracker", "keep_out_radius_mm", "nonneg", default=TRACKER_KEEP_OUT_RADIUS_MM)
+    tool_radius_mm = r.get("tool", "capsule_radius_mm", "positive", default=TOOL_RADIUS_MM)
+    body = _robot_body(r, model, robot_file_text)
     settle_s = r.get("motion", "settle_s", "nonneg", default=0.5)
+    reduced_speed = r.get("motion", "reduced_speed", "bool", default=True)
+    reduced_fraction = r.get("motion", "reduced_speed_fraction", "positive", default=REDUCED_SPEED_FRACTION)
+    if reduced_fraction is not None and reduced_fraction > 1:
+        r.problems.append(
+            f"motion.reduced_speed_fraction: {reduced_fraction:g} is above 1; give a fraction of the speeds, e.g. 0.25"
+        )
     home_deg = r.vector("motion", "home_deg", n, default=np.rad2deg(_default_home(nominal, n)))
     simulator_control = r.get("simulator", "control", "str")
     drift_poses = r.get("drift_monitor", "poses", "int", default=0)
@@ -245,9 +290,22 @@ def parse_cell_config(data: dict, source: str = "cell.toml") -> CellConfig:
     if r.problems:
         raise CellConfigError(source, r.problems)
     assert (
-        nests_arr is not None and model is not None and nominal is not None
+        nests_arr is not None and model is not None and nominal is not None and body is not None
     )  # a missing or malformed one is one of r.problems
-    envelope = Envelope(box_min / 1e3, box_max / 1e3, np.deg2rad(jmin), np.deg2rad(jmax))
+    bodies = cell_bodies(
+        body,
+        nominal,
+        nests_arr,
+        tool_radius_mm / 1e3,
+        p_tracker_mm / 1e3,
+        tracker_radius_mm / 1e3,
+        keep_out,
+        clearance_mm / 1e3,
+        self_clearance_mm / 1e3,
+    )
+    envelope = Envelope(
+        box_min / 1e3, box_max / 1e3, np.deg2rad(jmin), np.deg2rad(jmax), bodies if collisions else None
+    )
     home = np.deg2rad(home_deg)
     _check_home(envelope, nominal, home, nests_arr, source)
     return CellConfig(
@@ -277,7 +335,80 @@ def parse_cell_config(data: dict, source: str = "cell.toml") -> CellConfig:
         drift_every_points=drift_every,
         grid_orientation=grid_orientation,
         grid_fixed_rpy_rad=None if grid_fixed_rpy_deg is None else np.deg2rad(grid_fixed_rpy_deg),
+        reduced_speed=reduced_speed,
+        reduced_speed_fraction=reduced_fraction,
     )
+
+
+def cell_bodies(
+    body: ArmBody,
+    nominal: KinematicModel,
+    nests_flange_m: np.ndarray,
+    tool_radius_m: float,
+    p_base_tracker_m: np.ndarray,
+    tracker_radius_m: float,
+    keep_out: tuple[KeepOutBox, ...],
+    margin_m: float,
+    self_margin_m: float,
+) -> CellBodies:
+    """The arm's body with the tool (a capsule from the flange to each nest, in the last link's frame), the
+    tracker's keep-out capsule (vertical through its position) and the keep-out boxes, with the margins."""
+    L = np.asarray(nominal.T_last_flange, float)
+    nests = np.atleast_2d(nests_flange_m) @ L[:3, :3].T + L[:3, 3]
+    n = nominal.n_joints
+    tool = body.with_capsules(
+        [f"tool (nest {k + 1})" for k in range(len(nests))],
+        np.full(len(nests), n),
+        np.tile(L[:3, 3], (len(nests), 1)),
+        nests,
+        np.full(len(nests), tool_radius_m),
+    )
+    p = np.asarray(p_base_tracker_m, float)
+    up = np.array([0.0, 0.0, 1.0])
+    return CellBodies(
+        tool,
+        p - TRACKER_STAND_BELOW_M * up if tracker_radius_m > 0 else None,
+        p + TRACKER_HEAD_ABOVE_M * up if tracker_radius_m > 0 else None,
+        tracker_radius_m,
+        keep_out,
+        margin_m,
+        self_margin_m,
+    )
+
+
+def _robot_body(r: _Reader, model: str | None, robot_file_text: str | None) -> ArmBody | None:
+    """The robot's body from its file (capsules, or sized along its DH table); None with the problem noted."""
+    if model is None:
+        return None
+    try:
+        return robot_body(model, robot_file_text)
+    except ValueError as exc:
+        r.problems.append(f"robot.model: {exc}")
+        return None
+
+
+def _read_keep_out(r: _Reader) -> tuple[KeepOutBox, ...]:
+    """[[envelope.keep_out]]: boxes the arm must not enter (name, min_mm, max_mm in the robot base frame)."""
+    tables = r.get("envelope", "keep_out", "any", default=[])
+    if not isinstance(tables, list) or not all(isinstance(t, dict) for t in tables):
+        r.problems.append("envelope.keep_out: write each box as an [[envelope.keep_out]] table")
+        return ()
+    boxes = []
+    for k, table in enumerate(tables, start=1):
+        where = f"envelope.keep_out {k}"
+        unknown = set(table) - {"name", "min_mm", "max_mm"}
+        lo, hi = _numbers(table.get("min_mm")), _numbers(table.get("max_mm"))
+        if unknown or lo is None or hi is None or lo.shape != (3,) or hi.shape != (3,):
+            r.problems.append(
+                f"{where}: give name, min_mm = [x, y, z] and max_mm = [x, y, z] (robot base frame, mm)"
+                + (f"; unknown key(s) {sorted(unknown)}" if unknown else "")
+            )
+            continue
+        if np.any(hi <= lo):
+            r.problems.append(f"{where}: every coordinate of max_mm must exceed min_mm's")
+            continue
+        boxes.append(KeepOutBox(str(table.get("name", f"box {k}")), lo / 1e3, hi / 1e3))
+    return tuple(boxes)
 
 
 def _read_grid(r: _Reader) -> tuple[str, np.ndarray | None]:

@@ -1,5 +1,6 @@
-"""The safety envelope: a box in the robot base frame for the tool points and every wrist point, plus
-joint limits. Every commanded motion is checked against it, along its whole path, before the robot moves.
+"""The safety envelope: a box in the robot base frame for the tool points and every wrist point, joint
+limits, and the collision checks of hil.runner.collision (the arm with itself, the tracker, the keep-out
+boxes). Every commanded motion is checked against it, along its whole path, before the robot moves.
 """
 
 from __future__ import annotations
@@ -9,6 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from hil.geometry.kinematics import KinematicModel, forward_kinematics, link_frames
+from hil.runner.collision import CellBodies, Clearances
 from hil.runner.planners import wrist_points
 
 # Samples per joint move when checking its path: moveJ interpolates linearly in joint space, so the
@@ -23,12 +25,18 @@ class EnvelopeError(ValueError):
 
 @dataclass(frozen=True)
 class Envelope:
-    """Where the robot may go: an axis-aligned box (base frame, metres) and joint limits (radians)."""
+    """Where the robot may go: an axis-aligned box (base frame, metres), joint limits (radians) and, when
+    `bodies` is given, clear of itself, the tracker and the keep-out boxes by their margins."""
 
     box_min_m: np.ndarray
     box_max_m: np.ndarray
     joint_min_rad: np.ndarray
     joint_max_rad: np.ndarray
+    bodies: CellBodies | None = None
+
+    def clearances(self, nominal: KinematicModel, q: np.ndarray) -> Clearances | None:
+        """Each joint set's smallest clearance to the arm itself and to the cell (None: no body model)."""
+        return None if self.bodies is None else self.bodies.clearances(nominal, q)
 
     def point_violations(self, points_m: np.ndarray) -> np.ndarray:
         """(...,) bool: which points lie outside the box."""
@@ -41,8 +49,18 @@ class Envelope:
         return np.any((q < self.joint_min_rad) | (q > self.joint_max_rad), axis=1)
 
     def outside(self, nominal: KinematicModel, q: np.ndarray, p_flange_tools_m: np.ndarray) -> np.ndarray:
-        """(N,) bool: which joint sets put a tool point or a wrist point outside, or break a joint limit."""
+        """(N,) bool: which joint sets put a tool point or a wrist point outside, break a joint limit, or
+        come closer than a margin to the arm itself, the tracker or a keep-out box."""
         q = np.atleast_2d(np.asarray(q, float))
+        outside = self._outside_box(nominal, q, p_flange_tools_m)
+        if self.bodies is not None and len(q):
+            outside |= self.bodies.collides(nominal, q)
+        return outside
+
+    def _outside_box(
+        self, nominal: KinematicModel, q: np.ndarray, p_flange_tools_m: np.ndarray
+    ) -> np.ndarray:
+        """(N,) bool: which joint sets put a tool point or a wrist point outside, or break a joint limit."""
         tools = np.atleast_2d(np.asarray(p_flange_tools_m, float))
         frames = link_frames(nominal, q)  # one chain for the wrist points and the flange
         T = frames[:, -1] @ nominal.T_last_flange
@@ -55,9 +73,10 @@ class Envelope:
         )
 
     def pose_problems(
-        self, nominal: KinematicModel, q: np.ndarray, p_flange_tools_m: np.ndarray
+        self, nominal: KinematicModel, q: np.ndarray, p_flange_tools_m: np.ndarray, collisions: bool = True
     ) -> list[str | None]:
-        """Per joint set (N, 6): None if inside, else what is outside (nominal FK with the tool points)."""
+        """Per joint set (N, 6): None if inside, else what is outside (nominal FK with the tool points) and,
+        with `collisions`, which bodies come closer than their margin and by how much."""
         q = np.atleast_2d(np.asarray(q, float))
         tools = np.atleast_2d(np.asarray(p_flange_tools_m, float))
         T = forward_kinematics(nominal, q)
@@ -68,8 +87,13 @@ class Envelope:
         bad_wrist = self.point_violations(wrist)  # (N, 4)
         problems: list[str | None] = []
         wrist_names = ("wrist 1", "wrist 2", "wrist 3", "flange")
+        near = (
+            self.bodies.pose_problems(nominal, q)
+            if self.bodies is not None and collisions and len(q)
+            else [None] * len(q)
+        )
         for i in range(len(q)):
-            parts = []
+            parts: list[str] = [problem] if (problem := near[i]) else []
             if bad_joints[i]:
                 joints = np.flatnonzero((q[i] < self.joint_min_rad) | (q[i] > self.joint_max_rad)) + 1
                 parts.append(f"joint(s) {', '.join(map(str, joints))} beyond their envelope limits")
@@ -113,15 +137,79 @@ class Envelope:
         samples = max(_MIN_SAMPLES, int(np.ceil(travel / _PATH_STEP_RAD)) + 1)
         s = np.linspace(0.0, 1.0, samples)[:, None]
         path = q_from + s * (q_to - q_from)
-        bad = np.flatnonzero(self.outside(nominal, path, p_flange_tools_m))
+        bad = np.flatnonzero(self._outside_box(nominal, path, p_flange_tools_m))
         if bad.size:
             i = int(bad[0])
             where = "at the target" if i == samples - 1 else f"{100 * s[i, 0]:.0f} % along the move"
-            problem = self.pose_problems(nominal, path[i][None], p_flange_tools_m)[0]
+            problem = self.pose_problems(nominal, path[i][None], p_flange_tools_m, collisions=False)[0]
             raise EnvelopeError(
                 f"the joint move leaves the safety envelope {where}: {problem}; nothing moved: "
                 "plan another path (e.g. through a safe intermediate pose) or widen [envelope]"
             )
+        problem = self.path_problems(nominal, q_from[None], q_to[None])[0]
+        if problem:
+            raise EnvelopeError(
+                f"the joint move {problem}; nothing moved: plan another path (e.g. through a safe "
+                "intermediate pose) or move the keep-out"
+            )
+
+    def detour(
+        self,
+        nominal: KinematicModel,
+        q_from: np.ndarray,
+        q_to: np.ndarray,
+        p_flange_tools_m: np.ndarray,
+        q_home: np.ndarray,
+    ) -> list[np.ndarray] | None:
+        """The legs of a safe way from q_from to q_to when the direct move is not: through one intermediate
+        pose, tried in order: the wrist turned first (q_from's arm joints with q_to's wrist), the arm moved
+        first (q_to's arm with q_from's wrist), the home pose, the home arm with either wrist. Each leg is
+        checked as `check_joint_move` checks; None when no candidate is safe."""
+        q_from, q_to, home = (np.asarray(v, float) for v in (q_from, q_to, q_home))
+        arm = slice(0, min(3, len(q_from)))
+        candidates = []
+        for base, wrist in ((q_from, q_to), (q_to, q_from), (home, home), (home, q_to), (home, q_from)):
+            q = wrist.copy()
+            q[arm] = base[arm]
+            candidates.append(q)
+        for mid in candidates:
+            if self.outside(nominal, mid[None], p_flange_tools_m)[0]:
+                continue
+            try:
+                self.check_joint_move(nominal, q_from, mid, p_flange_tools_m)
+                self.check_joint_move(nominal, mid, q_to, p_flange_tools_m)
+            except EnvelopeError:
+                continue
+            return [mid, q_to]
+        return None
+
+    def path_problems(
+        self, nominal: KinematicModel, q_from: np.ndarray, q_to: np.ndarray
+    ) -> list[str | None]:
+        """Per joint move (M, n) -> (M, n): None when its whole path keeps clear of the arm itself, the
+        tracker and the keep-out boxes (at least half the margin all along), else where and what meets."""
+        q_from, q_to = np.atleast_2d(np.asarray(q_from, float)), np.atleast_2d(np.asarray(q_to, float))
+        if self.bodies is None or not len(q_from):
+            return [None] * len(q_from)
+        first_bad = self.bodies.path_collisions(nominal, q_from, q_to)
+        problems: list[str | None] = [None] * len(q_from)
+        for k in np.flatnonzero(~np.isnan(first_bad)):
+            s = float(first_bad[k])
+            q = q_from[k] + s * (q_to[k] - q_from[k])
+            found = self.bodies.clearances(nominal, q[None])
+            own = found.self_m[0] - 0.5 * self.bodies.self_margin_m
+            cell = found.cell_m[0] - 0.5 * self.bodies.margin_m
+            between, clearance = (
+                (found.self_between[0], found.self_m[0])
+                if own <= cell
+                else (found.cell_between[0], found.cell_m[0])
+            )
+            where = "at its start" if s == 0 else "at its target" if s == 1 else f"{100 * s:.0f} % along"
+            problems[k] = (
+                f"brings {between} within {clearance * 1e3:.0f} mm {where} (a path keeps at least half "
+                "the margin)"
+            )
+        return problems
 
     def check_linear_move(
         self, T_base_flange_from: np.ndarray, T_base_flange_to: np.ndarray, p_flange_tools_m: np.ndarray

@@ -68,7 +68,7 @@ class Plan:
 
     def path_check(self) -> tuple[int, list[str]]:
         """Check every move of the plan in order (from home): how many need the detour through home, and
-        which poses cannot be reached inside the envelope at all."""
+        which poses cannot be reached inside the envelope at all (Envelope.detour tries the ways round)."""
         cfg = self.config
         env, tools, home = cfg.envelope, cfg.nests_flange_m, cfg.q_home_rad
         detours, impossible = 0, []
@@ -77,13 +77,10 @@ class Plan:
             try:
                 env.check_joint_move(cfg.nominal, previous, pose.q_rad, tools)
             except EnvelopeError:
-                try:
-                    env.check_joint_move(cfg.nominal, previous, home, tools)
-                    env.check_joint_move(cfg.nominal, home, pose.q_rad, tools)
-                    detours += 1
-                except EnvelopeError:
+                if env.detour(cfg.nominal, previous, pose.q_rad, tools, home) is None:
                     impossible.append(pose.point_id)
                     continue
+                detours += 1
             previous = pose.q_rad
         return detours, impossible
 
