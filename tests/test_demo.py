@@ -8,6 +8,7 @@ import sys
 import tomllib
 
 import pytest
+from test_report_html import PYTHON_REPR, visible_text
 
 from tests.cli_in_process import hil_in_process
 
@@ -86,6 +87,9 @@ def test_demo_runs_the_procedures_through_the_drivers_and_finds_compliance(demo)
     ] == pytest.approx(0.03)
     assert judged["validation_rms"]["outcome"] == "not judged" and judged["hole_angle_error"]["unit"] == "deg"
     assert "Judged measurements" in (tmp_path / "report.html").read_text()
+    # the whole page in words: the tool fit, the rounds, the outcomes and the loop show no Python value
+    shown = visible_text((tmp_path / "report.html").read_text())
+    assert not sorted({m.group(0) for m in PYTHON_REPR.finditer(shown)}), shown[:3000]
 
 
 @pytest.mark.slow

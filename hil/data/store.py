@@ -754,6 +754,7 @@ def campaign_dataset(
         )
         m = store.measurement_columns(needed, procedure, step)
         started_s = store.started_s
+        station = _station(store.snapshots())
         if m.empty:
             counts = store.point_counts()
             have = ", ".join(f"{r.procedure}/{r.step} ({r.points})" for r in counts.itertuples()) or "none"
@@ -809,7 +810,27 @@ def campaign_dataset(
     data["shots_count"] = m["shots"].to_numpy(int)
     data["point_id"] = m["point_id"].astype(str).to_numpy()
     data["step_id"] = m["step"].astype(str).to_numpy()
-    return validate_dataset(pd.DataFrame(data), source=f"{store.path} ({procedure})")
+    out = validate_dataset(pd.DataFrame(data), source=f"{store.path} ({procedure})")
+    out.attrs["source"] = f"{store.path} ({procedure}" + (f"/{step}" if isinstance(step, str) else "") + ")"
+    out.attrs["station"] = station
+    return out
+
+
+def _station(snapshots: list[dict]) -> dict:
+    """The instruments of the campaign's last session start, as a report names them (robot model and
+    controller version, tracker type and serial); empty when the campaign recorded none."""
+    if not snapshots:
+        return {}
+    last = snapshots[-1]
+    cell = last.get("cell") or {}
+    station = last.get("station") or {}
+    robot = {**(cell.get("robot") or {}), "controller_version": station.get("robot_controller_version")}
+    tracker = {**(cell.get("tracker") or {}), **(station.get("tracker") or {})}
+    wanted = {
+        "robot": [robot.get(k) for k in ("model", "controller_version")],
+        "tracker": [tracker.get(k) for k in ("name", "serial_number")],
+    }
+    return {k: " ".join(str(v) for v in values if v) for k, values in wanted.items() if any(values)}
 
 
 def _extra_temperatures(extra: pd.Series, key: str) -> np.ndarray:

@@ -72,19 +72,41 @@ def _plots(report: DiagnosisReport) -> list[tuple[str, str]]:
     return out
 
 
+FOLD_ROWS = 12  # a table longer than this is folded below its first rows (the summary line says how many)
+
+
+def cell_text(value: object, fmt: str = ".4g") -> str:
+    """A value as a person reads it: numbers formatted, yes/no for a flag, 'none' for nothing, lists joined."""
+    if value is None:
+        return ""
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    if isinstance(value, float):
+        return "-" if value != value else format(value, fmt)
+    if isinstance(value, list | tuple):
+        return ", ".join(cell_text(v, fmt) for v in value) or "none"
+    if isinstance(value, dict):
+        return "; ".join(f"{k} {cell_text(v, fmt)}" for k, v in value.items()) or "none"
+    return str(value)
+
+
 def _table(rows: list[dict], columns: list[str], fmt: dict | None = None) -> str:
+    """An HTML table of `rows` (values in words: yes/no, none); one longer than FOLD_ROWS shows its first
+    rows and folds the rest below."""
     fmt = fmt or {}
-    head = "".join(f"<th>{html.escape(c)}</th>" for c in columns)
-    body = []
-    for r in rows:
-        cells = []
-        for c in columns:
-            v = r.get(c)
-            if isinstance(v, float):
-                v = format(v, fmt.get(c, ".4g"))
-            cells.append(f"<td>{html.escape('' if v is None else str(v))}</td>")
-        body.append("<tr>" + "".join(cells) + "</tr>")
-    return f"<table><tr>{head}</tr>{''.join(body)}</table>"
+    head = "".join(f"<th>{html.escape(c.replace('_', ' '))}</th>" for c in columns)
+    body = [
+        "<tr>"
+        + "".join(f"<td>{html.escape(cell_text(r.get(c), fmt.get(c, '.4g')))}</td>" for c in columns)
+        + "</tr>"
+        for r in rows
+    ]
+    if len(body) <= FOLD_ROWS:
+        return f"<table><tr>{head}</tr>{''.join(body)}</table>"
+    return (
+        f"<table><tr>{head}</tr>{''.join(body[:FOLD_ROWS])}</table>"
+        f"<details><summary>all {len(body)} rows</summary><table><tr>{head}</tr>{''.join(body)}</table></details>"
+    )
 
 
 def render_html(
@@ -99,24 +121,24 @@ def render_html(
     (the campaign's tool_fit step result) the tool fit's checks and its validation figure, `outcomes`
     (hil.report.json_report.outcomes_section) the declared measurements as the engine judged them."""
     d = report_dict(report)
-    parts = [
-        *_head_html(report, d),
+    parts = [*_head_html(report, d)]
+    if compensation:  # the deliverable: what the robot does on held-out targets, right after the verdict
+        parts.append(_compensation_html(compensation))
+    parts += [
         *_effects_html(report),
         *_thermal_html(report.thermal),
         *_gravity_html(report.gravity),
         *_drift_html(report.drift),
         *_residual_html(report, d),
-        *_calibration_html(d),
         _undecided_html(report),
     ]
+    if active:
+        parts.append(active)
     if tool_fit:
         parts.append(tool_fit_html(tool_fit))
     if outcomes:
         parts.append(outcomes_html(outcomes))
-    if active:
-        parts.append(active)
-    if compensation:
-        parts.append(_compensation_html(compensation))
+    parts += [*_calibration_html(d), _run_html(report.run)]
     parts.append("</body></html>")
     return "\n".join(parts)
 
@@ -125,10 +147,13 @@ def _head_html(report: DiagnosisReport, d: dict) -> list[str]:
     """Page head, the conclusion, the noise floor, the error at each stage and the run record."""
     return [
         "<!doctype html><html><head><meta charset='utf-8'><title>hil calibration report</title>",
-        "<style>body{font-family:sans-serif;max-width:1000px;margin:2em auto}table{border-collapse:collapse;"
-        "margin:0.5em 0}td,th{border:1px solid #bbb;padding:2px 8px;text-align:right}th{background:#eee}"
+        "<style>body{font-family:sans-serif;max-width:1180px;margin:2em auto;padding:0 1em}"
+        "p,li,pre{overflow-wrap:anywhere;white-space:pre-wrap}table{border-collapse:collapse;margin:0.5em 0;"
+        "display:block;max-width:100%;overflow-x:auto}td,th{border:1px solid #bbb;padding:2px 8px;"
+        "text-align:right}th{background:#eee}img{max-width:100%;height:auto}"
         "h2{border-bottom:1px solid #888}</style></head><body>",
         "<h1>Calibration and diagnosis</h1>",
+        _provenance_html(report.run),
         "<p><b>" + "<br>".join(html.escape(line) for line in d["conclusion"].splitlines()) + "</b></p>",
         f"<p>Noise floor: {report.noise_floor_mm:.4f} mm RMS ({html.escape(report.noise.method)}).</p>",
         "<h2>Error at each stage (mm)</h2>",
@@ -140,7 +165,6 @@ def _head_html(report: DiagnosisReport, d: dict) -> list[str]:
         "<p>held-out = k-fold cross-validation on the training campaign; validate = a separate campaign "
         "never used for fitting.</p>",
         f"<p>{html.escape(intervals_text(report.intervals) or '')}</p>",
-        _run_html(report.run),
     ]
 
 
@@ -279,7 +303,12 @@ def _residual_html(report: DiagnosisReport, d: dict) -> list[str]:
     parts = ["<h2>Residual left</h2>"]
     parts.append(
         f"<p>residual sigma / noise sigma = {rm.get('excess_ratio', float('nan')):.3f}; "
-        f"unexplained structure: {report.unexplained_structure}</p>"
+        + (
+            "structure the model does not explain: yes"
+            if report.unexplained_structure
+            else "no structure the model does not explain"
+        )
+        + "</p>"
     )
     tables = [("spatial", rm), ("random", rm.get("interpolation") or {})]
     rows = [
@@ -307,7 +336,7 @@ def _calibration_html(d: dict) -> list[str]:
             f"<h3>{html.escape(name)}</h3><p>sigma0 {cal['sigma0_mm']:.4f} mm, RMS {cal['rms_mm']:.4f} mm, "
             + (f"orientation RMS {cal['orientation_rms_deg']:.4f} deg (6-DoF probe), "
                if cal.get("orientation_rms_deg") is not None else "")
-            + f"outlier rows {cal['outlier_rows']}</p>"
+            + f"outlier rows: {html.escape(cell_text(cal['outlier_rows']))}</p>"
         )  # fmt: skip
         ident = cal.get("identifiability") or {}
         if ident:
@@ -316,7 +345,12 @@ def _calibration_html(d: dict) -> list[str]:
                 "dropped: "
                 + html.escape(
                     "; ".join(
-                        f"{x['name']} (~ {' '.join(f'{c:+.3g}*{n}' for n, c in x['merged_into'])})"
+                        f"{x['name']}"
+                        + (
+                            f" (~ {' '.join(f'{c:+.3g}*{n}' for n, c in x['merged_into'])})"
+                            if x["merged_into"]
+                            else ""
+                        )
                         for x in ident["dropped"]
                     )
                 )
@@ -357,6 +391,26 @@ def _compensation_html(summary: dict) -> str:
     )
 
 
+def _provenance_html(run: dict) -> str:
+    """One line under the title: what the report was made from (each input's name and the start of its
+    SHA-256), the robot, the instruments the campaign recorded, the software and the date."""
+    if not run:
+        return ""
+    inputs = "; ".join(
+        f"{role} {i.get('file') or 'data given in Python'} (sha256 {(i.get('sha256') or '?')[:12]}..., "
+        f"{i['rows_used']} rows)"
+        for role, i in run["inputs"].items()
+    )
+    station = run.get("station") or {}
+    instruments = "; ".join(f"{k} {cell_text(v)}" for k, v in station.items())
+    return (
+        f"<p><small>Made from {html.escape(inputs)}. Robot {html.escape(run['robot'])}"
+        + (f"; instruments: {html.escape(instruments)}" if instruments else "")
+        + f". {html.escape(run['software'])}, {html.escape(run['date_utc'])}. The full record is under Run at "
+        "the end.</small></p>"
+    )
+
+
 def _run_html(run: dict) -> str:
     """The run: robot, inputs with hash and row counts (data rows from 1), date, software version."""
     if not run:
@@ -364,8 +418,8 @@ def _run_html(run: dict) -> str:
     rows = [
         {
             "input": role,
-            "file": i.get("file") or "(in memory)",
-            "sha256": (i.get("sha256") or "")[:16],
+            "file": i.get("file") or "data given in Python",
+            "sha256": i.get("sha256") or "",
             "rows_in_file": i["rows_in_file"],
             "rows_used": i["rows_used"],
             "duplicate_rows": ", ".join(map(str, i["duplicate_rows"][:10])) or "none",
@@ -439,6 +493,7 @@ def tool_fit_html(fit: dict) -> str:
         ax.bar(k - 0.2, val["errors_mm"], width=0.4, label=f"flange holes (RMS {val['rms_mm']:.3f} mm)")
         ax.bar(k + 0.2, val["distance_method_errors_mm"], width=0.4,
                label=f"distance constraint (RMS {val['distance_method_rms_mm']:.3f} mm)")  # fmt: skip
+        ax.set_xticks(k if len(k) <= 25 else k[:: int(np.ceil(len(k) / 25))])  # poses are counted, not measured
         ax.set_xlabel("validation pose")
         ax.set_ylabel("error after common-point fit (mm)")
         ax.legend(fontsize=8)

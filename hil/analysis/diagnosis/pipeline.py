@@ -42,6 +42,7 @@ not on spatial ones) is not added: the verdict calls the structure local.
 
 from __future__ import annotations
 
+import hashlib
 import warnings
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -542,12 +543,14 @@ def run_record(robot: KinematicModel, frames: dict[str, pd.DataFrame | None]) ->
     except importlib.metadata.PackageNotFoundError:
         version = "unknown"
     inputs = {}
+    station: dict = {}
     for role, df in frames.items():
         if df is None:
             continue
+        station = station or dict(df.attrs.get("station") or {})
         inputs[role] = {
             "file": df.attrs.get("source"),
-            "sha256": df.attrs.get("sha256"),
+            "sha256": df.attrs.get("sha256") or content_sha256(df),
             "rows_in_file": df.attrs.get("rows_in_file", len(df)),
             "rows_used": len(df),
             "duplicate_rows": df.attrs.get("duplicate_rows", []),
@@ -557,12 +560,26 @@ def run_record(robot: KinematicModel, frames: dict[str, pd.DataFrame | None]) ->
         ).dropna()
         if len(temperatures):  # what a thermal model was fitted on: compensation warns outside it
             inputs[role]["temperature_c_range"] = [float(temperatures.min()), float(temperatures.max())]
-    return {
+    import platform
+
+    import scipy
+
+    record = {
         "robot": robot.name,
         "inputs": inputs,
         "date_utc": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-        "software": f"hil {version}",
+        "software": f"hil {version} (Python {platform.python_version()}, numpy {np.__version__}, scipy "
+        f"{scipy.__version__}, pandas {pd.__version__})",
     }
+    if station:
+        record["station"] = station
+    return record
+
+
+def content_sha256(df: pd.DataFrame) -> str:
+    """SHA-256 of a frame's rows as CSV text: the identity of data that came from no file (a campaign's rows,
+    a frame built in Python), so a report can still be traced to exactly the rows it was made from."""
+    return hashlib.sha256(df.to_csv(index=False).encode()).hexdigest()
 
 
 def _p_base(model: CalibratedModel, problem: Problem) -> np.ndarray:
