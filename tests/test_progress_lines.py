@@ -22,9 +22,20 @@ def test_plain_lines_every_few_seconds_with_an_eta():
             clock.now += 1.0  # one point a second
             advance()
     lines = stream.getvalue().splitlines()
-    assert len(lines) == 30 // PLAIN_EVERY_S + 1  # every 5 s, then the last state
+    assert len(lines) == 30 // PLAIN_EVERY_S  # every 5 s; the last state was the 30 s line: not printed twice
     assert lines[0] == "grid sampling: 15/100 (15%), 5s elapsed, ETA 1m25s"
     assert lines[-1] == "grid sampling: 40/100 (40%), 30s elapsed, ETA 1m00s"
+
+
+def test_the_last_state_is_printed_once_at_the_end():
+    stream, clock = io.StringIO(), _Clock()
+    with Progress(stream=stream, clock=clock).task("grid sampling", total=32) as advance:
+        for _ in range(32):
+            clock.now += 1.0
+            advance()
+    lines = stream.getvalue().splitlines()
+    assert len(lines) == 32 // PLAIN_EVERY_S + 1 and len(set(lines)) == len(lines)
+    assert lines[-1] == "grid sampling: 32/32 (100%), 32s elapsed, done"
 
 
 def test_short_work_and_disabled_progress_print_nothing():

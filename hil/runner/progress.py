@@ -114,6 +114,7 @@ class _PlainLine:
         self.total, self.done, self.start_done = max(total, 1), done, done
         self.started = self.last = clock()
         self.written = False
+        self.shown: tuple[int, int] | None = None  # the done/total of the last line written
 
     def advance(self, n: int = 1) -> None:
         self.set(self.done + n, self.total)
@@ -124,12 +125,12 @@ class _PlainLine:
             self.write()
 
     def finish(self) -> None:
-        if self.written:
+        if self.written and self.shown != (self.done, self.total):  # the last line once, not twice
             self.write()
 
     def write(self) -> None:
         now = self.clock()
-        self.last, self.written = now, True
+        self.last, self.written, self.shown = now, True, (self.done, self.total)
         elapsed = now - self.started
         rate = (self.done - self.start_done) / elapsed if elapsed > 0 else 0.0
         left = self.total - self.done
