@@ -493,7 +493,8 @@ def tool_fit_html(fit: dict) -> str:
         ax.bar(k - 0.2, val["errors_mm"], width=0.4, label=f"flange holes (RMS {val['rms_mm']:.3f} mm)")
         ax.bar(k + 0.2, val["distance_method_errors_mm"], width=0.4,
                label=f"distance constraint (RMS {val['distance_method_rms_mm']:.3f} mm)")  # fmt: skip
-        ax.set_xticks(k if len(k) <= 25 else k[:: int(np.ceil(len(k) / 25))])  # poses are counted, not measured
+        # poses are counted, not measured: whole numbers on the axis
+        ax.set_xticks(k if len(k) <= 25 else k[:: int(np.ceil(len(k) / 25))])
         ax.set_xlabel("validation pose")
         ax.set_ylabel("error after common-point fit (mm)")
         ax.legend(fontsize=8)
