@@ -37,6 +37,8 @@ from fakes.ur_modes import (
     STOPPED,
 )
 from fakes.ur_motion import Motion, StopMove
+from fakes.ur_primary import PrimaryClients, ProgramRunner, runtime_exception
+from fakes.ur_program import ScriptError, UserProgram
 from fakes.ur_rtde_server import RtdeConnection
 from fakes.ur_script import ControlProgram, UnknownProgramError, split_programs
 from fakes.ur_script_runtime import ScriptRuntime
@@ -127,6 +129,8 @@ class UrController(ScriptRuntime):
         self._last_ii0_write = time.monotonic()
         # program and motion
         self.program: ControlProgram | None = None
+        self.user_program: ProgramRunner | None = None  # a URScript program sent to a script port, running
+        self.primary = PrimaryClients()
         self.programs_received = 0
         self.refused_programs: list[str] = []
         self.last_program_text = ""
@@ -166,8 +170,8 @@ class UrController(ScriptRuntime):
         specs = [
             (self.ports["rtde"], self._serve_rtde),
             (self.ports["dashboard"], self._serve_dashboard),
-            (self.ports["primary"], self._serve_script),
-            (self.ports["secondary"], self._serve_script),
+            (self.ports["primary"], self._serve_primary),
+            (self.ports["secondary"], self._serve_primary),
             (self.ports["realtime"], self._serve_script),
         ]
         try:
@@ -209,6 +213,11 @@ class UrController(ScriptRuntime):
         self._track_current_task()
         _nodelay(writer)
         await serve_dashboard(self, reader, writer)
+
+    async def _serve_primary(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        """Primary and secondary ports: programs in, the version and robot messages out (fakes.ur_primary)."""
+        self._track_current_task()
+        await self.primary.serve(self, reader, writer)
 
     async def _serve_script(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         """Accept programs; complete ones are started, the client never reads anything back."""
@@ -376,12 +385,18 @@ class UrController(ScriptRuntime):
         self.programs_received += 1
         self.last_program_text = text
         log.debug("program received (%d bytes)", len(text))
+        user: UserProgram | None = None
         try:
-            program = ControlProgram.parse(text)
-        except UnknownProgramError as exc:
-            log.error("REFUSED an unknown program (%d bytes): %s", len(text), exc)
-            self.refused_programs.append(str(exc))
-            return
+            program: ControlProgram | None = ControlProgram.parse(text)
+        except UnknownProgramError:
+            program = None
+            try:
+                user = UserProgram(text)
+            except ScriptError as exc:
+                log.error("script error in a program sent to the controller: %s", exc)
+                self.refused_programs.append(f"script error: {exc}")
+                self.primary.broadcast(runtime_exception(exc), f"runtime exception: {exc}")
+                return
         if self.personality.is_eseries and not self.remote_control:
             log.error("refused a program: the robot is in local mode")
             self.refused_programs.append("local mode")
@@ -395,6 +410,11 @@ class UrController(ScriptRuntime):
             self.refused_programs.append(f"robot {self.robot_mode_name} / safety {self.safety_mode_name}")
             return
         self._halt_program(STOPPED)
+        if user is not None:  # a user program: it replaces ur-rtde's control program and runs at once
+            self.program = None
+            self.user_program = ProgramRunner(self, user)
+            self.runtime_state = PLAYING
+            return
         self.program = program
         self._start_at = time.monotonic() + self.script_start_delay_s
 
@@ -415,6 +435,7 @@ class UrController(ScriptRuntime):
         """Stop or pause the program. The script no longer runs, so it writes no register: an async
         move cut short stays "running" in the progress register [A], as on a stopped real program."""
         self._start_at = None
+        self.user_program = None
         if self.runtime_state in (PLAYING, PAUSED):
             self.runtime_state = new_state
         if new_state == STOPPED:
@@ -434,6 +455,11 @@ class UrController(ScriptRuntime):
         if self.runtime_state == PLAYING and self.program is not None:
             self._check_watchdog(now)
             self._script_cycle()
+        elif self.runtime_state == PLAYING and self.user_program is not None:
+            self.user_program.cycle()
+            if self.user_program.done:
+                self.user_program = None
+                self.runtime_state = STOPPED
         self._advance_motion(dt)
         if self.cell.set_commanded_joints(self.q_cmd):  # the arm moved: time passes for the physics
             self.cell.advance_physics(dt)
@@ -647,6 +673,8 @@ class UrController(ScriptRuntime):
             "safety_mode": self.safety_mode_name,
             "runtime_state": self.runtime_state,
             "program": self.program.name if self.program else None,
+            "user_program_running": self.user_program is not None,
+            "primary_messages": list(self.primary.messages),
             "programs_received": self.programs_received,
             "refused_programs": list(self.refused_programs),
             "moves_started": self.moves_started,

@@ -374,6 +374,10 @@ class ScriptRuntime:
     def _tcp_pose(self, q: np.ndarray, T_flange_tcp: np.ndarray) -> list[float]:
         return pose_from_transform(self.kin.fk(np.asarray(q, float)) @ T_flange_tcp)
 
+    def flange_pose_of(self, q: np.ndarray) -> np.ndarray:
+        """T_base_flange (4, 4) of joints q on the nominal model (what the controller believes)."""
+        return np.asarray(self.kin.fk(np.asarray(q, float)), float)
+
     def _ik(self, T_base_flange: np.ndarray, q_seed: np.ndarray | None = None) -> np.ndarray | None:
         """Joints reaching the flange pose on the nominal model, nearest the seed; None if unreachable."""
         seed = self.q_cmd if q_seed is None else np.asarray(q_seed, float)

@@ -371,7 +371,10 @@ def test_remote_control_gating_and_unknown_programs(rig):
             rig.cell.control.call("robot.set_remote_control", value=True)
     before = len(rig.cell.control.call("robot.state")["refused_programs"])
     with socket.create_connection((rig.host, 30002), timeout=2) as sock:
-        sock.sendall(b"def my_program():\n  movej([0, 0, 0, 0, 0, 0])\nend\n")
+        # a program with a statement the fake controller does not run: a script error, the program not started
+        sock.sendall(
+            b'def my_program():\n  socket_open("10.0.0.1", 30000)\n  movej([0, 0, 0, 0, 0, 0])\nend\n'
+        )
     deadline = time.monotonic() + 2
     while len(rig.cell.control.call("robot.state")["refused_programs"]) == before:
         assert time.monotonic() < deadline

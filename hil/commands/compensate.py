@@ -17,6 +17,7 @@ import pandas as pd
 
 from hil.commands.arg_checks import InputError, add_force_option, check_paths, float_in
 from hil.commands.campaign_targets import DEFAULT_ORDER, SOURCES, read_campaign_targets
+from hil.commands.compensate_program import is_program, run_program
 from hil.commands.errors import CliError
 from hil.commands.help_format import DefaultsHelpFormatter
 from hil.compensation.model_based import (
@@ -45,6 +46,7 @@ from hil.model.effects import THERMAL_FAMILIES, material_growth, temperature_dri
 from hil.model.intervals import IntervalError
 from hil.model.prediction_intervals import prediction_intervals
 
+FRAMES = ("tracker", "base")
 TEMPERATURE_RANGE_C = (-20.0, 60.0)  # --temperature-c: a cell's air, not a typo in kelvin or fahrenheit
 
 
@@ -63,7 +65,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         formatter_class=DefaultsHelpFormatter,
     )
     p.add_argument("model", help="model JSON written by 'hil calibrate' or 'hil diagnose -o'")
-    p.add_argument("targets", help="CSV of targets (see above), or a campaign file")
+    p.add_argument(
+        "targets",
+        help="CSV of targets (see above), a campaign file, or a URScript program (.script: its pose targets are "
+        "rewritten as compensated joints into -o)",
+    )
     p.add_argument(
         "--step",
         default=None,
@@ -135,8 +141,21 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "compensated joints that holds the measured point with probability P (a model without a prediction "
         "spread, e.g. of format 1, gives none and says so)",
     )
+    _add_frame_option(p)
     add_force_option(p)
     p.set_defaults(func=run)
+
+
+def _add_frame_option(p: argparse.ArgumentParser) -> None:
+    """--frame: the frame a CSV's targets are given in."""
+    p.add_argument(
+        "--frame",
+        default=None,
+        choices=FRAMES,
+        help="frame of a CSV's targets: tracker (the SMR in the tracker frame, the default) or base (the robot's "
+        "base frame as the model places it, T_tracker_base in model.json: poses from offline programming or "
+        "another controller's program). A URScript program's poses are always in the base frame",
+    )
 
 
 def target_intervals(
@@ -302,7 +321,14 @@ def read_targets(
 
 def run(args: argparse.Namespace) -> int:
     _check_options(args)
+    if is_program(args.targets):
+        return run_program(args, thermal_drivers)
     campaign = is_campaign_file(args.targets)
+    if args.frame == "base" and campaign:
+        raise CliError(
+            "--frame base is for a CSV of base-frame targets; a campaign's targets are in the tracker frame",
+            "drop --frame",
+        )
     if args.step is not None and not campaign:
         raise CliError(
             f"--step picks the targets of a campaign file; {args.targets} is a CSV",
@@ -343,6 +369,14 @@ def run(args: argparse.Namespace) -> int:
             f"with probability {args.interval:g} (median interval {np.nanmedian(out['interval_mm']):.4f} mm)"
         )
     return 0
+
+
+def in_tracker_frame(model: CalibratedModel, targets_base: np.ndarray) -> np.ndarray:
+    """Base-frame targets (points (N, 3) or poses (N, 4, 4)) in the tracker frame the model places the base in."""
+    T_tb = np.asarray(model.T_tracker_base, float)
+    if targets_base.ndim == 2:
+        return targets_base @ T_tb[:3, :3].T + T_tb[:3, 3]
+    return T_tb @ targets_base
 
 
 @dataclass(frozen=True)
@@ -393,6 +427,8 @@ def _campaign_targets(args: argparse.Namespace, model: CalibratedModel) -> _Targ
 def _csv_targets(args: argparse.Namespace, model: CalibratedModel) -> _Targets:
     """The targets of a CSV, all in --smr's nest (default: the model's lowest)."""
     targets, df = read_targets(args.targets, args.orientation_convention)
+    if args.frame == "base":
+        targets = in_tracker_frame(model, targets)
     smr = np.full(len(df), sorted(model.tools)[0] if args.smr is None else args.smr)
     return _Targets(targets, df, None, smr, None)
 

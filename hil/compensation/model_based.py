@@ -89,6 +89,7 @@ class PosePredictor:
         temperature_c: np.ndarray | None = None,
         approach: np.ndarray | None = None,
         use_map: bool = True,
+        payload_kg: np.ndarray | None = None,
     ) -> None:
         self.model = model
         self.smr = sorted(model.tools)[0] if smr is None else int(smr)
@@ -96,6 +97,7 @@ class PosePredictor:
             raise ValueError(f"the model has tool points for SMR nests {sorted(model.tools)}, not {self.smr}")
         self.tool = np.asarray(model.tools[self.smr], float)
         self.t_s, self.temperature_c, self.approach = t_s, temperature_c, approach
+        self.payload_kg = payload_kg
         self.map = map_from_dict(model.residual_map) if use_map and model.residual_map is not None else None
         self.joint_effects_only = all(e.kind == "joint" for e in model.effects)
 
@@ -106,10 +108,11 @@ class PosePredictor:
         def take(x: np.ndarray | None) -> np.ndarray | None:
             return None if x is None else np.asarray(x)[sl]
 
-        out.t_s, out.temperature_c, out.approach = (
+        out.t_s, out.temperature_c, out.approach, out.payload_kg = (
             take(self.t_s),
             take(self.temperature_c),
             take(self.approach),
+            take(self.payload_kg),
         )
         return out
 
@@ -121,7 +124,9 @@ class PosePredictor:
             return None if x is None else np.asarray(x)[rows]
 
         tools = np.broadcast_to(self.tool, (len(q), 3))
-        ctx = EffectContext(q, take(self.t_s), take(self.temperature_c), None, tools, take(self.approach))
+        ctx = EffectContext(
+            q, take(self.t_s), take(self.temperature_c), take(self.payload_kg), tools, take(self.approach)
+        )
         T_flange = forward_kinematics(m.kinematic, q + m.joint_offsets(ctx))
         p_base = T_flange[:, :3, :3] @ self.tool + T_flange[:, :3, 3]
         if self.joint_effects_only:  # what predict_ctx computes, without a second chain
@@ -259,6 +264,7 @@ class TargetConditions:
     t_s: np.ndarray | None = None
     temperature_c: np.ndarray | None = None
     approach: np.ndarray | None = None
+    payload_kg: np.ndarray | None = None  # (N,) the payload at the tool, which the gravity yield carries
 
 
 def compensate(
@@ -287,7 +293,7 @@ def compensate(
     if not full_pose:  # the generators differ only in the orientation, which points leave free
         names = [POINT_GENERATOR]
     c = conditions
-    predictor = PosePredictor(model, c.smr, c.t_s, c.temperature_c, c.approach, options.use_map)
+    predictor = PosePredictor(model, c.smr, c.t_s, c.temperature_c, c.approach, options.use_map, c.payload_kg)
     N = len(T_d_in)
     if q_seed is not None:
         q_seed = np.asarray(q_seed, float)
