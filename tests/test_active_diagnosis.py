@@ -202,19 +202,20 @@ def test_settled_says_which_questions_a_longer_campaign_decided():
 def test_a_confounded_pair_the_evidence_decided_is_no_longer_called_unreliable():
     """The demo said 'd5 and alpha5 ... decided' in its round and 'confounded: d5 and alpha5 ... unreliable'
     in its conclusion: a calibration note on a pair only stays while the pair is an open question."""
+    from hil.analysis.calibration.solve import confounded_note
+    from hil.analysis.diagnosis.cautions import AmbiguousEffects, CalibrationNote
     from hil.analysis.diagnosis.pipeline import without_decided_pairs
     from hil.analysis.diagnosis.questions import question
 
-    note = "confounded: {} and {} correlate +0.990 on these poses; each alone is unreliable (their combination is)"
     cautions = [
-        {"kind": "calibration_note", "text": note.format("theta5", "a5")},
-        {"kind": "calibration_note", "text": note.format("d5", "alpha5")},
-        {"kind": "calibration_note", "text": "outlier region: 3 flagged rows"},
-        {"kind": "ambiguous_effects", "chosen": {}, "confounded_with": {}},
+        CalibrationNote(text=confounded_note("theta5", "a5", 0.99), pair=("theta5", "a5")),
+        CalibrationNote(text=confounded_note("d5", "alpha5", 0.99), pair=("d5", "alpha5")),
+        CalibrationNote(text="outlier region: 3 flagged rows"),
+        AmbiguousEffects(chosen={}, confounded_with={}),
     ]
     still_open = [question("confounded_parameters", parameters=["a5", "theta5"], correlation=0.99)]
     kept = without_decided_pairs(cautions, still_open)
-    assert [c.get("text", c["kind"])[:22] for c in kept] == [
+    assert [c.to_dict().get("text", c.kind)[:22] for c in kept] == [
         "confounded: theta5 and",
         "outlier region: 3 flag",
         "ambiguous_effects",

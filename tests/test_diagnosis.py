@@ -5,9 +5,11 @@ hidden truth only to check the answer.
 """
 
 import ast
+import dataclasses
 import pathlib
 import subprocess
 import sys
+import typing
 from dataclasses import replace
 
 import numpy as np
@@ -251,6 +253,12 @@ def test_one_name_per_effect_in_the_simulator_and_the_diagnosis():
 
 def test_the_verdict_is_data_and_the_report_words_it():
     # hil.analysis.diagnosis.pipeline returns the verdict as data; hil.report.html words it, one caution a line.
+    from hil.analysis.diagnosis.cautions import (
+        CAUTIONS,
+        AmbiguousEffects,
+        CautionKind,
+        ValidationTemperaturesOutside,
+    )
     from hil.report.text import caution_text, conclusion_text
 
     verdict = {
@@ -258,16 +266,10 @@ def test_the_verdict_is_data_and_the_report_words_it():
         "ratio": 1.04,
         "map": None,
         "cautions": [
-            {
-                "kind": "validation_temperatures_outside",
-                "validate_c": [29.6, 29.7],
-                "training_c": [20.0, 22.7],
-            },
-            {
-                "kind": "ambiguous_effects",
-                "chosen": {"name": "cyclic", "joint": 4},
-                "confounded_with": {"name": "backlash", "joint": 4},
-            },
+            ValidationTemperaturesOutside(validate_c=[29.6, 29.7], training_c=[20.0, 22.7]),
+            AmbiguousEffects(
+                chosen={"name": "cyclic", "joint": 4}, confounded_with={"name": "backlash", "joint": 4}
+            ),
         ],
     }
     lines = conclusion_text(verdict, [{"name": "gravity_compliance", "joint": 2}]).splitlines()
@@ -277,21 +279,25 @@ def test_the_verdict_is_data_and_the_report_words_it():
     )
     assert "cyclic (joint 4) and backlash (joint 4) explain the same residual" in lines[2]
     assert len(lines) == 3
-    # every caution the diagnosis can raise has its words
-    source = (
-        pathlib.Path(__file__).resolve().parents[1] / "hil" / "analysis" / "diagnosis" / "pipeline.py"
-    ).read_text()
-    kinds = {
-        node.args[0].value
-        for node in ast.walk(ast.parse(source))
-        if isinstance(node, ast.Call) and getattr(node.func, "id", "") == "caution" and node.args
-    }
-    assert len(kinds) >= 8
-    for kind in kinds:
-        with pytest.raises(KeyError):  # worded: it reads its data (none given here)
-            caution_text({"kind": kind})
-    with pytest.raises(ValueError, match="no wording"):
-        caution_text({"kind": "made_up"})
+    # every kind of caution has its record, which serialises under its kind, and its own words
+    assert set(CAUTIONS) == set(CautionKind)
+    sample = {float: 1.5, str: "rejected", bool: False, dict: {"name": "cyclic", "joint": 4}}
+    texts = set()
+    for kind, record in CAUTIONS.items():
+        hints = typing.get_type_hints(record)
+        values = {}
+        for f in dataclasses.fields(record):
+            hint = hints[f.name]
+            origin = typing.get_origin(hint) or hint
+            if origin is list:
+                (item,) = typing.get_args(hint)
+                values[f.name] = [sample.get(item, 3), sample.get(item, 5)]
+            elif origin in sample:
+                values[f.name] = sample[origin]
+        caution = record(**values)
+        assert caution.to_dict()["kind"] == kind.value
+        texts.add(caution_text(caution))
+    assert len(texts) == len(CautionKind)
 
 
 def test_a_temperature_driven_thermal_candidate_goes_before_a_pose_effect_it_matches_per_parameter():

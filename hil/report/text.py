@@ -3,6 +3,19 @@ diagnosis returns its verdict as data; the wording is here (and the HTML page an
 
 from __future__ import annotations
 
+from hil.analysis.diagnosis.cautions import (
+    AmbiguousEffects,
+    CalibrationNote,
+    Caution,
+    FirstChoiceSetAside,
+    PreviousEffectsKept,
+    StageWorseThanPrevious,
+    ThermalPriorContradicted,
+    ValidationJointsOutside,
+    ValidationTemperaturesOutside,
+    ValidationUnrepresented,
+    ValidationWorseThanGeometric,
+)
 from hil.analysis.diagnosis.pipeline import DiagnosisReport
 from hil.analysis.diagnosis.screening import effect_label
 from hil.model.residual_maps import MAP_MODES
@@ -12,67 +25,67 @@ def _effect(e: dict) -> str:
     return effect_label(e["name"], e["joint"])
 
 
-def caution_text(c: dict) -> str:
-    """One caution of the verdict (`hil.analysis.diagnosis.baseline.caution`) in words."""
-    kind = c["kind"]
-    if kind == "calibration_note":
-        return c["text"]
-    if kind == "first_choice_set_aside":
-        return (
-            f"a first choice of {_effect(c['effect'])} led to a worse final model ({c['heldout_rms_mm']:.4f} vs "
-            f"{c['heldout_rms_without_mm']:.4f} mm held-out); it was set aside"
-        )
-    if kind == "previous_effects_kept":
-        return (
-            f"a selection that started from the earlier diagnosis' effects ({', '.join(_effect(e) for e in c['effects'])}) "
-            f"predicted held-out points better ({c['heldout_rms_kept_mm']:.4f} mm, p = {c['p_value']:.2g}) than one that "
-            f"dropped {', '.join(_effect(e) for e in c['dropped'])} ({c['heldout_rms_mm']:.4f} mm); it was kept"
-        )
-    if kind == "stage_worse_than_previous":
-        return f"stage '{c['stage']}' predicts held-out points worse than the stage before it ({c['rms_mm']:.4f} mm)"
-    if kind == "ambiguous_effects":
-        return (
-            f"on this data {_effect(c['chosen'])} and {_effect(c['confounded_with'])} explain the same residual; "
-            "the choice between them is not reliable (measure poses or approach directions that separate them, "
-            "e.g. a random visiting order)."
-        )
-    if kind == "validation_unrepresented":
-        v, h = c["validate_rms_mm"], c["heldout_rms_mm"]
-        return (
-            f"the validation campaign's RMS ({v:.4f} mm) is {v / h:.1f}x the held-out one: the training campaign "
-            "does not represent it (poses, visiting order, time, tracker placement), so an effect may be hidden "
-            "in the training data by another one; measure a campaign in a random order"
-            + ("" if c["reregistered"] else ", or re-register the base on it")
-        )
-    if kind == "validation_worse_than_geometric":
-        return (
-            f"on the validation campaign the final model ({c['final_rms_mm']:.4f} mm) predicts worse than the "
-            f"geometric one ({c['geometric_rms_mm']:.4f} mm): use the geometric model there"
-        )
-    if kind == "validation_temperatures_outside":
-        (vlo, vhi), (lo, hi) = c["validate_c"], c["training_c"]
-        return (
-            f"validation temperatures {vlo:.1f}..{vhi:.1f} C lie outside the training's {lo:.1f}..{hi:.1f} C: "
-            "the model extrapolates thermal effects (measure the training over the working temperatures)"
-        )
-    if kind == "thermal_prior_contradicted":
-        follows = (
-            "holds no growth (the recorded temperature follows something else: the air rather than the arm, a "
-            "drift in time)"
-            if c["standing"] == "rejected"
-            else "follows the data"
-        )
-        return (
-            f"the data make the links' thermal growth {c['data_per_k'] * 1e6:.1f} ppm/K, against the material's "
-            f"{c['material_per_k'] * 1e6:.1f} ppm/K in the robot file: the model {follows}; if the arm is of "
-            "another material, give its expansion_per_k in the robot file"
-        )
-    if kind == "validation_joints_outside":
-        return (
-            f"validation joint(s) {', '.join(map(str, c['joints']))} leave the training's range by more than "
-            f"{c['margin_deg']:g} deg: the model extrapolates there"
-        )
-    raise ValueError(f"no wording for the caution kind '{kind}'")
+def caution_text(c: Caution) -> str:
+    """One caution of the verdict (hil.analysis.diagnosis.cautions) in words."""
+    match c:
+        case CalibrationNote():
+            return c.text
+        case FirstChoiceSetAside():
+            return (
+                f"a first choice of {_effect(c.effect)} led to a worse final model ({c.heldout_rms_mm:.4f} vs "
+                f"{c.heldout_rms_without_mm:.4f} mm held-out); it was set aside"
+            )
+        case PreviousEffectsKept():
+            return (
+                f"a selection that started from the earlier diagnosis' effects ({', '.join(_effect(e) for e in c.effects)}) "
+                f"predicted held-out points better ({c.heldout_rms_kept_mm:.4f} mm, p = {c.p_value:.2g}) than one that "
+                f"dropped {', '.join(_effect(e) for e in c.dropped)} ({c.heldout_rms_mm:.4f} mm); it was kept"
+            )
+        case StageWorseThanPrevious():
+            return f"stage '{c.stage}' predicts held-out points worse than the stage before it ({c.rms_mm:.4f} mm)"
+        case AmbiguousEffects():
+            return (
+                f"on this data {_effect(c.chosen)} and {_effect(c.confounded_with)} explain the same residual; "
+                "the choice between them is not reliable (measure poses or approach directions that separate them, "
+                "e.g. a random visiting order)."
+            )
+        case ValidationUnrepresented():
+            v, h = c.validate_rms_mm, c.heldout_rms_mm
+            return (
+                f"the validation campaign's RMS ({v:.4f} mm) is {v / h:.1f}x the held-out one: the training campaign "
+                "does not represent it (poses, visiting order, time, tracker placement), so an effect may be hidden "
+                "in the training data by another one; measure a campaign in a random order"
+                + ("" if c.reregistered else ", or re-register the base on it")
+            )
+        case ValidationWorseThanGeometric():
+            return (
+                f"on the validation campaign the final model ({c.final_rms_mm:.4f} mm) predicts worse than the "
+                f"geometric one ({c.geometric_rms_mm:.4f} mm): use the geometric model there"
+            )
+        case ValidationTemperaturesOutside():
+            (vlo, vhi), (lo, hi) = c.validate_c, c.training_c
+            return (
+                f"validation temperatures {vlo:.1f}..{vhi:.1f} C lie outside the training's {lo:.1f}..{hi:.1f} C: "
+                "the model extrapolates thermal effects (measure the training over the working temperatures)"
+            )
+        case ThermalPriorContradicted():
+            follows = (
+                "holds no growth (the recorded temperature follows something else: the air rather than the arm, a "
+                "drift in time)"
+                if c.standing == "rejected"
+                else "follows the data"
+            )
+            return (
+                f"the data make the links' thermal growth {c.data_per_k * 1e6:.1f} ppm/K, against the material's "
+                f"{c.material_per_k * 1e6:.1f} ppm/K in the robot file: the model {follows}; if the arm is of "
+                "another material, give its expansion_per_k in the robot file"
+            )
+        case ValidationJointsOutside():
+            return (
+                f"validation joint(s) {', '.join(map(str, c.joints))} leave the training's range by more than "
+                f"{c.margin_deg:g} deg: the model extrapolates there"
+            )
+    raise ValueError(f"no wording for the caution kind '{c.kind}'")
 
 
 def conclusion(report: DiagnosisReport) -> str:

@@ -52,17 +52,27 @@ from scipy import stats
 from threadpoolctl import threadpool_limits
 
 from hil.analysis.calibration.noise_floor import TRACKER_MPE_M, NoiseFloor
-from hil.analysis.calibration.solve import CONFOUNDED_NOTE, Problem, confounded_pairs
+from hil.analysis.calibration.solve import CalibrationResult, Problem, confounded_note, confounded_pairs
 from hil.analysis.calibration.solve import reregister as reregister_model
 from hil.analysis.diagnosis.baseline import (
     Baseline,
     PhaseProgress,
     baseline_fit,
-    caution,
     error_stats,
     free_mask,
     quiet,
     registration,
+)
+from hil.analysis.diagnosis.cautions import (
+    AmbiguousEffects,
+    CalibrationNote,
+    Caution,
+    StageWorseThanPrevious,
+    ThermalPriorContradicted,
+    ValidationJointsOutside,
+    ValidationTemperaturesOutside,
+    ValidationUnrepresented,
+    ValidationWorseThanGeometric,
 )
 from hil.analysis.diagnosis.drift_monitor import reference_drift
 from hil.analysis.diagnosis.evidence import evidence
@@ -106,9 +116,7 @@ class DiagnosisReport:
     stages: list[dict]
     steps: list[Step]
     unexplained_structure: bool
-    verdict: (
-        dict  # residual ("floor" | "excess" | "local" | "structured"), ratio, map, cautions: report words it
-    )
+    verdict: dict  # residual ("floor" | "excess" | "local" | "structured"), ratio, map, cautions (records)
     residual_map: dict | None = None
     histograms: dict = field(default_factory=dict)  # stage -> held-out error norms (mm)
     final_round: list[Candidate] = field(default_factory=list)
@@ -169,7 +177,7 @@ class DiagnosisReport:
             "unexplained_structure": self.unexplained_structure,
             "noise_floor_mm": self.noise.floor_mm,
             "noise_floor_method": self.noise.method,
-            "verdict": self.verdict,
+            "verdict": {**self.verdict, "cautions": [c.to_dict() for c in self.verdict["cautions"]]},
             "steps": [s.to_dict() for s in self.steps],
             "final_round_candidates": [c.to_dict() for c in self.final_round],
             "ambiguities": self.ambiguities,
@@ -290,8 +298,7 @@ def run_diagnosis(
         report.gravity = gravity_summary(path.current, path.prob, alpha)
         if report.thermal and report.thermal["prior_contradicted"]:
             report.verdict["cautions"].append(
-                caution(
-                    "thermal_prior_contradicted",
+                ThermalPriorContradicted(
                     data_per_k=report.thermal.get("data_per_k", report.thermal["fitted_per_k"]),
                     material_per_k=report.thermal["material_per_k"],
                     standing=report.thermal["standing"],
@@ -320,19 +327,22 @@ def undecided_questions(df: pd.DataFrame, path: SelectionPath, alpha: float, sig
     return [q for q in found if id(q) not in decided]
 
 
-def without_decided_pairs(cautions: list[dict], undecided: list[dict]) -> list[dict]:
+def without_decided_pairs(cautions: list[Caution], undecided: list[dict]) -> list[Caution]:
     """The cautions less the geometric calibration's notes on confounded pairs that the final diagnosis does
     not leave open (its evidence separates them, or the final model no longer confounds them): the report
     must not call a pair unreliable that the open questions call decided."""
     open_pairs = {frozenset(q["parameters"]) for q in undecided if q["kind"] == "confounded_parameters"}
 
-    def decided(c: dict) -> bool:
-        if c["kind"] != "calibration_note" or not c["text"].startswith(CONFOUNDED_NOTE):
-            return False
-        words = c["text"].split()
-        return frozenset((words[1], words[3])) not in open_pairs
+    def decided(c: Caution) -> bool:
+        return isinstance(c, CalibrationNote) and c.pair is not None and frozenset(c.pair) not in open_pairs
 
     return [c for c in cautions if not decided(c)]
+
+
+def calibration_notes(result: CalibrationResult) -> list[CalibrationNote]:
+    """A geometric fit's notes as cautions, in its order; a note on a pair the fit confounds carries the pair."""
+    pairs = {confounded_note(a, b, c): (a, b) for a, b, c in result.confounded}
+    return [CalibrationNote(text=note, pair=pairs.get(note)) for note in result.notes]
 
 
 def _evaluate_stages(path: SelectionPath, tell: PhaseProgress = quiet) -> tuple[list[dict], dict, list[Step]]:
@@ -418,12 +428,10 @@ def _verdict(
     cautions = list(path.cautions)
     for st in stages:
         if st.get("worse_than_previous"):
-            cautions.append(caution("stage_worse_than_previous", stage=st["stage"], rms_mm=st["rms_mm"]))
+            cautions.append(StageWorseThanPrevious(stage=st["stage"], rms_mm=st["rms_mm"]))
     for amb in path.ambiguities:
-        cautions.append(
-            caution("ambiguous_effects", chosen=amb["chosen"], confounded_with=amb["confounded_with"])
-        )
-    cautions += [caution("calibration_note", text=note) for note in [*base.ridge.notes, *base.notes]]
+        cautions.append(AmbiguousEffects(chosen=amb["chosen"], confounded_with=amb["confounded_with"]))
+    cautions += calibration_notes(base.ridge) + [CalibrationNote(text=note) for note in base.notes]
     final_model.info["diagnosis"] = {
         "effects_added": [s.effect for s in steps],
         "noise_floor_mm": base.noise.floor_mm,
@@ -474,8 +482,7 @@ def _validate(
     valid = [st["rms_mm"] for st in report.stages if st["on"] == "validate"]
     if valid and valid[-1] > 1.5 * held[-1]:
         cautions.append(
-            caution(
-                "validation_unrepresented",
+            ValidationUnrepresented(
                 validate_rms_mm=valid[-1],
                 heldout_rms_mm=held[-1],
                 reregistered=reregister != "none",
@@ -483,20 +490,18 @@ def _validate(
         )
     geo = [st["rms_mm"] for st in report.stages if st["on"] == "validate" and st["stage"] == "kinematic"]
     if valid and geo and valid[-1] > geo[0] * 1.02:
-        cautions.append(
-            caution("validation_worse_than_geometric", final_rms_mm=valid[-1], geometric_rms_mm=geo[0])
-        )
+        cautions.append(ValidationWorseThanGeometric(final_rms_mm=valid[-1], geometric_rms_mm=geo[0]))
     cautions += extrapolation_warnings(df, df_val)
 
 
-def extrapolation_warnings(df: pd.DataFrame, df_val: pd.DataFrame) -> list[dict]:
+def extrapolation_warnings(df: pd.DataFrame, df_val: pd.DataFrame) -> list[Caution]:
     """Validation temperatures or joint ranges outside the training's (cautions): the model extrapolates."""
-    out = []
+    out: list[Caution] = []
     if "temperature_c" in df.columns and "temperature_c" in df_val.columns:
         lo, hi = float(df["temperature_c"].min()), float(df["temperature_c"].max())
         vlo, vhi = float(df_val["temperature_c"].min()), float(df_val["temperature_c"].max())
         if vlo < lo - 0.5 or vhi > hi + 0.5:
-            out.append(caution("validation_temperatures_outside", validate_c=[vlo, vhi], training_c=[lo, hi]))
+            out.append(ValidationTemperaturesOutside(validate_c=[vlo, vhi], training_c=[lo, hi]))
     q, qv = joints_rad(df), joints_rad(df_val)
     margin_deg = 5.0
     margin = np.deg2rad(margin_deg)
@@ -504,9 +509,7 @@ def extrapolation_warnings(df: pd.DataFrame, df_val: pd.DataFrame) -> list[dict]
         (qv.min(axis=0) < q.min(axis=0) - margin) | (qv.max(axis=0) > q.max(axis=0) + margin)
     )
     if outside.size:
-        out.append(
-            caution("validation_joints_outside", joints=[int(j + 1) for j in outside], margin_deg=margin_deg)
-        )
+        out.append(ValidationJointsOutside(joints=[int(j + 1) for j in outside], margin_deg=margin_deg))
     return out
 
 

@@ -21,7 +21,8 @@ from hil.analysis.calibration.solve import (
     flatten_jacobian,
     parameter_correlations,
 )
-from hil.analysis.diagnosis.baseline import Baseline, caution, error_stats, fit_plain, free_mask
+from hil.analysis.diagnosis.baseline import Baseline, error_stats, fit_plain, free_mask
+from hil.analysis.diagnosis.cautions import Caution, FirstChoiceSetAside, PreviousEffectsKept
 from hil.analysis.diagnosis.reclaim import reclaimed
 from hil.analysis.diagnosis.rivals import compare_with_rivals, rivals_in_round
 from hil.analysis.diagnosis.screening import (
@@ -133,8 +134,7 @@ def select_effects(
         rms_mm = [float(np.sqrt(np.mean(e))) * 1000.0 for e in errors]
         if rms_mm[1] < 0.95 * rms_mm[0]:
             other.cautions.append(
-                caution(
-                    "first_choice_set_aside",
+                FirstChoiceSetAside(
                     effect={"name": first[0], "joint": first[1]},
                     heldout_rms_mm=rms_mm[0],
                     heldout_rms_without_mm=rms_mm[1],
@@ -159,7 +159,7 @@ class SelectionPath:
     ambiguities: list[dict]
     final_round: list[Candidate]
     banned: set
-    cautions: list[dict] = field(default_factory=list)  # see `caution`
+    cautions: list[Caution] = field(default_factory=list)
     cv_final: np.ndarray | None = None  # held-out residuals of the last stage (step 3)
 
     @property
@@ -377,8 +377,7 @@ def keep_previous(
     if gain <= 0 or set(other.effects) == set(path.effects):
         return path
     other.cautions.append(
-        caution(
-            "previous_effects_kept",
+        PreviousEffectsKept(
             effects=[{"name": n, "joint": j} for n, j in keys],
             dropped=[{"name": n, "joint": j} for n, j in keys if (n, j) not in path.effects],
             heldout_rms_mm=float(np.sqrt(np.mean(errors[0]))) * 1000.0,
