@@ -109,7 +109,7 @@ def test_true_effects_stay_named_after_single_joint_sweeps(two_on_joint2, longer
     # on the grid alone joint 2's errors are not told apart: beside its gravity yield (physics from the UR10's
     # link masses) neither the cyclic error nor the backlash is named, and its scale is an open question
     assert not _named(first) >= TRUE_JOINT2
-    assert any(q["effect"] == {"name": "joint_scale", "joint": 2} for q in first.undecided if "effect" in q)
+    assert any(getattr(q, "effect", None) == {"name": "joint_scale", "joint": 2} for q in first.undecided)
     assert "sweep_j2" in plan.purpose
     # sweeps held out as arcs scored every effect as a loss: nothing at all was named on the longer campaign
     assert _named(longer_diagnosed) >= {("backlash", 2), ("gravity_compliance", 2)}

@@ -17,6 +17,19 @@ from hil.analysis.diagnosis.cautions import (
     ValidationWorseThanGeometric,
 )
 from hil.analysis.diagnosis.pipeline import DiagnosisReport
+from hil.analysis.diagnosis.questions import AmbiguousEffects as AmbiguousQuestion
+from hil.analysis.diagnosis.questions import (
+    ConfoundedParameters,
+    ConfoundedWithGeometry,
+    DriftUnmonitored,
+    Marginal,
+    OneApproachDirection,
+    PeriodNotCovered,
+    Question,
+    TemperatureNotSpanned,
+    ThermalRivals,
+    as_question,
+)
 from hil.analysis.diagnosis.screening import effect_label
 from hil.model.residual_maps import MAP_MODES
 
@@ -206,49 +219,55 @@ def z_text(z: float, decisive: float) -> str:
     return f"{z:.3g}" if short == f"{decisive:.2g}" and z != decisive else short
 
 
-def question_text(q: dict) -> str:
-    """One open question of the diagnosis (hil.analysis.diagnosis.questions) in words: what is undecided and why."""
-    kind = q["kind"]
-    eff = q.get("effect") or {}
-    if kind == "period_not_covered":
-        return (
-            f"a once-per-turn error of joint {eff['joint']}: its sampled range covers {q['range_deg']:.0f} deg, "
-            f"a test needs {q['needs_deg']:.0f} (over a shorter arc it looks like geometry)"
-        )
-    if kind == "one_approach_direction":
-        return (
-            f"backlash of joint {eff['joint']}: {q['rows_up']} rows approached it from below, {q['rows_down']} "
-            f"from above; a test needs {q['needs_rows']} each way"
-        )
-    if kind == "drift_unmonitored":
-        return (
-            f"drift of the cell over time: {q['revisited_poses']} poses were measured again late in the campaign, "
-            f"{q['needs_poses']} are needed"
-        )
-    if kind == "temperature_not_spanned":
-        if not q["recorded"]:
-            return "thermal growth: the campaign records no temperature; poses cannot decide it"
-        return (
-            f"thermal growth: the temperature spans {q['span_k']:.2f} K (needs {q['needs_k']:.0f} K); poses cannot "
-            "decide it, a run at another temperature can"
-        )
-    z = q.get("evidence_z")
-    ev = "" if z is None else f" (evidence z {z_text(z, q['decisive_z'])}, decided at {q['decisive_z']:.2g})"
-    if kind == "marginal":
-        return f"{_effect(eff)}: marginal, held-out p = {q['p_cv']:.2g}{ev}"
-    if kind == "confounded_with_geometry":
-        return f"{_effect(eff)}: the geometry imitates it on these poses{ev}"
-    if kind == "ambiguous_effects":
-        return f"{_effect(eff)} or {_effect(q['rival'])}: both explain the same residual{ev}"
-    if kind == "thermal_rivals":
-        return (
-            f"the tracker's scale or the links' growth: over {q['span_k']:.2g} K the growth may have taken the "
-            f"tracker's stretch (about the tracker, not the base){ev}"
-        )
-    if kind == "confounded_parameters":
-        a, b = q["parameters"]
-        return f"{a} and {b} correlate {q['correlation']:+.3f}: each alone is unreliable{ev}"
-    return kind
+def question_text(q: Question | dict) -> str:
+    """One open question of the diagnosis (hil.analysis.diagnosis.questions) in words: what is undecided and why
+    (a question read from a campaign's records, a dict, is read back first)."""
+    q = as_question(q)
+    match q:
+        case PeriodNotCovered():
+            return (
+                f"a once-per-turn error of joint {q.effect['joint']}: its sampled range covers {q.range_deg:.0f} deg, "
+                f"a test needs {q.needs_deg:.0f} (over a shorter arc it looks like geometry)"
+            )
+        case OneApproachDirection():
+            return (
+                f"backlash of joint {q.effect['joint']}: {q.rows_up} rows approached it from below, {q.rows_down} "
+                f"from above; a test needs {q.needs_rows} each way"
+            )
+        case DriftUnmonitored():
+            return (
+                f"drift of the cell over time: {q.revisited_poses} poses were measured again late in the campaign, "
+                f"{q.needs_poses} are needed"
+            )
+        case TemperatureNotSpanned():
+            if not q.recorded:
+                return "thermal growth: the campaign records no temperature; poses cannot decide it"
+            return (
+                f"thermal growth: the temperature spans {q.span_k:.2f} K (needs {q.needs_k:.0f} K); poses cannot "
+                "decide it, a run at another temperature can"
+            )
+    z, decisive = q.evidence_z, q.decisive_z
+    ev = (
+        ""
+        if z is None or decisive is None
+        else f" (evidence z {z_text(z, decisive)}, decided at {decisive:.2g})"
+    )
+    match q:
+        case Marginal():
+            return f"{_effect(q.effect)}: marginal, held-out p = {q.p_cv:.2g}{ev}"
+        case ConfoundedWithGeometry():
+            return f"{_effect(q.effect)}: the geometry imitates it on these poses{ev}"
+        case AmbiguousQuestion():
+            return f"{_effect(q.effect)} or {_effect(q.rival)}: both explain the same residual{ev}"
+        case ThermalRivals():
+            return (
+                f"the tracker's scale or the links' growth: over {q.span_k:.2g} K the growth may have taken the "
+                f"tracker's stretch (about the tracker, not the base){ev}"
+            )
+        case ConfoundedParameters():
+            a, b = q.parameters
+            return f"{a} and {b} correlate {q.correlation:+.3f}: each alone is unreliable{ev}"
+    return q.kind.value
 
 
 def undecided_text(report: DiagnosisReport) -> str:
@@ -262,9 +281,9 @@ def undecided_text(report: DiagnosisReport) -> str:
 
 def group_text(group: dict) -> str:
     """What one group of a plan's rows should decide."""
-    q = group["question"]
+    q = as_question(group["question"])
     what = question_text(q).split(":")[0]
-    if q["kind"] == "period_not_covered":
+    if isinstance(q, PeriodNotCovered):
         extra = f", joint range {group['range_after_deg']:.0f} deg after" + (
             " (and back down: backlash)" if group.get("also") else ""
         )

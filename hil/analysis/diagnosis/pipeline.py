@@ -43,7 +43,7 @@ not on spatial ones) is not added: the verdict calls the structure local.
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -84,7 +84,7 @@ from hil.analysis.diagnosis.physics_terms import (
     material_decision,
     thermal_summary,
 )
-from hil.analysis.diagnosis.questions import open_questions
+from hil.analysis.diagnosis.questions import ConfoundedParameters, Question, open_questions
 from hil.analysis.diagnosis.screening import Candidate, held_out_gain
 from hil.analysis.diagnosis.selection import (
     SelectionPath,
@@ -121,7 +121,9 @@ class DiagnosisReport:
     histograms: dict = field(default_factory=dict)  # stage -> held-out error norms (mm)
     final_round: list[Candidate] = field(default_factory=list)
     ambiguities: list[dict] = field(default_factory=list)  # effects this data could not tell apart
-    undecided: list[dict] = field(default_factory=list)  # open questions (hil.analysis.diagnosis.questions)
+    undecided: list[Question] = field(
+        default_factory=list
+    )  # open questions (hil.analysis.diagnosis.questions)
     plan: dict | None = None  # the proposed measurements' groups (hil.analysis.design.plan.Proposal.to_dict)
     run: dict = field(default_factory=dict)  # robot, input files (hash, rows), date, software version
     thermal: dict | None = None  # the material's thermal growth, fitted against its prior (`thermal_summary`)
@@ -181,7 +183,7 @@ class DiagnosisReport:
             "steps": [s.to_dict() for s in self.steps],
             "final_round_candidates": [c.to_dict() for c in self.final_round],
             "ambiguities": self.ambiguities,
-            "undecided": self.undecided,
+            "undecided": [q.to_dict() for q in self.undecided],
             "plan": self.plan,
             "thermal": self.thermal,
             "gravity": self.gravity,
@@ -313,25 +315,26 @@ def run_diagnosis(
         return report
 
 
-def undecided_questions(df: pd.DataFrame, path: SelectionPath, alpha: float, sigma_m: float) -> list[dict]:
+def undecided_questions(
+    df: pd.DataFrame, path: SelectionPath, alpha: float, sigma_m: float
+) -> list[Question]:
     """What the campaign leaves undecided (hil.analysis.diagnosis.questions); a statistical question whose evidence
     already passes hil.analysis.design.plan's threshold is decided and left out."""
     pairs = confounded_pairs(path.current, path.prob)
     found = open_questions(df, path.final_round, path.ambiguities, pairs, alpha, path.current.model.effects)
-    decided = set()
-    for ev in evidence(df, path.current.model, found, sigma_m):
-        ev["question"]["evidence_z"] = ev["evidence_z"]
-        ev["question"]["decisive_z"] = ev["decisive_z"]
-        if ev["evidence_z"] is not None and ev["evidence_z"] >= ev["decisive_z"]:
-            decided.add(id(ev["question"]))
-    return [q for q in found if id(q) not in decided]
+    weighed = {
+        id(ev["question"]): replace(ev["question"], evidence_z=ev["evidence_z"], decisive_z=ev["decisive_z"])
+        for ev in evidence(df, path.current.model, found, sigma_m)
+    }
+    out = [weighed.get(id(q), q) for q in found]
+    return [q for q in out if q.evidence_z is None or q.decisive_z is None or q.evidence_z < q.decisive_z]
 
 
-def without_decided_pairs(cautions: list[Caution], undecided: list[dict]) -> list[Caution]:
+def without_decided_pairs(cautions: list[Caution], undecided: list[Question]) -> list[Caution]:
     """The cautions less the geometric calibration's notes on confounded pairs that the final diagnosis does
     not leave open (its evidence separates them, or the final model no longer confounds them): the report
     must not call a pair unreliable that the open questions call decided."""
-    open_pairs = {frozenset(q["parameters"]) for q in undecided if q["kind"] == "confounded_parameters"}
+    open_pairs = {frozenset(q.parameters) for q in undecided if isinstance(q, ConfoundedParameters)}
 
     def decided(c: Caution) -> bool:
         return isinstance(c, CalibrationNote) and c.pair is not None and frozenset(c.pair) not in open_pairs
