@@ -373,7 +373,7 @@ def test_held_out_fit_holds_out_every_coordinate_of_a_row_position_and_rotation(
 def test_plot_headings_are_unique_when_one_effect_is_added_at_two_joints():
     from types import SimpleNamespace
 
-    from hil.analysis.diagnosis.pipeline import Step
+    from hil.analysis.diagnosis.selection import Step, StepAction
     from hil.report.html import _plots
 
     plot = {
@@ -382,11 +382,10 @@ def test_plot_headings_are_unique_when_one_effect_is_added_at_two_joints():
         "residual_after_mm": [0.0] * 4,
         "driver_label": "torque (N m)",
     }
-    steps = [
-        Step({"name": "gravity_compliance", "joint": j}, [], {}, {}, [], [], [], plot=plot) for j in (2, 3)
-    ]
+    empty: dict = {"parameters": [], "candidates": [], "merged": [], "correlations": [], "plot": plot}
+    steps = [Step(effect={"name": "gravity_compliance", "joint": j}, **empty) for j in (2, 3)]
     steps.append(
-        Step({"name": "cyclic", "joint": 2}, [], {}, {}, [], [], [], plot=plot, action="replaced",
+        Step(effect={"name": "cyclic", "joint": 2}, **empty, action=StepAction.REPLACED,
              replaces={"name": "cyclic", "joint": 3})
     )  # fmt: skip
     titles = [title for title, _ in _plots(SimpleNamespace(steps=steps, histograms={}))]
@@ -417,3 +416,21 @@ def test_effect_coefficients_carry_their_units_into_the_report(gravity_cell_diag
         "std": None,
         "unit": "ppm/K",
     }
+
+
+def test_a_step_is_written_out_as_the_report_held_it():
+    """A selection step is a record with an enum action; report.json holds it as the dict it always did: its
+    fields in order, the action as its word, the candidates as data."""
+    from hil.analysis.diagnosis.selection import Step, StepAction
+
+    step = Step(
+        effect={"name": "backlash", "joint": 4}, parameters=[], candidates=[], merged=[], correlations=[],
+        action=StepAction.REMOVED,
+    )  # fmt: skip
+    d = step.to_dict()
+    assert list(d) == [
+        "effect", "parameters", "heldout_before", "heldout_after", "candidates", "merged", "correlations",
+        "plot", "action", "summary", "replaces", "rival_tests",
+    ]  # fmt: skip
+    assert d["action"] == "removed" and type(d["action"]) is str
+    assert step.title() == "removed backlash joint 4"

@@ -89,6 +89,7 @@ from hil.analysis.diagnosis.screening import Candidate, held_out_gain
 from hil.analysis.diagnosis.selection import (
     SelectionPath,
     Step,
+    StepAction,
     cv_positions,
     effect_displacement,
     keep_previous,
@@ -368,10 +369,10 @@ def _evaluate_stages(path: SelectionPath, tell: PhaseProgress = quiet) -> tuple[
         hist[label] = (np.linalg.norm(cv, axis=1) * 1000).tolist()
     tell("held-out figures of every stage", len(path.stage_models), len(path.stage_models))
     steps: list[Step] = []
-    for k, info in enumerate(path.pending):
+    for k, taken in enumerate(path.pending):
         before, after = cv_by_stage[path.first_step + k], cv_by_stage[path.first_step + k + 1]
         plot = {}
-        if info.get("action", "added") in ("added", "replaced"):
+        if taken.action is not StepAction.REMOVED:
             stage_model = path.stage_models[path.first_step + k + 1][1]
             eff_index = len(stage_model.effects) - 1
             disp = effect_displacement(stage_model, path.prob, eff_index)
@@ -385,7 +386,7 @@ def _evaluate_stages(path: SelectionPath, tell: PhaseProgress = quiet) -> tuple[
                 "residual_after_mm": (np.sum(after * u, axis=1) * 1000).tolist(),
             }
         steps.append(
-            Step(heldout_before=error_stats(before), heldout_after=error_stats(after), plot=plot, **info)
+            replace(taken, heldout_before=error_stats(before), heldout_after=error_stats(after), plot=plot)
         )
     path.cv_final = cv_by_stage[-1]
     return stages, hist, steps
