@@ -208,7 +208,6 @@ def test_a_confounded_pair_the_evidence_decided_is_no_longer_called_unreliable()
     from hil.analysis.calibration.solve import confounded_note
     from hil.analysis.diagnosis.cautions import AmbiguousEffects, CalibrationNote
     from hil.analysis.diagnosis.pipeline import without_decided_pairs
-    from hil.analysis.diagnosis.questions import question
 
     cautions = [
         CalibrationNote(text=confounded_note("theta5", "a5", 0.99), pair=("theta5", "a5")),
@@ -216,7 +215,7 @@ def test_a_confounded_pair_the_evidence_decided_is_no_longer_called_unreliable()
         CalibrationNote(text="outlier region: 3 flagged rows"),
         AmbiguousEffects(chosen={}, confounded_with={}),
     ]
-    still_open = [question("confounded_parameters", parameters=["a5", "theta5"], correlation=0.99)]
+    still_open = [ConfoundedParameters(parameters=["a5", "theta5"], correlation=0.99)]
     kept = without_decided_pairs(cautions, still_open)
     assert [c.to_dict().get("text", c.kind)[:22] for c in kept] == [
         "confounded: theta5 and",

@@ -31,6 +31,10 @@ The last five are decided when the campaign separates the rivals: hil.analysis.d
 marginal candidate the full fit finds, whose evidence is the held-out test's z (below the test's own level by
 definition), so that it stays open until the selection's own test decides it.
 
+Each kind is a record class (`QuestionKind`, `QUESTIONS`); the campaign's records and report.json hold a
+question as a dict (`Question.to_dict`: kind, plannable, its fields, its evidence once weighed), read back with
+`question_from_dict`.
+
 Thermal questions are kinds like the others, so a later physical treatment of temperature adds its own
 rivals (arm growth against the tracker's air-temperature scale) without changing this contract.
 """
@@ -227,15 +231,10 @@ def question_from_dict(data: dict) -> Question:
     return cls(**{f.name: data[f.name] for f in fields(cls) if f.name in data})
 
 
-def question(kind: str, **data: Any) -> Question:
-    """A question of `kind` with its fields (tests and tools that write one out by hand)."""
-    return QUESTIONS[QuestionKind(kind)](**data)
-
-
 def with_questions(entry: dict, convert: Callable[[Any], Any]) -> dict:
     """`entry` (a plan group, a question not planned, a settled question) with the questions it holds (under
     `question`, `also_question`, `now`) passed through `convert`: `question_to_dict` at the edge where it is
-    stored, `question_from_dict` where it is read back."""
+    stored, `as_question` where it is read back."""
     return {k: convert(v) if k in _HOLDS_QUESTIONS and v is not None else v for k, v in entry.items()}
 
 
