@@ -128,7 +128,7 @@ def run(
         if propose_n:
             sigma = float(np.sqrt(np.mean(report.noise.sigma_axis_m**2)))
             plan = propose(data[train], report.model, report.undecided, propose_n, sigma)
-            kinds = ", ".join(sorted({q["kind"] for q in report.undecided})) or "none"
+            kinds = ", ".join(sorted({q.kind.value for q in report.undecided})) or "none"
             print(f"      open questions: {kinds}")
             for g in plan.groups:
                 extra = (
@@ -138,7 +138,7 @@ def run(
                 )
                 print(f"      plan {g['purpose']}: {g['rows']} rows{extra}")
             for g in plan.not_planned:
-                qu = g["question"]
+                qu = g["question"].to_dict()
                 about = qu.get("effect") or qu.get("parameters")
                 print(f"      not planned {qu['kind']} {about}: {g['why']}")
             print(f"      plan rows: {len(plan.purpose)} of at most {propose_n}")

@@ -35,6 +35,7 @@ from hil.analysis.design.rounds import (
     still_to_measure,
 )
 from hil.analysis.diagnosis.pipeline import DiagnosisOptions, DiagnosisReport, run_diagnosis
+from hil.analysis.diagnosis.questions import as_question, question_to_dict, with_questions
 from hil.data.dataset import DatasetError
 from hil.data.jsonable import to_jsonable
 from hil.data.store import CampaignStore, campaign_dataset
@@ -79,7 +80,7 @@ def model_path_for(campaign: Path) -> Path:
 @dataclass(frozen=True)
 class _Rows:
     """The next round's poses: joints (M, 6) in measurement order, each row's purpose, the plan's groups,
-    the open questions it does not serve (and why), `keep`: the rows the cell can measure now, and `block`:
+    the open questions it does not serve (and why; the questions as records, a resumed round's read back), `keep`: the rows the cell can measure now, and `block`:
     the rows measured between two judgements (the plan's order was built for it, so a resumed round keeps it
     whatever --block says now: its recorded judgements name blocks of that size)."""
 
@@ -92,9 +93,12 @@ class _Rows:
     block: int
 
     def to_dict(self) -> dict:
+        """The plan as the campaign records it (`roundN/plan`), each question as stored."""
+        groups = [with_questions(g, question_to_dict) for g in self.groups]
+        not_planned = [with_questions(n, question_to_dict) for n in self.not_planned]
         return {
-            "q_rad": self.q_rad.round(12).tolist(), "purpose": self.purpose, "groups": self.groups,
-            "not_planned": self.not_planned, "block": self.block,
+            "q_rad": self.q_rad.round(12).tolist(), "purpose": self.purpose, "groups": groups,
+            "not_planned": not_planned, "block": self.block,
         }  # fmt: skip
 
 
@@ -194,8 +198,8 @@ class _Campaign:
                 number,
                 q,
                 list(pinned["purpose"]),
-                list(pinned["groups"]),
-                list(pinned.get("not_planned", [])),
+                [with_questions(g, as_question) for g in pinned["groups"]],
+                [with_questions(n, as_question) for n in pinned.get("not_planned", [])],
                 admissible(q),
                 int(pinned.get("block", block)),
             )

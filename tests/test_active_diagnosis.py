@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pandas as pd
@@ -14,7 +15,15 @@ from fakes.campaign import simulate_campaign
 from fakes.cell import SimCellConfig, SimulatedCell
 from hil.analysis.design.plan import propose
 from hil.analysis.diagnosis.pipeline import run_diagnosis
-from hil.analysis.diagnosis.questions import coverage_questions
+from hil.analysis.diagnosis.questions import (
+    ConfoundedParameters,
+    ConfoundedWithGeometry,
+    DriftUnmonitored,
+    Marginal,
+    OneApproachDirection,
+    PeriodNotCovered,
+    coverage_questions,
+)
 
 JOINT_COLUMNS = [f"q{j}_rad" for j in range(1, 7)]
 
@@ -39,7 +48,7 @@ def test_loop_decides_the_once_per_turn_error_the_first_campaign_could_not(first
     cell, train = first
     report = run_diagnosis(train, "ur10")
     assert ("cyclic", 1) not in _named(report)
-    kinds = {(q["kind"], (q.get("effect") or {}).get("joint")) for q in report.undecided}
+    kinds = {(q.kind, (getattr(q, "effect", None) or {}).get("joint")) for q in report.undecided}
     assert ("period_not_covered", 1) in kinds
     sigma = float(np.sqrt(np.mean(report.noise.sigma_axis_m**2)))
     plan = propose(train, report.model, report.undecided, 100, sigma)
@@ -49,7 +58,7 @@ def test_loop_decides_the_once_per_turn_error_the_first_campaign_could_not(first
     assert more["t_s"].min() > train["t_s"].max()
     longer = pd.concat([train, more], ignore_index=True)
     again = run_diagnosis(longer, "ur10", previous_effects=report.effects_added)
-    still = {(q["kind"], (q.get("effect") or {}).get("joint")) for q in again.undecided}
+    still = {(q.kind, (getattr(q, "effect", None) or {}).get("joint")) for q in again.undecided}
     assert ("period_not_covered", 1) not in still
     assert ("drift_unmonitored", None) not in still  # the plan's revisits settle it
     if ("cyclic", 1) not in _named(again):  # its test leans but has not decided: a second round serves it
@@ -77,8 +86,7 @@ def test_sweep_rows_are_in_motion_order_and_revisits_come_last(first):
 
 def test_backlash_rows_approach_from_both_sides(first):
     _, train = first
-    q = {"kind": "one_approach_direction", "plannable": True, "effect": {"name": "backlash", "joint": 2},
-         "rows_up": 0, "rows_down": 40, "needs_rows": 5}  # fmt: skip
+    q = OneApproachDirection(effect={"name": "backlash", "joint": 2}, rows_up=0, rows_down=40, needs_rows=5)
     plan = propose(train, _model(train), [q], 20, 1e-5)
     j2 = plan.frame()["q2_rad"].to_numpy()
     step = np.diff(j2)
@@ -97,7 +105,7 @@ def test_plan_respects_the_budget_and_the_admissible_set(first):
 
 def test_nothing_plannable_gives_a_header_only_plan(first):
     _, train = first
-    only = [q for q in coverage_questions(train) if not q["plannable"]]
+    only = [q for q in coverage_questions(train) if not q.plannable]
     plan = propose(train, _model(train), only, 10, 1e-5)
     df = plan.frame()
     assert list(df.columns) == [*JOINT_COLUMNS, "purpose"] and len(df) == 0
@@ -187,34 +195,29 @@ def test_a_cell_of_another_robot_is_refused(campaign_csv, tmp_path, capsys):
 def test_settled_says_which_questions_a_longer_campaign_decided():
     from hil.analysis.diagnosis.questions import settled
 
-    a = {"kind": "period_not_covered", "plannable": True, "effect": {"name": "cyclic", "joint": 1}}
-    b = {
-        "kind": "confounded_parameters",
-        "plannable": True,
-        "parameters": ["theta5", "a5"],
-        "correlation": 0.99,
-    }
-    out = settled([a, b], [dict(b, correlation=0.97)], [{"name": "cyclic", "joint": 1}])
+    a = PeriodNotCovered(effect={"name": "cyclic", "joint": 1}, range_deg=80.0, needs_deg=288.0)
+    b = ConfoundedParameters(parameters=["theta5", "a5"], correlation=0.99)
+    out = settled([a, b], [replace(b, correlation=0.97)], [{"name": "cyclic", "joint": 1}])
     assert out[0]["decided"] and out[0]["present"]
-    assert not out[1]["decided"] and out[1]["now"]["correlation"] == 0.97
+    assert not out[1]["decided"] and out[1]["now"].correlation == 0.97
 
 
 def test_a_confounded_pair_the_evidence_decided_is_no_longer_called_unreliable():
     """The demo said 'd5 and alpha5 ... decided' in its round and 'confounded: d5 and alpha5 ... unreliable'
     in its conclusion: a calibration note on a pair only stays while the pair is an open question."""
+    from hil.analysis.calibration.solve import confounded_note
+    from hil.analysis.diagnosis.cautions import AmbiguousEffects, CalibrationNote
     from hil.analysis.diagnosis.pipeline import without_decided_pairs
-    from hil.analysis.diagnosis.questions import question
 
-    note = "confounded: {} and {} correlate +0.990 on these poses; each alone is unreliable (their combination is)"
     cautions = [
-        {"kind": "calibration_note", "text": note.format("theta5", "a5")},
-        {"kind": "calibration_note", "text": note.format("d5", "alpha5")},
-        {"kind": "calibration_note", "text": "outlier region: 3 flagged rows"},
-        {"kind": "ambiguous_effects", "chosen": {}, "confounded_with": {}},
+        CalibrationNote(text=confounded_note("theta5", "a5", 0.99), pair=("theta5", "a5")),
+        CalibrationNote(text=confounded_note("d5", "alpha5", 0.99), pair=("d5", "alpha5")),
+        CalibrationNote(text="outlier region: 3 flagged rows"),
+        AmbiguousEffects(chosen={}, confounded_with={}),
     ]
-    still_open = [question("confounded_parameters", parameters=["a5", "theta5"], correlation=0.99)]
+    still_open = [ConfoundedParameters(parameters=["a5", "theta5"], correlation=0.99)]
     kept = without_decided_pairs(cautions, still_open)
-    assert [c.get("text", c["kind"])[:22] for c in kept] == [
+    assert [c.to_dict().get("text", c.kind)[:22] for c in kept] == [
         "confounded: theta5 and",
         "outlier region: 3 flag",
         "ambiguous_effects",
@@ -255,8 +258,8 @@ def test_a_marginal_effect_the_full_fit_finds_stays_open_until_its_own_test_deci
         passed=False,
     )
     leaning, weak = (selection_questions([c], [], 1e-3)[0] for c in (found, unseen))
-    assert leaning["kind"] == weak["kind"] == "marginal"
-    assert leaning["full_fit_passed"] and not weak["full_fit_passed"]
+    assert isinstance(leaning, Marginal) and isinstance(weak, Marginal)
+    assert leaning.full_fit_passed and not weak.full_fit_passed
     # sigma 1 um: a campaign whose design precision is ample for a relevant-sized coefficient
     by_test, by_design = evidence(train, model, [leaning, weak], 1e-6)
     assert (
@@ -348,7 +351,7 @@ def test_a_candidate_the_full_fit_finds_stays_a_question_beyond_the_marginal_ban
         passed=False,
     )  # held-out error rose
     (q,) = selection_questions([found], [], 1e-3)
-    assert q["kind"] == "marginal" and q["full_fit_passed"]
+    assert isinstance(q, Marginal) and q.full_fit_passed
     assert selection_questions([unseen], [], 1e-3) == []
     assert selection_questions([worse], [], 1e-3) == []
 
@@ -371,12 +374,16 @@ def test_a_block_judgement_keeps_only_rows_whose_questions_are_open():
     from types import SimpleNamespace
 
     from hil.analysis.design.rounds import block_record, plan_blocks, still_to_measure
-    from hil.analysis.diagnosis.questions import question
 
-    period = question("period_not_covered", effect={"name": "cyclic", "joint": 2})
-    one_way = question("one_approach_direction", effect={"name": "backlash", "joint": 2})
-    leaning = question("marginal", effect={"name": "cyclic", "joint": 1}, p_cv=0.003, full_fit_passed=True)
-    drift = question("drift_unmonitored", effect={"name": "thermal_drift", "joint": None})
+    period = PeriodNotCovered(effect={"name": "cyclic", "joint": 2}, range_deg=80.0, needs_deg=288.0)
+    one_way = OneApproachDirection(
+        effect={"name": "backlash", "joint": 2}, rows_up=9, rows_down=0, needs_rows=5
+    )
+    cyclic1 = {"name": "cyclic", "joint": 1}
+    leaning = Marginal(effect=cyclic1, p_cv=0.003, p_chi2=1e-9, full_fit_passed=True)
+    drift = DriftUnmonitored(
+        effect={"name": "thermal_drift", "joint": None}, revisited_poses=0, needs_poses=4, gap="t_s"
+    )
     groups = [
         {"purpose": "sweep_j2", "question": period, "also": "backlash_j2", "also_question": one_way},
         {"purpose": "separate_cyclic_j1", "question": leaning},
@@ -386,13 +393,13 @@ def test_a_block_judgement_keeps_only_rows_whose_questions_are_open():
     assert [b.tolist() for b in plan_blocks(len(purpose), 4)] == [[0, 1, 2, 3], [4, 5, 6, 7], [8, 9, 10]]
     # the sweep covered the period but backlash is still one-sided; the leaning effect was named
     after = SimpleNamespace(
-        undecided=[dict(one_way), dict(drift)], effects_added=[{"name": "cyclic", "joint": 1}]
+        undecided=[replace(one_way, rows_up=2), drift], effects_added=[{"name": "cyclic", "joint": 1}]
     )
     judged = block_record(1, 4, groups, after)
     assert judged["open"] == ["revisit", "sweep_j2"]
     assert still_to_measure(purpose, judged).tolist() == [True] * 4 + [False] * 5 + [True] * 2
     # the block's rows turned the leaning effect into one the geometry imitates: still open, its rows stay
-    imitated = question("confounded_with_geometry", effect={"name": "cyclic", "joint": 1})
+    imitated = ConfoundedWithGeometry(effect=cyclic1, correlation=0.99, note="collinear with the geometry")
     again = block_record(1, 4, groups, SimpleNamespace(undecided=[imitated], effects_added=[]))
     assert again["open"] == ["separate_cyclic_j1"]
     done = block_record(2, 8, groups, SimpleNamespace(undecided=[], effects_added=[]))
@@ -402,10 +409,9 @@ def test_a_block_judgement_keeps_only_rows_whose_questions_are_open():
 
 
 def test_a_round_in_words_says_which_rows_it_did_not_need_and_what_each_block_left_open():
-    from hil.analysis.diagnosis.questions import question
     from hil.report.rounds import round_text
 
-    q = question("period_not_covered", effect={"name": "cyclic", "joint": 2}, range_deg=80.0, needs_deg=288.0)
+    q = PeriodNotCovered(effect={"name": "cyclic", "joint": 2}, range_deg=80.0, needs_deg=288.0)
     block = {"block": 1, "rows": 25, "open": [], "effects": [{"name": "cyclic", "joint": 2}]}
     measured = {"planned": 40, "poses": 25, "unmeasurable": 3, "not_needed": 12, "blocks": [block],
                 "groups": [{"purpose": "sweep_j2", "rows": 12, "question": q, "range_after_deg": 340.0}],
@@ -426,3 +432,54 @@ def test_a_round_in_words_says_which_rows_it_did_not_need_and_what_each_block_le
     assert "25 poses measured of 40 planned (3 not measurable" in text
     assert "12 not needed: their questions were decided before they came up" in text
     assert "after block 1 (25 poses): effects cyclic j2; still to measure: nothing" in text
+
+
+def test_a_question_as_a_campaign_stored_it_reads_back_and_is_written_out_the_same():
+    """Questions are records in the program and dicts in a campaign's records (a round's plan, its record) and
+    report.json: what a campaign written before holds reads back to the record that writes the same dict."""
+    from hil.analysis.diagnosis.questions import QUESTIONS, QuestionKind, question_from_dict
+
+    stored = [  # as main wrote them before questions were records
+        {"kind": "period_not_covered", "plannable": True, "effect": {"name": "cyclic", "joint": 1},
+         "range_deg": 80.0, "needs_deg": 288.0},
+        {"kind": "temperature_not_spanned", "plannable": False, "effect": {"name": "thermal_expansion",
+         "joint": None}, "span_k": 0.2, "needs_k": 1.0, "recorded": True},
+        {"kind": "confounded_parameters", "plannable": True, "parameters": ["d5", "alpha5"],
+         "correlation": -0.97, "evidence_z": 3.1, "decisive_z": 4.6},
+        {"kind": "marginal", "plannable": True, "effect": {"name": "cyclic", "joint": 2}, "p_cv": 0.004,
+         "p_chi2": 1e-20, "full_fit_passed": True, "evidence_z": None, "decisive_z": 4.6},
+    ]  # fmt: skip
+    for data in stored:
+        q = question_from_dict(data)
+        assert q.kind == QuestionKind(data["kind"]) and q.plannable == data["plannable"]
+        assert list(q.to_dict().items()) == list(data.items())  # the same keys, in the same order
+    assert set(QUESTIONS) == set(QuestionKind)
+    weighed = question_from_dict(stored[2])
+    assert isinstance(weighed, ConfoundedParameters) and weighed.evidence_z == 3.1
+    assert "evidence_z" not in question_from_dict(stored[0]).to_dict()  # not weighed: no evidence said
+
+
+def test_a_resumed_round_reads_its_recorded_plan_back_as_records(tmp_path):
+    """The active loop pins a round's plan in the campaign before its first motion; a resumed round reads it
+    back with its questions as records (a campaign written before them included) and records it unchanged."""
+    from hil.analysis.diagnosis.questions import as_question, with_questions
+    from procedures.active_loop import _Rows
+
+    period = PeriodNotCovered(effect={"name": "cyclic", "joint": 2}, range_deg=80.0, needs_deg=288.0)
+    one_way = OneApproachDirection(
+        effect={"name": "backlash", "joint": 2}, rows_up=9, rows_down=0, needs_rows=5
+    )
+    group = {
+        "purpose": "sweep_j2",
+        "rows": 2,
+        "question": period,
+        "also": "backlash_j2",
+        "also_question": one_way,
+    }
+    rows = _Rows(1, np.zeros((2, 6)), ["sweep_j2"] * 2, [group], [], np.ones(2, bool), 25)
+    pinned = json.loads(json.dumps(rows.to_dict()))
+    assert pinned["groups"][0]["question"] == period.to_dict()
+    back = [with_questions(g, as_question) for g in pinned["groups"]]
+    assert back == [group]
+    again = _Rows(1, np.zeros((2, 6)), ["sweep_j2"] * 2, back, [], np.ones(2, bool), 25)
+    assert json.loads(json.dumps(again.to_dict())) == pinned

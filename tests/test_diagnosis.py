@@ -5,9 +5,11 @@ hidden truth only to check the answer.
 """
 
 import ast
+import dataclasses
 import pathlib
 import subprocess
 import sys
+import typing
 from dataclasses import replace
 
 import numpy as np
@@ -251,6 +253,12 @@ def test_one_name_per_effect_in_the_simulator_and_the_diagnosis():
 
 def test_the_verdict_is_data_and_the_report_words_it():
     # hil.analysis.diagnosis.pipeline returns the verdict as data; hil.report.html words it, one caution a line.
+    from hil.analysis.diagnosis.cautions import (
+        CAUTIONS,
+        AmbiguousEffects,
+        CautionKind,
+        ValidationTemperaturesOutside,
+    )
     from hil.report.text import caution_text, conclusion_text
 
     verdict = {
@@ -258,16 +266,10 @@ def test_the_verdict_is_data_and_the_report_words_it():
         "ratio": 1.04,
         "map": None,
         "cautions": [
-            {
-                "kind": "validation_temperatures_outside",
-                "validate_c": [29.6, 29.7],
-                "training_c": [20.0, 22.7],
-            },
-            {
-                "kind": "ambiguous_effects",
-                "chosen": {"name": "cyclic", "joint": 4},
-                "confounded_with": {"name": "backlash", "joint": 4},
-            },
+            ValidationTemperaturesOutside(validate_c=[29.6, 29.7], training_c=[20.0, 22.7]),
+            AmbiguousEffects(
+                chosen={"name": "cyclic", "joint": 4}, confounded_with={"name": "backlash", "joint": 4}
+            ),
         ],
     }
     lines = conclusion_text(verdict, [{"name": "gravity_compliance", "joint": 2}]).splitlines()
@@ -277,21 +279,25 @@ def test_the_verdict_is_data_and_the_report_words_it():
     )
     assert "cyclic (joint 4) and backlash (joint 4) explain the same residual" in lines[2]
     assert len(lines) == 3
-    # every caution the diagnosis can raise has its words
-    source = (
-        pathlib.Path(__file__).resolve().parents[1] / "hil" / "analysis" / "diagnosis" / "pipeline.py"
-    ).read_text()
-    kinds = {
-        node.args[0].value
-        for node in ast.walk(ast.parse(source))
-        if isinstance(node, ast.Call) and getattr(node.func, "id", "") == "caution" and node.args
-    }
-    assert len(kinds) >= 8
-    for kind in kinds:
-        with pytest.raises(KeyError):  # worded: it reads its data (none given here)
-            caution_text({"kind": kind})
-    with pytest.raises(ValueError, match="no wording"):
-        caution_text({"kind": "made_up"})
+    # every kind of caution has its record, which serialises under its kind, and its own words
+    assert set(CAUTIONS) == set(CautionKind)
+    sample = {float: 1.5, str: "rejected", bool: False, dict: {"name": "cyclic", "joint": 4}}
+    texts = set()
+    for kind, record in CAUTIONS.items():
+        hints = typing.get_type_hints(record)
+        values = {}
+        for f in dataclasses.fields(record):
+            hint = hints[f.name]
+            origin = typing.get_origin(hint) or hint
+            if origin is list:
+                (item,) = typing.get_args(hint)
+                values[f.name] = [sample.get(item, 3), sample.get(item, 5)]
+            elif origin in sample:
+                values[f.name] = sample[origin]
+        caution = record(**values)
+        assert caution.to_dict()["kind"] == kind.value
+        texts.add(caution_text(caution))
+    assert len(texts) == len(CautionKind)
 
 
 def test_a_temperature_driven_thermal_candidate_goes_before_a_pose_effect_it_matches_per_parameter():
@@ -367,7 +373,7 @@ def test_held_out_fit_holds_out_every_coordinate_of_a_row_position_and_rotation(
 def test_plot_headings_are_unique_when_one_effect_is_added_at_two_joints():
     from types import SimpleNamespace
 
-    from hil.analysis.diagnosis.pipeline import Step
+    from hil.analysis.diagnosis.selection import Step, StepAction
     from hil.report.html import _plots
 
     plot = {
@@ -376,11 +382,10 @@ def test_plot_headings_are_unique_when_one_effect_is_added_at_two_joints():
         "residual_after_mm": [0.0] * 4,
         "driver_label": "torque (N m)",
     }
-    steps = [
-        Step({"name": "gravity_compliance", "joint": j}, [], {}, {}, [], [], [], plot=plot) for j in (2, 3)
-    ]
+    empty: dict = {"parameters": [], "candidates": [], "merged": [], "correlations": [], "plot": plot}
+    steps = [Step(effect={"name": "gravity_compliance", "joint": j}, **empty) for j in (2, 3)]
     steps.append(
-        Step({"name": "cyclic", "joint": 2}, [], {}, {}, [], [], [], plot=plot, action="replaced",
+        Step(effect={"name": "cyclic", "joint": 2}, **empty, action=StepAction.REPLACED,
              replaces={"name": "cyclic", "joint": 3})
     )  # fmt: skip
     titles = [title for title, _ in _plots(SimpleNamespace(steps=steps, histograms={}))]
@@ -411,3 +416,21 @@ def test_effect_coefficients_carry_their_units_into_the_report(gravity_cell_diag
         "std": None,
         "unit": "ppm/K",
     }
+
+
+def test_a_step_is_written_out_as_the_report_held_it():
+    """A selection step is a record with an enum action; report.json holds it as the dict it always did: its
+    fields in order, the action as its word, the candidates as data."""
+    from hil.analysis.diagnosis.selection import Step, StepAction
+
+    step = Step(
+        effect={"name": "backlash", "joint": 4}, parameters=[], candidates=[], merged=[], correlations=[],
+        action=StepAction.REMOVED,
+    )  # fmt: skip
+    d = step.to_dict()
+    assert list(d) == [
+        "effect", "parameters", "heldout_before", "heldout_after", "candidates", "merged", "correlations",
+        "plot", "action", "summary", "replaces", "rival_tests",
+    ]  # fmt: skip
+    assert d["action"] == "removed" and type(d["action"]) is str
+    assert step.title() == "removed backlash joint 4"

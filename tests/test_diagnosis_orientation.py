@@ -8,6 +8,7 @@ import pytest
 from calib_data import ur10_joints
 from scipy.spatial.transform import Rotation
 
+from hil.analysis.diagnosis.cautions import CalibrationNote
 from hil.analysis.diagnosis.pipeline import DiagnosisOptions, run_diagnosis
 from hil.data.dataset import ORIENTATION_COLUMNS, make_dataset
 from hil.geometry.kinematics import forward_kinematics
@@ -69,5 +70,5 @@ def test_orientations_far_noisier_than_stated_are_left_out_of_the_tests_and_the_
     df = _wrist_cyclic_campaign(angle_noise_rad=3 * ANGLE_NOISE_RAD)  # the probe reads 3x worse than stated
     report = run_diagnosis(df, "ur10", options=CYCLIC)
     assert ("cyclic", 6) not in _names(report)
-    notes = [c["text"] for c in report.verdict["cautions"] if c["kind"] == "calibration_note"]
+    notes = [c.text for c in report.verdict["cautions"] if isinstance(c, CalibrationNote)]
     assert any("tested on positions only" in t for t in notes)

@@ -28,6 +28,13 @@ def test_parameter_uncertainties_agree_with_another_campaign():
     z = [abs(ta[n]["value"] - tb[n]["value"]) / np.hypot(ta[n]["std"], tb[n]["std"]) for n in geo]
     assert max(z) < 3.0  # the campaigns differ by what the stated uncertainties allow
     assert any("confounded" in note for note in a.notes)  # the wrist pairs this grid cannot separate
+    # the verdict's cautions carry each confounded pair as a field (the diagnosis drops a pair it decides)
+    from hil.analysis.diagnosis.pipeline import calibration_notes
+
+    notes = calibration_notes(a)
+    assert [n.text for n in notes] == a.notes
+    assert [n.pair for n in notes if n.pair] == [(x, y) for x, y, _ in a.confounded] and a.confounded
+    assert all(n.pair is None for n in notes if not n.text.startswith("confounded"))
 
 
 def test_outliers_that_cluster_are_a_region_not_blunders():

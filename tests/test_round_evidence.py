@@ -17,6 +17,7 @@ from fakes.campaign import simulate_campaign
 from fakes.cell import SimCellConfig, SimulatedCell
 from hil.analysis.calibration.folds import campaign_folds, spatial_folds, sweep_runs
 from hil.analysis.design.plan import propose
+from hil.analysis.diagnosis.cautions import PreviousEffectsKept
 from hil.analysis.diagnosis.pipeline import DiagnosisOptions, run_diagnosis
 from hil.geometry.robots import get_robot
 from hil.report.text import caution_text
@@ -108,7 +109,7 @@ def test_true_effects_stay_named_after_single_joint_sweeps(two_on_joint2, longer
     # on the grid alone joint 2's errors are not told apart: beside its gravity yield (physics from the UR10's
     # link masses) neither the cyclic error nor the backlash is named, and its scale is an open question
     assert not _named(first) >= TRUE_JOINT2
-    assert any(q["effect"] == {"name": "joint_scale", "joint": 2} for q in first.undecided if "effect" in q)
+    assert any(getattr(q, "effect", None) == {"name": "joint_scale", "joint": 2} for q in first.undecided)
     assert "sweep_j2" in plan.purpose
     # sweeps held out as arcs scored every effect as a loss: nothing at all was named on the longer campaign
     assert _named(longer_diagnosed) >= {("backlash", 2), ("gravity_compliance", 2)}
@@ -126,8 +127,8 @@ def test_a_round_keeps_the_earlier_effects_a_selection_without_them_predicts_wor
     assert not _named(alone) >= TRUE_JOINT2
     kept = run_diagnosis(longer, "ur10", options=GRAVITY_ONLY, previous_effects=earlier)
     assert _named(kept) >= TRUE_JOINT2
-    said = [c for c in kept.verdict["cautions"] if c["kind"] == "previous_effects_kept"]
-    assert len(said) == 1 and said[0]["heldout_rms_kept_mm"] < said[0]["heldout_rms_mm"]
+    said = [c for c in kept.verdict["cautions"] if isinstance(c, PreviousEffectsKept)]
+    assert len(said) == 1 and said[0].heldout_rms_kept_mm < said[0].heldout_rms_mm
     assert "it was kept" in caution_text(said[0])
     assert kept.stages[-1]["rms_mm"] < alone.stages[-1]["rms_mm"]
 
@@ -138,7 +139,7 @@ def test_an_earlier_effect_that_does_not_predict_better_is_not_kept(two_on_joint
     spurious = {"name": "joint_scale", "joint": 5}
     again = run_diagnosis(longer, "ur10", previous_effects=[*fresh.effects_added, spurious])
     assert _named(again) == _named(fresh)
-    assert not [c for c in again.verdict["cautions"] if c["kind"] == "previous_effects_kept"]
+    assert not [c for c in again.verdict["cautions"] if isinstance(c, PreviousEffectsKept)]
 
 
 def test_rows_the_current_model_rejects_count_for_the_effect_that_explains_them():

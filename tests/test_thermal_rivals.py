@@ -12,7 +12,7 @@ from fakes.cell import SimCellConfig, SimulatedCell
 from hil.analysis.design.plan import propose
 from hil.analysis.diagnosis.evidence import DECISIVE_Z
 from hil.analysis.diagnosis.pipeline import run_diagnosis
-from hil.analysis.diagnosis.questions import MIN_TEMPERATURE_SPAN_K, thermal_questions
+from hil.analysis.diagnosis.questions import MIN_TEMPERATURE_SPAN_K, ThermalRivals, thermal_questions
 from hil.model.effects import make_effect
 from hil.report.text import question_text
 
@@ -28,7 +28,7 @@ def _growth(family: str = "thermal_expansion"):
 def test_the_question_needs_a_growth_without_a_tracker_scale_and_a_span():
     df = pd.DataFrame({"temperature_c": np.linspace(20.0, 22.0, 10)})
     (q,) = thermal_questions(df, [_growth()])
-    assert q["kind"] == "thermal_rivals" and q["plannable"] and q["span_k"] == pytest.approx(2.0)
+    assert isinstance(q, ThermalRivals) and q.plannable and q.span_k == pytest.approx(2.0)
     assert "tracker's scale" in question_text(q)
     assert thermal_questions(df, [_growth(), _growth("tracker_scale")]) == []  # the model has both
     assert thermal_questions(df, []) == []  # no growth in the model: nothing for the scale to hide in
@@ -49,12 +49,12 @@ def test_a_short_warm_campaign_leaves_it_open_and_the_loop_decides_it():
     train = simulate_campaign(cell, grid_joints(cell, step_m=0.2, seed=0))
     assert np.ptp(train["temperature_c"]) > MIN_TEMPERATURE_SPAN_K
     report = run_diagnosis(train, "ur10")
-    (open_q,) = [q for q in report.undecided if q["kind"] == "thermal_rivals"]
-    assert open_q["evidence_z"] < DECISIVE_Z
+    (open_q,) = [q for q in report.undecided if isinstance(q, ThermalRivals)]
+    assert open_q.evidence_z is not None and open_q.evidence_z < DECISIVE_Z
     sigma = float(np.sqrt(np.mean(report.noise.sigma_axis_m**2)))
     plan = propose(train, report.model, report.undecided, 100, sigma, seed=0)
-    served = [g for g in plan.groups if g["question"]["kind"] == "thermal_rivals"]
+    served = [g for g in plan.groups if isinstance(g["question"], ThermalRivals)]
     assert served and served[0]["evidence_z_after"] >= DECISIVE_Z  # the round's rows together decide it
     longer = pd.concat([train, simulate_campaign(cell, plan.q)], ignore_index=True)
     again = run_diagnosis(longer, "ur10", previous_effects=report.effects_added)
-    assert not [q for q in again.undecided if q["kind"] == "thermal_rivals"]
+    assert not [q for q in again.undecided if isinstance(q, ThermalRivals)]

@@ -117,7 +117,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"measured through the drivers in {time.monotonic() - started:.0f} s")
     report = analyse(args, out, campaign)
     active = None
-    if args.active_rounds and any(q["plannable"] for q in report.undecided):
+    if args.active_rounds and any(q.plannable for q in report.undecided):
         with interrupt_guard():
             try:
                 report, active = active_loop(args, out, campaign)

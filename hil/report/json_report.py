@@ -18,7 +18,8 @@ def report_dict(report: DiagnosisReport) -> dict:
     for key, value in report.to_dict().items():
         if key == "verdict":
             out["conclusion"] = conclusion(report)
-            value = {**value, "cautions": [{**c, "text": caution_text(c)} for c in value["cautions"]]}
+            cautions = report.verdict["cautions"]
+            value = {**value, "cautions": [{**c.to_dict(), "text": caution_text(c)} for c in cautions]}
         if key == "thermal" and value is not None:
             value = {**value, "text": thermal_text(value)}
         if key == "gravity":  # one shape whether or not the robot file gives the masses

@@ -3,7 +3,33 @@ diagnosis returns its verdict as data; the wording is here (and the HTML page an
 
 from __future__ import annotations
 
+from hil.analysis.diagnosis.cautions import (
+    AmbiguousEffects,
+    CalibrationNote,
+    Caution,
+    FirstChoiceSetAside,
+    PreviousEffectsKept,
+    StageWorseThanPrevious,
+    ThermalPriorContradicted,
+    ValidationJointsOutside,
+    ValidationTemperaturesOutside,
+    ValidationUnrepresented,
+    ValidationWorseThanGeometric,
+)
 from hil.analysis.diagnosis.pipeline import DiagnosisReport
+from hil.analysis.diagnosis.questions import AmbiguousEffects as AmbiguousQuestion
+from hil.analysis.diagnosis.questions import (
+    ConfoundedParameters,
+    ConfoundedWithGeometry,
+    DriftUnmonitored,
+    Marginal,
+    OneApproachDirection,
+    PeriodNotCovered,
+    Question,
+    TemperatureNotSpanned,
+    ThermalRivals,
+    as_question,
+)
 from hil.analysis.diagnosis.screening import effect_label
 from hil.model.residual_maps import MAP_MODES
 
@@ -12,67 +38,67 @@ def _effect(e: dict) -> str:
     return effect_label(e["name"], e["joint"])
 
 
-def caution_text(c: dict) -> str:
-    """One caution of the verdict (`hil.analysis.diagnosis.baseline.caution`) in words."""
-    kind = c["kind"]
-    if kind == "calibration_note":
-        return c["text"]
-    if kind == "first_choice_set_aside":
-        return (
-            f"a first choice of {_effect(c['effect'])} led to a worse final model ({c['heldout_rms_mm']:.4f} vs "
-            f"{c['heldout_rms_without_mm']:.4f} mm held-out); it was set aside"
-        )
-    if kind == "previous_effects_kept":
-        return (
-            f"a selection that started from the earlier diagnosis' effects ({', '.join(_effect(e) for e in c['effects'])}) "
-            f"predicted held-out points better ({c['heldout_rms_kept_mm']:.4f} mm, p = {c['p_value']:.2g}) than one that "
-            f"dropped {', '.join(_effect(e) for e in c['dropped'])} ({c['heldout_rms_mm']:.4f} mm); it was kept"
-        )
-    if kind == "stage_worse_than_previous":
-        return f"stage '{c['stage']}' predicts held-out points worse than the stage before it ({c['rms_mm']:.4f} mm)"
-    if kind == "ambiguous_effects":
-        return (
-            f"on this data {_effect(c['chosen'])} and {_effect(c['confounded_with'])} explain the same residual; "
-            "the choice between them is not reliable (measure poses or approach directions that separate them, "
-            "e.g. a random visiting order)."
-        )
-    if kind == "validation_unrepresented":
-        v, h = c["validate_rms_mm"], c["heldout_rms_mm"]
-        return (
-            f"the validation campaign's RMS ({v:.4f} mm) is {v / h:.1f}x the held-out one: the training campaign "
-            "does not represent it (poses, visiting order, time, tracker placement), so an effect may be hidden "
-            "in the training data by another one; measure a campaign in a random order"
-            + ("" if c["reregistered"] else ", or re-register the base on it")
-        )
-    if kind == "validation_worse_than_geometric":
-        return (
-            f"on the validation campaign the final model ({c['final_rms_mm']:.4f} mm) predicts worse than the "
-            f"geometric one ({c['geometric_rms_mm']:.4f} mm): use the geometric model there"
-        )
-    if kind == "validation_temperatures_outside":
-        (vlo, vhi), (lo, hi) = c["validate_c"], c["training_c"]
-        return (
-            f"validation temperatures {vlo:.1f}..{vhi:.1f} C lie outside the training's {lo:.1f}..{hi:.1f} C: "
-            "the model extrapolates thermal effects (measure the training over the working temperatures)"
-        )
-    if kind == "thermal_prior_contradicted":
-        follows = (
-            "holds no growth (the recorded temperature follows something else: the air rather than the arm, a "
-            "drift in time)"
-            if c["standing"] == "rejected"
-            else "follows the data"
-        )
-        return (
-            f"the data make the links' thermal growth {c['data_per_k'] * 1e6:.1f} ppm/K, against the material's "
-            f"{c['material_per_k'] * 1e6:.1f} ppm/K in the robot file: the model {follows}; if the arm is of "
-            "another material, give its expansion_per_k in the robot file"
-        )
-    if kind == "validation_joints_outside":
-        return (
-            f"validation joint(s) {', '.join(map(str, c['joints']))} leave the training's range by more than "
-            f"{c['margin_deg']:g} deg: the model extrapolates there"
-        )
-    raise ValueError(f"no wording for the caution kind '{kind}'")
+def caution_text(c: Caution) -> str:
+    """One caution of the verdict (hil.analysis.diagnosis.cautions) in words."""
+    match c:
+        case CalibrationNote():
+            return c.text
+        case FirstChoiceSetAside():
+            return (
+                f"a first choice of {_effect(c.effect)} led to a worse final model ({c.heldout_rms_mm:.4f} vs "
+                f"{c.heldout_rms_without_mm:.4f} mm held-out); it was set aside"
+            )
+        case PreviousEffectsKept():
+            return (
+                f"a selection that started from the earlier diagnosis' effects ({', '.join(_effect(e) for e in c.effects)}) "
+                f"predicted held-out points better ({c.heldout_rms_kept_mm:.4f} mm, p = {c.p_value:.2g}) than one that "
+                f"dropped {', '.join(_effect(e) for e in c.dropped)} ({c.heldout_rms_mm:.4f} mm); it was kept"
+            )
+        case StageWorseThanPrevious():
+            return f"stage '{c.stage}' predicts held-out points worse than the stage before it ({c.rms_mm:.4f} mm)"
+        case AmbiguousEffects():
+            return (
+                f"on this data {_effect(c.chosen)} and {_effect(c.confounded_with)} explain the same residual; "
+                "the choice between them is not reliable (measure poses or approach directions that separate them, "
+                "e.g. a random visiting order)."
+            )
+        case ValidationUnrepresented():
+            v, h = c.validate_rms_mm, c.heldout_rms_mm
+            return (
+                f"the validation campaign's RMS ({v:.4f} mm) is {v / h:.1f}x the held-out one: the training campaign "
+                "does not represent it (poses, visiting order, time, tracker placement), so an effect may be hidden "
+                "in the training data by another one; measure a campaign in a random order"
+                + ("" if c.reregistered else ", or re-register the base on it")
+            )
+        case ValidationWorseThanGeometric():
+            return (
+                f"on the validation campaign the final model ({c.final_rms_mm:.4f} mm) predicts worse than the "
+                f"geometric one ({c.geometric_rms_mm:.4f} mm): use the geometric model there"
+            )
+        case ValidationTemperaturesOutside():
+            (vlo, vhi), (lo, hi) = c.validate_c, c.training_c
+            return (
+                f"validation temperatures {vlo:.1f}..{vhi:.1f} C lie outside the training's {lo:.1f}..{hi:.1f} C: "
+                "the model extrapolates thermal effects (measure the training over the working temperatures)"
+            )
+        case ThermalPriorContradicted():
+            follows = (
+                "holds no growth (the recorded temperature follows something else: the air rather than the arm, a "
+                "drift in time)"
+                if c.standing == "rejected"
+                else "follows the data"
+            )
+            return (
+                f"the data make the links' thermal growth {c.data_per_k * 1e6:.1f} ppm/K, against the material's "
+                f"{c.material_per_k * 1e6:.1f} ppm/K in the robot file: the model {follows}; if the arm is of "
+                "another material, give its expansion_per_k in the robot file"
+            )
+        case ValidationJointsOutside():
+            return (
+                f"validation joint(s) {', '.join(map(str, c.joints))} leave the training's range by more than "
+                f"{c.margin_deg:g} deg: the model extrapolates there"
+            )
+    raise ValueError(f"no wording for the caution kind '{c.kind}'")
 
 
 def conclusion(report: DiagnosisReport) -> str:
@@ -193,49 +219,55 @@ def z_text(z: float, decisive: float) -> str:
     return f"{z:.3g}" if short == f"{decisive:.2g}" and z != decisive else short
 
 
-def question_text(q: dict) -> str:
-    """One open question of the diagnosis (hil.analysis.diagnosis.questions) in words: what is undecided and why."""
-    kind = q["kind"]
-    eff = q.get("effect") or {}
-    if kind == "period_not_covered":
-        return (
-            f"a once-per-turn error of joint {eff['joint']}: its sampled range covers {q['range_deg']:.0f} deg, "
-            f"a test needs {q['needs_deg']:.0f} (over a shorter arc it looks like geometry)"
-        )
-    if kind == "one_approach_direction":
-        return (
-            f"backlash of joint {eff['joint']}: {q['rows_up']} rows approached it from below, {q['rows_down']} "
-            f"from above; a test needs {q['needs_rows']} each way"
-        )
-    if kind == "drift_unmonitored":
-        return (
-            f"drift of the cell over time: {q['revisited_poses']} poses were measured again late in the campaign, "
-            f"{q['needs_poses']} are needed"
-        )
-    if kind == "temperature_not_spanned":
-        if not q["recorded"]:
-            return "thermal growth: the campaign records no temperature; poses cannot decide it"
-        return (
-            f"thermal growth: the temperature spans {q['span_k']:.2f} K (needs {q['needs_k']:.0f} K); poses cannot "
-            "decide it, a run at another temperature can"
-        )
-    z = q.get("evidence_z")
-    ev = "" if z is None else f" (evidence z {z_text(z, q['decisive_z'])}, decided at {q['decisive_z']:.2g})"
-    if kind == "marginal":
-        return f"{_effect(eff)}: marginal, held-out p = {q['p_cv']:.2g}{ev}"
-    if kind == "confounded_with_geometry":
-        return f"{_effect(eff)}: the geometry imitates it on these poses{ev}"
-    if kind == "ambiguous_effects":
-        return f"{_effect(eff)} or {_effect(q['rival'])}: both explain the same residual{ev}"
-    if kind == "thermal_rivals":
-        return (
-            f"the tracker's scale or the links' growth: over {q['span_k']:.2g} K the growth may have taken the "
-            f"tracker's stretch (about the tracker, not the base){ev}"
-        )
-    if kind == "confounded_parameters":
-        a, b = q["parameters"]
-        return f"{a} and {b} correlate {q['correlation']:+.3f}: each alone is unreliable{ev}"
-    return kind
+def question_text(q: Question | dict) -> str:
+    """One open question of the diagnosis (hil.analysis.diagnosis.questions) in words: what is undecided and why
+    (a question read from a campaign's records, a dict, is read back first)."""
+    q = as_question(q)
+    match q:
+        case PeriodNotCovered():
+            return (
+                f"a once-per-turn error of joint {q.effect['joint']}: its sampled range covers {q.range_deg:.0f} deg, "
+                f"a test needs {q.needs_deg:.0f} (over a shorter arc it looks like geometry)"
+            )
+        case OneApproachDirection():
+            return (
+                f"backlash of joint {q.effect['joint']}: {q.rows_up} rows approached it from below, {q.rows_down} "
+                f"from above; a test needs {q.needs_rows} each way"
+            )
+        case DriftUnmonitored():
+            return (
+                f"drift of the cell over time: {q.revisited_poses} poses were measured again late in the campaign, "
+                f"{q.needs_poses} are needed"
+            )
+        case TemperatureNotSpanned():
+            if not q.recorded:
+                return "thermal growth: the campaign records no temperature; poses cannot decide it"
+            return (
+                f"thermal growth: the temperature spans {q.span_k:.2f} K (needs {q.needs_k:.0f} K); poses cannot "
+                "decide it, a run at another temperature can"
+            )
+    z, decisive = q.evidence_z, q.decisive_z
+    ev = (
+        ""
+        if z is None or decisive is None
+        else f" (evidence z {z_text(z, decisive)}, decided at {decisive:.2g})"
+    )
+    match q:
+        case Marginal():
+            return f"{_effect(q.effect)}: marginal, held-out p = {q.p_cv:.2g}{ev}"
+        case ConfoundedWithGeometry():
+            return f"{_effect(q.effect)}: the geometry imitates it on these poses{ev}"
+        case AmbiguousQuestion():
+            return f"{_effect(q.effect)} or {_effect(q.rival)}: both explain the same residual{ev}"
+        case ThermalRivals():
+            return (
+                f"the tracker's scale or the links' growth: over {q.span_k:.2g} K the growth may have taken the "
+                f"tracker's stretch (about the tracker, not the base){ev}"
+            )
+        case ConfoundedParameters():
+            a, b = q.parameters
+            return f"{a} and {b} correlate {q.correlation:+.3f}: each alone is unreliable{ev}"
+    return q.kind.value
 
 
 def undecided_text(report: DiagnosisReport) -> str:
@@ -249,9 +281,9 @@ def undecided_text(report: DiagnosisReport) -> str:
 
 def group_text(group: dict) -> str:
     """What one group of a plan's rows should decide."""
-    q = group["question"]
+    q = as_question(group["question"])
     what = question_text(q).split(":")[0]
-    if q["kind"] == "period_not_covered":
+    if isinstance(q, PeriodNotCovered):
         extra = f", joint range {group['range_after_deg']:.0f} deg after" + (
             " (and back down: backlash)" if group.get("also") else ""
         )

@@ -237,6 +237,9 @@ class CalibrationResult:
     std_folds: dict[str, float] = field(default_factory=dict)  # spread over spatial folds (jackknife)
     outlier_regions: list[dict] = field(default_factory=list)  # flagged rows that cluster in space
     residual_rot_rad: np.ndarray | None = None  # (N, 3) log(R_measured R_predicted^T), 6-DoF probe rows
+    # the pairs of parameters the fit confounds (`confounded_pairs`: names and correlation); each has a note
+    # (`confounded_note`)
+    confounded: list[tuple[str, str, float]] = field(default_factory=list)
 
     @property
     def orientation_rms_deg(self) -> float | None:
@@ -812,9 +815,12 @@ def _calibrate(
     return result
 
 
-CONFOUNDED_NOTE = (
-    "confounded: "  # the start of a note on a confounded pair (hil.analysis.diagnosis.pipeline reads it)
-)
+def confounded_note(a: str, b: str, correlation: float) -> str:
+    """The note on parameters `a` and `b` that the fit confounds (their estimates correlate `correlation`)."""
+    return (
+        f"confounded: {a} and {b} correlate {correlation:+.3f} on these poses; each alone is unreliable (their "
+        "combination is); poses that move them differently separate them"
+    )
 
 
 def _honest_numbers(result: CalibrationResult, problem: Problem, k: int = 5) -> None:
@@ -825,12 +831,8 @@ def _honest_numbers(result: CalibrationResult, problem: Problem, k: int = 5) -> 
     if inliers.n_poses >= 2 * k:  # distinct poses: the rows of one pose share a fold
         folds = inliers.spatial_folds(k, 0)
         result.std_folds = fold_spread_std(result, inliers, folds, evaluated)
-    pairs = confounded_pairs(result, inliers, evaluated=evaluated)
-    for a, b, c in pairs:
-        result.notes.append(
-            f"{CONFOUNDED_NOTE}{a} and {b} correlate {c:+.3f} on these poses; each alone is unreliable (their "
-            "combination is); poses that move them differently separate them"
-        )
+    result.confounded = confounded_pairs(result, inliers, evaluated=evaluated)
+    result.notes += [confounded_note(a, b, c) for a, b, c in result.confounded]
     result.outlier_regions = outlier_regions(problem.measured, result.outliers)
     row_numbers = np.arange(1, len(result.outliers) + 1) if result.row_numbers is None else result.row_numbers
     for reg in result.outlier_regions:

@@ -40,7 +40,16 @@ import pandas as pd
 
 from hil.analysis.calibration.solve import Problem
 from hil.analysis.diagnosis.evidence import DECISIVE_Z, Rival, rival_for, scaled_rows, unmeasured_problem
-from hil.analysis.diagnosis.questions import MIN_REVISITS, MIN_ROWS_PER_DIRECTION
+from hil.analysis.diagnosis.questions import (
+    MIN_REVISITS,
+    MIN_ROWS_PER_DIRECTION,
+    DriftUnmonitored,
+    OneApproachDirection,
+    PeriodNotCovered,
+    Question,
+    question_to_dict,
+    with_questions,
+)
 from hil.data.dataset import joints_rad, pose_ids
 from hil.model.calibrated_model import CalibratedModel
 from hil.model.effects import CYCLIC_MIN_PERIODS
@@ -79,7 +88,12 @@ class Proposal:
         return df
 
     def to_dict(self) -> dict:
-        return {"rows": len(self.purpose), "groups": self.groups, "not_planned": self.not_planned}
+        """The plan's groups and the questions it does not serve, each question as stored (`Question.to_dict`)."""
+        return {
+            "rows": len(self.purpose),
+            "groups": [with_questions(g, question_to_dict) for g in self.groups],
+            "not_planned": [with_questions(n, question_to_dict) for n in self.not_planned],
+        }
 
 
 @dataclass(frozen=True)
@@ -123,7 +137,7 @@ class _Draft:
 def propose(
     df: pd.DataFrame,
     model: CalibratedModel,
-    questions: list[dict],
+    questions: list[Question],
     max_rows: int,
     sigma_m: float,
     admissible: Admissible | None = None,
@@ -147,14 +161,14 @@ def propose(
         return inside & (np.ones(len(q), bool) if admissible is None else np.asarray(admissible(q), bool))
 
     design = _Design(df, model, sigma_m, ok, np.random.default_rng(seed), block_rows)
-    plannable = [qu for qu in questions if qu["plannable"]]
+    plannable = [qu for qu in questions if qu.plannable]
     plan = Proposal(np.zeros((0, q_camp.shape[1])), [])
     plan.not_planned = [
-        {"question": qu, "why": "poses cannot decide it"} for qu in questions if not qu["plannable"]
+        {"question": qu, "why": "poses cannot decide it"} for qu in questions if not qu.plannable
     ]
     if not plannable:
         return plan
-    drift = [qu for qu in plannable if qu["kind"] == "drift_unmonitored"]
+    drift = [qu for qu in plannable if isinstance(qu, DriftUnmonitored)]
     reserve = min(MIN_REVISITS, max_rows // 2 if len(plannable) > len(drift) else max_rows) if drift else 0
     draft = _Draft(max_rows - reserve, not_planned=plan.not_planned)
     centre = _central_pose(q_camp)
@@ -164,7 +178,7 @@ def propose(
     stat = [
         qu
         for qu in plannable
-        if qu["kind"] not in ("period_not_covered", "one_approach_direction", "drift_unmonitored")
+        if not isinstance(qu, PeriodNotCovered | OneApproachDirection | DriftUnmonitored)
     ]
     if stat:
         first_block = block_rows - len(draft.rows) % block_rows
@@ -182,13 +196,14 @@ def propose(
     return plan
 
 
-def _plan_sweeps(draft: _Draft, design: _Design, plannable: list[dict], centre: np.ndarray) -> set[int]:
+def _plan_sweeps(draft: _Draft, design: _Design, plannable: list[Question], centre: np.ndarray) -> set[int]:
     """A sweep over most of a turn for each uncovered period; where the joint's backlash has one approach
     direction too, the sweep comes back down and serves both. Returns the joints whose backlash is left."""
-    backlash_joints = {qu["effect"]["joint"] for qu in plannable if qu["kind"] == "one_approach_direction"}
+    backlash = [qu for qu in plannable if isinstance(qu, OneApproachDirection)]
+    backlash_joints = {qu.effect["joint"] for qu in backlash}
     q_camp, limits = design.q_camp, design.limits
-    for qu in [qu for qu in plannable if qu["kind"] == "period_not_covered"]:
-        j = qu["effect"]["joint"] - 1
+    for qu in [qu for qu in plannable if isinstance(qu, PeriodNotCovered)]:
+        j = qu.effect["joint"] - 1
         both = (j + 1) in backlash_joints
         sweep = _sweep(q_camp, centre, j, limits, design.ok, both, design.rng)
         if sweep is None:
@@ -206,21 +221,17 @@ def _plan_sweeps(draft: _Draft, design: _Design, plannable: list[dict], centre: 
         if both:
             backlash_joints.discard(j + 1)
             draft.groups[-1]["also"] = f"backlash_j{j + 1}"
-            draft.groups[-1]["also_question"] = next(
-                b
-                for b in plannable
-                if b["kind"] == "one_approach_direction" and b["effect"]["joint"] == j + 1
-            )
+            draft.groups[-1]["also_question"] = next(b for b in backlash if b.effect["joint"] == j + 1)
     return backlash_joints
 
 
 def _plan_back_and_forth(
-    draft: _Draft, design: _Design, plannable: list[dict], centre: np.ndarray, backlash_joints: set[int]
+    draft: _Draft, design: _Design, plannable: list[Question], centre: np.ndarray, backlash_joints: set[int]
 ) -> None:
     """The joint moved up then down through the same range for each backlash with one approach direction
     that no sweep serves."""
-    for qu in [qu for qu in plannable if qu["kind"] == "one_approach_direction"]:
-        j = qu["effect"]["joint"] - 1
+    for qu in [qu for qu in plannable if isinstance(qu, OneApproachDirection)]:
+        j = qu.effect["joint"] - 1
         if (j + 1) not in backlash_joints:
             continue
         there = _back_and_forth(centre, j, design.limits, design.ok)
@@ -314,7 +325,9 @@ def _pool(q_camp: np.ndarray, limits: np.ndarray, ok, rng) -> np.ndarray:
     return q[ok(q)]
 
 
-def _separate(design: _Design, questions: list[dict], physics_q: np.ndarray, budget: int, first_block: int):
+def _separate(
+    design: _Design, questions: list[Question], physics_q: np.ndarray, budget: int, first_block: int
+):
     """Greedy Bayesian T-optimal rows for the statistical questions (see the module docstring), in blocks of
     `design.block_rows` (the first `first_block` long) that follow the greedy order."""
     df, model, sigma_m = design.df, design.model, design.sigma_m

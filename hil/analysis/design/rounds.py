@@ -23,7 +23,13 @@ import pandas as pd
 
 from hil.analysis.design.plan import BLOCK_ROWS, Proposal, propose
 from hil.analysis.diagnosis.pipeline import DiagnosisReport
-from hil.analysis.diagnosis.questions import question_subject, settled
+from hil.analysis.diagnosis.questions import (
+    Question,
+    question_subject,
+    question_to_dict,
+    settled,
+    with_questions,
+)
 
 
 def plan_round(
@@ -56,7 +62,7 @@ def plan_blocks(rows: int, size: int = BLOCK_ROWS) -> list[np.ndarray]:
     return [np.arange(a, min(a + size, rows)) for a in range(0, rows, size)]
 
 
-def served_questions(group: dict) -> list[dict]:
+def served_questions(group: dict) -> list[Question]:
     """The questions a plan group's rows serve (a sweep moved back down serves backlash too)."""
     also = group.get("also_question")
     return [group["question"], *([also] if also else [])]
@@ -85,9 +91,9 @@ def still_to_measure(purpose: list[str], judged: dict) -> np.ndarray:
     return np.isin(np.asarray(purpose, dtype=object), list(judged["open"]))
 
 
-def plannable(report: DiagnosisReport) -> list[dict]:
+def plannable(report: DiagnosisReport) -> list[Question]:
     """The open questions that poses can decide (the others need another run, e.g. at another temperature)."""
-    return [q for q in report.undecided if q["plannable"]]
+    return [q for q in report.undecided if q.plannable]
 
 
 def errors_mm(report: DiagnosisReport) -> dict[str, float | None]:
@@ -110,13 +116,14 @@ def round_record(
     blocks: list[dict] | None = None,
     unmeasurable: int = 0,
 ) -> dict:
-    """What one round did, as JSON-ready data: `plan` is {purpose: [...], groups: [...]} of the measured poses;
-    `blocks`: each block's judgement (`block_record`); `unmeasurable`: planned rows the cell cannot measure."""
+    """What one round did, as JSON-ready data (each question as stored, `Question.to_dict`): `plan` is
+    {purpose: [...], groups: [...]} of the measured poses, as stored; `blocks`: each block's judgement
+    (`block_record`); `unmeasurable`: planned rows the cell cannot measure."""
     judged = settled(before.undecided, after.undecided, after.effects_added)
     poses = rows_after - rows_before
     return {
         "round": number,
-        "undecided": before.undecided,
+        "undecided": [q.to_dict() for q in before.undecided],
         "measured": {
             "planned": len(plan["purpose"]),
             "poses": poses,
@@ -128,10 +135,10 @@ def round_record(
             "rows_before": rows_before,
             "rows_after": rows_after,
         },
-        "settled": judged,
+        "settled": [with_questions(s, question_to_dict) for s in judged],
         "effects_before": before.effects_added,
         "effects_after": after.effects_added,
         "error_before": errors_mm(before),
         "error_after": errors_mm(after),
-        "open_after": after.undecided,
+        "open_after": [q.to_dict() for q in after.undecided],
     }

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
-from typing import Any
 
 import numpy as np
 
@@ -34,11 +33,6 @@ def error_stats(err_m: np.ndarray) -> dict[str, float]:
         "max_mm": float(np.max(e)),
         "p95_mm": float(np.percentile(e, 95)),
     }
-
-
-def caution(kind: str, **data: Any) -> dict:
-    """One caution of the verdict, as data: `kind` names it, hil.report.html words it."""
-    return {"kind": kind, **data}
 
 
 # What the diagnosis tells as it advances: (phase, done, total); the CLI's hil.runner.progress.Progress draws it.

@@ -13,6 +13,15 @@ import pandas as pd
 from scipy import stats
 
 from hil.analysis.calibration.solve import Problem, flatten_jacobian, identify
+from hil.analysis.diagnosis.questions import (
+    STATISTICAL,
+    AmbiguousEffects,
+    ConfoundedParameters,
+    ConfoundedWithGeometry,
+    Marginal,
+    Question,
+    ThermalRivals,
+)
 from hil.analysis.diagnosis.screening import columns_outside_span
 from hil.data.dataset import smr_ids
 from hil.model.calibrated_model import CalibratedModel
@@ -30,7 +39,7 @@ DECISIVE_Z = (
 class Rival:
     """One statistical question: the model's Jacobian with the rival's columns and their evidence."""
 
-    question: dict
+    question: Question
     label: str
     cols: np.ndarray  # indices of the rival's columns in the scaled Jacobian
     size: np.ndarray  # smallest relevant size of each rival coefficient, scaled units
@@ -78,18 +87,20 @@ def scaled_rows(trial: CalibratedModel, prob: Problem, keep: np.ndarray, norms: 
     return J[:, :3, keep] / norms
 
 
-def rival_for(df, model, camp: Problem, qu: dict) -> Rival | None:
+def rival_for(df, model, camp: Problem, qu: Question) -> Rival | None:
     """The rival model of a question prepared on the campaign (None when its columns cannot be built)."""
-    if qu["kind"] == "confounded_parameters":
+    if isinstance(qu, ConfoundedParameters):
         trial = model
-        names = list(qu["parameters"])
+        names = list(qu.parameters)
         label = f"{names[0]}/{names[1]}"
     else:
-        eff = (
-            make_effect(qu["rival"]["name"], qu["rival"]["joint"])
-            if qu["kind"] == "ambiguous_effects"
-            else make_effect(qu["effect"]["name"], qu["effect"]["joint"])
-        )
+        if isinstance(qu, AmbiguousEffects):
+            subject = qu.rival
+        elif isinstance(qu, Marginal | ConfoundedWithGeometry | ThermalRivals):
+            subject = qu.effect
+        else:  # no rival model: the campaign's extent decides it
+            return None
+        eff = make_effect(subject["name"], subject["joint"])
         camp.ctx.p_flange_tool = model._row_tools(camp.smr)
         if not eff.prepare(camp.ctx, model.nominal):
             return None
@@ -107,7 +118,7 @@ def rival_for(df, model, camp: Problem, qu: dict) -> Rival | None:
     norms = np.linalg.norm(Jf[:, keep], axis=0)
     norms = np.where(norms > 0, norms, 1.0)
     Js = Jf[:, keep] / norms
-    if qu["kind"] != "confounded_parameters":
+    if not isinstance(qu, ConfoundedParameters):
         names = _separable(Js, kept, names)
         if not names:
             return None
@@ -122,7 +133,7 @@ def rival_for(df, model, camp: Problem, qu: dict) -> Rival | None:
     return rival
 
 
-def held_out_z(qu: dict) -> float | None:
+def held_out_z(qu: Question) -> float | None:
     """The held-out test's own z of a marginal candidate the full fit finds (None for other questions).
 
     The selection adds an effect when both its tests pass. A candidate that passes the full-fit test (it is
@@ -131,9 +142,9 @@ def held_out_z(qu: dict) -> float | None:
     coefficient: that z is a full-fit precision, which the full fit has already shown to suffice. So its
     evidence is what the held-out test saw, z = Phi^-1(1 - p_cv) (< z at alpha, so never decided here), and
     a plan raises it as the information grows (z scales with the coefficient's standard error)."""
-    if qu["kind"] != "marginal" or not qu.get("full_fit_passed"):
+    if not isinstance(qu, Marginal) or not qu.full_fit_passed:
         return None
-    return float(stats.norm.isf(min(max(qu["p_cv"], 1e-300), 0.5)))
+    return float(stats.norm.isf(min(max(qu.p_cv, 1e-300), 0.5)))
 
 
 def _separable(Js: np.ndarray, kept: list[str], names: list[str], tol: float = 1e-3) -> list[str]:
@@ -154,18 +165,14 @@ def _relevant_size(name: str, column: np.ndarray, trial: CalibratedModel, camp: 
     return RELEVANT_LENGTH_M / max(float(np.sqrt(3.0 * np.mean(column**2))), 1e-12)
 
 
-def evidence(df: pd.DataFrame, model: CalibratedModel, questions: list[dict], sigma_m: float) -> list[dict]:
+def evidence(
+    df: pd.DataFrame, model: CalibratedModel, questions: list[Question], sigma_m: float
+) -> list[dict]:
     """Each statistical question's evidence z on the campaign alone (decided at DECISIVE_Z)."""
     camp = Problem.from_frame(model, df)
     out = []
     for qu in questions:
-        if qu["kind"] not in (
-            "marginal",
-            "confounded_with_geometry",
-            "ambiguous_effects",
-            "confounded_parameters",
-            "thermal_rivals",
-        ):
+        if qu.kind not in STATISTICAL:
             continue
         r = rival_for(df, model, camp, qu)
         z = (

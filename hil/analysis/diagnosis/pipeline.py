@@ -53,17 +53,27 @@ from scipy import stats
 from threadpoolctl import threadpool_limits
 
 from hil.analysis.calibration.noise_floor import TRACKER_MPE_M, NoiseFloor
-from hil.analysis.calibration.solve import CONFOUNDED_NOTE, Problem, confounded_pairs
+from hil.analysis.calibration.solve import CalibrationResult, Problem, confounded_note, confounded_pairs
 from hil.analysis.calibration.solve import reregister as reregister_model
 from hil.analysis.diagnosis.baseline import (
     Baseline,
     PhaseProgress,
     baseline_fit,
-    caution,
     error_stats,
     free_mask,
     quiet,
     registration,
+)
+from hil.analysis.diagnosis.cautions import (
+    AmbiguousEffects,
+    CalibrationNote,
+    Caution,
+    StageWorseThanPrevious,
+    ThermalPriorContradicted,
+    ValidationJointsOutside,
+    ValidationTemperaturesOutside,
+    ValidationUnrepresented,
+    ValidationWorseThanGeometric,
 )
 from hil.analysis.diagnosis.drift_monitor import reference_drift
 from hil.analysis.diagnosis.evidence import evidence
@@ -76,11 +86,12 @@ from hil.analysis.diagnosis.physics_terms import (
     material_decision,
     thermal_summary,
 )
-from hil.analysis.diagnosis.questions import open_questions
+from hil.analysis.diagnosis.questions import ConfoundedParameters, Question, open_questions
 from hil.analysis.diagnosis.screening import Candidate, held_out_gain
 from hil.analysis.diagnosis.selection import (
     SelectionPath,
     Step,
+    StepAction,
     cv_positions,
     effect_displacement,
     keep_previous,
@@ -111,14 +122,14 @@ class DiagnosisReport:
     stages: list[dict]
     steps: list[Step]
     unexplained_structure: bool
-    verdict: (
-        dict  # residual ("floor" | "excess" | "local" | "structured"), ratio, map, cautions: report words it
-    )
+    verdict: dict  # residual ("floor" | "excess" | "local" | "structured"), ratio, map, cautions (records)
     residual_map: dict | None = None
     histograms: dict = field(default_factory=dict)  # stage -> held-out error norms (mm)
     final_round: list[Candidate] = field(default_factory=list)
     ambiguities: list[dict] = field(default_factory=list)  # effects this data could not tell apart
-    undecided: list[dict] = field(default_factory=list)  # open questions (hil.analysis.diagnosis.questions)
+    undecided: list[Question] = field(
+        default_factory=list
+    )  # open questions (hil.analysis.diagnosis.questions)
     plan: dict | None = None  # the proposed measurements' groups (hil.analysis.design.plan.Proposal.to_dict)
     run: dict = field(default_factory=dict)  # robot, input files (hash, rows), date, software version
     thermal: dict | None = None  # the material's thermal growth, fitted against its prior (`thermal_summary`)
@@ -176,11 +187,11 @@ class DiagnosisReport:
             "unexplained_structure": self.unexplained_structure,
             "noise_floor_mm": self.noise.floor_mm,
             "noise_floor_method": self.noise.method,
-            "verdict": self.verdict,
+            "verdict": {**self.verdict, "cautions": [c.to_dict() for c in self.verdict["cautions"]]},
             "steps": [s.to_dict() for s in self.steps],
             "final_round_candidates": [c.to_dict() for c in self.final_round],
             "ambiguities": self.ambiguities,
-            "undecided": self.undecided,
+            "undecided": [q.to_dict() for q in self.undecided],
             "plan": self.plan,
             "thermal": self.thermal,
             "gravity": self.gravity,
@@ -298,8 +309,7 @@ def run_diagnosis(
         report.gravity = gravity_summary(path.current, path.prob, alpha)
         if report.thermal and report.thermal["prior_contradicted"]:
             report.verdict["cautions"].append(
-                caution(
-                    "thermal_prior_contradicted",
+                ThermalPriorContradicted(
                     data_per_k=report.thermal.get("data_per_k", report.thermal["fitted_per_k"]),
                     material_per_k=report.thermal["material_per_k"],
                     standing=report.thermal["standing"],
@@ -329,33 +339,37 @@ def run_diagnosis(
         return report
 
 
-def undecided_questions(df: pd.DataFrame, path: SelectionPath, alpha: float, sigma_m: float) -> list[dict]:
+def undecided_questions(
+    df: pd.DataFrame, path: SelectionPath, alpha: float, sigma_m: float
+) -> list[Question]:
     """What the campaign leaves undecided (hil.analysis.diagnosis.questions); a statistical question whose evidence
     already passes hil.analysis.design.plan's threshold is decided and left out."""
     pairs = confounded_pairs(path.current, path.prob)
     found = open_questions(df, path.final_round, path.ambiguities, pairs, alpha, path.current.model.effects)
-    decided = set()
-    for ev in evidence(df, path.current.model, found, sigma_m):
-        ev["question"]["evidence_z"] = ev["evidence_z"]
-        ev["question"]["decisive_z"] = ev["decisive_z"]
-        if ev["evidence_z"] is not None and ev["evidence_z"] >= ev["decisive_z"]:
-            decided.add(id(ev["question"]))
-    return [q for q in found if id(q) not in decided]
+    weighed = {
+        id(ev["question"]): replace(ev["question"], evidence_z=ev["evidence_z"], decisive_z=ev["decisive_z"])
+        for ev in evidence(df, path.current.model, found, sigma_m)
+    }
+    out = [weighed.get(id(q), q) for q in found]
+    return [q for q in out if q.evidence_z is None or q.decisive_z is None or q.evidence_z < q.decisive_z]
 
 
-def without_decided_pairs(cautions: list[dict], undecided: list[dict]) -> list[dict]:
+def without_decided_pairs(cautions: list[Caution], undecided: list[Question]) -> list[Caution]:
     """The cautions less the geometric calibration's notes on confounded pairs that the final diagnosis does
     not leave open (its evidence separates them, or the final model no longer confounds them): the report
     must not call a pair unreliable that the open questions call decided."""
-    open_pairs = {frozenset(q["parameters"]) for q in undecided if q["kind"] == "confounded_parameters"}
+    open_pairs = {frozenset(q.parameters) for q in undecided if isinstance(q, ConfoundedParameters)}
 
-    def decided(c: dict) -> bool:
-        if c["kind"] != "calibration_note" or not c["text"].startswith(CONFOUNDED_NOTE):
-            return False
-        words = c["text"].split()
-        return frozenset((words[1], words[3])) not in open_pairs
+    def decided(c: Caution) -> bool:
+        return isinstance(c, CalibrationNote) and c.pair is not None and frozenset(c.pair) not in open_pairs
 
     return [c for c in cautions if not decided(c)]
+
+
+def calibration_notes(result: CalibrationResult) -> list[CalibrationNote]:
+    """A geometric fit's notes as cautions, in its order; a note on a pair the fit confounds carries the pair."""
+    pairs = {confounded_note(a, b, c): (a, b) for a, b, c in result.confounded}
+    return [CalibrationNote(text=note, pair=pairs.get(note)) for note in result.notes]
 
 
 def _evaluate_stages(path: SelectionPath, tell: PhaseProgress = quiet) -> tuple[list[dict], dict, list[Step]]:
@@ -378,10 +392,10 @@ def _evaluate_stages(path: SelectionPath, tell: PhaseProgress = quiet) -> tuple[
         hist[label] = (np.linalg.norm(cv, axis=1) * 1000).tolist()
     tell("held-out figures of every stage", len(path.stage_models), len(path.stage_models))
     steps: list[Step] = []
-    for k, info in enumerate(path.pending):
+    for k, taken in enumerate(path.pending):
         before, after = cv_by_stage[path.first_step + k], cv_by_stage[path.first_step + k + 1]
         plot = {}
-        if info.get("action", "added") in ("added", "replaced"):
+        if taken.action is not StepAction.REMOVED:
             stage_model = path.stage_models[path.first_step + k + 1][1]
             eff_index = len(stage_model.effects) - 1
             disp = effect_displacement(stage_model, path.prob, eff_index)
@@ -395,7 +409,7 @@ def _evaluate_stages(path: SelectionPath, tell: PhaseProgress = quiet) -> tuple[
                 "residual_after_mm": (np.sum(after * u, axis=1) * 1000).tolist(),
             }
         steps.append(
-            Step(heldout_before=error_stats(before), heldout_after=error_stats(after), plot=plot, **info)
+            replace(taken, heldout_before=error_stats(before), heldout_after=error_stats(after), plot=plot)
         )
     path.cv_final = cv_by_stage[-1]
     return stages, hist, steps
@@ -441,12 +455,10 @@ def _verdict(
     cautions = list(path.cautions)
     for st in stages:
         if st.get("worse_than_previous"):
-            cautions.append(caution("stage_worse_than_previous", stage=st["stage"], rms_mm=st["rms_mm"]))
+            cautions.append(StageWorseThanPrevious(stage=st["stage"], rms_mm=st["rms_mm"]))
     for amb in path.ambiguities:
-        cautions.append(
-            caution("ambiguous_effects", chosen=amb["chosen"], confounded_with=amb["confounded_with"])
-        )
-    cautions += [caution("calibration_note", text=note) for note in [*base.ridge.notes, *base.notes]]
+        cautions.append(AmbiguousEffects(chosen=amb["chosen"], confounded_with=amb["confounded_with"]))
+    cautions += calibration_notes(base.ridge) + [CalibrationNote(text=note) for note in base.notes]
     final_model.info["diagnosis"] = {
         "effects_added": [s.effect for s in steps],
         "noise_floor_mm": base.noise.floor_mm,
@@ -497,8 +509,7 @@ def _validate(
     valid = [st["rms_mm"] for st in report.stages if st["on"] == "validate"]
     if valid and valid[-1] > 1.5 * held[-1]:
         cautions.append(
-            caution(
-                "validation_unrepresented",
+            ValidationUnrepresented(
                 validate_rms_mm=valid[-1],
                 heldout_rms_mm=held[-1],
                 reregistered=reregister != "none",
@@ -506,20 +517,18 @@ def _validate(
         )
     geo = [st["rms_mm"] for st in report.stages if st["on"] == "validate" and st["stage"] == "kinematic"]
     if valid and geo and valid[-1] > geo[0] * 1.02:
-        cautions.append(
-            caution("validation_worse_than_geometric", final_rms_mm=valid[-1], geometric_rms_mm=geo[0])
-        )
+        cautions.append(ValidationWorseThanGeometric(final_rms_mm=valid[-1], geometric_rms_mm=geo[0]))
     cautions += extrapolation_warnings(df, df_val)
 
 
-def extrapolation_warnings(df: pd.DataFrame, df_val: pd.DataFrame) -> list[dict]:
+def extrapolation_warnings(df: pd.DataFrame, df_val: pd.DataFrame) -> list[Caution]:
     """Validation temperatures or joint ranges outside the training's (cautions): the model extrapolates."""
-    out = []
+    out: list[Caution] = []
     if "temperature_c" in df.columns and "temperature_c" in df_val.columns:
         lo, hi = float(df["temperature_c"].min()), float(df["temperature_c"].max())
         vlo, vhi = float(df_val["temperature_c"].min()), float(df_val["temperature_c"].max())
         if vlo < lo - 0.5 or vhi > hi + 0.5:
-            out.append(caution("validation_temperatures_outside", validate_c=[vlo, vhi], training_c=[lo, hi]))
+            out.append(ValidationTemperaturesOutside(validate_c=[vlo, vhi], training_c=[lo, hi]))
     q, qv = joints_rad(df), joints_rad(df_val)
     margin_deg = 5.0
     margin = np.deg2rad(margin_deg)
@@ -527,9 +536,7 @@ def extrapolation_warnings(df: pd.DataFrame, df_val: pd.DataFrame) -> list[dict]
         (qv.min(axis=0) < q.min(axis=0) - margin) | (qv.max(axis=0) > q.max(axis=0) + margin)
     )
     if outside.size:
-        out.append(
-            caution("validation_joints_outside", joints=[int(j + 1) for j in outside], margin_deg=margin_deg)
-        )
+        out.append(ValidationJointsOutside(joints=[int(j + 1) for j in outside], margin_deg=margin_deg))
     return out
 
 

@@ -31,11 +31,20 @@ The last five are decided when the campaign separates the rivals: hil.analysis.d
 marginal candidate the full fit finds, whose evidence is the held-out test's z (below the test's own level by
 definition), so that it stays open until the selection's own test decides it.
 
+Each kind is a record class (`QuestionKind`, `QUESTIONS`); the campaign's records and report.json hold a
+question as a dict (`Question.to_dict`: kind, plannable, its fields, its evidence once weighed), read back with
+`question_from_dict`.
+
 Thermal questions are kinds like the others, so a later physical treatment of temperature adds its own
 rivals (arm growth against the tracker's air-temperature scale) without changing this contract.
 """
 
 from __future__ import annotations
+
+import enum
+from collections.abc import Callable
+from dataclasses import dataclass, fields
+from typing import Any, ClassVar
 
 import numpy as np
 import pandas as pd
@@ -52,34 +61,205 @@ REVISIT_GAP = (
 MIN_TEMPERATURE_SPAN_K = 1.0
 CONFOUNDED_CORRELATION = 0.95  # hil.analysis.calibration.solve.confounded_pairs' limit
 
+
+class QuestionKind(enum.StrEnum):
+    """What kind of doubt a question is (its `kind` in the stored records and report.json)."""
+
+    PERIOD_NOT_COVERED = "period_not_covered"
+    ONE_APPROACH_DIRECTION = "one_approach_direction"
+    DRIFT_UNMONITORED = "drift_unmonitored"
+    TEMPERATURE_NOT_SPANNED = "temperature_not_spanned"
+    MARGINAL = "marginal"
+    CONFOUNDED_WITH_GEOMETRY = "confounded_with_geometry"
+    AMBIGUOUS_EFFECTS = "ambiguous_effects"
+    CONFOUNDED_PARAMETERS = "confounded_parameters"
+    THERMAL_RIVALS = "thermal_rivals"
+
+
 # Kinds that measurements at other poses can decide (the plan serves them); the rest need another run.
-PLANNABLE = (
-    "period_not_covered",
-    "one_approach_direction",
-    "drift_unmonitored",
-    "marginal",
-    "confounded_with_geometry",
-    "ambiguous_effects",
-    "confounded_parameters",
-    "thermal_rivals",
+PLANNABLE = frozenset(QuestionKind) - {QuestionKind.TEMPERATURE_NOT_SPANNED}
+# Kinds whose evidence is a rival model's (hil.analysis.diagnosis.evidence); the others are decided by the
+# campaign's extent (joint ranges, approach directions, revisits, temperature).
+STATISTICAL = frozenset(
+    {
+        QuestionKind.MARGINAL,
+        QuestionKind.CONFOUNDED_WITH_GEOMETRY,
+        QuestionKind.AMBIGUOUS_EFFECTS,
+        QuestionKind.CONFOUNDED_PARAMETERS,
+        QuestionKind.THERMAL_RIVALS,
+    }
 )
+_EVIDENCE = ("evidence_z", "decisive_z")
 
 
-def question(kind: str, **data) -> dict:
-    """One open question as data: `kind`, what it is about, its evidence; hil.report.html words it."""
-    return {"kind": kind, "plannable": kind in PLANNABLE, **data}
+@dataclass(frozen=True, kw_only=True)
+class Question:
+    """One open question; its class says which kind (`kind`), its fields what it is about and why it is open.
+    A statistical question carries its evidence once the diagnosis has weighed it (`decisive_z` set: z
+    `evidence_z`, None when its rival cannot be built, decided at `decisive_z`)."""
+
+    kind: ClassVar[QuestionKind]
+    evidence_z: float | None = None
+    decisive_z: float | None = None
+
+    @property
+    def plannable(self) -> bool:
+        """Can measurements at other poses decide it (else another run must, e.g. at another temperature)?"""
+        return self.kind in PLANNABLE
+
+    def to_dict(self) -> dict[str, Any]:
+        """The question as the campaign's records and report.json hold it: kind, plannable, its fields in
+        declared order, then its evidence once weighed."""
+        own = {f.name: getattr(self, f.name) for f in fields(self) if f.name not in _EVIDENCE}
+        weighed = (
+            {} if self.decisive_z is None else {"evidence_z": self.evidence_z, "decisive_z": self.decisive_z}
+        )
+        return {"kind": self.kind.value, "plannable": self.plannable, **own, **weighed}
 
 
-def coverage_questions(df: pd.DataFrame) -> list[dict]:
+@dataclass(frozen=True, kw_only=True)
+class PeriodNotCovered(Question):
+    """A joint's sampled range (deg) covers too little of a turn to test a once-per-turn error of it."""
+
+    kind = QuestionKind.PERIOD_NOT_COVERED
+    effect: dict
+    range_deg: float
+    needs_deg: float
+
+
+@dataclass(frozen=True, kw_only=True)
+class OneApproachDirection(Question):
+    """Too few rows approached a joint from one side to tell its backlash from geometry."""
+
+    kind = QuestionKind.ONE_APPROACH_DIRECTION
+    effect: dict
+    rows_up: int
+    rows_down: int
+    needs_rows: int
+
+
+@dataclass(frozen=True, kw_only=True)
+class DriftUnmonitored(Question):
+    """Too few poses measured again late in the campaign (`gap`: what the delay is counted in)."""
+
+    kind = QuestionKind.DRIFT_UNMONITORED
+    effect: dict
+    revisited_poses: int
+    needs_poses: int
+    gap: str
+
+
+@dataclass(frozen=True, kw_only=True)
+class TemperatureNotSpanned(Question):
+    """The recorded temperature spans too little (or none is `recorded`) to decide thermal growth."""
+
+    kind = QuestionKind.TEMPERATURE_NOT_SPANNED
+    effect: dict
+    span_k: float
+    needs_k: float
+    recorded: bool
+
+
+@dataclass(frozen=True, kw_only=True)
+class Marginal(Question):
+    """A candidate the selection's tests leave between found and not found."""
+
+    kind = QuestionKind.MARGINAL
+    effect: dict
+    p_cv: float
+    p_chi2: float
+    full_fit_passed: bool
+
+
+@dataclass(frozen=True, kw_only=True)
+class ConfoundedWithGeometry(Question):
+    """A candidate the geometry imitates on these poses (`note`: the screening's reason)."""
+
+    kind = QuestionKind.CONFOUNDED_WITH_GEOMETRY
+    effect: dict
+    correlation: float | None
+    note: str
+
+
+@dataclass(frozen=True, kw_only=True)
+class AmbiguousEffects(Question):
+    """Two candidates that explain the same residual: the one chosen and its rival."""
+
+    kind = QuestionKind.AMBIGUOUS_EFFECTS
+    effect: dict
+    rival: dict
+
+
+@dataclass(frozen=True, kw_only=True)
+class ConfoundedParameters(Question):
+    """Two geometric parameters whose estimates correlate beyond CONFOUNDED_CORRELATION."""
+
+    kind = QuestionKind.CONFOUNDED_PARAMETERS
+    parameters: list[str]
+    correlation: float
+
+
+@dataclass(frozen=True, kw_only=True)
+class ThermalRivals(Question):
+    """The tracker's scale (`effect`) against the links' growth (`rival`) over a span of `span_k`."""
+
+    kind = QuestionKind.THERMAL_RIVALS
+    effect: dict
+    rival: dict
+    span_k: float
+
+
+QUESTIONS: dict[QuestionKind, type[Question]] = {
+    cls.kind: cls
+    for cls in (
+        PeriodNotCovered,
+        OneApproachDirection,
+        DriftUnmonitored,
+        TemperatureNotSpanned,
+        Marginal,
+        ConfoundedWithGeometry,
+        AmbiguousEffects,
+        ConfoundedParameters,
+        ThermalRivals,
+    )
+}
+
+
+def question_from_dict(data: dict) -> Question:
+    """A question as a campaign's records or report.json hold it (`Question.to_dict`), read back."""
+    cls = QUESTIONS[QuestionKind(data["kind"])]
+    return cls(**{f.name: data[f.name] for f in fields(cls) if f.name in data})
+
+
+def with_questions(entry: dict, convert: Callable[[Any], Any]) -> dict:
+    """`entry` (a plan group, a question not planned, a settled question) with the questions it holds (under
+    `question`, `also_question`, `now`) passed through `convert`: `question_to_dict` at the edge where it is
+    stored, `as_question` where it is read back."""
+    return {k: convert(v) if k in _HOLDS_QUESTIONS and v is not None else v for k, v in entry.items()}
+
+
+_HOLDS_QUESTIONS = ("question", "also_question", "now")
+
+
+def question_to_dict(q: Question | dict) -> dict:
+    """A question as stored (one already a dict, e.g. read from a campaign, as it is)."""
+    return q if isinstance(q, dict) else q.to_dict()
+
+
+def as_question(q: Question | dict) -> Question:
+    """A question record, whether stored (a dict) or already one."""
+    return question_from_dict(q) if isinstance(q, dict) else q
+
+
+def coverage_questions(df: pd.DataFrame) -> list[Question]:
     """Questions the campaign's extent leaves open: joint ranges, approach directions, revisits, temperature."""
     q = joints_rad(df)
-    out = []
+    out: list[Question] = []
     need = CYCLIC_MIN_PERIODS * 2 * np.pi
     for j, span in enumerate(np.ptp(q, axis=0)):
         if span < need:
             out.append(
-                question(
-                    "period_not_covered",
+                PeriodNotCovered(
                     effect={"name": "cyclic", "joint": j + 1},
                     range_deg=float(np.rad2deg(span)),
                     needs_deg=float(np.rad2deg(need)),
@@ -90,8 +270,7 @@ def coverage_questions(df: pd.DataFrame) -> list[dict]:
         up, down = int(np.sum(signs[:, j] > 0)), int(np.sum(signs[:, j] < 0))
         if min(up, down) < MIN_ROWS_PER_DIRECTION:
             out.append(
-                question(
-                    "one_approach_direction",
+                OneApproachDirection(
                     effect={"name": "backlash", "joint": j + 1},
                     rows_up=up,
                     rows_down=down,
@@ -101,8 +280,7 @@ def coverage_questions(df: pd.DataFrame) -> list[dict]:
     revisits, gap = revisited_poses(df)
     if revisits < MIN_REVISITS:
         out.append(
-            question(
-                "drift_unmonitored",
+            DriftUnmonitored(
                 effect={"name": "thermal_drift", "joint": None},
                 revisited_poses=revisits,
                 needs_poses=MIN_REVISITS,
@@ -112,8 +290,7 @@ def coverage_questions(df: pd.DataFrame) -> list[dict]:
     span_k = temperature_span_k(df)
     if span_k < MIN_TEMPERATURE_SPAN_K:
         out.append(
-            question(
-                "temperature_not_spanned",
+            TemperatureNotSpanned(
                 effect={"name": "thermal_expansion", "joint": None},
                 span_k=span_k,
                 needs_k=MIN_TEMPERATURE_SPAN_K,
@@ -149,17 +326,16 @@ def revisited_poses(df: pd.DataFrame) -> tuple[int, str]:
     return int(np.sum(last - first >= REVISIT_GAP * duration)) if duration > 0 else 0, unit
 
 
-def selection_questions(final_round: list, ambiguities: list[dict], alpha: float) -> list[dict]:
+def selection_questions(final_round: list, ambiguities: list[dict], alpha: float) -> list[Question]:
     """Questions the last screening round left open: marginal candidates, candidates the geometry imitates,
     candidates that explain the same residual."""
-    out = []
+    out: list[Question] = []
     for c in final_round:
         effect = {"name": c.name, "joint": c.joint}
         if c.note.startswith(("collinear", "inseparable")):
             corr = c.geometry_correlation
             out.append(
-                question(
-                    "confounded_with_geometry",
+                ConfoundedWithGeometry(
                     effect=effect,
                     correlation=None if not np.isfinite(corr) else float(corr),
                     note=c.note,
@@ -170,8 +346,7 @@ def selection_questions(final_round: list, ambiguities: list[dict], alpha: float
             if not (full_fit or c.p_cv < MARGINAL_P):
                 continue
             out.append(
-                question(
-                    "marginal",
+                Marginal(
                     effect=effect,
                     p_cv=float(c.p_cv),
                     p_chi2=float(c.p_chi2),
@@ -179,16 +354,16 @@ def selection_questions(final_round: list, ambiguities: list[dict], alpha: float
                 )
             )
     for amb in ambiguities:
-        out.append(question("ambiguous_effects", effect=amb["chosen"], rival=amb["confounded_with"]))
+        out.append(AmbiguousEffects(effect=amb["chosen"], rival=amb["confounded_with"]))
     return out
 
 
-def parameter_questions(pairs: list[tuple]) -> list[dict]:
+def parameter_questions(pairs: list[tuple]) -> list[Question]:
     """Geometric parameters reported as confounded (hil.analysis.calibration.solve.confounded_pairs)."""
-    return [question("confounded_parameters", parameters=[a, b], correlation=float(c)) for a, b, c in pairs]
+    return [ConfoundedParameters(parameters=[a, b], correlation=float(c)) for a, b, c in pairs]
 
 
-def thermal_questions(df: pd.DataFrame, effects: list[Effect]) -> list[dict]:
+def thermal_questions(df: pd.DataFrame, effects: list[Effect]) -> list[Question]:
     """The tracker's scale against the links' growth, when the model carries a temperature-driven growth and
     no tracker scale, and the recorded temperature spans enough to show either."""
     families = {e.family for e in effects if temperature_driven(e)}
@@ -198,8 +373,7 @@ def thermal_questions(df: pd.DataFrame, effects: list[Effect]) -> list[dict]:
     if span_k < MIN_TEMPERATURE_SPAN_K:
         return []  # temperature_not_spanned says it: poses at one temperature cannot
     return [
-        question(
-            "thermal_rivals",
+        ThermalRivals(
             effect={"name": "tracker_scale", "joint": None},
             rival={"name": "thermal_expansion", "joint": None},
             span_k=span_k,
@@ -214,33 +388,33 @@ def open_questions(
     pairs: list[tuple],
     alpha: float,
     effects: list[Effect] | None = None,
-) -> list[dict]:
+) -> list[Question]:
     """Every undecided question of a diagnosis on `df` whose model carries `effects`, plannable ones first."""
     found = coverage_questions(df) + selection_questions(final_round, ambiguities, alpha)
     found += parameter_questions(pairs) + thermal_questions(df, effects or [])
-    return sorted(found, key=lambda x: not x["plannable"])
+    return sorted(found, key=lambda x: not x.plannable)
 
 
-def question_key(q: dict) -> tuple:
+def question_key(q: Question) -> tuple:
     """What identifies a question across rounds (kind and subject)."""
-    return (q["kind"], *question_subject(q))
+    return (q.kind, *question_subject(q))
 
 
-def question_subject(q: dict) -> tuple:
+def question_subject(q: Question) -> tuple:
     """What a question is about, whatever kind of doubt it is (a marginal effect can come back as one the
     geometry imitates): its effect, its rival, its parameters."""
-    eff = q.get("effect") or {}
-    rival = q.get("rival") or {}
+    eff = getattr(q, "effect", None) or {}
+    rival = getattr(q, "rival", None) or {}
     return (
         eff.get("name"),
         eff.get("joint"),
         rival.get("name"),
         rival.get("joint"),
-        tuple(q.get("parameters", ())),
+        tuple(getattr(q, "parameters", ())),
     )
 
 
-def settled(before: list[dict], after: list[dict], effects_after: list[dict]) -> list[dict]:
+def settled(before: list[Question], after: list[Question], effects_after: list[dict]) -> list[dict]:
     """Each question of an earlier diagnosis judged on the longer campaign's diagnosis: `decided` (it is no
     longer open) with `present` when its effect is now in the model, or still open with its new evidence."""
     open_now = {question_key(q): q for q in after}
@@ -248,7 +422,7 @@ def settled(before: list[dict], after: list[dict], effects_after: list[dict]) ->
     out = []
     for q in before:
         now = open_now.get(question_key(q))
-        eff = q.get("effect") or {}
+        eff = getattr(q, "effect", None) or {}
         out.append(
             {
                 "question": q,

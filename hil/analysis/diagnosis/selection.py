@@ -7,7 +7,8 @@ round's effects, is kept when it predicts better on the same held-out rows.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+import enum
+from dataclasses import dataclass, field, fields, replace
 from typing import Any
 
 import numpy as np
@@ -21,7 +22,8 @@ from hil.analysis.calibration.solve import (
     flatten_jacobian,
     parameter_correlations,
 )
-from hil.analysis.diagnosis.baseline import Baseline, caution, error_stats, fit_plain, free_mask
+from hil.analysis.diagnosis.baseline import Baseline, error_stats, fit_plain, free_mask
+from hil.analysis.diagnosis.cautions import Caution, FirstChoiceSetAside, PreviousEffectsKept
 from hil.analysis.diagnosis.reclaim import reclaimed
 from hil.analysis.diagnosis.rivals import compare_with_rivals, rivals_in_round
 from hil.analysis.diagnosis.screening import (
@@ -42,21 +44,31 @@ from hil.model.calibrated_model import CalibratedModel
 from hil.model.effects import Effect, candidate_effects, make_effect, physical
 
 
-@dataclass
+class StepAction(enum.StrEnum):
+    """What a selection step did to the model (its `action` in report.json)."""
+
+    ADDED = "added"
+    REMOVED = "removed"  # a later effect made it redundant
+    REPLACED = "replaced"  # a rival the data prefers took its place
+
+
+@dataclass(frozen=True, kw_only=True)
 class Step:
+    """One step of the selection: the effect it added, removed or replaced with, and why. The selection
+    records it; the held-out figures of its stage and the plot are filled in once every stage is evaluated
+    (hil.analysis.diagnosis.pipeline)."""
+
     effect: dict  # {name, joint}
     parameters: list[dict]  # {name, value, std}
-    heldout_before: dict
-    heldout_after: dict
+    heldout_before: dict = field(default_factory=dict)
+    heldout_after: dict = field(default_factory=dict)
     candidates: list[Candidate]
     merged: list[dict]  # identifiability notes for the effect's coefficients
     correlations: list[dict]  # strongest correlation of each effect coefficient with a geometric parameter
     plot: dict = field(default_factory=dict)  # driver label/values, residual along the effect before/after
-    action: str = (
-        "added"  # "removed" (a later effect made it redundant), "replaced" (a rival the data prefers)
-    )
+    action: StepAction = StepAction.ADDED
     summary: dict = field(default_factory=dict)  # physical figures: deflection, amplitude, gap, ppm/K
-    replaces: dict | None = None  # the effect a "replaced" step took out ({name, joint})
+    replaces: dict | None = None  # the effect a replacing step took out ({name, joint})
     rival_tests: list[dict] = field(
         default_factory=list
     )  # hil.analysis.diagnosis.rivals' comparisons behind it
@@ -64,9 +76,9 @@ class Step:
     def title(self) -> str:
         """'gravity_compliance joint 2', 'removed backlash joint 4', 'cyclic joint 2 (replaces cyclic joint 3)'."""
         named = self.effect["name"] + (f" joint {self.effect['joint']}" if self.effect["joint"] else "")
-        if self.action == "removed":
+        if self.action is StepAction.REMOVED:
             return "removed " + named
-        if self.action == "replaced" and self.replaces:
+        if self.action is StepAction.REPLACED and self.replaces:
             gone = self.replaces["name"] + (
                 f" joint {self.replaces['joint']}" if self.replaces["joint"] else ""
             )
@@ -74,7 +86,9 @@ class Step:
         return named
 
     def to_dict(self) -> dict:
-        d = dict(self.__dict__)
+        """The step as report.json holds it: its fields in declared order, the action and candidates as data."""
+        d = {f.name: getattr(self, f.name) for f in fields(self)}
+        d["action"] = self.action.value
         d["candidates"] = [c.to_dict() for c in self.candidates]
         return d
 
@@ -133,8 +147,7 @@ def select_effects(
         rms_mm = [float(np.sqrt(np.mean(e))) * 1000.0 for e in errors]
         if rms_mm[1] < 0.95 * rms_mm[0]:
             other.cautions.append(
-                caution(
-                    "first_choice_set_aside",
+                FirstChoiceSetAside(
                     effect={"name": first[0], "joint": first[1]},
                     heldout_rms_mm=rms_mm[0],
                     heldout_rms_without_mm=rms_mm[1],
@@ -155,11 +168,11 @@ class SelectionPath:
     partitions: list[list[np.ndarray]]  # spatial folds, several draws (see CV_REPEATS)
     free: np.ndarray
     stage_models: list[tuple[str, CalibratedModel]]
-    pending: list[dict]
+    pending: list[Step]  # the steps taken, without their held-out figures (filled in by step 3)
     ambiguities: list[dict]
     final_round: list[Candidate]
     banned: set
-    cautions: list[dict] = field(default_factory=list)  # see `caution`
+    cautions: list[Caution] = field(default_factory=list)
     cv_final: np.ndarray | None = None  # held-out residuals of the last stage (step 3)
 
     @property
@@ -338,15 +351,15 @@ def _forward_selection(
             label = "- " + effect_label(gone.family, gone.joint) + " (no longer needed)"
             path.stage_models.append((label, path.current.model))
             path.pending.append(
-                {
-                    "action": "removed",
-                    "effect": {"name": gone.family, "joint": gone.joint},
-                    "parameters": [],
-                    "candidates": [cand],
-                    "merged": [],
-                    "correlations": [],
-                    "summary": {},
-                }
+                Step(
+                    action=StepAction.REMOVED,
+                    effect={"name": gone.family, "joint": gone.joint},
+                    parameters=[],
+                    candidates=[cand],
+                    merged=[],
+                    correlations=[],
+                    summary={},
+                )
             )
     return path
 
@@ -377,8 +390,7 @@ def keep_previous(
     if gain <= 0 or set(other.effects) == set(path.effects):
         return path
     other.cautions.append(
-        caution(
-            "previous_effects_kept",
+        PreviousEffectsKept(
             effects=[{"name": n, "joint": j} for n, j in keys],
             dropped=[{"name": n, "joint": j} for n, j in keys if (n, j) not in path.effects],
             heldout_rms_mm=float(np.sqrt(np.mean(errors[0]))) * 1000.0,
@@ -427,15 +439,15 @@ def _record_added(
     eff_index = len(path.current.model.effects) - 1
     eff = path.current.model.effects[eff_index]
     path.pending.append(
-        {
+        Step(
+            effect={"name": added.name, "joint": added.joint},
+            parameters=_effect_params(path.current, eff_index),
+            candidates=candidates,
+            merged=[d for d in rep.dropped if d["name"] in eff.param_names],
+            correlations=_correlations(path.current, path.prob, eff),
+            summary=eff.summary(path.prob.ctx, path.current.model.nominal),
             **extra,
-            "effect": {"name": added.name, "joint": added.joint},
-            "parameters": _effect_params(path.current, eff_index),
-            "candidates": candidates,
-            "merged": [d for d in rep.dropped if d["name"] in eff.param_names],
-            "correlations": _correlations(path.current, path.prob, eff),
-            "summary": eff.summary(path.prob.ctx, path.current.model.nominal),
-        }
+        )
     )
 
 
@@ -496,9 +508,9 @@ def settle_rivals(base: Baseline, df: pd.DataFrame, path: SelectionPath, alpha: 
             key = (eff.family, eff.joint)
             round_of = next(
                 (
-                    i
-                    for i in reversed(path.pending)
-                    if i.get("action", "added") != "removed" and _named(i) == key
+                    s
+                    for s in reversed(path.pending)
+                    if s.action is not StepAction.REMOVED and _named(s.effect) == key
                 ),
                 None,
             )
@@ -507,7 +519,7 @@ def settle_rivals(base: Baseline, df: pd.DataFrame, path: SelectionPath, alpha: 
             tests, models = compare_with_rivals(
                 path.current.model,
                 index,
-                rivals_in_round(round_of["candidates"], key),
+                rivals_in_round(round_of.candidates, key),
                 path.prob,
                 base.full.ctx,
                 path.partitions,
@@ -521,11 +533,11 @@ def settle_rivals(base: Baseline, df: pd.DataFrame, path: SelectionPath, alpha: 
                 rep = _refit(base, path, calibrate(df, models[rival], "ridge"))
                 _record_added(
                     path,
-                    next(c for c in round_of["candidates"] if (c.name, c.joint) == rival),
-                    round_of["candidates"],
+                    next(c for c in round_of.candidates if (c.name, c.joint) == rival),
+                    round_of.candidates,
                     rep,
                     label=f"+ {effect_label(*rival)} for {effect_label(*key)}",
-                    action="replaced",
+                    action=StepAction.REPLACED,
                     replaces=best.chosen,
                     rival_tests=[t.to_dict() for t in tests],
                 )
@@ -551,9 +563,8 @@ def settle_rivals(base: Baseline, df: pd.DataFrame, path: SelectionPath, alpha: 
             return
 
 
-def _named(item: dict) -> tuple[str, int | None]:
-    """(name, joint) of an effect given as {name, joint} or of a step entry holding one under 'effect'."""
-    effect = item.get("effect", item)
+def _named(effect: dict) -> tuple[str, int | None]:
+    """(name, joint) of an effect given as {name, joint}."""
     return effect["name"], effect["joint"]
 
 
