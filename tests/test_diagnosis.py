@@ -406,7 +406,7 @@ def test_effect_coefficients_carry_their_units_into_the_report(gravity_cell_diag
     for e, g in zip(terms, report.gravity, strict=True):
         assert g["stiffness_knm_per_rad"] == pytest.approx(1e-3 / e.params[0])
     page = render_html(report)
-    assert "Gravity yield of the joints" in page and "stiffness_knm_per_rad" in page
+    assert "Gravity yield of the joints" in page and "stiffness knm per rad" in page  # headers in words
     # The free form (a robot file without masses) is in rad per metre of lever arm, shown in deg/m.
     row = {"value": 1e-3, "std": 2e-5, "unit": "rad/m"}
     shown = in_report_units(row)

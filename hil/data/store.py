@@ -822,10 +822,14 @@ def _station(snapshots: list[dict]) -> dict:
     if not snapshots:
         return {}
     last = snapshots[-1]
-    cell = last.get("cell") or {}
-    station = last.get("station") or {}
-    robot = {**(cell.get("robot") or {}), "controller_version": station.get("robot_controller_version")}
-    tracker = {**(cell.get("tracker") or {}), **(station.get("tracker") or {})}
+
+    def section(parent: object, key: str) -> dict:  # a snapshot written by an older or another session
+        value = parent.get(key) if isinstance(parent, dict) else None
+        return value if isinstance(value, dict) else {}
+
+    cell, station = section(last, "cell"), section(last, "station")
+    robot = {**section(cell, "robot"), "controller_version": station.get("robot_controller_version")}
+    tracker = {**section(cell, "tracker"), **section(station, "tracker")}
     wanted = {
         "robot": [robot.get(k) for k in ("model", "controller_version")],
         "tracker": [tracker.get(k) for k in ("name", "serial_number")],
