@@ -71,6 +71,15 @@ def test_a_reference_pose_without_room_to_turn_is_refused(config):
         joint_axes.PROCEDURE.make_plan(config, smrs=5, q_ref_rad=(0.0,) * 6)
 
 
+def test_an_existing_robot_file_is_refused_before_anything_moves(config, tmp_path):
+    written = tmp_path / "measured.toml"
+    written.write_text("# the axes of last week\n")
+    with pytest.raises(ValueError, match="measured.toml exists"):
+        joint_axes.PROCEDURE.make_plan(config, points=7, output=str(written))
+    assert written.read_text() == "# the axes of last week\n"
+    joint_axes.PROCEDURE.make_plan(config, points=7, output=str(tmp_path / "new.toml"))  # a new file is fine
+
+
 def test_the_cycles_visit_the_five_poses_on_one_branch_from_below(config):
     plan = iso9283.PROCEDURE.make_plan(config, cycles=3, side_m=0.3)
     assert [p.point_id for p in plan.poses[:6]] == [

@@ -75,3 +75,20 @@ def test_the_wording_check_finds_python_terms():
     ):
         assert PYTHON_WORDING.search(text), text
     assert not PYTHON_WORDING.search("clear the line of sight, then run the command again")
+
+
+def test_a_clean_up_that_outlives_its_time_says_so_in_the_users_terms(caplog):
+    """After Ctrl-C the robot gets a second to stop and disconnect; a controller that does not answer in time
+    is left behind with words that say what that means at the cell, not 'releasing ... did not finish'."""
+    import logging
+    import threading
+
+    from hil.runner.session import _bounded
+
+    release = threading.Event()
+    with caplog.at_level(logging.WARNING, logger="hil"):
+        _bounded([("robot", lambda: release.wait(10.0)), ("tracker", lambda: None)], 0.05)
+    release.set()
+    assert "the robot had not finished closing after 0.1 s" in caplog.text
+    assert "the controller stops the arm when its connection drops" in caplog.text
+    assert "tracker" not in caplog.text and "going on" not in caplog.text
