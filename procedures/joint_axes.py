@@ -323,7 +323,8 @@ def plan(config: CellConfig, options: AxesOptions) -> Plan:
     """The sweeps: each joint alone, `points` poses over its arc, from the reference pose (a free joint, see
     `free_joints`, from the pose its gravity sag distorts least: `sweep_pose`); every SMR read at every pose."""
     span_rad, points, q_ref_rad, smrs = options.span_rad, options.points, options.q_ref_rad, options.smrs
-    if options.output and Path(options.output).exists():  # refused before anything moves: a model is never lost
+    # refused before anything moves: a measured model is never lost
+    if options.output and Path(options.output).exists():
         raise ValueError(
             f"--output: {options.output} exists; choose another file, or move that one away to write it again"
         )

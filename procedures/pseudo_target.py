@@ -754,8 +754,9 @@ class _Loop:
             out.errors_m.append(float(dp[0]))
             out.rotation_errors_rad.append(float(dr[0]))
             out.noise_m.append(sigma)
-            stale = 0 if i == 0 or cost[0] < best - GAIN_SIGMAS * sigma else stale + 1
-            if cost[0] < best:
+            gain = i == 0 or cost[0] < best - GAIN_SIGMAS * sigma
+            stale = 0 if gain else stale + 1
+            if gain:  # kept only on a real gain: a smaller reading within the noise is selection, not a gain
                 best, out.best_iteration, out.q_rad = float(cost[0]), i, q.copy()
             if best < self.threshold_m:
                 out.status = "ok"

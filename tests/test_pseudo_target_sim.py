@@ -179,7 +179,8 @@ def test_a_killed_loop_resumes_without_measuring_twice(cell):
 
 def test_below_the_noise_floor_each_target_stops_for_no_improvement_and_keeps_its_best(cell):
     """A threshold the tracker cannot resolve: without the no-improvement rule every target would spend all
-    eight corrections; with it each stops once two corrections in a row gain nothing beyond the noise."""
+    eight corrections; with it each stops once two corrections in a row gain nothing beyond the noise, and
+    keeps the last joints that gained beyond it."""
     config, model = cell["config"], cell["model"]
     path = campaign(cell, "stall")
     options = dict(model=model, targets=3, smrs=1, max_iter=8, seed=5, threshold_m=5e-7, patience=2)
@@ -194,9 +195,15 @@ def test_below_the_noise_floor_each_target_stops_for_no_improvement_and_keeps_it
         assert t.status == "no_improvement", t.to_dict()
         assert 2 <= t.iterations < 8
         errors, noise = np.array(t.errors_m), np.array(t.noise_m)
-        best_so_far = np.minimum.accumulate(errors)[-3:-1]  # the best each of the last two had to beat
-        assert np.all(errors[-2:] >= best_so_far - pseudo_target.GAIN_SIGMAS * noise[-2:])  # neither did
-        assert t.error_m == errors.min() and t.best_iteration == int(np.argmin(errors))
+        # the joints kept: the start, replaced only by a correction that beat them by more than the noise (a
+        # smaller reading within the noise is the luck of the draw, and picking it would bias the figure low)
+        kept, kept_before = 0, []
+        for i in range(1, len(errors)):
+            kept_before.append(errors[kept])
+            if errors[i] < errors[kept] - pseudo_target.GAIN_SIGMAS * noise[i]:
+                kept = i
+        assert np.all(errors[-2:] >= np.array(kept_before[-2:]) - pseudo_target.GAIN_SIGMAS * noise[-2:])
+        assert t.best_iteration == kept and t.error_m == errors[kept]
         np.testing.assert_array_equal(t.q_rad, q_of[f"{t.target_id}/i{t.best_iteration}"])
         assert 0.002 < noise[-1] * 1e3 < 0.05  # a per-axis tracker sigma of a few shots, mm
     assert stored["summary"]["statuses"] == {"no_improvement": 3}
