@@ -367,7 +367,7 @@ def _compensation_html(summary: dict) -> str:
     names = {
         "uncompensated": "uncompensated",
         "start": summary.get("start", "start"),
-        "best_of_iterations": "loop, best read (min over iterations)",
+        "best_of_iterations": "loop, kept joints as read in the loop",
         "final": "measured loop (kept joints, measured again)",
     }
     rows = []
