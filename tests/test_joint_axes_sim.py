@@ -34,7 +34,8 @@ def test_sweeps_give_axes_near_the_truth_and_a_loadable_robot_file(tmp_path, cap
             result = joint_axes.PROCEDURE(session, **options)
             measured = len(session.store.measurements(joint_axes.NAME))
         with session_on(config, tmp_path / "c.sqlite") as session:
-            again = joint_axes.PROCEDURE(session, **options)
+            # run again into a new file (an existing robot file is refused): nothing is measured twice
+            again = joint_axes.PROCEDURE(session, **{**options, "output": str(tmp_path / "again.toml")})
             assert len(session.store.measurements(joint_axes.NAME)) == measured == 60
     cell = SimulatedCell(SimCellConfig(seed=SEED))
     _, frames = cell.true_joint_offsets(result.axes.q_ref_rad, np.ones(6), 0.0)
