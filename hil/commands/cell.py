@@ -70,6 +70,10 @@ def run_check(args: argparse.Namespace) -> int:
     except CellConfigError as exc:
         raise CliError(str(exc), _config_remedy(exc)) from exc
     print(describe(config, args.connect))
+    from hil.runner.cell_warnings import cell_warnings
+
+    for warning in cell_warnings(config):
+        print(f"  warning: {warning}")
     if not args.connect:
         return 0
     from hil.commands.instruments import drivers_of

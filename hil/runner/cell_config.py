@@ -94,6 +94,9 @@ class CellConfig:
     )
     reduced_speed: bool = True  # [motion] reduced_speed: new cell, speeds scaled until the operator confirms
     reduced_speed_fraction: float = REDUCED_SPEED_FRACTION
+    bodies: CellBodies | None = (
+        None  # the arm, tool, tracker and keep-outs, whether or not collisions are checked
+    )
 
     @cached_property
     def nominal(self) -> KinematicModel:
@@ -337,6 +340,7 @@ def parse_cell_config(data: dict, source: str = "cell.toml") -> CellConfig:
         grid_fixed_rpy_rad=None if grid_fixed_rpy_deg is None else np.deg2rad(grid_fixed_rpy_deg),
         reduced_speed=reduced_speed,
         reduced_speed_fraction=reduced_fraction,
+        bodies=bodies,
     )
 
 
