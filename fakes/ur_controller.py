@@ -40,7 +40,7 @@ from fakes.ur_motion import Motion, StopMove
 from fakes.ur_primary import PrimaryClients, ProgramRunner, runtime_exception
 from fakes.ur_program import ScriptError, UserProgram
 from fakes.ur_rtde_server import RtdeConnection
-from fakes.ur_script import ControlProgram, UnknownProgramError, split_programs
+from fakes.ur_script import ControlProgram, UnknownProgramError, read_programs
 from fakes.ur_script_runtime import ScriptRuntime
 
 if TYPE_CHECKING:
@@ -222,19 +222,9 @@ class UrController(ScriptRuntime):
     async def _serve_script(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
         """Accept programs; complete ones are started, the client never reads anything back."""
         self._track_current_task()
-        buffer = ""
         try:
-            while True:
-                chunk = await reader.read(65536)
-                if not chunk:
-                    break
-                buffer += chunk.decode("utf-8", errors="replace")
-                if len(buffer) > 4_000_000:
-                    log.error("script port: more than 4 MB without a complete program; dropping")
-                    break
-                programs, buffer = split_programs(buffer)
-                for text in programs:
-                    self.receive_program(text)
+            async for text in read_programs(reader, "script"):
+                self.receive_program(text)
         except ConnectionError:
             pass
         finally:

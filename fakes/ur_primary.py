@@ -25,7 +25,7 @@ import numpy as np
 
 from fakes.ur_motion import JointMove, LinearMove, Motion
 from fakes.ur_program import Action, Controller, Halt, Message, Move, ScriptError, UserProgram, Wait
-from fakes.ur_script import split_programs
+from fakes.ur_script import read_programs
 
 
 class ProgramHost(Controller, Protocol):
@@ -110,16 +110,9 @@ class PrimaryClients:
         """Version first, then programs in (each handed to the controller) while messages go out."""
         writer.write(version_message(tuple(controller.personality.version)))
         self.writers.add(writer)
-        buffer = ""
         try:
-            while True:
-                chunk = await reader.read(65536)
-                if not chunk:
-                    break
-                buffer += chunk.decode("utf-8", errors="replace")
-                programs, buffer = split_programs(buffer)
-                for text in programs:
-                    controller.receive_program(text)
+            async for text in read_programs(reader, "primary"):
+                controller.receive_program(text)
         except ConnectionError:
             pass
         finally:

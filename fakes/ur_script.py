@@ -8,8 +8,13 @@ and the move path the client injects for moveJ/moveL paths. Anything else is ref
 
 from __future__ import annotations
 
+import asyncio
+import logging
 import re
+from collections.abc import AsyncIterator
 from dataclasses import dataclass
+
+log = logging.getLogger(__name__)
 
 # The build stamp the 1.6.5 script prints when it starts; another stamp means another ur-rtde version.
 PINNED_BUILD = "14.02.2024-12:23"
@@ -37,6 +42,26 @@ _REQUIRED_MARKERS = (
 
 class UnknownProgramError(ValueError):
     """The uploaded program is not the ur-rtde control program this fake emulates."""
+
+
+MAX_PENDING_CHARS = 4_000_000  # a client that sends this much without a complete program is dropped
+
+
+async def read_programs(reader: asyncio.StreamReader, port: str) -> AsyncIterator[str]:
+    """Each complete program a client sends, in order, until it closes (or sends MAX_PENDING_CHARS without
+    completing one): what the script, primary and secondary ports all read."""
+    buffer = ""
+    while True:
+        chunk = await reader.read(65536)
+        if not chunk:
+            return
+        buffer += chunk.decode("utf-8", errors="replace")
+        if len(buffer) > MAX_PENDING_CHARS:
+            log.error("%s port: more than 4 MB without a complete program; dropping", port)
+            return
+        programs, buffer = split_programs(buffer)
+        for text in programs:
+            yield text
 
 
 def split_programs(buffer: str) -> tuple[list[str], str]:
