@@ -304,10 +304,6 @@ class Engine:
             for step in pose.at_pose:
                 self.cell.ask(step)
 
-    def ask_again(self) -> None:
-        """Forget the setup the operator last made: the next pose asks for its setup again."""
-        self._setup = None
-
     # ------------------------------------------------------------------ declared measurements, judged
     @contextmanager
     def judging(

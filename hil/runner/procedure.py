@@ -235,10 +235,6 @@ class Procedure:
                     f"(declared: {', '.join(sorted(limits)) or 'none'})"
                 )
 
-    def step_for(self, role: Role) -> str | None:
-        """The step of this procedure that plays `role`, None when it publishes none."""
-        return next((step for r, step in self.publishes if r is role), None)
-
     def resolve(self, values: dict[str, Any]) -> dict[str, Any]:
         """Every parameter in SI: the given values (SI keywords) over the declared defaults, each checked."""
         unknown = sorted(set(values) - self._names)
