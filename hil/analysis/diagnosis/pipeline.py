@@ -87,7 +87,7 @@ from hil.analysis.diagnosis.physics_terms import (
     thermal_summary,
 )
 from hil.analysis.diagnosis.questions import ConfoundedParameters, Question, open_questions
-from hil.analysis.diagnosis.screening import Candidate, held_out_gain
+from hil.analysis.diagnosis.screening import Candidate, effect_label, held_out_gain
 from hil.analysis.diagnosis.selection import (
     SelectionPath,
     Step,
@@ -319,13 +319,9 @@ def run_diagnosis(
         noise_m2 = float(np.mean(np.asarray(base.noise.sigma_axis_m) ** 2))
         tell = base.progress
         tell("prediction intervals", 0, 1)
-        report.model.spread = fit_spread(
-            path.current, path.free, path.prob, path.folds, noise_m2, path.cv_final
-        )
-        assumed = [
-            e["name"] + (f" (joint {e['joint']})" if e["joint"] else "") for e in report.effects_assumed
-        ]
-        report.model.spread = replace(report.model.spread, assumed_effects=assumed)  # the diagnosis' own call
+        spread = fit_spread(path.current, path.free, path.prob, path.folds, noise_m2, path.cv_final)
+        assumed = [effect_label(e["name"], e["joint"]) for e in report.effects_assumed]  # section 1's rule
+        report.model.spread = replace(spread, assumed_effects=assumed)
         tell("prediction intervals", 1, 1)
         report.intervals = [heldout_coverage(report.model.spread, INTERVAL_PROBABILITY).to_dict()]
         if df_validate is not None:
