@@ -25,7 +25,8 @@ from hil.report.text import (
 )
 
 
-def _png(fig) -> str:
+def png_img(fig) -> str:
+    """A matplotlib figure as an <img> that carries its PNG (the page needs no other file); closes it."""
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
     import matplotlib.pyplot as plt
@@ -56,7 +57,7 @@ def _plots(report: DiagnosisReport) -> list[tuple[str, str]]:
         ax.set_ylabel("residual along the effect (mm)")
         ax.set_title(step.title())
         ax.legend(fontsize=8)
-        out.append((f"Residual against the driver of {step.title()}", _png(fig)))
+        out.append((f"Residual against the driver of {step.title()}", png_img(fig)))
     held = [(k, v) for k, v in report.histograms.items() if not k.endswith("[validate]")]
     if len(held) >= 2:
         fig, ax = plt.subplots(figsize=(6.5, 3.6))
@@ -68,7 +69,7 @@ def _plots(report: DiagnosisReport) -> list[tuple[str, str]]:
         ax.set_xlabel("held-out 3-D error (mm)")
         ax.set_ylabel("points")
         ax.legend(fontsize=8)
-        out.append(("Held-out error before and after", _png(fig)))
+        out.append(("Held-out error before and after", png_img(fig)))
     return out
 
 
@@ -293,7 +294,7 @@ def _drift_html(drift: dict | None) -> list[str]:
         "<h2>Drift monitor: reference poses re-measured</h2>",
         f"<p>{html.escape(drift_text(drift) or '')} Growth and the tracker's scale follow the temperature, a "
         "drift of the stand or the floor the time.</p>",
-        _png(fig),
+        png_img(fig),
     ]
 
 
@@ -498,7 +499,7 @@ def tool_fit_html(fit: dict) -> str:
         ax.set_xlabel("validation pose")
         ax.set_ylabel("error after common-point fit (mm)")
         ax.legend(fontsize=8)
-        parts.append(f"<h3>Validation on {val['poses']} poses</h3>" + _png(fig))
+        parts.append(f"<h3>Validation on {val['poses']} poses</h3>" + png_img(fig))
     return "\n".join(parts)
 
 

@@ -6,12 +6,12 @@ them); the page shows what compensation buys for this program, waypoint by waypo
 
 from __future__ import annotations
 
-import base64
 import html
-import io
 from dataclasses import dataclass
 
 import numpy as np
+
+from hil.report.html import png_img
 
 
 @dataclass(frozen=True)
@@ -72,7 +72,4 @@ def _plot(rows: list[WaypointRow], runs: list[str]) -> str:
     ax.set_yscale("log")
     ax.set_ylabel("error at the waypoint (mm)")
     ax.legend(fontsize=8)
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
-    plt.close(fig)
-    return '<p><img src="data:image/png;base64,' + base64.b64encode(buf.getvalue()).decode() + '"></p>'
+    return "<p>" + png_img(fig) + "</p>"
