@@ -41,6 +41,7 @@ from hil.data.dataset import (
     orientations,
 )
 from hil.data.store import is_campaign_file
+from hil.geometry.se3 import transform_points
 from hil.model.calibrated_model import CalibratedModel
 from hil.model.effects import THERMAL_FAMILIES, material_growth, temperature_driven
 from hil.model.intervals import IntervalError
@@ -375,7 +376,7 @@ def in_tracker_frame(model: CalibratedModel, targets_base: np.ndarray) -> np.nda
     """Base-frame targets (points (N, 3) or poses (N, 4, 4)) in the tracker frame the model places the base in."""
     T_tb = np.asarray(model.T_tracker_base, float)
     if targets_base.ndim == 2:
-        return targets_base @ T_tb[:3, :3].T + T_tb[:3, 3]
+        return transform_points(T_tb, targets_base)
     return T_tb @ targets_base
 
 
