@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from hil.compensation.model_based import CompensationOptions, CompensationResult, TargetConditions, compensate
-from hil.compensation.program import TCP_AT_SMR_M, has_backlash, orientation_known
+from hil.compensation.program import has_backlash, orientation_known, smr_targets, tcp_off_the_smr
 from hil.geometry.ik import branches_along_path
 from hil.geometry.kinematics import forward_kinematics
 from hil.geometry.se3 import invert
@@ -55,8 +55,7 @@ class CompensatedRobot:
             self.T_flange_tcp[:3, 3] = p_smr
         else:
             self.T_flange_tcp = np.asarray(options.T_flange_tcp, float)
-        off = np.linalg.norm(self.T_flange_tcp[:3, 3] - p_smr) > TCP_AT_SMR_M
-        if off and not orientation_known(model):
+        if tcp_off_the_smr(self.T_flange_tcp, p_smr) and not orientation_known(model):
             raise CompensationError(
                 "the TCP is not the measured SMR point and the model does not know the flange's orientation: "
                 "calibrate on a campaign with three SMR nests or a 6-DoF probe, or use the SMR nest as TCP"
@@ -66,12 +65,7 @@ class CompensatedRobot:
     def joints_for(self, T_base_tcp: np.ndarray) -> np.ndarray:
         """The compensated joints (6,) for a TCP pose in the base frame, from where the arm stands now."""
         T_base_flange = np.asarray(T_base_tcp, float) @ invert(self.T_flange_tcp)
-        p_smr = np.asarray(self.model.tools[self.smr], float)
-        T_target = self.model.T_tracker_base @ T_base_flange
-        T_target[:3, 3] = self.model.T_tracker_base[:3, :3] @ (
-            T_base_flange[:3, :3] @ p_smr + T_base_flange[:3, 3]
-        )
-        T_target[:3, 3] += self.model.T_tracker_base[:3, 3]
+        T_target = smr_targets(self.model, T_base_flange, np.asarray(self.model.tools[self.smr], float))
         q_now = np.asarray(self.robot.joints(), float)
         seed = branches_along_path(self.model.kinematic, T_base_flange[None], q_now)
         result = self._compensate(T_target[None], seed, None)

@@ -20,6 +20,7 @@ import numpy as np
 from hil.compensation.model_based import CompensationOptions, CompensationResult, TargetConditions, compensate
 from hil.compensation.urscript import JointTarget, PoseTarget, ProgramError, ProgramMotions
 from hil.geometry.ik import branches_along_path, default_home, is_ur_like
+from hil.geometry.se3 import transform_points
 from hil.model.calibrated_model import CalibratedModel
 from hil.model.effects import approach_signs
 
@@ -64,10 +65,7 @@ def compensate_program(
         raise ProgramError(f"the model has tool points for SMR nests {sorted(model.tools)}, not {smr}")
     p_flange_smr = np.asarray(model.tools[smr], float)
     _check_tcp(model, targets, p_flange_smr)
-    T_base_flange = np.array([t.T_base_flange for t in targets])
-    T_target = model.T_tracker_base @ T_base_flange
-    T_target[:, :3, 3] = T_base_flange[:, :3, :3] @ p_flange_smr + T_base_flange[:, :3, 3]
-    T_target[:, :3, 3] = T_target[:, :3, 3] @ model.T_tracker_base[:3, :3].T + model.T_tracker_base[:3, 3]
+    T_target = smr_targets(model, np.array([t.T_base_flange for t in targets]), p_flange_smr)
     seeds = _branch_seeds(model, motions, options.q_start)
     payload = np.array([t.payload_kg for t in targets])  # finite: a run-time payload is a run-time target
     temperature = None if options.temperature_c is None else np.full(len(targets), options.temperature_c)
@@ -77,6 +75,20 @@ def compensate_program(
         approach = _approach_in_order(motions, visited, options.q_start)
         result = _solve(model, T_target, result.q, smr, options, temperature, payload, approach)
     return CompensatedProgram(_rewrite(motions, targets, result.q), targets, result)
+
+
+def smr_targets(model: CalibratedModel, T_base_flange: np.ndarray, p_flange_smr: np.ndarray) -> np.ndarray:
+    """What compensation aims at for flange poses (..., 4, 4) in the base frame: the flange's orientation and
+    the SMR's point, in the tracker frame the model places the base in."""
+    T_tracker_base = np.asarray(model.T_tracker_base, float)
+    T_target = T_tracker_base @ T_base_flange
+    T_target[..., :3, 3] = transform_points(T_tracker_base, transform_points(T_base_flange, p_flange_smr))
+    return T_target
+
+
+def tcp_off_the_smr(T_flange_tcp: np.ndarray, p_flange_smr: np.ndarray) -> bool:
+    """A TCP away from the measured SMR point: reaching it needs the flange's orientation from the model."""
+    return bool(np.linalg.norm(np.asarray(T_flange_tcp)[:3, 3] - p_flange_smr) > TCP_AT_SMR_M)
 
 
 def _solve(
@@ -99,7 +111,7 @@ def _solve(
 
 def _check_tcp(model: CalibratedModel, targets: list[PoseTarget], p_flange_smr: np.ndarray) -> None:
     """Refuse a TCP away from the SMR point when the model does not know the flange's orientation."""
-    off = [t for t in targets if np.linalg.norm(t.T_flange_tcp[:3, 3] - p_flange_smr) > TCP_AT_SMR_M]
+    off = [t for t in targets if tcp_off_the_smr(t.T_flange_tcp, p_flange_smr)]
     if off and not orientation_known(model):
         tcp_mm = off[0].T_flange_tcp[:3, 3] * 1e3
         raise ProgramError(
