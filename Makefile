@@ -43,7 +43,13 @@ docs: $(VENV)/.installed
 typecheck: $(VENV)/.installed
 	$(VENV)/bin/mypy
 
-unit: $(VENV)/.installed
+# The server and the browser some tests drive for real (PostgreSQL, Chromium), installed from the distribution's
+# packages where missing (tools/system-deps): part of the set-up, never assumed by a test.
+$(VENV)/.system-deps: tools/system-deps $(VENV)/.installed
+	tools/system-deps
+	touch $@
+
+unit: $(VENV)/.installed $(VENV)/.system-deps
 	$(PY) -m pytest -q --durations=15 $(PYTEST_PARALLEL)
 
 # The long soaks (20 SIGKILLs of a campaign, a whole demo resumed): minutes; the default suite runs a short
