@@ -228,7 +228,7 @@ def _run(args, df, val, tool, families, mpe, progress) -> DiagnosisReport:
             folds=args.folds,
             alpha=args.alpha,
             families=families,
-            repeatability_mm=args.repeatability_mm,
+            repeatability_m=args.repeatability_mm / 1000.0,
             tool_guess_m=tool,
             tracker_mpe_m=mpe,
             compare_maps=args.compare_maps,

@@ -9,7 +9,6 @@ from pathlib import Path
 import pandas as pd
 
 from hil.analysis.standards.iso9283 import (
-    CMD_POSITION_COLUMNS,
     Iso9283Error,
     path_campaign_figures,
     pose_performance,
@@ -17,7 +16,7 @@ from hil.analysis.standards.iso9283 import (
 from hil.commands.arg_checks import InputError, add_force_option, check_paths, int_in
 from hil.commands.errors import CliError
 from hil.commands.help_format import DefaultsHelpFormatter
-from hil.data.dataset import DatasetError, load_dataset
+from hil.data.dataset import CMD_POSITION_COLUMNS, DatasetError, load_dataset
 from hil.data.jsonable import to_jsonable
 
 HELP = "ISO 9283 pose accuracy and repeatability (AP, RP, AD, RD; path AT, RT) of a recorded campaign"

@@ -24,6 +24,9 @@ import pandas as pd
 POSITION_COLUMNS: tuple[str, ...] = ("x_mm", "y_mm", "z_mm")
 OPTIONAL_COLUMNS: tuple[str, ...] = ("t_s", "temperature_c", "smr", "payload_kg", "pose", "cycle", "sweep")
 ORIENTATION_COLUMNS: tuple[str, ...] = ("rx_deg", "ry_deg", "rz_deg")
+# What the robot was told to reach, in the same frame and units (ISO 9283 campaigns, path campaigns).
+CMD_POSITION_COLUMNS: tuple[str, ...] = ("x_cmd_mm", "y_cmd_mm", "z_cmd_mm")
+CMD_ORIENTATION_COLUMNS: tuple[str, ...] = ("rx_cmd_deg", "ry_cmd_deg", "rz_cmd_deg")
 # Conventions of the three orientation angles, as scipy's Euler sequences (lower case = extrinsic axes).
 # Inside hil the angles always follow the default; another convention is converted when the data is read.
 ORIENTATION_CONVENTIONS: dict[str, str] = {
@@ -274,6 +277,16 @@ def points_m(df: pd.DataFrame) -> np.ndarray:
     return df[list(POSITION_COLUMNS)].to_numpy(float) / 1000.0
 
 
+def commanded_points_m(df: pd.DataFrame) -> np.ndarray:
+    """The commanded positions (x_cmd_mm, y_cmd_mm, z_cmd_mm) in metres; a cell that is not a number reads as NaN."""
+    return df[list(CMD_POSITION_COLUMNS)].apply(pd.to_numeric, errors="coerce").to_numpy(float) / 1000.0
+
+
+def angles_rad(df: pd.DataFrame, columns: tuple[str, ...] = ORIENTATION_COLUMNS) -> np.ndarray:
+    """Angle columns given in degrees (the probe's rx/ry/rz_deg by default), in radians."""
+    return np.deg2rad(df[list(columns)].to_numpy(float))
+
+
 def smr_ids(df: pd.DataFrame) -> np.ndarray:
     return df["smr"].to_numpy(int) if "smr" in df.columns else np.ones(len(df), int)
 
@@ -300,7 +313,7 @@ def orientations(df: pd.DataFrame, convention: str = DEFAULT_ORIENTATION_CONVENT
     seq = check_orientation_convention(convention)
     if not has_orientation(df):
         return None
-    angles = np.deg2rad(df[list(ORIENTATION_COLUMNS)].to_numpy(float))
+    angles = angles_rad(df)
     return Rotation.from_euler(seq, angles).as_matrix()
 
 

@@ -46,7 +46,7 @@ def estimate_noise_floor(
     mpe_const_m: float = TRACKER_MPE_M[0],
     mpe_per_m: float = TRACKER_MPE_M[1],
     mpe_sigmas: float = TRACKER_MPE_SIGMAS,
-    repeatability_mm: float = 0.0,
+    repeatability_m: float = 0.0,
     repeat_tol_rad: float = 2e-5,
 ) -> NoiseFloor:
     """Noise floor of a dataset (see module docstring)."""
@@ -55,13 +55,13 @@ def estimate_noise_floor(
     sigma_tracker = tracker_sigma_m(dist, (mpe_const_m, mpe_per_m), mpe_sigmas)
     shots = df["shots_count"].to_numpy(float) if "shots_count" in df.columns else np.ones(len(p))
     sigma_tracker = sigma_tracker / np.sqrt(np.clip(shots, 1.0, None))  # each row averages its shots
-    rep_axis = repeatability_mm / 1000.0 / np.sqrt(3.0)
+    rep_axis = repeatability_m / np.sqrt(3.0)
     sigma = np.sqrt(sigma_tracker**2 + rep_axis**2)
     method = (
         f"tracker noise model {mpe_const_m * 1e6:.0f} um + {mpe_per_m * 1e6:.0f} um/m as {mpe_sigmas:g} sigma "
         f"at the measured distances ({dist.min():.2f}-{dist.max():.2f} m)"
         + (f", averaged over {np.median(shots):g} shots per point" if np.any(shots > 1) else "")
-        + (f", plus robot repeatability {repeatability_mm} mm" if repeatability_mm else "")
+        + (f", plus robot repeatability {repeatability_m * 1e3:g} mm" if repeatability_m else "")
     )
     groups = _repeat_groups(joints_rad(df), repeat_tol_rad, smr_ids(df))
     if len(groups) >= 5:

@@ -149,7 +149,7 @@ def baseline_fit(
     robot,
     folds,
     seed,
-    repeatability_mm,
+    repeatability_m,
     tool_guess_m,
     tracker_mpe_m,
     progress=None,
@@ -163,7 +163,7 @@ def baseline_fit(
     repeated."""
     tell = progress or quiet
     noise = estimate_noise_floor(
-        df, mpe_const_m=tracker_mpe_m[0], mpe_per_m=tracker_mpe_m[1], repeatability_mm=repeatability_mm
+        df, mpe_const_m=tracker_mpe_m[0], mpe_per_m=tracker_mpe_m[1], repeatability_m=repeatability_m
     )
     tell("geometric calibration", 0, 2)
     start = physics_start(robot, df, tool_guess_m)

@@ -226,7 +226,7 @@ class DiagnosisOptions:
 
     `folds` spatial folds (split with `seed`) for the held-out figures; `alpha` the selection's
     significance; `families` the candidate effects (None: all) and `max_effects` the most it adds.
-    `repeatability_mm`, `tool_guess_m` and `tracker_mpe_m` go to the baseline fit. `compare_maps` runs the
+    `repeatability_m`, `tool_guess_m` and `tracker_mpe_m` go to the baseline fit. `compare_maps` runs the
     k-fold residual-map comparison (IDW / SVR / GP) even when the residual is at the noise floor.
     `reregister_validation` ("none", "base", "base+tool") refits the base frame (and tool) of every stage
     on the validation campaign first, for a campaign taken from another tracker placement; the report then
@@ -240,7 +240,7 @@ class DiagnosisOptions:
     seed: int = 0
     families: tuple[str, ...] | None = None
     max_effects: int = 15
-    repeatability_mm: float = 0.0
+    repeatability_m: float = 0.0
     tool_guess_m: np.ndarray | None = None
     tracker_mpe_m: tuple[float, float] = TRACKER_MPE_M
     compare_maps: bool = False
@@ -277,7 +277,7 @@ def run_diagnosis(
         raise ValueError(f"reregister_validation '{reregister_validation}': use none, base or base+tool")
     df = drop_duplicate_rows(df, "training data")  # copies would count twice in every test
     with threadpool_limits(1):  # small dense problems: threads only contend
-        fit_args = (df, robot, o.folds, o.seed, o.repeatability_mm, o.tool_guess_m, o.tracker_mpe_m, progress)
+        fit_args = (df, robot, o.folds, o.seed, o.repeatability_m, o.tool_guess_m, o.tracker_mpe_m, progress)
         base = baseline_fit(*fit_args)
         base.screening = screening
         path = select_effects(base, df, alpha, families, max_effects)

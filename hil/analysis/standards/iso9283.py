@@ -17,11 +17,17 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from hil.data.dataset import ORIENTATION_COLUMNS, POSITION_COLUMNS
+from hil.data.dataset import (
+    CMD_ORIENTATION_COLUMNS,
+    CMD_POSITION_COLUMNS,
+    ORIENTATION_COLUMNS,
+    POSITION_COLUMNS,
+    angles_rad,
+    commanded_points_m,
+    points_m,
+)
 
 POSE_LABELS: tuple[str, ...] = ("P1", "P2", "P3", "P4", "P5")
-CMD_POSITION_COLUMNS: tuple[str, ...] = ("x_cmd_mm", "y_cmd_mm", "z_cmd_mm")
-CMD_ORIENTATION_COLUMNS: tuple[str, ...] = ("rx_cmd_deg", "ry_cmd_deg", "rz_cmd_deg")
 CORNER_FRACTION = 0.1  # P2..P5 lie this fraction of the diagonal's length in from their corners
 CMD_SPREAD_M = 1e-6  # one pose's commanded position may vary this much between its rows (export rounding)
 DISTANCE_POSES = ("P2", "P4")
@@ -226,7 +232,7 @@ def pose_performance(df: pd.DataFrame, source: str = "campaign", smr: int | None
             )
         data = df[df["smr"].to_numpy(int) == used_smr]
     cycle = pd.to_numeric(data["cycle"], errors="coerce").to_numpy(float)
-    cmd = data[list(CMD_POSITION_COLUMNS)].apply(pd.to_numeric, errors="coerce").to_numpy(float) / 1e3
+    cmd = commanded_points_m(data)
     bad = ~np.isfinite(cycle) | ~np.all(np.isfinite(cmd), axis=1)
     if bad.any():
         raise Iso9283Error(
@@ -239,10 +245,10 @@ def pose_performance(df: pd.DataFrame, source: str = "campaign", smr: int | None
         raise Iso9283Error(
             f"{source}: pose {p} cycle {c:g} appears twice; give each pose one row per cycle (and per SMR)"
         )
-    x = data[list(POSITION_COLUMNS)].to_numpy(float) / 1e3
+    x = points_m(data)
     has_abc = all(c in data.columns for c in (*ORIENTATION_COLUMNS, *CMD_ORIENTATION_COLUMNS))
-    abc = np.deg2rad(data[list(ORIENTATION_COLUMNS)].to_numpy(float)) if has_abc else None
-    abc_cmd = np.deg2rad(data[list(CMD_ORIENTATION_COLUMNS)].to_numpy(float)) if has_abc else None
+    abc = angles_rad(data) if has_abc else None
+    abc_cmd = angles_rad(data, CMD_ORIENTATION_COLUMNS) if has_abc else None
     order = sorted(
         set(label), key=lambda s: (s not in POSE_LABELS, POSE_LABELS.index(s) if s in POSE_LABELS else 0, s)
     )
@@ -348,9 +354,9 @@ def path_campaign_figures(df: pd.DataFrame, source: str = "paths") -> dict[str, 
     _require(df, [*POSITION_COLUMNS, *CMD_POSITION_COLUMNS], source, "attained and commanded points")
     out = {}
     for name, rows in df.groupby(df["path"].astype(str), sort=False):
-        runs = [g[list(POSITION_COLUMNS)].to_numpy(float) / 1e3 for _, g in rows.groupby("run", sort=True)]
+        runs = [points_m(g) for _, g in rows.groupby("run", sort=True)]
         first = rows[rows["run"] == rows["run"].min()]
-        commanded = first[list(CMD_POSITION_COLUMNS)].to_numpy(float) / 1e3
+        commanded = commanded_points_m(first)
         keep = np.concatenate([[True], np.linalg.norm(np.diff(commanded, axis=0), axis=1) > 1e-9])
         try:
             out[str(name)] = path_performance(commanded[keep], runs)
