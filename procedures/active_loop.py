@@ -41,7 +41,7 @@ from hil.data.jsonable import to_jsonable
 from hil.data.store import CampaignStore, campaign_dataset
 from hil.report.rounds import rounds_text
 from hil.runner.cell_config import CellConfig
-from hil.runner.engine import CampaignStopped, Measuring
+from hil.runner.engine import Advance, CampaignStopped, Measuring
 from hil.runner.operator import OperatorStep
 from hil.runner.plan import Plan, PlannedPose
 from hil.runner.procedure import SHOTS, Parameter, Procedure, Role
@@ -302,12 +302,13 @@ def _measure_round(
             continue
         # the operator places the SMR before this process' first new pose, not before every block
         plan = motion_plan(session.config, rows, nest, only=idx)
-        with session.progress.task(NAME.replace("_", " "), total=len(plan.poses)) as advance:
-            for request in session.engine.requests(
-                plan, shots=shots, extra={"round": rows.number}, strict=False
-            ):
-                yield request
-                advance()
+        phase = f"active loop, round {rows.number} block {k}"
+        for done, request in enumerate(
+            session.engine.requests(plan, shots=shots, extra={"round": rows.number}, strict=False)
+        ):
+            yield Advance(phase, done, len(plan.poses))
+            yield request
+        yield Advance(phase, len(plan.poses), len(plan.poses))
         step = f"round{rows.number}/block{k}"
         record = session.step_result(NAME, step)
         if record is None:

@@ -60,6 +60,7 @@ from hil.geometry.kinematics import forward_kinematics
 from hil.geometry.se3 import fit_rigid
 from hil.model.calibrated_model import CalibratedModel
 from hil.runner.cell_config import CellConfig
+from hil.runner.engine import Advance, MeasurePath, Measuring, PathOptions
 from hil.runner.operator import OperatorStep
 from hil.runner.plan import Plan, PlannedPose
 from hil.runner.planners import facing_poses, linear_path_joints, plan_joints, workspace_box
@@ -428,24 +429,36 @@ def run_paths(
     nest: int,
     T_tracker_base: np.ndarray,
 ) -> pd.DataFrame:
-    """`runs` runs of each path (recorded ones are read back, not repeated), as `path_rows`."""
+    """`runs` runs of each path, through the engine (recorded ones are read back, not repeated), as `path_rows`."""
     p_flange = session.nest_flange_m(nest)
-    results = []
-    keys = [(path, path_step(step, path.name, r), r) for path in paths for r in range(1, runs + 1)]
-    recorded = {key for _, key, _ in keys if session.step_result(NAME, key) is not None}
-    with session.progress.task(f"iso9283 paths {step}", total=len(keys), done=len(recorded)) as advance:
-        for path, key, r in keys:
-            result = session.measure_path(
-                NAME, key, path.q_start, path.T_base_flange,
+    requests = [
+        MeasurePath(
+            NAME, path_step(step, path.name, r), path.q_start, path.T_base_flange,
+            PathOptions(
                 speed_m_s=speed_m_s, accel_m_s2=PATH_ACCEL_M_S2, interval_s=STREAM_INTERVAL_S,
                 p_flange_m=p_flange, approach_q_rad=path.q_start - APPROACH_RAD,
-            )  # fmt: skip
-            results.append((path.name, r, result))
-            if key not in recorded:
-                advance()
+            ),
+        )
+        for path in paths
+        for r in range(1, runs + 1)
+    ]  # fmt: skip
+    results = session.engine.run(_path_runs(f"iso9283 paths {step}", requests))
+    names_runs = [(path.name, r) for path in paths for r in range(1, runs + 1)]
     T = T_tracker_base
     commanded = {p.name: p.p_commanded_base_m @ T[:3, :3].T + T[:3, 3] for p in paths}
-    return path_rows(results, commanded)
+    return path_rows([(n, r, res) for (n, r), res in zip(names_runs, results, strict=True)], commanded)
+
+
+def _path_runs(phase: str, requests: list[MeasurePath]) -> Measuring[list[dict]]:
+    """The engine measures each path run in turn; progress counts the runs."""
+    results = []
+    for k, request in enumerate(requests):
+        yield Advance(phase, k, len(requests))
+        result = yield request
+        assert isinstance(result, dict)
+        results.append(result)
+    yield Advance(phase, len(requests), len(requests))
+    return results
 
 
 def _named(csv: str, suffix: str) -> Path:

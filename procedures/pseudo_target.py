@@ -31,7 +31,6 @@ another side of the gap (about 0.1 mm on the simulated UR10 with backlash).
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -52,12 +51,12 @@ from hil.compensation.model_based import (
 )
 from hil.compensation.target_update import GENERATORS, update_pseudo_position, update_pseudo_target
 from hil.data.dataset import ORIENTATION_COLUMNS, orientations
-from hil.data.store import CampaignError, CampaignStore
+from hil.data.store import CampaignError, CampaignStore, MeasurementRecord
 from hil.geometry.kinematics import forward_kinematics
 from hil.geometry.se3 import fit_rigid
 from hil.model.calibrated_model import CalibratedModel
 from hil.runner.cell_config import CellConfig
-from hil.runner.engine import CampaignStopped, MeasurePose, Measuring
+from hil.runner.engine import Advance, CampaignStopped, MeasurePose, Measuring
 from hil.runner.operator import OperatorStep
 from hil.runner.plan import Plan, PlannedPose
 from hil.runner.planners import (
@@ -587,9 +586,8 @@ def close_the_loop(session: Session, options: PseudoTargetOptions) -> LoopResult
     results = [TargetResult(i, str(s)) for i, s in zip(ids, start.status, strict=True)]
     todo = [k for k, r in enumerate(results) if r.status == "ok"]
     loop.ask_operator()
-    with session.progress.task("pseudo-target loop", total=len(todo)) as advance:
-        uncompensated = start.q_uncompensated if options.measure_uncompensated else None
-        session.engine.run(loop.targets(todo, start.q, uncompensated, results, advance))
+    uncompensated = start.q_uncompensated if options.measure_uncompensated else None
+    session.engine.run(loop.targets(todo, start.q, uncompensated, results))
     result = LoopResult(results, smrs, generator, the_model is not None)
     session.finish_step(
         NAME, "summary", {"summary": result.summary(), "targets": [r.to_dict() for r in results]}
@@ -694,11 +692,12 @@ class _Loop:
         q_start: np.ndarray,
         q_uncompensated: np.ndarray | None,
         results: list[TargetResult],
-        advance: Callable[[], None],
     ) -> Measuring[None]:
         """The loop over the targets `todo` (indices into `results`), as requests to the engine: each target
-        from its start joints, after its plain nominal IK (`q_uncompensated`) when that is measured too."""
-        for k in todo:
+        from its start joints, after its plain nominal IK (`q_uncompensated`) when that is measured too;
+        progress counts the targets."""
+        for done, k in enumerate(todo):
+            yield Advance("pseudo-target loop", done, len(todo))
             out = results[k]
             if q_uncompensated is not None:
                 T_u = yield from self.measure(f"{out.target_id}/u", q_uncompensated[k])
@@ -707,7 +706,7 @@ class _Loop:
                 )
             yield from self.run_target(k, out.target_id, q_start[k], out)
             yield from remeasure_kept(self, k, out.target_id, out)
-            advance()
+        yield Advance("pseudo-target loop", len(todo), len(todo))
 
     def _point(self, point_id: str, q: np.ndarray, nest: int, approach: bool) -> Measuring[np.ndarray]:
         """One SMR's point at joints q; `approach`: reach q through q - approach on every joint, so each joint
@@ -720,6 +719,7 @@ class _Loop:
         record = yield MeasurePose(
             pose, shots=self.shots, extra={"target": point_id.split("/")[0]}, approach_optional=True
         )
+        assert isinstance(record, MeasurementRecord)
         self.sigma_m = max(
             self.sigma_m, measurement_sigma_m(record.p_tracker_m, record.spread_m, record.shots)
         )

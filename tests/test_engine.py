@@ -4,6 +4,8 @@ retries, and stops or pauses between points when asked (Ctrl-C and a stop button
 
 from __future__ import annotations
 
+import io
+import itertools
 import threading
 
 import numpy as np
@@ -11,10 +13,11 @@ import pytest
 
 from hil.data.store import CampaignStore, MeasurementRecord
 from hil.instruments.tracker import NoTargetError
-from hil.runner.engine import AttemptPolicy, CampaignStopped, MeasurePose, Measuring, StopRequested
+from hil.runner.engine import Advance, AttemptPolicy, CampaignStopped, MeasurePose, Measuring, StopRequested
 from hil.runner.envelope import EnvelopeError
 from hil.runner.plan import PlannedPose
 from hil.runner.procedure import Procedure
+from hil.runner.progress import Progress
 from procedures.registration import PROCEDURE as REGISTRATION
 from tests.cli_in_process import run_hil
 from tests.sim_session import running_cell, session_on
@@ -203,3 +206,30 @@ def test_an_optional_approach_the_envelope_refuses_is_skipped_and_a_required_one
     assert _measured(campaign) == [first.point_id, second.point_id]
     skipped = events[events["kind"] == "approach_skipped"]
     assert skipped["point_id"].tolist() == [second.point_id]
+
+
+def test_an_adaptive_procedure_reports_its_progress_to_the_engine_which_draws_it(cell, tmp_path):
+    """A procedure yields `Advance` between its requests and opens no progress of its own: the engine shows
+    each phase (here as the plain lines a log gets; a clock that moves 10 s per reading writes every one)."""
+    _, config = cell
+    poses = _poses(config)[:3]
+
+    def counted(session) -> Measuring[int]:
+        for done, pose in enumerate(poses):
+            yield Advance("miniature loop", done, len(poses))
+            record = yield MeasurePose(pose, aim=False, reaim=lambda: session.ask(poses[0].at_pose[0]))
+            assert isinstance(record, MeasurementRecord)
+        yield Advance("miniature loop", len(poses), len(poses))
+        return len(poses)
+
+    stream, ticks = io.StringIO(), itertools.count(step=10.0)
+    with session_on(config, tmp_path / "c.sqlite") as session:
+        session.progress = Progress(enabled=True, stream=stream, clock=lambda: next(ticks))
+        assert session.engine.run(counted(session)) == 3
+    lines = stream.getvalue().splitlines()
+    assert [line.split(",")[0] for line in lines] == [
+        "miniature loop: 0/3 (0%)",  # the phase appears when first reported and is redrawn as it goes
+        "miniature loop: 1/3 (33%)",
+        "miniature loop: 2/3 (67%)",
+        "miniature loop: 3/3 (100%)",
+    ]

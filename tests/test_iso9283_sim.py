@@ -17,7 +17,7 @@ from fakes.cell import SimCellConfig, SimulatedCell
 from hil.analysis.standards.iso9283 import commanded_tangents, crossings
 from hil.data.dataset import orientation_columns
 from hil.geometry.se3 import fit_rigid
-from hil.runner.engine import CampaignStopped
+from hil.runner.engine import CampaignStopped, MeasurePath, PathOptions
 from hil.runner.envelope import EnvelopeError
 from hil.runner.procedure import ParameterError
 from procedures import iso9283, registration
@@ -122,10 +122,12 @@ def refusals_before_motion(session) -> None:
     envelope, session.envelope = session.envelope, tight.envelope  # the session checks every path run too
     try:
         with pytest.raises(EnvelopeError, match="leaves the reach or the envelope"):
-            session.measure_path(
-                "iso9283", "path/test/circle/r01", circle.q_start, circle.T_base_flange, speed_m_s=0.05,
-                accel_m_s2=1.2, interval_s=0.01, p_flange_m=config.nests_flange_m[0],
-            )  # fmt: skip
+            options = PathOptions(
+                speed_m_s=0.05, accel_m_s2=1.2, interval_s=0.01, p_flange_m=config.nests_flange_m[0]
+            )
+            session.engine.serve_path(
+                MeasurePath("iso9283", "path/test/circle/r01", circle.q_start, circle.T_base_flange, options)
+            )
     finally:
         session.envelope = envelope
     np.testing.assert_allclose(session.robot.joints(), q0, atol=1e-9)

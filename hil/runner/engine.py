@@ -2,9 +2,10 @@
 
 A procedure does not loop over the instruments itself. A fixed plan hands the engine its poses
 (`Engine.visit`); an adaptive procedure (the pseudo-target loop, the active rounds) is a generator that
-*yields* what to measure next as a typed request (`MeasurePose`) and reads back what was measured
-(`record = yield MeasurePose(...)`), and `Engine.run` drives it. The engine does the rest, the same way for
-both: the envelope check of every pose it is handed (an adaptive procedure's too, at run time, before the
+*yields* what to measure next as a typed request (`MeasurePose` for a point, `MeasurePath` for one run of a
+path) and reads back what was measured (`record = yield MeasurePose(...)`), and how far it got (`Advance`:
+the engine draws the progress and its ETA), and `Engine.run` drives it. The engine does the rest, the same way
+for both: the envelope check of every pose it is handed (an adaptive procedure's too, at run time, before the
 robot moves), the operator's manual steps, resume by recorded point (a recorded point is handed back, never
 measured again), retries (`attempt`, one attempt loop for a point and for a path), progress, and pause and
 stop between points (`request_pause`, `resume`, `request_stop`: Ctrl-C and any other button call the same
@@ -86,7 +87,43 @@ class MeasurePose:
     approach_optional: bool = False
 
 
-Measuring = Generator[MeasurePose, MeasurementRecord, T]  # a procedure's loop: yields requests, returns T
+@dataclass(frozen=True)
+class MeasurePath:
+    """A request to the engine: one run of a path, streamed (hil.runner.session.Session.measure_path; the run
+    recorded as the step's result, a recorded run handed back as it was). `options` are measure_path's."""
+
+    procedure: str
+    step: str
+    q_start: np.ndarray
+    T_base_flange: np.ndarray  # (K, 4, 4) flange waypoints, base frame
+    options: PathOptions
+
+
+@dataclass(frozen=True)
+class PathOptions:
+    """How a path is driven and streamed: tool speed and acceleration, the tracker's sample interval, the
+    SMR's position on the flange, and the pose passed on the way to the start (None: straight there)."""
+
+    speed_m_s: float
+    accel_m_s2: float
+    interval_s: float
+    p_flange_m: np.ndarray
+    approach_q_rad: np.ndarray | None = None
+
+
+@dataclass(frozen=True)
+class Advance:
+    """A message to the engine: of the procedure's work `phase`, `done` of `total` units are finished. The
+    engine shows it with an ETA (a terminal bar, plain lines in a log); nothing moves."""
+
+    phase: str
+    done: int
+    total: int
+
+
+Request = MeasurePose | MeasurePath | Advance
+Reply = MeasurementRecord | dict | None  # a point's record, a path run's result, nothing for Advance
+Measuring = Generator[Request, Reply, T]  # a procedure's loop: yields requests, returns T
 
 
 class Cell(Protocol):
@@ -123,6 +160,12 @@ class Cell(Protocol):
     ) -> MeasurementRecord | None: ...
 
     def aim_point(self, pose: PlannedPose) -> np.ndarray | None: ...
+
+    def measure_path(
+        self, procedure: str, step: str, q_start: np.ndarray, T_base_flange: np.ndarray, options: PathOptions
+    ) -> dict: ...
+
+    def step_result(self, procedure: str, step: str) -> dict | None: ...
 
 
 @dataclass(frozen=True)
@@ -234,16 +277,35 @@ class Engine:
 
     # ------------------------------------------------------------------ requests
     def run(self, procedure: Measuring[R]) -> R:
-        """Drive an adaptive procedure: serve each request it yields, send back the record, return its value.
-        The operator is asked for a setup before the first point of this run that needs it."""
+        """Drive a procedure's loop: serve each request it yields, send back what was measured, show its
+        progress, return its value. The operator is asked for a setup before the first point of this run that
+        needs it."""
         self._setup = None
-        try:
-            request = next(procedure)
-            while True:
-                record = self.serve(request)
-                request = procedure.send(record)
-        except StopIteration as finished:
-            return finished.value
+        with self.cell.progress.phases() as update:
+            try:
+                request = next(procedure)
+                while True:
+                    reply: Reply = None
+                    if isinstance(request, Advance):
+                        update(request.phase, request.done, request.total)
+                    elif isinstance(request, MeasurePath):
+                        reply = self.serve_path(request)
+                    else:
+                        reply = self.serve(request)
+                    request = procedure.send(reply)
+            except StopIteration as finished:
+                return finished.value
+
+    def serve_path(self, request: MeasurePath) -> dict:
+        """One run of a path: handed back as recorded when it is (nothing moves), else measured after the
+        pause and stop checkpoint (the session checks the whole path against the reach and the envelope,
+        retries through `attempt` and records the run before anything else moves)."""
+        recorded = self.cell.step_result(request.procedure, request.step)
+        if recorded is None:
+            self.checkpoint()
+        return self.cell.measure_path(
+            request.procedure, request.step, request.q_start, request.T_base_flange, request.options
+        )
 
     def serve(self, request: MeasurePose) -> MeasurementRecord:
         """One request: its recorded measurement when there is one (nothing moves), else check its pose

@@ -32,7 +32,7 @@ from hil.instruments.tracker import (
     TrackerMeasurement,
 )
 from hil.runner.cell_config import CellConfig
-from hil.runner.engine import AttemptPolicy, CampaignStopped, Engine
+from hil.runner.engine import AttemptPolicy, CampaignStopped, Engine, PathOptions
 from hil.runner.envelope import Envelope, EnvelopeError
 from hil.runner.operator import Operator, OperatorStep
 from hil.runner.plan import Plan, PlannedPose
@@ -396,24 +396,17 @@ class Session:
         return tracker
 
     def measure_path(
-        self,
-        procedure: str,
-        step: str,
-        q_start: np.ndarray,
-        T_base_flange: np.ndarray,
-        *,
-        speed_m_s: float,
-        accel_m_s2: float,
-        interval_s: float,
-        p_flange_m: np.ndarray,
-        approach_q_rad: np.ndarray | None = None,
+        self, procedure: str, step: str, q_start: np.ndarray, T_base_flange: np.ndarray, options: PathOptions
     ) -> dict:
         """One run of a path: move to its start (checked against the envelope), aim, stream the tracker while
         the robot moves linearly through the flange waypoints T_base_flange (K, 4, 4), and record every sample
         as the step's result before anything else moves. A run already recorded is returned as it was (a
         resumed campaign never repeats it); one recorded with other waypoints or speed is refused. Beam breaks
         are retried from the start, each an event. The whole path (every 5 mm) is checked reachable and inside
-        the envelope before anything moves."""
+        the envelope before anything moves. Procedures ask for a run through the engine (`MeasurePath`)."""
+        o = options
+        speed_m_s, accel_m_s2, interval_s = o.speed_m_s, o.accel_m_s2, o.interval_s
+        p_flange_m, approach_q_rad = o.p_flange_m, o.approach_q_rad
         T = np.asarray(T_base_flange, float)
         waypoints_mm = (T[:, :3, 3] * 1e3).round(6).tolist()
         recorded = self.step_result(procedure, step)
