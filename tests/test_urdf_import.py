@@ -198,6 +198,7 @@ def test_a_cell_names_a_urdf_and_its_flange_and_the_campaign_keeps_it(tmp_path, 
     from hil.commands.campaign_targets import campaign_robot
     from hil.data.store import CampaignStore
     from hil.runner.cell_config import CellConfigError, load_cell_config
+    from hil.runner.cell_warnings import cell_warnings
     from tests.cell_fixtures import sim_cell_toml
 
     (tmp_path / "arm.urdf").write_text(urdf_files["ur10"].read_text())
@@ -214,6 +215,13 @@ def test_a_cell_names_a_urdf_and_its_flange_and_the_campaign_keeps_it(tmp_path, 
         (tmp_path / "arm.urdf").unlink()
         kept = campaign_robot(store, tmp_path / "job.sqlite")
     assert np.allclose(forward_kinematics(kept, q), forward_kinematics(config.nominal, q), atol=1e-12)
+    assert not [w for w in cell_warnings(config) if w.startswith("robot.model")]  # on base_link's z axis
+    (tmp_path / "fanuc.urdf").write_text(urdf_files["lrmate200id"].read_text())
+    path.write_text(sim_cell_toml().replace('model = "ur10"', 'model = "fanuc.urdf"'))
+    assert any(
+        "robot.model: base frame: joint 1 does not turn about 'world'" in w
+        for w in cell_warnings(load_cell_config(path))
+    )
     path.write_text(sim_cell_toml().replace('model = "ur10"', 'model = "arm.urdf.xacro"'))
     (tmp_path / "arm.urdf.xacro").write_text(urdf_files["ur10"].read_text())
     with pytest.raises(CellConfigError, match=r"robot.model: .*expand it first with ROS's xacro tool"):
