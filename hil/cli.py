@@ -21,6 +21,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "compensate": ("hil.commands.compensate", "joints that make a calibrated model put the SMR on target points or poses (pseudo-target loop)"),
     "diagnose": ("hil.commands.diagnose", "calibrate, trace the residual to missing effects, add them, report before/after"),
     "predict": ("hil.commands.predict", "predict x_mm, y_mm, z_mm (tracker frame) for the joints in a CSV with a calibrated model"),
+    "model": ("hil.commands.model", "write a calibrated model for other software: URDF, UR kinematics file, DH table"),
     "iso9283": ("hil.commands.iso9283", "ISO 9283 pose accuracy and repeatability (AP, RP, AD, RD; path AT, RT) of a recorded campaign"),
     "axes": ("hil.commands.axes", "joint axes from single-joint sweeps (circle point analysis), written as a robot file calibration starts from"),
     "sim": ("hil.commands.sim", "run a simulated robot cell on a loopback address"),

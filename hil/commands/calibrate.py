@@ -82,7 +82,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "--robot",
         default="ur10",
         type=robot_arg,
-        help=f"nominal robot: {', '.join(ROBOT_NAMES)} or a robot definition file (.toml, see hil/geometry/robot_models)",
+        help=f"nominal robot: {', '.join(ROBOT_NAMES)}, a robot definition file (.toml, see "
+        "hil/geometry/robot_models) or a URDF (FILE.urdf: its chain to the last link; FILE.urdf#LINK: to that flange link)",
     )
     p.add_argument("-o", "--output", required=True, help="model JSON to write")
     p.add_argument("--solver", default="ridge", choices=("ridge", "lm"), help="solver whose model is written")

@@ -24,7 +24,7 @@ from hil.commands.errors import CliError
 from hil.data.dataset import orientation_columns
 from hil.data.store import CampaignError, CampaignStore
 from hil.geometry.kinematics import KinematicModel, forward_kinematics
-from hil.geometry.robots import get_robot, is_robot_file, robot_from_text
+from hil.geometry.robots import get_robot, is_robot_file, robot_file_path, robot_from_text, with_file_path
 from hil.runner.procedure import Role
 from hil.runner.registry import publisher
 
@@ -136,7 +136,7 @@ def campaign_robot(store: CampaignStore, path: str | Path) -> KinematicModel:
 def _robot_file_beside_cell(model: str, cell_source: object, path: str | Path) -> KinematicModel:
     """A robot file named by a snapshot that keeps no copy of it (older campaigns): the path as written in the
     cell file, relative to that file's folder."""
-    file = Path(model)
+    file = robot_file_path(model)
     if not file.is_absolute() and isinstance(cell_source, str):
         file = Path(cell_source).parent / file
     if not file.is_file():
@@ -144,7 +144,7 @@ def _robot_file_beside_cell(model: str, cell_source: object, path: str | Path) -
             f"campaign {path} names the robot file {model!r} but keeps no copy of it, and it is not at {file}",
             f"put the robot file back at {file}, or give the targets as a CSV (hil campaign export)",
         )
-    return robot_from_text(file.read_text(), file)
+    return robot_from_text(file.read_text(), with_file_path(model, file))
 
 
 def _drawing_nests_m(store: CampaignStore) -> dict[int, np.ndarray]:

@@ -26,6 +26,9 @@ Rx(α_0) Tx(a_0) would stand before joint 1, where the model has no fixed transf
 frame on axis 1, as every maker defines it). Folding it into the identified base T_tracker_base would
 keep calibration and the identification Jacobian right but silently move the base frame in which FK,
 the safety envelope, gravity and compensated targets are expressed, so a non-zero prefix is refused.
+
+A URDF (`arm.urdf`, or `arm.urdf#tool0` naming its flange link) is read the same way wherever a robot file
+is: its chain from the root link to the flange becomes the same model (hil.geometry.urdf_import).
 """
 
 from __future__ import annotations
@@ -39,6 +42,8 @@ import numpy as np
 
 from hil.geometry.body import ArmBody, body_from_dh
 from hil.geometry.kinematics import KinematicModel
+from hil.geometry.urdf_import import import_urdf
+from hil.geometry.urdf_read import is_urdf_spec, split_spec
 
 ROBOT_DIR = Path(__file__).with_name("robot_models")
 ROBOT_NAMES: tuple[str, ...] = (
@@ -63,7 +68,19 @@ _PARALLEL_TOL_DEG = 1.0  # a Hayati-beta joint's alpha must be within this of 0 
 
 
 def is_robot_file(name: str) -> bool:
-    return name.lower().endswith(".toml")
+    """Whether `--robot` / `[robot] model` names a file (TOML or URDF) rather than a built-in."""
+    return name.lower().endswith(".toml") or is_urdf_spec(name)
+
+
+def robot_file_path(name: str) -> Path:
+    """The file a robot spec names ('arm.urdf#tool0' -> arm.urdf)."""
+    return Path(split_spec(name)[0])
+
+
+def with_file_path(name: str, path: Path) -> str:
+    """The spec naming another path to the same file and flange (a cell file's relative path resolved)."""
+    flange = split_spec(name)[1]
+    return str(path) if flange is None else f"{path}#{flange}"
 
 
 def get_robot(name: str, use_beta: bool = True) -> KinematicModel:
@@ -73,26 +90,31 @@ def get_robot(name: str, use_beta: bool = True) -> KinematicModel:
     key = name.lower().replace("-", "").replace("_", "").replace(" ", "")
     if key not in ROBOT_NAMES:
         raise ValueError(
-            f"unknown robot '{name}'; choose one of {', '.join(ROBOT_NAMES)} or give a robot file (.toml)"
+            f"unknown robot '{name}'; choose one of {', '.join(ROBOT_NAMES)} or give a robot file (.toml, .urdf)"
         )
     return load_robot_file(ROBOT_DIR / f"{key}.toml", use_beta)
 
 
 def load_robot_file(path: str | Path, use_beta: bool = True) -> KinematicModel:
-    """Read and check a robot definition file (raises ValueError naming the file, the key and what to fix)."""
-    path = Path(path)
+    """Read and check a robot definition file (raises ValueError naming the file, the key and what to fix);
+    a URDF's path may end in '#flange_link'."""
+    source = str(path)
+    path = robot_file_path(source)
     try:
         text = path.read_text()
     except FileNotFoundError:
         raise ValueError(f"robot file not found: {path}; check the path") from None
     except UnicodeDecodeError as exc:
         raise ValueError(f"{path}: not a valid TOML robot file ({exc}); fix its syntax") from None
-    return robot_from_text(text, path, use_beta)
+    return robot_from_text(text, source, use_beta)
 
 
 def robot_from_text(text: str, source: str | Path, use_beta: bool = True) -> KinematicModel:
     """A robot definition file's text, checked and read (e.g. the copy a campaign keeps); `source` names it
-    in errors and gives the model's name when the text has none."""
+    in errors and gives the model's name when the text has none. A URDF (`source` ending in .urdf, or
+    .urdf#flange_link) is converted (hil.geometry.urdf_import)."""
+    if is_urdf_spec(str(source)):
+        return _urdf_model(text, str(source), use_beta)
     path = Path(source)
     try:
         data = tomllib.loads(text)
@@ -124,6 +146,18 @@ def robot_from_text(text: str, source: str | Path, use_beta: bool = True) -> Kin
         expansion_per_k=_expansion(path, data["expansion_per_k"]) if "expansion_per_k" in data else None,
         link_masses_kg=_link_masses(path, joints),
     )
+
+
+def _urdf_model(text: str, source: str, use_beta: bool) -> KinematicModel:
+    """A URDF's model, its link masses held to the robot files' bound."""
+    model = import_urdf(text, source, use_beta).model
+    heavy = [i for i, m in enumerate(model.link_masses_kg or (), start=1) if m > MAX_LINK_MASS_KG]
+    if heavy:
+        raise ValueError(
+            f"{source}: joint(s) {heavy} move more than {MAX_LINK_MASS_KG:g} kg in the URDF's <inertial> "
+            "masses; give them in kg (the links of an arm, not the whole machine)"
+        )
+    return model
 
 
 def _link_masses(path: Path, joints: list[dict]) -> tuple[float, ...] | None:
@@ -240,10 +274,18 @@ def robot_body(name: str, text: str | None = None) -> ArmBody:
     else a body along its DH table of `body_radius_mm`, else of DEFAULT_BODY_RADIUS_FRACTION of its size."""
     if text is None:
         key = name.lower().replace("-", "").replace("_", "").replace(" ", "")
-        path = Path(name) if is_robot_file(name) else ROBOT_DIR / f"{key}.toml"
+        path = robot_file_path(name) if is_robot_file(name) else ROBOT_DIR / f"{key}.toml"
         text = path.read_text()
     else:
         path = Path(name)
+    if is_urdf_spec(name):
+        model = robot_from_text(text, name)
+        radius_m = DEFAULT_BODY_RADIUS_FRACTION * float(np.sum(np.abs(model.a)) + np.sum(np.abs(model.d)))
+        return body_from_dh(
+            model,
+            radius_m,
+            f"links along the DH table, {radius_m * 1e3:.0f} mm radius (a URDF's collision meshes are not read)",
+        )
     model = robot_from_text(text, path)
     data = tomllib.loads(text)
     capsules = data.get("capsule")
@@ -307,4 +349,9 @@ def robot_arg(text: str) -> str:
         get_robot(text)
     except ValueError as exc:
         raise argparse.ArgumentTypeError(str(exc)) from None
+    if is_urdf_spec(text):  # what the conversion decided for the user (a moved base frame, masses left out)
+        import sys
+
+        for note in import_urdf(robot_file_path(text).read_text(), text).notes:
+            print(f"note: {text}: {note}", file=sys.stderr)
     return text

@@ -17,7 +17,15 @@ import numpy as np
 
 from hil.geometry.body import ArmBody
 from hil.geometry.kinematics import KinematicModel
-from hil.geometry.robots import ROBOT_NAMES, get_robot, is_robot_file, robot_body, robot_from_text
+from hil.geometry.robots import (
+    ROBOT_NAMES,
+    get_robot,
+    is_robot_file,
+    robot_body,
+    robot_file_path,
+    robot_from_text,
+    with_file_path,
+)
 from hil.instruments.plugins import DEFAULT_ROBOT_DRIVER, DEFAULT_TRACKER_DRIVER
 from hil.runner.collision import CellBodies, KeepOutBox
 from hil.runner.envelope import Envelope
@@ -225,7 +233,8 @@ def _robot_model(
     if model is None:
         return None, None, None
     if is_robot_file(model):
-        path = Path(model) if Path(model).is_absolute() else Path(source).parent / model
+        file = robot_file_path(model)  # a URDF's '#flange_link' aside
+        path = file if file.is_absolute() else Path(source).parent / file
         try:
             text = path.read_text()
         except FileNotFoundError:
@@ -233,10 +242,11 @@ def _robot_model(
             return None, None, None
         except (OSError, UnicodeDecodeError) as exc:
             r.problems.append(
-                f"robot.model: cannot read robot file {path} ({exc}); give a readable TOML file"
+                f"robot.model: cannot read robot file {path} ({exc}); give a readable TOML or URDF file"
             )
             return None, None, None
-        resolved = str(path.resolve())  # resolved now: the snapshot must not depend on a later cwd
+        # resolved now: the snapshot must not depend on a later cwd
+        resolved = with_file_path(model, path.resolve())
         try:
             return resolved, text, _nominal(resolved, text)
         except ValueError as exc:
@@ -244,7 +254,7 @@ def _robot_model(
             return None, None, None
     if model.lower() not in ROBOT_NAMES:
         r.problems.append(
-            f"robot.model: unknown robot {model!r}; choose one of {', '.join(ROBOT_NAMES)} or give a robot file (.toml)"
+            f"robot.model: unknown robot {model!r}; choose one of {', '.join(ROBOT_NAMES)} or give a robot file (.toml, .urdf)"
         )
         return None, None, None
     return model.lower(), None, _nominal(model.lower(), None)

@@ -1,6 +1,7 @@
 """Settings a cell config accepts but a cell engineer would question before the first motion: a settle time
 that multiplies every point, speeds above what a measurement run needs, an envelope box the arm cannot fill,
-joint limits wider than the arm can use without folding into itself. `hil cell check` prints them; none stops
+joint limits wider than the arm can use without folding into itself, a URDF whose base frame had to move
+onto joint 1's axis. `hil cell check` prints them; none stops
 a run (the envelope and the collision checks do that), each says what to change."""
 
 from __future__ import annotations
@@ -8,6 +9,8 @@ from __future__ import annotations
 import numpy as np
 
 from hil.geometry.kinematics import forward_kinematics
+from hil.geometry.urdf_import import import_urdf
+from hil.geometry.urdf_read import is_urdf_spec
 from hil.runner.cell_config import DEFAULT_JOINT_SPEED_RAD_S, DEFAULT_LINEAR_SPEED_M_S, CellConfig
 from hil.runner.collision import clear_range_rad
 
@@ -27,7 +30,17 @@ def cell_warnings(config: CellConfig, seed: int = 0) -> list[str]:
         *_speeds(config),
         *_box_beyond_reach(config, seed),
         *_folding_limits(config),
+        *_urdf_notes(config),
     ]
+
+
+def _urdf_notes(config: CellConfig) -> list[str]:
+    """What reading the cell's URDF decided (a base frame moved onto joint 1's axis, masses left out): the
+    envelope and keep-out boxes are written in the model's base frame."""
+    if config.robot_file_text is None or not is_urdf_spec(config.robot_model):
+        return []
+    notes = import_urdf(config.robot_file_text, config.robot_model).notes
+    return [f"robot.model: {note}" for note in notes]
 
 
 def _settle(config: CellConfig) -> list[str]:
