@@ -62,12 +62,16 @@ class AxisFit:
     arc_rad: float  # the largest angle the SMRs turned about the fitted axis
     points: int
     sweeps: list[str] = field(default_factory=list)
+    direction_sigma_rad: float = 0.0  # 1-sigma angle of the direction (RMS over both tilts), from the fit
+    point_sigma_m: float = 0.0  # 1-sigma distance of the point across the true line, from the fit
 
     def to_dict(self) -> dict:
         return {
             "joint": self.joint + 1,
             "point_mm": (self.point_m * 1e3).tolist(),
             "direction": self.direction.tolist(),
+            "direction_sigma_deg": math.degrees(self.direction_sigma_rad),
+            "point_sigma_mm": self.point_sigma_m * 1e3,
             "residual_rms_mm": self.residual_rms_m * 1e3,
             "swept_deg": math.degrees(self.swept_rad),
             "arc_deg": math.degrees(self.arc_rad),
@@ -132,15 +136,31 @@ def _line_residuals(params: np.ndarray, arcs: list[np.ndarray], n0, u0, v0, a0) 
     return np.concatenate(out)
 
 
+@dataclass(frozen=True)
+class LineFit:
+    """One axis line fitted to its arcs (SI): the line, each arc's radius and height along it, the fit's
+    residual and the largest arc, and the line's 1-sigma uncertainty from the fit's own scatter."""
+
+    point_m: np.ndarray  # (3,) the foot on the line of the arcs' mean centre
+    direction: np.ndarray  # (3,) unit, right-hand rule for a positive joint turn
+    radii_m: list[float]
+    heights_m: list[float]
+    residual_rms_m: float
+    arc_rad: float
+    direction_sigma_rad: float  # RMS angle between the fitted and the true direction (both tilts)
+    point_sigma_m: float  # RMS distance of `point_m` from the true line, across it
+
+
 def fit_axis(
     arcs_m: list[np.ndarray],
     joints_rad: list[np.ndarray],
     sigma_m: float = DEFAULT_SIGMA_M,
     what: str = "sweep",
-) -> tuple[np.ndarray, np.ndarray, list[float], list[float], float, float]:
+) -> LineFit:
     """One axis line fitted to several arcs about it (each (N_k, 3)) whose joint readings are `joints_rad`
-    (each (N_k,)): (point, direction, radii, heights, residual RMS, largest arc angle). The direction is
-    the right-hand axis of a positive joint turn; the point is the foot of the arcs' mean centre."""
+    (each (N_k,)). The direction is the right-hand axis of a positive joint turn; the point is the foot of
+    the arcs' mean centre. The uncertainties are the Gauss-Newton covariance at the solution scaled by the
+    residuals' own variance (so an arc that is no circle widens them, as it should)."""
     fits = []
     for k, p in enumerate(arcs_m):
         check_arc(p, sigma_m, f"{what}, arc {k + 1}" if len(arcs_m) > 1 else what)
@@ -176,7 +196,22 @@ def fit_axis(
     if turn < 0:
         n = -n
     rms = float(np.sqrt(np.mean(res**2) * 2.0))  # two components per point: the distance's RMS
-    return a, n, radii, heights, rms, arc
+    centre = np.mean([p.mean(axis=0) for p in arcs_m], axis=0)
+    along = float((centre - a) @ n)
+    direction_sigma, point_sigma = _line_sigmas(sol.jac, res, along)
+    return LineFit(a + along * n, n, radii, heights, rms, arc, direction_sigma, point_sigma)
+
+
+def _line_sigmas(jac: np.ndarray, res: np.ndarray, along_m: float) -> tuple[float, float]:
+    """1-sigma of the line fitted by `_line_residuals`: the direction's angle (rad) and the distance across
+    the line (m) of its point `along_m` from the fit's origin, both as RMS over the two directions across
+    it. Covariance (J^T J)^-1 s^2 with s^2 the residuals' variance (their count less the parameters)."""
+    m, k = jac.shape
+    s2 = float(res @ res) / max(m - k, 1)
+    cov = np.linalg.pinv(jac.T @ jac) * s2
+    tilt, shift = cov[:2, :2], cov[2:4, 2:4]
+    across = shift + along_m * (cov[2:4, :2] + cov[:2, 2:4]) + along_m**2 * tilt
+    return math.sqrt(max(float(np.trace(tilt)), 0.0)), math.sqrt(max(float(np.trace(across)), 0.0))
 
 
 # ------------------------------------------------------------------------------------------ sweeps
@@ -307,21 +342,20 @@ def identify_axes(
             readings.append(q[r, j])
             ids.append(int(k))
         what = f"{source}: joint {j + 1}"
-        a, n, radii, _, rms, arc = fit_axis(arcs, readings, sigma_m, what)
+        line = fit_axis(arcs, readings, sigma_m, what)
+        radii = line.radii_m
         small = [k for k, r in zip(ids, radii, strict=True) if r < MIN_RADIUS_SIGMAS * sigma_m]
         if small:
             raise SweepError(
                 f"{what}: SMR {small[0]} lies {min(radii) * 1e3:.3f} mm from the axis, too close to fix it; "
                 "put the SMR farther from the joint's axis"
             )
-        centres = {}
-        for k, arc_p in zip(ids, arcs, strict=True):
-            c = arc_p.mean(axis=0)
-            centres[k] = a + ((c - a) @ n) * n
-        foot = np.mean(list(centres.values()), axis=0)
+        a, n = line.point_m, line.direction
+        centres = {k: a + ((arc_p.mean(axis=0) - a) @ n) * n for k, arc_p in zip(ids, arcs, strict=True)}
         axes.append(
-            AxisFit(j, foot, n, dict(zip(ids, radii, strict=True)), centres, rms,
-                    float(np.ptp(q[rows, j])), arc, len(rows), [s.label for s in by_joint[j]])
+            AxisFit(j, line.point_m, n, dict(zip(ids, radii, strict=True)), centres, line.residual_rms_m,
+                    float(np.ptp(q[rows, j])), line.arc_rad, len(rows), [s.label for s in by_joint[j]],
+                    line.direction_sigma_rad, line.point_sigma_m)
         )  # fmt: skip
     model, T_tb, parallel = model_from_axes(
         np.array([a.point_m for a in axes]), np.array([a.direction for a in axes]), q_ref,
