@@ -5,15 +5,23 @@ from __future__ import annotations
 import argparse
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
 
 from hil.analysis.standards.joint_axes import AxesResult, SweepError, identify_axes, robot_file_text
-from hil.commands.arg_checks import InputError, add_force_option, check_paths, float_in
+from hil.commands.arg_checks import (
+    InputError,
+    add_force_option,
+    add_joint_convention_option,
+    check_paths,
+    float_in,
+)
 from hil.commands.errors import CliError
 from hil.commands.help_format import DefaultsHelpFormatter
 from hil.data.dataset import DatasetError, load_dataset
+from hil.data.joint_conventions import joints_to_kinematic
 from hil.data.jsonable import to_jsonable
-from hil.geometry.robots import load_robot_file
+from hil.geometry.robots import get_robot, load_robot_file, robot_arg, robot_coupling
 
 # The sweeps' 1-sigma beyond which the table cautions: half of what a calibration start needs (0.01 deg,
 # 0.06 mm), so that two sigma stay within it.
@@ -38,6 +46,14 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("-o", "--output", required=True, help="robot definition file (.toml) to write")
     p.add_argument("--json", default=None, dest="json_path", help="write the axes and the model as JSON")
     p.add_argument("--name", default=None, help="the robot's name in the file (default: the output's stem)")
+    p.add_argument(
+        "--robot",
+        type=robot_arg,
+        default=None,
+        help="the arm's robot file or built-in name: its joint coupling ([coupling]) and joint limits go into "
+        "the measured file (its geometry is not used: the sweeps give it)",
+    )
+    add_joint_convention_option(p)
     p.add_argument(
         "--tracker-sigma-um",
         type=float_in(0.1, 500.0),
@@ -85,18 +101,29 @@ def run(args: argparse.Namespace) -> int:
         check_paths(
             {"CAMPAIGN": args.data}, {"--output": args.output, "--json": args.json_path}, overwrite=args.force
         )
-        df = load_dataset(args.data)
+        coupling = robot_coupling(args.robot) if args.robot else None
+        df = joints_to_kinematic(load_dataset(args.data), coupling, args.joint_convention, str(args.data))
         name = args.name or Path(args.output).stem
-        result = identify_axes(df, sigma_m=args.tracker_sigma_um * 1e-6, source=str(args.data), name=name)
+        result = identify_axes(
+            df,
+            sigma_m=args.tracker_sigma_um * 1e-6,
+            source=str(args.data),
+            name=name,
+            coupling=coupling.describe() if coupling and coupling.coupled_rows() else None,
+        )
     except (InputError, DatasetError, SweepError) as exc:
         raise CliError.from_text(str(exc)) from exc
+    model = result.model
+    if args.robot:  # the maker's limits: the sweeps say nothing about them
+        model = replace(model, joint_limits=get_robot(args.robot).joint_limits)
     print(axes_table(result))
+    limits = f"joint limits and coupling from {args.robot}" if args.robot else "joint limits unknown"
     comment = (
         f"Measured by circle point analysis (hil axes) from {Path(args.data).name}.\n"
         "Standard DH; hayati_beta marks parallel axes (their small beta is left to calibration).\n"
-        "Base frame on axis 1; the flange frame on the last axis, level with the SMR; joint limits unknown."
+        f"Base frame on axis 1; the flange frame on the last axis, level with the SMR; {limits}."
     )
-    text = robot_file_text(result.model, comment)
+    text = robot_file_text(model, comment, coupling)
     Path(args.output).write_text(text)
     try:
         load_robot_file(args.output)  # what calibration will read: never leave a file it cannot
@@ -108,6 +135,9 @@ def run(args: argparse.Namespace) -> int:
         out = result.to_dict()
         out["source"] = str(args.data)
         out["robot_file"] = str(args.output)
+        if coupling is not None:
+            out["coupling"] = coupling.describe()
+            out["joint_convention"] = df.attrs.get("joint_convention", "kinematic")
         Path(args.json_path).write_text(json.dumps(to_jsonable(out), indent=1, allow_nan=False))
         print(f"axes written to {args.json_path}")
     return 0

@@ -24,6 +24,7 @@ import pandas as pd
 from scipy.optimize import least_squares
 
 from hil.data.dataset import SAME_POSE_RAD, joint_columns, points_m, smr_ids
+from hil.geometry.coupling import JointCoupling
 from hil.geometry.kinematics import KinematicModel
 
 MIN_ARC_RAD = math.radians(30.0)  # a shorter arc leaves the circle's centre (the axis) poorly fixed
@@ -215,10 +216,27 @@ def _line_sigmas(jac: np.ndarray, res: np.ndarray, along_m: float) -> tuple[floa
 
 
 # ------------------------------------------------------------------------------------------ sweeps
-def sweeps_of(df: pd.DataFrame, n_joints: int = 6, source: str = "campaign") -> list[Sweep]:
+def coupling_hint(coupling: str | None) -> str:
+    """What to say when two readings move together: the coupling the joints were converted by, or how to
+    give one (a coupled controller, FANUC's J2/J3, reports readings that move together in a one-joint turn)."""
+    if coupling:
+        return (
+            f"; the readings were converted to kinematic joints by the robot's coupling ({coupling}) and two "
+            "still move: check the coupling and that the data holds the controller's joints"
+        )
+    return (
+        "; if the controller couples these joints (FANUC's pendant J3 moves with J2), give --robot with the "
+        "robot file whose [coupling] declares it, and --joint-convention controller"
+    )
+
+
+def sweeps_of(
+    df: pd.DataFrame, n_joints: int = 6, source: str = "campaign", coupling: str | None = None
+) -> list[Sweep]:
     """The sweeps of a campaign. With a `sweep` column its labels group the rows, and a sweep in which a
     second joint moves is refused; without one, runs of consecutive poses between which only one joint
-    changes (and rows of one pose, e.g. several SMRs) form the sweeps."""
+    changes (and rows of one pose, e.g. several SMRs) form the sweeps. `coupling` describes the coupling
+    the joints were converted by (None: the readings as given), for the refusals."""
     q = df[joint_columns(n_joints)].to_numpy(float)
     if "sweep" in df.columns:
         out = []
@@ -236,6 +254,7 @@ def sweeps_of(df: pd.DataFrame, n_joints: int = 6, source: str = "campaign") -> 
                 raise SweepError(
                     f"{source}: sweep {label}: joint {by[1] + 1} moves too ({math.degrees(travel[by[1]]):.3f} deg) "
                     f"while joint {by[0] + 1} sweeps; hold every other joint still during a sweep"
+                    + coupling_hint(coupling)
                 )
             out.append(Sweep(int(moving[0]), rows, label))
         return out
@@ -311,12 +330,14 @@ def identify_axes(
     sigma_m: float = DEFAULT_SIGMA_M,
     source: str = "campaign",
     name: str = "measured",
+    coupling: str | None = None,
 ) -> AxesResult:
-    """Every joint's axis from a campaign's sweeps (see `sweeps_of`), and the DH model they make."""
+    """Every joint's axis from a campaign's sweeps (see `sweeps_of`), and the DH model they make. The joints
+    are the kinematic ones; `coupling` describes the coupling they were converted by, for the refusals."""
     q = df[joint_columns(n_joints)].to_numpy(float)
     p = points_m(df)
     smr = smr_ids(df)
-    sweeps = sweeps_of(df, n_joints, source)
+    sweeps = sweeps_of(df, n_joints, source, coupling)
     by_joint: dict[int, list[Sweep]] = {}
     for s in sweeps:
         travel = float(np.ptp(q[s.rows, s.joint]))
@@ -330,6 +351,7 @@ def identify_axes(
     if missing:
         raise SweepError(
             f"{source}: no sweep of joint(s) {', '.join(map(str, missing))}; a model needs every joint turned alone"
+            + coupling_hint(coupling)
         )
     q_ref = _reference_pose(q, by_joint, n_joints, source)
     axes = []
@@ -493,9 +515,10 @@ def _tool_points(
     return {int(k): local[smr[rows] == k].mean(axis=0) for k in np.unique(smr[rows])}
 
 
-def robot_file_text(model: KinematicModel, comment: str = "") -> str:
+def robot_file_text(model: KinematicModel, comment: str = "", coupling: JointCoupling | None = None) -> str:
     """The model as a robot definition file (convention = "dh", hayati_beta where axes are parallel; the
-    measured beta itself is left to calibration, the file format holds none)."""
+    measured beta itself is left to calibration, the file format holds none), with the controller's
+    `coupling` and its interaction limits when the arm has one."""
     lines = [f"# {line}" for line in comment.splitlines()] if comment else []
     lines += [f"name = {json.dumps(model.name)}", 'convention = "dh"', ""]
     for i in range(model.n_joints):
@@ -510,4 +533,23 @@ def robot_file_text(model: KinematicModel, comment: str = "") -> str:
             f"limits_deg = [{lo:g}, {hi:g}]",
             "",
         ]
+    if coupling is not None:
+        lines += coupling_lines(coupling)
     return "\n".join(lines)
+
+
+def coupling_lines(coupling: JointCoupling) -> list[str]:
+    """A coupling as the `[coupling]` table of a robot file (hil.geometry.coupling)."""
+    rows = ",\n".join(
+        f"    [{', '.join(f'{v:g}' for v in row)}]" for row in coupling.kinematic_from_controller
+    )
+    lines = [f"# {coupling.describe()}", "[coupling]", f"kinematic_from_controller = [\n{rows},\n]", ""]
+    for limit in coupling.limits:
+        lines += [
+            f"# {limit.describe()}",
+            "[[coupling.limit]]",
+            f"controller = [{', '.join(f'{v:g}' for v in limit.coefficients)}]",
+            f"range_deg = [{math.degrees(limit.lower_rad):.10g}, {math.degrees(limit.upper_rad):.10g}]",
+            "",
+        ]
+    return lines
