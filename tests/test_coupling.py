@@ -20,6 +20,8 @@ from hil.geometry.kinematics import measured_point
 from hil.geometry.robots import get_robot, robot_coupling, robot_from_text
 from hil.geometry.se3 import make_transform
 from hil.model.calibrated_model import CalibratedModel
+from hil.runner.cell_config import CellConfigError, load_cell_config
+from tests.cell_fixtures import sim_cell_toml
 from tests.cli_in_process import run_hil
 
 SIGMA_M = 15e-6  # per-axis 1-sigma of one tracker reading
@@ -195,3 +197,11 @@ def test_a_sweep_the_coupling_does_not_make_single_is_refused_naming_it(fanuc, t
     assert r.returncode != 0
     assert "sweep j2: joint" in r.stderr and "moves too" in r.stderr
     assert "kinematic q3 = -J2 - J3" in r.stderr
+
+
+def test_a_cell_of_a_coupled_robot_is_refused_until_the_runner_converts_its_plans(tmp_path):
+    """hil run would send kinematic joints to a controller that reads them as its own: refused, named."""
+    path = tmp_path / "cell.toml"
+    path.write_text(sim_cell_toml().replace('model = "ur10"', 'model = "lrmate200id"'))
+    with pytest.raises(CellConfigError, match=r"couples its joints \(kinematic q3 = -J2 - J3\)"):
+        load_cell_config(path)
