@@ -171,10 +171,44 @@ def test_fanuc_like_round_trip_from_pendant_joints_to_a_calibration_at_the_noise
         )
         err = model.predict(val) - val[["x_mm", "y_mm", "z_mm"]].to_numpy() / 1e3
         held_out[robot] = float(np.sqrt(np.mean(np.sum(err**2, axis=1)))) * 1e3
+    _predict_and_compensate_in_the_pendants_joints(tmp_path, capsys, fanuc["coupling"])
     noise_mm = SIGMA_M * math.sqrt(3) * 1e3  # the 3D RMS of the tracker's noise alone
     print(f"FANUC-like round trip, held-out RMS (mm): {held_out}; tracker noise {noise_mm:.4f} mm")
     assert held_out["arm.toml"] < 1.3 * noise_mm, held_out
     assert held_out["arm.toml"] < held_out["lrmate200id"] + 0.005, held_out
+
+
+def _predict_and_compensate_in_the_pendants_joints(tmp_path, capsys, coupling) -> None:
+    """The model keeps the coupling: predict reads the pendant's joints and compensate writes them, each
+    only when told which joints it handles."""
+    r = run_hil("predict", "arm.toml.json", "val.csv", "-o", "p.csv", cwd=tmp_path, capsys=capsys)
+    assert r.returncode != 0 and "--joint-convention controller" in r.stderr
+    r = run_hil(
+        "predict", "arm.toml.json", "val.csv", "-o", "p.csv", "--joint-convention", "controller",
+        cwd=tmp_path, capsys=capsys,
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    val, predicted = pd.read_csv(tmp_path / "val.csv"), pd.read_csv(tmp_path / "p.csv")
+    given_j3 = np.deg2rad(val["q3_deg"].to_numpy())
+    assert predicted["q3_rad"].to_numpy() == pytest.approx(given_j3)  # the pendant's, as given
+    xyz = ["x_mm", "y_mm", "z_mm"]
+    assert (
+        np.abs(predicted[xyz].to_numpy() - val[xyz].to_numpy()).max() < 0.15
+    )  # the noise, not a wrong joint
+    val[xyz].head(8).to_csv(tmp_path / "targets.csv", index=False)  # SMR 1's nest on each (a CSV's default)
+    r = run_hil("compensate", "arm.toml.json", "targets.csv", "-o", "q.csv", cwd=tmp_path, capsys=capsys)
+    assert r.returncode != 0 and "--joint-convention controller" in r.stderr
+    r = run_hil(
+        "compensate", "arm.toml.json", "targets.csv", "-o", "q.csv", "--joint-convention", "controller",
+        cwd=tmp_path, capsys=capsys,
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    out = pd.read_csv(tmp_path / "q.csv")
+    model = CalibratedModel.load(tmp_path / "arm.toml.json")
+    q_pendant = out[[f"q{i}_rad" for i in range(1, 7)]].to_numpy()
+    reached = model.predict(make_dataset(coupling.to_kinematic(q_pendant), np.zeros((8, 3)), smr=1))
+    assert (out["status"] == "ok").all()
+    assert np.abs(reached * 1e3 - out[xyz].to_numpy()).max() < 1e-3  # the pendant joints put each SMR there
 
 
 def _in_radians(df: pd.DataFrame) -> pd.DataFrame:

@@ -28,7 +28,7 @@ from hil.commands.arg_checks import (
 )
 from hil.commands.errors import CliError
 from hil.commands.help_format import DefaultsHelpFormatter
-from hil.commands.inputs import read_measurements
+from hil.commands.inputs import keep_coupling, read_measurements
 from hil.data.dataset import (
     DEFAULT_ORIENTATION_CONVENTION,
     ORIENTATION_CONVENTIONS,
@@ -154,7 +154,8 @@ def run(args: argparse.Namespace) -> int:
             overwrite=args.force,
         )
         df = convert_orientation_convention(read_measurements(args.data), args.orientation_convention)
-        df = joints_to_kinematic(df, robot_coupling(args.robot), args.joint_convention, str(args.data))
+        coupling = robot_coupling(args.robot)
+        df = joints_to_kinematic(df, coupling, args.joint_convention, str(args.data))
         tool = args.tool_mm
     except (InputError, DatasetError, ValueError) as exc:
         raise CliError.from_text(str(exc)) from exc
@@ -211,6 +212,7 @@ def run(args: argparse.Namespace) -> int:
         table.to_csv(args.residuals, index=False, float_format="%.6g")
         print(f"residuals written to {args.residuals}")
     chosen.model.info["run"] = run_record(nominal, {"training": df})  # what the model was made from
+    keep_coupling(chosen.model, coupling)
     chosen.model.save(args.output)
     print(f"model written to {args.output}")
     return 0

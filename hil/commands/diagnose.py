@@ -21,7 +21,7 @@ from hil.commands.arg_checks import (
 from hil.commands.calibrate import add_probe_options, orientation_summary, parse_mm_vector, refuse_implausible
 from hil.commands.errors import CliError
 from hil.commands.help_format import DefaultsHelpFormatter
-from hil.commands.inputs import read_training_and_validation
+from hil.commands.inputs import keep_coupling, read_training_and_validation
 from hil.data.dataset import DatasetError, convert_orientation_convention, points_m, pose_ids
 from hil.data.joint_conventions import joints_to_kinematic
 from hil.geometry.robots import ROBOT_NAMES, get_robot, robot_arg, robot_coupling
@@ -304,5 +304,6 @@ def _print_and_write(args: argparse.Namespace, report: DiagnosisReport) -> None:
         print(f"HTML report written to {args.html}")
     if args.output:
         report.model.info["run"] = report.run  # what the model was made from
+        keep_coupling(report.model, robot_coupling(args.robot))
         report.model.save(args.output)
         print(f"model written to {args.output}")

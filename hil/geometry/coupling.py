@@ -120,6 +120,21 @@ def coupling_from_table(table: Any, n_joints: int, where: str) -> JointCoupling:
                                        for k, lim in enumerate(limits, start=1)))  # fmt: skip
 
 
+def coupling_table(coupling: JointCoupling) -> dict:
+    """The coupling as the `[coupling]` table `coupling_from_table` reads (a calibrated model keeps it in its
+    JSON, so the commands that use the model convert as the robot file did)."""
+    return {
+        "kinematic_from_controller": coupling.kinematic_from_controller.tolist(),
+        "limit": [
+            {
+                "controller": lim.coefficients.tolist(),
+                "range_deg": np.rad2deg([lim.lower_rad, lim.upper_rad]).tolist(),
+            }
+            for lim in coupling.limits
+        ],
+    }
+
+
 def _matrix(value: Any, n: int, where: str) -> np.ndarray:
     rows = value if isinstance(value, list) else []
     if len(rows) != n or any(not isinstance(r, list) or len(r) != n for r in rows):
