@@ -86,7 +86,16 @@ def test_data_of_a_coupled_robot_must_say_which_joints_it_holds():
         joints_to_kinematic(df, coupling, None, "data.csv")
     converted = joints_to_kinematic(df, coupling, JointConvention.CONTROLLER, "data.csv")
     assert converted["q3_rad"].to_numpy() == pytest.approx(np.deg2rad(-15.0))
-    assert converted.attrs["joint_convention"] == "controller"
+    assert converted.attrs["joints_read_as"] == "controller"
+    again = joints_to_kinematic(converted, coupling, None, "data.csv")  # converted once, never twice
+    assert again["q3_rad"].to_numpy() == pytest.approx(np.deg2rad(-15.0))
+    df.attrs["joint_convention"] = "controller"  # a campaign's recorded convention stands for the option
+    assert joints_to_kinematic(df, coupling, None, "c.sqlite")["q3_rad"].to_numpy() == pytest.approx(
+        np.deg2rad(-15.0)
+    )
+    with pytest.raises(DatasetError, match="recorded its joints as the controller joints"):
+        joints_to_kinematic(df, coupling, "kinematic", "c.sqlite")
+    del df.attrs["joint_convention"]
     kept = joints_to_kinematic(df, coupling, "kinematic", "data.csv")
     assert kept["q3_rad"].to_numpy() == pytest.approx(np.deg2rad(-5.0))
     assert joints_to_kinematic(df, None, None, "data.csv") is df  # no coupling: nothing to choose

@@ -137,7 +137,7 @@ def run(args: argparse.Namespace) -> int:
         out["robot_file"] = str(args.output)
         if coupling is not None:
             out["coupling"] = coupling.describe()
-            out["joint_convention"] = df.attrs.get("joint_convention", "kinematic")
+            out["joints_read_as"] = df.attrs.get("joints_read_as", "kinematic")
         Path(args.json_path).write_text(json.dumps(to_jsonable(out), indent=1, allow_nan=False))
         print(f"axes written to {args.json_path}")
     return 0

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from hil.geometry.body import ArmBody
+from hil.geometry.coupling import JointConvention
 from hil.geometry.kinematics import KinematicModel
 from hil.geometry.robots import (
     ROBOT_NAMES,
@@ -133,7 +134,13 @@ class CellConfig:
             robot: dict[str, str] = {"model": self.robot_model}
         else:
             robot = {"model": self.robot_model, "file": self.robot_model, "file_text": self.robot_file_text}
-        return {"source": self.source, "cell": self.raw, "robot_definition": robot}
+        # the joints a session records are what the robot's controller reports (hil.geometry.coupling)
+        return {
+            "source": self.source,
+            "cell": self.raw,
+            "robot_definition": robot,
+            "joint_convention": str(JointConvention.CONTROLLER),
+        }
 
 
 class _Reader:
