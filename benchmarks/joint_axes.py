@@ -3,7 +3,7 @@ and the held-out error of a calibration started from the measured robot file aga
 nominal model.
 
 Run:  PYTHONPATH=. python benchmarks/joint_axes.py [--seed 3] [--points 25] [--smrs 3] [--shots 3] [--effects none]
-      [--no-calibration]
+      [--no-calibration] [--axis-sigma-deg 0.005]
 
 The cell is `hil sim`'s default UR10 (hidden geometric errors, gravity compliance, tracker noise at its stated
 MPE: 15 um + 6 um/m, 2 sigma). Registration, then the joint_axes procedure (its own reference pose search,
@@ -65,8 +65,8 @@ def plain_fit(df, joint: int) -> tuple[np.ndarray, np.ndarray]:
 def axis_table(axes, df, F: np.ndarray) -> str:
     """Per joint: our axis's errors against the truth beside the 1-sigma it states, and the plain fit's."""
     lines = [
-        f"{'joint':<6}{'arc':>6}{'direction err deg':>30}{'position err mm':>30}{'resid':>8}",
-        f"{'':<6}{'deg':>6}{'ours':>10}{'sigma':>10}{'plain':>10}{'ours':>10}{'sigma':>10}{'plain':>10}{'mm':>8}",
+        f"{'joint':<6}{'rows':>5}{'arc':>6}{'direction err deg':>30}{'position err mm':>30}{'resid':>8}",
+        f"{'':<6}{'':>5}{'deg':>6}{'ours':>10}{'sigma':>10}{'plain':>10}{'ours':>10}{'sigma':>10}{'plain':>10}{'mm':>8}",
     ]
     worst = np.zeros(4)
     for a in axes.axes:
@@ -74,7 +74,7 @@ def axis_table(axes, df, F: np.ndarray) -> str:
         plain_ang, plain_off = line_errors(*plain_fit(df, a.joint), F[a.joint])
         worst = np.maximum(worst, [ang, off, plain_ang, plain_off])
         lines.append(
-            f"{a.joint + 1:<6}{math.degrees(a.arc_rad):6.1f}{ang:10.4f}{math.degrees(a.direction_sigma_rad):10.4f}"
+            f"{a.joint + 1:<6}{a.points:5d}{math.degrees(a.arc_rad):6.1f}{ang:10.4f}{math.degrees(a.direction_sigma_rad):10.4f}"
             f"{plain_ang:10.4f}{off:10.4f}{a.point_sigma_m * 1e3:10.4f}{plain_off:10.4f}{a.residual_rms_m * 1e3:8.4f}"
         )
     lines.append(
@@ -94,6 +94,9 @@ def main() -> None:
         "--effects", default="gravity_compliance", help="the sim's effects (its --effects), or none"
     )
     ap.add_argument("--no-calibration", action="store_true", help="the axes alone, not the calibrations")
+    ap.add_argument(
+        "--axis-sigma-deg", type=float, default=None, help="the plan's axis_sigma (0: --points on every arc)"
+    )
     args = ap.parse_args()
 
     from calib_data import cell_datasets
@@ -115,8 +118,9 @@ def main() -> None:
         session_on(config, folder / "campaign.sqlite") as session,
     ):
         registration.PROCEDURE(session)
+        sigma = {} if args.axis_sigma_deg is None else {"axis_sigma_rad": math.radians(args.axis_sigma_deg)}
         result = joint_axes.PROCEDURE(
-            session, points=args.points, smrs=args.smrs, output=str(robot_file), shots=args.shots
+            session, points=args.points, smrs=args.smrs, output=str(robot_file), shots=args.shots, **sigma
         )
     measured_s = time.time() - t0
     effects = parse_effect_flags(args.effects)
@@ -125,7 +129,7 @@ def main() -> None:
     _, frames = cell.true_joint_offsets(q_ref, np.ones(6), 0.0)
     F = cell.T_tracker_base @ frames[0]
     print(
-        f"simulated UR10 seed {args.seed}, effects {args.effects}: {args.points} points per arc, "
+        f"simulated UR10 seed {args.seed}, effects {args.effects}: at least {args.points} points per arc, "
         f"{args.smrs or len(config.nests_flange_m)} SMR(s), shots {args.shots or config.shots_per_point}, "
         f"reference pose {np.round(np.rad2deg(q_ref), 1).tolist()} deg ({measured_s:.0f} s incl. registration)"
     )

@@ -162,26 +162,9 @@ def fit_axis(
     (each (N_k,)). The direction is the right-hand axis of a positive joint turn; the point is the foot of
     the arcs' mean centre. The uncertainties are the Gauss-Newton covariance at the solution scaled by the
     residuals' own variance (so an arc that is no circle widens them, as it should)."""
-    fits = []
     for k, p in enumerate(arcs_m):
         check_arc(p, sigma_m, f"{what}, arc {k + 1}" if len(arcs_m) > 1 else what)
-        fits.append(fit_circle(p))
-    # a common normal orientation before averaging (SVD normals have arbitrary signs)
-    normals = np.array([f[1] for f in fits])
-    normals *= np.sign(normals @ normals[0])[:, None]
-    n0 = normals.mean(axis=0)
-    n0 /= np.linalg.norm(n0)
-    a0 = np.mean([f[0] for f in fits], axis=0)
-    u0, v0 = _plane_basis(n0)
-    x0 = [0.0, 0.0, 0.0, 0.0]
-    for c, _, r in fits:
-        x0 += [float((c - a0) @ n0), r]
-    sol = least_squares(
-        _line_residuals, np.array(x0), args=(arcs_m, n0, u0, v0, a0), method="lm", x_scale="jac"
-    )
-    n = n0 + sol.x[0] * u0 + sol.x[1] * v0
-    n /= np.linalg.norm(n)
-    a = a0 + sol.x[2] * u0 + sol.x[3] * v0
+    sol, a, n = _solve_line(arcs_m)
     heights = [float(h) for h in sol.x[4::2]]
     radii = [float(r) for r in sol.x[5::2]]
     res = sol.fun.reshape(-1)
@@ -197,18 +180,48 @@ def fit_axis(
     if turn < 0:
         n = -n
     rms = float(np.sqrt(np.mean(res**2) * 2.0))  # two components per point: the distance's RMS
-    centre = np.mean([p.mean(axis=0) for p in arcs_m], axis=0)
-    along = float((centre - a) @ n)
-    direction_sigma, point_sigma = _line_sigmas(sol.jac, res, along)
+    along = _along(arcs_m, a, n)
+    s2 = float(res @ res) / max(len(res) - len(sol.x), 1)  # the residuals' variance
+    direction_sigma, point_sigma = _line_sigmas(sol.jac, s2, along)
     return LineFit(a + along * n, n, radii, heights, rms, arc, direction_sigma, point_sigma)
 
 
-def _line_sigmas(jac: np.ndarray, res: np.ndarray, along_m: float) -> tuple[float, float]:
+def _solve_line(arcs_m: list[np.ndarray]):
+    """The least-squares line of `_line_residuals` from per-arc circle fits: (solution, point, direction)."""
+    fits = [fit_circle(p) for p in arcs_m]
+    # a common normal orientation before averaging (SVD normals have arbitrary signs)
+    normals = np.array([f[1] for f in fits])
+    normals *= np.sign(normals @ normals[0])[:, None]
+    n0 = normals.mean(axis=0)
+    n0 /= np.linalg.norm(n0)
+    a0 = np.mean([f[0] for f in fits], axis=0)
+    u0, v0 = _plane_basis(n0)
+    x0 = [0.0, 0.0, 0.0, 0.0]
+    for c, _, r in fits:
+        x0 += [float((c - a0) @ n0), r]
+    sol = least_squares(
+        _line_residuals, np.array(x0), args=(arcs_m, n0, u0, v0, a0), method="lm", x_scale="jac"
+    )
+    n = n0 + sol.x[0] * u0 + sol.x[1] * v0
+    return sol, a0 + sol.x[2] * u0 + sol.x[3] * v0, n / np.linalg.norm(n)
+
+
+def _along(arcs_m: list[np.ndarray], a: np.ndarray, n: np.ndarray) -> float:
+    """Where along the line (from `a`) the reported point lies: level with the arcs' mean centre."""
+    return float((np.mean([p.mean(axis=0) for p in arcs_m], axis=0) - a) @ n)
+
+
+def expected_line_sigmas(arcs_m: list[np.ndarray], sigma_m: float) -> tuple[float, float]:
+    """The 1-sigma (direction angle rad, point m) a fit of arcs like these (noise-free, e.g. from a nominal
+    model) would have with readings of per-axis noise `sigma_m`: for planning how many points an arc needs."""
+    sol, a, n = _solve_line(arcs_m)
+    return _line_sigmas(sol.jac, sigma_m**2, _along(arcs_m, a, n))
+
+
+def _line_sigmas(jac: np.ndarray, s2: float, along_m: float) -> tuple[float, float]:
     """1-sigma of the line fitted by `_line_residuals`: the direction's angle (rad) and the distance across
     the line (m) of its point `along_m` from the fit's origin, both as RMS over the two directions across
-    it. Covariance (J^T J)^-1 s^2 with s^2 the residuals' variance (their count less the parameters)."""
-    m, k = jac.shape
-    s2 = float(res @ res) / max(m - k, 1)
+    it. Covariance (J^T J)^-1 s2, s2 the variance of one residual."""
     cov = np.linalg.pinv(jac.T @ jac) * s2
     tilt, shift = cov[:2, :2], cov[2:4, 2:4]
     across = shift + along_m * (cov[2:4, :2] + cov[:2, 2:4]) + along_m**2 * tilt
