@@ -34,12 +34,13 @@ from hil.analysis.calibration.noise_floor import tracker_sigma_m
 from hil.analysis.standards.joint_axes import (
     MIN_ARC_RAD,
     AxesResult,
+    expected_line_sigmas,
     fit_circle,
     identify_axes,
     robot_file_text,
 )
 from hil.data.store import campaign_dataset
-from hil.geometry.kinematics import KinematicModel, chain_axes, forward_kinematics, link_frames
+from hil.geometry.kinematics import KinematicModel, chain_axes, forward_kinematics, link_frames, tool_points
 from hil.model.effects import GRAVITY_DIRECTION_BASE
 from hil.runner.cell_config import CellConfig
 from hil.runner.operator import OperatorStep
@@ -67,6 +68,12 @@ SWEEP_GRID_DEG = (15.0, 15.0, 30.0)  # steps of the swept joint's centre, the ne
 SWEEP_CANDIDATES = 1500  # the least sag-sensitive sweep poses whose arcs are searched
 REFERENCE_TRIALS = 8  # reference poses (best first) tried for a free joint's sweep pose before settling
 SENSITIVITY_GAIN = 0.5  # a free joint's sweep pose must halve the yield sensitivity of the reference
+# Each axis to a 1-sigma (by default half of what a calibration start needs, 0.01 deg and 0.06 mm, so that
+# two sigma stay within it): a short arc gets more points, at most this many times `points`. The position's
+# goal follows the direction's at this ratio (0.03 mm for 0.005 deg).
+AXIS_SIGMA_DEG = 0.005
+POSITION_PER_DIRECTION_M_PER_RAD = 0.03e-3 / math.radians(AXIS_SIGMA_DEG)
+MAX_POINTS_FACTOR = 4
 
 
 @dataclass(frozen=True)
@@ -79,6 +86,7 @@ class AxesOptions:
     smrs: int | None
     output: str | None
     shots: int | None
+    axis_sigma_rad: float = 0.0
 
 
 @dataclass
@@ -348,8 +356,9 @@ def plan(config: CellConfig, options: AxesOptions) -> Plan:
         for k in range(1, nests + 1)
     )
     poses = []
+    counts = points_per_arc(config, centres, spans, points, p_nest, options.shots, options.axis_sigma_rad)
     for j, s in enumerate(spans):
-        for k, offset in enumerate(np.linspace(-s / 2, s / 2, points)):
+        for k, offset in enumerate(np.linspace(-s / 2, s / 2, counts[j])):
             q = centres[j].copy()
             q[j] += offset
             approach = None
@@ -360,6 +369,36 @@ def plan(config: CellConfig, options: AxesOptions) -> Plan:
                 poses.append(PlannedPose(f"j{j + 1}/{k + 1:02d}/n{nest}", NAME, STEP, q, f"nest{nest}", smr=nest,
                                          approach_q_rad=approach if nest == 1 else None, setup=setup))  # fmt: skip
     return Plan(NAME, poses, config, operator_steps=nests)
+
+
+def points_per_arc(
+    config: CellConfig,
+    centres: np.ndarray,
+    spans: np.ndarray,
+    points: int,
+    p_nest: np.ndarray,
+    shots: int | None,
+    axis_sigma_rad: float = math.radians(AXIS_SIGMA_DEG),
+) -> list[int]:
+    """How many poses each joint's arc is measured at: `points`, more (up to MAX_POINTS_FACTOR times) where
+    the arc, its SMRs and the tracker's noise would fix the axis to worse than `axis_sigma_rad` in direction
+    or its POSITION_PER_DIRECTION_M_PER_RAD share in position (1 sigma, the nominal model's arcs; the fit's
+    sigma falls as one over the root of the points); 0 keeps `points` on every arc. A short arc fixes its
+    circle's centre poorly: on a UR10 joints 1 and 5 turn 40-48 deg."""
+    if axis_sigma_rad <= 0:
+        return [points] * len(spans)
+    goal_m = axis_sigma_rad * POSITION_PER_DIRECTION_M_PER_RAD
+    counts = []
+    for j, s in enumerate(spans):
+        q = np.repeat(centres[j][None], points, axis=0)
+        q[:, j] += np.linspace(-s / 2, s / 2, points)
+        arcs = [tool_points(config.nominal, q, nest) for nest in p_nest]
+        distance = float(np.median(np.linalg.norm(np.concatenate(arcs) - config.p_base_tracker_m, axis=1)))
+        sigma = float(tracker_sigma_m(distance)) / math.sqrt(shots or config.shots_per_point)
+        direction, position = expected_line_sigmas(arcs, sigma)
+        factor = max(1.0, (direction / axis_sigma_rad) ** 2, (position / goal_m) ** 2)
+        counts.append(int(min(math.ceil(points * factor), MAX_POINTS_FACTOR * points)))
+    return counts
 
 
 def smr_count(config: CellConfig, smrs: int | None) -> int:
@@ -413,7 +452,17 @@ PROCEDURE = Procedure(
     instruction=__doc__ or "",
     parameters=(
         Parameter("span", "largest arc per joint", 120.0, float, unit="deg", minimum=30.0, maximum=340.0),
-        Parameter("points", "poses measured along each arc", 25, int, minimum=5, maximum=200),
+        Parameter("points", "poses measured along each arc (at least)", 25, int, minimum=5, maximum=200),
+        Parameter(
+            "axis_sigma",
+            f"1-sigma each axis direction is planned to (its position to {POSITION_PER_DIRECTION_M_PER_RAD * 1e3 * math.pi / 180:g} "
+            f"mm per deg): a short arc gets up to {MAX_POINTS_FACTOR}x the points; 0 keeps `points` on every arc",
+            AXIS_SIGMA_DEG,
+            float,
+            unit="deg",
+            minimum=0.0,
+            maximum=1.0,
+        ),
         Parameter("q_ref", "reference pose q1..q6 (default: searched)", None, float, unit="deg", count=6),
         Parameter(
             "smrs",

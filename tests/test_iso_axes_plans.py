@@ -24,19 +24,24 @@ def config(tmp_path_factory):
 def test_sweeps_turn_one_joint_at_a_time_from_one_reference_pose(config):
     plan = joint_axes.PROCEDURE.make_plan(config, points=7, smrs=2)
     q = plan.joints()
-    assert len(plan.poses) == 6 * 7 * 2 and plan.operator_steps == 2
+    sweep = np.array([p.point_id.split("/")[0] for p in plan.poses])
+    counts = [int(np.sum(sweep == f"j{j + 1}")) // 2 for j in range(6)]
+    assert all(7 <= c <= 7 * joint_axes.MAX_POINTS_FACTOR for c in counts) and plan.operator_steps == 2
+    assert list(sweep) == [
+        f"j{j + 1}" for j in range(6) for _ in range(2 * counts[j])
+    ]  # one sweep after another
     q_ref = q[0].copy()
-    q_ref[0] = np.median(q[:14, 0])
+    q_ref[0] = np.median(q[sweep == "j1", 0])
     assert joint_axes.free_joints(config.nominal, q_ref) == [
         1
     ]  # joint 2: only the vertical joint 1 before it
     for j in range(6):
-        rows = q[j * 14 : (j + 1) * 14]
+        rows = q[sweep == f"j{j + 1}"]
         held = q_ref if j != 1 else rows[0]  # joint 2 sweeps from its own pose, joint 1 as at the reference
         others = np.delete(rows - held, j, axis=1)
         assert np.allclose(others, 0.0) and np.ptp(rows[:, j]) >= math.radians(30) - 1e-9
         assert np.all(np.diff(rows[::2, j]) > 0)  # always turned the same way
-    assert q[14, 0] == q_ref[0]
+    assert q[sweep == "j2"][0, 0] == pytest.approx(q_ref[0], abs=1e-12)  # the median of an even count: 1 ulp
     assert not config.envelope.outside(config.nominal, q, config.nests_flange_m).any()
     approaches = np.array([p.approach_q_rad for p in plan.poses if p.approach_q_rad is not None])
     assert (
@@ -44,6 +49,29 @@ def test_sweeps_turn_one_joint_at_a_time_from_one_reference_pose(config):
         and not config.envelope.outside(config.nominal, approaches, config.nests_flange_m).any()
     )
     assert np.all(joint_axes.facing_angles(config, q, config.nests_flange_m[:2]) < math.radians(30))
+
+
+def test_short_arcs_get_the_points_that_fix_their_axis(config):
+    """Every arc is planned with enough points for its axis to come out within the goal sigma (the nominal
+    arcs, the tracker's noise), up to MAX_POINTS_FACTOR times `points`; a long arc keeps `points`."""
+    p_nest = config.nests_flange_m[:2]
+    q_ref = np.deg2rad([-37.0, -97.0, 111.0, 54.0, 13.0, 28.0])
+    spans = np.deg2rad([40.0, 120.0, 120.0, 120.0, 120.0, 120.0])
+    centres = np.repeat(q_ref[None], 6, axis=0)
+    counts = joint_axes.points_per_arc(config, centres, spans, 25, p_nest, 3)
+    assert counts[0] > 25 and counts[3] == 25 and max(counts) <= 25 * joint_axes.MAX_POINTS_FACTOR
+    assert joint_axes.points_per_arc(config, centres, spans, 25, p_nest, 3, 0.0) == [25] * 6  # 0: as given
+    sigma = float(joint_axes.tracker_sigma_m(2.5)) / math.sqrt(3)
+    for j, n in enumerate(counts):
+        if n == 25 * joint_axes.MAX_POINTS_FACTOR:
+            continue
+        q = np.repeat(q_ref[None], n, axis=0)
+        q[:, j] += np.linspace(-spans[j] / 2, spans[j] / 2, n)
+        arcs = [tool_points(config.nominal, q, nest) for nest in p_nest]
+        direction, position = joint_axes.expected_line_sigmas(arcs, sigma)
+        goal_rad = math.radians(joint_axes.AXIS_SIGMA_DEG)
+        assert direction <= goal_rad * 1.15
+        assert position <= goal_rad * joint_axes.POSITION_PER_DIRECTION_M_PER_RAD * 1.15
 
 
 def test_the_shoulder_sweeps_where_the_other_joints_sag_along_its_arc(config):

@@ -100,13 +100,36 @@ def test_one_axis_from_two_smrs_points_the_right_hand_way():
         a + r * (np.outer(np.cos(q), x) + np.outer(np.sin(q), y)) + h * z + rng.normal(0, SIGMA_M, (21, 3))
         for a, r, h in ((np.zeros(3), 0.15, 0.02), (np.zeros(3), 0.3, -0.05))
     ]
-    point, direction, radii, _, rms, arc = fit_axis(arcs, [q, q], SIGMA_M)
-    assert line_errors(point, direction, np.zeros(3), z)[0] < 0.01
-    assert line_errors(point, direction, np.zeros(3), z)[1] < 0.02
-    assert radii == pytest.approx([0.15, 0.3], abs=3e-5) and rms < 2 * SIGMA_M * math.sqrt(2)
-    assert math.degrees(arc) == pytest.approx(114.6, abs=0.1)
-    _, flipped, *_ = fit_axis([a[::-1] for a in arcs], [q[::-1], q[::-1]], SIGMA_M)
+    line = fit_axis(arcs, [q, q], SIGMA_M)
+    assert line_errors(line.point_m, line.direction, np.zeros(3), z)[0] < 0.01
+    assert line_errors(line.point_m, line.direction, np.zeros(3), z)[1] < 0.02
+    assert line.radii_m == pytest.approx([0.15, 0.3], abs=3e-5)
+    assert line.residual_rms_m < 2 * SIGMA_M * math.sqrt(2)
+    assert math.degrees(line.arc_rad) == pytest.approx(114.6, abs=0.1)
+    flipped = fit_axis([a[::-1] for a in arcs], [q[::-1], q[::-1]], SIGMA_M).direction
     assert flipped @ z > 0.99  # the joint reading decides the sign, not the order of the rows
+
+
+def test_axis_uncertainty_matches_the_scatter_of_repeated_fits():
+    """The line's stated 1-sigma (direction angle, point across the line) is what repeated noisy arcs show:
+    the RMS error over 120 draws within 25 % of the mean stated sigma (a short arc, where the tilt is
+    poorly fixed, so the figure is not dominated by the easy direction)."""
+    rng = np.random.default_rng(7)
+    z, x = np.array([0.0, 0.0, 1.0]), np.array([1.0, 0.0, 0.0])
+    q = np.linspace(-0.4, 0.4, 15)
+    clean = [r * (np.outer(np.cos(q + c), x) + np.outer(np.sin(q + c), np.cross(z, x))) + h * z
+             for r, h, c in ((0.2, 0.05, 0.0), (0.08, 0.1, 1.0))]  # fmt: skip
+    angle, across, stated_angle, stated_across = [], [], [], []
+    for _ in range(120):
+        line = fit_axis([p + rng.normal(0, SIGMA_M, p.shape) for p in clean], [q, q], SIGMA_M)
+        ang, off = line_errors(line.point_m, line.direction, np.zeros(3), z)
+        angle.append(ang)
+        across.append(off)
+        stated_angle.append(math.degrees(line.direction_sigma_rad))
+        stated_across.append(line.point_sigma_m * 1e3)
+    rms = lambda v: float(np.sqrt(np.mean(np.square(v))))  # noqa: E731
+    assert rms(angle) == pytest.approx(np.mean(stated_angle), rel=0.25)
+    assert rms(across) == pytest.approx(np.mean(stated_across), rel=0.25)
 
 
 @pytest.fixture(scope="module")
@@ -257,3 +280,26 @@ def test_bad_command_lines_are_refused_before_any_work(arm, tmp_path, capsys, li
     r = run_hil(*line.split(), cwd=tmp_path, capsys=capsys)
     assert r.returncode == 2 and words in r.stderr and "what to do" in r.stderr, r.stderr
     assert not (tmp_path / "arm.toml").exists()
+
+
+def test_the_table_separates_its_columns_and_cautions_where_the_sweeps_fix_an_axis_loosely(
+    arm, tmp_path, capsys
+):
+    """Every row of `hil axes`' table reads back as its numbers (point, direction, sigmas, residual, travel);
+    the JSON carries each direction's sigma, and a short arc with one SMR is named for its loose direction."""
+    sweeps(arm, span_rad=math.radians(36.0), smrs=(1,)).to_csv(tmp_path / "short.csv", index=False)
+    r = run_hil("axes", "short.csv", "-o", "arm.toml", "--json", "axes.json", cwd=tmp_path, capsys=capsys)
+    assert r.returncode == 0, r.stderr
+    report = json.loads((tmp_path / "axes.json").read_text())
+    rows = [line.split() for line in r.stdout.splitlines() if line[:1].isdigit()]
+    assert [int(row[0]) for row in rows] == [1, 2, 3, 4, 5, 6]
+    for row, joint in zip(rows, report["joints"], strict=True):
+        numbers = [float(v) for v in row[1:]]  # a run-together pair would not parse
+        assert numbers[:3] == pytest.approx(joint["point_mm"], abs=1e-3)
+        assert numbers[3:6] == pytest.approx(joint["direction"], abs=1e-5)
+        assert numbers[6] == pytest.approx(joint["direction_sigma_deg"], abs=1e-4)
+        assert numbers[7] == pytest.approx(joint["point_sigma_mm"], abs=1e-4)
+    loose = [j["joint"] for j in report["joints"] if j["direction_sigma_deg"] > 0.005]
+    assert loose, "a 36 deg arc of one SMR fixes some axis loosely"
+    for j in loose:
+        assert f"caution: joint {j}'s sweeps fix its direction to" in r.stdout

@@ -8,6 +8,7 @@ import subprocess
 import sys
 import textwrap
 import time
+import tomllib
 import warnings
 from pathlib import Path
 
@@ -427,3 +428,18 @@ def test_the_latest_temperature_is_the_arms_probe_else_the_robots_sensors_else_t
         assert store.last_temperature_c() == 22.0
         store.record_measurement(make_record(5, temperature_c=float("nan")))
         assert store.last_temperature_c() is None
+
+
+def test_a_campaign_says_which_joints_its_session_recorded(tmp_path):
+    """A session's snapshot records the controller's joints; the dataset carries it for the coupled-joint
+    edge (hil.data.joint_conventions), and a campaign of older sessions says nothing."""
+    from hil.runner.cell_config import parse_cell_config
+    from tests.cell_fixtures import sim_cell_toml
+
+    path = tmp_path / "c.hilc"
+    with CampaignStore(path) as store:
+        for i in range(3):
+            store.record_measurement(make_record(i))
+        assert "joint_convention" not in campaign_dataset(store, "grid_sampling").attrs
+        store.add_snapshot(parse_cell_config(tomllib.loads(sim_cell_toml())).snapshot())
+        assert campaign_dataset(store, "grid_sampling").attrs["joint_convention"] == "controller"

@@ -11,6 +11,8 @@ import math
 import os
 from pathlib import Path
 
+from hil.geometry.coupling import JointConvention
+
 
 class InputError(ValueError):
     """A bad option value or path, found before any work; the message says what to do."""
@@ -93,6 +95,18 @@ FORCE_HELP = "overwrite output files that exist (without it an existing file is 
 def add_force_option(parser: argparse.ArgumentParser) -> None:
     """`--force`: the one flag that lets a command overwrite its existing output files."""
     parser.add_argument("--force", action="store_true", help=FORCE_HELP)
+
+
+def add_joint_convention_option(parser: argparse.ArgumentParser) -> None:
+    """`--joint-convention`: which joints a coupled robot's data holds (hil.geometry.coupling); required for such
+    a robot, never guessed."""
+    parser.add_argument(
+        "--joint-convention",
+        choices=[str(c) for c in JointConvention],
+        default=None,
+        help="the data's joints when the robot file declares a coupling: controller (as the controller and "
+        "pendant report them, converted here) or kinematic (already the model's); required for such a robot",
+    )
 
 
 def check_paths(

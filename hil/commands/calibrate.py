@@ -18,10 +18,17 @@ from hil.analysis.calibration.solve import (
     in_user_units,
 )
 from hil.analysis.diagnosis.pipeline import run_record
-from hil.commands.arg_checks import InputError, add_force_option, check_paths, float_in, float_list
+from hil.commands.arg_checks import (
+    InputError,
+    add_force_option,
+    add_joint_convention_option,
+    check_paths,
+    float_in,
+    float_list,
+)
 from hil.commands.errors import CliError
 from hil.commands.help_format import DefaultsHelpFormatter
-from hil.commands.inputs import read_measurements
+from hil.commands.inputs import keep_coupling, read_measurements
 from hil.data.dataset import (
     DEFAULT_ORIENTATION_CONVENTION,
     ORIENTATION_CONVENTIONS,
@@ -29,7 +36,8 @@ from hil.data.dataset import (
     convert_orientation_convention,
     orientation_columns,
 )
-from hil.geometry.robots import ROBOT_NAMES, get_robot, robot_arg
+from hil.data.joint_conventions import joints_to_kinematic
+from hil.geometry.robots import ROBOT_NAMES, get_robot, robot_arg, robot_coupling
 from hil.runner.progress import Progress
 
 
@@ -94,6 +102,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="initial guess of the tool point in the flange, 'x,y,z' mm (none: from the data)",
     )
     p.add_argument("--no-beta", action="store_true", help="plain DH on every joint (no Hayati beta)")
+    add_joint_convention_option(p)
     p.add_argument(
         "--accept-implausible",
         action="store_true",
@@ -146,6 +155,8 @@ def run(args: argparse.Namespace) -> int:
             overwrite=args.force,
         )
         df = convert_orientation_convention(read_measurements(args.data), args.orientation_convention)
+        coupling = robot_coupling(args.robot)
+        df = joints_to_kinematic(df, coupling, args.joint_convention, str(args.data))
         tool = args.tool_mm
     except (InputError, DatasetError, ValueError) as exc:
         raise CliError.from_text(str(exc)) from exc
@@ -202,6 +213,7 @@ def run(args: argparse.Namespace) -> int:
         table.to_csv(args.residuals, index=False, float_format="%.6g")
         print(f"residuals written to {args.residuals}")
     chosen.model.info["run"] = run_record(nominal, {"training": df})  # what the model was made from
+    keep_coupling(chosen.model, coupling)
     chosen.model.save(args.output)
     print(f"model written to {args.output}")
     return 0

@@ -15,11 +15,18 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from hil.commands.arg_checks import InputError, add_force_option, check_paths, float_in
+from hil.commands.arg_checks import (
+    InputError,
+    add_force_option,
+    add_joint_convention_option,
+    check_paths,
+    float_in,
+)
 from hil.commands.campaign_targets import DEFAULT_ORDER, SOURCES, read_campaign_targets
 from hil.commands.compensate_program import is_program, run_program
 from hil.commands.errors import CliError
 from hil.commands.help_format import DefaultsHelpFormatter
+from hil.commands.inputs import model_coupling
 from hil.compensation.model_based import (
     ENSEMBLE,
     CompensationOptions,
@@ -41,6 +48,7 @@ from hil.data.dataset import (
     orientations,
 )
 from hil.data.store import is_campaign_file
+from hil.geometry.coupling import JointConvention, JointCoupling
 from hil.geometry.se3 import transform_points
 from hil.model.calibrated_model import CalibratedModel
 from hil.model.effects import THERMAL_FAMILIES, material_growth, temperature_driven
@@ -143,6 +151,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "spread, e.g. of format 1, gives none and says so)",
     )
     _add_frame_option(p)
+    add_joint_convention_option(p)
     add_force_option(p)
     p.set_defaults(func=run)
 
@@ -337,6 +346,13 @@ def run(args: argparse.Namespace) -> int:
         )
     try:
         model = CalibratedModel.load(args.model)
+        coupling = model_coupling(model)
+        if coupling is not None and args.joint_convention is None:
+            raise CliError(
+                f"the model's robot couples its joints ({coupling.describe()}): say which joints to write",
+                "give --joint-convention controller (for the controller and pendant) or --joint-convention "
+                "kinematic (the model's joints)",
+            )
         chosen = _campaign_targets(args, model) if campaign else _csv_targets(args, model)
         nests = sorted(set(chosen.smr.tolist()))
         if args.path and len(nests) > 1:
@@ -358,6 +374,8 @@ def run(args: argparse.Namespace) -> int:
     for w in caught:
         print(f"warning: {w.message}", file=sys.stderr)
     out = _output_frame(args, chosen, campaign, drivers, res)
+    if coupling is not None and args.joint_convention == JointConvention.CONTROLLER:
+        _to_controller_joints(out, coupling)
     try:
         out["interval_mm"] = target_intervals(model, res.q, chosen.smr, drivers, args.interval)
     except IntervalError as exc:
@@ -448,6 +466,24 @@ def _options(args: argparse.Namespace) -> CompensationOptions:
 def _q_seed(args: argparse.Namespace, chosen: _Targets) -> np.ndarray | None:
     """A campaign's joints seed the IK (not along a path, which seeds each target from its neighbour)."""
     return chosen.q_seed if chosen.q_seed is not None and not args.path else None
+
+
+def _to_controller_joints(out: pd.DataFrame, coupling: JointCoupling) -> None:
+    """The written joints as the controller takes them, and whether they keep its interaction limits (an IK
+    solution within the model's joint box may break a limit on the coupled readings)."""
+    cols = joint_columns(coupling.n_joints)
+    q_controller = coupling.to_controller(out[cols].to_numpy(float))
+    out[cols] = q_controller
+    if coupling.limits:
+        out["within_interaction_limits"] = coupling.within_limits(q_controller)
+        beyond = int((~out["within_interaction_limits"]).sum())
+        if beyond:
+            print(
+                f"warning: {beyond} target(s) need joints beyond the robot's interaction limits "
+                f"({'; '.join(lim.describe() for lim in coupling.limits)}): marked within_interaction_limits "
+                "= False",
+                file=sys.stderr,
+            )
 
 
 def _output_frame(

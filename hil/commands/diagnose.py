@@ -9,13 +9,22 @@ import pandas as pd
 
 from hil.analysis.calibration.solve import implausible_changes, position_noise_m
 from hil.analysis.diagnosis.pipeline import DiagnosisOptions, DiagnosisReport, run_diagnosis
-from hil.commands.arg_checks import InputError, add_force_option, check_paths, float_in, float_list, int_in
+from hil.commands.arg_checks import (
+    InputError,
+    add_force_option,
+    add_joint_convention_option,
+    check_paths,
+    float_in,
+    float_list,
+    int_in,
+)
 from hil.commands.calibrate import add_probe_options, orientation_summary, parse_mm_vector, refuse_implausible
 from hil.commands.errors import CliError
 from hil.commands.help_format import DefaultsHelpFormatter
-from hil.commands.inputs import read_training_and_validation
+from hil.commands.inputs import keep_coupling, read_training_and_validation
 from hil.data.dataset import DatasetError, convert_orientation_convention, points_m, pose_ids
-from hil.geometry.robots import ROBOT_NAMES, get_robot, robot_arg
+from hil.data.joint_conventions import joints_to_kinematic
+from hil.geometry.robots import ROBOT_NAMES, get_robot, robot_arg, robot_coupling
 from hil.model.effects import EFFECT_FAMILIES
 from hil.runner.progress import Progress
 
@@ -37,6 +46,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help=f"nominal robot: {', '.join(ROBOT_NAMES)}, a robot definition file (.toml, see "
         "hil/geometry/robot_models) or a URDF (FILE.urdf: its chain to the last link; FILE.urdf#LINK: to that flange link)",
     )
+    add_joint_convention_option(p)
     p.add_argument("--validate", default=None, help="a separate dataset CSV never used for fitting")
     p.add_argument(
         "--validate-reregister",
@@ -138,6 +148,13 @@ def run(args: argparse.Namespace) -> int:
         df, val = read_training_and_validation(args.data, args.validate)
         df = convert_orientation_convention(df, args.orientation_convention)
         val = None if val is None else convert_orientation_convention(val, args.orientation_convention)
+        coupling = robot_coupling(args.robot)
+        df = joints_to_kinematic(df, coupling, args.joint_convention, str(args.data))
+        val = (
+            None
+            if val is None
+            else joints_to_kinematic(val, coupling, args.joint_convention, str(args.validate))
+        )
         # A 6-DoF probe's rotation equations, weighted by its angle noise against the tracker's noise.
         df.attrs["probe_angle_noise_rad"] = float(np.deg2rad(args.probe_angle_noise_deg))
         df.attrs["position_noise_m"] = position_noise_m(points_m(df), mpe)
@@ -288,5 +305,6 @@ def _print_and_write(args: argparse.Namespace, report: DiagnosisReport) -> None:
         print(f"HTML report written to {args.html}")
     if args.output:
         report.model.info["run"] = report.run  # what the model was made from
+        keep_coupling(report.model, robot_coupling(args.robot))
         report.model.save(args.output)
         print(f"model written to {args.output}")

@@ -9,6 +9,8 @@ import pandas as pd
 
 from hil.data.dataset import load_dataset
 from hil.data.store import CampaignStore, campaign_dataset, is_campaign_file
+from hil.geometry.coupling import JointCoupling, coupling_from_table, coupling_table
+from hil.model.calibrated_model import CalibratedModel
 from hil.runner.procedure import Role
 from hil.runner.registry import publisher
 
@@ -25,6 +27,22 @@ def read_measurements(
     if is_campaign_file(path):
         return campaign_dataset(path, grid_procedure(), step)
     return load_dataset(path, require_positions=require_positions)
+
+
+def keep_coupling(model: CalibratedModel, coupling: JointCoupling | None) -> None:
+    """Keep a coupled robot's coupling in the model's info, so predict and compensate convert as it did."""
+    if coupling is not None and coupling.coupled_rows():
+        model.info["coupling"] = coupling_table(coupling)
+
+
+def model_coupling(model: CalibratedModel) -> JointCoupling | None:
+    """The joint coupling a model was calibrated with (its robot file's), None for an uncoupled robot."""
+    table = model.info.get("coupling")
+    return (
+        None
+        if table is None
+        else coupling_from_table(table, model.kinematic.n_joints, "the model's coupling")
+    )
 
 
 def grid_procedure() -> str:

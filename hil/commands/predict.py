@@ -9,11 +9,12 @@ import warnings
 import numpy as np
 import pandas as pd
 
-from hil.commands.arg_checks import InputError, add_force_option, check_paths
+from hil.commands.arg_checks import InputError, add_force_option, add_joint_convention_option, check_paths
 from hil.commands.errors import CliError
 from hil.commands.help_format import DefaultsHelpFormatter
-from hil.commands.inputs import read_measurements
+from hil.commands.inputs import model_coupling, read_measurements
 from hil.data.dataset import POSITION_COLUMNS, DatasetError, joints_rad
+from hil.data.joint_conventions import joints_to_kinematic
 from hil.model.calibrated_model import CalibratedModel
 from hil.model.intervals import IntervalError, Intervals
 from hil.model.prediction_intervals import prediction_intervals
@@ -33,6 +34,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         "data", help="CSV with q1_rad..q6_rad (and the drivers the model's effects need: t_s, ...)"
     )
     p.add_argument("-o", "--output", required=True, help="CSV to write: the input columns, x/y/z_mm replaced")
+    add_joint_convention_option(p)
     p.add_argument(
         "--interval",
         type=float,
@@ -75,7 +77,8 @@ def run(args: argparse.Namespace) -> int:
     try:
         check_paths({"MODEL": args.model, "DATA": args.data}, {"--output": args.output}, overwrite=args.force)
         model = CalibratedModel.load(args.model)
-        df = read_measurements(args.data, require_positions=False)
+        as_read = read_measurements(args.data, require_positions=False)
+        df = joints_to_kinematic(as_read, model_coupling(model), args.joint_convention, str(args.data))
         intervals: Intervals | None = None
         if args.interval is not None:  # refused before any prediction is written
             intervals = prediction_intervals(model, df, args.interval)
@@ -90,7 +93,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"warning: {w.message}", file=sys.stderr)
     for note in plausibility_notes(model, df, p):
         print(f"warning: {note}", file=sys.stderr)
-    out = df.copy()
+    out = as_read.copy()  # the joints as given, in their convention
     for i, col in enumerate(POSITION_COLUMNS):
         out[col] = p[:, i] * 1000.0
     if intervals is not None:

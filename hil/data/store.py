@@ -754,7 +754,8 @@ def campaign_dataset(
         )
         m = store.measurement_columns(needed, procedure, step)
         started_s = store.started_s
-        station = _station(store.snapshots())
+        snapshots = store.snapshots()
+        station = _station(snapshots)
         if m.empty:
             counts = store.point_counts()
             have = ", ".join(f"{r.procedure}/{r.step} ({r.points})" for r in counts.itertuples()) or "none"
@@ -813,6 +814,9 @@ def campaign_dataset(
     out = validate_dataset(pd.DataFrame(data), source=f"{store.path} ({procedure})")
     out.attrs["source"] = f"{store.path} ({procedure}" + (f"/{step}" if isinstance(step, str) else "") + ")"
     out.attrs["station"] = station
+    recorded = [s["joint_convention"] for s in snapshots if isinstance(s, dict) and "joint_convention" in s]
+    if recorded:  # the robot's readings as the session recorded them (hil.geometry.coupling)
+        out.attrs["joint_convention"] = recorded[-1]
     return out
 
 

@@ -41,6 +41,7 @@ from typing import Any
 import numpy as np
 
 from hil.geometry.body import ArmBody, body_from_dh
+from hil.geometry.coupling import JointCoupling, coupling_from_table
 from hil.geometry.kinematics import KinematicModel
 from hil.geometry.urdf_import import import_urdf
 from hil.geometry.urdf_read import is_urdf_spec, split_spec
@@ -49,7 +50,7 @@ ROBOT_DIR = Path(__file__).with_name("robot_models")
 ROBOT_NAMES: tuple[str, ...] = (
     "ur5", "ur10", "ur5e", "ur10e", "irb2600", "kr6r900", "lrmate200id", "irb4600",
 )  # fmt: skip
-_FILE_KEYS = {"name", "convention", "joint", "expansion_per_k", "capsule", "body_radius_mm"}
+_FILE_KEYS = {"name", "convention", "joint", "expansion_per_k", "capsule", "body_radius_mm", "coupling"}
 _CAPSULE_KEYS = {"name", "frame", "from_mm", "to_mm", "radius_mm"}
 # A body laid along the DH table when a file gives neither capsules nor body_radius_mm: this fraction of the
 # arm's summed link lengths as every link's radius (a tenth of a UR10's 1.6 m is 160 mm: generous, so a
@@ -134,6 +135,8 @@ def robot_from_text(text: str, source: str | Path, use_beta: bool = True) -> Kin
     theta, d, a, alpha, beta, limits = (list(col) for col in zip(*rows, strict=True))
     if convention == "mdh":
         a, alpha, beta = _craig_to_internal(path, a, alpha, beta)
+    if "coupling" in data:  # checked with the rest of the file; read by robot_coupling
+        coupling_from_table(data["coupling"], len(rows), str(path))
     return KinematicModel(
         name=str(data.get("name", path.stem)),
         theta=np.deg2rad(theta),
@@ -268,13 +271,32 @@ def _craig_to_internal(
     return a[1:] + [0.0], alpha[1:] + [0.0], beta[1:] + [False]
 
 
+def robot_coupling(name: str, text: str | None = None) -> JointCoupling | None:
+    """The joint coupling a built-in robot (by name) or a robot file (its path, or its `text`) declares in
+    `[coupling]` (hil.geometry.coupling), None when its controller reports the kinematic joints (and for a URDF,
+    which has no such table: its mimic joints are refused)."""
+    if is_urdf_spec(name):
+        return None
+    if text is None:
+        text = _robot_path(name).read_text()
+    model = robot_from_text(text, name)
+    table = tomllib.loads(text).get("coupling")
+    return None if table is None else coupling_from_table(table, model.n_joints, name)
+
+
+def _robot_path(name: str) -> Path:
+    """A robot file's path, or the built-in file of a robot name."""
+    if is_robot_file(name):
+        return robot_file_path(name)
+    return ROBOT_DIR / f"{name.lower().replace('-', '').replace('_', '').replace(' ', '')}.toml"
+
+
 def robot_body(name: str, text: str | None = None) -> ArmBody:
     """The body of a built-in robot (by name) or of a robot file's text (`name` its path): its
     `[[capsule]]` tables (each: `frame` 0..n, `from_mm`, `to_mm` in that link frame, `radius_mm`, `name`),
     else a body along its DH table of `body_radius_mm`, else of DEFAULT_BODY_RADIUS_FRACTION of its size."""
     if text is None:
-        key = name.lower().replace("-", "").replace("_", "").replace(" ", "")
-        path = robot_file_path(name) if is_robot_file(name) else ROBOT_DIR / f"{key}.toml"
+        path = _robot_path(name)
         text = path.read_text()
     else:
         path = Path(name)

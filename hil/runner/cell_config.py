@@ -16,12 +16,14 @@ from typing import Any
 import numpy as np
 
 from hil.geometry.body import ArmBody
+from hil.geometry.coupling import JointConvention
 from hil.geometry.kinematics import KinematicModel
 from hil.geometry.robots import (
     ROBOT_NAMES,
     get_robot,
     is_robot_file,
     robot_body,
+    robot_coupling,
     robot_file_path,
     robot_from_text,
     with_file_path,
@@ -134,7 +136,13 @@ class CellConfig:
             robot: dict[str, str] = {"model": self.robot_model}
         else:
             robot = {"model": self.robot_model, "file": self.robot_model, "file_text": self.robot_file_text}
-        return {"source": self.source, "cell": self.raw, "robot_definition": robot}
+        # the joints a session records are what the robot's controller reports (hil.geometry.coupling)
+        return {
+            "source": self.source,
+            "cell": self.raw,
+            "robot_definition": robot,
+            "joint_convention": str(JointConvention.CONTROLLER),
+        }
 
 
 class _Reader:
@@ -267,10 +275,27 @@ def _nominal(robot_model: str, robot_file_text: str | None) -> KinematicModel:
     )
 
 
+def _refuse_coupled(r: _Reader, model: str | None, robot_file_text: str | None) -> None:
+    """A robot whose controller couples its joints ([coupling]) is refused for a cell: the runner sends plans
+    and records joints as the model's kinematic joints, which such a controller reads differently; its data
+    measured elsewhere goes through the analysis commands with --joint-convention."""
+    if model is None:
+        return
+    coupling = robot_coupling(model, robot_file_text)
+    if coupling is not None and coupling.coupled_rows():
+        r.problems.append(
+            f"robot.model: {model} couples its joints ({coupling.describe()}); hil run does not convert plans "
+            "to the controller's joints yet, so it would move such an arm to the wrong pose: measure with the "
+            "maker's software and give the exported data to hil axes / calibrate / diagnose with "
+            "--joint-convention controller"
+        )
+
+
 def parse_cell_config(data: dict, source: str = "cell.toml") -> CellConfig:
     """Build and check a CellConfig from parsed TOML; raises CellConfigError listing every problem."""
     r = _Reader(data)
     model, robot_file_text, nominal = _robot_model(r, r.get("robot", "model", "str", required=True), source)
+    _refuse_coupled(r, model, robot_file_text)
     host, driver = _read_robot_link(r)
     robot_driver_name = r.get("robot", "driver", "str", default=DEFAULT_ROBOT_DRIVER)
     n = nominal.n_joints if nominal else 6

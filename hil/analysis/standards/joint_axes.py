@@ -24,6 +24,7 @@ import pandas as pd
 from scipy.optimize import least_squares
 
 from hil.data.dataset import SAME_POSE_RAD, joint_columns, points_m, smr_ids
+from hil.geometry.coupling import JointCoupling
 from hil.geometry.kinematics import KinematicModel
 
 MIN_ARC_RAD = math.radians(30.0)  # a shorter arc leaves the circle's centre (the axis) poorly fixed
@@ -62,12 +63,16 @@ class AxisFit:
     arc_rad: float  # the largest angle the SMRs turned about the fitted axis
     points: int
     sweeps: list[str] = field(default_factory=list)
+    direction_sigma_rad: float = 0.0  # 1-sigma angle of the direction (RMS over both tilts), from the fit
+    point_sigma_m: float = 0.0  # 1-sigma distance of the point across the true line, from the fit
 
     def to_dict(self) -> dict:
         return {
             "joint": self.joint + 1,
             "point_mm": (self.point_m * 1e3).tolist(),
             "direction": self.direction.tolist(),
+            "direction_sigma_deg": math.degrees(self.direction_sigma_rad),
+            "point_sigma_mm": self.point_sigma_m * 1e3,
             "residual_rms_mm": self.residual_rms_m * 1e3,
             "swept_deg": math.degrees(self.swept_rad),
             "arc_deg": math.degrees(self.arc_rad),
@@ -132,35 +137,34 @@ def _line_residuals(params: np.ndarray, arcs: list[np.ndarray], n0, u0, v0, a0) 
     return np.concatenate(out)
 
 
+@dataclass(frozen=True)
+class LineFit:
+    """One axis line fitted to its arcs (SI): the line, each arc's radius and height along it, the fit's
+    residual and the largest arc, and the line's 1-sigma uncertainty from the fit's own scatter."""
+
+    point_m: np.ndarray  # (3,) the foot on the line of the arcs' mean centre
+    direction: np.ndarray  # (3,) unit, right-hand rule for a positive joint turn
+    radii_m: list[float]
+    heights_m: list[float]
+    residual_rms_m: float
+    arc_rad: float
+    direction_sigma_rad: float  # RMS angle between the fitted and the true direction (both tilts)
+    point_sigma_m: float  # RMS distance of `point_m` from the true line, across it
+
+
 def fit_axis(
     arcs_m: list[np.ndarray],
     joints_rad: list[np.ndarray],
     sigma_m: float = DEFAULT_SIGMA_M,
     what: str = "sweep",
-) -> tuple[np.ndarray, np.ndarray, list[float], list[float], float, float]:
+) -> LineFit:
     """One axis line fitted to several arcs about it (each (N_k, 3)) whose joint readings are `joints_rad`
-    (each (N_k,)): (point, direction, radii, heights, residual RMS, largest arc angle). The direction is
-    the right-hand axis of a positive joint turn; the point is the foot of the arcs' mean centre."""
-    fits = []
+    (each (N_k,)). The direction is the right-hand axis of a positive joint turn; the point is the foot of
+    the arcs' mean centre. The uncertainties are the Gauss-Newton covariance at the solution scaled by the
+    residuals' own variance (so an arc that is no circle widens them, as it should)."""
     for k, p in enumerate(arcs_m):
         check_arc(p, sigma_m, f"{what}, arc {k + 1}" if len(arcs_m) > 1 else what)
-        fits.append(fit_circle(p))
-    # a common normal orientation before averaging (SVD normals have arbitrary signs)
-    normals = np.array([f[1] for f in fits])
-    normals *= np.sign(normals @ normals[0])[:, None]
-    n0 = normals.mean(axis=0)
-    n0 /= np.linalg.norm(n0)
-    a0 = np.mean([f[0] for f in fits], axis=0)
-    u0, v0 = _plane_basis(n0)
-    x0 = [0.0, 0.0, 0.0, 0.0]
-    for c, _, r in fits:
-        x0 += [float((c - a0) @ n0), r]
-    sol = least_squares(
-        _line_residuals, np.array(x0), args=(arcs_m, n0, u0, v0, a0), method="lm", x_scale="jac"
-    )
-    n = n0 + sol.x[0] * u0 + sol.x[1] * v0
-    n /= np.linalg.norm(n)
-    a = a0 + sol.x[2] * u0 + sol.x[3] * v0
+    sol, a, n = _solve_line(arcs_m)
     heights = [float(h) for h in sol.x[4::2]]
     radii = [float(r) for r in sol.x[5::2]]
     res = sol.fun.reshape(-1)
@@ -176,14 +180,76 @@ def fit_axis(
     if turn < 0:
         n = -n
     rms = float(np.sqrt(np.mean(res**2) * 2.0))  # two components per point: the distance's RMS
-    return a, n, radii, heights, rms, arc
+    along = _along(arcs_m, a, n)
+    s2 = float(res @ res) / max(len(res) - len(sol.x), 1)  # the residuals' variance
+    direction_sigma, point_sigma = _line_sigmas(sol.jac, s2, along)
+    return LineFit(a + along * n, n, radii, heights, rms, arc, direction_sigma, point_sigma)
+
+
+def _solve_line(arcs_m: list[np.ndarray]):
+    """The least-squares line of `_line_residuals` from per-arc circle fits: (solution, point, direction)."""
+    fits = [fit_circle(p) for p in arcs_m]
+    # a common normal orientation before averaging (SVD normals have arbitrary signs)
+    normals = np.array([f[1] for f in fits])
+    normals *= np.sign(normals @ normals[0])[:, None]
+    n0 = normals.mean(axis=0)
+    n0 /= np.linalg.norm(n0)
+    a0 = np.mean([f[0] for f in fits], axis=0)
+    u0, v0 = _plane_basis(n0)
+    x0 = [0.0, 0.0, 0.0, 0.0]
+    for c, _, r in fits:
+        x0 += [float((c - a0) @ n0), r]
+    sol = least_squares(
+        _line_residuals, np.array(x0), args=(arcs_m, n0, u0, v0, a0), method="lm", x_scale="jac"
+    )
+    n = n0 + sol.x[0] * u0 + sol.x[1] * v0
+    return sol, a0 + sol.x[2] * u0 + sol.x[3] * v0, n / np.linalg.norm(n)
+
+
+def _along(arcs_m: list[np.ndarray], a: np.ndarray, n: np.ndarray) -> float:
+    """Where along the line (from `a`) the reported point lies: level with the arcs' mean centre."""
+    return float((np.mean([p.mean(axis=0) for p in arcs_m], axis=0) - a) @ n)
+
+
+def expected_line_sigmas(arcs_m: list[np.ndarray], sigma_m: float) -> tuple[float, float]:
+    """The 1-sigma (direction angle rad, point m) a fit of arcs like these (noise-free, e.g. from a nominal
+    model) would have with readings of per-axis noise `sigma_m`: for planning how many points an arc needs."""
+    sol, a, n = _solve_line(arcs_m)
+    return _line_sigmas(sol.jac, sigma_m**2, _along(arcs_m, a, n))
+
+
+def _line_sigmas(jac: np.ndarray, s2: float, along_m: float) -> tuple[float, float]:
+    """1-sigma of the line fitted by `_line_residuals`: the direction's angle (rad) and the distance across
+    the line (m) of its point `along_m` from the fit's origin, both as RMS over the two directions across
+    it. Covariance (J^T J)^-1 s2, s2 the variance of one residual."""
+    cov = np.linalg.pinv(jac.T @ jac) * s2
+    tilt, shift = cov[:2, :2], cov[2:4, 2:4]
+    across = shift + along_m * (cov[2:4, :2] + cov[:2, 2:4]) + along_m**2 * tilt
+    return math.sqrt(max(float(np.trace(tilt)), 0.0)), math.sqrt(max(float(np.trace(across)), 0.0))
 
 
 # ------------------------------------------------------------------------------------------ sweeps
-def sweeps_of(df: pd.DataFrame, n_joints: int = 6, source: str = "campaign") -> list[Sweep]:
+def coupling_hint(coupling: str | None) -> str:
+    """What to say when two readings move together: the coupling the joints were converted by, or how to
+    give one (a coupled controller, FANUC's J2/J3, reports readings that move together in a one-joint turn)."""
+    if coupling:
+        return (
+            f"; the readings were converted to kinematic joints by the robot's coupling ({coupling}) and two "
+            "still move: check the coupling and that the data holds the controller's joints"
+        )
+    return (
+        "; if the controller couples these joints (FANUC's pendant J3 moves with J2), give --robot with the "
+        "robot file whose [coupling] declares it, and --joint-convention controller"
+    )
+
+
+def sweeps_of(
+    df: pd.DataFrame, n_joints: int = 6, source: str = "campaign", coupling: str | None = None
+) -> list[Sweep]:
     """The sweeps of a campaign. With a `sweep` column its labels group the rows, and a sweep in which a
     second joint moves is refused; without one, runs of consecutive poses between which only one joint
-    changes (and rows of one pose, e.g. several SMRs) form the sweeps."""
+    changes (and rows of one pose, e.g. several SMRs) form the sweeps. `coupling` describes the coupling
+    the joints were converted by (None: the readings as given), for the refusals."""
     q = df[joint_columns(n_joints)].to_numpy(float)
     if "sweep" in df.columns:
         out = []
@@ -201,6 +267,7 @@ def sweeps_of(df: pd.DataFrame, n_joints: int = 6, source: str = "campaign") -> 
                 raise SweepError(
                     f"{source}: sweep {label}: joint {by[1] + 1} moves too ({math.degrees(travel[by[1]]):.3f} deg) "
                     f"while joint {by[0] + 1} sweeps; hold every other joint still during a sweep"
+                    + coupling_hint(coupling)
                 )
             out.append(Sweep(int(moving[0]), rows, label))
         return out
@@ -276,12 +343,14 @@ def identify_axes(
     sigma_m: float = DEFAULT_SIGMA_M,
     source: str = "campaign",
     name: str = "measured",
+    coupling: str | None = None,
 ) -> AxesResult:
-    """Every joint's axis from a campaign's sweeps (see `sweeps_of`), and the DH model they make."""
+    """Every joint's axis from a campaign's sweeps (see `sweeps_of`), and the DH model they make. The joints
+    are the kinematic ones; `coupling` describes the coupling they were converted by, for the refusals."""
     q = df[joint_columns(n_joints)].to_numpy(float)
     p = points_m(df)
     smr = smr_ids(df)
-    sweeps = sweeps_of(df, n_joints, source)
+    sweeps = sweeps_of(df, n_joints, source, coupling)
     by_joint: dict[int, list[Sweep]] = {}
     for s in sweeps:
         travel = float(np.ptp(q[s.rows, s.joint]))
@@ -295,6 +364,7 @@ def identify_axes(
     if missing:
         raise SweepError(
             f"{source}: no sweep of joint(s) {', '.join(map(str, missing))}; a model needs every joint turned alone"
+            + coupling_hint(coupling)
         )
     q_ref = _reference_pose(q, by_joint, n_joints, source)
     axes = []
@@ -307,21 +377,20 @@ def identify_axes(
             readings.append(q[r, j])
             ids.append(int(k))
         what = f"{source}: joint {j + 1}"
-        a, n, radii, _, rms, arc = fit_axis(arcs, readings, sigma_m, what)
+        line = fit_axis(arcs, readings, sigma_m, what)
+        radii = line.radii_m
         small = [k for k, r in zip(ids, radii, strict=True) if r < MIN_RADIUS_SIGMAS * sigma_m]
         if small:
             raise SweepError(
                 f"{what}: SMR {small[0]} lies {min(radii) * 1e3:.3f} mm from the axis, too close to fix it; "
                 "put the SMR farther from the joint's axis"
             )
-        centres = {}
-        for k, arc_p in zip(ids, arcs, strict=True):
-            c = arc_p.mean(axis=0)
-            centres[k] = a + ((c - a) @ n) * n
-        foot = np.mean(list(centres.values()), axis=0)
+        a, n = line.point_m, line.direction
+        centres = {k: a + ((arc_p.mean(axis=0) - a) @ n) * n for k, arc_p in zip(ids, arcs, strict=True)}
         axes.append(
-            AxisFit(j, foot, n, dict(zip(ids, radii, strict=True)), centres, rms,
-                    float(np.ptp(q[rows, j])), arc, len(rows), [s.label for s in by_joint[j]])
+            AxisFit(j, line.point_m, n, dict(zip(ids, radii, strict=True)), centres, line.residual_rms_m,
+                    float(np.ptp(q[rows, j])), line.arc_rad, len(rows), [s.label for s in by_joint[j]],
+                    line.direction_sigma_rad, line.point_sigma_m)
         )  # fmt: skip
     model, T_tb, parallel = model_from_axes(
         np.array([a.point_m for a in axes]), np.array([a.direction for a in axes]), q_ref,
@@ -459,9 +528,10 @@ def _tool_points(
     return {int(k): local[smr[rows] == k].mean(axis=0) for k in np.unique(smr[rows])}
 
 
-def robot_file_text(model: KinematicModel, comment: str = "") -> str:
+def robot_file_text(model: KinematicModel, comment: str = "", coupling: JointCoupling | None = None) -> str:
     """The model as a robot definition file (convention = "dh", hayati_beta where axes are parallel; the
-    measured beta itself is left to calibration, the file format holds none)."""
+    measured beta itself is left to calibration, the file format holds none), with the controller's
+    `coupling` and its interaction limits when the arm has one."""
     lines = [f"# {line}" for line in comment.splitlines()] if comment else []
     lines += [f"name = {json.dumps(model.name)}", 'convention = "dh"', ""]
     for i in range(model.n_joints):
@@ -476,4 +546,23 @@ def robot_file_text(model: KinematicModel, comment: str = "") -> str:
             f"limits_deg = [{lo:g}, {hi:g}]",
             "",
         ]
+    if coupling is not None:
+        lines += coupling_lines(coupling)
     return "\n".join(lines)
+
+
+def coupling_lines(coupling: JointCoupling) -> list[str]:
+    """A coupling as the `[coupling]` table of a robot file (hil.geometry.coupling)."""
+    rows = ",\n".join(
+        f"    [{', '.join(f'{v:g}' for v in row)}]" for row in coupling.kinematic_from_controller
+    )
+    lines = [f"# {coupling.describe()}", "[coupling]", f"kinematic_from_controller = [\n{rows},\n]", ""]
+    for limit in coupling.limits:
+        lines += [
+            f"# {limit.describe()}",
+            "[[coupling.limit]]",
+            f"controller = [{', '.join(f'{v:g}' for v in limit.coefficients)}]",
+            f"range_deg = [{math.degrees(limit.lower_rad):.10g}, {math.degrees(limit.upper_rad):.10g}]",
+            "",
+        ]
+    return lines
