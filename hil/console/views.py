@@ -29,6 +29,7 @@ class Field:
     """One declared parameter as a form field, in the user's unit."""
 
     keyword: str
+    name: str  # the flag's stem, in words: "inlier", "step"
     flag: str
     help: str
     unit: str
@@ -59,8 +60,8 @@ def form(procedure: Procedure) -> Form:
 def _field(p: Parameter) -> Field:
     default = list(p.default) if isinstance(p.default, tuple) else p.default
     return Field(
-        p.keyword, p.flag, p.help, p.unit, p.type.__name__, default, p.minimum, p.maximum, list(p.choices),
-        p.count, p.required, p.allowed(),
+        p.keyword, p.name.replace("_", " "), p.flag, p.help, p.unit, p.type.__name__, default, p.minimum,
+        p.maximum, list(p.choices), p.count, p.required, p.allowed(),
     )  # fmt: skip
 
 
