@@ -17,18 +17,16 @@ from contextlib import contextmanager
 from pathlib import Path
 
 import pytest
+from playwright.sync_api import Browser, Page, expect, sync_playwright
+from sim_session import running_cell
 
-pytest.importorskip("playwright.sync_api")
-from playwright.sync_api import Browser, Page, expect, sync_playwright  # noqa: E402
-from sim_session import running_cell  # noqa: E402
-
-from hil.cli import main  # noqa: E402
-from hil.console.app import TOKEN_COOKIE, ConsoleOptions, build_app  # noqa: E402
-from hil.console.station import Station  # noqa: E402
-from hil.data.campaign_lock import CampaignLock, Holder  # noqa: E402
-from hil.data.store import CampaignStore  # noqa: E402
-from hil.runner.procedure import ParameterError, from_user_values  # noqa: E402
-from hil.runner.registry import load  # noqa: E402
+from hil.cli import main
+from hil.console.app import TOKEN_COOKIE, ConsoleOptions, build_app
+from hil.console.station import Station
+from hil.data.campaign_lock import CampaignLock, Holder
+from hil.data.store import CampaignStore
+from hil.runner.procedure import ParameterError, from_user_values
+from hil.runner.registry import load
 
 pytestmark = pytest.mark.sim
 
@@ -205,6 +203,15 @@ def test_a_campaign_hil_run_drives_is_refused_by_the_console(operator_page, cons
 def test_the_campaign_is_in_the_history(operator_page):
     row = operator_page.locator(f"#history tr[data-campaign='{CAMPAIGN}']")
     expect(row).to_contain_text(f"registration ({POSES})")
+
+
+def test_diagnosis_from_the_page_says_why_it_cannot_run_on_a_registration(operator_page):
+    """Diagnose runs `hil diagnose` on the campaign; on one without a grid its refusal reaches the page."""
+    row = operator_page.locator(f"#history tr[data-campaign='{CAMPAIGN}']")
+    row.get_by_role("button", name="Diagnose").click()
+    expect(operator_page.locator("#refusal")).to_contain_text(f"the diagnosis of {CAMPAIGN} failed")
+    expect(operator_page.locator("#refusal")).to_contain_text("no measurements of grid_sampling")
+    expect(row).to_contain_text("–")  # no report link
 
 
 def test_a_second_browser_watches_and_is_refused_control(browser, console, operator_page):
