@@ -152,6 +152,8 @@ def test_a_run_from_the_form_with_prompts_pause_resume_and_abort(operator_page, 
     page.click("#pause")
     expect(page.locator("#phase")).to_have_text("paused")
     expect(page.locator("#resume")).to_be_enabled()
+    expect(page.locator("#robot-mode")).to_have_text("RUNNING / NORMAL")  # read by the run between points
+    expect(page.locator("#tracker")).to_contain_text("last measured")
     held = len(measured(folder / CAMPAIGN))
     assert held < POSES
 

@@ -51,11 +51,12 @@ class Prompt:
 
 @dataclass(frozen=True)
 class Instruments:
-    """The instruments as last read by the run: robot mode and safety, the air and arm temperatures at the
-    last measurement (deg C), when the tracker last measured (UNIX s)."""
+    """The instruments as last read by the run: robot mode and safety, the tracker's state in words, the air
+    and arm temperatures at the last measurement (deg C), when the tracker last measured (UNIX s)."""
 
     robot_mode: str = "not connected"
     safety_mode: str = ""
+    tracker: str = "not connected"
     air_c: float | None = None
     arm_c: float | None = None
     tracker_last_s: float | None = None

@@ -23,6 +23,7 @@ from hil.commands.instruments import open_session, simulated_operator
 from hil.console.live import Answer, Instruments, Live, PageOperator, PageProgress, Phase
 from hil.data.campaign_lock import current_holder
 from hil.data.store import ARM_TEMPERATURE_KEYS
+from hil.instruments.tracker import TrackerState
 from hil.runner.cell_config import CellConfig
 from hil.runner.engine import CampaignStopped, Engine, StopRequested
 from hil.runner.envelope import EnvelopeError
@@ -221,7 +222,7 @@ class Station:
             live.set_phase(Phase.FAILED, f"{type(exc).__name__}: {exc}", "see the campaign's log")
         finally:
             self._engine = None
-            live.note_instruments(robot_mode="not connected", safety_mode="")
+            live.note_instruments(robot_mode="not connected", safety_mode="", tracker="not connected")
 
 
 def user_values(procedure: Procedure, sent: dict[str, Any]) -> dict[str, Any]:
@@ -253,12 +254,17 @@ def user_values(procedure: Procedure, sent: dict[str, Any]) -> dict[str, Any]:
 
 
 def read_instruments(session: Session) -> Instruments:
-    """The robot's mode and the last measurement's temperatures, read in the run's thread between points."""
+    """The robot's mode, the tracker's state and the last measurement's temperatures, read in the run's
+    thread between points (the drivers are the run's: no other thread calls them)."""
     try:
         state = session.robot.state()
         mode, safety = state.robot_mode, state.safety_mode
     except Exception as exc:  # noqa: BLE001 - a reading for the page, never a reason to stop
         mode, safety = f"unreadable ({type(exc).__name__})", ""
+    try:
+        tracker = _tracker_words(session.tracker.state())
+    except Exception as exc:  # noqa: BLE001 - as above
+        tracker = f"unreadable ({type(exc).__name__})"
     last = session.store.measurement_columns(("temperature_c", "extra", "timestamp_s")).tail(1)
     air = arm = when = None
     if len(last):
@@ -267,7 +273,17 @@ def read_instruments(session: Session) -> Instruments:
         when = _finite(row["timestamp_s"])
         extra = json.loads(row["extra"] or "{}")
         arm = next((_finite(extra[k]) for k in ARM_TEMPERATURE_KEYS if k in extra), None)
-    return Instruments(mode, safety, air, arm, when)
+    return Instruments(mode, safety, tracker, air, arm, when)
+
+
+def _tracker_words(state: TrackerState) -> str:
+    if not state.connected:
+        return "not connected"
+    if state.last_error:
+        return f"error: {state.last_error}"
+    if not state.initialized:
+        return "connected, not initialized"
+    return "locked on the SMR" if state.target_locked else "connected, no target locked"
 
 
 def _finite(value: Any) -> float | None:

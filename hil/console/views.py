@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import pandas as pd
 
 from hil.console.station import CheckedRun
 from hil.data.campaign_lock import current_holder
@@ -117,7 +118,9 @@ def _summary(described: str) -> str:
 @dataclass(frozen=True)
 class PointDeviations:
     """The measured points of a campaign in order, and how far each lies from where the nominal model and the
-    campaign's registration put it (mm; none before the campaign has a registration)."""
+    campaign's registration put it (mm; none before the campaign has a registration); a reference pose of
+    the drift monitor (step `reference`, `r1-003`: pose r1, round 3) also how far it moved since its first
+    round (mm, tracker frame: the drift of the cell)."""
 
     registered: bool
     point_id: list[str]
@@ -125,11 +128,12 @@ class PointDeviations:
     t_s: list[float]  # since the campaign's first point (the instrument's clock)
     temperature_c: list[float | None]
     deviation_mm: list[float | None]
+    drift_mm: list[float | None]
 
 
 def point_deviations(path: Path, config: CellConfig) -> PointDeviations:
     if not is_campaign_file(path):
-        return PointDeviations(False, [], [], [], [], [])
+        return PointDeviations(False, [], [], [], [], [], [])
     with CampaignStore(path, create=False) as store:
         df = store.measurements()
         registration = store.step_result(*publisher(Role.REGISTRATION))
@@ -151,9 +155,27 @@ def point_deviations(path: Path, config: CellConfig) -> PointDeviations:
         df["point_id"].tolist(),
         df["procedure"].tolist(),
         (t - t.min()).round(3).tolist() if len(t) else [],
-        [None if not np.isfinite(v) else round(float(v), 3) for v in df["temperature_c"].to_numpy(float)],
-        [None if not np.isfinite(v) else round(float(v), 4) for v in deviation],
+        _rounded(df["temperature_c"].to_numpy(float), 3),
+        _rounded(deviation, 4),
+        _rounded(reference_drift_mm(df), 4),
     )
+
+
+def reference_drift_mm(df: pd.DataFrame) -> np.ndarray:
+    """Each reference pose's distance (mm) from its own first measurement; NaN for every other point."""
+    drift = np.full(len(df), np.nan)
+    rows = (df["step"] == "reference").to_numpy()
+    if rows.any():
+        refs = df.loc[rows]
+        measured = np.stack(refs["p_tracker_m"].to_list())
+        pose = refs["point_id"].str.rsplit("-", n=1).str[0].to_numpy()
+        first = {name: measured[k] for k, name in reversed(list(enumerate(pose)))}
+        drift[rows] = np.linalg.norm(measured - np.array([first[name] for name in pose]), axis=1) * 1e3
+    return drift
+
+
+def _rounded(values: np.ndarray, digits: int) -> list[float | None]:
+    return [None if not np.isfinite(v) else round(float(v), digits) for v in values]
 
 
 @dataclass(frozen=True)
