@@ -37,6 +37,7 @@ CHROMIUM_FLAGS = [
     "--disable-component-update", "--disable-sync",
 ]  # fmt: skip
 WAIT_MS = 30_000  # a page state the run must reach (the simulated cell runs 20x faster than real time)
+DIAGNOSIS_WAIT_MS = 100_000  # `hil diagnose` in its own process: 3 s alone, over 30 s on a loaded machine
 POSES = 12
 expect.set_options(timeout=WAIT_MS)
 CAMPAIGN = "console.sqlite"
@@ -213,7 +214,8 @@ def test_diagnosis_from_the_page_says_why_it_cannot_run_on_a_registration(operat
     """Diagnose runs `hil diagnose` on the campaign; on one without a grid its refusal reaches the page."""
     row = operator_page.locator(f"#history tr[data-campaign='{CAMPAIGN}']")
     row.get_by_role("button", name="Diagnose").click()
-    expect(operator_page.locator("#refusal")).to_contain_text(f"the diagnosis of {CAMPAIGN} failed")
+    refusal = expect(operator_page.locator("#refusal"))
+    refusal.to_contain_text(f"the diagnosis of {CAMPAIGN} failed", timeout=DIAGNOSIS_WAIT_MS)
     expect(operator_page.locator("#refusal")).to_contain_text("no measurements of grid_sampling")
     expect(row).to_contain_text("–")  # no report link
 
