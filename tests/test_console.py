@@ -220,7 +220,9 @@ def test_diagnosis_from_the_page_says_why_it_cannot_run_on_a_registration(operat
     expect(row).to_contain_text("–")  # no report link
 
 
-def test_a_second_browser_watches_and_is_refused_control(browser, console, operator_page):
+def test_a_second_browser_watches_and_is_refused_control_until_it_is_released(
+    browser, console, operator_page
+):
     context = browser.new_context()
     try:
         page = context.new_page()
@@ -234,6 +236,14 @@ def test_a_second_browser_watches_and_is_refused_control(browser, console, opera
         refused = page.request.post(console[0] + "/api/abort", data={})
         assert refused.status == 403
         assert "another one controls the console" in refused.json()["message"]
+        expect(page.locator("#take-control")).to_be_hidden()
+        operator_page.click("#release-control")  # the controller lets go: the watcher may take over
+        expect(operator_page.locator("#control")).to_have_text("Nobody controls the console.")
+        page.click("#take-control")
+        expect(page.locator("#control")).to_have_text("This browser controls the console.")
+        expect(operator_page.locator("#control")).to_have_text(
+            "Another browser controls this console: this one watches."
+        )
     finally:
         context.close()
 

@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from cell_fixtures import sim_cell_toml
 
+from hil.console.station import CONTROL_LAPSE_S, Station
 from hil.console.views import history, point_deviations
 from hil.data.store import CampaignStore, MeasurementRecord
 from hil.geometry.kinematics import forward_kinematics
@@ -73,3 +74,21 @@ def test_no_deviation_before_a_registration(tmp_path, config):
         store.record_measurement(point("grid", "g1", q, nominal_point(config, q), 0.0))
     shown = point_deviations(campaign, config)
     assert not shown.registered and shown.deviation_mm == [None]
+
+
+def test_control_goes_to_one_browser_and_lapses_when_its_page_is_gone(tmp_path, config):
+    now = [0.0]
+    station = Station(config, tmp_path, clock=lambda: now[0])
+    assert station.claim("a") and not station.claim("b")
+    assert station.controlled_by_another("b") and not station.controlled_by_another("a")
+    now[0] = CONTROL_LAPSE_S  # a's page kept its stream open until now
+    station.seen("a")
+    now[0] += CONTROL_LAPSE_S
+    assert not station.claim("b")  # seen just the lapse ago: still a's
+    now[0] += 0.5
+    assert not station.controlled_by_another("b")
+    assert station.claim("b") and station.controls("b") and not station.controls("a")
+    station.release("a")  # not a's to release any more
+    assert station.controls("b")
+    station.release("b")
+    assert station.claim("a")

@@ -141,10 +141,9 @@ class _Api:
     def _view(self, request: Request) -> dict:
         view = self.station.live.view()
         client = request.cookies.get(CLIENT_COOKIE)
-        controlled = self.station.controller is not None
         return {
-            **replace(view, controller=client is not None and self.station.controller == client).as_json(),
-            "controlled_elsewhere": controlled and self.station.controller != client,
+            **replace(view, controller=self.station.controls(client)).as_json(),
+            "controlled_elsewhere": self.station.controlled_by_another(client),
         }
 
     async def state(self, request: Request) -> Response:
@@ -154,6 +153,7 @@ class _Api:
         """The state now, then after every change (and at least every STREAM_KEEPALIVE_S, for the ETA)."""
         loop = asyncio.get_running_loop()
         changed = asyncio.Event()
+        client = request.cookies.get(CLIENT_COOKIE)
 
         async def events() -> AsyncIterator[str]:
             def wake() -> None:  # on the run's thread
@@ -163,6 +163,7 @@ class _Api:
             try:
                 while not self.closing:
                     changed.clear()
+                    self.station.seen(client)
                     yield f"data: {json.dumps(self._view(request))}\n\n"
                     with suppress(TimeoutError):
                         await asyncio.wait_for(changed.wait(), STREAM_KEEPALIVE_S)
@@ -203,11 +204,12 @@ class _Api:
         client = request.cookies.get(CLIENT_COOKIE)
         if client is not None:
             self.station.release(client)
+        self.station.live.wake()
         return JSONResponse({"controller": False})
 
     def _require_control(self, request: Request) -> None:
         client = request.cookies.get(CLIENT_COOKIE)
-        if client is None or self.station.controller != client:
+        if not self.station.controls(client):
             raise RequestRefusedError(
                 "this browser watches: another one controls the console", "take control when it is free"
             )

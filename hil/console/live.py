@@ -210,9 +210,9 @@ class Live:
             return True
 
     def wake(self) -> None:
-        """Let a waiting prompt see a stop."""
+        """Let a waiting prompt see a stop, and every page a change it cannot see here (who controls)."""
         with self._changed:
-            self._changed.notify_all()
+            self._bump()
 
 
 class PageOperator(Operator):

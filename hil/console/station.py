@@ -13,6 +13,8 @@ from __future__ import annotations
 import json
 import math
 import threading
+import time
+from collections.abc import Callable
 from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
@@ -32,6 +34,8 @@ from hil.runner.plan import Plan
 from hil.runner.procedure import ParameterError, Procedure, ProcedureFormError, from_user_values
 from hil.runner.registry import UnknownProcedureError, load
 from hil.runner.session import Session
+
+CONTROL_LAPSE_S = 30.0  # a controlling page gone this long (no event stream) gives control to the next to ask
 
 
 class RequestRefusedError(ValueError):
@@ -65,7 +69,13 @@ class CheckedRun:
 class Station:
     """The cell and campaigns folder of a console, its live state and its run."""
 
-    def __init__(self, config: CellConfig, campaigns: Path, address: str = "") -> None:
+    def __init__(
+        self,
+        config: CellConfig,
+        campaigns: Path,
+        address: str = "",
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
         self.config, self.campaigns, self.address = config, campaigns, address
         self.live = Live()
         self._lock = threading.Lock()
@@ -73,14 +83,36 @@ class Station:
         self._engine: Engine | None = None
         self._stop_reason: str | None = None
         self.controller: str | None = None  # the browser that may press the buttons (its client id)
+        self._controller_seen_s = 0.0
+        self._clock = clock
 
     # ------------------------------------------------------------------ control
     def claim(self, client: str) -> bool:
-        """Give `client` control when nobody has it; True when it has control now."""
+        """Give `client` control when nobody has it, or when the controller's page has been gone for
+        CONTROL_LAPSE_S (a closed laptop must not lock the cell out); True when it has control now."""
         with self._lock:
-            if self.controller is None:
+            now = self._clock()
+            if self.controller is None or now - self._controller_seen_s > CONTROL_LAPSE_S:
                 self.controller = client
+            if self.controller == client:
+                self._controller_seen_s = now
             return self.controller == client
+
+    def seen(self, client: str | None) -> None:
+        """The client's page is still there (its event stream is open)."""
+        with self._lock:
+            if client is not None and client == self.controller:
+                self._controller_seen_s = self._clock()
+
+    def controls(self, client: str | None) -> bool:
+        return client is not None and client == self.controller
+
+    def controlled_by_another(self, client: str | None) -> bool:
+        """Another browser holds control and its page is there (recently)."""
+        with self._lock:
+            if self.controller is None or client == self.controller:
+                return False
+            return self._clock() - self._controller_seen_s <= CONTROL_LAPSE_S
 
     def release(self, client: str) -> None:
         with self._lock:
