@@ -248,9 +248,20 @@ def test_a_second_browser_watches_and_is_refused_control_until_it_is_released(
         context.close()
 
 
+def test_a_request_by_another_host_name_is_refused(console):
+    """A page elsewhere that points its own name at 127.0.0.1 (DNS rebinding) cannot reach the console."""
+    rebound = urllib.request.Request(console[0] + "/api/state", headers={"Host": "cell.example.com"})
+    with pytest.raises(urllib.error.HTTPError) as refused:
+        urllib.request.urlopen(rebound, timeout=10)
+    assert refused.value.code == 400
+    with urllib.request.urlopen(console[0] + "/api/state", timeout=10) as state:
+        assert state.status == 200
+
+
 def test_a_console_with_a_token_refuses_requests_without_it(cell):
     folder, config = cell
-    with console_server(Station(config, folder), ConsoleOptions(token="s3cret-token")) as url:
+    options = ConsoleOptions(token="s3cret-token", allowed_hosts=("*",))  # as hil serve off loopback
+    with console_server(Station(config, folder), options) as url:
         for path in ("/", "/api/state", "/api/history"):
             with pytest.raises(urllib.error.HTTPError) as refused:
                 urllib.request.urlopen(url + path, timeout=10)

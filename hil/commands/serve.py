@@ -66,12 +66,13 @@ def run(args: argparse.Namespace) -> int:
 
     import uvicorn
 
-    from hil.console.app import ConsoleOptions, build_app
+    from hil.console.app import LOOPBACK_NAMES, ConsoleOptions, build_app
     from hil.console.station import Station
 
     url = f"http://{args.host}:{args.port}/"
     station = Station(config, folder.resolve(), address=url)
-    app = build_app(station, ConsoleOptions(token=token))
+    hosts = ("*",) if token else tuple(dict.fromkeys((*LOOPBACK_NAMES, args.host)))
+    app = build_app(station, ConsoleOptions(token=token, allowed_hosts=hosts))
     print(f"hil console for {config.source} at {url}" + (" (token required)" if token else ""), flush=True)
     uvicorn.Server(
         uvicorn.Config(app, host=args.host, port=args.port, log_level="warning", timeout_graceful_shutdown=2)

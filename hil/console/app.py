@@ -21,6 +21,8 @@ from typing import Any
 
 import anyio
 from starlette.applications import Starlette
+from starlette.middleware import Middleware
+from starlette.middleware.trustedhost import TrustedHostMiddleware
 from starlette.requests import Request
 from starlette.responses import FileResponse, HTMLResponse, JSONResponse, Response, StreamingResponse
 from starlette.routing import Route
@@ -36,11 +38,17 @@ TOKEN_COOKIE = "hil_console_token"
 STREAM_KEEPALIVE_S = 10.0  # a page's stream sends the state at least this often
 
 
+LOOPBACK_NAMES = ("127.0.0.1", "localhost")
+
+
 @dataclass(frozen=True)
 class ConsoleOptions:
-    """How the console serves: its token (None: loopback only, no token asked)."""
+    """How the console serves: its token (None: loopback only, no token asked) and the host names a request
+    may address it by. On loopback without a token only the loopback names: a web page elsewhere that points
+    a name of its own at 127.0.0.1 (DNS rebinding) is refused before it could take control of the cell."""
 
     token: str | None = None
+    allowed_hosts: tuple[str, ...] = LOOPBACK_NAMES
 
 
 def build_app(station: Station, options: ConsoleOptions) -> ASGIApp:
@@ -64,7 +72,8 @@ def build_app(station: Station, options: ConsoleOptions) -> ASGIApp:
         Route("/api/diagnose/{campaign}", api.diagnose, methods=["POST"]),
         Route("/reports/{campaign}", api.report),
     ]
-    app = Starlette(routes=routes, lifespan=api.lifespan)
+    middleware = [Middleware(TrustedHostMiddleware, allowed_hosts=list(options.allowed_hosts))]
+    app = Starlette(routes=routes, lifespan=api.lifespan, middleware=middleware)
     return app if options.token is None else TokenGate(app, options.token)
 
 
