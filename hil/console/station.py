@@ -232,7 +232,8 @@ class Station:
                 if self._stop_reason is not None:
                     session.engine.request_stop(self._stop_reason)
                 live.read_instruments(read_instruments(session))
-                live.set_phase(Phase.RUNNING, "running")
+                if self._stop_reason is None:  # an abort while connecting keeps saying it stops
+                    live.set_phase(Phase.RUNNING, "running")
                 with session:
                     result = checked.procedure(session, planned=checked.plan, **checked.values_si)
             live.set_phase(Phase.FINISHED, checked.procedure.summary(result))

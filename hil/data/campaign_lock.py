@@ -17,6 +17,9 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import IO
 
+EXCLUSIVE_TRIES = 5
+EXCLUSIVE_RETRY_S = 0.02
+
 
 class CampaignBusyError(RuntimeError):
     """Another run (a `hil run`, the console) drives this campaign now; the message says which."""
@@ -68,15 +71,13 @@ class CampaignLock:
         released (and removed the file) in between leaves us a lock on a file no other run sees."""
         while True:
             handle = open(self.path, "a+", encoding="utf-8")  # noqa: SIM115 - held until release
-            try:
-                fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-            except BlockingIOError:
+            if not _lock_exclusive(handle):
                 handle.seek(0)
                 text = handle.read()
                 handle.close()
                 raise CampaignBusyError(
                     f"campaign {self.path.name.removesuffix('.lock')} is driven by {_holder_text(text)}"
-                ) from None
+                )
             try:
                 same = os.fstat(handle.fileno()).st_ino == os.stat(self.path).st_ino
             except FileNotFoundError:
@@ -99,6 +100,19 @@ class CampaignLock:
         finally:
             self._file.close()  # closing the descriptor releases the flock
             self._file = None
+
+
+def _lock_exclusive(handle: IO[str]) -> bool:
+    """Take the exclusive lock without waiting for a holder; a few quick tries, because `current_holder`
+    (a page listing the campaigns) holds a shared lock for an instant, which is no holder."""
+    for attempt in range(EXCLUSIVE_TRIES):
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return True
+        except BlockingIOError:
+            if attempt + 1 < EXCLUSIVE_TRIES:
+                time.sleep(EXCLUSIVE_RETRY_S)
+    return False
 
 
 def current_holder(campaign: str | Path) -> Holder | None:
