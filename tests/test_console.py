@@ -210,6 +210,21 @@ def test_the_campaign_is_in_the_history(operator_page):
     expect(row).to_contain_text(f"registration ({POSES})")
 
 
+def test_abort_while_a_prompt_waits_stops_the_run_before_anything_is_measured(operator_page, cell):
+    page, campaign = operator_page, cell[0] / "aborted.sqlite"
+    fill_registration(page, str(POSES))
+    page.fill("#campaign", campaign.name)
+    page.click("#check")
+    page.click("#start")
+    expect(page.locator("#prompt-text")).to_have_text("Put SMR 1 in tool nest 1.")
+    page.click("#abort")
+    expect(page.locator("#phase")).to_have_text("stopped")
+    expect(page.locator("#prompt")).to_be_hidden()
+    assert measured(campaign) == []
+    with CampaignStore(campaign, create=False) as store:
+        assert store.events()["kind"].tolist()[-1] == "interrupted"
+
+
 def test_diagnosis_from_the_page_says_why_it_cannot_run_on_a_registration(operator_page):
     """Diagnose runs `hil diagnose` on the campaign; on one without a grid its refusal reaches the page."""
     row = operator_page.locator(f"#history tr[data-campaign='{CAMPAIGN}']")
@@ -231,7 +246,9 @@ def test_a_second_browser_watches_and_is_refused_control_until_it_is_released(
         expect(page.locator("#control")).to_have_text(
             "Another browser controls this console: this one watches."
         )
-        expect(page.locator("#phase")).to_have_text("finished")  # the same run as the controller sees
+        seen_by_controller = operator_page.locator("#run-name").text_content() or ""
+        expect(page.locator("#run-name")).to_have_text(seen_by_controller)  # the same run
+        expect(page.locator("#phase")).to_have_text(operator_page.locator("#phase").text_content() or "")
         expect(page.locator("#start")).to_be_disabled()
         refused = page.request.post(console[0] + "/api/abort", data={})
         assert refused.status == 403
