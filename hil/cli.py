@@ -28,6 +28,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "tracker": ("hil.commands.tracker", "laser tracker: state, aim and measure (Leica emScon)"),
     "cell": ("hil.commands.cell", "check a cell configuration (and optionally its instruments)"),
     "run": ("hil.commands.run", "run a measurement procedure on a cell"),
+    "serve": ("hil.commands.serve", "the operator console: start procedures, watch them live, answer prompts, find every campaign"),
     "campaign": ("hil.commands.campaign", "inspect or export a campaign file (the SQLite store a measurement session writes)"),
 }  # fmt: skip
 

@@ -189,7 +189,9 @@ def simulated_session(args: argparse.Namespace, out: Path, campaign: Path) -> It
         )
         with ExitStack() as stack:
             stack.enter_context(capture_native_output(verbose=getattr(args, "verbose", False)))
-            session = open_session(config, campaign, simulated_operator(config.simulator_control), stack)
+            session = open_session(
+                config, campaign, simulated_operator(config.simulator_control), stack, holder="hil demo"
+            )
             with session:
                 yield session
 

@@ -16,6 +16,7 @@ from pathlib import Path
 
 from hil.commands.errors import CliError
 from hil.commands.interrupts import stop_on_interrupt
+from hil.data.campaign_lock import CampaignBusyError, CampaignLock, Holder
 from hil.data.store import CampaignStore
 from hil.instruments.plugins import (
     PluginError,
@@ -120,14 +121,22 @@ def open_session(
     campaign: str | Path,
     operator: Operator,
     stack: ExitStack,
-    progress: bool | None = None,
+    progress: bool | Progress | None = None,
+    holder: str = "hil run",
 ) -> Session:
-    """Connect the robot and the tracker through their driver plug-ins, open the campaign store, and build
-    the Session.
+    """Take the campaign (one driver at a time: `holder` says who, for the one refused), connect the robot
+    and the tracker through their driver plug-ins, open the campaign store, and build the Session.
 
-    The Session's close is registered on `stack`; a failure half-way leaves nothing connected, and the campaign
-    file is created only once both instruments answer (a failed start leaves no empty campaign)."""
+    The Session's close and the campaign's release are registered on `stack`; a failure half-way leaves
+    nothing connected, and the campaign file is created only once both instruments answer (a failed start
+    leaves no empty campaign). `progress`: a Progress to report to, or whether to draw one."""
     robots, trackers = drivers_of(config)
+    try:
+        stack.enter_context(CampaignLock(campaign, Holder.this_process(holder)))
+    except CampaignBusyError as exc:
+        raise CliError(
+            str(exc), "wait until it ends or stop it there, then run this again; nothing moved"
+        ) from exc
     with ExitStack() as opening:  # a failure half-way closes what was opened so far
         robot = robots.open(config.robot_mapping())
         opening.callback(robot.close)
@@ -141,9 +150,8 @@ def open_session(
         }
         cell_clock = _cell_clock(config)
         clock = None if cell_clock is None else continuing_clock(cell_clock, store)
-        session = Session(
-            config, robot, tracker, store, operator, Progress(enabled=progress), station=station, clock=clock
-        )
+        shown = progress if isinstance(progress, Progress) else Progress(enabled=progress)
+        session = Session(config, robot, tracker, store, operator, shown, station=station, clock=clock)
         opening.pop_all()  # from here on the Session owns and releases them
     stack.callback(session.close)
     stack.enter_context(stop_on_interrupt(session.engine.request_stop))

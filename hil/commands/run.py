@@ -158,7 +158,7 @@ class _WrongUnit(argparse.Action):
         parser.error(f"{option_string}: {p.help} is given in {p.unit}: use {p.flag} (allowed {p.allowed()})")
 
 
-def open_instruments(config, campaign: Path, operator, stack: ExitStack):
+def open_instruments(config, campaign: Path, operator, stack: ExitStack, holder: str = "hil run"):
     """open_session, its failures worded for the command line (what failed, what to do; no campaign is left)."""
     from hil.commands.instruments import open_session
     from hil.instruments.robot import RobotConnectionError, RobotError
@@ -166,7 +166,7 @@ def open_instruments(config, campaign: Path, operator, stack: ExitStack):
 
     again = "then run the same command again"
     try:
-        return open_session(config, campaign, operator, stack)
+        return open_session(config, campaign, operator, stack, holder=holder)
     except RobotConnectionError as exc:
         raise CliError(
             f"cannot connect to the robot: {exc.message}",
@@ -219,7 +219,7 @@ def run(args: argparse.Namespace) -> int:
 
     with interrupt_guard(), ExitStack() as stack:
         stack.enter_context(capture_native_output(verbose=getattr(args, "verbose", False)))
-        session = open_instruments(config, campaign, operator, stack)
+        session = open_instruments(config, campaign, operator, stack, holder=f"hil run {procedure.name}")
         try:
             with session:
                 result = procedure(session, planned=the_plan, **values)

@@ -89,6 +89,7 @@ class CellConfig:
     settle_s: float
     q_home_rad: np.ndarray
     simulator_control: str | None = None  # control channel of a simulated cell (scripted operator)
+    console_token: str | None = None  # [console] token: what `hil serve` asks of every request off loopback
     robot_file_text: str | None = None  # the robot definition file's text when robot_model is a file
     robot_driver_name: str = (
         DEFAULT_ROBOT_DRIVER  # robot.driver: the instrument plug-in that drives the robot
@@ -217,7 +218,7 @@ class _Reader:
                 )
 
 
-SECTIONS = ("robot", "tracker", "tool", "envelope", "motion", "simulator", "drift_monitor", "grid")
+SECTIONS = ("robot", "tracker", "tool", "envelope", "motion", "simulator", "drift_monitor", "grid", "console")
 
 # [grid] orientation: every vertex in its own tool orientation facing the tracker (what a calibration wants:
 # the wrist joints move), or one tool orientation at every vertex (the grid paper's setting).
@@ -319,6 +320,7 @@ def parse_cell_config(data: dict, source: str = "cell.toml") -> CellConfig:
         )
     home_deg = r.vector("motion", "home_deg", n, default=np.rad2deg(_default_home(nominal, n)))
     simulator_control = r.get("simulator", "control", "str")
+    console_token = r.get("console", "token", "str")
     drift_poses = r.get("drift_monitor", "poses", "int", default=0)
     drift_every = r.get("drift_monitor", "every_points", "int", default=0)
     if (drift_poses > 0) != (drift_every > 0):
@@ -364,6 +366,7 @@ def parse_cell_config(data: dict, source: str = "cell.toml") -> CellConfig:
         settle_s=settle_s,
         q_home_rad=home,
         simulator_control=simulator_control,
+        console_token=console_token,
         robot_file_text=robot_file_text,
         robot_driver_name=robot_driver_name,
         tracker_driver_name=tracker_driver_name,

@@ -1,0 +1,306 @@
+"""The operator console (`hil serve`) driven in headless Chromium: one simulated cell, one console server and one
+browser for the whole module. The page starts a registration from its form, shows the plan and the progress,
+takes the operator's answers (a reloaded page finds its prompt waiting), pauses, resumes, aborts (every
+recorded point kept) and resumes the campaign; a second browser only watches; `hil run` on a campaign the
+console drives is refused with who holds it, and the reverse; a console with a token refuses requests
+without it; `hil serve` off loopback without a token refuses to start."""
+
+from __future__ import annotations
+
+import re
+import socket
+import threading
+import urllib.error
+import urllib.request
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import pytest
+from playwright.sync_api import Browser, Page, expect, sync_playwright
+from sim_session import running_cell
+
+from hil.cli import main
+from hil.console.app import TOKEN_COOKIE, ConsoleOptions, build_app
+from hil.console.station import Station
+from hil.data.campaign_lock import CampaignLock, Holder
+from hil.data.store import CampaignStore
+from hil.runner.procedure import ParameterError, from_user_values
+from hil.runner.registry import load
+
+pytestmark = pytest.mark.sim
+
+CHROMIUM = "/usr/bin/chromium"
+# what a root CI user needs, and nothing that reaches out (Playwright adds a fresh --user-data-dir itself)
+CHROMIUM_FLAGS = [
+    "--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-background-networking",
+    "--disable-component-update", "--disable-sync",
+]  # fmt: skip
+WAIT_MS = 30_000  # a page state the run must reach (the simulated cell runs 20x faster than real time)
+DIAGNOSIS_WAIT_MS = 100_000  # `hil diagnose` in its own process: 3 s alone, over 30 s on a loaded machine
+POSES = 12
+expect.set_options(timeout=WAIT_MS)
+CAMPAIGN = "console.sqlite"
+
+
+@contextmanager
+def console_server(station: Station, options: ConsoleOptions) -> Iterator[str]:
+    """The console on uvicorn in a thread, on a loopback socket bound here (listening before the server
+    starts: a request waits in the backlog, no polling for readiness); yields its URL."""
+    import uvicorn
+
+    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    sock.bind(("127.0.0.1", 0))
+    sock.listen(16)
+    server = uvicorn.Server(
+        uvicorn.Config(build_app(station, options), log_level="warning", timeout_graceful_shutdown=1)
+    )
+    thread = threading.Thread(
+        target=server.run, kwargs={"sockets": [sock]}, name="console-server", daemon=True
+    )
+    thread.start()
+    try:
+        yield f"http://127.0.0.1:{sock.getsockname()[1]}"
+    finally:
+        server.should_exit = True
+        thread.join(20)
+        sock.close()
+
+
+@pytest.fixture(scope="module")
+def cell(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("console")
+    with running_cell(folder, time_scale=20.0) as (_, config):
+        yield folder, config
+
+
+@pytest.fixture(scope="module")
+def console(cell) -> Iterator[tuple[str, Station]]:
+    folder, config = cell
+    station = Station(config, folder, address="the test's console")
+    with console_server(station, ConsoleOptions()) as url:
+        yield url, station
+
+
+@pytest.fixture(scope="module")
+def browser() -> Iterator[Browser]:
+    if not Path(CHROMIUM).exists():
+        pytest.fail(f"{CHROMIUM} is missing: tools/system-deps installs it (make runs it)")
+    with sync_playwright() as playwright:
+        chromium = playwright.chromium.launch(
+            executable_path=CHROMIUM, args=CHROMIUM_FLAGS, headless=True, timeout=120_000
+        )
+        yield chromium
+        chromium.close()
+
+
+@pytest.fixture(scope="module")
+def operator_page(browser, console) -> Iterator[Page]:
+    """The controlling browser's page (the first to open the console takes control)."""
+    context = browser.new_context()
+    page = context.new_page()
+    page.set_default_timeout(WAIT_MS)
+    page.goto(console[0])
+    expect(page.locator("#control")).to_have_text("This browser controls the console.")
+    yield page
+    context.close()
+
+
+def fill_registration(page: Page, poses: str) -> None:
+    page.select_option("#procedure", "registration")
+    page.fill("#campaign", CAMPAIGN)
+    page.fill("#f-poses", poses)
+
+
+def measured(campaign: Path) -> list[tuple[int, str]]:
+    with CampaignStore(campaign, create=False) as store:
+        df = store.measurement_columns(("point_id",))
+    return list(zip(df["id"].tolist(), df["point_id"].tolist(), strict=True))
+
+
+def test_a_bad_value_is_refused_with_the_command_lines_message(operator_page):
+    with pytest.raises(ParameterError) as refused:
+        from_user_values(load("registration"), {"poses": 3})
+    fill_registration(operator_page, "3")
+    operator_page.click("#check")
+    expect(operator_page.locator("#refusal")).to_contain_text(str(refused.value))
+    expect(operator_page.locator("#start")).to_be_disabled()
+
+
+def test_the_plan_is_shown_before_the_start(operator_page):
+    fill_registration(operator_page, str(POSES))
+    operator_page.click("#check")
+    expect(operator_page.locator("#plan-poses")).to_have_text(str(POSES))
+    expect(operator_page.locator("#plan-envelope")).to_contain_text("every pose passed the envelope")
+    expect(operator_page.locator("#plan-duration")).to_have_text(re.compile(r"\d+\.\d min"))
+    expect(operator_page.locator("#start")).to_be_enabled()
+
+
+def answer_prompt(page: Page, text: str) -> None:
+    expect(page.locator("#prompt-text")).to_have_text(text)
+    page.click("#prompt-done")
+    expect(page.locator("#prompt-text")).not_to_have_text(text)
+
+
+def test_a_run_from_the_form_with_prompts_pause_resume_and_abort(operator_page, cell, capsys):
+    page, folder = operator_page, cell[0]
+    page.click("#start")
+    answer_prompt(page, "Put SMR 1 in tool nest 1.")
+    expect(page.locator("#prompt-text")).to_have_text(re.compile("Guide the tracker's beam"))
+    page.reload()  # a browser that comes back finds the prompt still waiting
+    answer_prompt(page, "Guide the tracker's beam onto SMR 1 on the tool until it locks.")
+    expect(page.locator("#progress")).to_contain_text(
+        re.compile(rf"registration: [1-9]\d* of {POSES} points")
+    )
+    page.click("#pause")
+    expect(page.locator("#phase")).to_have_text("paused")
+    expect(page.locator("#resume")).to_be_enabled()
+    expect(page.locator("#robot-mode")).to_have_text("RUNNING / NORMAL")  # read by the run between points
+    expect(page.locator("#tracker")).to_contain_text("last measured")
+    held = len(measured(folder / CAMPAIGN))
+    assert held < POSES
+
+    # while the console drives the campaign, `hil run` on it is refused with who holds it
+    code = main(
+        ["run", "registration", "--cell", str(folder / "cell.toml"), "--campaign", str(folder / CAMPAIGN)]
+    )
+    assert code != 0
+    assert "is driven by hil serve registration at the test's console (process" in capsys.readouterr().err
+
+    page.click("#resume")
+    expect(page.locator("#phase")).to_have_text("running")
+    page.click("#pause")
+    expect(page.locator("#phase")).to_have_text("paused")
+    page.click("#abort")
+    expect(page.locator("#phase")).to_have_text("stopped")
+    expect(page.locator("#message")).to_contain_text("every recorded point is kept")
+    kept = measured(folder / CAMPAIGN)
+    assert held <= len(kept) < POSES
+    with CampaignStore(folder / CAMPAIGN, create=False) as store:
+        assert "interrupted" in store.events()["kind"].tolist()
+
+    # the same start resumes: the operator sets up again, the recorded points are not measured again
+    fill_registration(page, str(POSES))  # the reloaded page shows the form afresh
+    page.click("#check")
+    expect(page.locator("#start")).to_be_enabled()
+    page.click("#start")
+    answer_prompt(page, "Put SMR 1 in tool nest 1.")
+    answer_prompt(page, "Guide the tracker's beam onto SMR 1 on the tool until it locks.")
+    expect(page.locator("#phase")).to_have_text("finished")
+    expect(page.locator("#message")).to_contain_text(f"of {POSES} points agree")
+    after = measured(folder / CAMPAIGN)
+    assert len(after) == POSES and after[: len(kept)] == kept
+    expect(page.locator("#plot circle.point")).to_have_count(POSES)
+
+
+def test_a_campaign_hil_run_drives_is_refused_by_the_console(operator_page, console, cell):
+    """The reverse of the refusal checked in the run above: a campaign `hil run` holds is refused by the
+    console's start, naming the run; nothing is written to it."""
+    campaign = cell[0] / "held.sqlite"
+    body = {"procedure": "registration", "campaign": campaign.name, "values": {}}
+    with CampaignLock(campaign, Holder.this_process("hil run registration")):
+        refused = operator_page.request.post(console[0] + "/api/start", data=body)
+    assert refused.status == 409
+    assert "is driven by hil run registration (process" in refused.json()["message"]
+    assert not campaign.exists()
+
+
+def test_the_campaign_is_in_the_history(operator_page):
+    row = operator_page.locator(f"#history tr[data-campaign='{CAMPAIGN}']")
+    expect(row).to_contain_text(f"registration ({POSES})")
+
+
+def test_abort_while_a_prompt_waits_stops_the_run_before_anything_is_measured(operator_page, cell):
+    page, campaign = operator_page, cell[0] / "aborted.sqlite"
+    fill_registration(page, str(POSES))
+    page.fill("#campaign", campaign.name)
+    page.click("#check")
+    page.click("#start")
+    expect(page.locator("#prompt-text")).to_have_text("Put SMR 1 in tool nest 1.")
+    page.click("#abort")
+    expect(page.locator("#phase")).to_have_text("stopped")
+    expect(page.locator("#prompt")).to_be_hidden()
+    assert measured(campaign) == []
+    with CampaignStore(campaign, create=False) as store:
+        assert store.events()["kind"].tolist()[-1] == "interrupted"
+
+
+def test_diagnosis_from_the_page_says_why_it_cannot_run_on_a_registration(operator_page):
+    """Diagnose runs `hil diagnose` on the campaign; on one without a grid its refusal reaches the page."""
+    row = operator_page.locator(f"#history tr[data-campaign='{CAMPAIGN}']")
+    row.get_by_role("button", name="Diagnose").click()
+    refusal = expect(operator_page.locator("#refusal"))
+    refusal.to_contain_text(f"the diagnosis of {CAMPAIGN} failed", timeout=DIAGNOSIS_WAIT_MS)
+    expect(operator_page.locator("#refusal")).to_contain_text("no measurements of grid_sampling")
+    expect(row).to_contain_text("–")  # no report link
+
+
+def test_a_second_browser_watches_and_is_refused_control_until_it_is_released(
+    browser, console, operator_page
+):
+    context = browser.new_context()
+    try:
+        page = context.new_page()
+        page.set_default_timeout(WAIT_MS)
+        page.goto(console[0])
+        expect(page.locator("#control")).to_have_text(
+            "Another browser controls this console: this one watches."
+        )
+        seen_by_controller = operator_page.locator("#run-name").text_content() or ""
+        expect(page.locator("#run-name")).to_have_text(seen_by_controller)  # the same run
+        expect(page.locator("#phase")).to_have_text(operator_page.locator("#phase").text_content() or "")
+        expect(page.locator("#start")).to_be_disabled()
+        refused = page.request.post(console[0] + "/api/abort", data={})
+        assert refused.status == 403
+        assert "another one controls the console" in refused.json()["message"]
+        expect(page.locator("#take-control")).to_be_hidden()
+        operator_page.click("#release-control")  # the controller lets go: the watcher may take over
+        expect(operator_page.locator("#control")).to_have_text("Nobody controls the console.")
+        page.click("#take-control")
+        expect(page.locator("#control")).to_have_text("This browser controls the console.")
+        expect(operator_page.locator("#control")).to_have_text(
+            "Another browser controls this console: this one watches."
+        )
+    finally:
+        context.close()
+
+
+def test_a_request_by_another_host_name_is_refused(console):
+    """A page elsewhere that points its own name at 127.0.0.1 (DNS rebinding) cannot reach the console."""
+    rebound = urllib.request.Request(console[0] + "/api/state", headers={"Host": "cell.example.com"})
+    with pytest.raises(urllib.error.HTTPError) as refused:
+        urllib.request.urlopen(rebound, timeout=10)
+    assert refused.value.code == 400
+    with urllib.request.urlopen(console[0] + "/api/state", timeout=10) as state:
+        assert state.status == 200
+
+
+def test_a_console_with_a_token_refuses_requests_without_it(cell):
+    folder, config = cell
+    options = ConsoleOptions(token="s3cret-token", allowed_hosts=("*",))  # as hil serve off loopback
+    with console_server(Station(config, folder), options) as url:
+        for path in ("/", "/api/state", "/api/history"):
+            with pytest.raises(urllib.error.HTTPError) as refused:
+                urllib.request.urlopen(url + path, timeout=10)
+            assert refused.value.code == 401
+        with pytest.raises(urllib.error.HTTPError):
+            urllib.request.urlopen(url + "/api/state?token=wrong", timeout=10)
+        with urllib.request.urlopen(url + "/?token=s3cret-token", timeout=10) as page:
+            cookies = [c.split(";")[0] for c in page.headers.get_all("set-cookie")]
+        cookie = next(c for c in cookies if c.startswith(TOKEN_COOKIE + "="))
+        bearer = urllib.request.Request(url + "/api/state", headers={"Authorization": "Bearer s3cret-token"})
+        with urllib.request.urlopen(bearer, timeout=10) as state:
+            assert state.status == 200
+        carried = urllib.request.Request(url + "/api/history", headers={"Cookie": cookie})
+        with urllib.request.urlopen(carried, timeout=10) as history:
+            assert history.status == 200
+
+
+def test_serve_off_loopback_without_a_token_is_refused_before_it_binds(cell, capsys):
+    """Refused, and returned: a console that had bound would serve until stopped."""
+    folder = cell[0]
+    args = ["serve", "--cell", str(folder / "cell.toml"), "--campaigns", str(folder), "--host", "0.0.0.0"]
+    assert main(args) != 0
+    err = capsys.readouterr().err
+    assert "--host 0.0.0.0 is not a loopback address and the console has no token" in err
+    assert "nothing was bound" in err

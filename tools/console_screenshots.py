@@ -1,0 +1,88 @@
+"""Take the operator console's screenshots for docs/console.md from a run on the simulated cell.
+
+    .venv/bin/python tools/console_screenshots.py        # writes docs/img/console-*.png
+
+It starts a simulated cell and `hil serve` on loopback, drives the page in headless Chromium (the Debian
+package's, as the tests do) through a registration: the plan before the start, the operator's prompt, a
+second browser watching the run, and the finished run with its campaign in the history. About a minute.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+from playwright.sync_api import Page, expect, sync_playwright
+
+ROOT = Path(__file__).resolve().parents[1]
+IMAGES = ROOT / "docs" / "img"
+CHROMIUM_FLAGS = [
+    "--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-background-networking",
+    "--disable-component-update", "--disable-sync",
+]  # fmt: skip
+PORT = 18036  # loopback only
+WAIT_MS = 60_000
+
+
+def main() -> int:
+    sys.path.insert(0, str(ROOT))
+    from fakes.launch import sim_cell
+    from hil.commands.sim_cell import write_sim_cell
+
+    expect.set_options(timeout=WAIT_MS)
+    with tempfile.TemporaryDirectory() as folder, sim_cell(time_scale=10.0) as cell:
+        cell_toml = Path(folder) / "cell.toml"
+        write_sim_cell(cell_toml, cell.info, cell.control.call("ground_truth"), 10.0)
+        command = [sys.executable, "-m", "hil", "serve", "--cell", str(cell_toml), "--campaigns", folder]
+        server = subprocess.Popen(
+            [*command, "--port", str(PORT)], stdout=subprocess.PIPE, text=True, cwd=ROOT, env=os.environ
+        )
+        try:
+            assert server.stdout is not None
+            print(server.stdout.readline().strip())  # the console's address, once it is configured
+            with sync_playwright() as playwright:
+                browser = playwright.chromium.launch(executable_path="/usr/bin/chromium", args=CHROMIUM_FLAGS)
+                page = browser.new_page(viewport={"width": 1400, "height": 1000})
+                page.goto(f"http://127.0.0.1:{PORT}/", wait_until="networkidle")
+                take(page, "plan", lambda: plan(page))
+                page.click("#start")
+                expect(page.locator("#prompt-text")).to_have_text("Put SMR 1 in tool nest 1.")
+                take(page, "prompt")
+                page.click("#prompt-done")
+                expect(page.locator("#prompt-text")).to_contain_text("Guide the tracker's beam")
+                page.click("#prompt-done")
+                watcher = browser.new_page(viewport={"width": 1400, "height": 1000})
+                watcher.goto(f"http://127.0.0.1:{PORT}/")
+                expect(watcher.locator("#progress")).to_contain_text("points, ETA")
+                expect(watcher.locator("#plot-note")).to_contain_text("points measured")
+                take(watcher, "watching")
+                expect(page.locator("#phase")).to_have_text("finished")
+                expect(page.locator("#plot circle.point")).to_have_count(12)
+                take(page, "finished")
+                browser.close()
+        finally:
+            server.terminate()
+            server.wait(30)
+    return 0
+
+
+def plan(page: Page) -> None:
+    page.select_option("#procedure", "registration")
+    page.fill("#campaign", "cell-a.sqlite")
+    page.click("#check")
+    expect(page.locator("#plan-poses")).to_have_text("12")
+
+
+def take(page: Page, name: str, before=None) -> None:
+    if before is not None:
+        before()
+    path = IMAGES / f"console-{name}.png"
+    page.screenshot(path=str(path), full_page=True)
+    print(f"wrote {path.relative_to(ROOT)}")
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
