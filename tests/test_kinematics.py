@@ -302,3 +302,26 @@ def test_within_limits():
     q = np.zeros((2, 6))
     q[1, 1] = np.deg2rad(160)  # joint 2 upper limit is 155 deg
     np.testing.assert_array_equal(m.within_limits(q), [True, False])
+
+
+def test_the_growth_direction_is_the_derivative_of_the_tool_point_when_every_link_length_grows():
+    """Thermal growth scales every a and d by (1 + k); the tool and the fixed flange transform stay. The tool
+    point's derivative in k is then the last link's origin: checked against a central difference."""
+    import dataclasses
+
+    from hil.model.effects import growth_direction
+
+    rng = np.random.default_rng(4)
+    flange = se3.make_transform(Rotation.from_rotvec([0.1, -0.2, 0.3]).as_matrix(), [0.01, -0.02, 0.03])
+    model = dataclasses.replace(get_robot("ur10"), beta=np.r_[0.0, 1e-3, 0, 0, 0, 0], T_last_flange=flange)
+    q = rng.uniform(-3.0, 3.0, (50, 6))
+    tool = rng.normal(scale=0.1, size=(50, 3))
+
+    def tool_points_grown(k: float) -> np.ndarray:
+        grown = dataclasses.replace(model, a=np.asarray(model.a) * (1 + k), d=np.asarray(model.d) * (1 + k))
+        T = forward_kinematics(grown, q)
+        return np.einsum("nij,nj->ni", T[:, :3, :3], tool) + T[:, :3, 3]
+
+    h = 1e-4  # the tool point is linear in k: the central difference is exact but for rounding
+    numeric = (tool_points_grown(h) - tool_points_grown(-h)) / (2 * h)
+    np.testing.assert_allclose(growth_direction(model, q), numeric, atol=1e-10)

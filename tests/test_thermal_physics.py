@@ -141,7 +141,7 @@ def test_a_temperature_term_no_material_gives_is_rejected_as_growth_with_both_va
     truth, df, _ = synthetic(n=200, seed=3)
     dT = np.random.default_rng(3).uniform(-2.5, 2.5, len(df))
     df["temperature_c"] = 21.0 + dT
-    G = growth_direction(truth["model"], joints_rad(df), truth["tool"]) @ truth["T_tracker_base"][:3, :3].T
+    G = growth_direction(truth["model"], joints_rad(df)) @ truth["T_tracker_base"][:3, :3].T
     df[["x_mm", "y_mm", "z_mm"]] += -20e-6 * dT[:, None] * G * 1000.0
     report = run_diagnosis(df, "ur10")
     thermal = report.thermal

@@ -301,6 +301,13 @@ def _chain_small(
     return T[:, :3, :3], T[:, :3, 3]
 
 
+def last_link_origins(model: KinematicModel, q: np.ndarray) -> np.ndarray:
+    """The last link's origin (N, 3) in the base frame, before the fixed flange transform: the sum of every
+    link's length (a, d) along its axes, so it grows in proportion when all link lengths are scaled."""
+    q = model.check_joints(q)
+    return np.asarray(_chain(model, q, None)[1])
+
+
 def tool_points(model: KinematicModel, q: np.ndarray, p_flange_tool: np.ndarray) -> np.ndarray:
     """Tool point(s) in the base frame (N, 3) for a point p_flange_tool (3,) given in the flange."""
     T = forward_kinematics(model, q)

@@ -141,7 +141,7 @@ class CalibratedModel:
         for eff in self.effects:
             if eff.kind == "growth":
                 g = eff.cached_regressors(ctx, self.nominal) @ eff.params
-                p_base = p_base + g[:, None] * growth_direction(self.kinematic, q_eff, _context_tools(ctx))
+                p_base = p_base + g[:, None] * growth_direction(self.kinematic, q_eff)
             elif eff.kind == "offset":
                 offset += eff.cached_regressors(ctx, self.nominal)[:, :1] * eff.params[None, :]
             elif eff.kind == "scale":
@@ -209,7 +209,7 @@ class CalibratedModel:
                 col = J[:, :, theta_cols[eff.joint_index]]
                 J[:, :, sl] = col[:, :, None] * reg[:, None, :]
             elif eff.kind == "growth":
-                G = growth_direction(self.kinematic, q_eff, _context_tools(ctx)) @ R.T
+                G = growth_direction(self.kinematic, q_eff) @ R.T
                 J[:, :, sl] = G[:, :, None] * reg[:, None, :]
             elif eff.kind == "scale":  # the point before the tracker's scale
                 J[:, :, sl] = (p / (1.0 + scale)[:, None])[:, :, None] * reg[:, None, :]

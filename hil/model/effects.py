@@ -40,14 +40,20 @@ joints before the forward kinematics.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import ClassVar
 
 import numpy as np
 import pandas as pd
 
 from hil.data.jsonable import to_jsonable
-from hil.geometry.kinematics import KinematicModel, chain_axes, forward_kinematics, tool_points
+from hil.geometry.kinematics import (
+    KinematicModel,
+    chain_axes,
+    forward_kinematics,
+    last_link_origins,
+    tool_points,
+)
 
 # Names used in reports and model files (the documented vocabulary).
 EFFECT_FAMILIES: tuple[str, ...] = (
@@ -764,15 +770,12 @@ def candidate_effects(
     return out
 
 
-def growth_direction(model: KinematicModel, q: np.ndarray, p_flange_tool: np.ndarray) -> np.ndarray:
-    """d p_base / d k for all link lengths scaled by (1 + k), tool unchanged: (N, 3), metres."""
-    h = 1e-6
-    grown = _scaled_lengths(model, 1.0 + h)
-    return (tool_points_rows(grown, q, p_flange_tool) - tool_points_rows(model, q, p_flange_tool)) / h
-
-
-def _scaled_lengths(model: KinematicModel, s: float) -> KinematicModel:
-    return replace(model, a=np.asarray(model.a) * s, d=np.asarray(model.d) * s)
+def growth_direction(model: KinematicModel, q: np.ndarray) -> np.ndarray:
+    """d p_base / d k for all link lengths scaled by (1 + k), the tool and the fixed flange transform unchanged:
+    (N, 3), metres. Every translation along the chain is a link length, so the last link's origin scales with
+    them and the tool point moves with it: the derivative is that origin (exact, where a finite difference of
+    two forward kinematics carried 1e-10 of rounding and cost ten times as much)."""
+    return last_link_origins(model, q)
 
 
 def tool_points_rows(model: KinematicModel, q: np.ndarray, p_flange_tool_rows: np.ndarray) -> np.ndarray:

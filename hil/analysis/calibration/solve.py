@@ -35,8 +35,8 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
-from threadpoolctl import threadpool_limits
 
+from hil.analysis.calibration.blas_threads import one_blas_thread
 from hil.analysis.calibration.folds import campaign_folds, kfold
 from hil.analysis.calibration.identifiability import IdentifiabilityReport, analyse, scale_columns
 from hil.analysis.calibration.noise_floor import TRACKER_MPE_M, TRACKER_MPE_SIGMAS, tracker_sigma_m
@@ -736,7 +736,7 @@ def calibrate(
     if angle is None:
         angle = df.attrs.get("probe_angle_noise_rad", PROBE_ANGLE_NOISE_RAD)
     pos = position_noise if position_noise is not None else df.attrs.get("position_noise_m")
-    with threadpool_limits(1):  # small dense problems: BLAS threads only contend
+    with one_blas_thread():  # small dense problems: BLAS threads only contend
         return _calibrate(df, robot, solver, tol, tool_guess_m, ridge, float(angle), pos)
 
 

@@ -50,8 +50,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 from scipy import stats
-from threadpoolctl import threadpool_limits
 
+from hil.analysis.calibration.blas_threads import one_blas_thread
 from hil.analysis.calibration.noise_floor import TRACKER_MPE_M, NoiseFloor
 from hil.analysis.calibration.solve import CalibrationResult, Problem, confounded_note, confounded_pairs
 from hil.analysis.calibration.solve import reregister as reregister_model
@@ -276,7 +276,7 @@ def run_diagnosis(
     if reregister_validation not in ("none", "base", "base+tool"):
         raise ValueError(f"reregister_validation '{reregister_validation}': use none, base or base+tool")
     df = drop_duplicate_rows(df, "training data")  # copies would count twice in every test
-    with threadpool_limits(1):  # small dense problems: threads only contend
+    with one_blas_thread():  # small dense problems: threads only contend
         fit_args = (df, robot, o.folds, o.seed, o.repeatability_m, o.tool_guess_m, o.tracker_mpe_m, progress)
         base = baseline_fit(*fit_args)
         base.screening = screening

@@ -377,7 +377,7 @@ def effect_columns(model: CalibratedModel, eff: Effect, prob: Problem, J: np.nda
         cols[:] = theta[:, :, None] * reg[:, None, :]
     elif eff.kind == "growth":
         q_eff = ctx.q + model.joint_offsets(ctx)
-        G = growth_direction(model.kinematic, q_eff, ctx.p_flange_tool) @ model.T_tracker_base[:3, :3].T
+        G = growth_direction(model.kinematic, q_eff) @ model.T_tracker_base[:3, :3].T
         cols[:, :3] = G[:, :, None] * reg[:, None, :]
     elif eff.kind == "scale":
         cols[:, :3] = model.predict_ctx(ctx)[:, :, None] * reg[:, None, :]
