@@ -10,7 +10,6 @@ import numpy as np
 import pandas as pd
 import pytest
 import yaml
-import yourdfpy
 from calib_data import compliant_ur10, ur10_joints
 from scipy.spatial.transform import Rotation
 
@@ -46,7 +45,7 @@ def _kinematic_model(robot: str, seed: int, flange_errors: bool = True) -> Calib
 
 def _urdf_points(path, q, root, T_tracker_base, tool=TOOL):
     """Tracker-frame tool points of a written URDF's tool0 at joints q (yourdfpy's forward kinematics)."""
-    robot = yourdfpy.URDF.load(str(path), load_meshes=False)
+    robot = _yourdfpy().URDF.load(str(path), load_meshes=False)
     out = []
     for row in q:
         robot.update_cfg(row)
@@ -220,3 +219,11 @@ def test_a_ur_read_from_its_urdf_goes_back_out_at_its_base_link(tmp_path, capsys
     assert joints == UR_JOINTS
     T = forward_kinematics(nominal, q)
     assert np.max(np.linalg.norm(points - (T[:, :3, :3] @ TOOL + T[:, :3, 3]), axis=1)) < 1e-6
+
+
+def _yourdfpy():
+    """yourdfpy, imported where a test reads a URDF with it: it brings trimesh, networkx and shapely (1.5 s),
+    which every other test worker would otherwise import while collecting."""
+    import yourdfpy
+
+    return yourdfpy

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import yourdfpy
 from scipy.spatial.transform import Rotation
 from urdf_arms import FAMILIES, LRMATE_WORLD_XYZ, Joint, family_urdf, kr6_joints, ur10_joints, urdf_text
 
@@ -37,7 +36,7 @@ def _random_joints(model, rng, n):
 
 def _yourdfpy_flanges(path, imported, q):
     """T_root_flange by yourdfpy for each joint set (its joints in the URDF's actuated order)."""
-    robot = yourdfpy.URDF.load(str(path), load_meshes=False)
+    robot = _yourdfpy().URDF.load(str(path), load_meshes=False)
     assert list(robot.actuated_joint_names) == list(imported.joint_names)
     out = []
     for row in q:
@@ -88,7 +87,7 @@ def test_the_chain_is_read_as_a_robot_file_would_give_it(urdf_files):
 def test_centres_of_mass_follow_their_links(urdf_files):
     """Each joint's moved centre of mass, kept in its DH frame, sits where yourdfpy puts the link's."""
     imported = import_urdf(urdf_files["ur10"].read_text(), str(urdf_files["ur10"]))
-    robot = yourdfpy.URDF.load(str(urdf_files["ur10"]), load_meshes=False)
+    robot = _yourdfpy().URDF.load(str(urdf_files["ur10"]), load_meshes=False)
     q = _random_joints(imported.model, np.random.default_rng(3), 5)
     frames = link_frames(imported.model, q)
     coms = {"upper_arm_link": (1, (0, 0, 0.306)), "forearm_link": (2, (0, 0, 0.28615))}
@@ -260,3 +259,11 @@ def test_calibrate_takes_a_urdf(tmp_path, urdf_files, capsys):
         "calibrate", "train.csv", "--robot", "arm.urdf#nowhere", "-o", "k.json", cwd=tmp_path, capsys=capsys
     )
     assert out.returncode != 0 and "no link named 'nowhere'" in out.stderr
+
+
+def _yourdfpy():
+    """yourdfpy, imported where a test reads a URDF with it: it brings trimesh, networkx and shapely (1.5 s),
+    which every other test worker would otherwise import while collecting."""
+    import yourdfpy
+
+    return yourdfpy
