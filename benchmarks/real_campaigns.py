@@ -25,19 +25,14 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
+from hil.geometry.urdf_write import UR_JOINTS
+
 CAMPAIGNS = {
     "A": "Series_A/measurements_grid.csv",
     "B": "Series_B/measurements_joint_configurations.csv",
     "C": "Series_C/measurements_random_poses.csv",
 }
-JOINT_NAMES = (
-    "shoulder_pan_joint",
-    "shoulder_lift_joint",
-    "elbow_joint",
-    "wrist_1_joint",
-    "wrist_2_joint",
-    "wrist_3_joint",
-)
+JOINT_NAMES = UR_JOINTS  # the UR ROS description's joint names, the CSV headers
 
 
 def read_raw(data_dir: Path, series: str) -> pd.DataFrame:
