@@ -7,8 +7,9 @@ from pathlib import Path
 
 import pandas as pd
 
+from hil.data.campaigns import is_campaign, open_campaign
 from hil.data.dataset import load_dataset
-from hil.data.store import CampaignStore, campaign_dataset, is_campaign_file
+from hil.data.store import campaign_dataset
 from hil.runner.procedure import Role
 from hil.runner.registry import publisher
 
@@ -22,8 +23,9 @@ def read_measurements(
 ) -> pd.DataFrame:
     """The dataset-contract frame of `path`: a campaign file (the measurements of the procedure that
     publishes the grid, one step or all of them) or a dataset CSV (hil.data.dataset.load_dataset). Raises DatasetError/ValueError on bad input."""
-    if is_campaign_file(path):
-        return campaign_dataset(path, grid_procedure(), step)
+    if is_campaign(path):
+        with open_campaign(path, create=False) as store:
+            return campaign_dataset(store, grid_procedure(), step)
     return load_dataset(path, require_positions=require_positions)
 
 
@@ -33,9 +35,9 @@ def grid_procedure() -> str:
 
 
 def _campaign_steps(path: str | Path) -> set[str]:
-    if not is_campaign_file(path):
+    if not is_campaign(path):
         return set()
-    with CampaignStore(path, create=False) as store:
+    with open_campaign(path, create=False) as store:
         counts = store.point_counts()
     return set(counts.loc[counts["procedure"] == grid_procedure(), "step"])
 

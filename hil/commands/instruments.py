@@ -16,7 +16,8 @@ from pathlib import Path
 
 from hil.commands.errors import CliError
 from hil.commands.interrupts import stop_on_interrupt
-from hil.data.store import CampaignStore
+from hil.data.campaigns import open_campaign
+from hil.data.store import Campaign
 from hil.instruments.plugins import (
     PluginError,
     RobotDriver,
@@ -104,7 +105,7 @@ def _cell_clock(config: CellConfig) -> Callable[[], float] | None:
         raise CliError(exc.message, exc.remedy) from exc
 
 
-def continuing_clock(cell_clock: Callable[[], float], store: CampaignStore) -> Callable[[], float]:
+def continuing_clock(cell_clock: Callable[[], float], store: Campaign) -> Callable[[], float]:
     """A simulated cell's clock, counted on from the campaign's latest measurement: a cell started again for
     the same campaign (a later stage of the demo, a resume) continues its times from there, so the campaign's
     `t_s` depends on the seed and the commands only, not on how long the machine took between two starts.
@@ -133,7 +134,7 @@ def open_session(
         opening.callback(robot.close)
         tracker = trackers.open(config.tracker_mapping())
         opening.callback(tracker.close)
-        store = CampaignStore(campaign)
+        store = open_campaign(campaign, password_file=config.store_password_file)
         opening.callback(store.close)
         station = {
             "robot_controller_version": getattr(robot, "version", None),

@@ -23,7 +23,7 @@ from typing import Protocol, TypeVar
 
 import numpy as np
 
-from hil.data.store import CampaignStore, MeasurementRecord, OutcomeRecord, Verdict
+from hil.data.store import Campaign, MeasurementRecord, OutcomeRecord, Verdict
 from hil.errors import ActionableError
 from hil.instruments.robot import RobotError
 from hil.instruments.tracker import (
@@ -92,7 +92,7 @@ Measuring = Generator[MeasurePose, MeasurementRecord, T]  # a procedure's loop: 
 class Cell(Protocol):
     """What the engine drives: the session's instruments and rules (hil.runner.session.Session)."""
 
-    store: CampaignStore
+    store: Campaign
     progress: Progress
 
     def check_poses(self, q: np.ndarray, labels: list[str] | None = None) -> None: ...
