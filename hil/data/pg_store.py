@@ -104,14 +104,14 @@ class PgCampaignStore:
         except psycopg.OperationalError as exc:
             if _login_words(exc):
                 raise CampaignLoginRefused(
-                    f"{self.url.database}: the database refused the login ({_last_line(exc)}); set the right "
+                    f"{self.url.database}: the database refused the login ({_first_line(exc)}); set the right "
                     "password in PGPASSWORD or in the cell config's store.password_file, then run again"
                 ) from None
             raise self._lost(exc, "connecting") from None
 
     def _lost(self, exc: BaseException, doing: str) -> CampaignStoreLost:
         return CampaignStoreLost(
-            f"the campaign database {self.url.database} did not answer while {doing} ({_last_line(exc)}); "
+            f"the campaign database {self.url.database} did not answer while {doing} ({_first_line(exc)}); "
             "everything recorded before is kept"
         )
 
@@ -438,6 +438,7 @@ def _as_uuid(name: str) -> uuid.UUID | None:
         return None
 
 
-def _last_line(exc: BaseException) -> str:
+def _first_line(exc: BaseException) -> str:
+    """The driver's message in one line (libpq adds guesses on the lines after it)."""
     lines = [line.strip() for line in str(exc).splitlines() if line.strip()]
-    return lines[-1] if lines else type(exc).__name__
+    return lines[0] if lines else type(exc).__name__
