@@ -9,6 +9,7 @@ import subprocess
 import sys
 import time
 
+import psycopg
 import pytest
 
 from hil.data.pg_store import PgCampaignStore
@@ -61,6 +62,12 @@ def test_a_run_into_the_shared_store_stops_when_the_server_is_lost_and_resumes(p
     plan = grid_sampling.PROCEDURE.make_plan(config, step_m=0.3, validation=3)
     with PgCampaignStore(url, create=False) as store:
         rows = store.measurements("grid_sampling")
+    with psycopg.connect(pg_server.url("runs")) as conn:  # the campaign's keys, as the drivers read them
+        cur = conn.execute(
+            "SELECT robot_serial, robot_model, tracker_serial, tracker_software FROM campaign_keys"
+        )
+        # the simulated CB3 arm has no serial number to give (PolyScope 5.6 and later do): none is made up
+        assert cur.fetchall() == [(None, "UR10", "390123", "3.8.712")]
     recorded = list(zip(rows["step"], rows["point_id"], strict=True))
     assert len(recorded) == len(set(recorded)) and set(recorded) == {(p.step, p.point_id) for p in plan.poses}
     calibrated = subprocess.run(

@@ -8,6 +8,7 @@ import os
 import signal
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -22,7 +23,14 @@ from hil.data.pg_errors import CampaignLoginRefused
 from hil.data.pg_schema import HEAD_REVISION, head_revision
 from hil.data.pg_store import PgCampaignStore
 from hil.data.pg_url import CampaignURLError
-from hil.data.store import CampaignError, CampaignStore, DuplicateMeasurementError, OutcomeRecord, Verdict
+from hil.data.store import (
+    CampaignError,
+    CampaignStore,
+    DuplicateMeasurementError,
+    OutcomeRecord,
+    ResultRecord,
+    Verdict,
+)
 
 WRITER = [sys.executable, str(Path(__file__).with_name("pg_writer.py"))]
 
@@ -47,6 +55,10 @@ def _fill(store) -> None:
     store.finish_step("grid_sampling", "grid", {"points": 5})
     store.record_outcome(OutcomeRecord("iso9283", "AP_p", 1e-4, "m", 2e-4, "max", Verdict.PASS, "5 poses"))
     store.record_outcome(OutcomeRecord("iso9283", "RP_l", None, "m", None, "max", Verdict.NOT_JUDGED))
+    store.record_result(
+        ResultRecord("calibration", {"rms_after_mm": 0.08}, {"robot": "ur10", "params": [1.5]})
+    )
+    store.record_result(ResultRecord("diagnosis", {"effects_found": []}, None))
     store.log("INFO", "first line")
     store.log("WARNING", "second line")
 
@@ -86,6 +98,10 @@ def test_a_campaign_in_the_database_reads_back_as_the_file_does(database, tmp_pa
         )
         assert pg.step_result("grid_sampling", "validation") is None
         assert pg.outcomes() == file.outcomes()
+        assert [replace(r, recorded_s=0.0) for r in pg.results()] == [
+            replace(r, recorded_s=0.0) for r in file.results()
+        ]
+        assert pg.results()[0].model == {"robot": "ur10", "params": [1.5]} and pg.results()[1].model is None
         assert pg.snapshots() == file.snapshots()
         assert pg.started_s == file.started_s and pg.last_timestamp_s == file.last_timestamp_s
         assert pg.last_temperature_c() == file.last_temperature_c() == 20.0
@@ -240,3 +256,33 @@ def test_a_server_lost_mid_run_stops_the_writer_and_the_run_resumes_when_it_is_b
     assert resumed.returncode == 0, err
     assert len(out.split()) - 2 <= n - committed  # only what was missing was measured again
     _assert_complete(url, "grid", n)
+
+
+def test_a_campaign_is_keyed_by_its_robot_controller_tracker_cell_operator_dates_and_temperatures(database):
+    station = {
+        "robot_controller_version": "5.11.1.0", "robot_serial_number": "20235500123", "robot_model_reported": "UR10",
+        "tracker": {"name": "AT901", "serial_number": 390123, "software_version": "3.8.712"},
+        "cell_name": "cell-7", "operator_name": "A. Engineer",
+    }  # fmt: skip
+    with PgCampaignStore(database + "?campaign=keyed") as store:
+        store.add_snapshot(
+            {"robot_definition": {"model": "ur10"}, "station": {"robot_controller_version": "5.9"}}
+        )
+        store.add_snapshot(
+            {"robot_definition": {"model": "ur10"}, "station": station}
+        )  # the latest one counts
+        for i in range(3):
+            store.record_measurement(replace(record("grid", i), temperature_c=20.0 + i))
+    with psycopg.connect(database) as conn:
+        cur = conn.execute("SELECT * FROM campaign_keys WHERE label = 'keyed'")
+        keys = dict(zip([d.name for d in cur.description or ()], cur.fetchone() or (), strict=True))
+    assert keys["robot_model"] == "UR10" and keys["robot_serial"] == "20235500123"
+    assert keys["controller_version"] == "5.11.1.0"
+    assert (keys["tracker_name"], keys["tracker_serial"], keys["tracker_software"]) == (
+        "AT901",
+        "390123",
+        "3.8.712",
+    )
+    assert (keys["cell_name"], keys["operator_name"]) == ("cell-7", "A. Engineer")
+    assert keys["points"] == 3 and (keys["first_s"], keys["last_s"]) == (1.7e9, 1.7e9 + 2)
+    assert (keys["temperature_min_c"], keys["temperature_max_c"]) == (20.0, 22.0)

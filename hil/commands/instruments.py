@@ -122,6 +122,7 @@ def open_session(
     operator: Operator,
     stack: ExitStack,
     progress: bool | None = None,
+    operator_name: str = "",
 ) -> Session:
     """Connect the robot and the tracker through their driver plug-ins, open the campaign store, and build
     the Session.
@@ -138,7 +139,11 @@ def open_session(
         opening.callback(store.close)
         station = {
             "robot_controller_version": getattr(robot, "version", None),
+            "robot_serial_number": getattr(robot, "serial_number", None),
+            "robot_model_reported": getattr(robot, "model_name", None),
             "tracker": getattr(tracker, "tracker_info", {}),
+            "cell_name": config.cell_name,
+            "operator_name": operator_name or config.operator_name,
         }
         cell_clock = _cell_clock(config)
         clock = None if cell_clock is None else continuing_clock(cell_clock, store)

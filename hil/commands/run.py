@@ -109,6 +109,11 @@ def add_procedure_arguments(parser: argparse.ArgumentParser, procedure: Procedur
     )
     parser.add_argument("--dry-run", action="store_true", help="print the plan and move nothing")
     parser.add_argument(
+        "--operator-name",
+        default="",
+        help="who runs the campaign, recorded with it (default: the cell config's [cell] operator)",
+    )
+    parser.add_argument(
         "--operator",
         choices=["auto", "console", "sim"],
         default="auto",
@@ -163,7 +168,7 @@ class _WrongUnit(argparse.Action):
         parser.error(f"{option_string}: {p.help} is given in {p.unit}: use {p.flag} (allowed {p.allowed()})")
 
 
-def open_instruments(config, campaign: str | Path, operator, stack: ExitStack):
+def open_instruments(config, campaign: str | Path, operator, stack: ExitStack, operator_name: str = ""):
     """open_session, its failures worded for the command line (what failed, what to do; no campaign is left)."""
     from hil.commands.instruments import open_session
     from hil.instruments.robot import RobotConnectionError, RobotError
@@ -171,7 +176,7 @@ def open_instruments(config, campaign: str | Path, operator, stack: ExitStack):
 
     again = "then run the same command again"
     try:
-        return open_session(config, campaign, operator, stack)
+        return open_session(config, campaign, operator, stack, operator_name=operator_name)
     except CampaignStoreLost as exc:
         raise CliError(exc.message, f"{exc.remedy}; nothing moved") from exc
     except CampaignError as exc:
@@ -230,7 +235,7 @@ def run(args: argparse.Namespace) -> int:
 
     with interrupt_guard(), ExitStack() as stack:
         stack.enter_context(capture_native_output(verbose=getattr(args, "verbose", False)))
-        session = open_instruments(config, campaign, operator, stack)
+        session = open_instruments(config, campaign, operator, stack, args.operator_name)
         try:
             with session:
                 result = procedure(session, planned=the_plan, **values)

@@ -15,7 +15,7 @@ import psycopg
 MIGRATIONS = Path(__file__).with_name("pg_migrations")
 # The newest revision in MIGRATIONS (a test holds the two together): a database already there is opened
 # without loading Alembic and SQLAlchemy (half a second of every cell's start).
-HEAD_REVISION = "0001"
+HEAD_REVISION = "0002"
 # pg_advisory_xact_lock key of the schema upgrade: "hilS" as a 32-bit number
 _UPGRADE_LOCK = 0x68696C53
 

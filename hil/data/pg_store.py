@@ -36,11 +36,13 @@ from hil.data.store import (
     DuplicateMeasurementError,
     MeasurementRecord,
     OutcomeRecord,
+    ResultRecord,
     Verdict,
     _json,
     _nullable,
     arm_temperature_c,
     record_from_row,
+    result_from_row,
     with_event_objects,
     with_record_objects,
 )
@@ -377,6 +379,27 @@ class PgCampaignStore:
             OutcomeRecord(procedure, measurement, value, unit, limit, bound, Verdict(verdict), note)
             for procedure, measurement, value, unit, limit, bound, verdict, note in rows
         ]
+
+    def record_result(self, result: ResultRecord) -> None:
+        """Append an analysis' model and summary (committed when this returns)."""
+        self._insert(
+            "INSERT INTO results (campaign, recorded_s, kind, summary, model) VALUES (%s, %s, %s, %s, %s)",
+            (
+                self.uuid,
+                time.time(),
+                result.kind,
+                _json(result.summary, "result summary"),
+                None if result.model is None else _json(result.model, "result model"),
+            ),
+        )
+
+    def results(self) -> list[ResultRecord]:
+        """Every recorded analysis result, oldest first."""
+        rows = self._all(
+            "SELECT kind, summary, model, recorded_s FROM results WHERE campaign = %s ORDER BY id",
+            (self.uuid,),
+        )
+        return [result_from_row(*row) for row in rows]
 
     def finish_step(self, procedure: str, step: str, result: dict) -> None:
         """Mark a step finished with its result; a later call for the same step appends a newer result."""

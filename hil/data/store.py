@@ -15,6 +15,7 @@ import os
 import sqlite3
 import threading
 import time
+import uuid
 import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -28,7 +29,9 @@ import pandas as pd
 from hil.data.dataset import DatasetError, validate_dataset, write_dataset
 from hil.data.jsonable import to_jsonable
 
-SCHEMA_VERSION = 2  # 2: the outcomes table (declared measurements judged against their limits)
+# 2: the outcomes table (declared measurements judged against their limits); 3: the campaign's UUID (meta 'uuid')
+# and its results table (the models and summaries hil calibrate and hil diagnose made from it)
+SCHEMA_VERSION = 3
 APPLICATION_ID = 0x48494C43  # "HILC" in the SQLite header (offset 68): marks the file as a hil campaign
 SQLITE_MAGIC = b"SQLite format 3\x00"
 
@@ -113,6 +116,18 @@ CREATE TABLE outcomes (
 );
 """
     + _append_only("outcomes"),
+    # A random (version 4) UUID from SQLite's own random bytes, so a campaign written by an older hil gets
+    # one too when it is first opened; the shared store knows a pushed campaign by it.
+    3: """
+INSERT INTO meta (key, value) SELECT 'uuid', lower(
+    substr(h, 1, 8) || '-' || substr(h, 9, 4) || '-4' || substr(h, 14, 3) || '-'
+    || substr('89ab', 1 + (abs(random()) % 4), 1) || substr(h, 18, 3) || '-' || substr(h, 21, 12)
+) FROM (SELECT hex(randomblob(16)) AS h);
+CREATE TABLE results (
+    id INTEGER PRIMARY KEY, recorded_s REAL NOT NULL, kind TEXT NOT NULL, summary TEXT NOT NULL, model TEXT
+);
+"""
+    + _append_only("results"),
 }
 _SCHEMA = (
     _SCHEMA_1
@@ -143,6 +158,18 @@ class OutcomeRecord:
     bound: str
     verdict: Verdict
     note: str = ""
+
+
+@dataclass(frozen=True)
+class ResultRecord:
+    """What an analysis made of the campaign: `kind` ("calibration", "diagnosis"), its summary (errors before and
+    after, parameters with their uncertainties, effects found and assumed; JSON-able, SI units) and the model
+    it wrote (its JSON, as the model file holds it), recorded at `recorded_s` (UNIX time)."""
+
+    kind: str
+    summary: dict
+    model: dict | None
+    recorded_s: float = 0.0
 
 
 class CampaignError(ValueError):
@@ -379,6 +406,7 @@ class CampaignStore:
             self._conn = None
             raise
         self.created_s = float(meta.get("created_s", "nan"))
+        self.uuid = uuid.UUID(meta["uuid"])  # given at creation (or by the step to schema 3), never changed
         self._started_s: float | None = None
 
     # -- plumbing -------------------------------------------------------------------------------------
@@ -603,6 +631,28 @@ class CampaignStore:
             for procedure, measurement, value, unit, limit, bound, verdict, note in rows
         ]
 
+    def record_result(self, result: ResultRecord) -> None:
+        """Append an analysis' model and summary (committed when this returns)."""
+        self._insert(
+            "INSERT INTO results (recorded_s, kind, summary, model) VALUES (?, ?, ?, ?)",
+            (
+                time.time(),
+                result.kind,
+                _json(result.summary, "result summary"),
+                None if result.model is None else _json(result.model, "result model"),
+            ),
+        )
+
+    def results(self) -> list[ResultRecord]:
+        """Every recorded analysis result, oldest first."""
+        with self._lock:
+            rows = (
+                self._db()
+                .execute("SELECT kind, summary, model, recorded_s FROM results ORDER BY id")
+                .fetchall()
+            )
+        return [result_from_row(*row) for row in rows]
+
     def finish_step(self, procedure: str, step: str, result: dict) -> None:
         """Mark a step finished with its result; a later call for the same step appends a newer result."""
         self._insert(
@@ -657,6 +707,7 @@ class Campaign(Protocol):
     def path(self) -> str | Path: ...  # what messages print: a file's path, a URL without its password
 
     created_s: float
+    uuid: uuid.UUID
 
     @property
     def closed(self) -> bool: ...
@@ -697,6 +748,8 @@ class Campaign(Protocol):
     def log(self, level: str, message: str, logger: str = "hil", *, time_s: float | None = None) -> None: ...
     def log_lines(self, last: int | None = None) -> pd.DataFrame: ...
     def integrity_ok(self) -> bool: ...
+    def record_result(self, result: ResultRecord) -> None: ...
+    def results(self) -> list[ResultRecord]: ...
     def __enter__(self) -> Campaign: ...
     def __exit__(self, *exc: object) -> None: ...
 
@@ -732,6 +785,13 @@ def with_record_objects(df: pd.DataFrame) -> pd.DataFrame:
         values = df[list(columns)].to_numpy(float).reshape(len(df), *shape)
         df[name] = pd.Series(list(values), index=df.index, dtype=object)
     return df
+
+
+def result_from_row(kind: str, summary: str, model: str | None, recorded_s: float) -> ResultRecord:
+    """A ResultRecord back from its stored row (either back-end)."""
+    return ResultRecord(
+        kind, json.loads(summary), None if model is None else json.loads(model), float(recorded_s)
+    )
 
 
 def with_event_objects(df: pd.DataFrame) -> pd.DataFrame:
