@@ -286,3 +286,48 @@ def test_a_campaign_is_keyed_by_its_robot_controller_tracker_cell_operator_dates
     assert (keys["cell_name"], keys["operator_name"]) == ("cell-7", "A. Engineer")
     assert keys["points"] == 3 and (keys["first_s"], keys["last_s"]) == (1.7e9, 1.7e9 + 2)
     assert (keys["temperature_min_c"], keys["temperature_max_c"]) == (20.0, 22.0)
+
+
+def _push(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "hil", "campaign", "push", *args], capture_output=True, text=True, timeout=60
+    )
+
+
+def test_push_copies_a_file_campaign_by_its_uuid_and_pushing_again_adds_nothing(database, tmp_path):
+    path = tmp_path / "cell9-offline.sqlite"
+    with CampaignStore(path) as file:
+        _fill(file)
+        identity = file.uuid
+    first = _push(str(path), database)
+    assert first.returncode == 0, first.stderr
+    assert f"campaign {identity}" in first.stdout and "added 1 snapshots, 5 measurements" in first.stdout
+    again = _push(str(path), database)
+    assert again.returncode == 0 and "nothing new to add" in again.stdout, again.stdout + again.stderr
+    with CampaignStore(path) as file, PgCampaignStore(database + f"?campaign={identity}", create=False) as pg:
+        assert pg.label == "cell9-offline" and pg.created_s == file.created_s
+        clock = ("id", "recorded_s")
+        pd.testing.assert_frame_equal(
+            _without(file.measurements(), *clock), _without(pg.measurements(), *clock)
+        )
+        assert [len(t()) for t in (pg.events, pg.steps, pg.log_lines)] == [2, 2, 2]
+        assert pg.outcomes() == file.outcomes() and pg.results() == file.results()
+        file.record_measurement(record("grid", 7))  # the cell measured on after its first push
+        file.record_event("resumed", "one more point")
+    grown = _push(str(path), database)
+    assert grown.returncode == 0 and "added 1 measurements, 1 events" in grown.stdout, (
+        grown.stdout + grown.stderr
+    )
+    with PgCampaignStore(database + f"?campaign={identity}", create=False) as pg:
+        assert len(pg.measurements()) == 6 and len(pg.events()) == 3
+
+
+def test_push_refuses_a_label_another_campaign_holds(database, tmp_path):
+    with PgCampaignStore(database + "?campaign=taken-label"):
+        pass
+    path = tmp_path / "other.sqlite"
+    with CampaignStore(path) as file:
+        file.add_snapshot({"cell": {}})
+    taken = _push(str(path), database + "?campaign=taken-label")
+    assert taken.returncode == 2 and "is taken by another campaign" in taken.stderr, taken.stderr
+    assert "Traceback" not in taken.stderr

@@ -26,6 +26,7 @@ import pandas as pd
 import psycopg
 from psycopg import errors as pg_errors
 
+from hil.data.campaign_copy import COPIED_TABLES, CampaignCopy
 from hil.data.pg_errors import CampaignLoginRefused, CampaignStoreLost
 from hil.data.pg_schema import NewerSchemaError, upgrade
 from hil.data.pg_url import CampaignURL
@@ -63,8 +64,15 @@ class PgCampaignStore:
     judged measurements and the log, as a campaign file holds them."""
 
     def __init__(
-        self, url: str | CampaignURL, *, create: bool = True, password_file: str | Path | None = None
+        self,
+        url: str | CampaignURL,
+        *,
+        create: bool = True,
+        password_file: str | Path | None = None,
+        identity: tuple[uuid.UUID, float] | None = None,
     ) -> None:
+        """`identity`: the UUID and creation time a new campaign takes (a pushed file's), else a fresh UUID
+        and now; with it the campaign is found by its UUID first, under whatever label it was stored."""
         self.url = url if isinstance(url, CampaignURL) else CampaignURL.parse(url, password_file)
         self.path = self.url.shown  # what messages print: the URL without any password
         self._lock = threading.RLock()
@@ -72,7 +80,7 @@ class PgCampaignStore:
         self._conn: psycopg.Connection | None = self._connect()
         try:
             upgrade(self._connect)
-            self.uuid, self.label, self.created_s = self._campaign(create)
+            self.uuid, self.label, self.created_s = self._campaign(create, identity)
         except NewerSchemaError as exc:
             self.close()
             raise CampaignError(f"{self.url.database}: {exc}") from exc
@@ -152,25 +160,37 @@ class PgCampaignStore:
 
         return self._run("reading", read)
 
-    def _campaign(self, create: bool) -> tuple[uuid.UUID, str, float]:
-        """The campaign the URL names (by label or UUID), created when asked and missing."""
+    def _campaign(
+        self, create: bool, identity: tuple[uuid.UUID, float] | None
+    ) -> tuple[uuid.UUID, str, float]:
+        """The campaign the URL names (by label or UUID), created when asked and missing; with `identity`,
+        first the campaign of that UUID, and a new one takes it."""
         assert self._conn is not None
         name = self.url.campaign
         by_uuid = _as_uuid(name)
-        select = "SELECT uuid, label, created_s FROM campaigns WHERE " + (
-            "uuid = %s" if by_uuid else "label = %s"
-        )
-        row = self._conn.execute(select, (by_uuid or name,)).fetchone()
+        select = "SELECT uuid, label, created_s FROM campaigns WHERE "
+        row = self._conn.execute(select + "uuid = %s", (identity[0],)).fetchone() if identity else None
+        if row is None:
+            where = "uuid = %s" if by_uuid else "label = %s"
+            row = self._conn.execute(select + where, (by_uuid or name,)).fetchone()
+            if row is not None and identity is not None:
+                raise CampaignError(
+                    f"{self.path}: the label {name!r} is taken by another campaign ({row[0]}); "
+                    "give this one another ?campaign=LABEL"
+                )
         if row is None and create:
             if by_uuid:
                 raise CampaignError(
                     f"{self.path}: no campaign has UUID {name}; name a new campaign by a label"
                 )
+            made, created_s = identity or (uuid.uuid4(), time.time())
             self._conn.execute(
-                "INSERT INTO campaigns (uuid, label, created_s) VALUES (%s, %s, %s) ON CONFLICT (label) DO NOTHING",
-                (uuid.uuid4(), name, time.time()),
+                "INSERT INTO campaigns (uuid, label, created_s) VALUES (%s, %s, %s) ON CONFLICT DO NOTHING",
+                (made, name, created_s),
             )  # a second cell creating the same label at once keeps the first one's
-            row = self._conn.execute(select, (name,)).fetchone()
+            row = self._conn.execute(select + "label = %s", (name,)).fetchone()
+            if row is not None and identity is not None and row[0] != identity[0]:
+                raise CampaignError(f"{self.path}: the label {name!r} was just taken by another campaign")
         if row is None:
             raise CampaignError(
                 f"no campaign {name!r} in {self.url.database}; give the label or UUID of a stored campaign "
@@ -195,6 +215,58 @@ class PgCampaignStore:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+    # -- a campaign file copied in (hil campaign push) -------------------------------------------------
+    def receive(self, copy: CampaignCopy) -> dict[str, int]:
+        """Append what this campaign lacks of the file campaign `copy` (the same UUID), in one transaction:
+        the points it does not hold, and of every other table the rows past those it holds (both stores are
+        append-only, so a pushed campaign's rows are the file's first rows). Returns the rows added per table:
+        all zero when the file was pushed before and has not grown. A campaign recorded in the database
+        itself is refused: its rows are not the file's."""
+        if copy.uuid != self.uuid:
+            raise CampaignError(f"{self.path} is campaign {self.uuid}, the file is {copy.uuid}")
+        return self._run("pushing", lambda conn: self._transfer(conn, copy))
+
+    def _transfer(self, conn: psycopg.Connection, copy: CampaignCopy) -> dict[str, int]:
+        added: dict[str, int] = {}
+        with conn.transaction():
+            # one push of a campaign at a time: a row lock (never an UPDATE: the table is append-only)
+            conn.execute("SELECT 1 FROM campaigns WHERE uuid = %s FOR UPDATE", (self.uuid,))
+            origin = conn.execute(
+                "SELECT value FROM campaign_meta WHERE campaign = %s AND key = 'pushed_from'", (self.uuid,)
+            ).fetchone()
+            held = conn.execute("SELECT count(*) FROM snapshots WHERE campaign = %s", (self.uuid,)).fetchone()
+            if origin is None and held is not None and held[0] > 0:
+                raise CampaignError(
+                    f"{self.path} was recorded in the database, not pushed from a file; push refuses to merge"
+                )
+            conn.execute(
+                "INSERT INTO campaign_meta (campaign, key, value) VALUES (%s, 'pushed_from', %s) "
+                "ON CONFLICT DO NOTHING",
+                (self.uuid, copy.name),
+            )
+            for table, columns in COPIED_TABLES.items():
+                rows = copy.rows[table]
+                if table == "measurements":
+                    have = set(
+                        conn.execute(
+                            "SELECT procedure, step, point_id FROM measurements WHERE campaign = %s",
+                            (self.uuid,),
+                        ).fetchall()
+                    )
+                    new = [r for r in rows if tuple(r[:3]) not in have]
+                else:
+                    count = conn.execute(
+                        f"SELECT count(*) FROM {table} WHERE campaign = %s", (self.uuid,)
+                    ).fetchone()
+                    new = rows[(count[0] if count else 0) :]
+                if new:
+                    names = ", ".join(f'"{c}"' for c in ("campaign", *columns))
+                    with conn.cursor().copy(f"COPY {table} ({names}) FROM STDIN") as sink:
+                        for row in new:
+                            sink.write_row((self.uuid, *row))
+                added[table] = len(new)
+        return added
 
     # -- campaign metadata ----------------------------------------------------------------------------
     def set_meta(self, key: str, value: str) -> bool:

@@ -71,6 +71,14 @@ class CampaignURL:
         return f"{parts.netloc}{parts.path}"
 
 
+def with_default_campaign(url: str, label: str) -> str:
+    """`url` with ?campaign=`label` added when it names no campaign."""
+    parts = urlsplit(url)
+    if any(k == "campaign" for k, _ in parse_qsl(parts.query)):
+        return url
+    return urlunsplit(parts._replace(query=urlencode([*parse_qsl(parts.query), ("campaign", label)])))
+
+
 def redacted(url: str) -> str:
     """`url` with any password replaced by ***."""
     parts = urlsplit(url)
