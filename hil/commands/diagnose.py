@@ -13,7 +13,7 @@ from hil.commands.arg_checks import InputError, add_force_option, check_paths, f
 from hil.commands.calibrate import add_probe_options, orientation_summary, parse_mm_vector, refuse_implausible
 from hil.commands.errors import CliError
 from hil.commands.help_format import DefaultsHelpFormatter
-from hil.commands.inputs import read_training_and_validation
+from hil.commands.inputs import read_training_and_validation, record_in_campaign
 from hil.data.dataset import DatasetError, convert_orientation_convention, points_m, pose_ids
 from hil.geometry.robots import ROBOT_NAMES, get_robot, robot_arg
 from hil.model.effects import EFFECT_FAMILIES
@@ -158,6 +158,11 @@ def run(args: argparse.Namespace) -> int:
         report.plan = plan.to_dict()
     refuse_implausible(implausible_changes(report.model), args.accept_implausible)
     _print_and_write(args, report)
+    from hil.report.campaign_results import diagnosis_result
+
+    recorded = record_in_campaign(args.data, diagnosis_result(report, df, report.model.nominal.name))
+    if recorded:
+        print(f"model and summary recorded in the campaign {recorded}")
     if plan is not None:
         plan.frame().to_csv(args.plan, index=False)
         print(f"plan of {len(plan.purpose)} poses written to {args.plan}")

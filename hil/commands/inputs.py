@@ -9,7 +9,7 @@ import pandas as pd
 
 from hil.data.campaigns import is_campaign, open_campaign
 from hil.data.dataset import load_dataset
-from hil.data.store import campaign_dataset
+from hil.data.store import ResultRecord, campaign_dataset
 from hil.runner.procedure import Role
 from hil.runner.registry import publisher
 
@@ -27,6 +27,16 @@ def read_measurements(
         with open_campaign(path, create=False) as store:
             return campaign_dataset(store, grid_procedure(), step)
     return load_dataset(path, require_positions=require_positions)
+
+
+def record_in_campaign(path: str | Path, result: ResultRecord) -> str | None:
+    """Record an analysis' result in the campaign it read (a file or the shared store); the campaign as
+    shown when recorded, None when `path` is a dataset CSV (nothing to record in)."""
+    if not is_campaign(path):
+        return None
+    with open_campaign(path, create=False) as store:
+        store.record_result(result)
+        return str(store.path)
 
 
 def grid_procedure() -> str:
