@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import sqlite3
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -9,7 +11,7 @@ import pandas as pd
 
 from hil.data.campaigns import is_campaign, open_campaign
 from hil.data.dataset import load_dataset
-from hil.data.store import ResultRecord, campaign_dataset
+from hil.data.store import CampaignError, ResultRecord, campaign_dataset
 from hil.runner.procedure import Role
 from hil.runner.registry import publisher
 
@@ -34,9 +36,13 @@ def record_in_campaign(path: str | Path, result: ResultRecord) -> str | None:
     shown when recorded, None when `path` is a dataset CSV (nothing to record in)."""
     if not is_campaign(path):
         return None
-    with open_campaign(path, create=False) as store:
-        store.record_result(result)
-        return str(store.path)
+    try:
+        with open_campaign(path, create=False) as store:
+            store.record_result(result)
+            return str(store.path)
+    except (CampaignError, sqlite3.Error) as exc:  # a read-only file, a lost server: the output files stand
+        warnings.warn(f"the campaign {path} did not keep the {result.kind} result: {exc}", stacklevel=2)
+        return None
 
 
 def grid_procedure() -> str:
