@@ -28,6 +28,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "cell": ("hil.commands.cell", "check a cell configuration (and optionally its instruments)"),
     "run": ("hil.commands.run", "run a measurement procedure on a cell"),
     "campaign": ("hil.commands.campaign", "inspect or export a campaign file (the SQLite store a measurement session writes)"),
+    "fleet": ("hil.commands.fleet", "every robot's calibrations and diagnoses over time; which moved, which to look at first"),
 }  # fmt: skip
 
 

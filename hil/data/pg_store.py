@@ -94,36 +94,10 @@ class PgCampaignStore:
 
     # -- plumbing -------------------------------------------------------------------------------------
     def _connect(self) -> psycopg.Connection:
-        """A new autocommit connection; a refused login or an unreachable server says so in one line."""
-        options: dict[str, object] = {
-            "autocommit": True,
-            "connect_timeout": CONNECT_TIMEOUT_S,
-            "application_name": "hil",
-            "keepalives": 1,
-            "keepalives_idle": 5,
-            "keepalives_interval": 2,
-            "keepalives_count": 3,
-            "tcp_user_timeout": UNANSWERED_TIMEOUT_MS,
-        }
-        if self.url.password_file is not None:
-            if not self.url.password_file.is_file():
-                raise CampaignError(f"password file {self.url.password_file} not found (store.password_file)")
-            options["password"] = self.url.password_file.read_text().strip()
-        try:
-            return psycopg.connect(self.url.conninfo, **options)  # type: ignore[arg-type]
-        except psycopg.OperationalError as exc:
-            if _login_words(exc):
-                raise CampaignLoginRefused(
-                    f"{self.url.database}: the database refused the login ({_first_line(exc)}); set the right "
-                    "password in PGPASSWORD or in the cell config's store.password_file, then run again"
-                ) from None
-            raise self._lost(exc, "connecting") from None
+        return connect(self.url)
 
     def _lost(self, exc: BaseException, doing: str) -> CampaignStoreLost:
-        return CampaignStoreLost(
-            f"the campaign database {self.url.database} did not answer while {doing} ({_first_line(exc)}); "
-            "everything recorded before is kept"
-        )
+        return lost(self.url, exc, doing)
 
     def _run(self, doing: str, work: Callable[[psycopg.Connection], T]) -> T:
         """`work` on the connection; a lost server closes the store (the log handler then stays quiet) and
@@ -524,6 +498,53 @@ class PgCampaignStore:
         """The server keeps the tables consistent; this checks that it answers and still holds the campaign."""
         row = self._one("SELECT count(*) FROM campaigns WHERE uuid = %s", (self.uuid,))
         return row is not None and row[0] == 1
+
+
+def connect(url: CampaignURL) -> psycopg.Connection:
+    """A new autocommit connection to the store's database; a refused login or an unreachable server says so
+    in one line (CampaignLoginRefused, CampaignStoreLost)."""
+    options: dict[str, object] = {
+        "autocommit": True,
+        "connect_timeout": CONNECT_TIMEOUT_S,
+        "application_name": "hil",
+        "keepalives": 1,
+        "keepalives_idle": 5,
+        "keepalives_interval": 2,
+        "keepalives_count": 3,
+        "tcp_user_timeout": UNANSWERED_TIMEOUT_MS,
+    }
+    if url.password_file is not None:
+        if not url.password_file.is_file():
+            raise CampaignError(f"password file {url.password_file} not found (store.password_file)")
+        options["password"] = url.password_file.read_text().strip()
+    try:
+        return psycopg.connect(url.conninfo, **options)  # type: ignore[arg-type]
+    except psycopg.OperationalError as exc:
+        if _login_words(exc):
+            raise CampaignLoginRefused(
+                f"{url.database}: the database refused the login ({_first_line(exc)}); set the right "
+                "password in PGPASSWORD or in the cell config's store.password_file, then run again"
+            ) from None
+        raise lost(url, exc, "connecting") from None
+
+
+def lost(url: CampaignURL, exc: BaseException, doing: str) -> CampaignStoreLost:
+    """The error of a server that did not answer while `doing`."""
+    return CampaignStoreLost(
+        f"the campaign database {url.database} did not answer while {doing} ({_first_line(exc)}); "
+        "everything recorded before is kept"
+    )
+
+
+def query_database(url: CampaignURL, sql: str, params: Sequence[object] = ()) -> pd.DataFrame:
+    """One read across the whole store (every campaign: hil fleet), its schema brought up to date first."""
+    upgrade(lambda: connect(url))
+    with connect(url) as conn:
+        try:
+            cur = conn.execute(sql, params)  # type: ignore[arg-type]
+            return pd.DataFrame(cur.fetchall(), columns=[d.name for d in cur.description or ()])
+        except psycopg.OperationalError as exc:
+            raise lost(url, exc, "reading") from exc
 
 
 def _as_uuid(name: str) -> uuid.UUID | None:
