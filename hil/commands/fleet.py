@@ -29,7 +29,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="fleet-wide false-alarm rate of the moved flag (default 0.05)",
     )
     p.add_argument(
-        "--error-limit-mm", type=float, default=0.5, help="error after calibration to flag (0.5 mm)"
+        "--error-limit-mm", type=float, default=0.5, help="error after calibration to flag (default 0.5 mm)"
     )
     p.add_argument("--password-file", default=None, help="file holding the database password")
     p.set_defaults(func=run)
