@@ -171,12 +171,12 @@ def run(args: argparse.Namespace) -> int:
 
 def _plan_cell(args: argparse.Namespace):
     """The cell a plan is for (None without --cell), checked against --robot and the campaign's robot."""
-    from hil.data.store import CampaignStore, is_campaign_file
+    from hil.data.campaigns import is_campaign, open_campaign
     from hil.runner.cell_config import load_cell_config
 
     robot = get_robot(args.robot).name
-    if args.plan and is_campaign_file(args.data):
-        with CampaignStore(args.data, create=False) as store:
+    if args.plan and is_campaign(args.data):  # a file or the shared store: the robot it was measured on
+        with open_campaign(args.data, create=False) as store:
             recorded = [s.get("robot_definition", {}).get("model") for s in store.snapshots()]
         recorded = [r for r in recorded if r]
         if recorded and get_robot(recorded[-1]).name != robot:
