@@ -8,6 +8,7 @@ import os
 import signal
 import subprocess
 import sys
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 from pathlib import Path
 
@@ -164,13 +165,15 @@ def test_a_wrong_password_is_a_clear_refusal_and_no_password_is_ever_shown(pg_se
 
 
 def test_a_password_file_named_by_the_cell_config_logs_in(database, tmp_path, monkeypatch):
+    with PgCampaignStore(database + "?campaign=by-password-file") as store:
+        store.record_measurement(record("grid", 0))
     monkeypatch.delenv("PGPASSWORD")
     secret = tmp_path / "db.password"
     secret.write_text(PASSWORD + "\n")
-    with open_campaign(database + "?campaign=contract", password_file=secret) as store:
-        assert len(store.measurements()) == 5
+    with open_campaign(database + "?campaign=by-password-file", password_file=secret) as store:
+        assert len(store.measurements()) == 1
     with pytest.raises(CampaignLoginRefused):
-        PgCampaignStore(database + "?campaign=contract")  # neither PGPASSWORD nor a file: refused
+        PgCampaignStore(database + "?campaign=by-password-file")  # neither PGPASSWORD nor a file: refused
 
 
 def _writer(url: str, step: str, n: int, *options: str) -> subprocess.Popen:
@@ -331,3 +334,12 @@ def test_push_refuses_a_label_another_campaign_holds(database, tmp_path):
     taken = _push(str(path), database + "?campaign=taken-label")
     assert taken.returncode == 2 and "is taken by another campaign" in taken.stderr, taken.stderr
     assert "Traceback" not in taken.stderr
+
+
+def test_cells_opening_a_fresh_database_at_once_migrate_it_once(pg_server):
+    fresh = pg_server.create_database("migrated_at_once")
+    with ThreadPoolExecutor(4) as pool:  # each opening runs the upgrade in its own transaction, lock first
+        labels = list(pool.map(lambda i: PgCampaignStore(f"{fresh}?campaign=c{i}").label, range(4)))
+    assert labels == ["c0", "c1", "c2", "c3"]
+    with psycopg.connect(fresh) as conn:
+        assert conn.execute("SELECT version_num FROM hil_schema_version").fetchall() == [(HEAD_REVISION,)]

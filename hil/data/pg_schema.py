@@ -66,7 +66,14 @@ def upgrade(connect) -> None:
     from sqlalchemy import create_engine, text
     from sqlalchemy.pool import NullPool
 
-    engine = create_engine("postgresql+psycopg://", creator=connect, poolclass=NullPool)
+    def transactional() -> psycopg.Connection:
+        # the store's connections commit each statement; the migration must be one transaction, or the
+        # advisory lock would end at once and a half-run upgrade could be seen by another cell
+        conn = connect()
+        conn.autocommit = False
+        return conn
+
+    engine = create_engine("postgresql+psycopg://", creator=transactional, poolclass=NullPool)
     try:
         with engine.begin() as connection:
             connection.execute(text(f"SELECT pg_advisory_xact_lock({_UPGRADE_LOCK})"))
