@@ -274,11 +274,19 @@ class EmsconTracker:
             "tracker_type": v[0],
             "name": codec.decode_name(v[1]),
             "serial_number": v[2],
+            "software_version": self._software_version(),
             "has_adm": bool(v[4]),
             "max_distance_m": float(self.units.length_from_wire(v[8])),
             "min_distance_m": float(self.units.length_from_wire(v[9])),
             "faces": v[11],
         }
+
+    def _software_version(self) -> str:
+        """The emScon server's software version, which a campaign keys the tracker by ("" when not known)."""
+        try:
+            return codec.decode_name(self._exchange(Command.GET_SYSTEM_SOFTWARE_VERSION)[0].values[0])
+        except TrackerCommandError:
+            return ""
 
     def _reflector_id(self, wanted: str | int) -> int:
         if isinstance(wanted, int):

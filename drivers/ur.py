@@ -18,7 +18,7 @@ import socket
 import struct
 import time
 import weakref
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -161,6 +161,19 @@ def _probe(
     return version, stamp
 
 
+def _identity(dash: Any) -> tuple[str, str]:
+    """The arm's serial number and model as its dashboard reports them; "" for what the controller does not
+    say (ur-rtde asks for the serial number only from PolyScope 5.6 on: a CB3 arm is keyed by its cell)."""
+
+    def ask(question: Callable[[], str]) -> str:
+        try:
+            return str(question()).strip()
+        except RuntimeError:
+            return ""
+
+    return ask(dash.getSerialNumber), ask(dash.getRobotModel)
+
+
 def _read_rtde_reply(sock: socket.socket, expected_type: int) -> bytes:
     header = _recv_exact(sock, 3)
     size, kind = struct.unpack(">HB", header)
@@ -195,6 +208,8 @@ class URRobot:
         self._ctrl: Any | None = None
         self._dash: Any | None = None
         self.version = ""
+        self.serial_number = ""  # what the dashboard reports ("" when the controller does not say)
+        self.model_name = ""
         self._last_stamp = -1.0
         self._last_stamp_wall = 0.0
         self._connect()
@@ -215,6 +230,7 @@ class URRobot:
                 self.version = probe_controller(cfg.host, cfg.connect_timeout_s)
                 self._dash = dash = dashboard_client.DashboardClient(cfg.host)
                 dash.connect(int(cfg.connect_timeout_s * 1000))
+                self.serial_number, self.model_name = _identity(dash)
                 self._rx = rx = rtde_receive.RTDEReceiveInterface(cfg.host)
                 self._require_arm_ready()  # the control program would not start otherwise (a 5 s stall)
                 self._ctrl = ctrl = rtde_control.RTDEControlInterface(

@@ -30,6 +30,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "run": ("hil.commands.run", "run a measurement procedure on a cell"),
     "serve": ("hil.commands.serve", "the operator console: start procedures, watch them live, answer prompts, find every campaign"),
     "campaign": ("hil.commands.campaign", "inspect or export a campaign file (the SQLite store a measurement session writes)"),
+    "fleet": ("hil.commands.fleet", "every robot's calibrations and diagnoses over time; which moved, which to look at first"),
 }  # fmt: skip
 
 

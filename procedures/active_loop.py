@@ -38,7 +38,7 @@ from hil.analysis.diagnosis.pipeline import DiagnosisOptions, DiagnosisReport, r
 from hil.analysis.diagnosis.questions import as_question, question_to_dict, with_questions
 from hil.data.dataset import DatasetError
 from hil.data.jsonable import to_jsonable
-from hil.data.store import CampaignStore, campaign_dataset
+from hil.data.store import Campaign, CampaignStore, campaign_dataset
 from hil.report.rounds import rounds_text
 from hil.runner.cell_config import CellConfig
 from hil.runner.engine import Advance, CampaignStopped, Measuring
@@ -106,7 +106,7 @@ class _Rows:
 class _Campaign:
     """What the loop diagnoses: the grid then every finished round's rows (motion order), the validation poses."""
 
-    store: CampaignStore
+    store: Campaign
     config: CellConfig
     seed: int
 
@@ -328,9 +328,15 @@ def _measure_round(
 def run_loop(session: Session, options: ActiveLoopOptions) -> ActiveLoopResult:
     """Diagnose, plan, measure block by block, diagnose again, for at most `rounds` rounds of at most `poses`
     poses; resumable. The engine measures what the rounds ask for."""
+    campaign = session.store.path
+    if not isinstance(campaign, Path):  # checked before anything moves
+        raise CampaignStopped(
+            f"the active loop writes its model beside its campaign file; {campaign} is in the shared store",
+            "run the loop with a campaign file (--campaign job.sqlite), then hil campaign push it to the store",
+        )
     session.require_registration()
     result = session.engine.run(_rounds(session, options))
-    path = model_path_for(session.store.path)
+    path = model_path_for(campaign)
     result.report.model.save(path)  # the model the next steps use, not the one from before the rounds
     return replace(result, model_path=path)
 

@@ -42,3 +42,19 @@ def pytest_collection_modifyitems(config, items):
         return
     sim_modules = {item.path for item in items if item.get_closest_marker("sim")}
     items.sort(key=lambda item: item.path not in sim_modules)  # stable: file order otherwise
+
+
+@pytest.fixture(scope="session")
+def pg_server():
+    """A real PostgreSQL server (tests/pg_server.py), started once per test process by the first test that asks
+    for it and stopped at the end; its password is in PGPASSWORD, as a cell's environment would give it."""
+    from pg_server import PASSWORD, PgServer
+
+    server = PgServer()
+    try:
+        server.start()
+        os.environ["PGPASSWORD"] = PASSWORD
+        yield server
+    finally:
+        os.environ.pop("PGPASSWORD", None)
+        server.remove()

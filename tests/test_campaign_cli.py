@@ -1,5 +1,6 @@
 """`hil campaign show/export` and campaign files as input of hil calibrate / diagnose / predict."""
 
+import json
 import subprocess
 import sys
 
@@ -199,7 +200,16 @@ def test_calibrate_and_predict_read_a_campaign_like_its_csv(files, capsys, tmp_p
     assert main(["calibrate", str(d2), "-o", str(tmp_path / "hilc.json")]) == 0
     from_campaign = capsys.readouterr().out
     strip = [line for line in from_csv.splitlines() if "written to" not in line]
-    assert strip == [line for line in from_campaign.splitlines() if "written to" not in line]
+    assert strip == [
+        line
+        for line in from_campaign.splitlines()
+        if "written to" not in line and "recorded in the" not in line
+    ]
+    assert f"model and summary recorded in the campaign {d2}" in from_campaign  # a CSV has nowhere to keep it
+    with CampaignStore(d2) as store:
+        (result,) = store.results()
+    assert result.kind == "calibration" and result.model == json.loads((tmp_path / "hilc.json").read_text())
+    assert result.summary["rms_after_m"] < result.summary["rms_before_m"]
     assert main(["predict", str(tmp_path / "hilc.json"), str(d2), "-o", str(tmp_path / "pred.csv")]) == 0
     pred = pd.read_csv(tmp_path / "pred.csv")
     assert list(pred["point_id"]) == [f"grid{i:03d}" for i in range(len(train))]
@@ -237,3 +247,23 @@ def test_show_calls_a_step_finished_once_its_planned_points_are_recorded(files, 
     out = capsys.readouterr().out
     assert "grid                        5  finished (plan complete)" in out
     assert "validation                  1  finished (plan complete)" in out
+
+
+def test_diagnose_records_its_model_and_summary_in_the_campaign_it_read(files, capsys, tmp_path):
+    d, _, _ = files
+    campaign = tmp_path / "c.hilc"
+    campaign.write_bytes((d / "c.hilc").read_bytes())  # the module's campaign stays as it was
+    model = str(tmp_path / "m.json")
+    assert (
+        main(["diagnose", str(campaign), "--folds", "2", "--families", "gravity_compliance", "-o", model])
+        == 0
+    )
+    assert f"model and summary recorded in the campaign {campaign}" in capsys.readouterr().out
+    with CampaignStore(campaign) as store:
+        (result,) = store.results()
+    summary = result.summary
+    assert result.kind == "diagnosis" and result.model == json.loads((tmp_path / "m.json").read_text())
+    assert summary["rms_after_m"] < summary["rms_before_m"] and summary["validation_rms_m"] is not None
+    assert summary["errors_on"] == "held-out folds of the training rows"
+    assert summary["parameters"] and all(p["std"] > 0 for p in summary["parameters"])
+    assert isinstance(summary["effects_found"], list) and isinstance(summary["effects_assumed"], list)

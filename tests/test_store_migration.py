@@ -8,6 +8,7 @@ what that hil exported from it (`export_csv`).
 from __future__ import annotations
 
 import sqlite3
+import uuid
 from pathlib import Path
 
 import numpy as np
@@ -47,15 +48,18 @@ def test_an_old_campaign_opens_at_the_new_version_with_nothing_recorded_changed(
     with CampaignStore(path, create=False) as store:
         assert store.outcomes() == []
         assert store.step_result("registration", "fit")["rms_mm"] == 0.9
-    assert _version(path) == SCHEMA_VERSION == 2
+    assert _version(path) == SCHEMA_VERSION == 3
     with sqlite3.connect(path) as conn:
         after = {t: conn.execute(f"SELECT * FROM {t} ORDER BY id").fetchall() for t in before}
         meta = dict(conn.execute("SELECT key, value FROM meta").fetchall())
     assert after == before
     assert meta["schema_version"] == "1" and "migrated_to_2_s" in meta  # when the step was taken, kept
-    with CampaignStore(path, create=False):  # opened again: nothing left to migrate
-        pass
-    assert _version(path) == 2
+    assert (
+        "migrated_to_3_s" in meta and uuid.UUID(meta["uuid"]).version == 4
+    )  # the campaign's UUID, given once
+    with CampaignStore(path, create=False) as store:  # opened again: nothing left to migrate
+        assert str(store.uuid) == meta["uuid"]
+    assert _version(path) == 3
 
 
 def test_an_old_campaign_exports_as_the_old_hil_exported_it(tmp_path):
@@ -87,4 +91,7 @@ def test_a_new_campaign_is_created_at_the_new_version_with_its_outcomes_table(tm
     with CampaignStore(path) as store:
         store.record_outcome(OutcomeRecord("p", "m", None, "m", None, "max", Verdict.NOT_JUDGED, "no value"))
         assert store.outcomes()[0].verdict is Verdict.NOT_JUDGED
-    assert _version(path) == 2
+        assert store.uuid.version == 4
+    with CampaignStore(tmp_path / "other.sqlite") as other, CampaignStore(path) as again:
+        assert other.uuid != again.uuid  # each campaign its own
+    assert _version(path) == 3

@@ -118,7 +118,10 @@ def check_paths(
 
     Keys are what to name in the message (an option or 'DATA').
     """
-    ins = {k: input_file(v, k) for k, v in inputs.items() if v}
+    from hil.data.pg_url import is_campaign_url
+
+    # a campaign in the shared store is an input too, checked when it is opened (not a file here)
+    ins = {k: input_file(v, k) for k, v in inputs.items() if v and not is_campaign_url(v)}
     seen: dict[Path, str] = {}
     for option, path in outputs.items():
         if not path:

@@ -28,7 +28,7 @@ from hil.commands.arg_checks import (
 )
 from hil.commands.errors import CliError
 from hil.commands.help_format import DefaultsHelpFormatter
-from hil.commands.inputs import keep_coupling, read_measurements
+from hil.commands.inputs import keep_coupling, read_measurements, record_in_campaign
 from hil.data.dataset import (
     DEFAULT_ORIENTATION_CONVENTION,
     ORIENTATION_CONVENTIONS,
@@ -216,4 +216,12 @@ def run(args: argparse.Namespace) -> int:
     keep_coupling(chosen.model, coupling)
     chosen.model.save(args.output)
     print(f"model written to {args.output}")
+    from hil.analysis.calibration.cube_svr import raw_error, registered_nominal
+    from hil.report.campaign_results import calibration_result
+
+    _, _, before = raw_error(registered_nominal(nominal, df, tool), df)
+    rms_before_m = float(np.sqrt(np.mean(np.sum(before[~chosen.outliers] ** 2, axis=1))))
+    recorded = record_in_campaign(args.data, calibration_result(chosen, df, rms_before_m, nominal.name))
+    if recorded:
+        print(f"model and summary recorded in the campaign {recorded}")
     return 0

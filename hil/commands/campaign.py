@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pandas as pd
 
+from hil.commands.campaign_push import add_push_parser
 from hil.commands.errors import CliError
 from hil.data.dataset import DatasetError
 from hil.data.store import (
@@ -48,6 +49,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
     export.add_argument("--step", default=None, help="export only this step (default: all of them)")
     export.add_argument("--force", action="store_true", help="overwrite the output file if it exists")
     export.set_defaults(func=run_export)
+    add_push_parser(sub)
     parser.set_defaults(func=lambda args: _usage(parser))
 
 

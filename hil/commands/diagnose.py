@@ -21,7 +21,7 @@ from hil.commands.arg_checks import (
 from hil.commands.calibrate import add_probe_options, orientation_summary, parse_mm_vector, refuse_implausible
 from hil.commands.errors import CliError
 from hil.commands.help_format import DefaultsHelpFormatter
-from hil.commands.inputs import keep_coupling, read_training_and_validation
+from hil.commands.inputs import keep_coupling, read_training_and_validation, record_in_campaign
 from hil.data.dataset import DatasetError, convert_orientation_convention, points_m, pose_ids
 from hil.data.joint_conventions import joints_to_kinematic
 from hil.geometry.robots import ROBOT_NAMES, get_robot, robot_arg, robot_coupling
@@ -176,6 +176,11 @@ def run(args: argparse.Namespace) -> int:
         report.plan = plan.to_dict()
     refuse_implausible(implausible_changes(report.model), args.accept_implausible)
     _print_and_write(args, report)
+    from hil.report.campaign_results import diagnosis_result
+
+    recorded = record_in_campaign(args.data, diagnosis_result(report, df, report.model.nominal.name))
+    if recorded:
+        print(f"model and summary recorded in the campaign {recorded}")
     if plan is not None:
         plan.frame().to_csv(args.plan, index=False)
         print(f"plan of {len(plan.purpose)} poses written to {args.plan}")
@@ -184,12 +189,12 @@ def run(args: argparse.Namespace) -> int:
 
 def _plan_cell(args: argparse.Namespace):
     """The cell a plan is for (None without --cell), checked against --robot and the campaign's robot."""
-    from hil.data.store import CampaignStore, is_campaign_file
+    from hil.data.campaigns import is_campaign, open_campaign
     from hil.runner.cell_config import load_cell_config
 
     robot = get_robot(args.robot).name
-    if args.plan and is_campaign_file(args.data):
-        with CampaignStore(args.data, create=False) as store:
+    if args.plan and is_campaign(args.data):  # a file or the shared store: the robot it was measured on
+        with open_campaign(args.data, create=False) as store:
             recorded = [s.get("robot_definition", {}).get("model") for s in store.snapshots()]
         recorded = [r for r in recorded if r]
         if recorded and get_robot(recorded[-1]).name != robot:

@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+import sqlite3
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
 import pandas as pd
 
+from hil.data.campaigns import is_campaign, open_campaign
 from hil.data.dataset import load_dataset
-from hil.data.store import CampaignStore, campaign_dataset, is_campaign_file
+from hil.data.store import CampaignError, ResultRecord, campaign_dataset
 from hil.geometry.coupling import JointCoupling, coupling_from_table, coupling_table
 from hil.model.calibrated_model import CalibratedModel
 from hil.runner.procedure import Role
@@ -24,8 +27,9 @@ def read_measurements(
 ) -> pd.DataFrame:
     """The dataset-contract frame of `path`: a campaign file (the measurements of the procedure that
     publishes the grid, one step or all of them) or a dataset CSV (hil.data.dataset.load_dataset). Raises DatasetError/ValueError on bad input."""
-    if is_campaign_file(path):
-        return campaign_dataset(path, grid_procedure(), step)
+    if is_campaign(path):
+        with open_campaign(path, create=False) as store:
+            return campaign_dataset(store, grid_procedure(), step)
     return load_dataset(path, require_positions=require_positions)
 
 
@@ -45,15 +49,29 @@ def model_coupling(model: CalibratedModel) -> JointCoupling | None:
     )
 
 
+def record_in_campaign(path: str | Path, result: ResultRecord) -> str | None:
+    """Record an analysis' result in the campaign it read (a file or the shared store); the campaign as
+    shown when recorded, None when `path` is a dataset CSV (nothing to record in)."""
+    if not is_campaign(path):
+        return None
+    try:
+        with open_campaign(path, create=False) as store:
+            store.record_result(result)
+            return str(store.path)
+    except (CampaignError, sqlite3.Error) as exc:  # a read-only file, a lost server: the output files stand
+        warnings.warn(f"the campaign {path} did not keep the {result.kind} result: {exc}", stacklevel=2)
+        return None
+
+
 def grid_procedure() -> str:
     """The registered procedure whose measurements the analysis commands read: the one publishing the grid."""
     return publisher(Role.GRID)[0]
 
 
 def _campaign_steps(path: str | Path) -> set[str]:
-    if not is_campaign_file(path):
+    if not is_campaign(path):
         return set()
-    with CampaignStore(path, create=False) as store:
+    with open_campaign(path, create=False) as store:
         counts = store.point_counts()
     return set(counts.loc[counts["procedure"] == grid_procedure(), "step"])
 

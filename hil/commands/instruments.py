@@ -16,8 +16,9 @@ from pathlib import Path
 
 from hil.commands.errors import CliError
 from hil.commands.interrupts import stop_on_interrupt
-from hil.data.campaign_lock import CampaignBusyError, CampaignLock, Holder
-from hil.data.store import CampaignStore
+from hil.data.campaign_lock import CampaignBusyError, Holder
+from hil.data.campaigns import campaign_lock, open_campaign
+from hil.data.store import Campaign
 from hil.instruments.plugins import (
     PluginError,
     RobotDriver,
@@ -105,7 +106,7 @@ def _cell_clock(config: CellConfig) -> Callable[[], float] | None:
         raise CliError(exc.message, exc.remedy) from exc
 
 
-def continuing_clock(cell_clock: Callable[[], float], store: CampaignStore) -> Callable[[], float]:
+def continuing_clock(cell_clock: Callable[[], float], store: Campaign) -> Callable[[], float]:
     """A simulated cell's clock, counted on from the campaign's latest measurement: a cell started again for
     the same campaign (a later stage of the demo, a resume) continues its times from there, so the campaign's
     `t_s` depends on the seed and the commands only, not on how long the machine took between two starts.
@@ -123,6 +124,7 @@ def open_session(
     stack: ExitStack,
     progress: bool | Progress | None = None,
     holder: str = "hil run",
+    operator_name: str = "",
 ) -> Session:
     """Take the campaign (one driver at a time: `holder` says who, for the one refused), connect the robot
     and the tracker through their driver plug-ins, open the campaign store, and build the Session.
@@ -132,7 +134,8 @@ def open_session(
     leaves no empty campaign). `progress`: a Progress to report to, or whether to draw one."""
     robots, trackers = drivers_of(config)
     try:
-        stack.enter_context(CampaignLock(campaign, Holder.this_process(holder)))
+        lock = campaign_lock(campaign, Holder.this_process(holder), password_file=config.store_password_file)
+        stack.enter_context(lock)
     except CampaignBusyError as exc:
         raise CliError(
             str(exc), "wait until it ends or stop it there, then run this again; nothing moved"
@@ -142,11 +145,15 @@ def open_session(
         opening.callback(robot.close)
         tracker = trackers.open(config.tracker_mapping())
         opening.callback(tracker.close)
-        store = CampaignStore(campaign)
+        store = open_campaign(campaign, password_file=config.store_password_file)
         opening.callback(store.close)
         station = {
             "robot_controller_version": getattr(robot, "version", None),
+            "robot_serial_number": getattr(robot, "serial_number", None),
+            "robot_model_reported": getattr(robot, "model_name", None),
             "tracker": getattr(tracker, "tracker_info", {}),
+            "cell_name": config.cell_name,
+            "operator_name": operator_name or config.operator_name,
         }
         cell_clock = _cell_clock(config)
         clock = None if cell_clock is None else continuing_clock(cell_clock, store)

@@ -17,6 +17,8 @@ from typing import Any
 
 from hil.commands.errors import CliError
 from hil.commands.interrupts import interrupt_guard
+from hil.data.pg_errors import CampaignStoreLost
+from hil.data.store import CampaignError
 from hil.runner.cell_config import CellConfigError, load_cell_config
 from hil.runner.engine import CampaignStopped
 from hil.runner.envelope import EnvelopeError
@@ -100,9 +102,17 @@ def add_procedure_arguments(parser: argparse.ArgumentParser, procedure: Procedur
     parser.description = procedure.describe()
     parser.add_argument("--cell", required=True, help="cell configuration (TOML)")
     parser.add_argument(
-        "--campaign", required=True, help="campaign file (SQLite); created if missing, resumed if present"
+        "--campaign",
+        required=True,
+        help="campaign file (SQLite), or postgresql://USER@HOST/DB?campaign=NAME in the shared store "
+        "(password from PGPASSWORD or the cell's store.password_file); created if missing, resumed if present",
     )
     parser.add_argument("--dry-run", action="store_true", help="print the plan and move nothing")
+    parser.add_argument(
+        "--operator-name",
+        default="",
+        help="who runs the campaign, recorded with it (default: the cell config's [cell] operator)",
+    )
     parser.add_argument(
         "--operator",
         choices=["auto", "console", "sim"],
@@ -158,7 +168,9 @@ class _WrongUnit(argparse.Action):
         parser.error(f"{option_string}: {p.help} is given in {p.unit}: use {p.flag} (allowed {p.allowed()})")
 
 
-def open_instruments(config, campaign: Path, operator, stack: ExitStack, holder: str = "hil run"):
+def open_instruments(
+    config, campaign: str | Path, operator, stack: ExitStack, holder: str = "hil run", operator_name: str = ""
+):
     """open_session, its failures worded for the command line (what failed, what to do; no campaign is left)."""
     from hil.commands.instruments import open_session
     from hil.instruments.robot import RobotConnectionError, RobotError
@@ -166,7 +178,11 @@ def open_instruments(config, campaign: Path, operator, stack: ExitStack, holder:
 
     again = "then run the same command again"
     try:
-        return open_session(config, campaign, operator, stack, holder=holder)
+        return open_session(config, campaign, operator, stack, holder=holder, operator_name=operator_name)
+    except CampaignStoreLost as exc:
+        raise CliError(exc.message, f"{exc.remedy}; nothing moved") from exc
+    except CampaignError as exc:
+        raise CliError(str(exc), "nothing moved") from exc
     except RobotConnectionError as exc:
         raise CliError(
             f"cannot connect to the robot: {exc.message}",
@@ -194,8 +210,10 @@ def run(args: argparse.Namespace) -> int:
         config = load_cell_config(args.cell)
     except CellConfigError as exc:
         raise CliError(str(exc), "fix the keys named above (hil cell check shows the same list)") from exc
-    campaign = Path(args.campaign)
-    if not campaign.parent.exists():
+    from hil.data.pg_url import is_campaign_url
+
+    campaign: str | Path = args.campaign if is_campaign_url(args.campaign) else Path(args.campaign)
+    if isinstance(campaign, Path) and not campaign.parent.exists():
         raise CliError(
             f"campaign folder {campaign.parent} does not exist", "create it or choose another --campaign path"
         )
@@ -219,11 +237,18 @@ def run(args: argparse.Namespace) -> int:
 
     with interrupt_guard(), ExitStack() as stack:
         stack.enter_context(capture_native_output(verbose=getattr(args, "verbose", False)))
-        session = open_instruments(config, campaign, operator, stack, holder=f"hil run {procedure.name}")
+        session = open_instruments(
+            config,
+            campaign,
+            operator,
+            stack,
+            holder=f"hil run {procedure.name}",
+            operator_name=args.operator_name,
+        )
         try:
             with session:
                 result = procedure(session, planned=the_plan, **values)
-        except CampaignStopped as exc:
+        except (CampaignStopped, CampaignStoreLost) as exc:
             raise CliError(exc.message, exc.remedy) from exc
         except OperatorAbortError as exc:
             raise CliError(str(exc), "re-run the same command to resume; recorded points are kept") from exc

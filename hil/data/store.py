@@ -15,11 +15,13 @@ import os
 import sqlite3
 import threading
 import time
+import uuid
 import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from enum import StrEnum
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 import pandas as pd
@@ -27,7 +29,9 @@ import pandas as pd
 from hil.data.dataset import DatasetError, validate_dataset, write_dataset
 from hil.data.jsonable import to_jsonable
 
-SCHEMA_VERSION = 2  # 2: the outcomes table (declared measurements judged against their limits)
+# 2: the outcomes table (declared measurements judged against their limits); 3: the campaign's UUID (meta 'uuid')
+# and its results table (the models and summaries hil calibrate and hil diagnose made from it)
+SCHEMA_VERSION = 3
 APPLICATION_ID = 0x48494C43  # "HILC" in the SQLite header (offset 68): marks the file as a hil campaign
 SQLITE_MAGIC = b"SQLite format 3\x00"
 
@@ -112,6 +116,18 @@ CREATE TABLE outcomes (
 );
 """
     + _append_only("outcomes"),
+    # A random (version 4) UUID from SQLite's own random bytes, so a campaign written by an older hil gets
+    # one too when it is first opened; the shared store knows a pushed campaign by it.
+    3: """
+INSERT INTO meta (key, value) SELECT 'uuid', lower(
+    substr(h, 1, 8) || '-' || substr(h, 9, 4) || '-4' || substr(h, 14, 3) || '-'
+    || substr('89ab', 1 + (abs(random()) % 4), 1) || substr(h, 18, 3) || '-' || substr(h, 21, 12)
+) FROM (SELECT hex(randomblob(16)) AS h);
+CREATE TABLE results (
+    id INTEGER PRIMARY KEY, recorded_s REAL NOT NULL, kind TEXT NOT NULL, summary TEXT NOT NULL, model TEXT
+);
+"""
+    + _append_only("results"),
 }
 _SCHEMA = (
     _SCHEMA_1
@@ -142,6 +158,18 @@ class OutcomeRecord:
     bound: str
     verdict: Verdict
     note: str = ""
+
+
+@dataclass(frozen=True)
+class ResultRecord:
+    """What an analysis made of the campaign: `kind` ("calibration", "diagnosis"), its summary (errors before and
+    after, parameters with their uncertainties, effects found and assumed; JSON-able, SI units) and the model
+    it wrote (its JSON, as the model file holds it), recorded at `recorded_s` (UNIX time)."""
+
+    kind: str
+    summary: dict
+    model: dict | None
+    recorded_s: float = 0.0
 
 
 class CampaignError(ValueError):
@@ -378,6 +406,7 @@ class CampaignStore:
             self._conn = None
             raise
         self.created_s = float(meta.get("created_s", "nan"))
+        self.uuid = uuid.UUID(meta["uuid"])  # given at creation (or by the step to schema 3), never changed
         self._started_s: float | None = None
 
     # -- plumbing -------------------------------------------------------------------------------------
@@ -474,19 +503,7 @@ class CampaignStore:
         """Measurements in recording order, one row each (SI units): id, the MEASUREMENT_COLUMNS (arrays
         flattened: q1_rad.., x_m.., T_base_flange_00..) and the record's arrays as object columns
         (q_target_rad, q_rad, T_base_flange (4, 4), p_tracker_m, spread_m, std_m)."""
-        df = self.measurement_columns(MEASUREMENT_COLUMNS, procedure, step)
-        df["rejected_shots"] = pd.Series(
-            [() if s == "[]" else tuple(json.loads(s)) for s in df["rejected_shots"]],
-            index=df.index,
-            dtype=object,
-        )
-        df["extra"] = pd.Series(
-            [{} if s == "{}" else json.loads(s) for s in df["extra"]], index=df.index, dtype=object
-        )
-        for name, (columns, shape) in ARRAY_FIELDS.items():  # the record's arrays, one per row
-            values = df[list(columns)].to_numpy(float).reshape(len(df), *shape)
-            df[name] = pd.Series(list(values), index=df.index, dtype=object)
-        return df
+        return with_record_objects(self.measurement_columns(MEASUREMENT_COLUMNS, procedure, step))
 
     def measurement_columns(
         self, columns: Sequence[str], procedure: str | None = None, step: str | Sequence[str] | None = None
@@ -543,11 +560,7 @@ class CampaignStore:
                 .execute("SELECT temperature_c, extra FROM measurements ORDER BY id DESC LIMIT 1")
                 .fetchone()
             )
-        if row is None:
-            return None
-        extra = json.loads(row[1] or "{}")
-        readings = [extra.get(key) for key in ARM_TEMPERATURE_KEYS] + [row[0]]
-        return next((float(v) for v in readings if v is not None and np.isfinite(v)), None)
+        return None if row is None else arm_temperature_c(row[0], row[1])
 
     @property
     def last_timestamp_s(self) -> float | None:
@@ -583,15 +596,11 @@ class CampaignStore:
         )
 
     def events(self) -> pd.DataFrame:
-        df = self._frame(
-            "SELECT id, recorded_s, kind, message, procedure, step, point_id, data FROM events ORDER BY id"
-        )
-        df["data"] = [json.loads(s) for s in df["data"]]
-        for col in ("procedure", "step", "point_id"):  # absent -> None (not NaN)
-            df[col] = pd.Series(
-                [v if isinstance(v, str) else None for v in df[col]], index=df.index, dtype=object
+        return with_event_objects(
+            self._frame(
+                "SELECT id, recorded_s, kind, message, procedure, step, point_id, data FROM events ORDER BY id"
             )
-        return df
+        )
 
     def record_outcome(self, outcome: OutcomeRecord) -> None:
         """Append a judged measurement (committed when this returns)."""
@@ -621,6 +630,28 @@ class CampaignStore:
             OutcomeRecord(procedure, measurement, value, unit, limit, bound, Verdict(verdict), note)
             for procedure, measurement, value, unit, limit, bound, verdict, note in rows
         ]
+
+    def record_result(self, result: ResultRecord) -> None:
+        """Append an analysis' model and summary (committed when this returns)."""
+        self._insert(
+            "INSERT INTO results (recorded_s, kind, summary, model) VALUES (?, ?, ?, ?)",
+            (
+                time.time(),
+                result.kind,
+                _json(result.summary, "result summary"),
+                None if result.model is None else _json(result.model, "result model"),
+            ),
+        )
+
+    def results(self) -> list[ResultRecord]:
+        """Every recorded analysis result, oldest first."""
+        with self._lock:
+            rows = (
+                self._db()
+                .execute("SELECT kind, summary, model, recorded_s FROM results ORDER BY id")
+                .fetchall()
+            )
+        return [result_from_row(*row) for row in rows]
 
     def finish_step(self, procedure: str, step: str, result: dict) -> None:
         """Mark a step finished with its result; a later call for the same step appends a newer result."""
@@ -669,6 +700,60 @@ class CampaignStore:
             return self._db().execute("PRAGMA integrity_check").fetchone()[0] == "ok"
 
 
+class Campaign(Protocol):
+    """What a campaign store offers (CampaignStore is the reference; hil.data.pg_store keeps it too)."""
+
+    @property
+    def path(self) -> str | Path: ...  # what messages print: a file's path, a URL without its password
+
+    created_s: float
+    uuid: uuid.UUID
+
+    @property
+    def closed(self) -> bool: ...
+    def close(self) -> None: ...
+    def add_snapshot(self, snapshot: dict) -> None: ...
+    def snapshots(self) -> list[dict]: ...
+    def record_measurement(self, m: MeasurementRecord) -> int: ...
+    def has_measurement(self, procedure: str, step: str, point_id: str) -> bool: ...
+    def measurements(
+        self, procedure: str | None = None, step: str | Sequence[str] | None = None
+    ) -> pd.DataFrame: ...
+    def measurement_columns(
+        self, columns: Sequence[str], procedure: str | None = None, step: str | Sequence[str] | None = None
+    ) -> pd.DataFrame: ...
+    def records(self, procedure: str | None = None, step: str | None = None) -> list[MeasurementRecord]: ...
+    def point_counts(self) -> pd.DataFrame: ...
+    @property
+    def started_s(self) -> float: ...
+    def last_temperature_c(self) -> float | None: ...
+    @property
+    def last_timestamp_s(self) -> float | None: ...
+    def record_event(
+        self,
+        kind: str,
+        message: str,
+        *,
+        procedure: str | None = None,
+        step: str | None = None,
+        point_id: str | None = None,
+        data: dict | None = None,
+    ) -> None: ...
+    def events(self) -> pd.DataFrame: ...
+    def record_outcome(self, outcome: OutcomeRecord) -> None: ...
+    def outcomes(self) -> list[OutcomeRecord]: ...
+    def finish_step(self, procedure: str, step: str, result: dict) -> None: ...
+    def step_result(self, procedure: str, step: str) -> dict | None: ...
+    def steps(self) -> pd.DataFrame: ...
+    def log(self, level: str, message: str, logger: str = "hil", *, time_s: float | None = None) -> None: ...
+    def log_lines(self, last: int | None = None) -> pd.DataFrame: ...
+    def integrity_ok(self) -> bool: ...
+    def record_result(self, result: ResultRecord) -> None: ...
+    def results(self) -> list[ResultRecord]: ...
+    def __enter__(self) -> Campaign: ...
+    def __exit__(self, *exc: object) -> None: ...
+
+
 def _where(**conditions: str | Sequence[str] | None) -> tuple[str, list[object]]:
     clauses: list[str] = []
     params: list[object] = []
@@ -683,6 +768,47 @@ def _where(**conditions: str | Sequence[str] | None) -> tuple[str, list[object]]
             clauses.append(f"{column} IN ({', '.join('?' * len(values))})")
             params.extend(values)
     return (" WHERE " + " AND ".join(clauses) if clauses else ""), params
+
+
+def with_record_objects(df: pd.DataFrame) -> pd.DataFrame:
+    """Stored measurement rows (every MEASUREMENT_COLUMNS, JSON as text) with the record's objects: the
+    rejected shots as a tuple, extra as a dict and the record's arrays, one per row (either back-end)."""
+    df["rejected_shots"] = pd.Series(
+        [() if s == "[]" else tuple(json.loads(s)) for s in df["rejected_shots"]],
+        index=df.index,
+        dtype=object,
+    )
+    df["extra"] = pd.Series(
+        [{} if s == "{}" else json.loads(s) for s in df["extra"]], index=df.index, dtype=object
+    )
+    for name, (columns, shape) in ARRAY_FIELDS.items():  # the record's arrays, one per row
+        values = df[list(columns)].to_numpy(float).reshape(len(df), *shape)
+        df[name] = pd.Series(list(values), index=df.index, dtype=object)
+    return df
+
+
+def result_from_row(kind: str, summary: str, model: str | None, recorded_s: float) -> ResultRecord:
+    """A ResultRecord back from its stored row (either back-end)."""
+    return ResultRecord(
+        kind, json.loads(summary), None if model is None else json.loads(model), float(recorded_s)
+    )
+
+
+def with_event_objects(df: pd.DataFrame) -> pd.DataFrame:
+    """Stored event rows with their data as a dict and an absent procedure, step or point as None (not NaN)."""
+    df["data"] = [json.loads(s) for s in df["data"]]
+    for col in ("procedure", "step", "point_id"):
+        df[col] = pd.Series(
+            [v if isinstance(v, str) else None for v in df[col]], index=df.index, dtype=object
+        )
+    return df
+
+
+def arm_temperature_c(air_temperature_c: float | None, extra_json: str | None) -> float | None:
+    """One measurement's temperature in the order of `ARM_TEMPERATURE_KEYS`, then the air's; None if none."""
+    extra = json.loads(extra_json or "{}")
+    readings = [extra.get(key) for key in ARM_TEMPERATURE_KEYS] + [air_temperature_c]
+    return next((float(v) for v in readings if v is not None and np.isfinite(v)), None)
 
 
 def record_from_row(row: dict) -> MeasurementRecord:
@@ -708,7 +834,7 @@ def record_from_row(row: dict) -> MeasurementRecord:
 class StoreLogHandler(logging.Handler):
     """A logging handler that writes every record into the campaign's log table."""
 
-    def __init__(self, store: CampaignStore, level: int = logging.INFO) -> None:
+    def __init__(self, store: Campaign, level: int = logging.INFO) -> None:
         super().__init__(level)
         self.store = store
 
@@ -730,15 +856,16 @@ def load_campaign(
 
 
 def campaign_dataset(
-    path_or_store: str | Path | CampaignStore,
+    path_or_store: str | Path | CampaignStore | Campaign,
     procedure: str,
     step: str | Sequence[str] | None = None,
 ) -> pd.DataFrame:
     """The measurements of one procedure (one or several steps) in the hil.data.dataset contract, validated."""
-    if isinstance(path_or_store, CampaignStore):
-        store, own = path_or_store, False
-    else:
+    store: CampaignStore | Campaign
+    if isinstance(path_or_store, str | Path):
         store, own = CampaignStore(path_or_store, create=False), True
+    else:
+        store, own = path_or_store, False
     try:
         needed = Q_COLUMNS + P_COLUMNS + SPREAD_COLUMNS + STD_COLUMNS
         needed += (

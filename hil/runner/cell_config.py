@@ -108,6 +108,11 @@ class CellConfig:
     bodies: CellBodies | None = (
         None  # the arm, tool, tracker and keep-outs, whether or not collisions are checked
     )
+    cell_name: str = ""  # [cell] name: how the plant names this cell (a key of its campaigns)
+    operator_name: str = ""  # [cell] operator: who runs it, unless hil run --operator-name says otherwise
+    # [store] password_file: the shared campaign database's password (a postgresql:// --campaign), read at
+    # connection time and never recorded; relative to the cell file's folder
+    store_password_file: Path | None = None
 
     @cached_property
     def nominal(self) -> KinematicModel:
@@ -218,7 +223,10 @@ class _Reader:
                 )
 
 
-SECTIONS = ("robot", "tracker", "tool", "envelope", "motion", "simulator", "drift_monitor", "grid", "console")
+SECTIONS = (
+    *("robot", "tracker", "tool", "envelope", "motion", "simulator", "drift_monitor", "grid"),
+    *("console", "cell", "store"),
+)
 
 # [grid] orientation: every vertex in its own tool orientation facing the tracker (what a calibration wants:
 # the wrist joints move), or one tool orientation at every vertex (the grid paper's setting).
@@ -326,6 +334,9 @@ def parse_cell_config(data: dict, source: str = "cell.toml") -> CellConfig:
     if (drift_poses > 0) != (drift_every > 0):
         r.problems.append("[drift_monitor]: give both poses and every_points (or leave the section out)")
     grid_orientation, grid_fixed_rpy_deg = _read_grid(r)
+    cell_name = r.get("cell", "name", "str", default="")
+    operator_name = r.get("cell", "operator", "str", default="")
+    password_file = r.get("store", "password_file", "str")
     r.unknown_keys({"robot": ROBOT_DRIVER_KEYS})
     if r.problems:
         raise CellConfigError(source, r.problems)
@@ -379,6 +390,9 @@ def parse_cell_config(data: dict, source: str = "cell.toml") -> CellConfig:
         reduced_speed=reduced_speed,
         reduced_speed_fraction=reduced_fraction,
         bodies=bodies,
+        cell_name=cell_name,
+        operator_name=operator_name,
+        store_password_file=None if password_file is None else Path(source).parent / password_file,
     )
 
 

@@ -24,7 +24,7 @@ from typing import Protocol, TypeVar
 
 import numpy as np
 
-from hil.data.store import CampaignStore, MeasurementRecord, OutcomeRecord, Verdict
+from hil.data.store import Campaign, MeasurementRecord, OutcomeRecord, Verdict
 from hil.errors import ActionableError
 from hil.instruments.robot import RobotError
 from hil.instruments.tracker import (
@@ -129,7 +129,7 @@ Measuring = Generator[Request, Reply, T]  # a procedure's loop: yields requests,
 class Cell(Protocol):
     """What the engine drives: the session's instruments and rules (hil.runner.session.Session)."""
 
-    store: CampaignStore
+    store: Campaign
     progress: Progress
 
     def check_poses(self, q: np.ndarray, labels: list[str] | None = None) -> None: ...

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 import pandas as pd
 
-from hil.data.store import P_COLUMNS, Q_COLUMNS, T_COLUMNS, CampaignStore, MeasurementRecord, StoreLogHandler
+from hil.data.store import P_COLUMNS, Q_COLUMNS, T_COLUMNS, Campaign, MeasurementRecord, StoreLogHandler
 from hil.geometry.kinematics import KinematicModel, forward_kinematics
 from hil.geometry.se3 import transform_points
 from hil.instruments.robot import Robot, RobotError
@@ -86,7 +86,7 @@ class Session:
         config: CellConfig,
         robot: Robot,
         tracker: Tracker,
-        store: CampaignStore,
+        store: Campaign,
         operator: Operator,
         progress: Progress | None = None,
         station: dict | None = None,
