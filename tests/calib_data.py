@@ -6,7 +6,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from hil.data.dataset import make_dataset
-from hil.geometry.kinematics import measured_point
+from hil.geometry.kinematics import forward_kinematics, measured_point
 from hil.geometry.robots import get_robot
 from hil.geometry.se3 import make_transform
 from hil.model.calibrated_model import CalibratedModel
@@ -25,6 +25,44 @@ def ur10_joints(rng: np.random.Generator, n: int) -> np.ndarray:
             rng.uniform(-np.pi, np.pi, n),
         ]
     )
+
+
+ANGLE_NOISE_RAD = np.deg2rad(0.01)  # a 6-DoF probe's stated noise (hil's default)
+POSITION_NOISE_M = 15e-6  # the tracker's MPE model at ~2.5 m, 1 sigma
+
+
+def wrist_cyclic_campaign(n: int = 250, seed: int = 4, angle_noise_rad: float = ANGLE_NOISE_RAD):
+    """A UR10 whose joint 6 has a once-per-turn error (0.02 deg) while the SMR sits on the joint-6 axis: the
+    error turns the probe but does not move the SMR."""
+    return wrist_cyclic_campaigns((n,), seed, angle_noise_rad)[0]
+
+
+def wrist_cyclic_campaigns(sizes: tuple[int, ...], seed: int = 4, angle_noise_rad: float = ANGLE_NOISE_RAD):
+    """Campaigns of `sizes` random poses each of one `wrist_cyclic_campaign` cell (a 6-DoF probe's position
+    and orientation per row), measured one after the other: the first is that campaign, the next ones
+    validation poses of the same arm."""
+    rng = np.random.default_rng(seed)
+    nominal = get_robot("ur10")
+    errors = {nm: rng.normal(0, 3e-4 if nm[0] in "ad" else 5e-4) for nm in nominal.param_names}
+    errors |= {"a6": 0.0, "alpha6": 0.0}  # keep the flange's z axis the joint-6 axis
+    true = nominal.with_errors(errors)
+    T = make_transform(Rotation.from_rotvec([0.05, -0.1, 2.0]).as_matrix(), [2.0, 0.5, -0.3])
+    tool = np.array([0.0, 0.0, 0.11])
+    R_flange_probe = Rotation.from_rotvec([0.1, 0.2, -0.3]).as_matrix()
+    out = []
+    for n in sizes:
+        q = ur10_joints(rng, n)
+        dq = np.zeros_like(q)
+        dq[:, 5] = 0.3e-3 * np.sin(q[:, 5]) + 0.15e-3 * np.cos(q[:, 5])
+        T_flange = forward_kinematics(true, q + dq)
+        p = (T_flange[:, :3, :3] @ tool + T_flange[:, :3, 3]) @ T[:3, :3].T + T[:3, 3]
+        p += rng.normal(0, POSITION_NOISE_M, p.shape)
+        R = T[:3, :3] @ T_flange[:, :3, :3] @ R_flange_probe
+        R = Rotation.from_rotvec(rng.normal(0, angle_noise_rad, (n, 3))).as_matrix() @ R
+        df = make_dataset(q, p, smr=1, R_tracker_probe=R)
+        df.attrs["position_noise_m"] = POSITION_NOISE_M
+        out.append(df)
+    return out
 
 
 def synthetic(n: int = 200, seed: int = 0, noise_m: float = 15e-6):

@@ -1,58 +1,48 @@
 """Diagnosis uses every equation the data has: a 6-DoF probe's orientations reveal an effect its positions
-cannot show, and the batched screening reproduces the per-candidate refit on those 6-coordinate rows."""
+cannot show, and the batched screening reproduces the per-candidate refit on those 6-coordinate rows.
 
+Its orientation intervals (hil.model.intervals, AngleSpread): a 6-DoF probe's rows get interval_deg, the angle
+about the predicted orientation that holds the measured one with probability P; rows without orientation get
+none; a model file from before the orientation's spread is refused, never given one from the positions'."""
+
+import json
 from dataclasses import replace
 
 import numpy as np
+import pandas as pd
 import pytest
-from calib_data import ur10_joints
-from scipy.spatial.transform import Rotation
+from calib_data import ANGLE_NOISE_RAD, wrist_cyclic_campaign, wrist_cyclic_campaigns
 
 from hil.analysis.diagnosis.cautions import CalibrationNote
 from hil.analysis.diagnosis.pipeline import DiagnosisOptions, run_diagnosis
-from hil.data.dataset import ORIENTATION_COLUMNS, make_dataset
-from hil.geometry.kinematics import forward_kinematics
-from hil.geometry.robots import get_robot
-from hil.geometry.se3 import make_transform
+from hil.data.dataset import ORIENTATION_COLUMNS, orientations
+from hil.geometry.se3 import rotation_log
+from hil.model.calibrated_model import CalibratedModel
+from hil.model.intervals import IntervalError
+from hil.model.prediction_intervals import prediction_intervals
+from tests.cli_in_process import run_hil
 
 pytestmark = pytest.mark.timeout(180)
 
-ANGLE_NOISE_RAD = np.deg2rad(0.01)  # the probe's stated noise (hil's default)
-POSITION_NOISE_M = 15e-6  # the tracker's MPE model at ~2.5 m, 1 sigma
 CYCLIC = DiagnosisOptions(families=("cyclic",))  # only the cyclic errors are candidates
 
 
-def _wrist_cyclic_campaign(n: int = 250, seed: int = 4, angle_noise_rad: float = ANGLE_NOISE_RAD):
-    """A UR10 whose joint 6 has a once-per-turn error (0.02 deg) while the SMR sits on the joint-6 axis: the
-    error turns the probe but does not move the SMR."""
-    rng = np.random.default_rng(seed)
-    nominal = get_robot("ur10")
-    errors = {nm: rng.normal(0, 3e-4 if nm[0] in "ad" else 5e-4) for nm in nominal.param_names}
-    errors |= {"a6": 0.0, "alpha6": 0.0}  # keep the flange's z axis the joint-6 axis
-    true = nominal.with_errors(errors)
-    T = make_transform(Rotation.from_rotvec([0.05, -0.1, 2.0]).as_matrix(), [2.0, 0.5, -0.3])
-    tool = np.array([0.0, 0.0, 0.11])
-    R_flange_probe = Rotation.from_rotvec([0.1, 0.2, -0.3]).as_matrix()
-    q = ur10_joints(rng, n)
-    dq = np.zeros_like(q)
-    dq[:, 5] = 0.3e-3 * np.sin(q[:, 5]) + 0.15e-3 * np.cos(q[:, 5])
-    T_flange = forward_kinematics(true, q + dq)
-    p = (T_flange[:, :3, :3] @ tool + T_flange[:, :3, 3]) @ T[:3, :3].T + T[:3, 3]
-    p += rng.normal(0, POSITION_NOISE_M, p.shape)
-    R = T[:3, :3] @ T_flange[:, :3, :3] @ R_flange_probe
-    R = Rotation.from_rotvec(rng.normal(0, angle_noise_rad, (n, 3))).as_matrix() @ R
-    df = make_dataset(q, p, smr=1, R_tracker_probe=R)
-    df.attrs["position_noise_m"] = POSITION_NOISE_M
-    return df
+@pytest.fixture(scope="module")
+def probe_cell():
+    """The diagnosed 6-DoF probe campaign (`wrist_cyclic_campaign`: 250 poses) and 150 later poses of the
+    same arm."""
+    train, val = wrist_cyclic_campaigns((250, 150), seed=4)
+    return train, val, run_diagnosis(train, "ur10", options=CYCLIC)
 
 
 def _names(report):
     return [(e["name"], e["joint"]) for e in report.effects_added]
 
 
-def test_an_effect_seen_only_in_the_probe_orientation_is_selected_with_orientations_and_not_without():
-    df = _wrist_cyclic_campaign()
-    with_rot = run_diagnosis(df, "ur10", options=CYCLIC)
+def test_an_effect_seen_only_in_the_probe_orientation_is_selected_with_orientations_and_not_without(
+    probe_cell,
+):
+    df, _, with_rot = probe_cell
     assert ("cyclic", 6) in _names(with_rot)
     positions = df.drop(columns=list(ORIENTATION_COLUMNS))
     positions.attrs = dict(df.attrs)
@@ -67,8 +57,100 @@ def test_an_effect_seen_only_in_the_probe_orientation_is_selected_with_orientati
 
 
 def test_orientations_far_noisier_than_stated_are_left_out_of_the_tests_and_the_verdict_says_so():
-    df = _wrist_cyclic_campaign(angle_noise_rad=3 * ANGLE_NOISE_RAD)  # the probe reads 3x worse than stated
+    df = wrist_cyclic_campaign(angle_noise_rad=3 * ANGLE_NOISE_RAD)  # the probe reads 3x worse than stated
     report = run_diagnosis(df, "ur10", options=CYCLIC)
     assert ("cyclic", 6) not in _names(report)
     notes = [c.text for c in report.verdict["cautions"] if isinstance(c, CalibrationNote)]
     assert any("tested on positions only" in t for t in notes)
+    # no orientation spread was measured: the intervals give no angle for these rows, and say why
+    iv = prediction_intervals(report.model, df)
+    assert iv.angle_rad is None
+    assert any("no interval_deg" in n and "left them out" in n for n in iv.notes)
+
+
+def _angle_errors_rad(model: CalibratedModel, df: pd.DataFrame) -> np.ndarray:
+    R_measured = orientations(df)
+    assert R_measured is not None
+    R_predicted = model.predict_rotation(df)
+    return np.linalg.norm(rotation_log(R_measured @ np.swapaxes(R_predicted, 1, 2)), axis=1)
+
+
+def test_orientation_intervals_cover_later_poses_and_are_sharp(probe_cell):
+    _, val, report = probe_cell
+    iv = prediction_intervals(report.model, val, 0.95)
+    assert iv.angle_rad is not None and iv.angle_rad.shape == (len(val),)
+    err = _angle_errors_rad(report.model, val)
+    covered = float(np.mean(err <= iv.angle_rad))
+    rms = float(np.sqrt(np.mean(err**2)))
+    assert 0.85 <= covered <= 1.0
+    assert np.median(iv.angle_rad) <= 3.0 * rms  # sharp, not merely wide
+    # a higher probability, a wider angle; read off the same held-out rows as the positions' radius
+    wider = prediction_intervals(report.model, val, 0.99).angle_rad
+    assert wider is not None and np.all(wider >= iv.angle_rad)
+    angles = report.model.spread.orientation
+    assert angles is not None and angles.n_heldout == report.model.spread.n_heldout
+
+
+def test_orientation_interval_grows_off_the_training_poses(probe_cell):
+    train, _, report = probe_cell
+    at = train.iloc[:20].copy()
+    off = at.assign(q1_rad=at["q1_rad"] + 2.0, q4_rad=at["q4_rad"] + 1.0)
+    a_at = prediction_intervals(report.model, at).angle_rad
+    a_off = prediction_intervals(report.model, off).angle_rad
+    assert a_at is not None and a_off is not None
+    # here the held-out folds show no growth with distance (the geometry is right everywhere), so what
+    # widens it is the parameters' covariance through the orientation's derivative: pose by pose, not
+    # monotonic in the distance, but wider on the whole
+    assert report.model.spread.orientation.joint_rate_rad2_per_m >= 0.0
+    assert np.mean(a_off) > np.mean(a_at) and np.max(a_off) > np.max(a_at)
+
+
+def test_predict_writes_interval_deg_only_for_rows_with_orientation(probe_cell, tmp_path, capsys):
+    _, val, report = probe_cell
+    report.model.save(tmp_path / "model.json")
+    val.to_csv(tmp_path / "probe.csv", index=False)
+    val.drop(columns=list(ORIENTATION_COLUMNS)).to_csv(tmp_path / "points.csv", index=False)
+    out = run_hil(
+        "predict", "model.json", "probe.csv", "-o", "p.csv", "--interval", cwd=tmp_path, capsys=capsys
+    )
+    assert out.returncode == 0, out.stderr
+    assert "interval_deg" in out.stdout
+    pred = pd.read_csv(tmp_path / "p.csv")
+    iv = prediction_intervals(CalibratedModel.load(tmp_path / "model.json"), val)
+    assert iv.angle_deg is not None
+    assert np.allclose(pred["interval_deg"].to_numpy(), iv.angle_deg, rtol=1e-6)
+    # the orientation written is the predicted one, the one the interval is about
+    R_written = orientations(pred)
+    assert R_written is not None
+    gap = rotation_log(R_written @ np.swapaxes(report.model.predict_rotation(val), 1, 2))
+    assert np.max(np.linalg.norm(gap, axis=1)) < 1e-8
+    out = run_hil(
+        "predict", "model.json", "points.csv", "-o", "q.csv", "--interval", cwd=tmp_path, capsys=capsys
+    )
+    assert out.returncode == 0, out.stderr
+    pred = pd.read_csv(tmp_path / "q.csv")
+    assert "interval_mm" in pred.columns and "interval_deg" not in pred.columns
+
+
+def test_a_model_from_before_orientation_intervals_is_refused_for_orientation_rows(
+    probe_cell, tmp_path, capsys
+):
+    _, val, report = probe_cell
+    report.model.save(tmp_path / "model.json")
+    data = json.loads((tmp_path / "model.json").read_text())
+    del data["spread"]["orientation"], data["spread"]["orientation_reason"]  # as the file was written then
+    (tmp_path / "old.json").write_text(json.dumps(data))
+    old = CalibratedModel.load(tmp_path / "old.json")
+    with pytest.raises(IntervalError, match="no orientation spread.*hil diagnose"):
+        prediction_intervals(old, val)
+    positions_only = val.drop(columns=list(ORIENTATION_COLUMNS))
+    assert np.allclose(  # its positions' intervals are what they were
+        prediction_intervals(old, positions_only).radius_m,
+        prediction_intervals(report.model, val).radius_m,
+    )
+    val.to_csv(tmp_path / "probe.csv", index=False)
+    out = run_hil(
+        "predict", "old.json", "probe.csv", "-o", "p.csv", "--interval", cwd=tmp_path, capsys=capsys
+    )
+    assert out.returncode != 0 and "hil diagnose" in out.stderr
+    assert not (tmp_path / "p.csv").exists()

@@ -13,7 +13,13 @@ from hil.commands.arg_checks import InputError, add_force_option, add_joint_conv
 from hil.commands.errors import CliError
 from hil.commands.help_format import DefaultsHelpFormatter
 from hil.commands.inputs import model_coupling, read_measurements
-from hil.data.dataset import POSITION_COLUMNS, DatasetError, joints_rad
+from hil.data.dataset import (
+    POSITION_COLUMNS,
+    DatasetError,
+    has_orientation,
+    joints_rad,
+    orientation_columns,
+)
 from hil.data.joint_conventions import joints_to_kinematic
 from hil.model.calibrated_model import CalibratedModel
 from hil.model.intervals import IntervalError, Intervals
@@ -26,7 +32,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         help="predict x_mm, y_mm, z_mm (tracker frame) for the joints in a CSV with a calibrated model",
         description="Where a calibrated model puts the SMR for each row of joints: reads a CSV with "
         "q1_rad..q6_rad (and the columns the model's effects need, such as t_s and temperature_c), writes the "
-        "same rows with x_mm, y_mm, z_mm in the tracker frame as the model predicts them.",
+        "same rows with x_mm, y_mm, z_mm in the tracker frame as the model predicts them (and, for rows with a "
+        "6-DoF probe's rx_deg, ry_deg, rz_deg and a model that knows the probe, its predicted orientation).",
         formatter_class=DefaultsHelpFormatter,
     )
     p.add_argument("model", help="model JSON written by 'hil calibrate' or 'hil diagnose -o'")
@@ -43,7 +50,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
         default=None,
         metavar="P",
         help="add interval_mm: the radius about each predicted point that holds the measured point with "
-        "probability P (0.95 when P is left out); needs a model written by 'hil diagnose' (format 2)",
+        "probability P (0.95 when P is left out), and for a 6-DoF probe's rows interval_deg, the angle about "
+        "the predicted orientation; needs a model written by 'hil diagnose' (format 2)",
     )
     add_force_option(p)
     p.set_defaults(func=run)
@@ -85,6 +93,7 @@ def run(args: argparse.Namespace) -> int:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             p = model.predict(df)
+        R = model.predict_rotation(df) if model.probes and has_orientation(df) else None
     except IntervalError as exc:
         raise CliError.from_text(f"--interval: {exc}") from exc
     except (InputError, DatasetError, ValueError, OSError, KeyError) as exc:
@@ -93,11 +102,22 @@ def run(args: argparse.Namespace) -> int:
         print(f"warning: {w.message}", file=sys.stderr)
     for note in plausibility_notes(model, df, p):
         print(f"warning: {note}", file=sys.stderr)
+    if R is None and has_orientation(df):
+        print(
+            "note: rx_deg, ry_deg, rz_deg are written as read: the model does not know the probe's mounting "
+            "(it was fitted without orientations), so it predicts no orientation",
+            file=sys.stderr,
+        )
     out = as_read.copy()  # the joints as given, in their convention
     for i, col in enumerate(POSITION_COLUMNS):
         out[col] = p[:, i] * 1000.0
+    if R is not None:
+        for col, values in orientation_columns(R).items():
+            out[col] = values
     if intervals is not None:
         out["interval_mm"] = intervals.radius_mm
+        if intervals.angle_deg is not None:
+            out["interval_deg"] = intervals.angle_deg
         for note in intervals.notes:
             print(f"note: {note}", file=sys.stderr)
     out.to_csv(args.output, index=False, float_format="%.10g")
@@ -108,4 +128,7 @@ def run(args: argparse.Namespace) -> int:
             f"interval_mm ({intervals.probability:g} probability): median {np.median(r):.4f}, "
             f"max {np.max(r):.4f} mm"
         )
+        if intervals.angle_deg is not None:
+            a = intervals.angle_deg
+            print(f"interval_deg: median {np.median(a):.4f}, max {np.max(a):.4f} deg")
     return 0

@@ -28,7 +28,16 @@ The spread (per axis, squared, m^2) is
   rather than the data found. Its mean over the training rows is already in s0 (the held-out residuals
   carry it), so only the excess is added.
 
+With a 6-DoF probe the orientation gets its own interval, the same way (`AngleSpread`): the angle about the
+predicted orientation that holds the measured one with probability P is `k_rot(P) * s_rot(x)`, with s_rot^2
+(per axis, rad^2) the same law over the same distances, its constant and rates read off the held-out rows'
+rotation errors |log(R_measured R_predicted^T)|, its v_par from the parameters' covariance through the
+orientation's derivative, its factor the quantile of those rows' scores. A position's spread says nothing of
+an angle's (a wrist joint's error turns the probe and hardly moves the SMR), so neither borrows from the other.
+
 All of it travels in the model file (`PredictionSpread`, model format 2); a model without it has no interval.
+A format-2 file written before the orientation's spread existed has no `orientation_reason`: it is refused an
+interval for orientation rows (`ORIENTATION_UNKNOWN`), never given one from the positions' spread.
 """
 
 from __future__ import annotations
@@ -48,8 +57,27 @@ MAX_STORED_POSES = 4000
 MAX_STORED_SCORES = 2001
 
 
+# The orientation reason of a model file written before the orientation's spread existed.
+ORIENTATION_UNKNOWN = "unknown"
+
+
 class IntervalError(ValueError):
     """An interval the model cannot give (no spread in its file, P outside what its held-out rows support)."""
+
+
+def conformal_factor(scores: np.ndarray, n_heldout: int, probability: float) -> float:
+    """k(P): the split-conformal quantile of sorted held-out scores, with the finite-sample correction
+    ceil((n + 1) P) / n; a P the held-out rows cannot support is refused, not guessed."""
+    if not 0.0 < probability < 1.0:
+        raise IntervalError(f"interval probability {probability}: give a value between 0 and 1")
+    n = n_heldout
+    level = math.ceil((n + 1) * probability) / n
+    if level > 1.0:
+        raise IntervalError(
+            f"interval probability {probability}: {n} held-out rows support at most "
+            f"{n / (n + 1):.3f}; measure more poses or ask for a lower probability"
+        )
+    return float(np.quantile(scores, level, method="higher"))
 
 
 @dataclass(frozen=True)
@@ -62,6 +90,57 @@ class Span:
     def outside(self, values: np.ndarray) -> np.ndarray:
         """How far each value lies outside the span (0 inside)."""
         return np.maximum(self.low - values, 0.0) + np.maximum(values - self.high, 0.0)
+
+
+@dataclass(frozen=True)
+class AngleSpread:
+    """The orientation's spread (rad^2 per axis, rates per the same distances as the position's) and its
+    held-out scores |rotation error| / s_rot."""
+
+    s0_rad2: float
+    joint_rate_rad2_per_m: float
+    temperature_rate_rad2_per_k: float
+    time_rate_rad2_per_s: float
+    parameter_variance_train_rad2: float  # mean v_par of the orientation over the training rows
+    scores: np.ndarray  # sorted, at most MAX_STORED_SCORES
+    n_heldout: int
+
+    def factor(self, probability: float) -> float:
+        """k_rot(P), as `PredictionSpread.factor`."""
+        return conformal_factor(self.scores, self.n_heldout, probability)
+
+    def variance(self, ex: Extrapolation, parameter_variance_rad2: np.ndarray | float) -> np.ndarray:
+        """s_rot^2(x) per row (rad^2, per axis)."""
+        return (
+            self.s0_rad2
+            + self.joint_rate_rad2_per_m * ex.joint_distance_m
+            + self.temperature_rate_rad2_per_k * ex.temperature_outside_k
+            + self.time_rate_rad2_per_s * ex.time_outside_s
+            + np.maximum(parameter_variance_rad2 - self.parameter_variance_train_rad2, 0.0)
+        )
+
+    def to_dict(self) -> dict:
+        return {
+            "s0_rad2": self.s0_rad2,
+            "joint_rate_rad2_per_m": self.joint_rate_rad2_per_m,
+            "temperature_rate_rad2_per_k": self.temperature_rate_rad2_per_k,
+            "time_rate_rad2_per_s": self.time_rate_rad2_per_s,
+            "parameter_variance_train_rad2": self.parameter_variance_train_rad2,
+            "scores": np.asarray(self.scores).tolist(),
+            "n_heldout": self.n_heldout,
+        }
+
+    @classmethod
+    def from_dict(cls, d: dict) -> AngleSpread:
+        return cls(
+            s0_rad2=float(d["s0_rad2"]),
+            joint_rate_rad2_per_m=float(d["joint_rate_rad2_per_m"]),
+            temperature_rate_rad2_per_k=float(d["temperature_rate_rad2_per_k"]),
+            time_rate_rad2_per_s=float(d["time_rate_rad2_per_s"]),
+            parameter_variance_train_rad2=float(d["parameter_variance_train_rad2"]),
+            scores=np.asarray(d["scores"], float),
+            n_heldout=int(d["n_heldout"]),
+        )
 
 
 @dataclass(frozen=True)
@@ -83,20 +162,13 @@ class PredictionSpread:
     scores: np.ndarray  # sorted |held-out residual| / s over the held-out rows (at most MAX_STORED_SCORES)
     n_heldout: int  # how many held-out rows the scores came from
     assumed_effects: list[str] = field(default_factory=list)  # effects carried by their prior, not found
+    orientation: AngleSpread | None = None  # a 6-DoF probe's orientation spread
+    # why there is no orientation spread ("" when there is one; ORIENTATION_UNKNOWN: a file from before it)
+    orientation_reason: str = "the model was diagnosed without a 6-DoF probe's orientations"
 
     def factor(self, probability: float) -> float:
-        """k(P): the split-conformal quantile of the held-out scores, with the finite-sample correction
-        ceil((n + 1) P) / n; a P the held-out rows cannot support is refused, not guessed."""
-        if not 0.0 < probability < 1.0:
-            raise IntervalError(f"interval probability {probability}: give a value between 0 and 1")
-        n = self.n_heldout
-        level = math.ceil((n + 1) * probability) / n
-        if level > 1.0:
-            raise IntervalError(
-                f"interval probability {probability}: {n} held-out rows support at most "
-                f"{n / (n + 1):.3f}; measure more poses or ask for a lower probability"
-            )
-        return float(np.quantile(self.scores, level, method="higher"))
+        """k(P): the split-conformal quantile of the held-out scores (`conformal_factor`)."""
+        return conformal_factor(self.scores, self.n_heldout, probability)
 
     def to_dict(self) -> dict:
         def span(s: Span | None) -> list[float] | None:
@@ -118,6 +190,8 @@ class PredictionSpread:
             "scores": np.asarray(self.scores).tolist(),
             "n_heldout": self.n_heldout,
             "assumed_effects": self.assumed_effects,
+            "orientation": None if self.orientation is None else self.orientation.to_dict(),
+            "orientation_reason": self.orientation_reason,
         }
 
     @classmethod
@@ -141,6 +215,8 @@ class PredictionSpread:
             scores=np.asarray(d["scores"], float),
             n_heldout=int(d["n_heldout"]),
             assumed_effects=[str(v) for v in d.get("assumed_effects", [])],
+            orientation=None if d.get("orientation") is None else AngleSpread.from_dict(d["orientation"]),
+            orientation_reason=str(d.get("orientation_reason", ORIENTATION_UNKNOWN)),
         )
 
 
@@ -195,10 +271,15 @@ class Intervals:
     radius_m: np.ndarray  # (N,)
     extrapolation: Extrapolation
     notes: list[str]
+    angle_rad: np.ndarray | None = None  # (N,) about the predicted orientation, for a 6-DoF probe's rows
 
     @property
     def radius_mm(self) -> np.ndarray:
         return self.radius_m * 1000.0
+
+    @property
+    def angle_deg(self) -> np.ndarray | None:
+        return None if self.angle_rad is None else np.rad2deg(self.angle_rad)
 
 
 def frame_drivers(df: pd.DataFrame) -> tuple[np.ndarray | None, np.ndarray | None]:

@@ -7,10 +7,12 @@ from dataclasses import replace
 import numpy as np
 import pandas as pd
 
-from hil.data.dataset import smr_ids
+from hil.data.dataset import has_orientation, smr_ids
 from hil.model.calibrated_model import FORMAT, CalibratedModel
 from hil.model.effects import EffectContext
 from hil.model.intervals import (
+    ORIENTATION_UNKNOWN,
+    Extrapolation,
     IntervalError,
     Intervals,
     PredictionSpread,
@@ -60,12 +62,57 @@ def parameter_variance_rows(
     return parameter_variance(J[:, :3, cols], spread.parameter_covariance)
 
 
+def rotation_parameter_variance_rows(
+    model: CalibratedModel, spread: PredictionSpread, ctx: EffectContext, smr: np.ndarray
+) -> np.ndarray:
+    """v_par of every row's orientation (rad^2 per axis), as `parameter_variance_rows` through the
+    orientation's derivative by the parameters."""
+    unheld = with_effects_free(model)
+    _, J = unheld.rotation_jacobian_ctx(ctx, smr)
+    names = unheld.param_names
+    cols = [names.index(n) for n in spread.parameter_names]
+    return parameter_variance(J[:, :, cols], spread.parameter_covariance)
+
+
+def orientation_intervals(
+    model: CalibratedModel,
+    spread: PredictionSpread,
+    df: pd.DataFrame,
+    ex: Extrapolation,
+    probability: float,
+) -> tuple[np.ndarray | None, list[str]]:
+    """The angle (rad) about each row's predicted orientation that holds its measured one with
+    `probability`, for rows with a 6-DoF probe's orientation (None without), and notes on why none is given.
+    A model file from before the orientation's spread is refused: its positions' spread says nothing of
+    angles."""
+    if not has_orientation(df):
+        return None, []
+    if spread.orientation is None:
+        if spread.orientation_reason == ORIENTATION_UNKNOWN and model.probes:
+            raise IntervalError(
+                "the rows carry a 6-DoF probe's orientation (rx_deg, ry_deg, rz_deg), and the model file was "
+                "written before hil gave orientation intervals, so it carries no orientation spread; run "
+                "'hil diagnose' again to write a model that does (or drop those columns for interval_mm alone)"
+            )
+        why = (
+            "the model does not know the probe's mounting" if not model.probes else spread.orientation_reason
+        )
+        return None, [f"no interval_deg for the rows' orientations: {why}"]
+    angles = spread.orientation
+    ctx, _ = model.context(df)
+    v_par = rotation_parameter_variance_rows(model, spread, ctx, smr_ids(df))
+    return angles.factor(probability) * np.sqrt(angles.variance(ex, v_par)), []
+
+
 def prediction_intervals(model: CalibratedModel, df: pd.DataFrame, probability: float = 0.95) -> Intervals:
-    """The radius (m) about each row's predicted point that holds its measured point with `probability`."""
+    """The radius (m) about each row's predicted point that holds its measured point with `probability`;
+    with a 6-DoF probe's orientation in the rows, also the angle (rad) about the predicted orientation."""
     spread = spread_of(model)
     k = spread.factor(probability)
     ctx, _ = model.context(df)
     ex, notes = extrapolation_of(spread, df, ctx.q)
+    angle, angle_notes = orientation_intervals(model, spread, df, ex, probability)
+    notes += angle_notes
     v_par = parameter_variance_rows(model, spread, ctx, smr_ids(df))
     radius = k * np.sqrt(spread_variance(spread, ex, v_par))
     beyond = int(np.sum(ex.joint_distance_m > spread.tested_distance_m))
@@ -81,4 +128,4 @@ def prediction_intervals(model: CalibratedModel, df: pd.DataFrame, probability: 
             + ", ".join(spread.assumed_effects)
             + " (their prior's width is in the intervals)"
         )
-    return Intervals(probability=probability, radius_m=radius, extrapolation=ex, notes=notes)
+    return Intervals(probability=probability, radius_m=radius, extrapolation=ex, notes=notes, angle_rad=angle)

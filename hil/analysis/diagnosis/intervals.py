@@ -6,7 +6,9 @@ the spatial folds (blocks of the volume: distance to the nearest training pose),
 rows (temperature outside the span the rest covers) and the earliest and latest (time outside it). Each is
 predicted by the model refitted without it (the diagnosis' linearised refit, `cv_positions`). The spread's
 constant and rates are the non-negative least-squares fit of the held-out squared residuals on those
-distances; the factor k(P) is the quantile of the held-out rows' |residual| / s.
+distances; the factor k(P) is the quantile of the held-out rows' |residual| / s. With a 6-DoF probe's
+orientations in the fit, the same held-out refits give each row's rotation error, and the orientation's
+spread is fitted from those alone, the same way.
 """
 
 from __future__ import annotations
@@ -25,23 +27,24 @@ from hil.analysis.calibration.solve import (
     position_noise_m,
     prior_terms,
 )
-from hil.analysis.diagnosis.selection import cv_positions
+from hil.analysis.diagnosis.screening import cv_residuals
 from hil.data.dataset import points_m
 from hil.geometry.kinematics import chain_axes
 from hil.model.calibrated_model import CalibratedModel
 from hil.model.intervals import (
     MAX_STORED_POSES,
     MAX_STORED_SCORES,
+    AngleSpread,
     Extrapolation,
     PredictionSpread,
     Span,
     driver_outside,
     nearest_distance,
-    spread_variance,
 )
 from hil.model.prediction_intervals import (
     parameter_variance_rows,
     prediction_intervals,
+    rotation_parameter_variance_rows,
     with_effects_free,
 )
 
@@ -57,10 +60,18 @@ class HeldOut:
     rows: np.ndarray
     residual_m: np.ndarray  # (n, 3)
     extrapolation: Extrapolation
+    rotation_rad: np.ndarray | None = (
+        None  # (n, 3) log(R_measured R_predicted^T), with a probe's orientations
+    )
 
     @property
     def per_axis_m2(self) -> np.ndarray:
         return np.sum(self.residual_m**2, axis=1) / 3.0
+
+    @property
+    def per_axis_rad2(self) -> np.ndarray:
+        assert self.rotation_rad is not None
+        return np.sum(self.rotation_rad**2, axis=1) / 3.0
 
 
 def _span(values: np.ndarray | None) -> Span | None:
@@ -112,14 +123,22 @@ def held_out(
     cv_spatial: np.ndarray | None,
     levers_m: np.ndarray,
 ) -> list[HeldOut]:
-    """The held-out rows of every kind: the spatial folds (their residuals `cv_spatial` when given), each end
-    of the temperature span, each end of the time span; distances weighted by the joints' `levers_m`."""
-    cv = cv_positions(model, free, prob, folds) if cv_spatial is None else cv_spatial
-    out = [HeldOut("spatial", f, cv[f], _extrapolation(prob, f, levers_m)) for f in folds]
+    """The held-out rows of every kind: the spatial folds (their position residuals `cv_spatial` when given
+    and the fit has no orientations), each end of the temperature span, each end of the time span; distances
+    weighted by the joints' `levers_m`; with orientations in the fit, each row's rotation error too."""
+    with_rotation = prob.R_measured is not None
+
+    def part(kind: str, rows: np.ndarray, cv: np.ndarray) -> HeldOut:
+        rotation = cv[rows, 3:6] / prob.rot_factor[rows] if with_rotation else None
+        return HeldOut(kind, rows, cv[rows, :3], _extrapolation(prob, rows, levers_m), rotation)
+
+    cv = (
+        cv_spatial if cv_spatial is not None and not with_rotation else cv_residuals(model, free, prob, folds)
+    )
+    out = [part("spatial", f, cv) for f in folds]
     for kind, values in (("temperature", prob.ctx.temperature_c), ("time", prob.ctx.t_s)):
         for rows in _ends(values):
-            r = cv_positions(model, free, prob, [rows])
-            out.append(HeldOut(kind, rows, r[rows], _extrapolation(prob, rows, levers_m)))
+            out.append(part(kind, rows, cv_residuals(model, free, prob, [rows])))
     return out
 
 
@@ -157,6 +176,66 @@ def parameter_covariance(
     return chosen + held_names, full
 
 
+@dataclass(frozen=True)
+class GrowthLaw:
+    """One quantity's spread law (per axis, squared units): s^2 = s0 + joint_rate d + temperature_rate dT +
+    time_rate dt + max(0, v_par - v_train), and the held-out rows' sorted scores |error| / s."""
+
+    s0: float
+    joint_rate: float
+    temperature_rate: float
+    time_rate: float
+    v_train: float
+    scores: np.ndarray
+    n_heldout: int
+
+    def variance(self, ex: Extrapolation, v_par: np.ndarray) -> np.ndarray:
+        return (
+            self.s0
+            + self.joint_rate * ex.joint_distance_m
+            + self.temperature_rate * ex.temperature_outside_k
+            + self.time_rate * ex.time_outside_s
+            + np.maximum(v_par - self.v_train, 0.0)
+        )
+
+
+def fit_growth(parts: list[HeldOut], per_axis: str, v_par: np.ndarray, floor: float) -> GrowthLaw:
+    """The spread law of one quantity from the held-out rows' per-axis squared errors (`per_axis`: the
+    HeldOut property that gives them) and every training row's v_par: s0 and the joint rate a non-negative
+    least-squares fit of the spatial folds' errors (s0 at least `floor`, what the instrument measures), then
+    the temperature's and the time's rates from what the rows beyond each end show beyond that."""
+    v_train = float(np.mean(v_par))
+
+    def gather(kinds: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray, Extrapolation]:
+        """Rows, their per-axis squared error less the parameters' excess variance, their extrapolation."""
+        chosen = [p for p in parts if p.kind in kinds]
+        rows = np.concatenate([p.rows for p in chosen])
+        r2 = np.concatenate([getattr(p, per_axis) for p in chosen])
+        fields = Extrapolation.__dataclass_fields__
+        ex = Extrapolation(*(np.concatenate([getattr(p.extrapolation, f) for p in chosen]) for f in fields))
+        return rows, r2 - np.maximum(v_par[rows] - v_train, 0.0), ex
+
+    _, r2, ex = gather(("spatial",))
+    X = np.column_stack([np.ones_like(r2), ex.joint_distance_m])
+    scale = np.maximum(np.abs(X).max(axis=0), 1e-300)
+    s0, joint_rate = nnls(X / scale, np.maximum(r2, 0.0))[0] / scale
+    law = GrowthLaw(max(float(s0), floor), float(joint_rate), 0.0, 0.0, v_train, np.zeros(1), 1)
+    if any(p.kind == "temperature" for p in parts):
+        _, r2, ex = gather(("temperature",))
+        excess = r2 - law.variance(ex, np.full(len(r2), v_train))
+        law = replace(law, temperature_rate=_rate(excess, ex.temperature_outside_k))
+    if any(p.kind == "time" for p in parts):  # beyond what the temperature's rate already gives them
+        _, r2, ex = gather(("time",))
+        excess = r2 - law.variance(ex, np.full(len(r2), v_train))
+        law = replace(law, time_rate=_rate(excess, ex.time_outside_s))
+    rows, r2, ex = gather(("spatial", "temperature", "time"))
+    r2_raw = r2 + np.maximum(v_par[rows] - v_train, 0.0)
+    scores = np.sort(np.sqrt(3.0 * np.maximum(r2_raw, 0.0) / law.variance(ex, v_par[rows])))
+    if len(scores) > MAX_STORED_SCORES:  # its quantiles, end points kept
+        scores = np.quantile(scores, np.linspace(0.0, 1.0, MAX_STORED_SCORES), method="higher")
+    return replace(law, scores=scores, n_heldout=len(r2))
+
+
 def fit_spread(
     result: CalibrationResult,
     free: np.ndarray,
@@ -166,7 +245,8 @@ def fit_spread(
     cv_spatial: np.ndarray | None = None,
 ) -> PredictionSpread:
     """The spread of the fitted model `result.model` on `prob`'s rows (hil.model.intervals); `noise_m2` (per
-    axis, m^2) is the least s0^2 can be: no prediction is closer than the tracker measures."""
+    axis, m^2) is the least s0^2 can be: no prediction is closer than the tracker measures. With a 6-DoF
+    probe's orientations in `prob`, the orientation's spread too (from its held-out rows alone)."""
     model = result.model
     names, covariance = parameter_covariance(result, free, prob)
     levers_m = joint_levers(model, prob)
@@ -187,44 +267,33 @@ def fit_spread(
         scores=np.zeros(1),
         n_heldout=1,
     )
-    v_par = parameter_variance_rows(model, base, prob.ctx, prob.smr)
-    v_train = float(np.mean(v_par))
-
-    def gather(kinds: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray, Extrapolation]:
-        """Rows, their per-axis squared residual less the effects' excess variance, their extrapolation."""
-        chosen = [p for p in parts if p.kind in kinds]
-        rows = np.concatenate([p.rows for p in chosen])
-        r2 = np.concatenate([p.per_axis_m2 for p in chosen])
-        fields = Extrapolation.__dataclass_fields__
-        ex = Extrapolation(*(np.concatenate([getattr(p.extrapolation, f) for p in chosen]) for f in fields))
-        return rows, r2 - np.maximum(v_par[rows] - v_train, 0.0), ex
-
-    _, r2, ex = gather(("spatial",))
-    X = np.column_stack([np.ones_like(r2), ex.joint_distance_m])
-    scale = np.maximum(np.abs(X).max(axis=0), 1e-300)
-    s0_m2, joint_rate = nnls(X / scale, np.maximum(r2, 0.0))[0] / scale
+    law = fit_growth(parts, "per_axis_m2", parameter_variance_rows(model, base, prob.ctx, prob.smr), noise_m2)
+    spatial = np.concatenate([p.extrapolation.joint_distance_m for p in parts if p.kind == "spatial"])
     fitted = replace(
         base,
-        s0_m2=max(float(s0_m2), noise_m2),
-        joint_rate_m=float(joint_rate),
-        tested_distance_m=max(float(np.quantile(ex.joint_distance_m, 0.95)), 1e-3),
-        parameter_variance_train_m2=v_train,
+        s0_m2=law.s0,
+        joint_rate_m=law.joint_rate,
+        tested_distance_m=max(float(np.quantile(spatial, 0.95)), 1e-3),
+        temperature_rate_m2_per_k=law.temperature_rate,
+        time_rate_m2_per_s=law.time_rate,
+        parameter_variance_train_m2=law.v_train,
+        scores=law.scores,
+        n_heldout=law.n_heldout,
     )
-    if any(p.kind == "temperature" for p in parts):
-        _, r2, ex = gather(("temperature",))
-        excess = r2 - spread_variance(fitted, ex, v_train)
-        fitted = replace(fitted, temperature_rate_m2_per_k=_rate(excess, ex.temperature_outside_k))
-    if any(p.kind == "time" for p in parts):  # beyond what the temperature's rate already gives them
-        _, r2, ex = gather(("time",))
-        fitted = replace(
-            fitted, time_rate_m2_per_s=_rate(r2 - spread_variance(fitted, ex, v_train), ex.time_outside_s)
-        )
-    rows, r2, ex = gather(("spatial", "temperature", "time"))
-    r2_raw = r2 + np.maximum(v_par[rows] - v_train, 0.0)
-    scores = np.sort(np.sqrt(3.0 * np.maximum(r2_raw, 0.0) / spread_variance(fitted, ex, v_par[rows])))
-    if len(scores) > MAX_STORED_SCORES:  # its quantiles, end points kept
-        scores = np.quantile(scores, np.linspace(0.0, 1.0, MAX_STORED_SCORES), method="higher")
-    return replace(fitted, scores=scores, n_heldout=len(r2))
+    if prob.R_measured is None:
+        return fitted
+    v_rot = rotation_parameter_variance_rows(model, base, prob.ctx, prob.smr)
+    rot = fit_growth(parts, "per_axis_rad2", v_rot, 0.0)
+    angles = AngleSpread(
+        s0_rad2=rot.s0,
+        joint_rate_rad2_per_m=rot.joint_rate,
+        temperature_rate_rad2_per_k=rot.temperature_rate,
+        time_rate_rad2_per_s=rot.time_rate,
+        parameter_variance_train_rad2=rot.v_train,
+        scores=rot.scores,
+        n_heldout=rot.n_heldout,
+    )
+    return replace(fitted, orientation=angles, orientation_reason="")
 
 
 def _rate(excess_m2: np.ndarray, outside: np.ndarray) -> float:

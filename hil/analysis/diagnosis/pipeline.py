@@ -98,7 +98,7 @@ from hil.analysis.diagnosis.selection import (
     select_effects,
     settle_rivals,
 )
-from hil.data.dataset import drop_duplicate_rows, joints_rad
+from hil.data.dataset import drop_duplicate_rows, has_orientation, joints_rad
 from hil.geometry.kinematics import KinematicModel
 from hil.model.calibrated_model import CalibratedModel
 from hil.model.effects import (
@@ -322,6 +322,12 @@ def run_diagnosis(
         spread = fit_spread(path.current, path.free, path.prob, path.folds, noise_m2, path.cv_final)
         assumed = [effect_label(e["name"], e["joint"]) for e in report.effects_assumed]  # section 1's rule
         report.model.spread = replace(spread, assumed_effects=assumed)
+        if spread.orientation is None and has_orientation(df):
+            report.model.spread = replace(
+                report.model.spread,
+                orientation_reason="the probe's orientations scatter beyond their stated noise, so the "
+                "diagnosis left them out of its fit and measured no orientation spread",
+            )
         tell("prediction intervals", 1, 1)
         report.intervals = [heldout_coverage(report.model.spread, INTERVAL_PROBABILITY).to_dict()]
         if df_validate is not None:
