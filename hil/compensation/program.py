@@ -127,16 +127,18 @@ def _branch_seeds(model: CalibratedModel, motions: ProgramMotions, q_start: np.n
     kin = model.kinematic
     if not is_ur_like(kin):
         raise ProgramError(f"programs are compensated for UR-shaped arms; {kin.name} is not")
-    prev = default_home(kin) if q_start is None else np.asarray(q_start, float)
-    seeds = []
+    start = default_home(kin) if q_start is None else np.asarray(q_start, float)
+    T_base_flange, refs = [], []
+    taught = None  # a joint position moved to since the previous pose target
     for m in motions.motions:
         if isinstance(m, JointTarget):
-            prev = m.q
+            taught = m.q
             continue
-        ref = prev if m.q_near is None else m.q_near
-        prev = branches_along_path(kin, m.T_base_flange[None], ref)[0]
-        seeds.append(prev)
-    return np.array(seeds)
+        ref = m.q_near if m.q_near is not None else taught
+        refs.append(np.full(kin.n_joints, np.nan) if ref is None else ref)
+        T_base_flange.append(m.T_base_flange)
+        taught = None
+    return branches_along_path(kin, np.array(T_base_flange), start, np.array(refs))
 
 
 def _approach_in_order(motions: ProgramMotions, q_pose: np.ndarray, q_start: np.ndarray | None) -> np.ndarray:
