@@ -371,3 +371,23 @@ def test_solutions_next_to_joint_limits_are_found():
     assert_honest(res, np.linalg.norm(tool_points(m, res.q, p_tool) - P, axis=1))
     assert res.success.mean() >= 0.85  # plain clipping of the step: about 0.45
     assert np.all(m.within_limits(res.q))
+
+
+def test_branches_along_path_takes_each_rows_reference_where_given():
+    """A path solved in one batch with per-row references (a program's qnear, a taught position) picks, row
+    for row, the branch the row-by-row walk picks: nearest the reference where given, else the previous."""
+    model = get_robot("ur10")
+    q = random_joints(model, 40, seed=3)
+    T = forward_kinematics(model, q)
+    refs = np.full_like(q, np.nan)
+    refs[::3] = q[::3] + 0.05  # near the generating joints: their own branch
+    start = ik.default_home(model)
+    batch = ik.branches_along_path(model, T, start, refs)
+    prev, walked = start, []
+    for k in range(len(q)):
+        ref = refs[k] if np.all(np.isfinite(refs[k])) else prev
+        prev = ik.branches_along_path(model, T[k : k + 1], ref)[0]
+        walked.append(prev)
+    np.testing.assert_array_equal(batch, np.array(walked))
+    np.testing.assert_allclose(batch[::3], q[::3], atol=1e-9)
+    assert not np.allclose(ik.branches_along_path(model, T, start)[::3], q[::3], atol=1e-6)

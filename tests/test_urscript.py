@@ -293,3 +293,35 @@ def test_a_payload_the_model_cannot_weigh_is_said(model, tmp_path, capsys):
         )
         assert code == 0, err
         assert ("payload's sag is not compensated" in err) == (name == "rigid")
+
+
+def test_literals_read_without_an_expression_tree_equal_the_trees_reading():
+    """PolyScope's literals and get_inverse_kin(name, qnear=name) take a fast path: it must read what the
+    expression tree reads (pose_trans with the identity forces the tree on the same values)."""
+    pose = "p[0.4, -0.2, 0.3, 0.1, -3.0, 0.05]"
+    joints = "[0.1, -1.2, 1.3, -1.6, -1.5, 0.2]"
+    identity = "p[0, 0, 0, 0, 0, 0]"
+    text = "\n".join(
+        [
+            f"  global A_p={pose}",
+            f"  global A_q={joints}",
+            f"  global B_p=pose_trans({identity}, {pose})",
+            f"  global B_q=[{joints[1:-1]}, 0.0][0:6]",  # not a literal: the tree refuses it, qnear unread
+            "  movej(get_inverse_kin(A_p, qnear=A_q))",
+            "  movej(get_inverse_kin( A_p ))",
+            "  movej(get_inverse_kin(pose_trans(p[0,0,0,0,0,0], A_p), qnear=A_q))",
+            f"  movel({pose}, a=1.2)",
+            f"  movel(pose_trans({identity}, {pose}))",
+            f"  movej({joints})",
+            "  movej(get_inverse_kin(B_p, qnear=B_q))",
+        ]
+    )
+    motions = read_program(text)
+    poses = motions.pose_targets
+    assert [t.line for t in poses] == [5, 6, 7, 8, 9]
+    for t in poses[1:]:
+        np.testing.assert_allclose(t.T_base_tcp, poses[0].T_base_tcp, atol=1e-15)
+    np.testing.assert_array_equal(poses[0].q_near, poses[2].q_near)
+    assert poses[1].q_near is None and poses[3].q_near is None
+    np.testing.assert_array_equal(motions.motions[5].q, [0.1, -1.2, 1.3, -1.6, -1.5, 0.2])
+    assert [r.line for r in motions.runtime] == [11]

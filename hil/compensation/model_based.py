@@ -69,6 +69,13 @@ NEWTON_STEPS = 16  # Newton steps before a target goes to solve_ik (slow seeds c
 # Targets per block: compensate runs larger batches block by block, each block's arrays staying in the
 # CPU cache (10 000 targets in one batch cost ~20 % more per target than in blocks of 2 000).
 BLOCK_TARGETS = 2048
+# What Newton leaves goes to solve_ik. For a target's first IK: the seed, the closed-form branches and a few
+# random joint sets. For a pseudo-target update: LM from the previous joints only. The pseudo target moved by
+# about the predicted error, so a solution near them exists unless the arm is at a singularity or a limit,
+# where the other seeds find only another posture (or nothing, at ~50 LM iterations each: 14 attempts made
+# the few such rows of a batch cost more than all its other targets together).
+FIRST_FALLBACK = IKOptions(restarts=5)
+UPDATE_FALLBACK = IKOptions(restarts=0, use_analytic=False)
 IKSolver = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
 POINT_GENERATOR = "point"  # point targets: P_p <- P_p + P_d - P_a, orientation free
 
@@ -461,10 +468,13 @@ class PseudoTargetIK:
         project: bool = False,
         start: tuple[np.ndarray, np.ndarray] | None = None,
         T_flange: np.ndarray | None = None,
+        update: bool = False,
     ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray] | None]:
         """`solve`, warm-started with the flange pose and Jacobian at q_prev when given (hil's Newton
         only); also returns them at the answer (None with an `ik_solver`) for the next call.
-        `T_flange`: the full-pose targets already as flange poses (`to_flange`)."""
+        `T_flange`: the full-pose targets already as flange poses (`to_flange`). `update`: q_prev solved
+        the previous pseudo target of each row, so what Newton leaves is searched from q_prev alone
+        (`UPDATE_FALLBACK`): another branch or random joints would move the arm to another posture."""
         if T_flange is not None:
             target = T_flange
         elif self.full_pose:
@@ -496,7 +506,7 @@ class PseudoTargetIK:
                 target[bad],
                 q_seed=q_prev[bad],
                 q_near=q_prev[bad[0]],
-                options=IKOptions(restarts=5),
+                options=UPDATE_FALLBACK if update else FIRST_FALLBACK,
                 **kw,
             )
             q[bad] = slow.q
@@ -607,7 +617,7 @@ def _run(
         else:
             T_p[sel, :3, 3] = update_pseudo_position(s.T_d[sel, :3, 3], T_a[:, :3, 3], T_p[sel, :3, 3])
         start = state if state is None or active.size == N else (state[0][active], state[1][active])
-        q_new, reason, got = s._solve(T_p[sel], q[sel], generator == "add", start)
+        q_new, reason, got = s._solve(T_p[sel], q[sel], generator == "add", start, update=True)
         if state is not None and got is not None:
             if active.size == N:
                 state = got

@@ -20,7 +20,7 @@ import numpy as np
 from hil.compensation.model_based import CompensationOptions, CompensationResult, TargetConditions, compensate
 from hil.compensation.urscript import JointTarget, PoseTarget, ProgramError, ProgramMotions
 from hil.geometry.ik import branches_along_path, default_home, is_ur_like
-from hil.geometry.se3 import transform_points
+from hil.geometry.se3 import invert, transform_points
 from hil.model.calibrated_model import CalibratedModel
 from hil.model.effects import approach_signs
 
@@ -65,8 +65,10 @@ def compensate_program(
         raise ProgramError(f"the model has tool points for SMR nests {sorted(model.tools)}, not {smr}")
     p_flange_smr = np.asarray(model.tools[smr], float)
     _check_tcp(model, targets, p_flange_smr)
-    T_target = smr_targets(model, np.array([t.T_base_flange for t in targets]), p_flange_smr)
-    seeds = _branch_seeds(model, motions, options.q_start)
+    T_base_tcp = np.array([t.T_base_tcp for t in targets])
+    T_base_flange = T_base_tcp @ invert(np.array([t.T_flange_tcp for t in targets]))  # each PoseTarget's
+    T_target = smr_targets(model, T_base_flange, p_flange_smr)
+    seeds = _branch_seeds(model, motions, T_base_flange, options.q_start)
     payload = np.array([t.payload_kg for t in targets])  # finite: a run-time payload is a run-time target
     temperature = None if options.temperature_c is None else np.full(len(targets), options.temperature_c)
     result = _solve(model, T_target, seeds, smr, options, temperature, payload, approach=None)
@@ -122,21 +124,25 @@ def _check_tcp(model: CalibratedModel, targets: list[PoseTarget], p_flange_smr: 
         )
 
 
-def _branch_seeds(model: CalibratedModel, motions: ProgramMotions, q_start: np.ndarray | None) -> np.ndarray:
-    """Per pose target, the closed-form joints nearest its qnear, else nearest the previous motion's."""
+def _branch_seeds(
+    model: CalibratedModel, motions: ProgramMotions, T_base_flange: np.ndarray, q_start: np.ndarray | None
+) -> np.ndarray:
+    """Per pose target (its flange pose in `T_base_flange`, in order), the closed-form joints nearest its
+    qnear, else nearest the previous motion's."""
     kin = model.kinematic
     if not is_ur_like(kin):
         raise ProgramError(f"programs are compensated for UR-shaped arms; {kin.name} is not")
-    prev = default_home(kin) if q_start is None else np.asarray(q_start, float)
-    seeds = []
+    start = default_home(kin) if q_start is None else np.asarray(q_start, float)
+    refs = []
+    taught = None  # a joint position moved to since the previous pose target
     for m in motions.motions:
         if isinstance(m, JointTarget):
-            prev = m.q
+            taught = m.q
             continue
-        ref = prev if m.q_near is None else m.q_near
-        prev = branches_along_path(kin, m.T_base_flange[None], ref)[0]
-        seeds.append(prev)
-    return np.array(seeds)
+        ref = m.q_near if m.q_near is not None else taught
+        refs.append(np.full(kin.n_joints, np.nan) if ref is None else ref)
+        taught = None
+    return branches_along_path(kin, T_base_flange, start, np.array(refs))
 
 
 def _approach_in_order(motions: ProgramMotions, q_pose: np.ndarray, q_start: np.ndarray | None) -> np.ndarray:
@@ -178,7 +184,7 @@ def _rewrite(motions: ProgramMotions, targets: list[PoseTarget], q: np.ndarray) 
     for number, items in by_line.items():
         line = lines[number - 1]
         for t, qk in sorted(items, key=lambda item: -item[0].span[0]):  # right to left: spans stay valid
-            joints = "[" + ", ".join(f"{v:.{JOINT_DIGITS}f}" for v in qk) + "]"
+            joints = "[" + ", ".join([f"%.{JOINT_DIGITS}f"] * len(qk)) % tuple(qk) + "]"
             line = line[: t.span[0]] + joints + line[t.span[1] :]
         lines[number - 1] = line
     return "\n".join(lines) + "\n"

@@ -143,14 +143,24 @@ def _motion(
     lead = len(line[span[0] : span[1]]) - len(line[span[0] : span[1]].lstrip())
     span = (span[0] + lead, span[0] + lead + len(text))
     try:
-        node = _parse(text)
+        literal = _literal(text)
+        saved = _SAVED_WAYPOINT.fullmatch(text) if literal is None else None
+        if saved is not None:  # PolyScope's own form, its names read without an expression tree
+            pose_name, qnear_name = saved.groups()
+            node: ast.expr | None = ast.Call(
+                ast.Name("get_inverse_kin"),
+                [ast.Name(pose_name)],
+                [ast.keyword("qnear", ast.Name(qnear_name))] if qnear_name else [],
+            )
+        else:
+            node = _parse(text) if literal is None else None
         if isinstance(node, ast.Call) and _name(node.func) == "get_inverse_kin":
             pose = constants.pose_of(node.args[0])
             qnear = next((k.value for k in node.keywords if k.arg == "qnear"), None)
             q_near = None if qnear is None else constants.joints_of(qnear)
             T = pose_to_transform(pose)
         else:
-            value = constants.eval(node)
+            value = literal if node is None else constants.eval(node)
             if isinstance(value, _Joints):
                 return JointTarget(number, name, value.q, role)
             if not isinstance(value, _Pose):
@@ -194,6 +204,9 @@ class _Constants:
             raise _NotConstantError(f"{name} is assigned {len(exprs)} times")
         if name in self._busy:
             raise _NotConstantError(f"{name} refers to itself")
+        literal = _literal(exprs[0])
+        if literal is not None:
+            return literal
         self._busy.add(name)
         try:
             return self.eval(_parse(exprs[0]))
@@ -258,6 +271,28 @@ def _name(node: ast.expr) -> str | None:
     return node.id if isinstance(node, ast.Name) else None
 
 
+_NUMBER = r"\s*[-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?\s*"
+_LITERAL = re.compile(rf"\s*(p?)\[({_NUMBER}(?:,{_NUMBER})*)\]\s*")
+
+
+# get_inverse_kin(Waypoint_1_p, qnear=Waypoint_1_q), as PolyScope writes each waypoint's motion.
+_SAVED_WAYPOINT = re.compile(
+    r"\s*get_inverse_kin\(\s*([A-Za-z_]\w*)\s*(?:,\s*qnear\s*=\s*([A-Za-z_]\w*)\s*)?\)\s*"
+)
+
+
+def _literal(text: str) -> _Pose | _Joints | None:
+    """A pose literal p[...] of six numbers or a joint list [...] of numbers read without an expression tree
+    (a program saved by PolyScope holds two per waypoint; parsing each cost most of reading it), else None."""
+    m = _LITERAL.fullmatch(text)
+    if m is None:
+        return None
+    values = np.array([float(v) for v in m.group(2).split(",")])
+    if m.group(1):
+        return _Pose(values) if len(values) == 6 else None
+    return _Joints(values)
+
+
 def _parse(text: str) -> ast.expr:
     """A URScript expression as a Python expression tree (p[...] reads as a subscript of p, True/False alike)."""
     try:
@@ -270,6 +305,8 @@ def _strip_comment(line: str) -> str:
     """The line without its # comment (a # inside a string stays); PolyScope's `$ 3 "Waypoint_1"` lines blank."""
     if line.lstrip().startswith("$"):
         return ""
+    if "#" not in line:
+        return line
     quoted = False
     for i, ch in enumerate(line):
         if ch == '"':
@@ -279,24 +316,29 @@ def _strip_comment(line: str) -> str:
     return line
 
 
+_BRACKET = re.compile(r"[()\[\]]")
+_SEPARATOR = re.compile(r"[(),\[\]]")
+
+
 def _closing(line: str, open_at: int, source: str, number: int) -> int:
     depth = 0
-    for i in range(open_at, len(line)):
-        depth += {"(": 1, "[": 1, ")": -1, "]": -1}.get(line[i], 0)
+    for m in _BRACKET.finditer(line, open_at):
+        depth += 1 if m.group() in "([" else -1
         if depth == 0:
-            return i
+            return m.start()
     raise ProgramError(f"{source}:{number}: a motion call that does not close on its line: {line.strip()}")
 
 
 def _split_args(line: str, start: int, end: int) -> list[tuple[int, int]]:
     """Spans of the top-level arguments between start and end (exclusive)."""
     spans, depth, at = [], 0, start
-    for i in range(start, end):
-        ch = line[i]
-        depth += {"(": 1, "[": 1, ")": -1, "]": -1}.get(ch, 0)
+    for m in _SEPARATOR.finditer(line, start, end):
+        ch = m.group()
         if ch == "," and depth == 0:
-            spans.append((at, i))
-            at = i + 1
+            spans.append((at, m.start()))
+            at = m.start() + 1
+        elif ch != ",":
+            depth += 1 if ch in "([" else -1
     if line[at:end].strip():
         spans.append((at, end))
     return spans

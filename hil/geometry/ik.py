@@ -1029,18 +1029,28 @@ def ur_branch_index(model: KinematicModel, q: np.ndarray) -> np.ndarray:
     return 4 * shoulder + 2 * (np.sin(th[:, 4]) < 0) + (np.sin(th[:, 2]) < 0)
 
 
-def branches_along_path(model: KinematicModel, T_base_flange: np.ndarray, q_start: np.ndarray) -> np.ndarray:
+def branches_along_path(
+    model: KinematicModel,
+    T_base_flange: np.ndarray,
+    q_start: np.ndarray,
+    q_refs: np.ndarray | None = None,
+) -> np.ndarray:
     """Closed-form seeds (N, 6) for an ordered path of flange poses, each the branch (2 pi-shifted into the
     limits) nearest the previous one's, the first nearest q_start: continuity instead of a fixed posture.
 
-    Exact branches are preferred over stretched ones; a target without any usable branch repeats the
-    previous seed. One small step per target (8 candidates), so the Python loop stays cheap.
+    `q_refs` (N, 6): where a row is finite, that target's branch is nearest it instead of the previous seed
+    (a program's get_inverse_kin qnear, or a taught joint position moved to just before). Exact branches are
+    preferred over stretched ones; a target without any usable branch repeats its reference. The branches of
+    every target are solved in one batch, then one small step per target (8 candidates) picks them in order.
     """
     qb, overshoot = _ur_branches(model, _as_transforms(T_base_flange, "T_base_flange"))
     seeds = np.empty((len(qb), model.n_joints))
+    given = None if q_refs is None else np.all(np.isfinite(q_refs), axis=1)
     prev = np.asarray(q_start, dtype=float)
     penalty = np.where(overshoot > 1e-9, 1e6, 0.0)
     for k in range(len(qb)):
+        if given is not None and given[k]:
+            prev = np.asarray(q_refs[k], dtype=float)  # type: ignore[index]
         shifted, usable = nearest_equivalent(model, qb[k], np.broadcast_to(prev, qb[k].shape))
         d = np.where(
             usable, np.linalg.norm(np.nan_to_num(shifted - prev, nan=1e9), axis=1) + penalty[k], np.inf
