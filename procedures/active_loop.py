@@ -36,9 +36,11 @@ from hil.analysis.design.rounds import (
 )
 from hil.analysis.diagnosis.pipeline import DiagnosisOptions, DiagnosisReport, run_diagnosis
 from hil.analysis.diagnosis.questions import as_question, question_to_dict, with_questions
+from hil.data.campaigns import open_campaign
 from hil.data.dataset import DatasetError
 from hil.data.jsonable import to_jsonable
-from hil.data.store import Campaign, CampaignStore, campaign_dataset
+from hil.data.pg_url import is_campaign_url
+from hil.data.store import Campaign, campaign_dataset
 from hil.report.rounds import rounds_text
 from hil.runner.cell_config import CellConfig
 from hil.runner.engine import Advance, CampaignStopped, Measuring
@@ -259,9 +261,9 @@ def plan(config: CellConfig, options: ActiveLoopOptions, campaign: str | Path | 
     """The next round's poses on this campaign (for --dry-run): the campaign is diagnosed, nothing moves;
     the plan's bounds say what may follow (the rounds after it are planned from what this one measures)."""
     rounds, poses, seed, block = options.rounds, options.poses, options.seed, options.block
-    if campaign is None or not Path(campaign).exists():
+    if campaign is None or not (is_campaign_url(campaign) or Path(campaign).exists()):
         raise ValueError("the active loop plans from a campaign's grid: give --campaign with a measured grid")
-    with CampaignStore(campaign, create=False) as store:
+    with open_campaign(campaign, create=False, password_file=config.store_password_file) as store:
         state = _Campaign(store, config, seed)
         done = len(state.records())
         try:

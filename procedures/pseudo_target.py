@@ -50,8 +50,10 @@ from hil.compensation.model_based import (
     pose_cost,
 )
 from hil.compensation.target_update import GENERATORS, update_pseudo_position, update_pseudo_target
+from hil.data.campaigns import open_campaign
 from hil.data.dataset import ORIENTATION_COLUMNS, orientations
-from hil.data.store import CampaignError, CampaignStore, MeasurementRecord
+from hil.data.pg_url import is_campaign_url
+from hil.data.store import CampaignError, MeasurementRecord
 from hil.geometry.kinematics import forward_kinematics
 from hil.geometry.se3 import fit_rigid
 from hil.model.calibrated_model import CalibratedModel
@@ -67,7 +69,8 @@ from hil.runner.planners import (
     random_points,
     workspace_box,
 )
-from hil.runner.procedure import SHOTS, Parameter, ParameterError, Procedure
+from hil.runner.procedure import SHOTS, Parameter, ParameterError, Procedure, Role
+from hil.runner.registry import publisher
 from hil.runner.session import Session
 
 NAME = "pseudo_target"
@@ -460,11 +463,11 @@ def ensemble_subset(text: str) -> list[str]:
 def _campaign_model(config: CellConfig, campaign: str | Path | None) -> CalibratedModel:
     """The nominal model on the campaign's registration (and tool fit), for planning a loop without --model."""
     try:
-        if campaign is None or not Path(campaign).exists():
+        if campaign is None or not (is_campaign_url(campaign) or Path(campaign).exists()):
             raise CampaignError("no campaign")
-        with CampaignStore(campaign, create=False) as store:
-            reg = store.step_result("registration", "fit")
-            fit = store.step_result("tool_fit", "fit") or {}
+        with open_campaign(campaign, create=False, password_file=config.store_password_file) as store:
+            reg = store.step_result(*publisher(Role.REGISTRATION))
+            fit = store.step_result(*publisher(Role.TOOL)) or {}
     except CampaignError:
         reg = None
     if reg is None:

@@ -387,3 +387,25 @@ def test_one_driver_per_shared_campaign_named_when_refused_and_freed_when_its_pr
         except CampaignBusyError:
             assert time.monotonic() < deadline, "the killed holder's lock was never released"
             time.sleep(0.05)
+
+
+def test_a_loop_without_a_model_plans_from_a_shared_campaigns_registration(database):
+    """A procedure that reads its campaign while planning (the pseudo-target loop without --model) reads a
+    shared one as it reads a file: the registration and tool fit the campaign holds place the nominal model."""
+    import tomllib
+
+    from hil.geometry.se3 import make_transform
+    from hil.runner.cell_config import parse_cell_config
+    from procedures.pseudo_target import _campaign_model
+    from tests.cell_fixtures import sim_cell_toml
+
+    config = parse_cell_config(tomllib.loads(sim_cell_toml()))
+    url = database + "?campaign=planned-from-registration"
+    T_tracker_base = make_transform(np.eye(3), [2.0, 0.5, -0.3])
+    with PgCampaignStore(url) as store:
+        store.finish_step("registration", "fit", {"T_tracker_base": T_tracker_base.tolist()})
+        store.finish_step("tool_fit", "fit", {"nests_flange_mm": {"1": [10.0, 20.0, 110.0]}})
+    model = _campaign_model(config, url)
+    np.testing.assert_allclose(model.T_tracker_base, T_tracker_base)
+    with pytest.raises(ValueError, match="give --campaign with a registration"):
+        _campaign_model(config, database + "?campaign=nothing-recorded-here")
