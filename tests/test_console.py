@@ -235,6 +235,46 @@ def test_diagnosis_from_the_page_says_why_it_cannot_run_on_a_registration(operat
     expect(row).to_contain_text("–")  # no report link
 
 
+def test_compensation_from_the_page_uses_the_diagnosed_model_and_links_the_joints(operator_page, console):
+    """Compensate is refused until the campaign has a diagnosed model; with one it runs `hil compensate` on the
+    campaign's validation targets and links the joints it wrote (each with its predicted remaining error)."""
+    import numpy as np
+    from calib_data import cell_datasets, true_effect_model
+
+    from hil.data.dataset import joints_rad, points_m
+    from hil.data.store import MeasurementRecord
+
+    url, station = console
+    refused = operator_page.request.post(f"{url}/api/compensate/{CAMPAIGN}", data={})
+    assert refused.status == 409 and refused.json()["remedy"] == "diagnose it first"
+    _, train, val = cell_datasets(step_m=0.2, n_val=4, seed=0)
+    model = true_effect_model(train, "ur10", ("gravity_compliance",))
+    name = "validated.sqlite"
+    with CampaignStore(station.campaigns / name) as store:  # a finished campaign: its robot, registration,
+        store.add_snapshot({"cell": {"robot": {"model": "ur10"}}})  # tool fit and validation points
+        store.finish_step("registration", "fit", {"T_tracker_base": model.T_tracker_base.tolist()})
+        store.finish_step(
+            "tool_fit", "fit", {"nests_flange_mm": {"1": (np.asarray(model.tools[1]) * 1e3).tolist()}}
+        )
+        for i, (q, p) in enumerate(zip(joints_rad(val), points_m(val), strict=True)):
+            store.record_measurement(
+                MeasurementRecord(
+                    procedure="grid_sampling", step="validation", point_id=f"v{i}", q_target_rad=q, q_rad=q,
+                    T_base_flange=np.eye(4), p_tracker_m=p, spread_m=np.zeros(3), std_m=np.zeros(3), shots=10,
+                    rejected_shots=(), smr=1, location="nest1", temperature_c=20.0, pressure_hpa=1013.0,
+                    humidity_pct=40.0, timestamp_s=1.7e9 + i,
+                )
+            )  # fmt: skip
+    model.save(station.campaigns / f"{name}.model.json")  # what Diagnose writes beside the campaign
+    operator_page.reload()
+    row = operator_page.locator(f"#history tr[data-campaign='{name}']")
+    row.get_by_role("button", name="Compensate").click()
+    expect(row.get_by_role("link", name="compensated joints")).to_be_visible(timeout=DIAGNOSIS_WAIT_MS)
+    written = (station.campaigns / f"{name}.compensated.csv").read_text().splitlines()
+    assert len(written) == 1 + len(val) and "q1_rad" in written[0]
+    assert all(",ok," in row for row in written[1:])  # every target reached by the model
+
+
 def test_a_second_browser_watches_and_is_refused_control_until_it_is_released(
     browser, console, operator_page
 ):

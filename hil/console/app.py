@@ -17,6 +17,7 @@ from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager, suppress
 from dataclasses import asdict, dataclass, replace
 from importlib import resources
+from pathlib import Path
 from typing import Any
 
 import anyio
@@ -30,7 +31,15 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from hil.console.live import Answer
 from hil.console.station import RequestRefusedError, RunRequest, Station
-from hil.console.views import REPORT_SUFFIX, form, history, plan_view, point_deviations
+from hil.console.views import (
+    COMPENSATED_SUFFIX,
+    MODEL_SUFFIX,
+    REPORT_SUFFIX,
+    form,
+    history,
+    plan_view,
+    point_deviations,
+)
 from hil.runner.registry import load, registered
 
 CLIENT_COOKIE = "hil_console_client"  # which browser this is (control is given to one)
@@ -70,7 +79,9 @@ def build_app(station: Station, options: ConsoleOptions) -> ASGIApp:
         Route("/api/points/{campaign}", api.points),
         Route("/api/history", api.history),
         Route("/api/diagnose/{campaign}", api.diagnose, methods=["POST"]),
+        Route("/api/compensate/{campaign}", api.compensate, methods=["POST"]),
         Route("/reports/{campaign}", api.report),
+        Route("/compensated/{campaign}", api.compensated),
     ]
     middleware = [Middleware(TrustedHostMiddleware, allowed_hosts=list(options.allowed_hosts))]
     app = Starlette(routes=routes, lifespan=api.lifespan, middleware=middleware)
@@ -295,7 +306,62 @@ class _Api:
         return FileResponse(report, media_type="text/html")
 
     async def diagnose(self, request: Request) -> Response:
-        """`hil diagnose CAMPAIGN --html REPORT` on a campaign nobody drives: the report `--html` writes."""
+        """`hil diagnose CAMPAIGN --html REPORT -o MODEL` on a campaign nobody drives: the report `--html`
+        writes, and the model a compensation from the page then uses."""
+        path = self._finished_campaign(request)
+        if isinstance(path, Response):
+            return path
+        report = path.with_name(path.name + REPORT_SUFFIX)
+        model = path.with_name(path.name + MODEL_SUFFIX)
+        command = [
+            "diagnose", str(path), "--robot", self.station.config.robot_model,
+            "--html", str(report), "-o", str(model), "--force",
+        ]  # fmt: skip
+        ok, text = await _hil(command)
+        if not ok:
+            return _refused(
+                RequestRefusedError(f"the diagnosis of {path.name} failed", _last_lines(text)), 422
+            )
+        return JSONResponse({"report": report.name, "output": _last_lines(text, 12)})
+
+    async def compensate(self, request: Request) -> Response:
+        """`hil compensate MODEL CAMPAIGN --step validation --interval 0.95` with the model the page's diagnosis
+        wrote: the joints that reach the campaign's validation targets, each with its predicted remaining
+        error and interval, in a CSV beside the campaign (nothing moves)."""
+        path = self._finished_campaign(request)
+        if isinstance(path, Response):
+            return path
+        model = path.with_name(path.name + MODEL_SUFFIX)
+        if not model.is_file():
+            return _refused(RequestRefusedError(f"{path.name} has no model yet", "diagnose it first"), 409)
+        out = path.with_name(path.name + COMPENSATED_SUFFIX)
+        command = [
+            "compensate", str(model), str(path), "--step", "validation", "--interval", "0.95",
+            "-o", str(out), "--force",
+        ]  # fmt: skip
+        ok, text = await _hil(command)
+        if not ok:
+            return _refused(
+                RequestRefusedError(f"the compensation of {path.name} failed", _last_lines(text)), 422
+            )
+        return JSONResponse({"compensated": out.name, "output": _last_lines(text, 12)})
+
+    async def compensated(self, request: Request) -> Response:
+        name = request.path_params["campaign"]
+        try:
+            path = self.station.campaign_path(name)
+        except RequestRefusedError as exc:
+            return _refused(exc, 404)
+        out = path.with_name(path.name + COMPENSATED_SUFFIX)
+        if not out.is_file():
+            return _refused(
+                RequestRefusedError(f"{name} has no compensation yet", "compensate it first"), 404
+            )
+        return FileResponse(out, media_type="text/csv", filename=out.name)
+
+    def _finished_campaign(self, request: Request) -> Path | Response:
+        """The campaign a result is asked for, or the refusal: this browser must control the console (403),
+        the campaign must exist (404)."""
         try:
             self._require_control(request)
             path = self.station.campaign_path(request.path_params["campaign"])
@@ -303,21 +369,17 @@ class _Api:
             return _refused(exc, 403)
         if not path.is_file():
             return _refused(RequestRefusedError(f"no campaign {path.name} in {path.parent}"), 404)
-        report = path.with_name(path.name + REPORT_SUFFIX)
-        command = [
-            sys.executable, "-m", "hil", "diagnose", str(path), "--robot", self.station.config.robot_model,
-            "--html", str(report), "--force",
-        ]  # fmt: skip
-        process = await asyncio.create_subprocess_exec(
-            *command, stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.STDOUT
-        )
-        out, _ = await process.communicate()
-        text = out.decode("utf-8", "replace").strip()
-        if process.returncode != 0:
-            return _refused(
-                RequestRefusedError(f"the diagnosis of {path.name} failed", _last_lines(text)), 422
-            )
-        return JSONResponse({"report": report.name, "output": _last_lines(text, 12)})
+        return path
+
+
+async def _hil(args: list[str]) -> tuple[bool, str]:
+    """A hil command in its own process (the console's run and the analysis never share one): whether it
+    succeeded, and what it printed."""
+    process = await asyncio.create_subprocess_exec(
+        sys.executable, "-m", "hil", *args, stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.STDOUT
+    )
+    out, _ = await process.communicate()
+    return process.returncode == 0, out.decode("utf-8", "replace").strip()
 
 
 def _run_request(body: Any) -> RunRequest:

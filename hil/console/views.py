@@ -23,6 +23,8 @@ from hil.runner.registry import publisher
 
 PLAN_ROWS = 30  # poses listed in the plan before "... and N more"
 REPORT_SUFFIX = ".report.html"  # the diagnosis report written beside a campaign
+MODEL_SUFFIX = ".model.json"  # the model that diagnosis fitted, beside the campaign
+COMPENSATED_SUFFIX = ".compensated.csv"  # the compensated joints of the campaign's validation targets
 
 
 @dataclass(frozen=True)
@@ -198,6 +200,8 @@ class CampaignEntry:
     report: str | None  # the report's file name beside it, when written
     driven_by: str | None
     problem: str = ""
+    model: str | None = None  # the diagnosed model's file name beside it, when written
+    compensated: str | None = None  # the compensated targets' file name beside it, when written
 
 
 def history(folder: Path) -> list[CampaignEntry]:
@@ -225,7 +229,14 @@ def _entry(path: Path) -> CampaignEntry:
         [ProcedureDone(str(name), int(n)) for name, n in per_procedure.items()],
         verdicts.count(Verdict.PASS), verdicts.count(Verdict.FAIL), verdicts.count(Verdict.NOT_JUDGED),
         report.name if report.exists() else None, driven_by,
+        model=_beside(path, MODEL_SUFFIX), compensated=_beside(path, COMPENSATED_SUFFIX),
     )  # fmt: skip
+
+
+def _beside(path: Path, suffix: str) -> str | None:
+    """The file name of a result written beside the campaign, None when it is not there."""
+    result = path.with_name(path.name + suffix)
+    return result.name if result.is_file() else None
 
 
 def _when(unix_s: float) -> str:
