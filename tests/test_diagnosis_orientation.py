@@ -39,7 +39,9 @@ def _names(report):
     return [(e["name"], e["joint"]) for e in report.effects_added]
 
 
-@pytest.mark.timeout(480)  # its setup builds the module's 6-DoF diagnosis: 27 s alone, 180 s on a loaded CI box
+@pytest.mark.timeout(
+    480
+)  # its setup builds the module's 6-DoF diagnosis: 27 s alone, 180 s on a loaded CI box
 def test_an_effect_seen_only_in_the_probe_orientation_is_selected_with_orientations_and_not_without(
     probe_cell,
 ):
