@@ -21,8 +21,9 @@ import numpy as np
 import pandas as pd
 
 from hil.commands.errors import CliError
+from hil.data.campaigns import open_campaign
 from hil.data.dataset import orientation_columns
-from hil.data.store import CampaignError, CampaignStore
+from hil.data.store import Campaign, CampaignError
 from hil.geometry.kinematics import KinematicModel, forward_kinematics
 from hil.geometry.robots import get_robot, is_robot_file, robot_file_path, robot_from_text, with_file_path
 from hil.runner.procedure import Role
@@ -58,7 +59,7 @@ def _source(name: str) -> tuple[str, str]:
     return publisher(source) if isinstance(source, Role) else source
 
 
-def available_steps(store: CampaignStore) -> dict[str, int]:
+def available_steps(store: Campaign) -> dict[str, int]:
     """Target sources the campaign holds (--step names) and how many targets each has."""
     out: dict[str, int] = {}
     for name in SOURCES:
@@ -81,7 +82,7 @@ def read_campaign_targets(
     if step is not None and step not in SOURCES:
         raise CliError(f"--step {step!r} is not a target source", f"give --step {' | '.join(SOURCES)}")
     try:
-        store = CampaignStore(path, create=False)
+        store = open_campaign(path, create=False)
     except CampaignError as exc:
         raise CliError.from_text(str(exc)) from exc
     with store:
@@ -107,7 +108,7 @@ def read_campaign_targets(
         return _commanded_points(store, path, step, campaign_robot(store, path))
 
 
-def campaign_robot(store: CampaignStore, path: str | Path) -> KinematicModel:
+def campaign_robot(store: Campaign, path: str | Path) -> KinematicModel:
     """The campaign's nominal robot from its newest station snapshot naming one: the robot file's text the
     snapshot keeps, else the built-in name; an older snapshot's robot file is looked for beside its cell file."""
     for snapshot in reversed(store.snapshots()):
@@ -147,7 +148,7 @@ def _robot_file_beside_cell(model: str, cell_source: object, path: str | Path) -
     return robot_from_text(file.read_text(), with_file_path(model, file))
 
 
-def _drawing_nests_m(store: CampaignStore) -> dict[int, np.ndarray]:
+def _drawing_nests_m(store: Campaign) -> dict[int, np.ndarray]:
     for snapshot in reversed(store.snapshots()):
         nests = snapshot.get("cell", {}).get("tool", {}).get("nests_flange_mm")
         if isinstance(nests, list):
@@ -155,9 +156,7 @@ def _drawing_nests_m(store: CampaignStore) -> dict[int, np.ndarray]:
     return {}
 
 
-def _commanded_points(
-    store: CampaignStore, path: str | Path, step: str, robot: KinematicModel
-) -> CampaignTargets:
+def _commanded_points(store: Campaign, path: str | Path, step: str, robot: KinematicModel) -> CampaignTargets:
     """SMR centres the commanded joints aimed at, by nominal kinematics + nest + registration (tracker frame)."""
     procedure, step_name = _source(step)
     reg = store.step_result(*publisher(Role.REGISTRATION))
@@ -178,7 +177,8 @@ def _commanded_points(
     unknown = sorted(set(smr) - set(nests))
     if unknown:
         raise CliError(
-            f"campaign {path}: nest(s) {unknown} have no position in the flange (no tool fit, not in the cell config)",
+            f"campaign {path}: nest(s) {', '.join(map(str, unknown))} have no position in the flange (no tool fit, "
+            "not in the cell config)",
             "run `hil run tool_fit` on the campaign, or give the targets as a CSV",
         )
     q = np.stack(m["q_target_rad"].to_numpy()).astype(float)
@@ -194,7 +194,7 @@ def _commanded_points(
     return CampaignTargets(step, p, frame, smr, robot.name, q_seed=q)
 
 
-def _loop_targets(store: CampaignStore, robot: str, orientation_convention: str) -> CampaignTargets:
+def _loop_targets(store: Campaign, robot: str, orientation_convention: str) -> CampaignTargets:
     """The pseudo-target loop's targets (SMR 1 in nest 1): points, or poses when it ran with three SMRs (no
     time or temperature: the loop pinned where, not when)."""
     pinned = store.step_result(*_source("loop"))

@@ -38,6 +38,7 @@ from hil.compensation.model_based import (
     outside_fitted_temperatures,
 )
 from hil.compensation.target_update import GENERATORS
+from hil.data.campaigns import is_campaign
 from hil.data.dataset import (
     DEFAULT_ORIENTATION_CONVENTION,
     ORIENTATION_COLUMNS,
@@ -47,7 +48,6 @@ from hil.data.dataset import (
     make_dataset,
     orientations,
 )
-from hil.data.store import is_campaign_file
 from hil.geometry.coupling import JointConvention, JointCoupling
 from hil.geometry.se3 import transform_points
 from hil.model.calibrated_model import CalibratedModel
@@ -333,7 +333,7 @@ def run(args: argparse.Namespace) -> int:
     _check_options(args)
     if is_program(args.targets):
         return run_program(args, thermal_drivers)
-    campaign = is_campaign_file(args.targets)
+    campaign = is_campaign(args.targets)
     if args.frame == "base" and campaign:
         raise CliError(
             "--frame base is for a CSV of base-frame targets; a campaign's targets are in the tracker frame",
