@@ -61,6 +61,7 @@ from hil.runner.plan import Plan, PlannedPose
 from hil.runner.planners import Box, facing_poses, plan_joints, workspace_box
 from hil.runner.procedure import Limit, Measurement, Parameter, Procedure, Role
 from hil.runner.session import RecordedPoints, Session
+from procedures.flange_drawing import flange_drawing_svg
 
 NAME = "tool_fit"
 HOLES = tuple(range(1, 8))
@@ -225,7 +226,12 @@ def _seat(config: CellConfig, location: str) -> OperatorStep:
     text = (
         "Rest SMR 1 on the flange face, opposite hole 7." if location == "face" else f"Seat SMR 1 in {where}."
     )
-    return OperatorStep(text, "place_smr", smr=1, location=location, face_point_m=face_point(config))
+    drawing = None
+    if not location.startswith("nest"):  # the holes and the face are on the flange; the nests on the tool
+        drawing = flange_drawing_svg(hole_points_flange(config), location, face_point(config))
+    return OperatorStep(
+        text, "place_smr", smr=1, location=location, face_point_m=face_point(config), drawing_svg=drawing
+    )
 
 
 def fit_tool(session: Session, options: ToolFitOptions, the_plan: Plan) -> ToolFitResult:

@@ -47,6 +47,7 @@ class Prompt:
     action: str
     smr: int | None
     location: str | None
+    drawing_svg: str | None = None  # where the step happens, drawn by the procedure (SVG), when it gives one
 
 
 @dataclass(frozen=True)
@@ -187,7 +188,9 @@ class Live:
     def ask(self, step: OperatorStep, stopped: Callable[[], str | None]) -> Answer:
         """Show the step and wait for its answer (or a stop: then StopRequested, the way Ctrl-C leaves)."""
         with self._changed:
-            self._prompt = Prompt(next(self._prompt_ids), step.text, step.action, step.smr, step.location)
+            self._prompt = Prompt(
+                next(self._prompt_ids), step.text, step.action, step.smr, step.location, step.drawing_svg
+            )
             self._answer = None
             self._bump()
             self._changed.wait_for(lambda: self._answer is not None or stopped() is not None)

@@ -26,6 +26,8 @@ class OperatorStep:
     the flange, keeping the robot still), "mount_tool" (put it back on its dowel, keeping the robot still) or
     "confirm" (anything else).
     face_point_m: where on the flange face the SMR should rest (x, y in the flange frame), for "face".
+    drawing_svg: a drawing of where the step happens (SVG text), shown with the instruction where a screen can
+    show it (the operator console); a terminal shows the text alone.
     """
 
     text: str
@@ -33,6 +35,7 @@ class OperatorStep:
     smr: int | None = None
     location: str | None = None
     face_point_m: tuple[float, float] | None = None
+    drawing_svg: str | None = None
 
 
 class Operator(Protocol):
