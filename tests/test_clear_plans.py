@@ -12,6 +12,7 @@ from hil.geometry.ik import ur_branch_index
 from hil.runner.cell_config import parse_cell_config
 from hil.runner.clear_joints import NO_CLEAR, plan_clear_joints
 from hil.runner.collision import clear_range_rad
+from hil.runner.envelope import EnvelopeError
 from hil.runner.plan import NO_SAFE_PATH, Plan, PlannedPose
 from hil.runner.planners import facing_poses, plan_joints, workspace_box
 from procedures import grid_sampling, iso9283, registration
@@ -92,3 +93,25 @@ def test_a_pose_no_move_reaches_safely_is_dropped_and_counted(config):
     assert [p.point_id for p in kept.poses] == [p.point_id for p in (grid.poses[0], *grid.poses[1:3])]
     assert kept.dropped == {NO_SAFE_PATH: 1}
     assert f"1 {NO_SAFE_PATH}" in kept.describe()
+
+
+def test_the_dry_run_shows_each_poses_clearance_and_a_refusal_names_pose_bodies_and_clearance(config):
+    plan = grid_sampling.PROCEDURE.make_plan(config, step_m=0.2, validation=0)
+    nearest = plan.nearest_bodies()
+    found = config.bodies.clearances(config.nominal, plan.joints())
+    assert [c for c, _ in nearest] == pytest.approx(np.minimum(found.self_m, found.cell_m).tolist())
+    text = plan.describe(max_rows=3)
+    k = int(np.argmin([c for c, _ in nearest]))
+    clearance, between = nearest[k]
+    assert f"smallest clearance: {clearance * 1e3:.0f} mm ({between}) at {plan.poses[k].point_id}" in text
+    rows = [line for line in text.splitlines() if line.strip().startswith(("1 ", "2 ", "3 "))]
+    assert [row.endswith(f" mm ({b})") for row, (_, b) in zip(rows, nearest, strict=False)] == [True] * 3
+    folded = config.q_home_rad.copy()
+    folded[2] = np.deg2rad(175.0)
+    with pytest.raises(EnvelopeError) as refused:
+        config.envelope.check_poses(config.nominal, folded[None], config.nests_flange_m, ["g1-0999"])
+    message = str(refused.value)
+    own = config.bodies.clearances(config.nominal, folded[None])
+    overlap_mm = -own.self_m[0] * 1e3
+    assert overlap_mm > 0
+    assert f"g1-0999: {own.self_between[0]} collide ({overlap_mm:.0f} mm overlap; margin 10 mm)" in message

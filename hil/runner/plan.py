@@ -113,6 +113,23 @@ class Plan:
             dropped[NO_SAFE_PATH] = dropped.get(NO_SAFE_PATH, 0) + len(self.poses) - len(kept)
         return replace(self, poses=kept, dropped=dropped)
 
+    def nearest_bodies(self) -> list[tuple[float, str]]:
+        """Per pose, its smallest clearance (metres) and the two bodies it lies between: the arm with itself
+        or with the cell, whichever keeps less beyond its margin. Empty when collisions are not checked."""
+        cfg = self.config
+        bodies = cfg.envelope.bodies
+        if bodies is None or not self.poses:
+            return []
+        found = bodies.clearances(cfg.nominal, self.joints())
+        own = found.self_m - bodies.self_margin_m
+        cell = found.cell_m - bodies.margin_m
+        return [
+            (float(found.self_m[k]), found.self_between[k])
+            if own[k] <= cell[k]
+            else (float(found.cell_m[k]), found.cell_between[k])
+            for k in range(len(self.poses))
+        ]
+
     def describe(self, max_rows: int = 20) -> str:
         """A readable summary: counts, duration, bounding box, and the first poses in order."""
         cfg = self.config
@@ -140,10 +157,22 @@ class Plan:
             lines.append(
                 f"  tool points sweep x {lo[0]:.0f}..{hi[0]:.0f}, y {lo[1]:.0f}..{hi[1]:.0f}, z {lo[2]:.0f}..{hi[2]:.0f} mm (robot base frame)"
             )
-            lines.append(f"  {'#':>4} {'point':>10} {'step':>12} {'smr at':>8}  joints (deg)")
+            nearest = self.nearest_bodies()
+            if nearest:
+                k = int(np.argmin([clearance for clearance, _ in nearest]))
+                clearance, between = nearest[k]
+                lines.append(
+                    f"  smallest clearance: {clearance * 1e3:.0f} mm ({between}) at {self.poses[k].point_id}"
+                )
+            header = f"  {'#':>4} {'point':>10} {'step':>12} {'smr at':>8}  joints (deg)"
+            lines.append(f"{header:<{len(header) + 41}}  clearance" if nearest else header)
             for k, pose in enumerate(self.poses[:max_rows], start=1):
                 deg = " ".join(f"{v:8.2f}" for v in np.rad2deg(pose.q_rad))
-                lines.append(f"  {k:>4} {pose.point_id:>10} {pose.step:>12} {pose.location:>8}  {deg}")
+                row = f"  {k:>4} {pose.point_id:>10} {pose.step:>12} {pose.location:>8}  {deg}"
+                if nearest:
+                    clearance, between = nearest[k - 1]
+                    row += f"  {clearance * 1e3:5.0f} mm ({between})"
+                lines.append(row)
             if len(self.poses) > max_rows:
                 lines.append(f"  ... and {len(self.poses) - max_rows} more")
         return "\n".join(lines)
