@@ -19,8 +19,8 @@ from dataclasses import replace
 
 import numpy as np
 
+from hil.geometry.collision import KeepOutBox
 from hil.runner.cell_config import parse_cell_config
-from hil.runner.collision import KeepOutBox
 from procedures import grid_sampling
 from tests.cell_fixtures import sim_cell_toml
 

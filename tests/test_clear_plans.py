@@ -8,10 +8,10 @@ import tomllib
 import numpy as np
 import pytest
 
+from hil.geometry.collision import clear_range_rad
 from hil.geometry.ik import ur_branch_index
 from hil.runner.cell_config import parse_cell_config
 from hil.runner.clear_joints import NO_CLEAR, plan_clear_joints
-from hil.runner.collision import clear_range_rad
 from hil.runner.envelope import EnvelopeError
 from hil.runner.plan import NO_SAFE_PATH, Plan, PlannedPose
 from hil.runner.planners import facing_poses, plan_joints, workspace_box

@@ -8,11 +8,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from hil.geometry.collision import clear_range_rad
 from hil.geometry.kinematics import forward_kinematics
 from hil.geometry.urdf_import import import_urdf
 from hil.geometry.urdf_read import is_urdf_spec
 from hil.runner.cell_config import DEFAULT_JOINT_SPEED_RAD_S, DEFAULT_LINEAR_SPEED_M_S, CellConfig
-from hil.runner.collision import clear_range_rad
 
 SETTLE_PLAUSIBLE_S = (
     5.0  # a UR arm and an SMR settle in well under a second; seconds more wait at every point

@@ -29,9 +29,9 @@ from dataclasses import replace
 
 import numpy as np
 
+from hil.geometry.collision import clear_range_rad
 from hil.geometry.ik import is_ur_like, nearest_equivalent, solve_ik, ur_analytic_ik, ur_branch_index
 from hil.geometry.kinematics import KinematicModel
-from hil.runner.collision import clear_range_rad
 from hil.runner.envelope import Envelope
 from hil.runner.planners import SINGULAR_SIGMA_M, JointPlan, plan_joints, position_sigma_min_m
 

@@ -1,5 +1,5 @@
 """The safety envelope: a box in the robot base frame for the tool points and every wrist point, joint
-limits, and the collision checks of hil.runner.collision (the arm with itself, the tracker, the keep-out
+limits, and the collision checks of hil.geometry.collision (the arm with itself, the tracker, the keep-out
 boxes). Every commanded motion is checked against it, along its whole path, before the robot moves.
 """
 
@@ -9,8 +9,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from hil.geometry.collision import CellBodies, Clearances
 from hil.geometry.kinematics import KinematicModel, forward_kinematics, link_frames
-from hil.runner.collision import CellBodies, Clearances
 from hil.runner.planners import wrist_points
 
 # Samples per joint move when checking its path: moveJ interpolates linearly in joint space, so the
