@@ -102,7 +102,7 @@ def plan(config: CellConfig, options: GridOptions) -> Plan:
     dropped: dict[str, int] = {}
     R_fixed = fixed_orientation(config, box, options.orientation, options.fixed_rpy_rad, orientations)
 
-    def usable_joints(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def usable_joints(points: np.ndarray, like: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         if R_fixed is None:
             T = facing_poses(
                 points, config.p_base_tracker_m, rng, tilt_deg=float(np.rad2deg(options.tilt_rad))
@@ -110,7 +110,7 @@ def plan(config: CellConfig, options: GridOptions) -> Plan:
         else:
             T = fixed_poses(points, R_fixed)
         joints = plan_clear_joints(
-            config.nominal, config.envelope, T, p_nest, config.nests_flange_m, config.q_home_rad
+            config.nominal, config.envelope, T, p_nest, config.nests_flange_m, config.q_home_rad, like=like
         )
         reason = joints.reason
         for r in reason[reason != "ok"]:
@@ -149,7 +149,8 @@ def plan(config: CellConfig, options: GridOptions) -> Plan:
     poses = [pose(ids[i] + s, "grid", q_grid[i]) for i in visit for s in suffixes]
     poses = with_reference_rounds(poses, config.drift_poses, config.drift_every_points, pose)
     if validation:
-        q_val, _ = usable_joints(random_points(box, 3 * validation, rng))
+        # in the grid's configuration: validation poses where the grid was measured
+        q_val, _ = usable_joints(random_points(box, 3 * validation, rng), like=q_grid)
         poses += [pose(f"v{k + 1:04d}", "validation", q) for k, q in enumerate(q_val[:validation])]
     if not poses:
         raise ValueError("no grid vertex is reachable inside the envelope: move the box or widen [envelope]")

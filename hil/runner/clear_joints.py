@@ -58,15 +58,18 @@ def plan_clear_joints(
     p_flange_tools_m: np.ndarray,
     q_near: np.ndarray,
     singular_sigma_m: float = SINGULAR_SIGMA_M,
+    like: np.ndarray | None = None,
 ) -> JointPlan:
     """Joints for tool poses (N, 4, 4) with the tool point `p_flange_tool_m`, usable only when reachable,
     within limits, away from singularities and inside the envelope (box and, when it checks them, the
     collisions of every tool point `p_flange_tools_m`), reason "envelope" otherwise. With collision checks
-    on a UR-shaped arm, each pose's configuration is the clearest of its closed-form branches (see module)."""
+    on a UR-shaped arm, each pose's configuration is the clearest of its closed-form branches (see module);
+    `like` (M, 6), joints planned before (a grid for its validation poses): prefer their configuration and
+    their turns, so the new poses lie where those were measured."""
     T = np.asarray(T_base_tool, float)
     first = plan_joints(nominal, T, p_flange_tool_m, q_near=q_near, singular_sigma_m=singular_sigma_m)
     if envelope.bodies is not None and is_ur_like(nominal) and len(T):
-        seeds = _clearest_branch(nominal, envelope, T, p_flange_tool_m, p_flange_tools_m, q_near)
+        seeds = _clearest_branch(nominal, envelope, T, p_flange_tool_m, p_flange_tools_m, q_near, like)
         has_seed = np.all(np.isfinite(seeds), axis=1)
         # a pose the nominal IK cannot use keeps its reason (unreachable, singular, ...)
         q, usable = first.q.copy(), np.zeros(len(T), bool)
@@ -95,6 +98,7 @@ def _clearest_branch(
     p_flange_tool_m: np.ndarray,
     p_flange_tools_m: np.ndarray,
     q_near: np.ndarray,
+    like: np.ndarray | None,
 ) -> np.ndarray:
     """(N, 6) per pose a closed-form configuration (2 pi-shifted into the limits, nearest q_near) inside the
     envelope with q_near's shoulder and elbow: the plan's preferred branch where it keeps its margins, else
@@ -123,20 +127,23 @@ def _clearest_branch(
     clear = score >= 0
     median = np.array([np.median(score[clear[:, b], b]) if clear[:, b].any() else -np.inf for b in range(B)])
     preferred = int(np.lexsort((median, clear.sum(axis=0)))[-1])
+    if like is not None and len(like):
+        preferred = int(np.bincount(ur_branch_index(nominal, like), minlength=B).argmax())
     pick = np.where(clear[:, preferred], preferred, np.argmax(key, axis=1))
     seeds = shifted[np.arange(N), pick]
     found = np.isfinite(key[np.arange(N), pick])
     seeds[~found] = np.nan
     if found.any():
-        seeds[found] = _compact(unfolded, seeds[found], np.asarray(q_near, float))
+        around = seeds[found] if like is None or not len(like) else np.asarray(like, float)
+        seeds[found] = _compact(unfolded, seeds[found], around, np.asarray(q_near, float))
     return seeds
 
 
-def _compact(model: KinematicModel, q: np.ndarray, q_near: np.ndarray) -> np.ndarray:
-    """The joint sets (M, n) turned by 2 pi where that brings them nearest the plan's circular mean (in its
-    turn nearest q_near) inside the limits: a UR base whose poses lie about 180 deg from home's would
-    otherwise be split between -170 and +170 deg, a 340 deg move between two neighbouring poses."""
-    centre = np.arctan2(np.sin(q).mean(axis=0), np.cos(q).mean(axis=0))
+def _compact(model: KinematicModel, q: np.ndarray, around: np.ndarray, q_near: np.ndarray) -> np.ndarray:
+    """The joint sets (M, n) turned by 2 pi where that brings them nearest the circular mean of `around`
+    (in its turn nearest q_near) inside the limits: a UR base whose poses lie about 180 deg from home's
+    would otherwise be split between -170 and +170 deg, a 340 deg move between two neighbouring poses."""
+    centre = np.arctan2(np.sin(around).mean(axis=0), np.cos(around).mean(axis=0))
     centre += TWO_PI * np.round((q_near - centre) / TWO_PI)
     compact, ok = nearest_equivalent(model, q, np.broadcast_to(centre, q.shape))
     return np.where(ok[:, None], compact, q)
