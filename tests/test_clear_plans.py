@@ -115,3 +115,25 @@ def test_the_dry_run_shows_each_poses_clearance_and_a_refusal_names_pose_bodies_
     overlap_mm = -own.self_m[0] * 1e3
     assert overlap_mm > 0
     assert f"g1-0999: {own.self_between[0]} collide ({overlap_mm:.0f} mm overlap; margin 10 mm)" in message
+
+
+def test_a_move_whose_direct_path_collides_gets_a_detour_whose_every_leg_keeps_clear(config):
+    env, tools = config.envelope, config.nests_flange_m
+    # clear poses about home with the wrist turned every way: some direct moves between them collide
+    turns = np.random.default_rng(3).uniform(-1, 1, (40, 6)) * np.deg2rad([40, 20, 30, 150, 150, 90])
+    q = config.q_home_rad + turns
+    q = q[~env.outside(config.nominal, q, tools)]
+    i, j = np.triu_indices(len(q), k=1)
+    problems = env.path_problems(config.nominal, q[i], q[j])
+    colliding = [k for k, p in enumerate(problems) if p]
+    assert colliding
+    found = 0
+    for k in colliding[:20]:
+        legs = env.detour(config.nominal, q[i[k]], q[j[k]], tools, config.q_home_rad)
+        if legs is None:
+            continue
+        found += 1
+        np.testing.assert_array_equal(legs[-1], q[j[k]])
+        starts = [q[i[k]], *legs[:-1]]
+        assert env.path_problems(config.nominal, np.array(starts), np.array(legs)) == [None] * len(legs)
+    assert found
