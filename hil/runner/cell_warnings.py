@@ -94,12 +94,17 @@ def _folding_limits(config: CellConfig) -> list[str]:
         return []
     env, nominal, home = config.envelope, config.nominal, np.asarray(config.q_home_rad, float)
     out = []
+    remedy = (
+        "the collision checks refuse such poses; narrowing the limits says so in the cell config"
+        if env.bodies is not None
+        else "or turn [envelope] collisions back on"
+    )
     for j in range(nominal.n_joints):
         lo, hi = clear_range_rad(config.bodies, nominal, home, j)
         if env.joint_min_rad[j] < lo - FOLD_SLACK_RAD or env.joint_max_rad[j] > hi + FOLD_SLACK_RAD:
             out.append(
                 f"envelope: joint {j + 1} may turn {np.rad2deg(env.joint_min_rad[j]):.0f}..{np.rad2deg(env.joint_max_rad[j]):.0f} "
                 f"deg, but from the home pose the arm folds into itself outside {np.rad2deg(lo):.0f}..{np.rad2deg(hi):.0f} "
-                f"deg: narrow [envelope] joint_min_deg / joint_max_deg (or set collisions = true)"
+                f"deg: narrow [envelope] joint_min_deg / joint_max_deg ({remedy})"
             )
     return out
