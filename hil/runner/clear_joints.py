@@ -64,8 +64,8 @@ def plan_clear_joints(
     within limits, away from singularities and inside the envelope (box and, when it checks them, the
     collisions of every tool point `p_flange_tools_m`), reason "envelope" otherwise. With collision checks
     on a UR-shaped arm, each pose's configuration is the clearest of its closed-form branches (see module);
-    `like` (M, 6), joints planned before (a grid for its validation poses): prefer their configuration and
-    their turns, so the new poses lie where those were measured."""
+    `like` (M, 6), joints planned before (a grid for its validation poses): only their configuration and
+    turns, so the new poses lie where those were measured (a pose clear only in another is left out)."""
     T = np.asarray(T_base_tool, float)
     first = plan_joints(nominal, T, p_flange_tool_m, q_near=q_near, singular_sigma_m=singular_sigma_m)
     if envelope.bodies is not None and is_ur_like(nominal) and len(T):
@@ -132,6 +132,8 @@ def _clearest_branch(
     pick = np.where(clear[:, preferred], preferred, np.argmax(key, axis=1))
     seeds = shifted[np.arange(N), pick]
     found = np.isfinite(key[np.arange(N), pick])
+    if like is not None and len(like):
+        found &= pick == preferred  # only where those were measured: another wrist is another arm's data
     seeds[~found] = np.nan
     if found.any():
         around = seeds[found] if like is None or not len(like) else np.asarray(like, float)
