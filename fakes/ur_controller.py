@@ -89,7 +89,11 @@ class UrController(ScriptRuntime):
         self.cell = cell
         self.model = cell.nominal
         # the arm's own body (its robot file's capsules): a move into itself ends in a protective stop
-        self.arm_body = CellBodies(robot_body(cell.config.robot), margin_m=0.0, self_margin_m=0.0)
+        self.arm_body = (
+            CellBodies(robot_body(cell.config.robot), margin_m=0.0, self_margin_m=0.0)
+            if cell.config.self_collision_stop
+            else None
+        )
         self.host = host
         name = personality or default_personality(cell.config.robot)
         if name not in PERSONALITIES:

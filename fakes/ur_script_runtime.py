@@ -41,7 +41,7 @@ class ScriptRuntime:
     # The host's state this mixin reads and writes (`UrController.__init__` sets every one of them).
     cell: SimulatedCell
     model: KinematicModel  # the nominal model: the controller's beliefs
-    arm_body: CellBodies  # the arm's own capsules: a moveJ into itself ends in a protective stop
+    arm_body: CellBodies | None  # the arm's own capsules: a moveJ into itself ends in a protective stop
     kin: ArmKinematics
     period_s: float
     robot_mode: int
@@ -318,19 +318,19 @@ class ScriptRuntime:
             return JointMove(q_start, q, v, a)
         return LinearMove(self.model, q_start, T, v, a)
 
-    def _self_contact(self, q_start: np.ndarray, q_end: np.ndarray) -> float | None:
+    def _self_contact(self, body: CellBodies, q_start: np.ndarray, q_end: np.ndarray) -> float | None:
         """Where along a joint move (fraction 0..1) the arm's own body, the capsules of its robot file on
         the nominal model, first touches itself (no margin: a real arm's protective stop comes on contact);
         None when the path check certifies it clear. Only the arm itself: the controller knows no tool or
         cell around it. The contact is found on samples every CONTACT_STEP_RAD of the leading joint's travel,
         then bisected to a micro-fraction of the move."""
-        first = self.arm_body.path_collisions(self.model, q_start[None], q_end[None])[0]
+        first = body.path_collisions(self.model, q_start[None], q_end[None])[0]
         if np.isnan(first):
             return None
         delta = q_end - q_start
         samples = int(np.ceil(np.max(np.abs(delta)) / CONTACT_STEP_RAD)) + 2
         s = np.linspace(0.0, 1.0, samples)
-        touching = self.arm_body.pair_slack_m(self.model, q_start + s[:, None] * delta).min(axis=1) < 0
+        touching = body.pair_slack_m(self.model, q_start + s[:, None] * delta).min(axis=1) < 0
         if not touching.any():
             return float(first)  # a graze between samples: where the path check found it
         k = int(np.argmax(touching))
@@ -339,7 +339,7 @@ class ScriptRuntime:
         clear, touch = s[k - 1], s[k]
         for _ in range(20):
             mid = 0.5 * (clear + touch)
-            if self.arm_body.pair_slack_m(self.model, (q_start + mid * delta)[None]).min() < 0:
+            if body.pair_slack_m(self.model, (q_start + mid * delta)[None]).min() < 0:
                 touch = mid
             else:
                 clear = mid
@@ -360,8 +360,8 @@ class ScriptRuntime:
 
     def _start_motion(self, motion: Motion, is_async: bool, count: bool = True) -> None:
         self._kill_async_move()
-        if isinstance(motion, JointMove):
-            motion.contact_at = self._self_contact(motion.q_start, motion.q_end)
+        if isinstance(motion, JointMove) and self.arm_body is not None:
+            motion.contact_at = self._self_contact(self.arm_body, motion.q_start, motion.q_end)
         self.motion = motion
         self._motion_fresh = True  # its first setpoint comes on the next cycle
         self._motion_is_async = is_async

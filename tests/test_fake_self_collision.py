@@ -21,11 +21,13 @@ from tests.cell_fixtures import sim_cell_toml
 
 @pytest.fixture(scope="module")
 def config():
-    return parse_cell_config(tomllib.loads(sim_cell_toml()))
+    data = tomllib.loads(sim_cell_toml())
+    data["envelope"]["collisions"] = True
+    return parse_cell_config(data)
 
 
 def _controller_at(q: np.ndarray) -> UrController:
-    controller = UrController(SimulatedCell(SimCellConfig(robot="ur10", seed=0)))
+    controller = UrController(SimulatedCell(SimCellConfig(robot="ur10", seed=0, self_collision_stop=True)))
     controller.q_cmd = np.asarray(q, float).copy()
     return controller
 
