@@ -19,8 +19,8 @@ from dataclasses import replace
 
 import numpy as np
 
+from hil.geometry.collision import KeepOutBox
 from hil.runner.cell_config import parse_cell_config
-from hil.runner.collision import KeepOutBox
 from procedures import grid_sampling
 from tests.cell_fixtures import sim_cell_toml
 
@@ -33,10 +33,7 @@ def main() -> None:
     data = tomllib.loads(sim_cell_toml())
     data["envelope"]["collisions"] = True
     config = parse_cell_config(data)
-    plan = grid_sampling.plan(
-        config, step_m=0.1, box_min_m=None, box_max_m=None, orientations=1, order="travel",
-        both_directions=False, validation=300, nest=1, tilt_rad=np.deg2rad(20.0), seed=0,
-    )  # fmt: skip
+    plan = grid_sampling.PROCEDURE.make_plan(config, step_m=0.1, validation=300, seed=0)
     q = plan.joints()[: args.poses]
     env, nominal = config.envelope, config.nominal
     assert env.bodies is not None

@@ -42,6 +42,8 @@ from fakes.ur_program import ScriptError, UserProgram
 from fakes.ur_rtde_server import RtdeConnection
 from fakes.ur_script import ControlProgram, UnknownProgramError, read_programs
 from fakes.ur_script_runtime import ScriptRuntime
+from hil.geometry.collision import CellBodies
+from hil.geometry.robots import robot_body
 
 if TYPE_CHECKING:
     from fakes.cell import SimulatedCell
@@ -86,6 +88,12 @@ class UrController(ScriptRuntime):
     ):
         self.cell = cell
         self.model = cell.nominal
+        # the arm's own body (its robot file's capsules): a move into itself ends in a protective stop
+        self.arm_body = (
+            CellBodies(robot_body(cell.config.robot), margin_m=0.0, self_margin_m=0.0)
+            if cell.config.self_collision_stop
+            else None
+        )
         self.host = host
         name = personality or default_personality(cell.config.robot)
         if name not in PERSONALITIES:

@@ -74,6 +74,14 @@ class JointMove(Motion):
         self.direction = delta / lead if lead > 0 else np.zeros(6)
         self.profile = Trapezoid(lead, _positive(speed, "speed"), _positive(accel, "acceleration"))
         self.t = 0.0
+        self.lead = lead
+        self.contact_at: float | None = (
+            None  # the fraction of the path where the arm meets itself, if it does
+        )
+
+    def fraction(self) -> float:
+        """How far along its joint path the move has come (0 to 1)."""
+        return min(self.profile.at(self.t)[0] / self.lead, 1.0) if self.lead > 0 else 1.0
 
     @property
     def duration(self) -> float:

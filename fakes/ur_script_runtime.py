@@ -27,9 +27,12 @@ if TYPE_CHECKING:
     from fakes.cell import SimulatedCell
     from fakes.fast_kinematics import ArmKinematics
     from fakes.ur_script import ControlProgram
+    from hil.geometry.collision import CellBodies
     from hil.geometry.kinematics import KinematicModel
 
 log = logging.getLogger("fakes.ur_controller")
+
+CONTACT_STEP_RAD = float(np.deg2rad(0.5))  # sampling of a colliding moveJ's path to find where it touches
 
 
 class ScriptRuntime:
@@ -38,6 +41,7 @@ class ScriptRuntime:
     # The host's state this mixin reads and writes (`UrController.__init__` sets every one of them).
     cell: SimulatedCell
     model: KinematicModel  # the nominal model: the controller's beliefs
+    arm_body: CellBodies | None  # the arm's own capsules: a moveJ into itself ends in a protective stop
     kin: ArmKinematics
     period_s: float
     robot_mode: int
@@ -134,6 +138,12 @@ class ScriptRuntime:
             log.error("motion aborted: %s", exc)
             q, qd = self.q_cmd, np.zeros(6)
             motion.finished = True
+        contact = motion.contact_at if isinstance(motion, JointMove) else None
+        if isinstance(motion, JointMove) and contact is not None and motion.fraction() >= contact:
+            # the arm meets itself: it stops where it touches
+            self.q_cmd = motion.q_start + contact * (motion.q_end - motion.q_start)
+            self.trigger_protective_stop(f"self-collision {100 * contact:.0f} % along a moveJ")
+            return
         self.q_cmd, self.qd_cmd = np.asarray(q, float), np.asarray(qd, float) * self.speed_slider
         if isinstance(motion, PathMove) and motion.i != segment and not motion.finished:
             self._async_register(motion.progress)  # signal_async_progress(waypoint index)
@@ -308,6 +318,33 @@ class ScriptRuntime:
             return JointMove(q_start, q, v, a)
         return LinearMove(self.model, q_start, T, v, a)
 
+    def _self_contact(self, body: CellBodies, q_start: np.ndarray, q_end: np.ndarray) -> float | None:
+        """Where along a joint move (fraction 0..1) the arm's own body, the capsules of its robot file on
+        the nominal model, first touches itself (no margin: a real arm's protective stop comes on contact);
+        None when the path check certifies it clear. Only the arm itself: the controller knows no tool or
+        cell around it. The contact is found on samples every CONTACT_STEP_RAD of the leading joint's travel,
+        then bisected to a micro-fraction of the move."""
+        first = body.path_collisions(self.model, q_start[None], q_end[None])[0]
+        if np.isnan(first):
+            return None
+        delta = q_end - q_start
+        samples = int(np.ceil(np.max(np.abs(delta)) / CONTACT_STEP_RAD)) + 2
+        s = np.linspace(0.0, 1.0, samples)
+        touching = body.pair_slack_m(self.model, q_start + s[:, None] * delta).min(axis=1) < 0
+        if not touching.any():
+            return float(first)  # a graze between samples: where the path check found it
+        k = int(np.argmax(touching))
+        if k == 0:
+            return 0.0
+        clear, touch = s[k - 1], s[k]
+        for _ in range(20):
+            mid = 0.5 * (clear + touch)
+            if body.pair_slack_m(self.model, (q_start + mid * delta)[None]).min() < 0:
+                touch = mid
+            else:
+                clear = mid
+        return float(touch)
+
     def _checked_joints(self, q: np.ndarray) -> np.ndarray:
         q = np.asarray(q, float)
         if not np.all(np.isfinite(q)) or not bool(self.model.within_limits(q)):
@@ -323,6 +360,8 @@ class ScriptRuntime:
 
     def _start_motion(self, motion: Motion, is_async: bool, count: bool = True) -> None:
         self._kill_async_move()
+        if isinstance(motion, JointMove) and self.arm_body is not None:
+            motion.contact_at = self._self_contact(self.arm_body, motion.q_start, motion.q_end)
         self.motion = motion
         self._motion_fresh = True  # its first setpoint comes on the next cycle
         self._motion_is_async = is_async

@@ -28,6 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from hil.runner.cell_config import GRID_ORIENTATIONS, CellConfig
+from hil.runner.clear_joints import clear_travel_order, plan_clear_joints
 from hil.runner.operator import OperatorStep
 from hil.runner.plan import Plan, PlannedPose
 from hil.runner.planners import (
@@ -36,11 +37,9 @@ from hil.runner.planners import (
     facing_rotations,
     fixed_poses,
     grid_points,
-    plan_joints,
     random_order,
     random_points,
     rpy_rotation,
-    travel_order,
     workspace_box,
 )
 from hil.runner.procedure import SHOTS, Parameter, Procedure, Role
@@ -103,18 +102,17 @@ def plan(config: CellConfig, options: GridOptions) -> Plan:
     dropped: dict[str, int] = {}
     R_fixed = fixed_orientation(config, box, options.orientation, options.fixed_rpy_rad, orientations)
 
-    def usable_joints(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def usable_joints(points: np.ndarray, like: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         if R_fixed is None:
             T = facing_poses(
                 points, config.p_base_tracker_m, rng, tilt_deg=float(np.rad2deg(options.tilt_rad))
             )
         else:
             T = fixed_poses(points, R_fixed)
-        joints = plan_joints(config.nominal, T, p_nest, q_near=config.q_home_rad)
-        reason = joints.reason.copy()
-        reason[joints.usable & config.envelope.outside(config.nominal, joints.q, config.nests_flange_m)] = (
-            "envelope"
+        joints = plan_clear_joints(
+            config.nominal, config.envelope, T, p_nest, config.nests_flange_m, config.q_home_rad, like=like
         )
+        reason = joints.reason
         for r in reason[reason != "ok"]:
             dropped[str(r)] = dropped.get(str(r), 0) + 1
         keep = reason == "ok"
@@ -128,7 +126,7 @@ def plan(config: CellConfig, options: GridOptions) -> Plan:
         ids += [f"g{k + 1}-{i:04d}" for i in kept]
     q_grid = np.vstack(q_list) if q_list else np.zeros((0, 6))
     visit = (
-        travel_order(q_grid, config.q_home_rad)
+        clear_travel_order(config.nominal, config.envelope, q_grid, config.q_home_rad)
         if options.order == "travel"
         else random_order(len(q_grid), rng)
     )
@@ -151,11 +149,12 @@ def plan(config: CellConfig, options: GridOptions) -> Plan:
     poses = [pose(ids[i] + s, "grid", q_grid[i]) for i in visit for s in suffixes]
     poses = with_reference_rounds(poses, config.drift_poses, config.drift_every_points, pose)
     if validation:
-        q_val, _ = usable_joints(random_points(box, 3 * validation, rng))
+        # in the grid's configuration: validation poses where the grid was measured
+        q_val, _ = usable_joints(random_points(box, 3 * validation, rng), like=q_grid)
         poses += [pose(f"v{k + 1:04d}", "validation", q) for k, q in enumerate(q_val[:validation])]
     if not poses:
         raise ValueError("no grid vertex is reachable inside the envelope: move the box or widen [envelope]")
-    return Plan(NAME, poses, config, operator_steps=1, dropped=dropped)
+    return Plan(NAME, poses, config, operator_steps=1, dropped=dropped).without_unsafe_moves()
 
 
 def fixed_orientation(

@@ -60,6 +60,7 @@ from hil.geometry.kinematics import forward_kinematics
 from hil.geometry.se3 import fit_rigid
 from hil.model.calibrated_model import CalibratedModel
 from hil.runner.cell_config import CellConfig
+from hil.runner.clear_joints import plan_clear_joints
 from hil.runner.engine import Advance, MeasurePath, Measuring, PathOptions
 from hil.runner.operator import OperatorStep
 from hil.runner.plan import Plan, PlannedPose
@@ -111,11 +112,14 @@ def choose_cube(
         p = cube_poses(centre, side)
         T = np.tile(R, (5, 1, 1))
         T[:, :3, 3] = p
-        # P1 near home, the others on P1's branch: one arm and wrist configuration for all five poses
-        first = plan_joints(config.nominal, T[:1], p_nest, q_near=config.q_home_rad)
+        # P1 in its clearest configuration, the others on P1's branch: one arm and wrist configuration for
+        # all five poses
+        first = plan_clear_joints(
+            config.nominal, config.envelope, T[:1], p_nest, config.nests_flange_m, config.q_home_rad
+        )
         rest = plan_joints(config.nominal, T[1:], p_nest, q_near=first.q[0] if first.usable[0] else None)
         joints_q = np.vstack([first.q, rest.q])
-        reason = np.concatenate([first.reason, rest.reason])
+        reason = np.concatenate([first.reason, rest.reason]).astype(object)  # room for "envelope"
         usable = np.concatenate([first.usable, rest.usable])
         if usable.all():
             outside = config.envelope.outside(config.nominal, joints_q, config.nests_flange_m)

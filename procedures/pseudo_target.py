@@ -58,13 +58,13 @@ from hil.geometry.kinematics import forward_kinematics
 from hil.geometry.se3 import fit_rigid
 from hil.model.calibrated_model import CalibratedModel
 from hil.runner.cell_config import CellConfig
+from hil.runner.clear_joints import plan_clear_joints
 from hil.runner.engine import Advance, CampaignStopped, MeasurePose, Measuring
 from hil.runner.operator import OperatorStep
 from hil.runner.plan import Plan, PlannedPose
 from hil.runner.planners import (
     SINGULAR_SIGMA_M,
     facing_poses,
-    plan_joints,
     position_sigma_min_m,
     random_points,
     workspace_box,
@@ -268,10 +268,10 @@ def random_targets(config: CellConfig, model: CalibratedModel, count: int, seed:
     found: list[np.ndarray] = []
     for _ in range(20):
         T = facing_poses(random_points(box, 3 * count, rng), config.p_base_tracker_m, rng, tilt_deg=tilt_deg)
-        joints = plan_joints(config.nominal, T, p_nest, q_near=config.q_home_rad)
-        q = joints.q[joints.usable]
-        inside = ~config.envelope.outside(config.nominal, q, config.nests_flange_m)
-        found.append(q[inside] if len(q) else np.zeros((0, 6)))
+        joints = plan_clear_joints(
+            config.nominal, config.envelope, T, p_nest, config.nests_flange_m, config.q_home_rad
+        )
+        found.append(joints.q[joints.usable])
         if sum(len(f) for f in found) >= count:
             break
     q_all = np.vstack(found)[:count]
@@ -391,7 +391,9 @@ def start_joints(config: CellConfig, ik_model: CalibratedModel, model: Calibrate
         T_bt = np.linalg.inv(ik_model.T_tracker_base)
         p_base = T_d @ T_bt[:3, :3].T + T_bt[:3, 3]
         T_face = facing_poses(p_base, config.p_base_tracker_m, np.random.default_rng(0), tilt_deg=0.0)
-        joints = plan_joints(config.nominal, T_face, ik_model.tools[1], q_near=home)
+        joints = plan_clear_joints(
+            config.nominal, config.envelope, T_face, ik_model.tools[1], config.nests_flange_m, home
+        )
         status = np.where(joints.reason == "ok", "ok", joints.reason).astype(object)
         q_plain = np.where(joints.usable[:, None], joints.q, np.nan)
         seed = np.where(joints.usable[:, None], joints.q, home)

@@ -17,10 +17,11 @@ from hil.geometry.kinematics import tool_points
 from hil.geometry.rigid_fit import RigidFit, ransac_rigid
 from hil.geometry.se3 import fit_rigid, transform_points
 from hil.runner.cell_config import CellConfig
+from hil.runner.clear_joints import plan_clear_joints
 from hil.runner.engine import CampaignStopped
 from hil.runner.operator import OperatorStep
 from hil.runner.plan import Plan, PlannedPose
-from hil.runner.planners import Box, facing_poses, plan_joints, workspace_box
+from hil.runner.planners import Box, facing_poses, workspace_box
 from hil.runner.procedure import Parameter, Procedure, Role
 from hil.runner.session import Session
 
@@ -60,9 +61,15 @@ def plan(config: CellConfig, options: RegistrationOptions) -> Plan:
         ]
     )
     T = facing_poses(candidates, config.p_base_tracker_m, rng, tilt_deg=15.0, roll_deg=60.0)
-    joints = plan_joints(config.nominal, T, config.nests_flange_m[nest - 1], q_near=config.q_home_rad)
-    usable = joints.usable & ~config.envelope.outside(config.nominal, joints.q, config.nests_flange_m)
-    q = joints.q[usable][:poses]
+    joints = plan_clear_joints(
+        config.nominal,
+        config.envelope,
+        T,
+        config.nests_flange_m[nest - 1],
+        config.nests_flange_m,
+        config.q_home_rad,
+    )
+    q = joints.q[joints.usable][:poses]
     if len(q) < 6:
         raise ValueError(
             f"only {len(q)} registration poses are reachable inside the envelope; widen [envelope] or check "

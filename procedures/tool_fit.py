@@ -55,10 +55,11 @@ from hil.analysis.standards.flange_geometry import (
 from hil.geometry.kinematics import KinematicModel, tool_points
 from hil.geometry.rigid_fit import ransac_rigid
 from hil.runner.cell_config import CellConfig
+from hil.runner.clear_joints import plan_clear_joints
 from hil.runner.engine import CampaignStopped
 from hil.runner.operator import OperatorStep
 from hil.runner.plan import Plan, PlannedPose
-from hil.runner.planners import Box, facing_poses, plan_joints, workspace_box
+from hil.runner.planners import Box, facing_poses, workspace_box
 from hil.runner.procedure import Limit, Measurement, Parameter, Procedure, Role
 from hil.runner.session import RecordedPoints, Session
 from procedures.flange_drawing import flange_drawing_svg
@@ -170,9 +171,10 @@ def nominal_points(config: CellConfig) -> dict[str, np.ndarray]:
 
 
 def _usable(config: CellConfig, T: np.ndarray, p_flange: np.ndarray) -> np.ndarray:
-    joints = plan_joints(config.nominal, T, p_flange, q_near=config.q_home_rad)
-    ok = joints.usable & ~config.envelope.outside(config.nominal, joints.q, config.nests_flange_m)
-    return joints.q[ok]
+    joints = plan_clear_joints(
+        config.nominal, config.envelope, T, p_flange, config.nests_flange_m, config.q_home_rad
+    )
+    return joints.q[joints.usable]
 
 
 def plan(config: CellConfig, options: ToolFitOptions) -> Plan:

@@ -21,9 +21,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from hil.geometry.kinematics import KinematicModel
+from hil.geometry.kinematics import KinematicModel, link_frames
 
 _TINY = 1e-12
+RIGID_SAMPLES = 16  # random poses over which a pair of capsules must keep one distance to count as rigid
 
 
 @dataclass(frozen=True)
@@ -71,8 +72,21 @@ class ArmBody:
             # links fi+1 .. fj-1 lie between the two: their lengths are between[fj-1] - between[fi]
             joined = between[np.maximum(fj - 1, fi)] - between[fi]
             keep = (fj - fi >= 2) & (joined > self.radius_m[i] + self.radius_m[j] + margin_m)
+            keep[keep] = ~self._rigid(model, i[keep], j[keep])
             self._pairs[key] = np.column_stack([i[keep], j[keep]])
         return self._pairs[key]
+
+    def _rigid(self, model: KinematicModel, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+        """(P,) which pairs keep one distance in every pose (to a micrometre over RIGID_SAMPLES random joint
+        sets within the limits): two wrist housings about the axis between them, which no joint brings
+        nearer. Such a pair can neither collide nor tell two poses apart, so it is not checked."""
+        lo, hi = model.joint_limits[:, 0], model.joint_limits[:, 1]
+        q = np.random.default_rng(0).uniform(
+            np.maximum(lo, -np.pi), np.minimum(hi, np.pi), (RIGID_SAMPLES, len(lo))
+        )
+        a, b = self.segments(link_frames(model, q))
+        distance = segment_distance(a[:, i], b[:, i], a[:, j], b[:, j])  # (RIGID_SAMPLES, P)
+        return np.ptp(distance, axis=0) < 1e-6
 
     def segments(self, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Capsule ends in the base frame, (N, C, 3) each, from link frames (N, n+1, 4, 4)."""

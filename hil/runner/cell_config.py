@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from hil.geometry.body import ArmBody
+from hil.geometry.collision import CellBodies, KeepOutBox
 from hil.geometry.coupling import JointConvention
 from hil.geometry.kinematics import KinematicModel
 from hil.geometry.robots import (
@@ -29,7 +30,6 @@ from hil.geometry.robots import (
     with_file_path,
 )
 from hil.instruments.plugins import DEFAULT_ROBOT_DRIVER, DEFAULT_TRACKER_DRIVER
-from hil.runner.collision import CellBodies, KeepOutBox
 from hil.runner.envelope import Envelope
 
 SMR_RADIUS_MM = 19.05  # 1.5" sphere

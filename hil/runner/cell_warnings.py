@@ -8,11 +8,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from hil.geometry.collision import clear_range_rad
 from hil.geometry.kinematics import forward_kinematics
 from hil.geometry.urdf_import import import_urdf
 from hil.geometry.urdf_read import is_urdf_spec
 from hil.runner.cell_config import DEFAULT_JOINT_SPEED_RAD_S, DEFAULT_LINEAR_SPEED_M_S, CellConfig
-from hil.runner.collision import clear_range_rad
 
 SETTLE_PLAUSIBLE_S = (
     5.0  # a UR arm and an SMR settle in well under a second; seconds more wait at every point
@@ -94,12 +94,17 @@ def _folding_limits(config: CellConfig) -> list[str]:
         return []
     env, nominal, home = config.envelope, config.nominal, np.asarray(config.q_home_rad, float)
     out = []
+    remedy = (
+        "the collision checks refuse such poses; narrowing the limits says so in the cell config"
+        if env.bodies is not None
+        else "or set [envelope] collisions = true"
+    )
     for j in range(nominal.n_joints):
         lo, hi = clear_range_rad(config.bodies, nominal, home, j)
         if env.joint_min_rad[j] < lo - FOLD_SLACK_RAD or env.joint_max_rad[j] > hi + FOLD_SLACK_RAD:
             out.append(
                 f"envelope: joint {j + 1} may turn {np.rad2deg(env.joint_min_rad[j]):.0f}..{np.rad2deg(env.joint_max_rad[j]):.0f} "
                 f"deg, but from the home pose the arm folds into itself outside {np.rad2deg(lo):.0f}..{np.rad2deg(hi):.0f} "
-                f"deg: narrow [envelope] joint_min_deg / joint_max_deg (or set collisions = true)"
+                f"deg: narrow [envelope] joint_min_deg / joint_max_deg ({remedy})"
             )
     return out

@@ -1,5 +1,5 @@
 """The safety envelope: a box in the robot base frame for the tool points and every wrist point, joint
-limits, and the collision checks of hil.runner.collision (the arm with itself, the tracker, the keep-out
+limits, and the collision checks of hil.geometry.collision (the arm with itself, the tracker, the keep-out
 boxes). Every commanded motion is checked against it, along its whole path, before the robot moves.
 """
 
@@ -9,8 +9,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from hil.geometry.collision import CellBodies, Clearances
 from hil.geometry.kinematics import KinematicModel, forward_kinematics, link_frames
-from hil.runner.collision import CellBodies, Clearances
 from hil.runner.planners import wrist_points
 
 # Samples per joint move when checking its path: moveJ interpolates linearly in joint space, so the
@@ -161,26 +161,35 @@ class Envelope:
         p_flange_tools_m: np.ndarray,
         q_home: np.ndarray,
     ) -> list[np.ndarray] | None:
-        """The legs of a safe way from q_from to q_to when the direct move is not: through one intermediate
-        pose, tried in order: the wrist turned first (q_from's arm joints with q_to's wrist), the arm moved
-        first (q_to's arm with q_from's wrist), the home pose, the home arm with either wrist. Each leg is
-        checked as `check_joint_move` checks; None when no candidate is safe."""
+        """The legs of a safe way from q_from to q_to when the direct move is not, ending with q_to; tried in
+        order: through one intermediate pose (the wrist turned first: q_from's arm joints with q_to's wrist;
+        the arm moved first; the home pose; the home arm with either wrist), then with the wrist tucked at
+        home's for the arm's move (q_from's arm with home's wrist, q_to's arm with home's wrist), then that
+        through home. Each leg is checked as `check_joint_move` checks; None when no way is safe."""
         q_from, q_to, home = (np.asarray(v, float) for v in (q_from, q_to, q_home))
         arm = slice(0, min(3, len(q_from)))
-        candidates = []
-        for base, wrist in ((q_from, q_to), (q_to, q_from), (home, home), (home, q_to), (home, q_from)):
+
+        def joined(base: np.ndarray, wrist: np.ndarray) -> np.ndarray:
             q = wrist.copy()
             q[arm] = base[arm]
-            candidates.append(q)
-        for mid in candidates:
-            if self.outside(nominal, mid[None], p_flange_tools_m)[0]:
+            return q
+
+        ways: list[list[np.ndarray]] = [
+            [joined(base, wrist)]
+            for base, wrist in ((q_from, q_to), (q_to, q_from), (home, home), (home, q_to), (home, q_from))
+        ]
+        tucked_from, tucked_to = joined(q_from, home), joined(q_to, home)
+        ways += [[tucked_from, tucked_to], [tucked_from, home, tucked_to]]
+        for way in ways:
+            if self.outside(nominal, np.array(way), p_flange_tools_m).any():
                 continue
+            legs = [*way, q_to]
             try:
-                self.check_joint_move(nominal, q_from, mid, p_flange_tools_m)
-                self.check_joint_move(nominal, mid, q_to, p_flange_tools_m)
+                for start, end in zip([q_from, *way], legs, strict=True):
+                    self.check_joint_move(nominal, start, end, p_flange_tools_m)
             except EnvelopeError:
                 continue
-            return [mid, q_to]
+            return legs
         return None
 
     def path_problems(

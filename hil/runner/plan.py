@@ -6,7 +6,7 @@ it should take, and the bounding box the tool points sweep (nominal kinematics).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -15,6 +15,8 @@ from hil.runner.cell_config import CellConfig
 from hil.runner.envelope import EnvelopeError
 from hil.runner.operator import OperatorStep
 from hil.runner.planners import sequence_duration_s
+
+NO_SAFE_PATH = "no safe path"  # a pose left out because no move to it from the pose before keeps clear
 
 
 @dataclass(frozen=True)
@@ -84,6 +86,50 @@ class Plan:
             previous = pose.q_rad
         return detours, impossible
 
+    def without_unsafe_moves(self) -> Plan:
+        """This plan less the poses that cannot be reached safely from the pose before (or home): neither
+        the direct move nor any detour Envelope.detour finds keeps clear. Each is counted in `dropped` as
+        "no safe path", so the dry run says so; the run then moves from the pose before to the next one."""
+        cfg = self.config
+        env, tools, home = cfg.envelope, cfg.nests_flange_m, cfg.q_home_rad
+        kept: list[PlannedPose] = []
+        previous = home
+        for pose in self.poses:
+            legs = [*([pose.approach_q_rad] if pose.approach_q_rad is not None else []), pose.q_rad]
+            start, safe = previous, True
+            for leg in legs:
+                try:
+                    env.check_joint_move(cfg.nominal, start, leg, tools)
+                except EnvelopeError:
+                    if env.detour(cfg.nominal, start, leg, tools, home) is None:
+                        safe = False
+                        break
+                start = leg
+            if safe:
+                kept.append(pose)
+                previous = pose.q_rad
+        dropped = dict(self.dropped)
+        if len(kept) < len(self.poses):
+            dropped[NO_SAFE_PATH] = dropped.get(NO_SAFE_PATH, 0) + len(self.poses) - len(kept)
+        return replace(self, poses=kept, dropped=dropped)
+
+    def nearest_bodies(self) -> list[tuple[float, str]]:
+        """Per pose, its smallest clearance (metres) and the two bodies it lies between: the arm with itself
+        or with the cell, whichever keeps less beyond its margin. Empty when collisions are not checked."""
+        cfg = self.config
+        bodies = cfg.envelope.bodies
+        if bodies is None or not self.poses:
+            return []
+        found = bodies.clearances(cfg.nominal, self.joints())
+        own = found.self_m - bodies.self_margin_m
+        cell = found.cell_m - bodies.margin_m
+        return [
+            (float(found.self_m[k]), found.self_between[k])
+            if own[k] <= cell[k]
+            else (float(found.cell_m[k]), found.cell_between[k])
+            for k in range(len(self.poses))
+        ]
+
     def describe(self, max_rows: int = 20) -> str:
         """A readable summary: counts, duration, bounding box, and the first poses in order."""
         cfg = self.config
@@ -96,7 +142,7 @@ class Plan:
         detours, impossible = self.path_check()
         if detours:
             lines.append(
-                f"  {detours} move(s) go through the home pose: the direct path would leave the envelope"
+                f"  {detours} move(s) go through a safe intermediate pose: the direct path would leave the envelope"
             )
         if impossible:
             lines.append(f"  NOT REACHABLE inside the envelope: {', '.join(impossible[:10])}")
@@ -111,10 +157,22 @@ class Plan:
             lines.append(
                 f"  tool points sweep x {lo[0]:.0f}..{hi[0]:.0f}, y {lo[1]:.0f}..{hi[1]:.0f}, z {lo[2]:.0f}..{hi[2]:.0f} mm (robot base frame)"
             )
-            lines.append(f"  {'#':>4} {'point':>10} {'step':>12} {'smr at':>8}  joints (deg)")
+            nearest = self.nearest_bodies()
+            if nearest:
+                k = int(np.argmin([clearance for clearance, _ in nearest]))
+                clearance, between = nearest[k]
+                lines.append(
+                    f"  smallest clearance: {clearance * 1e3:.0f} mm ({between}) at {self.poses[k].point_id}"
+                )
+            header = f"  {'#':>4} {'point':>10} {'step':>12} {'smr at':>8}  joints (deg)"
+            lines.append(f"{header:<{len(header) + 41}}  clearance" if nearest else header)
             for k, pose in enumerate(self.poses[:max_rows], start=1):
                 deg = " ".join(f"{v:8.2f}" for v in np.rad2deg(pose.q_rad))
-                lines.append(f"  {k:>4} {pose.point_id:>10} {pose.step:>12} {pose.location:>8}  {deg}")
+                row = f"  {k:>4} {pose.point_id:>10} {pose.step:>12} {pose.location:>8}  {deg}"
+                if nearest:
+                    clearance, between = nearest[k - 1]
+                    row += f"  {clearance * 1e3:5.0f} mm ({between})"
+                lines.append(row)
             if len(self.poses) > max_rows:
                 lines.append(f"  ... and {len(self.poses) - max_rows} more")
         return "\n".join(lines)

@@ -244,25 +244,24 @@ class Session:
             self._move_leg(leg, label)
 
     def _legs(self, q_target: np.ndarray, label: str) -> list[np.ndarray]:
-        """The joint targets to move through: [q_target], or [home, q_target] when only the detour is safe."""
+        """The joint targets to move through: [q_target], or the safe detour the dry run's path check finds
+        (Envelope.detour: through one or more intermediate poses) when only that is safe."""
         tools = self.config.nests_flange_m
         q_now = np.asarray(self.robot.joints(), float)
         try:
             self.envelope.check_joint_move(self.nominal, q_now, q_target, tools)
             return [q_target]
         except EnvelopeError as direct:
-            home = self.config.q_home_rad
-            try:
-                self.envelope.check_joint_move(self.nominal, q_now, home, tools)
-                self.envelope.check_joint_move(self.nominal, home, q_target, tools)
-            except EnvelopeError:
+            legs = self.envelope.detour(self.nominal, q_now, q_target, tools, self.config.q_home_rad)
+            if legs is None:
                 raise direct from None
             self.event(
                 "detour",
-                f"the direct move to {label or 'the target'} would leave the envelope; going through home",
+                f"the direct move to {label or 'the target'} would leave the envelope; going through "
+                f"{len(legs) - 1} intermediate pose(s)",
                 point_id=label or None,
             )
-            return [home, q_target]
+            return legs
 
     def _move_leg(self, q_target: np.ndarray, label: str) -> None:
         for attempt in range(1, MOVE_ATTEMPTS + 1):

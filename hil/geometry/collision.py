@@ -117,6 +117,19 @@ class CellBodies:
         near_cell = (cell < self.margin_m).reshape(len(q), -1).any(axis=1)
         return np.asarray(near_self | near_cell, bool)
 
+    def pair_count(self, model: KinematicModel) -> int:
+        """How many clearances `pair_slack_m` gives per joint set."""
+        moving = int(np.sum(self.body.frame >= 1))
+        return len(self.body.self_pairs(model, self.self_margin_m)) + moving * (1 + len(self.keep_out))
+
+    def pair_slack_m(self, model: KinematicModel, q: np.ndarray) -> np.ndarray:
+        """(N, Q) how far each checked pair of each joint set keeps beyond its margin (negative: too close):
+        the self pairs less the self margin, then each moving capsule against the tracker and each box less
+        the cell margin (+inf for what is not there)."""
+        q = np.atleast_2d(np.asarray(q, float))
+        own, cell, _ = self._arrays(model, q)
+        return np.concatenate([own - self.self_margin_m, cell.reshape(len(q), -1) - self.margin_m], axis=1)
+
     def pose_problems(self, model: KinematicModel, q: np.ndarray) -> list[str | None]:
         """Per joint set: None when clear, else the bodies that come too close and their clearance."""
         found = self.clearances(model, q)
