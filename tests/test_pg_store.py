@@ -438,3 +438,22 @@ def test_compensate_reads_the_targets_of_a_shared_campaign_as_of_a_file(database
     written = pd.read_csv(out)
     assert list(written["point_id"]) == [f"p{i}" for i in range(len(val))]
     assert (written["status"] == "ok").all() and written["error_mm"].max() < 0.01
+
+
+def test_campaign_show_and_export_read_a_shared_campaign_as_a_file(database, tmp_path, capsys):
+    """`hil campaign show URL` and `hil campaign export URL --csv OUT`: what the file's commands print and
+    write, read from the shared store (no password on screen)."""
+    from hil.cli import main
+
+    url = database + "?campaign=shown-and-exported"
+    with PgCampaignStore(url) as store:
+        _fill(store)
+    assert main(["campaign", "show", url]) == 0
+    shown = capsys.readouterr().out
+    assert "5 measurements" in shown and PASSWORD not in shown
+    out = tmp_path / "grid.csv"
+    assert (
+        main(["campaign", "export", url, "--procedure", "grid_sampling", "--step", "grid", "--csv", str(out)])
+        == 0
+    )
+    assert len(pd.read_csv(out)) == 4

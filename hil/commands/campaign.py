@@ -13,10 +13,11 @@ import pandas as pd
 
 from hil.commands.campaign_push import add_push_parser
 from hil.commands.errors import CliError
+from hil.data.campaigns import open_campaign
 from hil.data.dataset import DatasetError
+from hil.data.pg_url import is_campaign_url
 from hil.data.store import (
     CampaignError,
-    CampaignStore,
     OutcomeRecord,
     Verdict,
     export_csv,
@@ -30,17 +31,18 @@ SNAPSHOT_SECTIONS = ("cell", "robot", "tracker", "software")
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
     parser = subparsers.add_parser(
         "campaign",
-        help="inspect or export a campaign file (the SQLite store a measurement session writes)",
-        description="Show what a campaign file holds, or export one procedure's measurements in the dataset "
-        "contract (CSV for hil calibrate/diagnose, or Parquet).",
+        help="inspect or export a campaign (the file a measurement session writes, or one in the shared store)",
+        description="Show what a campaign holds, or export one procedure's measurements in the dataset "
+        "contract (CSV for hil calibrate/diagnose, or Parquet). A campaign is its file, or a "
+        "postgresql://USER@HOST/DATABASE?campaign=LABEL URL in the shared store.",
     )
     sub = parser.add_subparsers(dest="campaign_command", metavar="ACTION")
     show = sub.add_parser("show", help="station snapshot, steps, points, events and the last log lines")
-    show.add_argument("file", help="campaign file")
+    show.add_argument("file", help="campaign file or shared-store URL")
     show.add_argument("--log-lines", type=int, default=10, help="last log lines to print (default 10)")
     show.set_defaults(func=run_show)
     export = sub.add_parser("export", help="write one procedure's measurements as a dataset CSV or Parquet")
-    export.add_argument("file", help="campaign file")
+    export.add_argument("file", help="campaign file or shared-store URL")
     export.add_argument("--csv", default=None, help="CSV file to write (dataset contract)")
     export.add_argument("--parquet", default=None, help="Parquet file to write (same columns)")
     export.add_argument(
@@ -59,7 +61,10 @@ def _usage(parser: argparse.ArgumentParser) -> int:
 
 
 def _check_campaign(path: str) -> str | None:
-    """Why `path` cannot be read as a campaign (one line with what to do), or None."""
+    """Why `path` cannot be read as a campaign (one line with what to do), or None. A postgresql:// URL
+    names a campaign in the shared store: opening it says what is wrong with it."""
+    if is_campaign_url(path):
+        return None
     p = Path(path)
     if not p.exists():
         return f"campaign file not found: {p}; give the path of a campaign a session wrote"
@@ -140,7 +145,7 @@ def run_show(args: argparse.Namespace) -> int:
     if problem:
         raise CliError.from_text(problem)
     try:
-        with CampaignStore(args.file, create=False) as store:
+        with open_campaign(args.file, create=False) as store:
             snapshots = store.snapshots()
             counts = store.point_counts()
             steps = store.steps()
@@ -242,7 +247,7 @@ def run_export(args: argparse.Namespace) -> int:
         raise CliError.from_text(
             f"output folder {out.parent} does not exist; create it or choose another path"
         )
-    if out.exists() and out.resolve() == Path(args.file).resolve():
+    if out.exists() and not is_campaign_url(args.file) and out.resolve() == Path(args.file).resolve():
         raise CliError.from_text(
             "the output would overwrite the campaign file itself; choose another output path"
         )
@@ -250,7 +255,8 @@ def run_export(args: argparse.Namespace) -> int:
         raise CliError.from_text(f"{out} exists; choose another output path, or give --force to overwrite it")
     write = export_csv if args.csv else export_parquet
     try:
-        rows = write(args.file, out, args.procedure, args.step)
+        with open_campaign(args.file, create=False) as store:
+            rows = write(store, out, args.procedure, args.step)
     except (DatasetError, CampaignError, ValueError) as exc:
         raise CliError.from_text(str(exc)) from exc
     what = args.procedure + (f"/{args.step}" if args.step else "")

@@ -975,7 +975,7 @@ def _extra_temperatures(extra: pd.Series, key: str) -> np.ndarray:
 
 
 def export_csv(
-    path: str | Path,
+    path: str | Path | Campaign,
     out: str | Path,
     procedure: str,
     step: str | Sequence[str] | None = None,
@@ -985,7 +985,7 @@ def export_csv(
 
 
 def export_parquet(
-    path: str | Path,
+    path: str | Path | Campaign,
     out: str | Path,
     procedure: str,
     step: str | Sequence[str] | None = None,
@@ -1003,7 +1003,7 @@ def _without_attrs(df: pd.DataFrame) -> pd.DataFrame:
 
 
 def _export(
-    path: str | Path,
+    path: str | Path | Campaign,
     procedure: str,
     step: str | Sequence[str] | None,
     write: Callable[[pd.DataFrame], object],
