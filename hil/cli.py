@@ -29,7 +29,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "cell": ("hil.commands.cell", "check a cell configuration (and optionally its instruments)"),
     "run": ("hil.commands.run", "run a measurement procedure on a cell"),
     "serve": ("hil.commands.serve", "the operator console: start procedures, watch them live, answer prompts, find every campaign"),
-    "campaign": ("hil.commands.campaign", "inspect or export a campaign file (the SQLite store a measurement session writes)"),
+    "campaign": ("hil.commands.campaign", "inspect or export a campaign (the file a measurement session writes, or one in the shared store)"),
     "fleet": ("hil.commands.fleet", "every robot's calibrations and diagnoses over time; which moved, which to look at first"),
 }  # fmt: skip
 
