@@ -447,3 +447,18 @@ def test_confounded_pairs_leave_out_parameters_no_equation_moves(probe_campaign)
         assert all(abs(c) <= 1.0 for *_, c in pairs)
         kept, corr = parameter_correlations(result, J)  # what each added effect's step reports too
         assert names[probe[0]] not in kept and np.all(np.abs(corr) <= 1.0 + 1e-9)
+
+
+def test_right_readings_of_a_probe_far_off_the_flange_are_taken_and_radians_in_them_refused():
+    """The orientation check compares the readings with the nominal arm registered on the positions, its tool
+    points fitted too: a probe 110 mm off the flange (seed 6: refused at 5.2 deg when the check assumed the tool
+    at the flange) is taken, and the same readings written in radians are still refused."""
+    from calib_data import wrist_cyclic_campaign
+
+    df = wrist_cyclic_campaign(250, seed=6)
+    df = df[0] if isinstance(df, tuple) else df
+    calibrate(df, "ur10", "ridge")  # no refusal
+    in_radians = df.copy()
+    in_radians[list(ORIENTATION_COLUMNS)] = np.deg2rad(df[list(ORIENTATION_COLUMNS)].to_numpy(float))
+    with pytest.raises(ValueError, match="not radians"):
+        calibrate(in_radians, "ur10", "ridge")

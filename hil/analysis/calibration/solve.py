@@ -50,7 +50,7 @@ from hil.data.dataset import (
     repeated_orientation_counts,
     smr_ids,
 )
-from hil.geometry.kinematics import KinematicModel
+from hil.geometry.kinematics import KinematicModel, forward_kinematics
 from hil.geometry.se3 import fit_rigid, rotation_log
 from hil.model.calibrated_model import CalibratedModel, initial_model, with_initial_probes
 from hil.model.effects import EffectContext
@@ -756,7 +756,7 @@ def _calibrate(
     full = Problem.from_frame(
         model, df, orientation=True, angle_noise_rad=angle_noise_rad, position_noise=position_noise
     )
-    check_orientation_readings(model, full)
+    check_orientation_readings(model, df, full)
     # A big campaign converges on a fixed random subset first, then finishes on every row (below).
     big = len(df) > CONVERGE_ROWS
     problem = (
@@ -966,13 +966,16 @@ ORIENTATION_PLAUSIBLE_DEG = 5.0
 ORIENTATION_NOISE_FACTOR = 3.0
 
 
-def check_orientation_readings(model: CalibratedModel, problem: Problem) -> None:
-    """Refuse orientation readings that the nominal model (initial base registration and probe-in-flange
-    estimate) misses by more than ORIENTATION_PLAUSIBLE_DEG in the median row: a wrong convention or unit
-    would otherwise drag the position calibration off by millimetres."""
+def check_orientation_readings(model: CalibratedModel, df: pd.DataFrame, problem: Problem) -> None:
+    """Refuse orientation readings that the nominal model misses by more than ORIENTATION_PLAUSIBLE_DEG in the
+    median row: a wrong convention or unit would otherwise drag the position calibration off by millimetres.
+    The nominal model is first registered on the positions with its tool points fitted too (a probe 110 mm
+    off the flange, with the tool guessed at the flange, left the base 75 mm off and good readings 5 deg off)."""
     if problem.R_measured is None:
         return
-    rot = _rotation_part(problem, problem.residuals(model))
+    registered = _registered_on_positions(model, df)
+    check = replace(problem, ctx=registered.context(df)[0])
+    rot = _rotation_part(check, check.residuals(registered))
     assert rot is not None
     median = float(np.rad2deg(np.median(np.linalg.norm(rot, axis=1))))
     if median > ORIENTATION_PLAUSIBLE_DEG:
@@ -983,6 +986,32 @@ def check_orientation_readings(model: CalibratedModel, problem: Problem) -> None
             "--orientation-convention (xyz-extrinsic or xyz-intrinsic) and in degrees, not radians? "
             "Drop the three columns to calibrate on positions only"
         )
+
+
+REGISTRATION_ROUNDS = 5  # base and tool points fitted in turn; each round a rigid fit and a linear one
+
+
+def _registered_on_positions(model: CalibratedModel, df: pd.DataFrame) -> CalibratedModel:
+    """The model's geometry with its base frame and each nest's tool point fitted to the measured positions
+    (in turn: the base by a rigid fit, then each tool point by linear least squares, REGISTRATION_ROUNDS
+    times) and its probes estimated afresh on that placement."""
+    measured, smr = points_m(df), smr_ids(df)
+    ctx, _ = model.context(df)
+    T_BF = forward_kinematics(model.kinematic, ctx.q + model.joint_offsets(ctx))
+    tools = dict(model.tools)
+    T = model.T_tracker_base
+    for _ in range(REGISTRATION_ROUNDS):
+        p_base = (
+            np.einsum("nij,nj->ni", T_BF[:, :3, :3], np.array([tools[int(s)] for s in smr])) + T_BF[:, :3, 3]
+        )
+        T, _ = fit_rigid(p_base, measured)
+        in_base = (measured - T[:3, 3]) @ T[:3, :3]  # the measured points in the base frame
+        for s in np.unique(smr):
+            rows = smr == s
+            A = T_BF[rows, :3, :3].reshape(-1, 3)
+            b = (in_base[rows] - T_BF[rows, :3, 3]).reshape(-1)
+            tools[int(s)] = np.linalg.lstsq(A, b, rcond=None)[0]
+    return with_initial_probes(replace(model, T_tracker_base=T, tools=tools, probes={}), df)
 
 
 def orientation_notes(result: CalibrationResult, angle_noise_rad: float) -> list[str]:
