@@ -129,3 +129,26 @@ def compliant_ur10(
         eff.params = np.array([rng.uniform(0.5e-5, 1.5e-5)])  # rad/(N m): 67-200 kN m/rad
         effects.append(eff)
     return CalibratedModel("ur10", nominal, kin, T, tools_m, effects)
+
+
+def record_validated_campaign(store, model: CalibratedModel, validation) -> None:
+    """Write into `store` (a campaign file or the shared store) what a finished campaign holds for compensating
+    its validation targets: the robot in a station snapshot, `model`'s registration and nest 1, and the rows of
+    `validation` as grid_sampling's validation points v0, v1, ..."""
+    from hil.data.dataset import joints_rad, points_m
+    from hil.data.store import MeasurementRecord
+
+    store.add_snapshot({"cell": {"robot": {"model": model.robot}}})
+    store.finish_step("registration", "fit", {"T_tracker_base": model.T_tracker_base.tolist()})
+    store.finish_step(
+        "tool_fit", "fit", {"nests_flange_mm": {"1": (np.asarray(model.tools[1]) * 1e3).tolist()}}
+    )
+    for i, (q, p) in enumerate(zip(joints_rad(validation), points_m(validation), strict=True)):
+        store.record_measurement(
+            MeasurementRecord(
+                procedure="grid_sampling", step="validation", point_id=f"v{i}", q_target_rad=q, q_rad=q,
+                T_base_flange=np.eye(4), p_tracker_m=p, spread_m=np.zeros(3), std_m=np.zeros(3), shots=10,
+                rejected_shots=(), smr=1, location="nest1", temperature_c=20.0, pressure_hpa=1013.0,
+                humidity_pct=40.0, timestamp_s=1.7e9 + i,
+            )
+        )  # fmt: skip

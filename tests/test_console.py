@@ -238,11 +238,7 @@ def test_diagnosis_from_the_page_says_why_it_cannot_run_on_a_registration(operat
 def test_compensation_from_the_page_uses_the_diagnosed_model_and_links_the_joints(operator_page, console):
     """Compensate is refused until the campaign has a diagnosed model; with one it runs `hil compensate` on the
     campaign's validation targets and links the joints it wrote (each with its predicted remaining error)."""
-    import numpy as np
-    from calib_data import cell_datasets, true_effect_model
-
-    from hil.data.dataset import joints_rad, points_m
-    from hil.data.store import MeasurementRecord
+    from calib_data import cell_datasets, record_validated_campaign, true_effect_model
 
     url, station = console
     refused = operator_page.request.post(f"{url}/api/compensate/{CAMPAIGN}", data={})
@@ -250,21 +246,8 @@ def test_compensation_from_the_page_uses_the_diagnosed_model_and_links_the_joint
     _, train, val = cell_datasets(step_m=0.2, n_val=4, seed=0)
     model = true_effect_model(train, "ur10", ("gravity_compliance",))
     name = "validated.sqlite"
-    with CampaignStore(station.campaigns / name) as store:  # a finished campaign: its robot, registration,
-        store.add_snapshot({"cell": {"robot": {"model": "ur10"}}})  # tool fit and validation points
-        store.finish_step("registration", "fit", {"T_tracker_base": model.T_tracker_base.tolist()})
-        store.finish_step(
-            "tool_fit", "fit", {"nests_flange_mm": {"1": (np.asarray(model.tools[1]) * 1e3).tolist()}}
-        )
-        for i, (q, p) in enumerate(zip(joints_rad(val), points_m(val), strict=True)):
-            store.record_measurement(
-                MeasurementRecord(
-                    procedure="grid_sampling", step="validation", point_id=f"v{i}", q_target_rad=q, q_rad=q,
-                    T_base_flange=np.eye(4), p_tracker_m=p, spread_m=np.zeros(3), std_m=np.zeros(3), shots=10,
-                    rejected_shots=(), smr=1, location="nest1", temperature_c=20.0, pressure_hpa=1013.0,
-                    humidity_pct=40.0, timestamp_s=1.7e9 + i,
-                )
-            )  # fmt: skip
+    with CampaignStore(station.campaigns / name) as store:  # a finished campaign with validation points
+        record_validated_campaign(store, model, val)
     model.save(station.campaigns / f"{name}.model.json")  # what Diagnose writes beside the campaign
     operator_page.reload()
     row = operator_page.locator(f"#history tr[data-campaign='{name}']")

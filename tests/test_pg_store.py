@@ -414,29 +414,22 @@ def test_a_loop_without_a_model_plans_from_a_shared_campaigns_registration(datab
 def test_compensate_reads_the_targets_of_a_shared_campaign_as_of_a_file(database, tmp_path):
     """`hil compensate MODEL URL --step validation`: the validation targets of a campaign in the shared store
     (its robot, registration and tool fit recorded there), each reached by the model."""
-    from calib_data import cell_datasets, true_effect_model
+    from calib_data import cell_datasets, record_validated_campaign, true_effect_model
 
     from hil.cli import main
-    from hil.data.dataset import joints_rad, points_m
 
     _, train, val = cell_datasets(step_m=0.2, n_val=4, seed=0)
     model = true_effect_model(train, "ur10", ("gravity_compliance",))
     model.save(tmp_path / "model.json")
     url = database + "?campaign=targets-for-compensation"
     with PgCampaignStore(url) as store:
-        store.add_snapshot({"cell": {"robot": {"model": "ur10"}}})
-        store.finish_step("registration", "fit", {"T_tracker_base": model.T_tracker_base.tolist()})
-        store.finish_step(
-            "tool_fit", "fit", {"nests_flange_mm": {"1": (np.asarray(model.tools[1]) * 1e3).tolist()}}
-        )
-        for i, (q, p) in enumerate(zip(joints_rad(val), points_m(val), strict=True)):
-            store.record_measurement(replace(record("validation", i), q_target_rad=q, q_rad=q, p_tracker_m=p))
+        record_validated_campaign(store, model, val)
     out = tmp_path / "compensated.csv"
     assert (
         main(["compensate", str(tmp_path / "model.json"), url, "--step", "validation", "-o", str(out)]) == 0
     )
     written = pd.read_csv(out)
-    assert list(written["point_id"]) == [f"p{i}" for i in range(len(val))]
+    assert list(written["point_id"]) == [f"v{i}" for i in range(len(val))]
     assert (written["status"] == "ok").all() and written["error_mm"].max() < 0.01
 
 

@@ -295,15 +295,8 @@ class _Api:
         )
 
     async def report(self, request: Request) -> Response:
-        name = request.path_params["campaign"]
-        try:
-            path = self.station.campaign_path(name)
-        except RequestRefusedError as exc:
-            return _refused(exc, 404)
-        report = path.with_name(path.name + REPORT_SUFFIX)
-        if not report.is_file():
-            return _refused(RequestRefusedError(f"{name} has no report yet", "diagnose it first"), 404)
-        return FileResponse(report, media_type="text/html")
+        found = self._beside_campaign(request, REPORT_SUFFIX, "report", "diagnose it first")
+        return found if isinstance(found, Response) else FileResponse(found, media_type="text/html")
 
     async def diagnose(self, request: Request) -> Response:
         """`hil diagnose CAMPAIGN --html REPORT -o MODEL` on a campaign nobody drives: the report `--html`
@@ -347,17 +340,23 @@ class _Api:
         return JSONResponse({"compensated": out.name, "output": _last_lines(text, 12)})
 
     async def compensated(self, request: Request) -> Response:
+        found = self._beside_campaign(request, COMPENSATED_SUFFIX, "compensation", "compensate it first")
+        if isinstance(found, Response):
+            return found
+        return FileResponse(found, media_type="text/csv", filename=found.name)
+
+    def _beside_campaign(self, request: Request, suffix: str, what: str, remedy: str) -> Path | Response:
+        """A result written beside the campaign the request names (its report, its compensated joints), or
+        the refusal (404) when there is no such campaign or no such result yet."""
         name = request.path_params["campaign"]
         try:
             path = self.station.campaign_path(name)
         except RequestRefusedError as exc:
             return _refused(exc, 404)
-        out = path.with_name(path.name + COMPENSATED_SUFFIX)
-        if not out.is_file():
-            return _refused(
-                RequestRefusedError(f"{name} has no compensation yet", "compensate it first"), 404
-            )
-        return FileResponse(out, media_type="text/csv", filename=out.name)
+        result = path.with_name(path.name + suffix)
+        if not result.is_file():
+            return _refused(RequestRefusedError(f"{name} has no {what} yet", remedy), 404)
+        return result
 
     def _finished_campaign(self, request: Request) -> Path | Response:
         """The campaign a result is asked for, or the refusal: this browser must control the console (403),

@@ -211,7 +211,6 @@ def history(folder: Path) -> list[CampaignEntry]:
 
 
 def _entry(path: Path) -> CampaignEntry:
-    report = path.with_name(path.name + REPORT_SUFFIX)
     holder = current_holder(path)
     driven_by = None if holder is None else holder.describe()
     try:
@@ -228,7 +227,7 @@ def _entry(path: Path) -> CampaignEntry:
         path.name, _when(created_s), _when(last_s),
         [ProcedureDone(str(name), int(n)) for name, n in per_procedure.items()],
         verdicts.count(Verdict.PASS), verdicts.count(Verdict.FAIL), verdicts.count(Verdict.NOT_JUDGED),
-        report.name if report.exists() else None, driven_by,
+        _beside(path, REPORT_SUFFIX), driven_by,
         model=_beside(path, MODEL_SUFFIX), compensated=_beside(path, COMPENSATED_SUFFIX),
     )  # fmt: skip
 
