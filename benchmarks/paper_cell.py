@@ -54,9 +54,9 @@ def run_campaign(config: CellConfig, campaign: Path, body: Callable[[Session], N
     """Open a Session on the cell (the scripted operator moves the simulated SMRs), register, run `body`."""
     from contextlib import ExitStack
 
-    from hil.commands.instruments import open_session, simulated_operator
     from hil.commands.native_output import capture_native_output
     from hil.runner.registry import load
+    from hil.station.instruments import open_session, simulated_operator
 
     with ExitStack() as stack:
         stack.enter_context(capture_native_output(verbose=False))

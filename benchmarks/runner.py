@@ -172,7 +172,7 @@ def grid_on_sim(step_mm: float, validation: int, time_scale: float) -> dict:
     """Registration, then a grid campaign on hil sim: points per minute and per-point times."""
     from contextlib import ExitStack
 
-    from hil.commands.instruments import open_session, simulated_operator
+    from hil.station.instruments import open_session, simulated_operator
     from procedures import grid_sampling, registration
     from tests.sim_session import running_cell
 

@@ -11,6 +11,7 @@ import warnings
 from collections.abc import Iterable
 
 from hil.commands.errors import EXIT_USAGE, CliError
+from hil.errors import SessionSetupError
 
 # Every command: its module and its one-line help. A module defines `add_parser(subparsers)`, which adds its
 # parser (with the same help) and sets `func(args) -> int`; it is imported only when its command runs or
@@ -135,6 +136,9 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_BROKEN_PIPE
     except CliError as exc:
         print(exc.render(args.command), file=sys.stderr)
+        return EXIT_USAGE
+    except SessionSetupError as exc:  # the station's refusal (hil.station), said as the command's own
+        print(CliError(exc.message, exc.remedy).render(args.command), file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:
         print(_interrupted(args.command, typed).render(args.command), file=sys.stderr)

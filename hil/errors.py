@@ -21,3 +21,11 @@ class ActionableError(Exception):
     def text(self) -> str:
         """The error as one line (its str): the message, then what to do next."""
         return f"{self.message} -- next: {self.remedy}"
+
+
+class SessionSetupError(ActionableError):
+    """A session could not be set up before anything moved: a driver plug-in missing, the campaign held by
+    another run, the simulated cell's control channel not answering. Every front end shows it as it shows its
+    own refusals (the command line as `hil <command>: ...`, the console on the page)."""
+
+    remedy = "fix what is named above, then start again; nothing moved"

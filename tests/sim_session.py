@@ -7,10 +7,10 @@ from contextlib import ExitStack, contextmanager
 from pathlib import Path
 
 from fakes.launch import RunningCell, sim_cell
-from hil.commands.instruments import open_session, simulated_operator
 from hil.commands.sim_cell import write_sim_cell
 from hil.runner.cell_config import CellConfig, load_cell_config
 from hil.runner.session import Session
+from hil.station.instruments import open_session, simulated_operator
 
 
 @contextmanager

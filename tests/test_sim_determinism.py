@@ -95,7 +95,7 @@ def test_standing_still_draws_no_noise_and_does_not_warm_the_arm():
 def test_a_cell_started_again_continues_the_campaigns_clock(tmp_path):
     """A later stage's (or a resume's) fresh cell restarts its own clock at zero: the session's timestamps continue
     from the campaign's latest measurement by the cell's elapsed time, never from the host's clock."""
-    from hil.commands.instruments import continuing_clock
+    from hil.station.instruments import continuing_clock
     from tests.test_store import make_record as record
 
     cell_s = [1000.0]  # the new cell's clock (UNIX seconds of its own start plus simulated activity)

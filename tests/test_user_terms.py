@@ -23,8 +23,17 @@ ERROR_MODULES = (
     "hil.instruments.tracker",
     "hil.runner.session",
     "hil.commands.errors",
+    "hil.station.instruments",
 )
-REFUSALS = ("CliError", "InputError", "CampaignStopped", "ParameterError", "CellConfigError", "from_text")
+REFUSALS = (
+    "CliError",
+    "SessionSetupError",
+    "InputError",
+    "CampaignStopped",
+    "ParameterError",
+    "CellConfigError",
+    "from_text",
+)
 
 
 def _error_classes() -> list[type[ActionableError]]:

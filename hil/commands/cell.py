@@ -76,9 +76,9 @@ def run_check(args: argparse.Namespace) -> int:
         print(f"  warning: {warning}")
     if not args.connect:
         return 0
-    from hil.commands.instruments import drivers_of
     from hil.instruments.robot import RobotError
     from hil.instruments.tracker import TrackerError
+    from hil.station.instruments import drivers_of
 
     robots, trackers = drivers_of(config)
     failures = 0

@@ -167,10 +167,11 @@ def restart_command(args: argparse.Namespace) -> str:
 def simulated_session(args: argparse.Namespace, out: Path, campaign: Path) -> Iterator[Session]:
     """Start the simulated cell, write its cell.toml (as for a real cell) and open a Session on it through
     ur-rtde and emScon, the scripted operator moving the simulated SMRs; the cell stops on leaving."""
-    from hil.commands.instruments import open_session, simulated_operator
+    from hil.commands.interrupts import stop_on_interrupt
     from hil.commands.native_output import capture_native_output
     from hil.commands.sim_cell import write_sim_cell
     from hil.runner.cell_config import load_cell_config
+    from hil.station.instruments import open_session, simulated_operator
 
     cell_path = out / "cell.toml"
     first = not hasattr(args, "cell_address")
@@ -192,6 +193,9 @@ def simulated_session(args: argparse.Namespace, out: Path, campaign: Path) -> It
             session = open_session(
                 config, campaign, simulated_operator(config.simulator_control), stack, holder="hil demo"
             )
+            stack.enter_context(
+                stop_on_interrupt(session.engine.request_stop)
+            )  # Ctrl-C: the engine's stop path
             with session:
                 yield session
 

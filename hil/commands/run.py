@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from hil.commands.errors import CliError
-from hil.commands.interrupts import interrupt_guard
+from hil.commands.interrupts import interrupt_guard, stop_on_interrupt
 from hil.data.pg_errors import CampaignStoreLost
 from hil.data.store import CampaignError
 from hil.runner.cell_config import CellConfigError, load_cell_config
@@ -172,13 +172,13 @@ def open_instruments(
     config, campaign: str | Path, operator, stack: ExitStack, holder: str = "hil run", operator_name: str = ""
 ):
     """open_session, its failures worded for the command line (what failed, what to do; no campaign is left)."""
-    from hil.commands.instruments import open_session
     from hil.instruments.robot import RobotConnectionError, RobotError
     from hil.instruments.tracker import TrackerError
+    from hil.station.instruments import open_session
 
     again = "then run the same command again"
     try:
-        return open_session(config, campaign, operator, stack, holder=holder, operator_name=operator_name)
+        session = open_session(config, campaign, operator, stack, holder=holder, operator_name=operator_name)
     except CampaignStoreLost as exc:
         raise CliError(exc.message, f"{exc.remedy}; nothing moved") from exc
     except CampaignError as exc:
@@ -196,6 +196,8 @@ def open_instruments(
             f"cannot connect to the tracker at {config.tracker_url}: {reason}",
             f"check that the tracker is on and reachable (tracker.url in {config.source}), {again}",
         ) from exc
+    stack.enter_context(stop_on_interrupt(session.engine.request_stop))  # Ctrl-C takes the engine's stop path
+    return session
 
 
 def run(args: argparse.Namespace) -> int:
@@ -227,7 +229,7 @@ def run(args: argparse.Namespace) -> int:
     if args.dry_run:
         print(the_plan.describe())
         return 0
-    from hil.commands.instruments import choose_operator
+    from hil.station.instruments import choose_operator
 
     try:
         operator = choose_operator(config, args.operator)

@@ -20,11 +20,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from hil.commands.errors import CliError
-from hil.commands.instruments import open_session, simulated_operator
 from hil.console.live import Answer, Instruments, Live, PageOperator, PageProgress, Phase
 from hil.data.campaign_lock import current_holder
 from hil.data.store import ARM_TEMPERATURE_KEYS
+from hil.errors import SessionSetupError
 from hil.instruments.tracker import TrackerState
 from hil.runner.cell_config import CellConfig
 from hil.runner.engine import CampaignStopped, Engine, StopRequested
@@ -34,6 +33,7 @@ from hil.runner.plan import Plan
 from hil.runner.procedure import ParameterError, Procedure, ProcedureFormError, from_user_values
 from hil.runner.registry import UnknownProcedureError, load
 from hil.runner.session import Session
+from hil.station.instruments import open_session, simulated_operator
 
 CONTROL_LAPSE_S = 30.0  # a controlling page gone this long (no event stream) gives control to the next to ask
 
@@ -243,7 +243,7 @@ class Station:
                 f"{exc.args[0] if exc.args else 'stopped'}: the robot stopped, every recorded point is kept",
                 "start the same procedure on the same campaign to resume (here or with hil run)",
             )
-        except CliError as exc:
+        except SessionSetupError as exc:
             live.set_phase(Phase.STOPPED, exc.message, exc.remedy)
         except CampaignStopped as exc:
             live.set_phase(Phase.STOPPED, exc.message, exc.remedy)

@@ -1,4 +1,4 @@
-"""Wiring real or simulated instruments into a Session.
+"""Wiring real or simulated instruments into a Session, for every front end (the command line, the console).
 
 Procedures see only the Robot and Tracker protocols; this module opens the robot and tracker driver plug-ins
 the cell configuration names (`robot.driver`, `tracker.driver`; by default the UR driver on ur-rtde and the
@@ -14,11 +14,10 @@ from collections.abc import Callable
 from contextlib import ExitStack
 from pathlib import Path
 
-from hil.commands.errors import CliError
-from hil.commands.interrupts import stop_on_interrupt
 from hil.data.campaign_lock import CampaignBusyError, Holder
 from hil.data.campaigns import campaign_lock, open_campaign
 from hil.data.store import Campaign
+from hil.errors import SessionSetupError
 from hil.instruments.plugins import (
     PluginError,
     RobotDriver,
@@ -44,7 +43,7 @@ def simulated_operator(control_address: str | None) -> ScriptedOperator:
     try:
         control = cell_simulator().connect_control(control_address)
     except PluginError as exc:
-        raise CliError(exc.message, exc.remedy) from exc
+        raise SessionSetupError(exc.message, exc.remedy) from exc
 
     def place_smr(step: OperatorStep) -> None:
         location = step.location or ""
@@ -85,12 +84,12 @@ def choose_operator(config: CellConfig, kind: str) -> Operator:
 
 
 def drivers_of(config: CellConfig) -> tuple[RobotDriver, TrackerDriver]:
-    """The robot and tracker driver plug-ins the cell configuration names; a missing one is a CliError
+    """The robot and tracker driver plug-ins the cell configuration names; a missing one is a SessionSetupError
     that names it, before anything connects."""
     try:
         return robot_driver(config.robot_driver_name), tracker_driver(config.tracker_driver_name)
     except PluginError as exc:
-        raise CliError(
+        raise SessionSetupError(
             exc.message, f"{exc.remedy} (robot.driver / tracker.driver in {config.source})"
         ) from exc
 
@@ -103,7 +102,7 @@ def _cell_clock(config: CellConfig) -> Callable[[], float] | None:
     try:
         return cell_simulator().clock(config.simulator_control)
     except PluginError as exc:
-        raise CliError(exc.message, exc.remedy) from exc
+        raise SessionSetupError(exc.message, exc.remedy) from exc
 
 
 def continuing_clock(cell_clock: Callable[[], float], store: Campaign) -> Callable[[], float]:
@@ -137,7 +136,7 @@ def open_session(
         lock = campaign_lock(campaign, Holder.this_process(holder), password_file=config.store_password_file)
         stack.enter_context(lock)
     except CampaignBusyError as exc:
-        raise CliError(
+        raise SessionSetupError(
             str(exc), "wait until it ends or stop it there, then run this again; nothing moved"
         ) from exc
     with ExitStack() as opening:  # a failure half-way closes what was opened so far
@@ -161,5 +160,4 @@ def open_session(
         session = Session(config, robot, tracker, store, operator, shown, station=station, clock=clock)
         opening.pop_all()  # from here on the Session owns and releases them
     stack.callback(session.close)
-    stack.enter_context(stop_on_interrupt(session.engine.request_stop))
     return session
