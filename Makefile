@@ -49,7 +49,14 @@ $(VENV)/.system-deps: tools/system-deps $(VENV)/.installed
 	tools/system-deps
 	touch $@
 
+# Bytecode first, once: the project's modules compiled and the tests' assertion-rewritten modules cached (a
+# collection that writes them), so the eight workers and every `python -m hil` or simulated cell the tests
+# start read them instead of each compiling and rewriting the same files again (PYTHONDONTWRITEBYTECODE, set
+# on some machines, would stop every process from writing them). Measured on a 2-core machine: a collection
+# takes 7.3-7.7 CPU-s with nothing cached and 2.9-3.0 s with the cache.
 unit: $(VENV)/.installed $(VENV)/.system-deps
+	PYTHONDONTWRITEBYTECODE= $(PY) -m compileall -q -j 2 hil fakes drivers procedures tests benchmarks docs/examples
+	PYTHONDONTWRITEBYTECODE= $(PY) -m pytest -q --collect-only -p no:cacheprovider > /dev/null
 	$(PY) -m pytest -q --durations=15 $(PYTEST_PARALLEL)
 
 # The long soaks (20 SIGKILLs of a campaign, a whole demo resumed): minutes; the default suite runs a short
