@@ -32,6 +32,7 @@ from hil.instruments.tracker import (
     TrackerMeasurement,
 )
 from hil.runner.cell_config import CellConfig
+from hil.runner.controller_joints import ControllerJointsCampaign, ControllerJointsRobot
 from hil.runner.engine import AttemptPolicy, CampaignStopped, Engine, PathOptions
 from hil.runner.envelope import Envelope, EnvelopeError
 from hil.runner.operator import Operator, OperatorStep
@@ -93,9 +94,12 @@ class Session:
         clock: Callable[[], float] | None = None,
     ):
         self.config = config
-        self.robot = robot
+        self.robot: Robot = robot
+        self.store: Campaign = store
+        if config.coupling is not None:  # the one place joints cross to the controller's convention
+            self.robot = ControllerJointsRobot(robot, config.coupling)
+            self.store = ControllerJointsCampaign(store, config.coupling)
         self.tracker = tracker
-        self.store = store
         self.operator = operator
         self.progress = progress or Progress(enabled=False)
         self.envelope: Envelope = config.envelope
