@@ -15,11 +15,15 @@ import pytest
 from fakes.launch import sim_cell
 from hil.cli import main
 from hil.commands.sim_cell import write_sim_cell
+from hil.console.station import CheckedRun
+from hil.console.views import plan_view
 from hil.data.store import Q_COLUMNS, Q_TARGET_COLUMNS, CampaignStore
 from hil.geometry.coupling import CouplingLimit, JointCoupling
 from hil.runner.cell_config import load_cell_config
+from hil.runner.controller_joints import kinematic_campaign
 from hil.runner.envelope import EnvelopeError
-from procedures import grid_sampling
+from hil.runner.procedure import ParameterError
+from procedures import grid_sampling, program_accuracy
 
 pytestmark = [pytest.mark.sim, pytest.mark.timeout(300)]
 
@@ -59,6 +63,7 @@ def job(tmp_path_factory):
         hil("predict", "grid.json", "validation.csv", "--joint-convention", convention,
             "-o", f"predicted-{convention}.csv")  # fmt: skip
     out["config"] = load_cell_config(folder / "cell.toml")
+    out["plan"] = grid_sampling.PROCEDURE.make_plan(out["config"], step_m=0.1, validation=20)  # GRID's
     return out
 
 
@@ -90,7 +95,7 @@ def test_the_dry_run_shows_the_pendants_joints(job):
     config = job["config"]
     text = job["dry_run"]
     assert "controller joints J1..J6 (deg, the pendant's)" in text
-    plan = grid_sampling.PROCEDURE.make_plan(config, step_m=0.1, validation=20)
+    plan = job["plan"]
     first = next(line for line in text.splitlines() if line.split()[:2] == ["1", plan.poses[0].point_id])
     shown = np.array(first.split()[-6:], float)
     pendant = np.rad2deg(config.coupling.to_controller(plan.joints()[:1])[0])
@@ -128,3 +133,36 @@ def test_a_pose_beyond_the_interaction_limit_is_refused_naming_it_and_the_limit(
         EnvelopeError, match=r"far: 70\.0 deg breaks the interaction limit -70 <= J2 \+ J3 <= 60"
     ):
         envelope.check_poses(config.nominal, q[1:], config.nests_flange_m, ["far"])
+
+
+def test_the_consoles_plan_shows_the_pendants_joints_too(job, tmp_path):
+    config = job["config"]
+    plan = job["plan"]
+    checked = CheckedRun(grid_sampling.PROCEDURE, {}, tmp_path / "job.sqlite", plan)
+    rows = plan_view(checked, config).first_poses
+    pendant = np.rad2deg(config.coupling.to_controller(plan.joints()[: len(rows)]))
+    np.testing.assert_allclose([r.joints_deg for r in rows], pendant, atol=0.006)
+
+
+def test_a_campaign_seen_by_the_runner_gives_back_the_kinematic_joints_it_was_given(job, tmp_path):
+    """What the session records is stored as the controller's joints and read back exactly (a resume compares
+    recorded targets with the plan to 1e-6 rad); the stored file itself holds the controller's."""
+    coupling = job["config"].coupling
+    with CampaignStore(job["folder"] / "job.sqlite") as store:
+        stored = store.records("grid_sampling", "grid")
+        seen = kinematic_campaign(store, coupling).records("grid_sampling", "grid")
+        frame = kinematic_campaign(store, coupling).measurement_columns(
+            ["q3_rad", "x_m"], "grid_sampling", "grid"
+        )
+    q_stored = np.array([r.q_target_rad for r in stored])
+    q_seen = np.array([r.q_target_rad for r in seen])
+    np.testing.assert_allclose(q_seen, coupling.to_kinematic(q_stored), atol=1e-12)
+    np.testing.assert_allclose(coupling.to_controller(q_seen), q_stored, atol=1e-12)
+    assert list(frame.columns) == ["id", "q3_rad", "x_m"]
+    np.testing.assert_allclose(frame["q3_rad"], [r.q_rad[2] for r in seen], atol=1e-12)
+
+
+def test_program_accuracy_is_refused_on_a_coupled_robot_naming_the_coupling(job):
+    options = program_accuracy.ProgramAccuracyOptions("job.script", None, "model.json", None)
+    with pytest.raises(ParameterError, match=r"couples its joints \(kinematic q3 = -J2 - J3\)"):
+        program_accuracy.plan(job["config"], options)

@@ -32,6 +32,18 @@ from hil.geometry.coupling import JointConvention, JointCoupling
 from hil.instruments.robot import Robot, RobotState
 
 
+def kinematic_robot(driver: Robot, coupling: JointCoupling | None) -> Robot:
+    """The robot driver as the runner sees it: in kinematic joints (the driver itself when nothing couples)."""
+    return driver if coupling is None else ControllerJointsRobot(driver, coupling)
+
+
+def kinematic_campaign(store: Campaign, coupling: JointCoupling | None) -> Campaign:
+    """A campaign as the runner sees it: its joints kinematic (the store itself when nothing couples). A
+    procedure that opens its campaign outside a session (a dry run planning from what was measured) reads it
+    through this, as the session does."""
+    return store if coupling is None else ControllerJointsCampaign(store, coupling)
+
+
 class ControllerJointsRobot:
     """A robot driver seen in kinematic joints: `move_joints` sends the controller's joints of its target,
     `joints` reports the controller's reading as kinematic joints. Cartesian moves and poses pass unchanged
