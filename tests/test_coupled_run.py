@@ -14,6 +14,7 @@ import pytest
 
 from fakes.launch import sim_cell
 from hil.cli import main
+from hil.commands.campaign_targets import read_campaign_targets
 from hil.commands.sim_cell import write_sim_cell
 from hil.console.station import CheckedRun
 from hil.console.views import plan_view
@@ -166,3 +167,13 @@ def test_program_accuracy_is_refused_on_a_coupled_robot_naming_the_coupling(job)
     options = program_accuracy.ProgramAccuracyOptions("job.script", None, "model.json", None)
     with pytest.raises(ParameterError, match=r"couples its joints \(kinematic q3 = -J2 - J3\)"):
         program_accuracy.plan(job["config"], options)
+
+
+def test_compensation_targets_of_the_campaign_are_where_the_controllers_joints_aimed(job):
+    """hil compensate CAMPAIGN --step validation: the commanded points come from the recorded (controller's)
+    joints, converted, on the nominal arm and the registration: within the nominal arm's ~1 mm of the
+    measured points (read as kinematic joints they would lie hundreds of mm away)."""
+    targets = read_campaign_targets(job["folder"] / "job.sqlite", "validation")
+    measured = pd.read_csv(job["folder"] / "validation.csv")[["x_mm", "y_mm", "z_mm"]].to_numpy()
+    gap_mm = np.linalg.norm(targets.targets * 1e3 - measured, axis=1)
+    assert gap_mm.max() < 3.0, gap_mm
