@@ -324,10 +324,7 @@ def parse_cell_config(data: dict, source: str = "cell.toml") -> CellConfig:
         r.problems.append(
             f"motion.reduced_speed_fraction: {reduced_fraction:g} is above 1; give a fraction of the speeds, e.g. 0.25"
         )
-    # the home pose as the pendant shows it: the controller's joints of a robot that couples them
-    home_default = _default_home(nominal, n)
-    home_default = home_default if coupling is None else coupling.to_controller(home_default[None])[0]
-    home_deg = r.vector("motion", "home_deg", n, default=np.rad2deg(home_default))
+    home_rad = _read_home(r, nominal, n, coupling)
     simulator_control = r.get("simulator", "control", "str")
     console_token = r.get("console", "token", "str")
     drift_poses = r.get("drift_monitor", "poses", "int", default=0)
@@ -363,9 +360,8 @@ def parse_cell_config(data: dict, source: str = "cell.toml") -> CellConfig:
         bodies if collisions else None,
         coupling,
     )
-    home = np.deg2rad(home_deg)
-    home = home if coupling is None else coupling.to_kinematic(home[None])[0]
-    _check_home(envelope, nominal, home, nests_arr, source)
+    assert home_rad is not None  # a malformed one is one of r.problems
+    _check_home(envelope, nominal, home_rad, nests_arr, source)
     return CellConfig(
         robot_model=model,
         robot_host=host,
@@ -382,7 +378,7 @@ def parse_cell_config(data: dict, source: str = "cell.toml") -> CellConfig:
         hole_diameter_m=hole_d_mm / 1e3,
         envelope=envelope,
         settle_s=settle_s,
-        q_home_rad=home,
+        q_home_rad=home_rad,
         simulator_control=simulator_control,
         console_token=console_token,
         robot_file_text=robot_file_text,
@@ -584,6 +580,20 @@ def _check_home(
                 f"motion.home_deg: the home pose leaves the envelope ({problem}); it is the safe detour of moves"
             ],
         )
+
+
+def _read_home(
+    r: _Reader, nominal: KinematicModel | None, n: int, coupling: JointCoupling | None
+) -> np.ndarray | None:
+    """[motion] home_deg, as the pendant shows it (the controller's joints of a robot that couples its
+    joints), as the kinematic joints the runner plans in (rad); None when malformed (a problem recorded)."""
+    default = _default_home(nominal, n)
+    default = default if coupling is None else coupling.to_controller(default[None])[0]
+    home_deg = r.vector("motion", "home_deg", n, default=np.rad2deg(default))
+    if home_deg is None:
+        return None
+    home = np.deg2rad(home_deg)
+    return home if coupling is None else coupling.to_kinematic(home[None])[0]
 
 
 def _default_home(nominal: KinematicModel | None, n: int) -> np.ndarray:
