@@ -22,8 +22,10 @@ from scipy.spatial.transform import Rotation
 
 from fakes.physics import chain_frames, gravity_torques
 from hil.data.jsonable import to_jsonable
+from hil.geometry.coupling import JointCoupling
+from hil.geometry.ik import default_home, is_ur_like
 from hil.geometry.kinematics import KinematicModel
-from hil.geometry.robots import get_robot
+from hil.geometry.robots import get_robot, robot_coupling
 
 SMR_RADIUS_M = 0.01905  # 1.5" sphere
 
@@ -34,6 +36,8 @@ LINK_MASSES_KG: dict[str, tuple[float, ...]] = {
     "ur5e": (3.8, 8.1, 2.8, 1.4, 1.3, 0.37),
     "ur10e": (7.4, 13.1, 4.0, 2.1, 2.0, 0.62),
     "irb2600": (90.0, 45.0, 35.0, 15.0, 6.0, 1.0),
+    # sized, not from a data sheet: FANUC publishes the LR Mate 200iD's total (25 kg) only
+    "lrmate200id": (9.0, 6.0, 4.0, 1.5, 1.0, 0.2),
 }
 
 # How far each true link mass lies from the table's (1-sigma, as a fraction, clipped at 2 sigma): cables, motors,
@@ -49,7 +53,12 @@ JOINT_STIFFNESS: dict[str, tuple[float, ...]] = {
     "ur5e": (1.2e5, 1.2e5, 6.0e4, 1.5e4, 1.5e4, 1.5e4),
     "ur10e": (2.0e5, 2.0e5, 1.0e5, 2.5e4, 2.5e4, 2.5e4),
     "irb2600": (2.0e6, 2.0e6, 1.0e6, 2.0e5, 2.0e5, 2.0e5),
+    "lrmate200id": (2.0e5, 2.0e5, 1.0e5, 2.0e4, 2.0e4, 2.0e4),  # sized like the UR10's: none published
 }
+
+# The robots whose simulated controller couples its joints (their robot file's [coupling]): the arm and its
+# physics stay kinematic, the controller speaks the maker's joints (hil.geometry.coupling)
+COUPLED_ROBOTS = ("lrmate200id",)
 
 
 class EffectFlags(TypedDict, total=False):
@@ -216,6 +225,8 @@ class SimulatedCell:
         cfg = self.config
         self.robot_name = cfg.robot.lower()
         self.nominal: KinematicModel = get_robot(self.robot_name)
+        # what the controller's joint readings are (None: the kinematic joints, as a UR reports them)
+        self.coupling: JointCoupling | None = robot_coupling(self.robot_name)
         truth_rng = np.random.default_rng([cfg.seed, 1])
         self._noise_rng = np.random.default_rng([cfg.seed, 2])
         self._true_model = self._draw_true_model(truth_rng)
@@ -242,7 +253,9 @@ class SimulatedCell:
         self._init_smrs()
         self._time_s = 0.0  # the timer clock
         self._physics_s = 0.0  # the physics clock (thermal growth, meteo drift)
-        self._q_cmd = np.array(cfg.q_home_rad, dtype=float)
+        # a UR's working pose on a UR-like arm, else the nominal model's home (hil's default home for it)
+        start = np.array(cfg.q_home_rad, dtype=float)
+        self._q_cmd = start if is_ur_like(self.nominal) else default_home(self.nominal)
         self._approach = np.ones(n)  # last motion direction per joint
         self._jitter = np.zeros(n)
         self._physics_cache: tuple[tuple, tuple[np.ndarray, np.ndarray]] | None = None

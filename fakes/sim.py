@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from fakes.cell import CELL_EFFECTS, EffectFlags, parse_effect_flags
+from fakes.cell import CELL_EFFECTS, COUPLED_ROBOTS, EffectFlags, parse_effect_flags
 from fakes.launch import is_loopback_host
 from fakes.sim_process import SimOptions, run_cell
 from hil.geometry.robots import ROBOT_NAMES
@@ -55,8 +55,9 @@ def add_sim_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--robot",
         default="ur10",
-        choices=[n for n in ROBOT_NAMES if n.startswith("ur")],
-        help="the simulated arm, a built-in Universal Robots model (default ur10)",
+        choices=[n for n in ROBOT_NAMES if n.startswith("ur") or n in COUPLED_ROBOTS],
+        help="the simulated arm, a built-in Universal Robots model or one whose controller couples its joints "
+        f"({', '.join(COUPLED_ROBOTS)}: the controller speaks RTDE in the maker's joints) (default ur10)",
     )
     parser.add_argument("--seed", type=int, default=0, help="seed of the simulated cell (default 0)")
     parser.add_argument(

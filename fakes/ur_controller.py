@@ -88,6 +88,9 @@ class UrController(ScriptRuntime):
     ):
         self.cell = cell
         self.model = cell.nominal
+        # the joints on the wire are the controller's (a FANUC-like J3 against the horizontal); inside, the
+        # controller works in the model's kinematic joints, as the simulated arm does
+        self.coupling = cell.coupling
         # the arm's own body (its robot file's capsules): a move into itself ends in a protective stop
         self.arm_body = (
             CellBodies(robot_body(cell.config.robot), margin_m=0.0, self_margin_m=0.0)
@@ -614,10 +617,10 @@ class UrController(ScriptRuntime):
         """Name -> zero-argument getter for every modelled output; the rest read as zeros."""
         return {
             "timestamp": lambda: self.cell.time_s,
-            "actual_q": lambda: self.actual_q,
-            "target_q": lambda: self.q_cmd,
-            "actual_qd": lambda: self.qd_cmd,
-            "target_qd": lambda: self.qd_cmd,
+            "actual_q": lambda: self.joints_out(self.actual_q),
+            "target_q": lambda: self.joints_out(self.q_cmd),
+            "actual_qd": lambda: self.joints_out(self.qd_cmd),
+            "target_qd": lambda: self.joints_out(self.qd_cmd),
             "actual_TCP_pose": self._actual_tcp_pose,
             "target_TCP_pose": self._target_tcp_pose,
             "actual_TCP_speed": self._tcp_speed,

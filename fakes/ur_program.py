@@ -134,6 +134,12 @@ class Controller(Protocol):
 
     def flange_pose_of(self, q: np.ndarray) -> np.ndarray: ...
 
+    def joints_in(
+        self, q_wire: np.ndarray
+    ) -> np.ndarray: ...  # a program's joints (the controller's) -> kinematic
+
+    def joints_out(self, q: np.ndarray) -> np.ndarray: ...  # kinematic -> as the controller reports them
+
 
 class UserProgram:
     """A compiled program: its functions and the name of the one that runs."""
@@ -447,7 +453,7 @@ def _target(run: _Run, x: Any) -> tuple[np.ndarray | None, np.ndarray | None]:
     q = np.asarray(x, float)
     if q.shape != (6,):
         raise ValueError("a target is a pose p[...] or six joint positions")
-    return q, None
+    return run.host.joints_in(q), None
 
 
 def _movej(run: _Run, target: Any, a: float = 1.4, v: float = 1.05, t: float = 0.0, r: float = 0.0) -> Steps:
@@ -525,15 +531,15 @@ def _get_inverse_kin(
     tcp: Any = None,
 ) -> list[float]:
     T_tcp = run.host.T_flange_tcp if tcp is None else _transform(tcp)
-    seed = None if qnear is None else np.asarray(qnear, float)
+    seed = None if qnear is None else run.host.joints_in(np.asarray(qnear, float))
     q = run.host._ik(_transform(x) @ invert(T_tcp), seed)
     if q is None:
         raise ValueError("inverse kinematics failed: the pose is out of reach")
-    return [float(v) for v in q]
+    return [float(v) for v in run.host.joints_out(q)]
 
 
 def _get_forward_kin(run: _Run, q: Any = None, tcp: Any = None) -> _Pose:
-    joints = run.host.q_cmd if q is None else np.asarray(q, float)
+    joints = run.host.q_cmd if q is None else run.host.joints_in(np.asarray(q, float))
     T_tcp = run.host.T_flange_tcp if tcp is None else _transform(tcp)
     return _pose(run.host.flange_pose_of(joints) @ T_tcp)
 
@@ -560,8 +566,8 @@ BUILTINS: dict[str, Callable[..., Any]] = {
     "get_forward_kin": _get_forward_kin,
     "get_actual_tcp_pose": lambda run: _get_forward_kin(run),
     "get_target_tcp_pose": lambda run: _get_forward_kin(run),
-    "get_actual_joint_positions": lambda run: [float(v) for v in run.host.q_cmd],
-    "get_target_joint_positions": lambda run: [float(v) for v in run.host.q_cmd],
+    "get_actual_joint_positions": lambda run: [float(v) for v in run.host.joints_out(run.host.q_cmd)],
+    "get_target_joint_positions": lambda run: [float(v) for v in run.host.joints_out(run.host.q_cmd)],
     "pose_trans": lambda run, a, b: _pose(_transform(a) @ _transform(b)),
     "pose_inv": lambda run, a: _pose(invert(_transform(a))),
     "pose_add": lambda run, a, b: _pose(_pose_add(_transform(a), _transform(b))),

@@ -19,6 +19,7 @@ import numpy as np
 from fakes.fast_kinematics import pose_from_transform
 from fakes.ur_modes import NORMAL, PLAYING, RUNNING, STOPPED
 from fakes.ur_motion import JointMove, LinearMove, Motion, PathMove, SpeedMove, StopMove, track_pose
+from hil.geometry.coupling import JointCoupling
 from hil.geometry.ik import IKOptions, solve_ik
 from hil.geometry.kinematics import forward_kinematics, geometric_jacobian
 from hil.geometry.se3 import invert, pose_to_transform, transform_to_pose
@@ -63,9 +64,12 @@ class ScriptRuntime:
     _motion_is_async: bool
     _async_op_id: int
     _async_counter: int
-    q_cmd: np.ndarray
+    q_cmd: np.ndarray  # kinematic joints, as every other joint state here; the wire speaks the controller's
     qd_cmd: np.ndarray
     actual_q: np.ndarray
+    coupling: (
+        JointCoupling | None
+    )  # how this controller reports its joints (hil.geometry.coupling); None: kinematic
     _q_history: deque[np.ndarray]
     T_flange_tcp: np.ndarray
     moves_started: int
@@ -211,14 +215,14 @@ class ScriptRuntime:
         elif cmd == 43:
             self._od(self._tcp_pose(self.actual_q, self.T_flange_tcp))
         elif cmd == 44:
-            self._od(self._tcp_pose(self._ids(0), pose_to_transform(self._ids(6))))
+            self._od(self._tcp_pose(self.joints_in(self._ids(0)), pose_to_transform(self._ids(6))))
         elif cmd in (30, 46, 60, 61):
             self._inverse_kinematics(cmd)
         elif cmd == 47:
             self._oi(1, int(self.motion is None and self._still_ticks > 1))
         elif cmd in (36, 37):
             q = (
-                self._ids(0)
+                self.joints_in(self._ids(0))
                 if cmd == 37
                 else self._ik(pose_to_transform(self._ids(0)) @ invert(self.T_flange_tcp))
             )
@@ -243,12 +247,12 @@ class ScriptRuntime:
 
     def _realtime(self, cmd: int) -> None:
         if cmd == 9:  # speedJ
-            self._speed(self._ids(0), self._id(6))
+            self._speed(self.joints_in(self._ids(0)), self._id(6))
         elif cmd == 10:  # speedL: tool speed mapped through the nominal Jacobian
             J = geometric_jacobian(self.model, self.q_cmd[None])[0]
             self._speed(np.linalg.lstsq(J, self._ids(0), rcond=None)[0], self._id(6))
         elif cmd == 11:  # servoJ
-            self._servo(self._ids(0))
+            self._servo(self.joints_in(self._ids(0)))
         elif cmd == 24:  # servoL
             target = pose_to_transform(self._ids(0)) @ invert(self.T_flange_tcp)
             self._servo(track_pose(self.model, self.q_cmd, target, iterations=5))
@@ -256,7 +260,7 @@ class ScriptRuntime:
             self._od([self.period_s])
         elif cmd == 27:
             steps = max(0, min(self._ii(1), len(self._q_history) - 1))
-            self._od(self._q_history[steps] if self._q_history else self.actual_q)
+            self._od(self.joints_out(self._q_history[steps] if self._q_history else self.actual_q))
         elif cmd == 38:
             self._od(np.zeros(6))
         elif cmd == 58:
@@ -345,11 +349,25 @@ class ScriptRuntime:
                 clear = mid
         return float(touch)
 
-    def _checked_joints(self, q: np.ndarray) -> np.ndarray:
-        q = np.asarray(q, float)
+    def _checked_joints(self, q_wire: np.ndarray) -> np.ndarray:
+        """A joint target as the client sent it (the controller's joints), kinematic, within the limits."""
+        q_wire = np.asarray(q_wire, float)
+        q = self.joints_in(q_wire)
         if not np.all(np.isfinite(q)) or not bool(self.model.within_limits(q)):
-            raise ValueError(f"joint target outside the limits: {np.round(q, 4)}")
+            raise ValueError(f"joint target outside the limits: {np.round(q_wire, 4)}")
+        if self.coupling is not None and not bool(self.coupling.within_limits(q_wire)[0]):
+            raise ValueError(f"joint target beyond the joint interaction limits: {np.round(q_wire, 4)}")
         return q
+
+    def joints_in(self, q_wire: np.ndarray) -> np.ndarray:
+        """Joints (or joint speeds) a client sent, in the controller's convention, as the kinematic ones."""
+        q_wire = np.asarray(q_wire, float)
+        return q_wire if self.coupling is None else self.coupling.to_kinematic(q_wire[None])[0]
+
+    def joints_out(self, q: np.ndarray) -> np.ndarray:
+        """Kinematic joints (or joint speeds) as this controller reports them."""
+        q = np.asarray(q, float)
+        return q if self.coupling is None else self.coupling.to_controller(q[None])[0]
 
     def _kill_async_move(self) -> None:
         """stop_async_move: kill a running async move, keeping its velocity for a following stop."""
@@ -427,9 +445,9 @@ class ScriptRuntime:
 
     def _inverse_kinematics(self, cmd: int) -> None:
         target = pose_to_transform(self._ids(0)) @ invert(self.T_flange_tcp)
-        seed = self._ids(6) if cmd in (30, 61) and np.any(self._ids(6)) else None
+        seed = self.joints_in(self._ids(6)) if cmd in (30, 61) and np.any(self._ids(6)) else None
         q = self._ik(target, seed)
         if cmd in (60, 61):
             self._oi(1, int(q is not None))
         else:
-            self._od(q if q is not None else np.zeros(6))
+            self._od(self.joints_out(q) if q is not None else np.zeros(6))

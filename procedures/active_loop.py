@@ -41,8 +41,10 @@ from hil.data.dataset import DatasetError
 from hil.data.jsonable import to_jsonable
 from hil.data.pg_url import is_campaign_url
 from hil.data.store import Campaign, campaign_dataset
+from hil.model.coupled_model import keep_coupling
 from hil.report.rounds import rounds_text
 from hil.runner.cell_config import CellConfig
+from hil.runner.controller_joints import kinematic_campaign
 from hil.runner.engine import Advance, CampaignStopped, Measuring
 from hil.runner.operator import OperatorStep
 from hil.runner.plan import Plan, PlannedPose
@@ -264,7 +266,7 @@ def plan(config: CellConfig, options: ActiveLoopOptions, campaign: str | Path | 
     if campaign is None or not (is_campaign_url(campaign) or Path(campaign).exists()):
         raise ValueError("the active loop plans from a campaign's grid: give --campaign with a measured grid")
     with open_campaign(campaign, create=False, password_file=config.store_password_file) as store:
-        state = _Campaign(store, config, seed)
+        state = _Campaign(kinematic_campaign(store, config.coupling), config, seed)
         done = len(state.records())
         try:
             train = state.training(done)
@@ -339,6 +341,7 @@ def run_loop(session: Session, options: ActiveLoopOptions) -> ActiveLoopResult:
     session.require_registration()
     result = session.engine.run(_rounds(session, options))
     path = model_path_for(campaign)
+    keep_coupling(result.report.model, session.config.coupling)  # compensate then writes the pendant's joints
     result.report.model.save(path)  # the model the next steps use, not the one from before the rounds
     return replace(result, model_path=path)
 

@@ -134,6 +134,12 @@ def _setup(
 
 def plan(config: CellConfig, options: ProgramAccuracyOptions) -> Plan:
     """The original program's stops, then the compensated program's, each with SMR 1 in nest 1."""
+    if config.coupling is not None:  # a program's joints are its controller's: not read as such yet
+        raise ParameterError(
+            f"{config.robot_model} couples its joints ({config.coupling.describe()}); program_accuracy reads a "
+            "URScript program's joints as the kinematic ones and does not run on such a robot yet: measure the "
+            "arm with grid_sampling and judge the model on its validation poses (hil diagnose)"
+        )
     stops, _ = _setup(config, options.program, options.compensated, options.model)
     place = OperatorStep("Put SMR 1 in tool nest 1.", "place_smr", smr=1, location="nest1")
     poses = [PlannedPose(w.point_id, NAME, ORIGINAL, w.q_original, "nest1", setup=(place,)) for w in stops]

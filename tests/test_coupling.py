@@ -20,7 +20,7 @@ from hil.geometry.kinematics import measured_point
 from hil.geometry.robots import get_robot, robot_coupling, robot_from_text
 from hil.geometry.se3 import make_transform
 from hil.model.calibrated_model import CalibratedModel
-from hil.runner.cell_config import CellConfigError, load_cell_config
+from hil.runner.cell_config import load_cell_config
 from tests.cell_fixtures import sim_cell_toml
 from tests.cli_in_process import run_hil
 
@@ -242,9 +242,17 @@ def test_a_sweep_the_coupling_does_not_make_single_is_refused_naming_it(fanuc, t
     assert "kinematic q3 = -J2 - J3" in r.stderr
 
 
-def test_a_cell_of_a_coupled_robot_is_refused_until_the_runner_converts_its_plans(tmp_path):
-    """hil run would send kinematic joints to a controller that reads them as its own: refused, named."""
+def test_a_cell_of_a_coupled_robot_reads_its_home_as_the_pendant_shows_it(tmp_path):
+    """The cell's [motion] home_deg is the controller's joints (what the pendant shows); the runner keeps the
+    kinematic ones, and its envelope the robot's coupling (for the interaction limits)."""
     path = tmp_path / "cell.toml"
-    path.write_text(sim_cell_toml().replace('model = "ur10"', 'model = "lrmate200id"'))
-    with pytest.raises(CellConfigError, match=r"couples its joints \(kinematic q3 = -J2 - J3\)"):
-        load_cell_config(path)
+    text = sim_cell_toml().replace('model = "ur10"', 'model = "lrmate200id"')
+    path.write_text(text)
+    config = load_cell_config(path)
+    assert config.coupling is not None and config.coupling.describe() == "kinematic q3 = -J2 - J3"
+    home_pendant_deg = [0.0, 20.0, -30.0, 0.0, -60.0, 0.0]
+    path.write_text(text + "\n[motion]\nhome_deg = " + str(home_pendant_deg) + "\n")
+    if "[motion]" in text:  # the base config has its own [motion] table: set the key there instead
+        path.write_text(text.replace("[motion]", "[motion]\nhome_deg = " + str(home_pendant_deg), 1))
+    config = load_cell_config(path)
+    np.testing.assert_allclose(np.rad2deg(config.q_home_rad), [0.0, 20.0, 10.0, 0.0, -60.0, 0.0], atol=1e-9)

@@ -12,6 +12,7 @@ from fakes.ur_controller import UrController
 from fakes.ur_dashboard import NOT_REMOTE, handle_command
 from fakes.ur_motion import JointMove, LinearMove, SpeedMove, StopMove, Trapezoid
 from fakes.ur_script import ControlProgram, UnknownProgramError, split_programs
+from hil.geometry.coupling import CouplingLimit, JointCoupling
 from hil.geometry.kinematics import forward_kinematics, geometric_jacobian
 from hil.geometry.robots import get_robot
 from hil.geometry.se3 import transform_to_pose
@@ -157,3 +158,25 @@ def test_emergency_stop_needs_release_and_power(controller):
     assert c.robot_mode_name == "RUNNING" and c.safety_mode_name == "NORMAL"
     with pytest.raises(ValueError, match="unknown fault"):
         c.inject_fault("meteor")
+
+
+def test_a_coupled_robots_controller_speaks_its_own_joints_and_moves_the_kinematic_arm():
+    """The simulated LR Mate's controller reports and takes FANUC's joints (J3 = -q2 - q3, the forearm against
+    the horizontal); the arm it commands is the kinematic one; a target beyond an interaction limit is refused."""
+    c = UrController(SimulatedCell(SimCellConfig(robot="lrmate200id", seed=1, geometric_errors=False)))
+    coupling = c.coupling
+    assert coupling is not None and coupling.describe() == "kinematic q3 = -J2 - J3"
+    q_kinematic = np.array([0.1, 0.3, -0.5, 0.2, -0.8, 0.4])
+    c.q_cmd = q_kinematic
+    c.tick(c.period_s)
+    reported = np.asarray(c.output_value("actual_q"))
+    np.testing.assert_allclose(reported, coupling.to_controller(q_kinematic[None])[0], atol=1e-5)
+    assert reported[2] == pytest.approx(-0.3 + 0.5, abs=1e-5)  # J3 = -(q2 + q3): the forearm's elevation
+    np.testing.assert_allclose(c.cell.encoder_joints(), q_kinematic, atol=1e-5)  # the arm: kinematic
+    target_wire = np.array([0.0, 0.4, 0.1, 0.0, -0.5, 0.0])
+    np.testing.assert_allclose(c._checked_joints(target_wire), [0.0, 0.4, -0.5, 0.0, -0.5, 0.0])
+    c.coupling = JointCoupling(
+        coupling.kinematic_from_controller, (CouplingLimit(np.array([0, 1, 1, 0, 0, 0.0]), -1.0, 0.4),)
+    )
+    with pytest.raises(ValueError, match="interaction limits"):
+        c._checked_joints(target_wire)  # J2 + J3 = 0.5 rad > 0.4

@@ -41,6 +41,12 @@ class NominalArm:
     def flange_pose_of(self, q):
         return forward_kinematics(UR10, np.asarray(q, float)[None])[0]
 
+    def joints_in(self, q_wire):  # a UR reports its kinematic joints
+        return np.asarray(q_wire, float)
+
+    def joints_out(self, q):
+        return np.asarray(q, float)
+
 
 def run(text: str) -> tuple[list, NominalArm]:
     """Every action of the program, the arm at each move's target before the next statement runs."""

@@ -28,7 +28,7 @@ from hil.commands.arg_checks import (
 )
 from hil.commands.errors import CliError
 from hil.commands.help_format import DefaultsHelpFormatter
-from hil.commands.inputs import keep_coupling, read_measurements, record_in_campaign
+from hil.commands.inputs import read_measurements, record_in_campaign
 from hil.data.dataset import (
     DEFAULT_ORIENTATION_CONVENTION,
     ORIENTATION_CONVENTIONS,
@@ -38,6 +38,7 @@ from hil.data.dataset import (
 )
 from hil.data.joint_conventions import joints_to_kinematic
 from hil.geometry.robots import ROBOT_NAMES, get_robot, robot_arg, robot_coupling
+from hil.model.coupled_model import keep_coupling
 from hil.runner.progress import Progress
 
 

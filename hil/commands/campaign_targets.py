@@ -24,8 +24,16 @@ from hil.commands.errors import CliError
 from hil.data.campaigns import open_campaign
 from hil.data.dataset import orientation_columns
 from hil.data.store import Campaign, CampaignError
+from hil.geometry.coupling import JointConvention
 from hil.geometry.kinematics import KinematicModel, forward_kinematics
-from hil.geometry.robots import get_robot, is_robot_file, robot_file_path, robot_from_text, with_file_path
+from hil.geometry.robots import (
+    get_robot,
+    is_robot_file,
+    robot_coupling,
+    robot_file_path,
+    robot_from_text,
+    with_file_path,
+)
 from hil.runner.procedure import Role
 from hil.runner.registry import publisher
 
@@ -111,30 +119,50 @@ def read_campaign_targets(
 def campaign_robot(store: Campaign, path: str | Path) -> KinematicModel:
     """The campaign's nominal robot from its newest station snapshot naming one: the robot file's text the
     snapshot keeps, else the built-in name; an older snapshot's robot file is looked for beside its cell file."""
+    name, text = _campaign_robot_definition(store, path)
+    try:
+        return get_robot(name) if text is None else robot_from_text(text, name)
+    except ValueError as exc:
+        raise CliError(
+            f"campaign {path}: its robot cannot be rebuilt: {exc}",
+            "give the targets as a CSV (hil campaign export, then x_mm, y_mm, z_mm)",
+        ) from exc
+
+
+def campaign_kinematic_joints(store: Campaign, path: str | Path, q: np.ndarray) -> np.ndarray:
+    """Joints (N, n) read from the campaign as the model's: a session records the controller's joints
+    (`joint_convention` of its snapshot), converted here when the campaign's robot couples its joints."""
+    recorded = [
+        s["joint_convention"] for s in store.snapshots() if isinstance(s, dict) and "joint_convention" in s
+    ]
+    if not recorded or recorded[-1] != str(JointConvention.CONTROLLER):
+        return q
+    name, text = _campaign_robot_definition(store, path)
+    coupling = robot_coupling(name, text)
+    return q if coupling is None else coupling.to_kinematic(q)
+
+
+def _campaign_robot_definition(store: Campaign, path: str | Path) -> tuple[str, str | None]:
+    """(name, robot file text or None for a built-in) of the robot of the campaign's newest snapshot naming one."""
     for snapshot in reversed(store.snapshots()):
         definition = snapshot.get("robot_definition")
         cell_robot = snapshot.get("cell", {}).get("robot", {})
-        try:
-            if isinstance(definition, dict) and isinstance(definition.get("file_text"), str):
-                return robot_from_text(definition["file_text"], str(definition.get("file", "robot file")))
-            model = definition.get("model") if isinstance(definition, dict) else cell_robot.get("model")
-            if not isinstance(model, str):
-                continue
-            if not is_robot_file(model):
-                return get_robot(model)
-            return _robot_file_beside_cell(model, snapshot.get("source"), path)
-        except ValueError as exc:
-            raise CliError(
-                f"campaign {path}: its robot cannot be rebuilt: {exc}",
-                "give the targets as a CSV (hil campaign export, then x_mm, y_mm, z_mm)",
-            ) from exc
+        if isinstance(definition, dict) and isinstance(definition.get("file_text"), str):
+            return str(definition.get("file", "robot file")), definition["file_text"]
+        model = definition.get("model") if isinstance(definition, dict) else cell_robot.get("model")
+        if not isinstance(model, str):
+            continue
+        if not is_robot_file(model):
+            return model, None
+        file = _robot_file_beside_cell(model, snapshot.get("source"), path)
+        return with_file_path(model, file), file.read_text()
     raise CliError(
         f"campaign {path} has no station snapshot naming the robot ([robot] model)",
         "give the targets as a CSV (hil campaign export, then x_mm, y_mm, z_mm)",
     )
 
 
-def _robot_file_beside_cell(model: str, cell_source: object, path: str | Path) -> KinematicModel:
+def _robot_file_beside_cell(model: str, cell_source: object, path: str | Path) -> Path:
     """A robot file named by a snapshot that keeps no copy of it (older campaigns): the path as written in the
     cell file, relative to that file's folder."""
     file = robot_file_path(model)
@@ -145,7 +173,7 @@ def _robot_file_beside_cell(model: str, cell_source: object, path: str | Path) -
             f"campaign {path} names the robot file {model!r} but keeps no copy of it, and it is not at {file}",
             f"put the robot file back at {file}, or give the targets as a CSV (hil campaign export)",
         )
-    return robot_from_text(file.read_text(), with_file_path(model, file))
+    return file
 
 
 def _drawing_nests_m(store: Campaign) -> dict[int, np.ndarray]:
@@ -181,7 +209,7 @@ def _commanded_points(store: Campaign, path: str | Path, step: str, robot: Kinem
             "not in the cell config)",
             "run `hil run tool_fit` on the campaign, or give the targets as a CSV",
         )
-    q = np.stack(m["q_target_rad"].to_numpy()).astype(float)
+    q = campaign_kinematic_joints(store, path, np.stack(m["q_target_rad"].to_numpy()).astype(float))
     T = forward_kinematics(robot, q)
     p_flange = np.array([nests[s] for s in smr])
     p_base = np.einsum("nij,nj->ni", T[:, :3, :3], p_flange) + T[:, :3, 3]

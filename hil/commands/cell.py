@@ -88,7 +88,9 @@ def run_check(args: argparse.Namespace) -> int:
             print(
                 f"  robot connected: controller {getattr(robot, 'version', '?')}, mode {state.robot_mode}, safety {state.safety_mode}, ready {state.ready}"
             )
-            if not config.envelope.joint_violations(robot.joints())[0]:
+            q_now = np.asarray(robot.joints(), float)  # the controller's joints: the envelope's are kinematic
+            q_now = q_now if config.coupling is None else config.coupling.to_kinematic(q_now[None])[0]
+            if not config.envelope.joint_violations(q_now)[0]:
                 print("  robot joints inside the envelope's limits")
             else:
                 print(

@@ -26,7 +26,6 @@ from hil.commands.campaign_targets import DEFAULT_ORDER, SOURCES, read_campaign_
 from hil.commands.compensate_program import is_program, run_program
 from hil.commands.errors import CliError
 from hil.commands.help_format import DefaultsHelpFormatter
-from hil.commands.inputs import model_coupling
 from hil.compensation.model_based import (
     ENSEMBLE,
     CompensationOptions,
@@ -51,6 +50,7 @@ from hil.data.dataset import (
 from hil.geometry.coupling import JointConvention, JointCoupling
 from hil.geometry.se3 import transform_points
 from hil.model.calibrated_model import CalibratedModel
+from hil.model.coupled_model import model_coupling
 from hil.model.effects import THERMAL_FAMILIES, material_growth, temperature_driven
 from hil.model.intervals import IntervalError
 from hil.model.prediction_intervals import prediction_intervals

@@ -21,10 +21,11 @@ from hil.commands.arg_checks import (
 from hil.commands.calibrate import add_probe_options, orientation_summary, parse_mm_vector, refuse_implausible
 from hil.commands.errors import CliError
 from hil.commands.help_format import DefaultsHelpFormatter
-from hil.commands.inputs import keep_coupling, read_training_and_validation, record_in_campaign
+from hil.commands.inputs import read_training_and_validation, record_in_campaign
 from hil.data.dataset import DatasetError, convert_orientation_convention, points_m, pose_ids
 from hil.data.joint_conventions import joints_to_kinematic
 from hil.geometry.robots import ROBOT_NAMES, get_robot, robot_arg, robot_coupling
+from hil.model.coupled_model import keep_coupling
 from hil.model.effects import EFFECT_FAMILIES
 from hil.runner.progress import Progress
 

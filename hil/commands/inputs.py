@@ -12,8 +12,6 @@ import pandas as pd
 from hil.data.campaigns import is_campaign, open_campaign
 from hil.data.dataset import load_dataset
 from hil.data.store import CampaignError, ResultRecord, campaign_dataset
-from hil.geometry.coupling import JointCoupling, coupling_from_table, coupling_table
-from hil.model.calibrated_model import CalibratedModel
 from hil.runner.procedure import Role
 from hil.runner.registry import publisher
 
@@ -31,22 +29,6 @@ def read_measurements(
         with open_campaign(path, create=False) as store:
             return campaign_dataset(store, grid_procedure(), step)
     return load_dataset(path, require_positions=require_positions)
-
-
-def keep_coupling(model: CalibratedModel, coupling: JointCoupling | None) -> None:
-    """Keep a coupled robot's coupling in the model's info, so predict and compensate convert as it did."""
-    if coupling is not None and coupling.coupled_rows():
-        model.info["coupling"] = coupling_table(coupling)
-
-
-def model_coupling(model: CalibratedModel) -> JointCoupling | None:
-    """The joint coupling a model was calibrated with (its robot file's), None for an uncoupled robot."""
-    table = model.info.get("coupling")
-    return (
-        None
-        if table is None
-        else coupling_from_table(table, model.kinematic.n_joints, "the model's coupling")
-    )
 
 
 def record_in_campaign(path: str | Path, result: ResultRecord) -> str | None:

@@ -12,7 +12,7 @@ import pandas as pd
 from hil.commands.arg_checks import InputError, add_force_option, add_joint_convention_option, check_paths
 from hil.commands.errors import CliError
 from hil.commands.help_format import DefaultsHelpFormatter
-from hil.commands.inputs import model_coupling, read_measurements
+from hil.commands.inputs import read_measurements
 from hil.data.dataset import (
     POSITION_COLUMNS,
     DatasetError,
@@ -22,6 +22,7 @@ from hil.data.dataset import (
 )
 from hil.data.joint_conventions import joints_to_kinematic
 from hil.model.calibrated_model import CalibratedModel
+from hil.model.coupled_model import model_coupling
 from hil.model.intervals import IntervalError, Intervals
 from hil.model.prediction_intervals import prediction_intervals
 

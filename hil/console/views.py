@@ -100,9 +100,13 @@ def plan_view(checked: CheckedRun, config: CellConfig) -> PlanView:
     envelope = f"every pose passed the envelope {collisions}check"
     if config.envelope.bodies is None:
         envelope += " (collisions are not checked: [envelope] collisions = false)"
+    shown = plan.poses[:PLAN_ROWS]
+    q = np.array([p.q_rad for p in shown]).reshape(-1, 6)
+    # as the pendant shows them: the controller's joints of a robot that couples its joints
+    q = q if config.coupling is None else config.coupling.to_controller(q)
     rows = [
-        PosePlanned(k, p.point_id, p.step, p.location, np.rad2deg(p.q_rad).round(2).tolist())
-        for k, p in enumerate(plan.poses[:PLAN_ROWS], start=1)
+        PosePlanned(k, p.point_id, p.step, p.location, np.rad2deg(q[k - 1]).round(2).tolist())
+        for k, p in enumerate(shown, start=1)
     ]
     return PlanView(
         plan.procedure, checked.campaign.name, len(plan.poses), plan.operator_steps,

@@ -17,7 +17,7 @@ import numpy as np
 
 from hil.geometry.body import ArmBody
 from hil.geometry.collision import CellBodies, KeepOutBox
-from hil.geometry.coupling import JointConvention
+from hil.geometry.coupling import JointConvention, JointCoupling
 from hil.geometry.kinematics import KinematicModel
 from hil.geometry.robots import (
     ROBOT_NAMES,
@@ -87,7 +87,7 @@ class CellConfig:
     hole_diameter_m: float
     envelope: Envelope
     settle_s: float
-    q_home_rad: np.ndarray
+    q_home_rad: np.ndarray  # kinematic joints ([motion] home_deg: the controller's, converted when read)
     simulator_control: str | None = None  # control channel of a simulated cell (scripted operator)
     console_token: str | None = None  # [console] token: what `hil serve` asks of every request off loopback
     robot_file_text: str | None = None  # the robot definition file's text when robot_model is a file
@@ -113,6 +113,12 @@ class CellConfig:
     # [store] password_file: the shared campaign database's password (a postgresql:// --campaign), read at
     # connection time and never recorded; relative to the cell file's folder
     store_password_file: Path | None = None
+
+    @property
+    def coupling(self) -> JointCoupling | None:
+        """How the robot's controller couples its joints (its robot file's [coupling]), None when it reports
+        the kinematic joints: the session converts every move and reading at the robot's edge."""
+        return self.envelope.coupling
 
     @cached_property
     def nominal(self) -> KinematicModel:
@@ -284,27 +290,19 @@ def _nominal(robot_model: str, robot_file_text: str | None) -> KinematicModel:
     )
 
 
-def _refuse_coupled(r: _Reader, model: str | None, robot_file_text: str | None) -> None:
-    """A robot whose controller couples its joints ([coupling]) is refused for a cell: the runner sends plans
-    and records joints as the model's kinematic joints, which such a controller reads differently; its data
-    measured elsewhere goes through the analysis commands with --joint-convention."""
+def _coupling(model: str | None, robot_file_text: str | None) -> JointCoupling | None:
+    """The robot's joint coupling when its controller couples its joints (hil.geometry.coupling), else None."""
     if model is None:
-        return
+        return None
     coupling = robot_coupling(model, robot_file_text)
-    if coupling is not None and coupling.coupled_rows():
-        r.problems.append(
-            f"robot.model: {model} couples its joints ({coupling.describe()}); hil run does not convert plans "
-            "to the controller's joints yet, so it would move such an arm to the wrong pose: measure with the "
-            "maker's software and give the exported data to hil axes / calibrate / diagnose with "
-            "--joint-convention controller"
-        )
+    return coupling if coupling is not None and coupling.coupled_rows() else None
 
 
 def parse_cell_config(data: dict, source: str = "cell.toml") -> CellConfig:
     """Build and check a CellConfig from parsed TOML; raises CellConfigError listing every problem."""
     r = _Reader(data)
     model, robot_file_text, nominal = _robot_model(r, r.get("robot", "model", "str", required=True), source)
-    _refuse_coupled(r, model, robot_file_text)
+    coupling = _coupling(model, robot_file_text)
     host, driver = _read_robot_link(r)
     robot_driver_name = r.get("robot", "driver", "str", default=DEFAULT_ROBOT_DRIVER)
     n = nominal.n_joints if nominal else 6
@@ -326,7 +324,7 @@ def parse_cell_config(data: dict, source: str = "cell.toml") -> CellConfig:
         r.problems.append(
             f"motion.reduced_speed_fraction: {reduced_fraction:g} is above 1; give a fraction of the speeds, e.g. 0.25"
         )
-    home_deg = r.vector("motion", "home_deg", n, default=np.rad2deg(_default_home(nominal, n)))
+    home_rad = _read_home(r, nominal, n, coupling)
     simulator_control = r.get("simulator", "control", "str")
     console_token = r.get("console", "token", "str")
     drift_poses = r.get("drift_monitor", "poses", "int", default=0)
@@ -355,10 +353,15 @@ def parse_cell_config(data: dict, source: str = "cell.toml") -> CellConfig:
         self_clearance_mm / 1e3,
     )
     envelope = Envelope(
-        box_min / 1e3, box_max / 1e3, np.deg2rad(jmin), np.deg2rad(jmax), bodies if collisions else None
+        box_min / 1e3,
+        box_max / 1e3,
+        np.deg2rad(jmin),
+        np.deg2rad(jmax),
+        bodies if collisions else None,
+        coupling,
     )
-    home = np.deg2rad(home_deg)
-    _check_home(envelope, nominal, home, nests_arr, source)
+    assert home_rad is not None  # a malformed one is one of r.problems
+    _check_home(envelope, nominal, home_rad, nests_arr, source)
     return CellConfig(
         robot_model=model,
         robot_host=host,
@@ -375,7 +378,7 @@ def parse_cell_config(data: dict, source: str = "cell.toml") -> CellConfig:
         hole_diameter_m=hole_d_mm / 1e3,
         envelope=envelope,
         settle_s=settle_s,
-        q_home_rad=home,
+        q_home_rad=home_rad,
         simulator_control=simulator_control,
         console_token=console_token,
         robot_file_text=robot_file_text,
@@ -577,6 +580,20 @@ def _check_home(
                 f"motion.home_deg: the home pose leaves the envelope ({problem}); it is the safe detour of moves"
             ],
         )
+
+
+def _read_home(
+    r: _Reader, nominal: KinematicModel | None, n: int, coupling: JointCoupling | None
+) -> np.ndarray | None:
+    """[motion] home_deg, as the pendant shows it (the controller's joints of a robot that couples its
+    joints), as the kinematic joints the runner plans in (rad); None when malformed (a problem recorded)."""
+    default = _default_home(nominal, n)
+    default = default if coupling is None else coupling.to_controller(default[None])[0]
+    home_deg = r.vector("motion", "home_deg", n, default=np.rad2deg(default))
+    if home_deg is None:
+        return None
+    home = np.deg2rad(home_deg)
+    return home if coupling is None else coupling.to_kinematic(home[None])[0]
 
 
 def _default_home(nominal: KinematicModel | None, n: int) -> np.ndarray:

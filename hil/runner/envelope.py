@@ -1,6 +1,7 @@
 """The safety envelope: a box in the robot base frame for the tool points and every wrist point, joint
-limits, and the collision checks of hil.geometry.collision (the arm with itself, the tracker, the keep-out
-boxes). Every commanded motion is checked against it, along its whole path, before the robot moves.
+limits, the interaction limits of a robot whose controller couples its joints (hil.geometry.coupling), and
+the collision checks of hil.geometry.collision (the arm with itself, the tracker, the keep-out boxes). Every
+commanded motion is checked against it, along its whole path, before the robot moves.
 """
 
 from __future__ import annotations
@@ -10,6 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from hil.geometry.collision import CellBodies, Clearances
+from hil.geometry.coupling import JointCoupling
 from hil.geometry.kinematics import KinematicModel, forward_kinematics, link_frames
 from hil.runner.planners import wrist_points
 
@@ -25,14 +27,17 @@ class EnvelopeError(ValueError):
 
 @dataclass(frozen=True)
 class Envelope:
-    """Where the robot may go: an axis-aligned box (base frame, metres), joint limits (radians) and, when
-    `bodies` is given, clear of itself, the tracker and the keep-out boxes by their margins."""
+    """Where the robot may go: an axis-aligned box (base frame, metres), joint limits (radians, on the
+    kinematic joints), the interaction limits of `coupling` (linear inequalities on the controller's joints;
+    a joint move, linear in either convention, keeps them all along when both ends do) and, when `bodies` is
+    given, clear of itself, the tracker and the keep-out boxes by their margins."""
 
     box_min_m: np.ndarray
     box_max_m: np.ndarray
     joint_min_rad: np.ndarray
     joint_max_rad: np.ndarray
     bodies: CellBodies | None = None
+    coupling: JointCoupling | None = None
 
     def clearances(self, nominal: KinematicModel, q: np.ndarray) -> Clearances | None:
         """Each joint set's smallest clearance to the arm itself and to the cell (None: no body model)."""
@@ -44,9 +49,24 @@ class Envelope:
         return np.any((p < self.box_min_m) | (p > self.box_max_m), axis=-1)
 
     def joint_violations(self, q: np.ndarray) -> np.ndarray:
-        """(N,) bool: which joint sets break a joint limit."""
+        """(N,) bool: which joint sets (kinematic) break a joint limit or an interaction limit."""
         q = np.atleast_2d(q)
-        return np.any((q < self.joint_min_rad) | (q > self.joint_max_rad), axis=1)
+        beyond = np.any((q < self.joint_min_rad) | (q > self.joint_max_rad), axis=1)
+        if self.coupling is not None and self.coupling.limits and len(q):
+            beyond |= ~self.coupling.within_limits(self.coupling.to_controller(q))
+        return beyond
+
+    def interaction_problems(self, q: np.ndarray) -> list[str]:
+        """The interaction limits one joint set (kinematic) breaks, each named with the controller's value."""
+        if self.coupling is None:
+            return []
+        q_controller = self.coupling.to_controller(np.atleast_2d(q))[0]
+        return [
+            f"{np.rad2deg(q_controller @ limit.coefficients):.1f} deg breaks the interaction limit "
+            f"{limit.describe()}"
+            for limit in self.coupling.limits
+            if not limit.lower_rad <= q_controller @ limit.coefficients <= limit.upper_rad
+        ]
 
     def outside(self, nominal: KinematicModel, q: np.ndarray, p_flange_tools_m: np.ndarray) -> np.ndarray:
         """(N,) bool: which joint sets put a tool point or a wrist point outside, break a joint limit, or
@@ -96,7 +116,9 @@ class Envelope:
             parts: list[str] = [problem] if (problem := near[i]) else []
             if bad_joints[i]:
                 joints = np.flatnonzero((q[i] < self.joint_min_rad) | (q[i] > self.joint_max_rad)) + 1
-                parts.append(f"joint(s) {', '.join(map(str, joints))} beyond their envelope limits")
+                if joints.size:
+                    parts.append(f"joint(s) {', '.join(map(str, joints))} beyond their envelope limits")
+                parts += self.interaction_problems(q[i])
             for k in np.flatnonzero(bad_tool[i]):
                 p = tool_points[i, k] * 1e3
                 parts.append(f"tool point {k + 1} at ({p[0]:.0f}, {p[1]:.0f}, {p[2]:.0f}) mm outside the box")

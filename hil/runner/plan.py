@@ -164,10 +164,15 @@ class Plan:
                 lines.append(
                     f"  smallest clearance: {clearance * 1e3:.0f} mm ({between}) at {self.poses[k].point_id}"
                 )
-            header = f"  {'#':>4} {'point':>10} {'step':>12} {'smr at':>8}  joints (deg)"
+            # the joints as the pendant shows them: the controller's, for a robot that couples its joints
+            shown = q if cfg.coupling is None else cfg.coupling.to_controller(q)
+            which = (
+                "joints (deg)" if cfg.coupling is None else "controller joints J1..J6 (deg, the pendant's)"
+            )
+            header = f"  {'#':>4} {'point':>10} {'step':>12} {'smr at':>8}  {which}"
             lines.append(f"{header:<{len(header) + 41}}  clearance" if nearest else header)
             for k, pose in enumerate(self.poses[:max_rows], start=1):
-                deg = " ".join(f"{v:8.2f}" for v in np.rad2deg(pose.q_rad))
+                deg = " ".join(f"{v:8.2f}" for v in np.rad2deg(shown[k - 1]))
                 row = f"  {k:>4} {pose.point_id:>10} {pose.step:>12} {pose.location:>8}  {deg}"
                 if nearest:
                     clearance, between = nearest[k - 1]

@@ -32,6 +32,7 @@ from hil.instruments.tracker import (
     TrackerMeasurement,
 )
 from hil.runner.cell_config import CellConfig
+from hil.runner.controller_joints import kinematic_campaign, kinematic_robot
 from hil.runner.engine import AttemptPolicy, CampaignStopped, Engine, PathOptions
 from hil.runner.envelope import Envelope, EnvelopeError
 from hil.runner.operator import Operator, OperatorStep
@@ -93,9 +94,10 @@ class Session:
         clock: Callable[[], float] | None = None,
     ):
         self.config = config
-        self.robot = robot
+        # the one place joints cross to the controller's convention (a robot that couples its joints)
+        self.robot = kinematic_robot(robot, config.coupling)
+        self.store = kinematic_campaign(store, config.coupling)
         self.tracker = tracker
-        self.store = store
         self.operator = operator
         self.progress = progress or Progress(enabled=False)
         self.envelope: Envelope = config.envelope
