@@ -1,21 +1,25 @@
 """The operator console (`hil serve`) driven in headless Chromium: one simulated cell, one console server and one
 browser for the whole module. The page starts a registration from its form, shows the plan and the progress,
 takes the operator's answers (a reloaded page finds its prompt waiting), pauses, resumes, aborts (every
-recorded point kept) and resumes the campaign; a second browser only watches; `hil run` on a campaign the
+recorded point kept) and resumes the campaign; its plots (plotly.js) carry every measured point and the drift
+monitor's reference poses, rebuilt from the campaign in a reloaded page and a second browser; a second browser only watches; `hil run` on a campaign the
 console drives is refused with who holds it, and the reverse; a console with a token refuses requests
 without it; `hil serve` off loopback without a token refuses to start."""
 
 from __future__ import annotations
 
+import dataclasses
 import re
 import socket
+import sqlite3
 import threading
 import urllib.error
 import urllib.request
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import closing, contextmanager
 from pathlib import Path
 
+import numpy as np
 import pytest
 from playwright.sync_api import Browser, Page, expect, sync_playwright
 from sim_session import running_cell
@@ -23,6 +27,7 @@ from sim_session import running_cell
 from hil.cli import main
 from hil.console.app import TOKEN_COOKIE, ConsoleOptions, build_app
 from hil.console.station import Station
+from hil.console.views import reference_poses
 from hil.data.campaign_lock import CampaignLock, Holder
 from hil.data.store import CampaignStore
 from hil.runner.procedure import ParameterError, from_user_values
@@ -41,6 +46,10 @@ DIAGNOSIS_WAIT_MS = 100_000  # `hil diagnose` in its own process: 3 s alone, ove
 POSES = 12
 expect.set_options(timeout=WAIT_MS)
 CAMPAIGN = "console.sqlite"
+DRIFT_POSES, DRIFT_EVERY = (
+    2,
+    4,
+)  # the drift monitor of the module's cell: 2 reference poses every 4 grid points
 
 
 @contextmanager
@@ -77,6 +86,7 @@ def cell(tmp_path_factory):
 @pytest.fixture(scope="module")
 def console(cell) -> Iterator[tuple[str, Station]]:
     folder, config = cell
+    config = dataclasses.replace(config, drift_poses=DRIFT_POSES, drift_every_points=DRIFT_EVERY)
     station = Station(config, folder, address="the test's console")
     with console_server(station, ConsoleOptions()) as url:
         yield url, station
@@ -95,13 +105,32 @@ def browser() -> Iterator[Browser]:
 
 
 @pytest.fixture(scope="module")
-def operator_page(browser, console) -> Iterator[Page]:
+def page_errors() -> list[str]:
+    """The errors the module's pages threw (a plot that failed to draw throws here)."""
+    return []
+
+
+@pytest.fixture(scope="module")
+def operator_page(browser, console, page_errors) -> Iterator[Page]:
     """The controlling browser's page (the first to open the console takes control)."""
     context = browser.new_context()
     page = context.new_page()
+    page.on("pageerror", lambda error: page_errors.append(str(error)))
     page.set_default_timeout(WAIT_MS)
     page.goto(console[0])
     expect(page.locator("#control")).to_have_text("This browser controls the console.")
+    yield page
+    context.close()
+
+
+@pytest.fixture(scope="module")
+def watcher_page(browser, console, operator_page, page_errors) -> Iterator[Page]:
+    """A second browser's page, opened after the controller's (a new browser context loads plotly.js afresh:
+    a second or two, so the module opens one)."""
+    context = browser.new_context()
+    page = context.new_page()
+    page.on("pageerror", lambda error: page_errors.append(str(error)))
+    page.set_default_timeout(WAIT_MS)
     yield page
     context.close()
 
@@ -116,6 +145,20 @@ def measured(campaign: Path) -> list[tuple[int, str]]:
     with CampaignStore(campaign, create=False) as store:
         df = store.measurement_columns(("point_id",))
     return list(zip(df["id"].tolist(), df["point_id"].tolist(), strict=True))
+
+
+def plotted(page: Page, plot: str, count: int) -> list[dict]:
+    """The traces plotly.js draws in the page's `#plot` (the graph div's own `data`), once they carry `count`
+    points: each trace's name, axes and points (x, y, the point ids)."""
+    traces = "(id) => (document.getElementById(id).data || [])"
+    page.wait_for_function(
+        f"([id, n]) => ({traces})(id).reduce((k, t) => k + t.y.length, 0) === n", arg=[plot, count]
+    )
+    return page.evaluate(
+        f"(id) => ({traces})(id).map((t) => ({{name: t.name, xaxis: t.xaxis || 'x', x: Array.from(t.x), "
+        "y: Array.from(t.y), ids: Array.from(t.text)}))",
+        plot,
+    )
 
 
 def test_a_bad_value_is_refused_with_the_command_lines_message(operator_page):
@@ -190,7 +233,77 @@ def test_a_run_from_the_form_with_prompts_pause_resume_and_abort(operator_page, 
     expect(page.locator("#message")).to_contain_text(f"of {POSES} points agree")
     after = measured(folder / CAMPAIGN)
     assert len(after) == POSES and after[: len(kept)] == kept
-    expect(page.locator("#plot circle.point")).to_have_count(POSES)
+    (trace,) = plotted(page, "plot", POSES)  # one point per measured point, in measuring order
+    assert trace["name"] == "registration" and trace["ids"] == [point_id for _, point_id in after]
+    assert trace["x"] == list(range(1, POSES + 1))
+    assert all(0.0 < d < 5.0 for d in trace["y"])  # mm from the nominal model: the simulated arm's errors
+    expect(page.locator("#drift-box")).to_be_hidden()  # no reference poses in a registration
+
+
+def test_a_grid_plots_its_points_and_the_reference_poses_drift_in_a_reloaded_page_and_a_second_browser(
+    operator_page, watcher_page, console, cell, page_errors
+):
+    """A grid with the drift monitor on a registered campaign: the deviation plot carries every measured point
+    of both procedures, the drift plot each reference pose's readings against time and temperature (0 at its
+    first reading); a page reloaded mid-run and a second browser opened mid-run draw what the store holds."""
+    page, folder = operator_page, cell[0]
+    campaign = folder / "drift.sqlite"
+    with (
+        closing(sqlite3.connect(folder / CAMPAIGN)) as registered,
+        closing(sqlite3.connect(campaign)) as copy,
+    ):
+        registered.backup(copy)  # the registered campaign of the run above, whole
+    page.select_option("#procedure", "grid_sampling")
+    page.fill("#campaign", campaign.name)
+    page.fill("#f-step_m", "500")
+    page.fill("#f-box_min_m", "0 500 300")  # two grid points: reference rounds before and after them
+    page.fill("#f-box_max_m", "500 520 320")
+    page.fill("#f-validation", "0")
+    page.click("#check")
+    page.click("#start")
+    answer_prompt(page, "Put SMR 1 in tool nest 1.")
+    expect(page.locator("#progress")).to_contain_text(re.compile(r": [1-9]\d* of \d+ points"))
+    page.click("#pause")  # held mid-run: the store stands still while the pages are read
+    expect(page.locator("#phase")).to_have_text("paused")
+    page.reload()
+    watcher = watcher_page
+    watcher.goto(console[0])
+    held = [point_id for _, point_id in measured(campaign)]
+    assert len(held) > POSES  # the registration's and some of the grid's
+    for reader in (page, watcher):
+        assert sum((t["ids"] for t in plotted(reader, "plot", len(held))), []) == held
+    page.click("#resume")
+    expect(page.locator("#phase")).to_have_text("finished")
+    with CampaignStore(campaign, create=False) as store:
+        df = store.measurements()
+    deviations = plotted(page, "plot", len(df))
+    assert [t["name"] for t in deviations] == ["registration", "grid_sampling"]
+    assert sum((t["ids"] for t in deviations), []) == df["point_id"].tolist()
+    assert plotted(watcher, "plot", len(df)) == deviations
+
+    references = df[df["step"] == "reference"]
+    assert len(references) >= 2 * DRIFT_POSES  # before and after the grid at least
+    drifts = plotted(page, "drift", 2 * len(references))  # each reading against time and temperature
+    assert plotted(watcher, "drift", 2 * len(references)) == drifts
+    poses = reference_poses(references)
+    p_tracker_mm = np.stack(references["p_tracker_m"].to_list()) * 1e3
+    for axis in ("x", "x2"):
+        by_pose = {t["name"]: t for t in drifts if t["xaxis"] == axis}
+        assert sorted(by_pose) == sorted(set(poses)) and len(by_pose) == DRIFT_POSES
+        for pose, trace in by_pose.items():
+            rows = poses == pose
+            assert trace["ids"] == references.loc[rows, "point_id"].tolist()
+            moved_mm = np.linalg.norm(p_tracker_mm[rows] - p_tracker_mm[rows][0], axis=1)
+            np.testing.assert_allclose(trace["y"], moved_mm, atol=2e-4)
+            assert trace["y"][0] == 0.0
+    expect(page.locator("#drift .xtitle").first).to_contain_text("(s)")
+    expect(page.locator("#drift .x2title")).to_contain_text("(°C)")
+    page.select_option("#plot-x", "time")
+    expect(page.locator("#plot .xtitle")).to_have_text("time since the campaign's first point (s)")
+    by_time = plotted(page, "plot", len(df))
+    times = np.concatenate([t["x"] for t in by_time])
+    assert np.all(np.diff(times) >= 0) and times[0] == 0.0
+    assert page_errors == []
 
 
 def test_a_campaign_hil_run_drives_is_refused_by_the_console(operator_page, console, cell):
@@ -259,33 +372,26 @@ def test_compensation_from_the_page_uses_the_diagnosed_model_and_links_the_joint
 
 
 def test_a_second_browser_watches_and_is_refused_control_until_it_is_released(
-    browser, console, operator_page
+    watcher_page, console, operator_page
 ):
-    context = browser.new_context()
-    try:
-        page = context.new_page()
-        page.set_default_timeout(WAIT_MS)
-        page.goto(console[0])
-        expect(page.locator("#control")).to_have_text(
-            "Another browser controls this console: this one watches."
-        )
-        seen_by_controller = operator_page.locator("#run-name").text_content() or ""
-        expect(page.locator("#run-name")).to_have_text(seen_by_controller)  # the same run
-        expect(page.locator("#phase")).to_have_text(operator_page.locator("#phase").text_content() or "")
-        expect(page.locator("#start")).to_be_disabled()
-        refused = page.request.post(console[0] + "/api/abort", data={})
-        assert refused.status == 403
-        assert "another one controls the console" in refused.json()["message"]
-        expect(page.locator("#take-control")).to_be_hidden()
-        operator_page.click("#release-control")  # the controller lets go: the watcher may take over
-        expect(operator_page.locator("#control")).to_have_text("Nobody controls the console.")
-        page.click("#take-control")
-        expect(page.locator("#control")).to_have_text("This browser controls the console.")
-        expect(operator_page.locator("#control")).to_have_text(
-            "Another browser controls this console: this one watches."
-        )
-    finally:
-        context.close()
+    page = watcher_page
+    page.goto(console[0])
+    expect(page.locator("#control")).to_have_text("Another browser controls this console: this one watches.")
+    seen_by_controller = operator_page.locator("#run-name").text_content() or ""
+    expect(page.locator("#run-name")).to_have_text(seen_by_controller)  # the same run
+    expect(page.locator("#phase")).to_have_text(operator_page.locator("#phase").text_content() or "")
+    expect(page.locator("#start")).to_be_disabled()
+    refused = page.request.post(console[0] + "/api/abort", data={})
+    assert refused.status == 403
+    assert "another one controls the console" in refused.json()["message"]
+    expect(page.locator("#take-control")).to_be_hidden()
+    operator_page.click("#release-control")  # the controller lets go: the watcher may take over
+    expect(operator_page.locator("#control")).to_have_text("Nobody controls the console.")
+    page.click("#take-control")
+    expect(page.locator("#control")).to_have_text("This browser controls the console.")
+    expect(operator_page.locator("#control")).to_have_text(
+        "Another browser controls this console: this one watches."
+    )
 
 
 def test_a_request_by_another_host_name_is_refused(console):
@@ -302,7 +408,7 @@ def test_a_console_with_a_token_refuses_requests_without_it(cell):
     folder, config = cell
     options = ConsoleOptions(token="s3cret-token", allowed_hosts=("*",))  # as hil serve off loopback
     with console_server(Station(config, folder), options) as url:
-        for path in ("/", "/api/state", "/api/history"):
+        for path in ("/", "/api/state", "/api/history", "/assets/plotly.min.js"):
             with pytest.raises(urllib.error.HTTPError) as refused:
                 urllib.request.urlopen(url + path, timeout=10)
             assert refused.value.code == 401
@@ -317,6 +423,12 @@ def test_a_console_with_a_token_refuses_requests_without_it(cell):
         carried = urllib.request.Request(url + "/api/history", headers={"Cookie": cookie})
         with urllib.request.urlopen(carried, timeout=10) as history:
             assert history.status == 200
+        script = urllib.request.Request(url + "/assets/plotly.min.js", headers={"Cookie": cookie})
+        with urllib.request.urlopen(
+            script, timeout=10
+        ) as plotly_js:  # the page's plots, served by the console
+            assert plotly_js.headers["Content-Type"].startswith("text/javascript")
+            assert b"plotly.js v" in plotly_js.read(200)
 
 
 def test_serve_off_loopback_without_a_token_is_refused_before_it_binds(cell, capsys):

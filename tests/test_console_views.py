@@ -59,6 +59,7 @@ def test_deviations_and_reference_drift(tmp_path, config):
     assert shown.deviation_mm == pytest.approx([0.0, 1.0, 2.0, 0.03], abs=1e-6)
     assert shown.drift_mm[0] == pytest.approx(0.0) and shown.drift_mm[3] == pytest.approx(0.03, abs=1e-6)
     assert shown.drift_mm[1] is None and shown.drift_mm[2] is None  # grid points have no drift
+    assert shown.reference_pose == ["r1", None, None, "r1"]  # the drift plot's trace of each reading
     assert shown.t_s == [0.0, 10.0, 20.0, 60.0]
     [entry] = history(tmp_path)
     assert entry.name == "c.sqlite" and [(p.procedure, p.points) for p in entry.procedures] == [
@@ -74,6 +75,7 @@ def test_no_deviation_before_a_registration(tmp_path, config):
         store.record_measurement(point("grid", "g1", q, nominal_point(config, q), 0.0))
     shown = point_deviations(campaign, config)
     assert not shown.registered and shown.deviation_mm == [None]
+    assert shown.reference_pose == [None]
 
 
 def test_control_goes_to_one_browser_and_lapses_when_its_page_is_gone(tmp_path, config):

@@ -4,7 +4,10 @@
 
 It starts a simulated cell and `hil serve` on loopback, drives the page in headless Chromium (the Debian
 package's, as the tests do) through a registration: the plan before the start, the operator's prompt, a
-second browser watching the run, and the finished run with its campaign in the history. About a minute.
+second browser watching the run, and the finished run with its campaign in the history; then a coarse grid on
+the same campaign with the drift monitor on: the deviation of every point and the reference poses' drift (the
+simulated arm and hall warm up as the run goes).
+About two minutes.
 """
 
 from __future__ import annotations
@@ -25,6 +28,7 @@ CHROMIUM_FLAGS = [
 ]  # fmt: skip
 PORT = 18036  # loopback only
 WAIT_MS = 60_000
+WARMING = ("--effects", "gravity_compliance,thermal_expansion")  # the arm and the hall warm: drift to show
 
 
 def main() -> int:
@@ -33,9 +37,11 @@ def main() -> int:
     from hil.commands.sim_cell import write_sim_cell
 
     expect.set_options(timeout=WAIT_MS)
-    with tempfile.TemporaryDirectory() as folder, sim_cell(time_scale=10.0) as cell:
+    with tempfile.TemporaryDirectory() as folder, sim_cell(time_scale=10.0, extra_args=WARMING) as cell:
         cell_toml = Path(folder) / "cell.toml"
         write_sim_cell(cell_toml, cell.info, cell.control.call("ground_truth"), 10.0)
+        with cell_toml.open("a") as toml:  # reference poses between the grid's points, for the drift plot
+            toml.write("\n[drift_monitor]\nposes = 2\nevery_points = 3\n")
         command = [sys.executable, "-m", "hil", "serve", "--cell", str(cell_toml), "--campaigns", folder]
         server = subprocess.Popen(
             [*command, "--port", str(PORT)], stdout=subprocess.PIPE, text=True, cwd=ROOT, env=os.environ
@@ -60,8 +66,10 @@ def main() -> int:
                 expect(watcher.locator("#plot-note")).to_contain_text("points measured")
                 take(watcher, "watching")
                 expect(page.locator("#phase")).to_have_text("finished")
-                expect(page.locator("#plot circle.point")).to_have_count(12)
+                wait_for_plotted(page, "plot", 12)
                 take(page, "finished")
+                grid(page)
+                take(page, "drift")
                 browser.close()
         finally:
             server.terminate()
@@ -74,6 +82,28 @@ def plan(page: Page) -> None:
     page.fill("#campaign", "cell-a.sqlite")
     page.click("#check")
     expect(page.locator("#plan-poses")).to_have_text("12")
+
+
+def grid(page: Page) -> None:
+    """A coarse grid with validation poses on the registered campaign, run to its end."""
+    page.select_option("#procedure", "grid_sampling")
+    page.fill("#campaign", "cell-a.sqlite")
+    page.fill("#f-step_m", "250")
+    page.fill("#f-validation", "6")
+    page.click("#check")
+    page.click("#start")
+    expect(page.locator("#prompt-text")).to_have_text("Put SMR 1 in tool nest 1.")
+    page.click("#prompt-done")
+    expect(page.locator("#phase")).to_have_text("finished")
+    expect(page.locator("#drift-box")).to_be_visible()
+
+
+def wait_for_plotted(page: Page, plot: str, count: int) -> None:
+    """Until the plot (plotly.js's graph div) carries `count` points."""
+    page.wait_for_function(
+        "([id, n]) => (document.getElementById(id).data || []).reduce((k, t) => k + t.y.length, 0) === n",
+        arg=[plot, count],
+    )
 
 
 def take(page: Page, name: str, before=None) -> None:

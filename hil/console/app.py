@@ -4,6 +4,10 @@ Starlette is a small, well-kept ASGI toolkit; the live state goes to every page 
 `text/event-stream` response per page, plain HTTP, reconnected by the browser by itself), which is all a
 page that only listens needs (its buttons are ordinary POSTs). With a token (any bind off loopback needs one)
 every request must carry it (`?token=` once, then the cookie it sets, or `Authorization: Bearer`).
+
+The page draws its plots with plotly.js, the file that plotly's Python package ships (package_data/plotly.min.js):
+the console serves it itself, so a page needs nothing beyond the console (a cell's network often has no
+internet, and the tests have none).
 """
 
 from __future__ import annotations
@@ -17,6 +21,7 @@ from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager, suppress
 from dataclasses import asdict, dataclass, replace
 from importlib import resources
+from importlib.metadata import PackageNotFoundError, distribution
 from pathlib import Path
 from typing import Any
 
@@ -44,6 +49,8 @@ from hil.runner.registry import load, registered
 
 CLIENT_COOKIE = "hil_console_client"  # which browser this is (control is given to one)
 TOKEN_COOKIE = "hil_console_token"
+PLOTLY_JS = "plotly/package_data/plotly.min.js"  # in plotly's wheel
+PLOTLY_CACHE = "public, max-age=86400"  # 4.8 MB a page loads once a day, not on every reload
 STREAM_KEEPALIVE_S = 10.0  # a page's stream sends the state at least this often
 
 
@@ -65,6 +72,7 @@ def build_app(station: Station, options: ConsoleOptions) -> ASGIApp:
     api = _Api(station)
     routes = [
         Route("/", api.page),
+        Route("/assets/plotly.min.js", api.plotly_js),
         Route("/api/procedures", api.procedures),
         Route("/api/state", api.state),
         Route("/api/stream", api.stream),
@@ -146,6 +154,16 @@ class _Api:
         if CLIENT_COOKIE not in request.cookies:
             response.set_cookie(CLIENT_COOKIE, secrets.token_hex(16), httponly=True, samesite="strict")
         return response
+
+    async def plotly_js(self, request: Request) -> Response:
+        path = plotly_js_path()
+        if path is None:
+            return Response(
+                "plotly.min.js is missing: the console's plots need the plotly package (pip install plotly)\n",
+                status_code=404,
+                media_type="text/plain",
+            )
+        return FileResponse(path, media_type="text/javascript", headers={"Cache-Control": PLOTLY_CACHE})
 
     async def procedures(self, request: Request) -> Response:
         forms = []
@@ -369,6 +387,16 @@ class _Api:
         if not path.is_file():
             return _refused(RequestRefusedError(f"no campaign {path.name} in {path.parent}"), 404)
         return path
+
+
+def plotly_js_path() -> Path | None:
+    """plotly.js as plotly's Python package installs it (found through the package's metadata, without
+    importing it), or None when it is not there."""
+    try:
+        path = Path(str(distribution("plotly").locate_file(PLOTLY_JS)))
+    except PackageNotFoundError:
+        return None
+    return path if path.is_file() else None
 
 
 async def _hil(args: list[str]) -> tuple[bool, str]:

@@ -125,8 +125,8 @@ def _summary(described: str) -> str:
 class PointDeviations:
     """The measured points of a campaign in order, and how far each lies from where the nominal model and the
     campaign's registration put it (mm; none before the campaign has a registration); a reference pose of
-    the drift monitor (step `reference`, `r1-003`: pose r1, round 3) also how far it moved since its first
-    round (mm, tracker frame: the drift of the cell)."""
+    the drift monitor (step `reference`, `r1-003`: pose r1, round 3) also which pose it is (`r1`) and how far
+    it moved since its first round (mm, tracker frame: the drift of the cell)."""
 
     registered: bool
     point_id: list[str]
@@ -135,11 +135,12 @@ class PointDeviations:
     temperature_c: list[float | None]
     deviation_mm: list[float | None]
     drift_mm: list[float | None]
+    reference_pose: list[str | None]  # the drift monitor's pose a point re-measures, None for other points
 
 
 def point_deviations(path: Path, config: CellConfig) -> PointDeviations:
     if not is_campaign_file(path):
-        return PointDeviations(False, [], [], [], [], [], [])
+        return PointDeviations(False, [], [], [], [], [], [], [])
     with CampaignStore(path, create=False) as store:
         df = store.measurements()
         registration = store.step_result(*publisher(Role.REGISTRATION))
@@ -164,7 +165,17 @@ def point_deviations(path: Path, config: CellConfig) -> PointDeviations:
         _rounded(df["temperature_c"].to_numpy(float), 3),
         _rounded(deviation, 4),
         _rounded(reference_drift_mm(df), 4),
+        reference_poses(df).tolist(),
     )
+
+
+def reference_poses(df: pd.DataFrame) -> np.ndarray:
+    """The drift monitor's pose each point re-measures (`r1-003`: `r1`), None for every other point."""
+    poses = np.full(len(df), None, dtype=object)
+    rows = (df["step"] == "reference").to_numpy()
+    if rows.any():
+        poses[rows] = df.loc[rows, "point_id"].str.rsplit("-", n=1).str[0].to_numpy()
+    return poses
 
 
 def reference_drift_mm(df: pd.DataFrame) -> np.ndarray:
@@ -172,9 +183,8 @@ def reference_drift_mm(df: pd.DataFrame) -> np.ndarray:
     drift = np.full(len(df), np.nan)
     rows = (df["step"] == "reference").to_numpy()
     if rows.any():
-        refs = df.loc[rows]
-        measured = np.stack(refs["p_tracker_m"].to_list())
-        pose = refs["point_id"].str.rsplit("-", n=1).str[0].to_numpy()
+        measured = np.stack(df.loc[rows, "p_tracker_m"].to_list())
+        pose = reference_poses(df)[rows]
         first = {name: measured[k] for k, name in reversed(list(enumerate(pose)))}
         drift[rows] = np.linalg.norm(measured - np.array([first[name] for name in pose]), axis=1) * 1e3
     return drift
