@@ -20,6 +20,7 @@ from hil.geometry.se3 import rotation_log
 from hil.model.calibrated_model import CalibratedModel
 from hil.model.intervals import IntervalError
 from hil.model.prediction_intervals import prediction_intervals
+from hil.report.text import intervals_text
 from tests.cli_in_process import run_hil
 
 pytestmark = pytest.mark.timeout(180)
@@ -32,7 +33,7 @@ def probe_cell():
     """The diagnosed 6-DoF probe campaign (`wrist_cyclic_campaign`: 250 poses) and 150 later poses of the
     same arm."""
     train, val = wrist_cyclic_campaigns((250, 150), seed=4)
-    return train, val, run_diagnosis(train, "ur10", options=CYCLIC)
+    return train, val, run_diagnosis(train, "ur10", df_validate=val, options=CYCLIC)
 
 
 def _names(report):
@@ -92,6 +93,22 @@ def test_orientation_intervals_cover_later_poses_and_are_sharp(probe_cell):
     assert wider is not None and np.all(wider >= iv.angle_rad)
     angles = report.model.spread.orientation
     assert angles is not None and angles.n_heldout == report.model.spread.n_heldout
+
+
+def test_the_report_shows_the_orientation_intervals_coverage_on_the_validation_rows(probe_cell):
+    _, val, report = probe_cell
+    shown = [c for c in report.intervals if c.get("quantity") == "orientation"]
+    assert len(shown) == 1 and shown[0]["on"] == "validate" and shown[0]["rows"] == len(val)
+    iv = prediction_intervals(report.model, val, shown[0]["probability"])
+    err = _angle_errors_rad(report.model, val)
+    assert shown[0]["covered"] == pytest.approx(float(np.mean(err <= iv.angle_rad)))
+    assert shown[0]["rms_deg"] == pytest.approx(float(np.rad2deg(np.sqrt(np.mean(err**2)))))
+    assert shown[0]["median_interval_deg"] == pytest.approx(float(np.median(iv.angle_deg)))
+    text = intervals_text(report.intervals)
+    assert text is not None and f"{100 * shown[0]['covered']:.1f} % of {len(val)} validation rows" in text
+    assert "measured orientation" in text and "deg" in text
+    # the positions' entries are as before: held-out, then validation
+    assert [c["on"] for c in report.intervals if "quantity" not in c] == ["heldout", "validate"]
 
 
 def test_orientation_interval_grows_off_the_training_poses(probe_cell):

@@ -316,6 +316,11 @@ def intervals_text(intervals: list[dict]) -> str | None:
     for c in intervals:
         if c["on"] == "heldout":
             parts.append(f"{100 * c['covered']:.1f} % of {c['rows']} held-out rows (their factor's own rows)")
+        elif c.get("quantity") == "orientation":
+            parts.append(
+                f"the probe's measured orientation on {100 * c['covered']:.1f} % of {c['rows']} validation rows, "
+                f"median interval {c['median_interval_deg']:.4f} deg against an RMS error of {c['rms_deg']:.4f} deg"
+            )
         else:
             parts.append(
                 f"{100 * c['covered']:.1f} % of {c['rows']} validation rows, median interval "

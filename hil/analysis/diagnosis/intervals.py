@@ -28,8 +28,9 @@ from hil.analysis.calibration.solve import (
     prior_terms,
 )
 from hil.analysis.diagnosis.screening import cv_residuals
-from hil.data.dataset import points_m
+from hil.data.dataset import orientations, points_m
 from hil.geometry.kinematics import chain_axes
+from hil.geometry.se3 import rotation_log
 from hil.model.calibrated_model import CalibratedModel
 from hil.model.intervals import (
     MAX_STORED_POSES,
@@ -325,6 +326,46 @@ class Coverage:
 
     def to_dict(self) -> dict:
         return dict(self.__dict__)
+
+
+@dataclass(frozen=True)
+class OrientationCoverage:
+    """How often a 6-DoF probe's orientation intervals (`interval_deg`) held the measured orientation on rows
+    never used for fitting: the angle between the measured and the predicted orientation against the interval."""
+
+    on: str  # "validate"
+    probability: float
+    rows: int
+    covered: float  # share of rows whose measured orientation lies inside the interval
+    median_interval_deg: float
+    rms_deg: float  # RMS angle between the measured and the predicted orientation on the same rows
+    quantity: str = "orientation"
+
+    def to_dict(self) -> dict:
+        return dict(self.__dict__)
+
+
+def validation_orientation_coverage(
+    model: CalibratedModel, df: pd.DataFrame, probability: float
+) -> OrientationCoverage | None:
+    """The orientation intervals on validation rows that carry a 6-DoF probe's orientation; None where the rows
+    carry none or the model gives no orientation interval (its notes say why, in `hil predict`)."""
+    R_measured = orientations(df)
+    if R_measured is None:
+        return None
+    iv = prediction_intervals(model, df, probability)
+    if iv.angle_rad is None:
+        return None
+    R_predicted = model.predict_rotation(df)
+    err_rad = np.linalg.norm(rotation_log(R_measured @ np.swapaxes(R_predicted, 1, 2)), axis=1)
+    return OrientationCoverage(
+        "validate",
+        probability,
+        len(err_rad),
+        float(np.mean(err_rad <= iv.angle_rad)),
+        float(np.rad2deg(np.median(iv.angle_rad))),
+        float(np.rad2deg(np.sqrt(np.mean(err_rad**2)))),
+    )
 
 
 def heldout_coverage(spread: PredictionSpread, probability: float) -> Coverage:

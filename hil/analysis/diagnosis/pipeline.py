@@ -77,7 +77,12 @@ from hil.analysis.diagnosis.cautions import (
 )
 from hil.analysis.diagnosis.drift_monitor import reference_drift
 from hil.analysis.diagnosis.evidence import evidence
-from hil.analysis.diagnosis.intervals import fit_spread, heldout_coverage, validation_coverage
+from hil.analysis.diagnosis.intervals import (
+    fit_spread,
+    heldout_coverage,
+    validation_coverage,
+    validation_orientation_coverage,
+)
 from hil.analysis.diagnosis.physics_check import yields_no_better
 from hil.analysis.diagnosis.physics_terms import (
     ASSUMED,
@@ -334,6 +339,9 @@ def run_diagnosis(
             report.intervals.append(
                 validation_coverage(report.model, df_validate, INTERVAL_PROBABILITY).to_dict()
             )
+            angles = validation_orientation_coverage(report.model, df_validate, INTERVAL_PROBABILITY)
+            if angles is not None:  # a 6-DoF probe's orientations: their own intervals' coverage
+                report.intervals.append(angles.to_dict())
             _validate(report, path, df, df_validate, reregister_validation)
         report.run = run_record(base.nominal.nominal, {"training": df, "validation": df_validate})
         report.undecided = undecided_questions(df, path, alpha, float(np.sqrt(base.sigma2)))
