@@ -21,13 +21,11 @@ from tests.cell_fixtures import sim_cell_toml
 
 @pytest.fixture(scope="module")
 def config():
-    data = tomllib.loads(sim_cell_toml())
-    data["envelope"]["collisions"] = True
-    return parse_cell_config(data)
+    return parse_cell_config(tomllib.loads(sim_cell_toml()))  # collisions checked: the default
 
 
 def _controller_at(q: np.ndarray) -> UrController:
-    controller = UrController(SimulatedCell(SimCellConfig(robot="ur10", seed=0, self_collision_stop=True)))
+    controller = UrController(SimulatedCell(SimCellConfig(robot="ur10", seed=0)))
     controller.q_cmd = np.asarray(q, float).copy()
     return controller
 
