@@ -151,10 +151,10 @@ class SimCellConfig:
 
     robot: str = "ur10"
     seed: int = 0
-    # The controller stops a moveJ into the arm's own body (its robot file's capsules) with a protective stop,
-    # as a real arm does on contact. Off until the planners keep every shipped plan clear with the collision
-    # checks off too: plans made without them still fold the arm through itself in the capsule model.
-    self_collision_stop: bool = False
+    # The controller stops a move into the arm's own body (its robot file's capsules) with a protective stop,
+    # as a real arm does on contact. False leaves the arm free to pass through itself (a test of what the
+    # planner alone refuses).
+    self_collision_stop: bool = True
     # Hidden geometric errors (1-sigma per parameter kind); scale 0 gives a perfect geometry.
     geometric_errors: bool = True
     error_sigma_angle_rad: float = np.deg2rad(0.03)

@@ -53,17 +53,42 @@ class Trapezoid:
         return self.distance - 0.5 * a * tr * tr, a * tr
 
 
+# How finely a linear move's joint path is sampled for the controller's self-collision check: the flange
+# moves at most this far (or turns at most this much) between two samples, each joined to the next by a
+# straight joint move, which the check certifies all along (hil.geometry.collision).
+LINEAR_CHECK_STEP_M = 0.01
+LINEAR_CHECK_STEP_RAD = float(np.deg2rad(2.0))
+
+
 class Motion:
     """Base class: `advance(dt, q)` returns the new commanded joints and velocities."""
 
     finished = False
     progress = 0  # waypoint index reported through the async-progress register
+    contact_at: float | None = None  # the fraction of its path where the arm meets itself, if it does
 
     def advance(self, dt: float, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         raise NotImplementedError
 
 
-class JointMove(Motion):
+class PlannedMotion(Motion):
+    """A motion whose whole joint path is known when it starts (moveJ, moveL): the controller checks it
+    against the arm's own body before the first setpoint."""
+
+    def fraction(self) -> float:
+        """How far along its path the move has come (0 to 1)."""
+        raise NotImplementedError
+
+    def joint_path(self) -> tuple[np.ndarray, np.ndarray]:
+        """Fractions (K,) from 0 to 1 and the joints (K, n) there; straight joint moves between them."""
+        raise NotImplementedError
+
+    def q_at(self, fraction: float) -> np.ndarray:
+        """The joints at a fraction of the path."""
+        raise NotImplementedError
+
+
+class JointMove(PlannedMotion):
     """moveJ: all joints start and stop together, timed by the joint that travels furthest."""
 
     def __init__(self, q_start: np.ndarray, q_end: np.ndarray, speed: float, accel: float):
@@ -75,13 +100,15 @@ class JointMove(Motion):
         self.profile = Trapezoid(lead, _positive(speed, "speed"), _positive(accel, "acceleration"))
         self.t = 0.0
         self.lead = lead
-        self.contact_at: float | None = (
-            None  # the fraction of the path where the arm meets itself, if it does
-        )
 
     def fraction(self) -> float:
-        """How far along its joint path the move has come (0 to 1)."""
         return min(self.profile.at(self.t)[0] / self.lead, 1.0) if self.lead > 0 else 1.0
+
+    def joint_path(self) -> tuple[np.ndarray, np.ndarray]:
+        return np.array([0.0, 1.0]), np.stack([self.q_start, self.q_end])
+
+    def q_at(self, fraction: float) -> np.ndarray:
+        return self.q_start + fraction * (self.q_end - self.q_start)
 
     @property
     def duration(self) -> float:
@@ -96,7 +123,7 @@ class JointMove(Motion):
         return self.q_start + s * self.direction, v * self.direction
 
 
-class LinearMove(Motion):
+class LinearMove(PlannedMotion):
     """moveL: straight flange path, trapezoid on the translation (m) or the rotation (rad), the slower."""
 
     def __init__(
@@ -109,6 +136,7 @@ class LinearMove(Motion):
     ):
         self.kin = model if isinstance(model, ArmKinematics) else ArmKinematics(model)
         self.q = np.asarray(q_start, float).copy()
+        self.q_start = self.q.copy()
         T0 = self.kin.fk(self.q)
         self.T_end = np.asarray(T_base_flange_end, float)
         self.p0, self.p1 = T0[:3, 3], self.T_end[:3, 3]
@@ -124,6 +152,28 @@ class LinearMove(Motion):
     @property
     def duration(self) -> float:
         return self.profile.duration
+
+    def fraction(self) -> float:
+        if self.profile.distance <= 0:
+            return 1.0
+        return min(self.profile.at(self.t)[0] / self.profile.distance, 1.0)
+
+    def joint_path(self) -> tuple[np.ndarray, np.ndarray]:
+        """The flange's straight line every LINEAR_CHECK_STEP_M (or LINEAR_CHECK_STEP_RAD of its turn),
+        each sample's joints tracked from the one before, as the move itself tracks them."""
+        length = float(np.linalg.norm(self.p1 - self.p0))
+        angle = float(np.linalg.norm(self.rotvec))
+        steps = max(1, math.ceil(length / LINEAR_CHECK_STEP_M), math.ceil(angle / LINEAR_CHECK_STEP_RAD))
+        fractions = np.linspace(0.0, 1.0, steps + 1)
+        q = [self.q_start]
+        for f in fractions[1:]:  # from 10 mm away, Newton's steps converge to machine precision in 4
+            q.append(track_pose(self.kin, q[-1], self.pose_at(f), iterations=5))
+        return fractions, np.stack(q)
+
+    def q_at(self, fraction: float) -> np.ndarray:
+        fractions, q = self.joint_path()
+        before = q[int(np.searchsorted(fractions, fraction, side="right")) - 1]
+        return track_pose(self.kin, before, self.pose_at(fraction), iterations=10)
 
     def pose_at(self, fraction: float) -> np.ndarray:
         T = np.eye(4)

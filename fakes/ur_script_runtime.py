@@ -18,7 +18,16 @@ import numpy as np
 
 from fakes.fast_kinematics import pose_from_transform
 from fakes.ur_modes import NORMAL, PLAYING, RUNNING, STOPPED
-from fakes.ur_motion import JointMove, LinearMove, Motion, PathMove, SpeedMove, StopMove, track_pose
+from fakes.ur_motion import (
+    JointMove,
+    LinearMove,
+    Motion,
+    PathMove,
+    PlannedMotion,
+    SpeedMove,
+    StopMove,
+    track_pose,
+)
 from hil.geometry.coupling import JointCoupling
 from hil.geometry.ik import IKOptions, solve_ik
 from hil.geometry.kinematics import forward_kinematics, geometric_jacobian
@@ -142,11 +151,13 @@ class ScriptRuntime:
             log.error("motion aborted: %s", exc)
             q, qd = self.q_cmd, np.zeros(6)
             motion.finished = True
-        contact = motion.contact_at if isinstance(motion, JointMove) else None
-        if isinstance(motion, JointMove) and contact is not None and motion.fraction() >= contact:
+        active = motion.current if isinstance(motion, PathMove) else motion  # a path's running segment
+        contact = active.contact_at if isinstance(active, PlannedMotion) else None
+        if isinstance(active, PlannedMotion) and contact is not None and active.fraction() >= contact:
             # the arm meets itself: it stops where it touches
-            self.q_cmd = motion.q_start + contact * (motion.q_end - motion.q_start)
-            self.trigger_protective_stop(f"self-collision {100 * contact:.0f} % along a moveJ")
+            self.q_cmd = active.q_at(contact)
+            kind = "moveJ" if isinstance(active, JointMove) else "moveL"
+            self.trigger_protective_stop(f"self-collision {100 * contact:.0f} % along a {kind}")
             return
         self.q_cmd, self.qd_cmd = np.asarray(q, float), np.asarray(qd, float) * self.speed_slider
         if isinstance(motion, PathMove) and motion.i != segment and not motion.finished:
@@ -316,30 +327,44 @@ class ScriptRuntime:
         else:
             T = pose_to_transform(target) @ invert(self.T_flange_tcp)
             q = self._ik(T, q_start)
+        segment_motion: PlannedMotion
         if kind.startswith("movej"):
             if q is None:
                 raise ValueError(f"path waypoint {np.round(target, 4)} has no inverse kinematics solution")
-            return JointMove(q_start, q, v, a)
-        return LinearMove(self.model, q_start, T, v, a)
+            segment_motion = JointMove(q_start, q, v, a)
+        else:
+            segment_motion = LinearMove(self.model, q_start, T, v, a)
+        self._mark_contact(segment_motion)  # each leg of a path is checked as it starts
+        return segment_motion
 
-    def _self_contact(self, body: CellBodies, q_start: np.ndarray, q_end: np.ndarray) -> float | None:
-        """Where along a joint move (fraction 0..1) the arm's own body, the capsules of its robot file on
-        the nominal model, first touches itself (no margin: a real arm's protective stop comes on contact);
-        None when the path check certifies it clear. Only the arm itself: the controller knows no tool or
-        cell around it. The contact is found on samples every CONTACT_STEP_RAD of the leading joint's travel,
-        then bisected to a micro-fraction of the move."""
-        first = body.path_collisions(self.model, q_start[None], q_end[None])[0]
-        if np.isnan(first):
+    def _mark_contact(self, motion: Motion) -> None:
+        """Where a moveJ or moveL would first drive the arm into itself (`contact_at`), when it would."""
+        if self.arm_body is not None and isinstance(motion, PlannedMotion):
+            fractions, q = motion.joint_path()
+            motion.contact_at = self._self_contact(self.arm_body, fractions, q)
+
+    def _self_contact(self, body: CellBodies, fractions: np.ndarray, q_path: np.ndarray) -> float | None:
+        """Where along a joint path (fractions (K,) with joints (K, n), straight joint moves between them)
+        the arm's own body, the capsules of its robot file on the nominal model, first touches itself (no
+        margin: a real arm's protective stop comes on contact); None when the path check certifies every
+        leg clear. Only the arm itself: the controller knows no tool or cell around it. In the first leg
+        that is not certified, the contact is found on samples every CONTACT_STEP_RAD of the leading
+        joint's travel, then bisected to a micro-fraction of the leg."""
+        first = body.path_collisions(self.model, q_path[:-1], q_path[1:])
+        legs = np.flatnonzero(~np.isnan(first))
+        if not legs.size:
             return None
-        delta = q_end - q_start
+        leg = int(legs[0])
+        s0, s1 = float(fractions[leg]), float(fractions[leg + 1])
+        q_start, delta = q_path[leg], q_path[leg + 1] - q_path[leg]
         samples = int(np.ceil(np.max(np.abs(delta)) / CONTACT_STEP_RAD)) + 2
         s = np.linspace(0.0, 1.0, samples)
         touching = body.pair_slack_m(self.model, q_start + s[:, None] * delta).min(axis=1) < 0
         if not touching.any():
-            return float(first)  # a graze between samples: where the path check found it
+            return s0 + float(first[leg]) * (s1 - s0)  # a graze between samples: where the check found it
         k = int(np.argmax(touching))
         if k == 0:
-            return 0.0
+            return s0
         clear, touch = s[k - 1], s[k]
         for _ in range(20):
             mid = 0.5 * (clear + touch)
@@ -347,7 +372,7 @@ class ScriptRuntime:
                 touch = mid
             else:
                 clear = mid
-        return float(touch)
+        return s0 + float(touch) * (s1 - s0)
 
     def _checked_joints(self, q_wire: np.ndarray) -> np.ndarray:
         """A joint target as the client sent it (the controller's joints), kinematic, within the limits."""
@@ -378,8 +403,7 @@ class ScriptRuntime:
 
     def _start_motion(self, motion: Motion, is_async: bool, count: bool = True) -> None:
         self._kill_async_move()
-        if isinstance(motion, JointMove) and self.arm_body is not None:
-            motion.contact_at = self._self_contact(self.arm_body, motion.q_start, motion.q_end)
+        self._mark_contact(motion)
         self.motion = motion
         self._motion_fresh = True  # its first setpoint comes on the next cycle
         self._motion_is_async = is_async

@@ -148,10 +148,16 @@ def arc_spans(
     for i, j in enumerate(swept):
         q[:, i, :, j] += offsets
     flat = q.reshape(-1, n)
-    inside = ~config.envelope.outside(config.nominal, flat, config.nests_flange_m).reshape(K, len(swept), -1)
-    ok = inside & (facing_angles(config, flat, p_nest) < FACING_LIMIT_RAD).reshape(K, len(swept), -1)
-    # symmetric reach: the largest k with every offset in -half[k]..half[k] usable and its approach inside
     mid, m = len(half) - 1, len(half)
+    facing = (facing_angles(config, flat, p_nest) < FACING_LIMIT_RAD).reshape(K, len(swept), -1)
+    # the envelope (with its collision checks, the costly part) only where it decides: the arc's poses that
+    # face the tracker and every approach pose
+    needed = facing.copy()
+    needed[..., 2 * m - 1 :] = True
+    inside = np.zeros(needed.shape, bool)
+    inside[needed] = ~config.envelope.outside(config.nominal, flat[needed.ravel()], config.nests_flange_m)
+    ok = inside & facing
+    # symmetric reach: the largest k with every offset in -half[k]..half[k] usable and its approach inside
     good = np.logical_and(ok[..., mid : mid + m], ok[..., mid::-1])  # (K, J, len(half))
     usable = np.logical_and.accumulate(good, axis=-1) & inside[..., 2 * m - 1 :]
     reach = np.where(usable.any(axis=-1), m - 1 - np.argmax(usable[..., ::-1], axis=-1), -1)

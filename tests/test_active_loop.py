@@ -194,6 +194,9 @@ def test_a_crash_between_a_block_and_its_judgement_loses_nothing_and_measures_no
     round measures none of block 1 again, judges it from the rows it has, and goes on."""
     path = tmp_path / "campaign.sqlite"
     shutil.copy(loop["grid_only"], path)
+    # the round's plan (its dry run): two blocks at least, so the resumed round has one to go on with
+    planned = active_loop.PROCEDURE.make_plan(loop["config"], campaign=path, rounds=1, poses=10, block=2)
+    assert len(planned.poses) > 2, planned.dropped
     finish = Session.finish_step
 
     def crashing(self, procedure, step, result):
@@ -204,17 +207,18 @@ def test_a_crash_between_a_block_and_its_judgement_loses_nothing_and_measures_no
     with pytest.MonkeyPatch.context() as patch:
         patch.setattr(Session, "finish_step", crashing)
         with pytest.raises(_LinkDroppedError), session_on(loop["config"], path) as session:
-            active_loop.PROCEDURE(session, rounds=1, poses=10, block=5)
+            active_loop.PROCEDURE(session, rounds=1, poses=10, block=2)
     with CampaignStore(path, create=False) as store:
         before = list(store.measurements(active_loop.NAME)["point_id"])
         assert store.step_result(active_loop.NAME, "round1/block1") is None
-    assert len(before) == 5  # block 1 was measured and kept
+    assert before == [pose.point_id for pose in planned.poses[:2]]  # block 1 was measured and kept
     with session_on(loop["config"], path) as session:
-        active_loop.PROCEDURE(session, rounds=1, poses=10, block=5)
+        active_loop.PROCEDURE(session, rounds=1, poses=10, block=2)
     with CampaignStore(path, create=False) as store:
         after = list(store.measurements(active_loop.NAME)["point_id"])
         assert store.step_result(active_loop.NAME, "round1/block1") is not None
     assert after[: len(before)] == before and len(after) == len(set(after))
+    assert len(after) > len(before)  # and went on with block 2
 
 
 @pytest.mark.parametrize(

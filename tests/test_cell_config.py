@@ -85,6 +85,8 @@ def test_cell_check_command(tmp_path, capsys):
     good.write_text(sim_cell_toml())
     ok = run_hil("cell", "check", str(good), cwd=tmp_path, capsys=capsys)
     assert ok.returncode == 0 and "the configuration is valid" in ok.stdout and "ur10" in ok.stdout
+    # the collision checks are on by default, with their margins and the body's source
+    assert "collisions checked: 10 mm between links, 50 mm from the tracker" in ok.stdout
     # instruments that do not answer: no "OK" before the failures, each with a remedy in the user's terms
     down = run_hil("cell", "check", str(good), "--connect", cwd=tmp_path, capsys=capsys)
     assert down.returncode == 2 and "OK" not in down.stdout

@@ -1,5 +1,5 @@
-"""Plans that keep clear when collisions are checked: the planners choose clear configurations and a clear order
-on the default simulated cell, and what cannot be reached safely is left out and said so."""
+"""Plans that keep clear by default: the planners choose clear configurations and a clear order on the default
+simulated cell, and what cannot be reached safely is left out and said so."""
 
 from __future__ import annotations
 
@@ -21,9 +21,7 @@ from tests.cell_fixtures import sim_cell_toml
 
 @pytest.fixture(scope="module")
 def config():
-    data = tomllib.loads(sim_cell_toml())
-    data["envelope"]["collisions"] = True
-    return parse_cell_config(data)
+    return parse_cell_config(tomllib.loads(sim_cell_toml()))
 
 
 def _colliding_moves(config, q: np.ndarray) -> list[str]:
@@ -31,9 +29,11 @@ def _colliding_moves(config, q: np.ndarray) -> list[str]:
     return [p for p in config.envelope.path_problems(config.nominal, q_from, q) if p]
 
 
-def test_collisions_are_checked_when_the_cell_config_turns_them_on(config):
+def test_collisions_are_checked_unless_the_cell_config_turns_them_off(config):
     assert config.envelope.bodies is not None
-    assert parse_cell_config(tomllib.loads(sim_cell_toml())).envelope.bodies is None
+    data = tomllib.loads(sim_cell_toml())
+    data["envelope"]["collisions"] = False
+    assert parse_cell_config(data).envelope.bodies is None
 
 
 def test_the_grid_iso_and_registration_plans_keep_clear_on_every_move_from_home(config):

@@ -110,7 +110,7 @@ def test_keep_out_boxes_are_read_and_checked():
 def test_first_motions_run_at_reduced_speed_until_the_cell_says_otherwise():
     data = tomllib.loads(sim_cell_toml())
     assert "joint_speed" not in parse_cell_config(data).robot_mapping()  # the simulated cell: full speed
-    data["motion"]["reduced_speed"] = True
+    del data["motion"]["reduced_speed"]  # a cell file that does not say: a new real cell, reduced
     mapping = parse_cell_config(data).robot_mapping()
     assert mapping["joint_speed"] == pytest.approx(1.05 * 0.25)
     assert mapping["linear_speed"] == pytest.approx(0.25 * 0.25)

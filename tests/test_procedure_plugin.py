@@ -27,7 +27,8 @@ import numpy as np
 from hil.geometry.kinematics import tool_points
 from hil.runner.operator import OperatorStep
 from hil.runner.plan import Plan, PlannedPose
-from hil.runner.planners import facing_poses, plan_joints, workspace_box
+from hil.runner.clear_joints import clear_travel_order, plan_cell_joints
+from hil.runner.planners import facing_poses, workspace_box
 from hil.runner.procedure import Limit, Measurement, Parameter, Procedure
 
 NAME = "distance_check"
@@ -38,10 +39,11 @@ def plan(config, options):
     box = workspace_box(config.nominal, config.p_base_tracker_m)
     offsets = spacing_m * np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [-1, 0, 0], [0, -1, 0]])
     T = facing_poses(box.centre_m + offsets, config.p_base_tracker_m, np.random.default_rng(0), tilt_deg=0.0)
-    joints = plan_joints(config.nominal, T, config.nests_flange_m[0], q_near=config.q_home_rad)
+    joints = plan_cell_joints(config, T, nest=1)  # clear of the arm, the tracker and the keep-out boxes
     place = (OperatorStep("Put SMR 1 in tool nest 1.", "place_smr", smr=1, location="nest1"),)
     lock = (OperatorStep("Guide the beam onto SMR 1.", "lock_beam", smr=1),)
     q = joints.q[joints.usable][:poses]
+    q = q[clear_travel_order(config.nominal, config.envelope, q, config.q_home_rad)]
     return Plan(NAME, [PlannedPose(f"d{k + 1}", NAME, "poses", qk, "nest1", setup=place, at_pose=lock) for k, qk in enumerate(q)], config)
 
 

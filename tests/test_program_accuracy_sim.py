@@ -20,13 +20,16 @@ from fakes.cell import SimCellConfig, SimulatedCell
 from fakes.ur_primary import MESSAGE_RUNTIME_EXCEPTION, MESSAGE_TEXT, parse_robot_messages
 from hil.geometry.kinematics import forward_kinematics
 from hil.geometry.se3 import make_transform, transform_to_pose
+from hil.runner.cell_config import CellConfig
+from hil.runner.clear_joints import clear_travel_order, plan_cell_joints
+from hil.runner.planners import facing_poses, random_points
 from procedures import program_accuracy, registration
 from tests.cli_in_process import hil_in_process
 from tests.sim_session import running_cell, session_on
 
 sys.path.insert(0, str(Path(__file__).parent))
 from calib_data import cell_datasets  # noqa: E402
-from sim_campaigns import held_out_joints  # noqa: E402
+from sim_campaigns import sampling_box  # noqa: E402
 
 pytestmark = [pytest.mark.sim, pytest.mark.timeout(400)]
 SEED = 4
@@ -80,6 +83,18 @@ def runtime_target_line(path: Path) -> int:
     return next(i for i, line in enumerate(path.read_text().splitlines(), 1) if "get_actual_tcp_pose" in line)
 
 
+def clear_waypoints(config: CellConfig, sim: SimulatedCell, count: int, seed: int) -> np.ndarray:
+    """Joints (count, 6) of waypoints a cell engineer would teach: random points in the sampling box, the SMR
+    facing the tracker, each in a configuration clear of the arm itself and the cell, in an order whose
+    moves keep clear (the cell's collision checks and the fake's protective stop refuse anything else)."""
+    rng = np.random.default_rng(seed)
+    T = facing_poses(random_points(sampling_box(sim), 4 * count, rng), config.p_base_tracker_m, rng)
+    joints = plan_cell_joints(config, T, nest=1)
+    q = joints.q[joints.usable][:count]
+    assert len(q) == count, joints.counts()
+    return q[clear_travel_order(config.nominal, config.envelope, q, config.q_home_rad)]
+
+
 @pytest.fixture(scope="module")
 def cell(tmp_path_factory):
     """The cell, a registered campaign, the diagnosed model and a program of 8 waypoints in the volume."""
@@ -91,11 +106,11 @@ def cell(tmp_path_factory):
     model.save(folder / "model.json")
     truth = SimulatedCell(SimCellConfig(seed=SEED)).ground_truth()
     nest1 = np.asarray(truth["tool_nests_flange_m"][0])  # the design offset a cell engineer sets as TCP
-    q = held_out_joints(sim, 9, seed=11)
-    T_tcp = forward_kinematics(sim.nominal, q[1:]) @ make_transform(np.eye(3), nest1)
-    (folder / "check.script").write_text(polyscope_program(T_tcp, q[1:], nest1, q_home=q[0]))
     extra = ("--effects", ",".join(EFFECTS))
     with running_cell(folder, seed=SEED, time_scale=50.0, extra_args=extra) as (running, config):
+        q = clear_waypoints(config, sim, 9, seed=11)  # a taught home (measured too), then 8 waypoints
+        T_tcp = forward_kinematics(sim.nominal, q[1:]) @ make_transform(np.eye(3), nest1)
+        (folder / "check.script").write_text(polyscope_program(T_tcp, q[1:], nest1, q_home=q[0]))
         campaign = folder / "job.sqlite"
         with session_on(config, campaign) as session:
             registration.PROCEDURE(session)

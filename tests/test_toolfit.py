@@ -203,6 +203,21 @@ def test_the_methods_gate_follows_the_distance_methods_own_error():
     assert limits.method_gate_m(0.8e-3) == pytest.approx(2.4e-3)
 
 
+def test_the_distance_methods_error_holds_the_robots_error_its_misfit_misses():
+    """Six check poses in one clear configuration on the seed-0 UR10 (the demo's smallest tool fit): its
+    wrist is 0.41 mm longer than drawn, which moves every pose's tool point alike, so the distance method's
+    point lands about 1 mm off with a small misfit. Its standard error, propagated from the robot's own error
+    on the validation poses where that is larger than the misfit, covers the miss within the 3-sigma gate."""
+    config, data, cell = _synthetic_tool_fit(seed=0, check_poses=6)
+    result = tool_fit.evaluate(config, data, tool_fit.Limits(), shots=3)
+    check = result.result["distance_check"]
+    truth = np.asarray(cell.ground_truth()["tool_nests_flange_m"][0])
+    miss_mm = np.linalg.norm(np.asarray(check["nest1_flange_mm"]) / 1e3 - truth) * 1e3
+    assert miss_mm > 3 * check["misfit_sigma_mm"]  # the misfit alone claimed more than the method holds
+    assert check["robot_error_mm"] > check["misfit_rms_mm"]
+    assert miss_mm < 3 * check["sigma_mm"] and result.problems == []
+
+
 def test_the_summary_prints_each_judged_figure_with_its_limit():
     result = tool_fit.ToolFitResult(
         {1: np.array([0.03, -0.02, 0.11])},

@@ -53,7 +53,19 @@ def describe(config: CellConfig, connect: bool = False) -> str:
             )
             + " deg",
             f"  settle {config.settle_s:g} s",
+            _collisions_line(config),
         ]
+    )
+
+
+def _collisions_line(config: CellConfig) -> str:
+    """Whether collisions are checked, with which margins, and where the arm's body comes from."""
+    bodies = config.envelope.bodies
+    if bodies is None:
+        return "  collisions not checked ([envelope] collisions = false): the box and the joint limits only"
+    return (
+        f"  collisions checked: {bodies.self_margin_m * 1e3:g} mm between links, {bodies.margin_m * 1e3:g} mm "
+        f"from the tracker and {len(bodies.keep_out)} keep-out box(es); the arm's body: {bodies.body.source}"
     )
 
 

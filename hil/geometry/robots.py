@@ -43,6 +43,7 @@ import numpy as np
 from hil.geometry.body import ArmBody, body_from_dh
 from hil.geometry.coupling import JointCoupling, coupling_from_table
 from hil.geometry.kinematics import KinematicModel
+from hil.geometry.urdf_body import urdf_body
 from hil.geometry.urdf_import import import_urdf
 from hil.geometry.urdf_read import is_urdf_spec, split_spec
 
@@ -301,13 +302,11 @@ def robot_body(name: str, text: str | None = None) -> ArmBody:
     else:
         path = Path(name)
     if is_urdf_spec(name):
-        model = robot_from_text(text, name)
+        robot_from_text(text, name)  # the URDF's checks as a robot file's (link masses)
+        imported = import_urdf(text, name)
+        model = imported.model
         radius_m = DEFAULT_BODY_RADIUS_FRACTION * float(np.sum(np.abs(model.a)) + np.sum(np.abs(model.d)))
-        return body_from_dh(
-            model,
-            radius_m,
-            f"links along the DH table, {radius_m * 1e3:.0f} mm radius (a URDF's collision meshes are not read)",
-        )
+        return urdf_body(imported, radius_m, split_spec(name)[0])
     model = robot_from_text(text, path)
     data = tomllib.loads(text)
     capsules = data.get("capsule")

@@ -11,8 +11,9 @@ refuses, with the reason in the user's terms, what such a model cannot hold:
 
 Fixed joints are kept as transforms: those before the first moving joint place it in the root's frame,
 those after the last lead to the flange, those between two moving joints join them rigidly. Mass and
-centre of mass come from each link's `<inertial>` when given. Units as the URDF has them: metres, radians,
-kilograms.
+centre of mass come from each link's `<inertial>` when given, its collision shapes from its `<collision>`
+elements (cylinder, box, sphere, and the capsule some descriptions use; a mesh is named but not read).
+Units as the URDF has them: metres, radians, kilograms.
 
 A robot is named by the file and, optionally, its flange link: ``arm.urdf#tool0`` (`split_spec`). One
 string then names the whole robot everywhere (`--robot`, `[robot] model`, a campaign's snapshot).
@@ -40,13 +41,29 @@ class UrdfError(ValueError):
     """A URDF that cannot give a calibration model; the message names the file, the element and the fix."""
 
 
+COLLISION_SHAPES = ("cylinder", "box", "sphere", "capsule", "mesh")
+
+
+@dataclass(frozen=True)
+class UrdfShape:
+    """One `<collision>` element of a link: its `<geometry>` kind, its pose in the link (`T_link_shape`)
+    and its size (m): cylinder and capsule (radius, length) along the shape's z, box (x, y, z) edges, sphere
+    (radius,); a mesh has no size here (its file is not read)."""
+
+    kind: str
+    T_link_shape: np.ndarray
+    size_m: tuple[float, ...]
+
+
 @dataclass(frozen=True)
 class UrdfLink:
-    """A link's name and its `<inertial>`: mass (kg) and centre of mass (m, link frame), None when absent."""
+    """A link's name, its `<inertial>` mass (kg) and centre of mass (m, link frame), None when absent, and
+    its `<collision>` shapes."""
 
     name: str
     mass_kg: float | None
     com_link_m: np.ndarray | None
+    collisions: tuple[UrdfShape, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -71,7 +88,8 @@ class UrdfChain:
     i's frame (its origin and every fixed joint between); `T_last_flange` from the last moving joint's child
     link to the flange link. `moved_links[i]` are the links moving joint i carries rigidly (its child and
     the links fixed to it, up to the next moving joint), each with its pose in the child link's frame; the
-    inertial data of the links are in `links`."""
+    inertial data of the links are in `links`. `base_links`: the root and the links fixed to it, each with
+    its pose in the root's frame."""
 
     robot_name: str
     source: str
@@ -83,6 +101,7 @@ class UrdfChain:
     T_last_flange: np.ndarray
     moved_links: tuple[tuple[tuple[str, np.ndarray], ...], ...]
     links: dict[str, UrdfLink]
+    base_links: tuple[tuple[str, np.ndarray], ...] = ()
 
 
 def split_spec(spec: str) -> tuple[str, str | None]:
@@ -180,6 +199,7 @@ def _chain(
         T,
         carried,
         links,
+        tuple(_fixed_group(root, children)),
     )
 
 
@@ -250,16 +270,51 @@ def _last_link(path: str, root: str, joints: list[UrdfJoint]) -> str:
 
 def _link(path: str, el: ET.Element) -> UrdfLink:
     name = _name(path, el, "link")
+    shapes = tuple(_collision(path, name, c) for c in el.findall("collision"))
     inertial = el.find("inertial")
     if inertial is None:
-        return UrdfLink(name, None, None)
+        return UrdfLink(name, None, None, shapes)
     mass_el = inertial.find("mass")
     mass = None if mass_el is None else _float(path, f"link {name!r} <mass value>", mass_el.get("value"))
     origin = inertial.find("origin")
     com = _vector(
         path, f"link {name!r} <inertial><origin xyz>", origin.get("xyz") if origin is not None else None
     )
-    return UrdfLink(name, mass, com)
+    return UrdfLink(name, mass, com, shapes)
+
+
+def _collision(path: str, link: str, el: ET.Element) -> UrdfShape:
+    """A `<collision>` element: its origin and the one shape of its `<geometry>`, sizes checked positive."""
+    where = f"link {link!r} <collision>"
+    geometry = el.find("geometry")
+    shape = None if geometry is None else next(iter(geometry), None)
+    if shape is None or shape.tag not in COLLISION_SHAPES:
+        found = "nothing" if shape is None else f"<{shape.tag}>"
+        raise UrdfError(
+            f"{path}: {where} <geometry> holds {found}; give one of {', '.join(COLLISION_SHAPES)}"
+        )
+    origin = el.find("origin")
+    T = _origin(path, where, origin)
+    keys = {"cylinder": ("radius", "length"), "capsule": ("radius", "length"), "sphere": ("radius",)}
+    if shape.tag == "box":
+        size = tuple(float(v) for v in _vector(path, f"{where} <box size>", shape.get("size")))
+    else:
+        size = tuple(
+            _float(path, f"{where} <{shape.tag} {key}>", shape.get(key)) for key in keys.get(shape.tag, ())
+        )
+    if any(not v > 0 for v in size) or (shape.tag == "box" and shape.get("size") is None):
+        raise UrdfError(f"{path}: {where} <{shape.tag}> needs positive sizes, got {size}")
+    return UrdfShape(shape.tag, T, size)
+
+
+def _origin(path: str, where: str, origin: ET.Element | None) -> np.ndarray:
+    """An `<origin xyz rpy>` as a transform (the identity when absent)."""
+    xyz = _vector(path, f"{where} <origin xyz>", origin.get("xyz") if origin is not None else None)
+    rpy = _vector(path, f"{where} <origin rpy>", origin.get("rpy") if origin is not None else None)
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("xyz", rpy).as_matrix()  # URDF: fixed-axis roll, pitch, yaw
+    T[:3, 3] = xyz
+    return T
 
 
 def _joint(path: str, el: ET.Element) -> UrdfJoint:
@@ -269,12 +324,7 @@ def _joint(path: str, el: ET.Element) -> UrdfJoint:
     parent, child = el.find("parent"), el.find("child")
     if parent is None or child is None or not parent.get("link") or not child.get("link"):
         raise UrdfError(f"{path}: {where} needs <parent link=...> and <child link=...>")
-    origin = el.find("origin")
-    xyz = _vector(path, f"{where} <origin xyz>", origin.get("xyz") if origin is not None else None)
-    rpy = _vector(path, f"{where} <origin rpy>", origin.get("rpy") if origin is not None else None)
-    T = np.eye(4)
-    T[:3, :3] = Rotation.from_euler("xyz", rpy).as_matrix()  # URDF: fixed-axis roll, pitch, yaw
-    T[:3, 3] = xyz
+    T = _origin(path, where, el.find("origin"))
     axis_el = el.find("axis")
     axis = (
         np.array([1.0, 0.0, 0.0])

@@ -310,7 +310,7 @@ def parse_cell_config(data: dict, source: str = "cell.toml") -> CellConfig:
     tracker_driver_name = r.get("tracker", "driver", "str", default=DEFAULT_TRACKER_DRIVER)
     nests_arr, smr_radius_mm, circle_mm, hole7_mm, hole_d_mm = _read_tool(r)
     box_min, box_max, jmin, jmax = _read_envelope(r, nominal, n)
-    collisions = r.get("envelope", "collisions", "bool", default=False)
+    collisions = r.get("envelope", "collisions", "bool", default=True)
     clearance_mm = r.get("envelope", "clearance_mm", "nonneg", default=CLEARANCE_MM)
     self_clearance_mm = r.get("envelope", "self_clearance_mm", "nonneg", default=SELF_CLEARANCE_MM)
     keep_out = _read_keep_out(r)

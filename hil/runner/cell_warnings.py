@@ -97,7 +97,7 @@ def _folding_limits(config: CellConfig) -> list[str]:
     remedy = (
         "the collision checks refuse such poses; narrowing the limits says so in the cell config"
         if env.bodies is not None
-        else "or set [envelope] collisions = true"
+        else "or turn [envelope] collisions back on"
     )
     for j in range(nominal.n_joints):
         lo, hi = clear_range_rad(config.bodies, nominal, home, j)

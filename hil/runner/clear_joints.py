@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -34,6 +35,9 @@ from hil.geometry.ik import is_ur_like, nearest_equivalent, solve_ik, ur_analyti
 from hil.geometry.kinematics import KinematicModel
 from hil.runner.envelope import Envelope
 from hil.runner.planners import SINGULAR_SIGMA_M, JointPlan, plan_joints, position_sigma_min_m
+
+if TYPE_CHECKING:
+    from hil.runner.cell_config import CellConfig
 
 TWO_PI = 2.0 * np.pi
 # Clearance beyond the margins past which a configuration counts as clear as any other: 0.1 m, twice the
@@ -89,6 +93,20 @@ def plan_clear_joints(
         reason[rows[outside]] = "envelope"
         usable[rows[outside]] = False
     return JointPlan(first.q, usable, reason.astype(str))
+
+
+def plan_cell_joints(config: CellConfig, T_base_tool: np.ndarray, nest: int = 1) -> JointPlan:
+    """Joints for tool poses (N, 4, 4) with the SMR in tool nest `nest` (1-based), planned as the shipped
+    procedures plan them: reachable, away from singularities, inside the cell's envelope and, with its
+    collision checks (the default), in a configuration clear of the arm itself, the tracker and the
+    keep-out boxes, near home. The planner a plug-in procedure calls with its cell config: the nominal IK
+    alone (`plan_joints`) may answer with a folded elbow that the engine then refuses to move to."""
+    nests = np.atleast_2d(config.nests_flange_m)
+    if not 1 <= nest <= len(nests):
+        raise ValueError(f"the tool has nests 1..{len(nests)}, not {nest}")
+    return plan_clear_joints(
+        config.nominal, config.envelope, T_base_tool, nests[nest - 1], nests, config.q_home_rad
+    )
 
 
 def _clearest_branch(
