@@ -9,7 +9,7 @@ tracker measures the SMR at each. The rigid transform that best maps the nominal
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -20,7 +20,7 @@ from hil.runner.cell_config import CellConfig
 from hil.runner.clear_joints import plan_clear_joints
 from hil.runner.engine import CampaignStopped
 from hil.runner.operator import OperatorStep
-from hil.runner.plan import Plan, PlannedPose
+from hil.runner.plan import NO_SAFE_PATH, Plan, PlannedPose
 from hil.runner.planners import Box, facing_poses, workspace_box
 from hil.runner.procedure import Parameter, Procedure, Role
 from hil.runner.session import Session
@@ -69,19 +69,24 @@ def plan(config: CellConfig, options: RegistrationOptions) -> Plan:
         config.nests_flange_m,
         config.q_home_rad,
     )
-    q = joints.q[joints.usable][:poses]
-    if len(q) < 6:
-        raise ValueError(
-            f"only {len(q)} registration poses are reachable inside the envelope; widen [envelope] or check "
-            "tracker.position_base_mm"
-        )
     place = OperatorStep(f"Put SMR 1 in tool nest {nest}.", "place_smr", smr=1, location=f"nest{nest}")
     lock = OperatorStep("Guide the tracker's beam onto SMR 1 on the tool until it locks.", "lock_beam", smr=1)
-    steps = [
+    candidates = [
         PlannedPose(f"r{k + 1:02d}", NAME, "poses", qk, f"nest{nest}", setup=(place,), at_pose=(lock,))
-        for k, qk in enumerate(q)
+        for k, qk in enumerate(joints.q[joints.usable])
     ]
-    return Plan(NAME, steps, config, operator_steps=2)
+    # the first `poses` candidates that a safe move reaches from the one before (or home), in their order
+    safe = Plan(NAME, candidates, config, operator_steps=2).without_unsafe_moves()
+    chosen = safe.poses[:poses]
+    if len(chosen) < 6:
+        raise ValueError(
+            f"only {len(chosen)} registration poses are reachable inside the envelope by a safe move; widen "
+            "[envelope] or check tracker.position_base_mm"
+        )
+    examined = candidates.index(chosen[-1]) + 1
+    dropped = {NO_SAFE_PATH: examined - len(chosen)} if examined > len(chosen) else {}
+    steps = [replace(pose, point_id=f"r{k + 1:02d}") for k, pose in enumerate(chosen)]
+    return Plan(NAME, steps, config, operator_steps=2, dropped=dropped)
 
 
 def register(session: Session, options: RegistrationOptions, the_plan: Plan) -> RegistrationResult:
