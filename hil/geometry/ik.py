@@ -305,9 +305,11 @@ class _Problem:
         return J if self.mode == "pose" else J[:, :3]
 
     def converged(self, e: np.ndarray) -> np.ndarray:
-        ok = np.linalg.norm(e[:, :3], axis=1) < self.tol_position
+        # |e| as np.linalg.norm computes it, without its call overhead (LM tests every iteration)
+        dp, dr = e[:, :3], e[:, 3:]
+        ok = np.sqrt(np.add.reduce(dp * dp, axis=1)) < self.tol_position
         if self.mode == "pose":
-            ok &= np.linalg.norm(e[:, 3:], axis=1) < self.tol_rotation
+            ok &= np.sqrt(np.add.reduce(dr * dr, axis=1)) < self.tol_rotation
         return ok
 
 
