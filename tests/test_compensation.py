@@ -373,3 +373,32 @@ def test_large_batches_run_in_blocks_with_the_same_answer(model, monkeypatch):
             )
         if generator == "yin":  # (an ensemble's near-ties between generators may fall either way)
             assert np.array_equal(blocks.iterations, whole.iterations)
+
+
+def test_update_ik_left_by_newton_is_searched_once_for_all_blocks_and_resumes(model, monkeypatch):
+    """An update whose IK Newton leaves waits until every block's loop has run; then one solve_ik (LM from
+    the previous joints) searches all such rows at once, and those it solves go on from the iteration they
+    stopped in. With Newton cut to one step nearly every update goes that way, in rounds; the answers are
+    those of the full Newton within the IK's tolerance, checked through the public prediction."""
+    from hil.compensation import model_based
+
+    T_target = reachable_targets(model, 90, seed=31)
+    options = CompensationOptions(threshold_m=1e-7)
+    full = compensate(model, T_target, options)
+    calls = []
+    fallback = model_based.PseudoTargetIK._fallback
+
+    def spy(self, target, q_seed, ik_options):
+        if ik_options == model_based.UPDATE_FALLBACK:
+            calls.append(len(target))
+        return fallback(self, target, q_seed, ik_options)
+
+    monkeypatch.setattr(model_based.PseudoTargetIK, "_fallback", spy)
+    monkeypatch.setattr(model_based, "NEWTON_STEPS", 1)
+    monkeypatch.setattr(model_based, "BLOCK_TARGETS", 30)  # three blocks, one search per round
+    cut = compensate(model, T_target, options)
+    assert np.all(full.status == "ok") and np.all(cut.status == "ok"), cut.summary()
+    assert sum(calls) >= len(T_target) and len(calls) <= cut.iterations.max(), calls
+    np.testing.assert_allclose(cut.q, full.q, atol=1e-6)
+    dp, dr = pose_errors(model.predict_poses(cut.q), T_target)
+    assert np.all(np.hypot(dp, 0.1 * dr) < 1e-7)

@@ -391,3 +391,22 @@ def test_branches_along_path_takes_each_rows_reference_where_given():
     np.testing.assert_array_equal(batch, np.array(walked))
     np.testing.assert_allclose(batch[::3], q[::3], atol=1e-9)
     assert not np.allclose(ik.branches_along_path(model, T, start)[::3], q[::3], atol=1e-6)
+
+
+def test_newton_first_off_gives_the_same_answers_where_the_callers_newton_failed():
+    """newton_first=False skips solve_ik's Newton steps from q_seed; a caller whose own Newton from the same
+    seed to a looser tolerance failed loses nothing: LM then starts from the same place. Seeds 0.6 rad off
+    leave many of them unconverged after 16 steps; those rows' answers are the same either way."""
+    model = get_robot("ur10")
+    q = random_joints(model, 60, seed=41)
+    T = forward_kinematics(model, q)
+    seed = q + np.random.default_rng(42).normal(0.0, 0.6, q.shape)
+    loose = ik.NewtonOptions(max_steps=16, tol_position=1e-8, tol_rotation=1e-7)
+    failed = ~ik.newton_ik(model, T, seed, options=loose).converged
+    assert 5 <= failed.sum() < len(q)
+    options = ik.IKOptions(restarts=0, use_analytic=False)
+    on = ik.solve_ik(model, T[failed], q_seed=seed[failed], options=options)
+    off = ik.solve_ik(model, T[failed], q_seed=seed[failed], options=replace(options, newton_first=False))
+    np.testing.assert_array_equal(off.q, on.q)
+    np.testing.assert_array_equal(off.reason, on.reason)
+    assert on.success.any()  # LM solves some of them: the comparison is not only between failures

@@ -73,9 +73,10 @@ BLOCK_TARGETS = 2048
 # random joint sets. For a pseudo-target update: LM from the previous joints only. The pseudo target moved by
 # about the predicted error, so a solution near them exists unless the arm is at a singularity or a limit,
 # where the other seeds find only another posture (or nothing, at ~50 LM iterations each: 14 attempts made
-# the few such rows of a batch cost more than all its other targets together).
-FIRST_FALLBACK = IKOptions(restarts=5)
-UPDATE_FALLBACK = IKOptions(restarts=0, use_analytic=False)
+# the few such rows of a batch cost more than all its other targets together). Neither repeats Newton from
+# the seed Newton just failed from (newton_first=False: the same steps to a tighter tolerance cannot succeed).
+FIRST_FALLBACK = IKOptions(restarts=5, newton_first=False)
+UPDATE_FALLBACK = IKOptions(restarts=0, use_analytic=False, newton_first=False)
 IKSolver = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
 POINT_GENERATOR = "point"  # point targets: P_p <- P_p + P_d - P_a, orientation free
 
@@ -315,6 +316,8 @@ def compensate(
         )
     tol_m = IK_TOL_FRACTION * threshold_m
     blocks: list[tuple[np.ndarray, CompensationResult]] = []
+    # Every block's loops (one per generator), kept until the end: their pending rows are searched at once.
+    loops: list[tuple[np.ndarray, list[_Loop]]] = []
     n_blocks = -(-N // BLOCK_TARGETS)
     for rows in np.array_split(np.arange(N), n_blocks):
         sl = slice(int(rows[0]), int(rows[-1]) + 1)
@@ -330,12 +333,21 @@ def compensate(
             tol_m,
             tol_m / length_scale_m,
         )
-        best: CompensationResult | None = None
-        for name in names:
-            res = _run(ctx, name, threshold_m, options.max_iter, options.patience, length_scale_m)
-            best = res if best is None else _pick_better(best, res)
-        if best is None:
+        block_loops = [
+            _Loop(ctx, name, threshold_m, options.max_iter, options.patience, length_scale_m)
+            for name in names
+        ]
+        if not block_loops:
             raise ValueError("no pseudo-target generator to run")
+        for loop in block_loops:
+            loop.run(np.flatnonzero(loop.ok0))
+        loops.append((rows, block_loops))
+    _rescue([loop for _, block_loops in loops for loop in block_loops])
+    for rows, block_loops in loops:
+        results = [loop.result() for loop in block_loops]
+        best = results[0]
+        for res in results[1:]:
+            best = _pick_better(best, res)
         blocks.append((rows, best))
     best = blocks[0][1] if len(blocks) == 1 else merge_results(blocks, N)
     best.outside_volume = outside
@@ -468,22 +480,39 @@ class PseudoTargetIK:
         project: bool = False,
         start: tuple[np.ndarray, np.ndarray] | None = None,
         T_flange: np.ndarray | None = None,
-        update: bool = False,
     ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray] | None]:
         """`solve`, warm-started with the flange pose and Jacobian at q_prev when given (hil's Newton
         only); also returns them at the answer (None with an `ik_solver`) for the next call.
-        `T_flange`: the full-pose targets already as flange poses (`to_flange`). `update`: q_prev solved
-        the previous pseudo target of each row, so what Newton leaves is searched from q_prev alone
-        (`UPDATE_FALLBACK`): another branch or random joints would move the arm to another posture."""
+        `T_flange`: the full-pose targets already as flange poses (`to_flange`). What Newton leaves is
+        searched with `FIRST_FALLBACK` (a target's first IK: the seed, the closed-form branches, random
+        joints); the loop's updates search theirs later, all at once (`_Loop`, `_rescue`)."""
+        target = self._ik_target(T_pseudo, project, T_flange)
+        q, ok, state = self._newton(target, q_prev, start)
+        reason = np.where(ok, REASON_OK, STATUS_NO_IK).astype(STATUS_DTYPE)
+        bad = np.flatnonzero(~ok)
+        if bad.size and self.ik_solver is None:
+            q[bad], reason[bad], rescued, got = self._fallback(target[bad], q_prev[bad], FIRST_FALLBACK)
+            if state is not None and got is not None:  # the state at the joints solve_ik found
+                state[0][bad[rescued]], state[1][bad[rescued]] = got
+        return q, reason, state
+
+    def _ik_target(self, T_pseudo: np.ndarray, project: bool, T_flange: np.ndarray | None) -> np.ndarray:
+        """What the IK solves for pseudo targets T_tracker_tool: flange poses T_base_flange (full poses;
+        `T_flange` when the caller has them already), or tool points in the base frame."""
         if T_flange is not None:
-            target = T_flange
-        elif self.full_pose:
-            target = self.to_flange(ik_pose(T_pseudo) if project else T_pseudo)
-        else:
-            target = T_pseudo[:, :3, 3] @ self.T_bt[:3, :3].T + self.T_bt[:3, 3]
+            return T_flange
+        if self.full_pose:
+            return self.to_flange(ik_pose(T_pseudo) if project else T_pseudo)
+        return T_pseudo[:, :3, 3] @ self.T_bt[:3, :3].T + self.T_bt[:3, 3]
+
+    def _newton(
+        self, target: np.ndarray, q_prev: np.ndarray, start: tuple[np.ndarray, np.ndarray] | None
+    ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray] | None]:
+        """Newton from q_prev (or `ik_solver`): (joints, converged (N,), flange poses and Jacobians at
+        them, None with an `ik_solver`)."""
         if self.ik_solver is not None:
             q, ok = self.ik_solver(target, q_prev)
-            return np.array(q, float), np.where(ok, REASON_OK, STATUS_NO_IK).astype(str), None
+            return np.array(q, float), np.asarray(ok, bool), None
         res = newton_ik(
             self.kin,
             target,
@@ -495,27 +524,21 @@ class PseudoTargetIK:
             ),
             start=start,
         )
-        q = res.q
-        reason = np.full(len(q), REASON_OK, dtype=STATUS_DTYPE)
-        bad = np.flatnonzero(~res.converged)
-        state = (res.pose, res.jacobian)
-        if bad.size:
-            kw = {"mode": "pose"} if self.full_pose else {"mode": "position", "p_flange_tool": self.tool}
-            slow = solve_ik(
-                self.kin,
-                target[bad],
-                q_seed=q_prev[bad],
-                q_near=q_prev[bad[0]],
-                options=UPDATE_FALLBACK if update else FIRST_FALLBACK,
-                **kw,
-            )
-            q[bad] = slow.q
-            reason[bad] = np.where(slow.reason == REASON_MAX_ITER, STATUS_NO_IK, slow.reason)
-            rescued = bad[slow.reason == REASON_OK]
-            if rescued.size:  # the state at the joints solve_ik found
-                pose, J = pose_and_jacobian(self.kin, q[rescued], None if self.full_pose else self.tool)
-                state[0][rescued], state[1][rescued] = pose, J
-        return q, reason, state
+        return res.q, res.converged, (res.pose, res.jacobian)
+
+    def _fallback(
+        self, target: np.ndarray, q_seed: np.ndarray, options: IKOptions
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray] | None]:
+        """`solve_ik` on targets Newton left, seeded with q_seed: (joints, reason, rescued (k,) bool, the
+        flange poses and Jacobians at the rescued rows' joints or None)."""
+        kw = {"mode": "pose"} if self.full_pose else {"mode": "position", "p_flange_tool": self.tool}
+        slow = solve_ik(self.kin, target, q_seed=q_seed, q_near=q_seed[0], options=options, **kw)
+        reason = np.where(slow.reason == REASON_MAX_ITER, STATUS_NO_IK, slow.reason).astype(STATUS_DTYPE)
+        rescued = slow.reason == REASON_OK
+        got = None
+        if rescued.any():
+            got = pose_and_jacobian(self.kin, slow.q[rescued], None if self.full_pose else self.tool)
+        return slow.q, reason, rescued, got
 
 
 class _Setup(PseudoTargetIK):
@@ -565,86 +588,174 @@ class _Setup(PseudoTargetIK):
         return q, np.asarray(reason).astype(str)
 
 
-def _run(
-    s: _Setup, generator: str, threshold: float, max_iter: int, patience: int, length_scale: float
-) -> CompensationResult:
-    """The pseudo-target loop of one generator over all targets, inactive targets dropping out."""
-    N = len(s.T_d)
-    ok0 = s.reason0 == REASON_OK
-    q = s.q0.copy()
-    T_p = s.T_d.copy()
-    status = np.array(s.reason0, dtype=STATUS_DTYPE)
-    q_best = np.full_like(q, np.nan)
-    cost_best = np.full(N, np.inf)
-    pos_best = np.full(N, np.nan)
-    rot_best = np.full(N, np.nan)
-    pos0 = np.full(N, np.nan)
-    rot0 = np.full(N, np.nan)
-    since_best = np.zeros(N, int)
-    iters = np.zeros(N, int)
-    history = np.full((max_iter + 1, N), np.nan)
-    state = s.state0  # never modified in place: the ensemble's generators all start from it
-    active = np.flatnonzero(ok0)
-    for k in range(max_iter + 1):
-        if active.size == 0:
-            break
-        # While every row is active (active is sorted), index with a slice: views, not gathered copies.
-        sel = slice(None) if active.size == N else active
-        T_a = s.predictor(q[sel], active)
-        cost, dp, dr = pose_cost(T_a, s.T_d[sel], s.full_pose, length_scale)
-        history[k, sel] = cost
-        if k == 0:
-            pos0[sel], rot0[sel] = dp, dr
-        better = cost < cost_best[sel]
-        b = active[better]
-        q_best[b], cost_best[b], pos_best[b], rot_best[b] = q[b], cost[better], dp[better], dr[better]
-        since_best[sel] = np.where(better, 0, since_best[sel] + 1)
-        done = cost_best[sel] < threshold
-        status[active[done]] = STATUS_OK
-        stalled = ~done & (since_best[sel] >= patience)
-        status[active[stalled]] = STATUS_STALLED
-        if k == max_iter:
-            status[active[~done & ~stalled]] = STATUS_MAX_ITER
-            break
-        keep = ~done & ~stalled
-        if not keep.all():
-            active, T_a = active[keep], T_a[keep]
-        if active.size == 0:
-            break
+@dataclass
+class _Pending:
+    """Rows of one `_Loop` whose update Newton left unsolved, waiting for `_rescue`: their rows in the
+    block, the iteration they stopped in, their IK targets and the joints of the previous iteration."""
+
+    rows: np.ndarray
+    k: np.ndarray
+    target: np.ndarray
+    q_prev: np.ndarray
+
+
+class _Loop:
+    """The pseudo-target loop of one generator over one block's targets, inactive targets dropping out.
+
+    Resumable: a row whose update Newton leaves unsolved stops in `pending` with its IK target and the
+    previous joints instead of going to `solve_ik` at once, so that `_rescue` searches the rows of every
+    block and generator in one `UPDATE_FALLBACK` call: its cost is its ~50 LM iterations of Python,
+    whatever the number of rows (on the benchmark's large-compliance arm, 19 hopeless rows of 10 000 took
+    one call per iteration of each block, 10 calls, a third of the time). A row it rescues resumes from
+    the iteration after the one it stopped in (`resume`); one it cannot keeps its best joints so far.
+    """
+
+    def __init__(
+        self, s: _Setup, generator: str, threshold: float, max_iter: int, patience: int, length_scale: float
+    ) -> None:
+        N = len(s.T_d)
+        self.s, self.generator, self.threshold = s, generator, threshold
+        self.max_iter, self.patience, self.length_scale = max_iter, patience, length_scale
+        self.ok0 = s.reason0 == REASON_OK
+        self.q = s.q0.copy()
+        self.T_p = s.T_d.copy()
+        self.status = np.array(s.reason0, dtype=STATUS_DTYPE)
+        self.q_best = np.full_like(self.q, np.nan)
+        self.cost_best = np.full(N, np.inf)
+        self.pos_best, self.rot_best = np.full(N, np.nan), np.full(N, np.nan)
+        self.pos0, self.rot0 = np.full(N, np.nan), np.full(N, np.nan)
+        self.since_best = np.zeros(N, int)
+        self.iters = np.zeros(N, int)
+        self.history = np.full((max_iter + 1, N), np.nan)
+        self.state = s.state0  # never modified in place: the ensemble's generators all start from it
+        self.pending: list[_Pending] = []
+
+    def run(self, active: np.ndarray, k0: int = 0) -> None:
+        """Iterations k0.. of the rows `active` (sorted block rows), each at joints `self.q` scored in
+        iteration k0 (0: the first IK's joints)."""
+        s, N = self.s, len(self.q)
+        q, status, cost_best, since_best = self.q, self.status, self.cost_best, self.since_best
+        for k in range(k0, self.max_iter + 1):
+            if active.size == 0:
+                break
+            # While every row is active (active is sorted), index with a slice: views, not gathered copies.
+            sel = slice(None) if active.size == N else active
+            T_a = s.predictor(q[sel], active)
+            cost, dp, dr = pose_cost(T_a, s.T_d[sel], s.full_pose, self.length_scale)
+            self.history[k, sel] = cost
+            if k == 0:
+                self.pos0[sel], self.rot0[sel] = dp, dr
+            better = cost < cost_best[sel]
+            b = active[better]
+            self.q_best[b], cost_best[b] = q[b], cost[better]
+            self.pos_best[b], self.rot_best[b] = dp[better], dr[better]
+            since_best[sel] = np.where(better, 0, since_best[sel] + 1)
+            done = cost_best[sel] < self.threshold
+            status[active[done]] = STATUS_OK
+            stalled = ~done & (since_best[sel] >= self.patience)
+            status[active[stalled]] = STATUS_STALLED
+            if k == self.max_iter:
+                status[active[~done & ~stalled]] = STATUS_MAX_ITER
+                break
+            keep = ~done & ~stalled
+            if not keep.all():
+                active, T_a = active[keep], T_a[keep]
+            if active.size:
+                active = self._update(active, T_a, k)
+
+    def _update(self, active: np.ndarray, T_a: np.ndarray, k: int) -> np.ndarray:
+        """Iteration k's pseudo-target update and IK for the rows `active` (T_a: their predicted poses);
+        returns the rows that go on (those whose IK failed leave: finally, or pending a rescue)."""
+        s, N, q, state = self.s, len(self.q), self.q, self.state
         sel = slice(None) if active.size == N else active
         if s.full_pose:
-            T_p[sel] = update_pseudo_target(generator, s.T_d[sel], T_a, T_p[sel])
+            self.T_p[sel] = update_pseudo_target(self.generator, s.T_d[sel], T_a, self.T_p[sel])
         else:
-            T_p[sel, :3, 3] = update_pseudo_position(s.T_d[sel, :3, 3], T_a[:, :3, 3], T_p[sel, :3, 3])
+            self.T_p[sel, :3, 3] = update_pseudo_position(
+                s.T_d[sel, :3, 3], T_a[:, :3, 3], self.T_p[sel, :3, 3]
+            )
         start = state if state is None or active.size == N else (state[0][active], state[1][active])
-        q_new, reason, got = s._solve(T_p[sel], q[sel], generator == "add", start, update=True)
+        target = s._ik_target(self.T_p[sel], self.generator == "add", None)
+        q_new, ok, got = s._newton(target, q[sel], start)
         if state is not None and got is not None:
             if active.size == N:
-                state = got
+                self.state = got
             else:
-                state = (state[0].copy(), state[1].copy())
-                state[0][active], state[1][active] = got
-        iters[sel] += 1
-        failed = reason != REASON_OK
-        status[active[failed]] = reason[failed]  # best joints so far stay
-        q[sel] = q_new
+                self.state = (state[0].copy(), state[1].copy())
+                self.state[0][active], self.state[1][active] = got
+        self.iters[sel] += 1
+        failed = ~ok
         if failed.any():
-            active = active[~failed]
-    status[(status != STATUS_OK) & ok0 & (cost_best < threshold)] = STATUS_OK
-    return CompensationResult(
-        q=q_best,
-        error_m=pos_best,
-        rotation_error_rad=rot_best,
-        cost_m=np.where(np.isfinite(cost_best), cost_best, np.nan),
-        iterations=iters,
-        status=status,
-        generator=np.full(N, generator),
-        initial_error_m=pos0,
-        initial_rotation_error_rad=rot0,
-        outside_volume=np.zeros(N, bool),
-        history=history,
-        full_pose=s.full_pose,
-    )
+            if s.ik_solver is None:  # hil's Newton: solve_ik searches from the previous joints later
+                self.pending.append(
+                    _Pending(active[failed], np.full(failed.sum(), k), target[failed], q[active[failed]])
+                )
+            else:  # the plugged-in IK's answer is final
+                self.status[active[failed]] = STATUS_NO_IK  # best joints so far stay
+        q[sel] = q_new
+        return active[ok] if failed.any() else active
+
+    def take_pending(self) -> _Pending | None:
+        """The rows waiting for a rescue (None: none), handed over once."""
+        if not self.pending:
+            return None
+        p = self.pending
+        self.pending = []
+        return _Pending(*(np.concatenate([getattr(x, f.name) for x in p]) for f in fields(_Pending)))
+
+    def resume(
+        self, p: _Pending, q: np.ndarray, reason: np.ndarray, got: tuple[np.ndarray, np.ndarray] | None
+    ) -> None:
+        """`_rescue`'s answer for the rows `take_pending` handed over: the rescued ones (reason ok) go on from
+        the iteration after the one they stopped in, the others keep their best joints and the reason."""
+        rescued = reason == REASON_OK
+        self.status[p.rows[~rescued]] = reason[~rescued]
+        if not rescued.any():
+            return
+        rows, ks = p.rows[rescued], p.k[rescued]
+        self.q[rows] = q[rescued]
+        if self.state is not None and got is not None:  # the state at the joints solve_ik found
+            self.state = (self.state[0].copy(), self.state[1].copy())
+            self.state[0][rows], self.state[1][rows] = got
+        for k in np.unique(ks):
+            self.run(np.sort(rows[ks == k]), int(k) + 1)
+
+    def result(self) -> CompensationResult:
+        N, ok0, threshold = len(self.q), self.ok0, self.threshold
+        status, cost_best = self.status, self.cost_best
+        status[(status != STATUS_OK) & ok0 & (cost_best < threshold)] = STATUS_OK
+        return CompensationResult(
+            q=self.q_best,
+            error_m=self.pos_best,
+            rotation_error_rad=self.rot_best,
+            cost_m=np.where(np.isfinite(cost_best), cost_best, np.nan),
+            iterations=self.iters,
+            status=status,
+            generator=np.full(N, self.generator),
+            initial_error_m=self.pos0,
+            initial_rotation_error_rad=self.rot0,
+            outside_volume=np.zeros(N, bool),
+            history=self.history,
+            full_pose=self.s.full_pose,
+        )
+
+
+def _rescue(loops: list[_Loop]) -> None:
+    """One `solve_ik` (`UPDATE_FALLBACK`: LM from the previous joints) for the pending rows of every loop,
+    each loop then resuming its rescued rows; again while resumed rows leave new ones."""
+    while True:
+        taken = [(loop, p) for loop in loops if (p := loop.take_pending()) is not None]
+        if not taken:
+            return
+        sizes = np.cumsum([0] + [len(p.rows) for _, p in taken])
+        target = np.concatenate([p.target for _, p in taken])
+        q_prev = np.concatenate([p.q_prev for _, p in taken])
+        q, reason, rescued, got = taken[0][0].s._fallback(target, q_prev, UPDATE_FALLBACK)
+        at = np.cumsum(rescued) - 1  # row of `got` for each rescued row
+        for (loop, p), a, b in zip(taken, sizes[:-1], sizes[1:], strict=True):
+            r = rescued[a:b]
+            mine = None if got is None or not r.any() else (got[0][at[a:b][r]], got[1][at[a:b][r]])
+            loop.resume(p, q[a:b], reason[a:b], mine)
 
 
 def merge_results(parts: list[tuple[np.ndarray, CompensationResult]], n: int) -> CompensationResult:

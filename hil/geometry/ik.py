@@ -285,7 +285,15 @@ class _Problem:
 
     def residual(self, q: np.ndarray, rows: np.ndarray) -> np.ndarray:
         """Error e (k, m) taking the current tool to the target, for targets `rows`."""
-        T = forward_kinematics(self.model, q) @ self.T_flange_tool
+        return self._error(forward_kinematics(self.model, q), rows)
+
+    def residual_and_jacobian(self, q: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """`residual` and `jacobian` at q from one pass over the chain (the same numbers as each alone)."""
+        T, J = pose_and_jacobian(self.model, q, self.T_flange_tool[:3, 3])
+        return self._error(T, rows), (J if self.mode == "pose" else J[:, :3])
+
+    def _error(self, T_base_flange: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        T = T_base_flange @ self.T_flange_tool
         if self.mode == "pose":
             target = self.targets[rows]
             dp = target[:, :3, 3] - T[:, :3, 3]
@@ -297,9 +305,11 @@ class _Problem:
         return J if self.mode == "pose" else J[:, :3]
 
     def converged(self, e: np.ndarray) -> np.ndarray:
-        ok = np.linalg.norm(e[:, :3], axis=1) < self.tol_position
+        # |e| as np.linalg.norm computes it, without its call overhead (LM tests every iteration)
+        dp, dr = e[:, :3], e[:, 3:]
+        ok = np.sqrt(np.add.reduce(dp * dp, axis=1)) < self.tol_position
         if self.mode == "pose":
-            ok &= np.linalg.norm(e[:, 3:], axis=1) < self.tol_rotation
+            ok &= np.sqrt(np.add.reduce(dr * dr, axis=1)) < self.tol_rotation
         return ok
 
 
@@ -334,40 +344,33 @@ def _levenberg_marquardt(
     steps shrink it (LAM_DOWN, floor LAM_MIN), so the bias fades near the solution for fast final
     convergence. Joints that would cross a limit are held there and the others re-solved
     (`_limited_step`); the result is projected onto the limits (wrapped by 2 pi where that lands inside). A target stops when converged, hopelessly stuck (lam > 1e12) or stalled (E not
-    reduced by STALL_FACTOR within STALL_WINDOW iterations). The Jacobian is
-    re-evaluated only where a step was accepted.
+    reduced by STALL_FACTOR within STALL_WINDOW iterations). Each trial point's error and
+    Jacobian come from one pass over the chain; the Jacobian is kept where the step is accepted.
     """
     q = project_to_limits(prob.model, q0)
     k, n = q.shape
     W = prob.weights
-    e = prob.residual(q, rows)
+    e, J = prob.residual_and_jacobian(q, rows)
     E = 0.5 * np.einsum("km,m,km->k", e, W, e)
     lam = np.ones(k)
     iters = np.zeros(k, int)
     active = ~prob.converged(e)
     eye = np.eye(n)
     E_check = E.copy()  # stall test: E must fall by STALL_FACTOR every STALL_WINDOW iterations
-    J = np.empty((k, len(W), n))
-    stale = np.ones(k, bool)  # Jacobian to (re)compute: q moved since it was evaluated
     for it in range(1, max_iter + 1):
         idx = np.flatnonzero(active)
         if idx.size == 0:
             break
-        upd = idx[stale[idx]]
-        if upd.size:
-            J[upd] = prob.jacobian(q[upd])
-            stale[upd] = False
         JtW = np.swapaxes(J[idx], 1, 2) * W
         A = JtW @ J[idx] + (E[idx] + lam[idx] * prob.wbar)[:, None, None] * eye
         g = np.einsum("knm,km->kn", JtW, e[idx])
         dq = _limited_step(prob.model, q[idx], A, g)
         q_new = project_to_limits(prob.model, q[idx] + dq)
-        e_new = prob.residual(q_new, rows[idx])
+        e_new, J_new = prob.residual_and_jacobian(q_new, rows[idx])
         E_new = 0.5 * np.einsum("km,m,km->k", e_new, W, e_new)
         accept = E_new < E[idx]
         acc = idx[accept]
-        q[acc], e[acc], E[acc] = q_new[accept], e_new[accept], E_new[accept]
-        stale[acc] = True
+        q[acc], e[acc], E[acc], J[acc] = q_new[accept], e_new[accept], E_new[accept], J_new[accept]
         lam[acc] = np.maximum(lam[acc] * LAM_DOWN, LAM_MIN)
         rej = idx[~accept]
         lam[rej] *= LAM_UP
@@ -482,6 +485,8 @@ class IKOptions:
     < `tol_rotation` (rad). W_E weighs position (m) against rotation (rad) as 1 rad <-> `length_scale` m;
     `wbar` is LM's bias. Each LM attempt runs at most `max_iter` iterations; after the given and analytic
     seeds (the latter only with `use_analytic`), `restarts` random joint sets within limits (seed `rng`).
+    `newton_first=False` skips the Newton steps from the first seed (a caller whose own Newton from
+    `q_seed` to a looser tolerance already failed: the same steps cannot succeed).
     """
 
     max_iter: int = 100
@@ -492,6 +497,7 @@ class IKOptions:
     restarts: int = 50
     use_analytic: bool = True
     rng: np.random.Generator | int | None = 0
+    newton_first: bool = True
 
 
 def solve_ik(
@@ -531,7 +537,7 @@ def solve_ik(
     seeds = _seeds(prob, q_seed, q_ref, o.use_analytic and is_ur_like(model), restarts)
     best = _Best.from_seed(prob, seeds.q[0])
     beyond = _beyond_reach(prob, seeds.no_branch)
-    if q_seed is not None or seeds.analytic:
+    if o.newton_first and (q_seed is not None or seeds.analytic):
         _newton_from_first_seed(prob, best, seeds.q[0], seeds.ok[0] & ~beyond)
     _levenberg_marquardt_attempts(prob, best, seeds, beyond, generator, max_iter)
 

@@ -62,11 +62,11 @@ def rotation_log(R: np.ndarray) -> np.ndarray:
     R = R.reshape(-1, 3, 3)
     s = 0.5 * np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], axis=1)
     c = 0.5 * (R[:, 0, 0] + R[:, 1, 1] + R[:, 2, 2] - 1.0)
-    sn = np.linalg.norm(s, axis=1)
+    sn = np.sqrt(np.add.reduce(s * s, axis=1))  # np.linalg.norm's arithmetic without its call overhead
     angle = np.arctan2(sn, c)
     rv = s * np.where(sn > 1e-12, angle / np.maximum(sn, 1e-300), 1.0)[:, None]
     near_pi = (sn <= 1e-5) & (c < 0)
-    if np.any(near_pi):  # axis from the symmetric part, R + R^T + 2 I ~ 4 n n^T near pi
+    if near_pi.any():  # axis from the symmetric part, R + R^T + 2 I ~ 4 n n^T near pi
         Rn = R[near_pi]
         B = 0.25 * (Rn + np.swapaxes(Rn, 1, 2)) + 0.5 * np.eye(3)
         col = np.argmax(np.einsum("kii->ki", B), axis=1)
