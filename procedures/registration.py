@@ -71,19 +71,19 @@ def plan(config: CellConfig, options: RegistrationOptions) -> Plan:
     )
     place = OperatorStep(f"Put SMR 1 in tool nest {nest}.", "place_smr", smr=1, location=f"nest{nest}")
     lock = OperatorStep("Guide the tracker's beam onto SMR 1 on the tool until it locks.", "lock_beam", smr=1)
-    candidates = [
+    reachable = [
         PlannedPose(f"r{k + 1:02d}", NAME, "poses", qk, f"nest{nest}", setup=(place,), at_pose=(lock,))
         for k, qk in enumerate(joints.q[joints.usable])
     ]
-    # the first `poses` candidates that a safe move reaches from the one before (or home), in their order
-    safe = Plan(NAME, candidates, config, operator_steps=2).without_unsafe_moves()
+    # the first `poses` of them that a safe move reaches from the one before (or home), in their order
+    safe = Plan(NAME, reachable, config, operator_steps=2).without_unsafe_moves()
     chosen = safe.poses[:poses]
     if len(chosen) < 6:
         raise ValueError(
             f"only {len(chosen)} registration poses are reachable inside the envelope by a safe move; widen "
             "[envelope] or check tracker.position_base_mm"
         )
-    examined = candidates.index(chosen[-1]) + 1
+    examined = reachable.index(chosen[-1]) + 1
     dropped = {NO_SAFE_PATH: examined - len(chosen)} if examined > len(chosen) else {}
     steps = [replace(pose, point_id=f"r{k + 1:02d}") for k, pose in enumerate(chosen)]
     return Plan(NAME, steps, config, operator_steps=2, dropped=dropped)
