@@ -87,6 +87,14 @@ def test_cell_check_command(tmp_path, capsys):
     assert ok.returncode == 0 and "the configuration is valid" in ok.stdout and "ur10" in ok.stdout
     # the collision checks are on by default, with their margins and the body's source
     assert "collisions checked: 10 mm between links, 50 mm from the tracker" in ok.stdout
+    # the simulated cell runs at full speed; a new cell (the key left out) at reduced speed until the operator
+    # says otherwise, and the check says how
+    assert "full speed ([motion] reduced_speed = false)" in ok.stdout
+    new = tmp_path / "new.toml"
+    new.write_text(sim_cell_toml().replace("reduced_speed = false\n", "", 1))
+    slow = run_hil("cell", "check", str(new), cwd=tmp_path, capsys=capsys)
+    assert slow.returncode == 0 and "reduced speed, 25 % of the joint and linear speeds" in slow.stdout
+    assert f"set [motion] reduced_speed = false in {new}" in slow.stdout
     # instruments that do not answer: no "OK" before the failures, each with a remedy in the user's terms
     down = run_hil("cell", "check", str(good), "--connect", cwd=tmp_path, capsys=capsys)
     assert down.returncode == 2 and "OK" not in down.stdout

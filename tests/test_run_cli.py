@@ -63,6 +63,15 @@ def test_an_unreachable_robot_is_a_clear_error(tmp_path, capsys):
     assert "what to do:" in lines[1] and "robot.host" in lines[1] and "run the same command again" in lines[1]
     assert "recover()" not in done.stderr and "-- next" not in done.stderr  # no Python API in CLI terms
     assert not (tmp_path / "c.sqlite").exists()  # a failed start leaves no empty campaign
+    assert "reduced speed" not in done.stdout  # the simulated cell's config runs at full speed
+
+
+def test_a_new_cell_says_it_moves_at_reduced_speed_before_anything_moves(tmp_path, capsys):
+    new_cell = sim_cell_toml().replace("reduced_speed = false\n", "", 1)  # the key left out: a new cell
+    done = _run(tmp_path, new_cell, "registration", capsys=capsys)
+    assert done.returncode == 2 and "cannot connect to the robot" in done.stderr  # nothing there to move
+    assert done.stdout.startswith("hil run: reduced speed, 25 % of the joint and linear speeds")
+    assert "set [motion] reduced_speed = false in" in done.stdout
 
 
 def test_bad_procedure_options_are_refused(tmp_path, capsys):

@@ -53,6 +53,7 @@ def describe(config: CellConfig, connect: bool = False) -> str:
             )
             + " deg",
             f"  settle {config.settle_s:g} s",
+            f"  speed   {config.speed_text()}",
             _collisions_line(config),
         ]
     )

@@ -237,6 +237,8 @@ def run(args: argparse.Namespace) -> int:
         raise CliError(str(exc), "pick another --operator") from exc
     from hil.commands.native_output import capture_native_output
 
+    if config.reduced_speed:  # said before anything moves, so the slow first motions surprise nobody
+        print(f"hil run: {config.speed_text()}")
     with interrupt_guard(), ExitStack() as stack:
         stack.enter_context(capture_native_output(verbose=getattr(args, "verbose", False)))
         session = open_instruments(

@@ -136,6 +136,15 @@ class CellConfig:
             mapping["linear_speed"] = linear * self.reduced_speed_fraction
         return mapping
 
+    def speed_text(self) -> str:
+        """How fast the robot moves, in the operator's words: a new cell's reduced speed and how to end it."""
+        if self.reduced_speed:
+            return (
+                f"reduced speed, {100 * self.reduced_speed_fraction:g} % of the joint and linear speeds (a new "
+                f"cell's first motions); once they look right, set [motion] reduced_speed = false in {self.source}"
+            )
+        return "full speed ([motion] reduced_speed = false)"
+
     def tracker_mapping(self) -> dict[str, Any]:
         """Settings for the tracker driver: its URL, measuring time and reflector."""
         return {"url": self.tracker_url, "meas_time_s": self.meas_time_s, "reflector": self.tracker_reflector}
