@@ -25,6 +25,7 @@ from hil.runner.controller_joints import kinematic_campaign
 from hil.runner.envelope import EnvelopeError
 from hil.runner.procedure import ParameterError
 from procedures import grid_sampling, program_accuracy
+from tests.cli_in_process import run_hil
 
 pytestmark = [pytest.mark.sim, pytest.mark.timeout(300)]
 
@@ -186,3 +187,24 @@ def test_compensation_targets_of_the_campaign_are_where_the_controllers_joints_a
     measured = pd.read_csv(job["folder"] / "validation.csv")[["x_mm", "y_mm", "z_mm"]].to_numpy()
     gap_mm = np.linalg.norm(targets.targets * 1e3 - measured, axis=1)
     assert gap_mm.max() < 3.0, gap_mm
+
+
+def test_a_proposed_plan_is_written_in_the_joints_the_campaign_holds(job, capsys):
+    """The campaign holds the controller's joints: the poses `hil diagnose --propose` designs (in kinematic
+    joints) are written as the controller's, which the pendant shows and its programs take."""
+    plan_csv = job["folder"] / "plan.csv"
+    done = run_hil(
+        "diagnose", "job.sqlite", "--robot", ROBOT, "--propose", "6", "--plan", str(plan_csv),
+        cwd=job["folder"], capsys=capsys,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    assert "in the controller's joints" in done.stdout
+    coupling = job["config"].coupling
+    written = pd.read_csv(plan_csv)[[f"q{j}_rad" for j in range(1, 7)]].to_numpy()
+    assert len(written)
+    kinematic = coupling.to_kinematic(written)
+    # the elbow the design turned is the kinematic one; the file's J3 is the forearm against the horizontal
+    np.testing.assert_allclose(written[:, 2], -(kinematic[:, 1] + kinematic[:, 2]), atol=1e-12)
+    assert np.abs(written[:, 2] - kinematic[:, 2]).min() > np.deg2rad(1)
+    limits = np.array(job["config"].nominal.joint_limits)
+    assert np.all((kinematic >= limits[:, 0] - 1e-9) & (kinematic <= limits[:, 1] + 1e-9))

@@ -24,6 +24,7 @@ from hil.commands.help_format import DefaultsHelpFormatter
 from hil.commands.inputs import read_training_and_validation, record_in_campaign
 from hil.data.dataset import DatasetError, convert_orientation_convention, points_m, pose_ids
 from hil.data.joint_conventions import joints_to_kinematic
+from hil.geometry.coupling import JointCoupling
 from hil.geometry.robots import ROBOT_NAMES, get_robot, robot_arg, robot_coupling
 from hil.model.coupled_model import keep_coupling
 from hil.model.effects import EFFECT_FAMILIES
@@ -183,8 +184,9 @@ def run(args: argparse.Namespace) -> int:
     if recorded:
         print(f"model and summary recorded in the campaign {recorded}")
     if plan is not None:
-        plan.frame().to_csv(args.plan, index=False)
-        print(f"plan of {len(plan.purpose)} poses written to {args.plan}")
+        frame, said = _in_the_datas_joints(plan.frame(), coupling, df.attrs.get("joints_read_as"))
+        frame.to_csv(args.plan, index=False)
+        print(f"plan of {len(plan.purpose)} poses written to {args.plan}{said}")
     return 0
 
 
@@ -314,3 +316,16 @@ def _print_and_write(args: argparse.Namespace, report: DiagnosisReport) -> None:
         keep_coupling(report.model, robot_coupling(args.robot))
         report.model.save(args.output)
         print(f"model written to {args.output}")
+
+
+def _in_the_datas_joints(
+    frame: pd.DataFrame, coupling: JointCoupling | None, joints_read_as: str | None
+) -> tuple[pd.DataFrame, str]:
+    """A plan's joints in the convention the campaign's data came in: a coupled robot's controller joints
+    (what its pendant shows and its programs take) where the data held those, and a note that says so."""
+    if coupling is None or not coupling.coupled_rows() or joints_read_as != "controller":
+        return frame, ""
+    columns = [f"q{j + 1}_rad" for j in range(coupling.n_joints)]
+    out = frame.copy()
+    out[columns] = coupling.to_controller(frame[columns].to_numpy(float))
+    return out, " (in the controller's joints, as the campaign's data and the pendant give them)"
