@@ -208,3 +208,42 @@ def test_a_proposed_plan_is_written_in_the_joints_the_campaign_holds(job, capsys
     assert np.abs(written[:, 2] - kinematic[:, 2]).min() > np.deg2rad(1)
     limits = np.array(job["config"].nominal.joint_limits)
     assert np.all((kinematic >= limits[:, 0] - 1e-9) & (kinematic <= limits[:, 1] + 1e-9))
+
+
+class _PendantArm:
+    """A robot as a coupled controller reports it, in memory: it stands at the joints it was last sent (the
+    controller's), so the wrapper's reading and command are what a driver of such a robot would see."""
+
+    def __init__(self, q_controller: np.ndarray):
+        self.q = np.asarray(q_controller, float)
+        self.sent: list[np.ndarray] = []
+
+    def joints(self) -> np.ndarray:
+        return self.q
+
+    def move_joints(self, q: np.ndarray, speed: float | None = None, accel: float | None = None) -> None:
+        self.sent.append(np.asarray(q, float))
+        self.q = self.sent[-1]
+
+
+def test_a_script_s_compensated_moves_read_and_send_the_controllers_joints(job):
+    """The online wrapper on a coupled robot: the model's kinematic joints never reach the controller."""
+    from hil.compensation.online import CompensatedRobot
+    from hil.model.calibrated_model import CalibratedModel
+
+    model = CalibratedModel.load(job["folder"] / "model.json")
+    coupling = job["config"].coupling
+    plan_q = job["plan"].joints()[:3]  # poses the arm reaches, kinematic
+    arm = _PendantArm(coupling.to_controller(plan_q[:1])[0])
+    robot = CompensatedRobot(arm, model)  # the SMR point as TCP
+    T_base_tracker = np.linalg.inv(model.T_tracker_base)
+    for q_kinematic in plan_q[1:]:
+        T_tracker_smr = model.predict_poses(q_kinematic[None] + 0.02)[0]  # a pose the model says it reaches
+        T_base_tcp = T_base_tracker @ T_tracker_smr
+        commanded = robot.move_to(T_base_tcp)
+        np.testing.assert_array_equal(commanded, arm.sent[-1])
+        reached = model.predict_poses(coupling.to_kinematic(commanded[None]))[0]
+        assert np.linalg.norm(reached[:3, 3] - T_tracker_smr[:3, 3]) < 2e-5  # the loop's threshold, 10 um
+        # read as kinematic joints, the command would put the arm elsewhere
+        misread = model.predict_poses(commanded[None])[0]
+        assert np.linalg.norm(misread[:3, 3] - T_tracker_smr[:3, 3]) > 1e-2
