@@ -12,13 +12,15 @@ timeout and hold Python's global lock), rebuilt on `recover()`, and torn down co
 
 from __future__ import annotations
 
+import ctypes
 import logging
 import math
 import socket
 import struct
 import time
 import weakref
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any
 
@@ -39,6 +41,35 @@ from hil.instruments.robot import (
 )
 
 log = logging.getLogger(__name__)
+
+# ur-rtde's receive threads (one per receive and per control interface) poll their socket in a loop that sleeps
+# 100 us when no packet waits: with Linux's default timer slack of 50 us each wakes about 2 700 times a
+# second, some 7 % of a core per thread for as long as the robot is connected, whether it moves or not. A
+# thread inherits its creator's timer slack, so the interfaces are built with a coarser one: each poll may
+# then sleep up to this much longer, still well inside a CB3's 8 ms and an e-Series' 2 ms between packets (a
+# packet that waited is read at the next wake, and the loop reads on without sleeping while packets wait).
+RECEIVE_TIMER_SLACK_NS = 1_000_000
+_PR_SET_TIMERSLACK, _PR_GET_TIMERSLACK = 29, 30
+
+
+@contextmanager
+def coarse_timer_slack(slack_ns: int = RECEIVE_TIMER_SLACK_NS) -> Iterator[None]:
+    """Threads started inside get a timer slack of `slack_ns` (Linux; elsewhere nothing changes); the
+    calling thread's own slack is restored on leaving."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        previous = libc.prctl(_PR_GET_TIMERSLACK, 0, 0, 0, 0)
+    except (OSError, AttributeError):
+        yield
+        return
+    if previous < 0 or libc.prctl(_PR_SET_TIMERSLACK, ctypes.c_ulong(slack_ns), 0, 0, 0) != 0:
+        yield
+        return
+    try:
+        yield
+    finally:
+        libc.prctl(_PR_SET_TIMERSLACK, ctypes.c_ulong(previous), 0, 0, 0)
+
 
 ROBOT_MODES = {-1: "NO_CONTROLLER", 0: "DISCONNECTED", 1: "CONFIRM_SAFETY", 2: "BOOTING", 3: "POWER_OFF"}
 ROBOT_MODES |= {4: "POWER_ON", 5: "IDLE", 6: "BACKDRIVE", 7: "RUNNING", 8: "UPDATING_FIRMWARE"}
@@ -231,11 +262,13 @@ class URRobot:
                 self._dash = dash = dashboard_client.DashboardClient(cfg.host)
                 dash.connect(int(cfg.connect_timeout_s * 1000))
                 self.serial_number, self.model_name = _identity(dash)
-                self._rx = rx = rtde_receive.RTDEReceiveInterface(cfg.host)
+                with coarse_timer_slack():
+                    self._rx = rx = rtde_receive.RTDEReceiveInterface(cfg.host)
                 self._require_arm_ready()  # the control program would not start otherwise (a 5 s stall)
-                self._ctrl = ctrl = rtde_control.RTDEControlInterface(
-                    cfg.host, -1.0, rtde_control.RTDEControlInterface.FLAG_UPLOAD_SCRIPT
-                )
+                with coarse_timer_slack():
+                    self._ctrl = ctrl = rtde_control.RTDEControlInterface(
+                        cfg.host, -1.0, rtde_control.RTDEControlInterface.FLAG_UPLOAD_SCRIPT
+                    )
                 ctrl.setTcp([0.0] * 6)  # TCP pose = flange pose
                 self._last_stamp, self._last_stamp_wall = rx.getTimestamp(), time.monotonic()
                 return
@@ -330,9 +363,10 @@ class URRobot:
             healthy = False
         if healthy:
             try:
-                self._ctrl = ctrl = rtde_control.RTDEControlInterface(
-                    self.config.host, -1.0, rtde_control.RTDEControlInterface.FLAG_UPLOAD_SCRIPT
-                )
+                with coarse_timer_slack():
+                    self._ctrl = ctrl = rtde_control.RTDEControlInterface(
+                        self.config.host, -1.0, rtde_control.RTDEControlInterface.FLAG_UPLOAD_SCRIPT
+                    )
                 ctrl.setTcp([0.0] * 6)
             except (RuntimeError, RobotConnectionError) as exc:
                 log.warning("rebuilding the control interface failed (%s); reconnecting everything", exc)

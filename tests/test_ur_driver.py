@@ -206,3 +206,30 @@ def test_powered_off_arm_is_reported_or_powered_on_when_allowed():
             assert off.control.call("robot.state")["refused_programs"] == []  # uploaded once powered
         finally:
             robot.close()
+
+
+def test_threads_started_for_the_receive_interfaces_get_a_coarse_timer_slack_and_the_caller_keeps_its_own():
+    """ur-rtde's receive threads poll every 100 us; started inside `coarse_timer_slack` they inherit a slack of
+    RECEIVE_TIMER_SLACK_NS (wake about a thousand times a second, not 2 700), and the caller's slack is
+    restored. Read through prctl from inside each thread, as the kernel applies it."""
+    import ctypes
+    import sys
+    import threading
+
+    from drivers.ur import RECEIVE_TIMER_SLACK_NS, coarse_timer_slack
+
+    if not sys.platform.startswith("linux"):
+        pytest.skip("timer slack is Linux's")
+    libc = ctypes.CDLL(None, use_errno=True)
+
+    def slack() -> int:
+        return libc.prctl(30, 0, 0, 0, 0)  # PR_GET_TIMERSLACK
+
+    seen: list[int] = []
+    before = slack()
+    with coarse_timer_slack():
+        worker = threading.Thread(target=lambda: seen.append(slack()))
+        worker.start()
+        worker.join()
+    assert seen == [RECEIVE_TIMER_SLACK_NS]
+    assert slack() == before != RECEIVE_TIMER_SLACK_NS
