@@ -13,14 +13,18 @@ ANNOUNCEMENT = {
 }
 
 
-def sim_cell_toml(seed: int = 0, time_scale: float = 10.0) -> str:
-    """cell.toml text of a UR10 simulated cell with `seed` (no instruments are started)."""
+def sim_cell_toml(seed: int = 0, time_scale: float = 10.0, robot: str = "ur10") -> str:
+    """cell.toml text of a simulated cell of `robot` (a built-in robot file) with `seed` (no instruments
+    are started)."""
+    announcement = {**ANNOUNCEMENT, "robot": {**ANNOUNCEMENT["robot"], "model": robot}}
     return format_cell_toml(
         sim_cell_values(
-            ANNOUNCEMENT, SimulatedCell().ground_truth() if seed == 0 else _truth(seed), time_scale
+            announcement,
+            SimulatedCell().ground_truth() if (seed, robot) == (0, "ur10") else _truth(seed, robot),
+            time_scale,
         )
     )
 
 
-def _truth(seed: int) -> dict:
-    return SimulatedCell(SimCellConfig(seed=seed)).ground_truth()
+def _truth(seed: int, robot: str) -> dict:
+    return SimulatedCell(SimCellConfig(robot=robot, seed=seed)).ground_truth()

@@ -14,8 +14,14 @@ geometry), so `plan_clear_joints` chooses, per pose:
   plan: consecutive moves stay small, the SMR keeps facing the tracker between poses), else the one with
   the largest clearance up to `COMFORT_M` beyond its margin, the nearest the reference among equals.
 
-A pose with no such configuration is left out with the reason `NO_CLEAR`. Other arms get the nominal IK
-near the reference, checked the same way.
+A pose with no such configuration is left out with the reason `NO_CLEAR`. Other six-joint arms (no closed
+form here) get the nominal IK near the reference with the same rule on the folding joints: where its answer
+turns the elbow or joint 5 beyond the range each turns from the reference without folding, the IK is solved
+again inside that range from each of the arm's configurations (`_unfolded_ik`), the clearest kept. On an
+arm whose elbow turns further than a half turn (a FANUC-like forearm that may swing over the top), the
+answer nearest the reference is otherwise often the elbow bent the other way, reached from the reference
+only through the fold (upper arm and forearm in one another), so that no move and no detour gets there; a
+pose reached only so is left out with `NO_CLEAR`. Every answer is then checked the same way.
 
 `clear_travel_order` is the greedy nearest-neighbour order of hil.runner.planners.travel_order (the largest
 joint travel, wrist joints included, so wrist moves stay small) that passes over a neighbour whose direct
@@ -30,8 +36,16 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from hil.geometry.arm_configurations import arm_configuration_seeds, has_parallel_shoulder_and_elbow
 from hil.geometry.collision import clear_range_rad
-from hil.geometry.ik import is_ur_like, nearest_equivalent, solve_ik, ur_analytic_ik, ur_branch_index
+from hil.geometry.ik import (
+    IKOptions,
+    is_ur_like,
+    nearest_equivalent,
+    solve_ik,
+    ur_analytic_ik,
+    ur_branch_index,
+)
 from hil.geometry.kinematics import KinematicModel
 from hil.runner.envelope import Envelope
 from hil.runner.planners import SINGULAR_SIGMA_M, JointPlan, plan_joints, position_sigma_min_m
@@ -67,7 +81,8 @@ def plan_clear_joints(
     """Joints for tool poses (N, 4, 4) with the tool point `p_flange_tool_m`, usable only when reachable,
     within limits, away from singularities and inside the envelope (box and, when it checks them, the
     collisions of every tool point `p_flange_tools_m`), reason "envelope" otherwise. With collision checks
-    on a UR-shaped arm, each pose's configuration is the clearest of its closed-form branches (see module);
+    on a UR-shaped arm, each pose's configuration is the clearest of its closed-form branches, on another
+    six-joint arm the nominal IK's unless it folds the elbow or joint 5 (see module);
     `like` (M, 6), joints planned before (a grid for its validation poses): only their configuration and
     turns, so the new poses lie where those were measured (a pose clear only in another is left out)."""
     T = np.asarray(T_base_tool, float)
@@ -85,6 +100,10 @@ def plan_clear_joints(
             q[rows], usable[rows] = chosen.q, chosen.usable & unfolded
             reason[rows] = np.where(unfolded, chosen.reason.astype(object), NO_CLEAR)
         first = JointPlan(q, usable, reason.astype(str))
+    elif envelope.bodies is not None and nominal.n_joints == 6 and len(T):
+        first = _unfolded_ik(
+            nominal, envelope, T, p_flange_tool_m, p_flange_tools_m, q_near, singular_sigma_m, first
+        )
     reason = first.reason.astype(object)
     usable = first.usable.copy()
     if usable.any():
@@ -107,6 +126,98 @@ def plan_cell_joints(config: CellConfig, T_base_tool: np.ndarray, nest: int = 1)
     return plan_clear_joints(
         config.nominal, config.envelope, T_base_tool, nests[nest - 1], nests, config.q_home_rad
     )
+
+
+def _unfolded_ik(
+    nominal: KinematicModel,
+    envelope: Envelope,
+    T_base_tool: np.ndarray,
+    p_flange_tool_m: np.ndarray,
+    p_flange_tools_m: np.ndarray,
+    q_near: np.ndarray,
+    singular_sigma_m: float,
+    nearest: JointPlan,
+) -> JointPlan:
+    """The plan `nearest` (the nominal IK near q_near) with each answer that turns a FOLDING joint beyond
+    where it turns from q_near without folding solved again inside that range: on an arm with parallel
+    joints 2 and 3, from each of its arm and wrist configurations (hil.geometry.arm_configurations), the
+    clearest kept (as `_branch_scores` says, the nearest q_near among equals); on others, the nominal IK
+    again. A pose the IK reaches only beyond that range is marked NO_CLEAR (no move from the reference's
+    side gets there without passing the fold); one it does not reach at all keeps its reason."""
+    unfolded = _unfolded(nominal, envelope, q_near)
+    folded = nearest.usable & ~unfolded.within_limits(nearest.q, tol=1e-9)
+    if not folded.any():
+        return nearest
+    rows = np.flatnonzero(folded)
+    if has_parallel_shoulder_and_elbow(nominal):
+        candidates = _configurations(
+            unfolded, T_base_tool[rows], p_flange_tool_m, nearest.q[rows], q_near, singular_sigma_m
+        )
+        again = _clearest(nominal, envelope, candidates, p_flange_tools_m, q_near)
+    else:
+        again = plan_joints(unfolded, T_base_tool[rows], p_flange_tool_m, q_near, singular_sigma_m)
+    q, usable, reason = nearest.q.copy(), nearest.usable.copy(), nearest.reason.astype(object)
+    q[rows] = np.where(again.usable[:, None], again.q, nearest.q[rows])
+    usable[rows] = again.usable
+    reason[rows] = np.where(again.usable, again.reason.astype(object), NO_CLEAR)
+    return JointPlan(q, usable, reason.astype(str))
+
+
+def _configurations(
+    unfolded: KinematicModel,
+    T_base_tool: np.ndarray,
+    p_flange_tool_m: np.ndarray,
+    q: np.ndarray,
+    q_near: np.ndarray,
+    singular_sigma_m: float,
+) -> JointPlan:
+    """(M, 8) candidates for the tool poses (M, 4, 4) that q (M, 6) reaches: the IK inside the unfolded
+    model's limits from each of q's arm and wrist configurations (2 pi-shifted nearest q_near), usable
+    where it converged away from a singularity. A configuration no shift brings inside is not tried."""
+    T_flange_tool = np.eye(4)
+    T_flange_tool[:3, 3] = np.asarray(p_flange_tool_m, float)
+    seeds = arm_configuration_seeds(unfolded, q)  # (8, M, 6)
+    shifted, inside = nearest_equivalent(unfolded, seeds, np.broadcast_to(q_near, seeds.shape))
+    answers, usable = np.full(seeds.shape, np.nan), np.zeros(seeds.shape[:2], bool)
+    for k in range(len(seeds)):
+        rows = np.flatnonzero(inside[k])
+        if not rows.size:
+            continue
+        found = solve_ik(
+            unfolded,
+            T_base_tool[rows],
+            q_seed=shifted[k, rows],
+            q_near=q_near,
+            T_flange_tool=T_flange_tool,
+            options=IKOptions(restarts=0),
+        )
+        ok = np.asarray(found.success, bool)
+        if ok.any():
+            ok[ok] = position_sigma_min_m(unfolded, found.q[ok], p_flange_tool_m) >= singular_sigma_m
+        answers[k, rows], usable[k, rows] = found.q, ok
+    q_out = np.swapaxes(answers, 0, 1)
+    return JointPlan(q_out, usable.T, np.where(usable.T, "ok", NO_CLEAR))
+
+
+def _clearest(
+    nominal: KinematicModel,
+    envelope: Envelope,
+    candidates: JointPlan,
+    p_flange_tools_m: np.ndarray,
+    q_near: np.ndarray,
+) -> JointPlan:
+    """Per pose (M,) the clearest of its usable candidates (M, B, 6) (the nearest q_near among equals to a
+    millimetre), one outside the envelope only when none is inside (the envelope check then says so);
+    NO_CLEAR when none is usable."""
+    q, usable = candidates.q, candidates.usable
+    score = _branch_scores(nominal, envelope, np.nan_to_num(q), usable, p_flange_tools_m)
+    distance = np.linalg.norm(np.nan_to_num(q) - q_near, axis=2)
+    key = np.where(np.isfinite(score), np.round(score, 3) * 1e6 - distance, -1e9 - distance)
+    key = np.where(usable, key, -np.inf)
+    pick = np.argmax(key, axis=1)
+    rows = np.arange(len(q))
+    found = usable[rows, pick]
+    return JointPlan(q[rows, pick], found, np.where(found, "ok", NO_CLEAR))
 
 
 def _clearest_branch(
@@ -173,7 +284,8 @@ def _unfolded(nominal: KinematicModel, envelope: Envelope, q_near: np.ndarray) -
     """The model with the FOLDING joints limited to where each turns from q_near, the others held, without
     folding the arm onto itself: a UR elbow at 234 deg stands where it would at -126 deg, but reaching it
     from 90 deg passes through the fold at 180 deg (forearm and upper arm are adjacent: only the elbow
-    moves that fold); joint 5 likewise swings the tool into the forearm."""
+    moves that fold); on the LR Mate (elbow limits -160..190 deg) the forearm folds onto the upper arm at
+    90 deg from its zero. Joint 5 likewise swings the tool into the forearm."""
     assert envelope.bodies is not None
     limits = np.array(nominal.joint_limits, float)
     for joint in FOLDING:
