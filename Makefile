@@ -4,13 +4,14 @@
 PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
-# pytest-xdist: eight workers, each test module on one worker (its module-scoped fixtures, a simulated cell or
-# a campaign, are built once), the modules with sim tests first (tests/conftest.py). Eight on two cores: the
-# sim tests spend much of their time waiting for the simulated cell, and four workers per core overlap those
-# waits (measured on a 2-core machine, the whole suite of 822 tests: 165-180 s with four workers, 149-163 s
-# with six, 143 s with eight; 287 s with two and 203 s with four when the suite had 534 tests).
+# pytest-xdist: six workers, each test module on one worker (its module-scoped fixtures, a simulated cell or
+# a campaign, are built once), the modules with sim tests first (tests/conftest.py). Six on two cores: the
+# sim tests spend much of their time waiting for the simulated cell, and more workers than cores overlap those
+# waits; but every connected cell and driver also costs CPU for as long as it waits, so eight cost more than
+# they overlap. Measured on a 2-core machine, the whole suite of 1304 tests, one run each, caches warm:
+# four workers 250 s (388 CPU-s), six 230 s (421 CPU-s), eight 259 s (485 CPU-s).
 # PYTEST_PARALLEL= runs the suite in one process.
-PYTEST_PARALLEL ?= -n 8 --dist loadfile --no-loadscope-reorder
+PYTEST_PARALLEL ?= -n 6 --dist loadfile --no-loadscope-reorder
 
 .PHONY: demo test docs typecheck unit soak lint bench clean
 
@@ -50,7 +51,7 @@ $(VENV)/.system-deps: tools/system-deps $(VENV)/.installed
 	touch $@
 
 # Bytecode first, once: the project's modules compiled and the tests' assertion-rewritten modules cached (a
-# collection that writes them), so the eight workers and every `python -m hil` or simulated cell the tests
+# collection that writes them), so the pytest workers and every `python -m hil` or simulated cell the tests
 # start read them instead of each compiling and rewriting the same files again (PYTHONDONTWRITEBYTECODE, set
 # on some machines, would stop every process from writing them). Measured on a 2-core machine: a collection
 # takes 7.3-7.7 CPU-s with nothing cached and 2.9-3.0 s with the cache.
