@@ -42,13 +42,12 @@ from hil.geometry.ik import (
     IKOptions,
     is_ur_like,
     nearest_equivalent,
-    solve_ik,
     ur_analytic_ik,
     ur_branch_index,
 )
 from hil.geometry.kinematics import KinematicModel
 from hil.runner.envelope import Envelope
-from hil.runner.planners import SINGULAR_SIGMA_M, JointPlan, plan_joints, position_sigma_min_m
+from hil.runner.planners import SINGULAR_SIGMA_M, JointPlan, plan_joints
 
 if TYPE_CHECKING:
     from hil.runner.cell_config import CellConfig
@@ -94,7 +93,9 @@ def plan_clear_joints(
         q, usable = first.q.copy(), np.zeros(len(T), bool)
         reason = np.where(first.usable, NO_CLEAR, first.reason.astype(object))
         if has_seed.any():
-            chosen = _refine(nominal, T[has_seed], p_flange_tool_m, seeds[has_seed], q_near, singular_sigma_m)
+            chosen = plan_joints(
+                nominal, T[has_seed], p_flange_tool_m, q_near, singular_sigma_m, q_seed=seeds[has_seed]
+            )
             unfolded = _unfolded(nominal, envelope, q_near).within_limits(chosen.q, tol=1e-9)
             rows = np.flatnonzero(has_seed)
             q[rows], usable[rows] = chosen.q, chosen.usable & unfolded
@@ -174,8 +175,6 @@ def _configurations(
     """(M, 8) candidates for the tool poses (M, 4, 4) that q (M, 6) reaches: the IK inside the unfolded
     model's limits from each of q's arm and wrist configurations (2 pi-shifted nearest q_near), usable
     where it converged away from a singularity. A configuration no shift brings inside is not tried."""
-    T_flange_tool = np.eye(4)
-    T_flange_tool[:3, 3] = np.asarray(p_flange_tool_m, float)
     seeds = arm_configuration_seeds(unfolded, q)  # (8, M, 6)
     shifted, inside = nearest_equivalent(unfolded, seeds, np.broadcast_to(q_near, seeds.shape))
     answers, usable = np.full(seeds.shape, np.nan), np.zeros(seeds.shape[:2], bool)
@@ -183,18 +182,11 @@ def _configurations(
         rows = np.flatnonzero(inside[k])
         if not rows.size:
             continue
-        found = solve_ik(
-            unfolded,
-            T_base_tool[rows],
-            q_seed=shifted[k, rows],
-            q_near=q_near,
-            T_flange_tool=T_flange_tool,
-            options=IKOptions(restarts=0),
-        )
-        ok = np.asarray(found.success, bool)
-        if ok.any():
-            ok[ok] = position_sigma_min_m(unfolded, found.q[ok], p_flange_tool_m) >= singular_sigma_m
-        answers[k, rows], usable[k, rows] = found.q, ok
+        found = plan_joints(
+            unfolded, T_base_tool[rows], p_flange_tool_m, q_near, singular_sigma_m,
+            q_seed=shifted[k, rows], options=IKOptions(restarts=0),
+        )  # fmt: skip
+        answers[k, rows], usable[k, rows] = found.q, found.usable
     q_out = np.swapaxes(answers, 0, 1)
     return JointPlan(q_out, usable.T, np.where(usable.T, "ok", NO_CLEAR))
 
@@ -323,29 +315,6 @@ def _branch_scores(
     slack = np.where(deciding & ~np.isnan(pair_slack), pair_slack, np.inf).min(axis=2)
     score = np.minimum(slack, COMFORT_M)
     return np.where(inside.reshape(N, B), score, -np.inf)
-
-
-def _refine(
-    nominal: KinematicModel,
-    T_base_tool: np.ndarray,
-    p_flange_tool_m: np.ndarray,
-    seeds: np.ndarray,
-    q_near: np.ndarray,
-    singular_sigma_m: float,
-) -> JointPlan:
-    """The nominal IK from each chosen configuration (what the controller will be commanded), marked as
-    plan_joints marks it."""
-    T_flange_tool = np.eye(4)
-    T_flange_tool[:3, 3] = np.asarray(p_flange_tool_m, float)
-    result = solve_ik(nominal, T_base_tool, q_seed=seeds, q_near=q_near, T_flange_tool=T_flange_tool)
-    reason = np.array(result.reason, dtype=object)
-    usable = np.array(result.success, bool)
-    if usable.any():
-        sigma = position_sigma_min_m(nominal, result.q[usable], p_flange_tool_m)
-        rows = np.flatnonzero(usable)[sigma < singular_sigma_m]
-        reason[rows] = "singular"
-        usable[rows] = False
-    return JointPlan(result.q, usable, reason.astype(str))
 
 
 def clear_travel_order(

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from hil.geometry.ik import default_home, solve_ik
+from hil.geometry.ik import IKOptions, default_home, solve_ik
 from hil.geometry.kinematics import KinematicModel, geometric_jacobian, link_frames
 
 # Smallest singular value of the position Jacobian (m/rad) below which a pose counts as near-singular:
@@ -164,13 +164,17 @@ def plan_joints(
     p_flange_tool_m: np.ndarray,
     q_near: np.ndarray | None = None,
     singular_sigma_m: float = SINGULAR_SIGMA_M,
+    q_seed: np.ndarray | None = None,
+    options: IKOptions | None = None,
 ) -> JointPlan:
-    """Nominal IK of the tool poses (what the controller will be commanded), near `q_near`, with poses
-    that are unreachable, beyond joint limits or close to a singularity marked unusable with the reason."""
-    T_flange_tool = np.eye(4)
-    T_flange_tool[:3, 3] = np.asarray(p_flange_tool_m, float)
+    """Nominal IK of the tool poses (what the controller will be commanded), near `q_near` (from `q_seed`
+    first where given: a chosen configuration), with poses that are unreachable, beyond joint limits or
+    close to a singularity marked unusable with the reason."""
     q_ref = default_home(nominal) if q_near is None else np.asarray(q_near, float)
-    result = solve_ik(nominal, T_base_tool, q_near=q_ref, mode="pose", T_flange_tool=T_flange_tool)
+    result = solve_ik(
+        nominal, T_base_tool, q_seed=q_seed, mode="pose", p_flange_tool=p_flange_tool_m, q_near=q_ref,
+        options=options or IKOptions(),
+    )  # fmt: skip
     reason = np.array(result.reason, dtype=object)
     usable = np.array(result.success, bool)
     if usable.any():
