@@ -328,12 +328,7 @@ class _Api:
             "diagnose", str(path), "--robot", self.station.config.robot_model,
             "--html", str(report), "-o", str(model), "--force",
         ]  # fmt: skip
-        ok, text = await _hil(command)
-        if not ok:
-            return _refused(
-                RequestRefusedError(f"the diagnosis of {path.name} failed", _last_lines(text)), 422
-            )
-        return JSONResponse({"report": report.name, "output": _last_lines(text, 12)})
+        return await _hil_writing(command, f"the diagnosis of {path.name}", "report", report)
 
     async def compensate(self, request: Request) -> Response:
         """`hil compensate MODEL CAMPAIGN --step validation --interval 0.95` with the model the page's diagnosis
@@ -350,12 +345,7 @@ class _Api:
             "compensate", str(model), str(path), "--step", "validation", "--interval", "0.95",
             "-o", str(out), "--force",
         ]  # fmt: skip
-        ok, text = await _hil(command)
-        if not ok:
-            return _refused(
-                RequestRefusedError(f"the compensation of {path.name} failed", _last_lines(text)), 422
-            )
-        return JSONResponse({"compensated": out.name, "output": _last_lines(text, 12)})
+        return await _hil_writing(command, f"the compensation of {path.name}", "compensated", out)
 
     async def compensated(self, request: Request) -> Response:
         found = self._beside_campaign(request, COMPENSATED_SUFFIX, "compensation", "compensate it first")
@@ -407,6 +397,15 @@ async def _hil(args: list[str]) -> tuple[bool, str]:
     )
     out, _ = await process.communicate()
     return process.returncode == 0, out.decode("utf-8", "replace").strip()
+
+
+async def _hil_writing(args: list[str], what: str, key: str, written: Path) -> Response:
+    """Run a hil command that writes `written` beside a campaign: the file's name (under `key`) and the last
+    lines it printed, or `what` refused as failed with the lines that say why."""
+    ok, text = await _hil(args)
+    if not ok:
+        return _refused(RequestRefusedError(f"{what} failed", _last_lines(text)), 422)
+    return JSONResponse({key: written.name, "output": _last_lines(text, 12)})
 
 
 def _run_request(body: Any) -> RunRequest:
