@@ -22,7 +22,7 @@ from hil.commands.calibrate import add_probe_options, orientation_summary, parse
 from hil.commands.errors import CliError
 from hil.commands.help_format import DefaultsHelpFormatter
 from hil.commands.inputs import read_training_and_validation, record_in_campaign
-from hil.data.dataset import DatasetError, convert_orientation_convention, points_m, pose_ids
+from hil.data.dataset import DatasetError, convert_orientation_convention, joint_columns, points_m, pose_ids
 from hil.data.joint_conventions import joints_to_kinematic
 from hil.geometry.coupling import JointCoupling
 from hil.geometry.robots import ROBOT_NAMES, get_robot, robot_arg, robot_coupling
@@ -325,7 +325,7 @@ def _in_the_datas_joints(
     (what its pendant shows and its programs take) where the data held those, and a note that says so."""
     if coupling is None or not coupling.coupled_rows() or joints_read_as != "controller":
         return frame, ""
-    columns = [f"q{j + 1}_rad" for j in range(coupling.n_joints)]
+    columns = joint_columns(coupling.n_joints)
     out = frame.copy()
     out[columns] = coupling.to_controller(frame[columns].to_numpy(float))
     return out, " (in the controller's joints, as the campaign's data and the pendant give them)"
