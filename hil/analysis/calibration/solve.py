@@ -610,7 +610,10 @@ def robust_scales(r: np.ndarray, centred: bool) -> np.ndarray:
     for cols in (slice(0, 3), slice(3, r.shape[1])):
         x = r[:, cols].ravel()
         if x.size:
-            out[cols] = max(1.4826 * float(np.median(np.abs(x - (np.median(x) if centred else 0.0)))), 1e-12)
+            # the centre as a float of its own: inside the expression, mypy's overload search over numpy's
+            # median and abs took 9 s on this one line
+            centre = float(np.median(x)) if centred else 0.0
+            out[cols] = max(1.4826 * float(np.median(np.abs(x - centre))), 1e-12)
     return out
 
 
