@@ -492,10 +492,10 @@ def _nearest_neighbour_order(q: np.ndarray, start: np.ndarray) -> list[int]:
     """A short joint-space tour through `q` from `start` (greedy nearest neighbour, largest joint move)."""
     left = list(range(len(q)))
     out: list[int] = []
-    here = start
+    here = np.asarray(start, dtype=float)
     while left:
-        k = min(left, key=lambda i: float(np.max(np.abs(q[i] - here))))
+        largest_move = np.max(np.abs(q[left] - here), axis=1)
+        k = left.pop(int(np.argmin(largest_move)))  # the first of equals, as min() over `left` gives
         out.append(k)
-        left.remove(k)
         here = q[k]
     return out
