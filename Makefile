@@ -16,12 +16,13 @@ PYTEST_PARALLEL ?= -n 6 --dist loadfile --no-loadscope-reorder
 .PHONY: demo test docs typecheck unit soak lint bench clean
 
 # uv installs the project and its dev tools (pip brings it in from PyPI, so plain Python 3.11 is all a machine
-# needs): 9 s on a fresh clone against pip's 23 s, byte-compiled in parallel (compiled lazily instead, the six
-# pytest workers each compiled numpy, scipy and pandas on first import).
+# needs): 9 s on a fresh clone against pip's 23 s. Not byte-compiled here: compiling all 10 400 modules of the
+# dependencies took 14 s of a 2-core machine (24 CPU-s) for the fraction any process imports; `unit` compiles
+# what the tests import, once.
 $(VENV)/.installed: pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet uv
-	$(VENV)/bin/uv pip install --quiet --python $(PY) --compile-bytecode -e '.[dev]'
+	$(VENV)/bin/uv pip install --quiet --python $(PY) -e '.[dev]'
 	touch $@
 
 demo: $(VENV)/.installed
@@ -50,15 +51,16 @@ $(VENV)/.system-deps: tools/system-deps $(VENV)/.installed
 	tools/system-deps
 	touch $@
 
-# Bytecode first, once: the project's modules compiled and the tests' assertion-rewritten modules cached (a
-# collection that writes them), so the pytest workers and every `python -m hil` or simulated cell the tests
-# start read them instead of each compiling and rewriting the same files again (PYTHONDONTWRITEBYTECODE, set
-# on some machines, would stop every process from writing them). Measured on a 2-core machine: a collection
-# takes 7.3-7.7 CPU-s with nothing cached and 2.9-3.0 s with the cache.
+# Bytecode first, once: the project's modules compiled, and one collection that imports what the tests import
+# (numpy, scipy, pandas, ...) and caches the tests' assertion-rewritten modules, so the pytest workers read them
+# instead of each compiling the same files at the same moment. The suite itself also writes bytecode: a module
+# first imported by a test, a `python -m hil` or a simulated cell is compiled once, not by every process
+# (PYTHONDONTWRITEBYTECODE, set on some machines, would stop every process from writing). Measured on a 2-core
+# machine: a collection takes 7.3-7.7 CPU-s with nothing cached and 2.9-3.0 s with the cache.
 unit: $(VENV)/.installed $(VENV)/.system-deps
 	PYTHONDONTWRITEBYTECODE= $(PY) -m compileall -q -j 2 hil fakes drivers procedures tests benchmarks docs/examples
 	PYTHONDONTWRITEBYTECODE= $(PY) -m pytest -q --collect-only -p no:cacheprovider > /dev/null
-	$(PY) -m pytest -q --durations=15 $(PYTEST_PARALLEL)
+	PYTHONDONTWRITEBYTECODE= $(PY) -m pytest -q --durations=15 $(PYTEST_PARALLEL)
 
 # The long soaks (20 SIGKILLs of a campaign, a whole demo resumed): minutes; the default suite runs a short
 # version of each.
