@@ -173,7 +173,7 @@ class UrController(ScriptRuntime):
         self.kin = ArmKinematics(self.model)
         self._outputs = self._output_getters()
         self._target_pose_cache: tuple = (None, None)
-        self._actual_pose_cache: tuple = (-1, None)
+        self._actual_pose_cache: tuple = (None, None)
 
     # ---------------------------------------------------------------- servers
     async def start(self) -> None:
@@ -649,8 +649,11 @@ class UrController(ScriptRuntime):
         }
 
     def _actual_tcp_pose(self) -> list[float]:
-        if self._actual_pose_cache[0] != self.tick_count:
-            self._actual_pose_cache = (self.tick_count, self._tcp_pose(self.actual_q, self.T_flange_tcp))
+        # keyed on the joints, not the tick: an arm standing still (most ticks) reads the same encoders, and
+        # the forward kinematics was a quarter of an idle cell's CPU
+        key = (self.actual_q.tobytes(), self.T_flange_tcp.tobytes())
+        if self._actual_pose_cache[0] != key:
+            self._actual_pose_cache = (key, self._tcp_pose(self.actual_q, self.T_flange_tcp))
         return self._actual_pose_cache[1]
 
     def _target_tcp_pose(self) -> list[float]:
