@@ -9,6 +9,7 @@ For a standard DH joint beta_i is fixed at 0. Lengths in metres, angles in radia
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from functools import cached_property
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -60,11 +61,16 @@ class KinematicModel:
     @property
     def param_names(self) -> list[str]:
         """Names of the identifiable kinematic parameters, e.g. ['theta1', 'd1', 'a1', 'alpha1', ...]."""
+        return list(self._param_names)
+
+    @cached_property
+    def _param_names(self) -> tuple[str, ...]:
+        # built once per model (immutable): a fit asks for the names thousands of times
         names: list[str] = []
         for i in range(self.n_joints):
             kinds = PARAM_KINDS_MDH if self.uses_beta[i] else PARAM_KINDS_DH
             names.extend(f"{k}{i + 1}" for k in kinds)
-        return names
+        return tuple(names)
 
     @property
     def params(self) -> np.ndarray:
@@ -180,9 +186,11 @@ def _chain(
     q: np.ndarray,
     frames: np.ndarray | None,
     axes: tuple[np.ndarray, np.ndarray] | None = None,
+    mids: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Last-link rotation (N, 3, 3) and origin (N, 3), optionally filling every link frame into `frames`
-    and every frame's z axis and origin into `axes` = (Z (n, 3, N), O (n + 1, 3, N)), base frame.
+    """Last-link rotation (N, 3, 3) and origin (N, 3), optionally filling every link frame into `frames`,
+    every frame's z axis and origin into `axes` = (Z (n, 3, N), O (n + 1, 3, N)), and each joint's x axis
+    after Rz(theta) and y axis after Rx(alpha) into `mids` = (X (n, 3, N), Y (n, 3, N)), base frame.
 
     Same product as `joint_transforms` chained, written column by column on (3, N) axis arrays: a
     batched 4x4 matmul per joint costs an order of magnitude more for small matrices. The constant
@@ -190,7 +198,7 @@ def _chain(
     Rz(th) turns x, y about z; Tz(d) Tx(a) moves the origin by d z + a x'; Rx(alpha), Ry(beta) turn again.
     """
     N, n = q.shape
-    if N <= SMALL_BATCH and frames is None:
+    if N <= SMALL_BATCH and frames is None and mids is None:
         return _chain_small(model, q, axes)
     th = (q + model.theta).T  # (n, N): every axis array below is (3, N), contiguous per component
     ct, st = np.cos(th), np.sin(th)
@@ -219,6 +227,9 @@ def _chain(
             y += sa * z
             z2 = ca * z
             z2 -= sa * y1
+        if mids is not None:  # Ry(beta) below leaves y as it is
+            mids[0][i] = x1
+            mids[1][i] = y
         if has_beta[i]:
             cb, sb = cbe[i], sbe[i]
             x, z = cb * x1 - sb * z2, sb * x1 + cb * z2
@@ -377,34 +388,46 @@ def kinematic_point_jacobian(
     Returns (points (N,3), J (N, 3, len(param_names))). Analytic: each elementary factor of a
     joint transform is a rotation about, or translation along, a known axis in the base frame.
     """
-    q = model.check_joints(q)
-    frames = link_frames(model, q)
-    T_flange = frames[:, -1] @ model.T_last_flange
-    p = T_flange[:, :3, :3] @ np.asarray(p_flange_tool, dtype=float) + T_flange[:, :3, 3]
-    N = q.shape[0]
-    cols = []
-    th = q + model.theta
-    for i in range(model.n_joints):
-        R_prev = frames[:, i, :3, :3]
-        o_prev = frames[:, i, :3, 3]
-        x_prev, y_prev, z_prev = R_prev[:, :, 0], R_prev[:, :, 1], R_prev[:, :, 2]
-        c, s = np.cos(th[:, i])[:, None], np.sin(th[:, i])[:, None]
-        x_mid = c * x_prev + s * y_prev  # x axis after Rz(theta)
-        y_mid = -s * x_prev + c * y_prev
-        o_i = frames[:, i + 1, :3, 3]  # origin after Tz(d) Tx(a); beta does not translate
-        d_theta = np.cross(z_prev, p - o_prev)
-        d_d = z_prev
-        d_a = x_mid
-        d_alpha = np.cross(x_mid, p - o_i)
-        if model.uses_beta[i]:
-            ca, sa = np.cos(model.alpha[i]), np.sin(model.alpha[i])
-            y_after_alpha = ca * y_mid + sa * z_prev
-            d_beta = np.cross(y_after_alpha, p - o_i)
-            cols.extend([d_theta, d_a, d_alpha, d_beta])
-        else:
-            cols.extend([d_theta, d_d, d_a, d_alpha])
-    J = np.stack(cols, axis=2) if cols else np.zeros((N, 3, 0))
+    p, J, _ = _point_jacobian(model, q, p_flange_tool)
     return p, J
+
+
+def _cross(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """u x v over axis 1 of (n, 3, N) arrays (np.cross moves the axis last and back: several times slower)."""
+    out = np.empty(np.broadcast_shapes(u.shape, v.shape))
+    np.subtract(u[:, 1] * v[:, 2], u[:, 2] * v[:, 1], out=out[:, 0])
+    np.subtract(u[:, 2] * v[:, 0], u[:, 0] * v[:, 2], out=out[:, 1])
+    np.subtract(u[:, 0] * v[:, 1], u[:, 1] * v[:, 0], out=out[:, 2])
+    return out
+
+
+def _point_jacobian(
+    model: KinematicModel, q: np.ndarray, p_flange_tool: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`kinematic_point_jacobian` and the flange rotations R_base_flange (N, 3, 3), from one pass over the
+    chain on (3, N) axis arrays. Joint i's columns: theta turns the tip about the previous z axis through the
+    previous origin; d moves it along that z; a along the x axis after Rz(theta); alpha turns it about that x
+    through the joint's origin; beta (where used, in place of d) about the y axis after Rx(alpha)."""
+    q = model.check_joints(q)
+    N, n = q.shape
+    Z, O = np.empty((n, 3, N)), np.empty((n + 1, 3, N))
+    X_mid, Y_alpha = np.empty((n, 3, N)), np.empty((n, 3, N))
+    R, o_last = _chain(model, q, None, (Z, O), (X_mid, Y_alpha))
+    L = np.asarray(model.T_last_flange, dtype=float)
+    R_flange = R @ L[:3, :3]
+    o_flange = R @ L[:3, 3] + o_last
+    tip = R_flange @ np.asarray(p_flange_tool, dtype=float) + o_flange  # (N, 3)
+    to_tip_prev = tip.T - O[:n]  # (n, 3, N): from the previous origin to the tip
+    to_tip_here = tip.T - O[1:]  # from the joint's own origin (after Tz(d) Tx(a); beta does not translate)
+    beta = np.asarray(model.uses_beta, bool)[:, None, None]
+    d_alpha = _cross(X_mid, to_tip_here)
+    columns = np.empty((n, 4, 3, N))
+    columns[:, 0] = _cross(Z, to_tip_prev)  # theta
+    columns[:, 1] = np.where(beta, X_mid, Z)  # MDH: a; DH: d
+    columns[:, 2] = np.where(beta, d_alpha, X_mid)  # MDH: alpha; DH: a
+    columns[:, 3] = np.where(beta, _cross(Y_alpha, to_tip_here), d_alpha) if beta.any() else d_alpha
+    J = np.ascontiguousarray(columns.reshape(4 * n, 3, N).transpose(2, 1, 0))
+    return tip, J, R_flange
 
 
 BASE_PARAM_NAMES: tuple[str, ...] = ("base_tx", "base_ty", "base_tz", "base_rx", "base_ry", "base_rz")
@@ -429,7 +452,7 @@ def identification_jacobian(
     dt in tracker axes, dr a small rotation vector about the robot base origin in base axes
     (see `perturb_base`).
     """
-    p_base, J_kin = kinematic_point_jacobian(model, q, p_flange_tool)
+    p_base, J_kin, R_base_flange = _point_jacobian(model, q, p_flange_tool)
     R_LB = T_tracker_base[:3, :3]
     p_L = p_base @ R_LB.T + T_tracker_base[:3, 3]
     N = p_base.shape[0]
@@ -442,8 +465,7 @@ def identification_jacobian(
         [np.stack([zero, -pz, py], -1), np.stack([pz, zero, -px], -1), np.stack([-py, px, zero], -1)], -2
     )
     J_base_r = np.einsum("ij,njk->nik", R_LB, neg_skew)
-    T_flange = forward_kinematics(model, q)
-    J_tool = np.einsum("ij,njk->nik", R_LB, T_flange[:, :3, :3])
+    J_tool = np.einsum("ij,njk->nik", R_LB, R_base_flange)
     J = np.concatenate([J_kin_L, J_base_t, J_base_r, J_tool], axis=2)
     return p_L, J
 
