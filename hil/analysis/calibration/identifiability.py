@@ -83,21 +83,20 @@ def analyse(
     idx = [i for i in sorted(range(len(names)), key=lambda i: (_priority(names[i]), i)) if cand[i]]
     Js, _ = scale_columns(J)
     raw_norm = np.linalg.norm(J, axis=0)
-    basis: list[np.ndarray] = []
+    basis = np.empty((len(idx), J.shape[0]))  # orthonormal rows, the first `len(kept_idx)` in use
     kept_idx: list[int] = []
     dropped_idx: list[int] = []
     distinct: dict[int, float] = {}  # part of a dropped column orthogonal to the kept ones
     for i in idx:
-        c = Js[:, i]
         if raw_norm[i] == 0:
             dropped_idx.append(i)
             continue
-        r = c.copy()
-        for _ in range(2):  # classical Gram-Schmidt, re-orthogonalised once for stability
-            for b in basis:
-                r -= (b @ r) * b
+        r = Js[:, i].copy()
+        B = basis[: len(kept_idx)]
+        for _ in range(2):  # Gram-Schmidt against every kept column at once, re-orthogonalised once
+            r -= (B @ r) @ B
         if np.linalg.norm(r) > tol:
-            basis.append(r / np.linalg.norm(r))
+            basis[len(kept_idx)] = r / np.linalg.norm(r)
             kept_idx.append(i)
         else:
             dropped_idx.append(i)
