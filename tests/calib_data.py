@@ -99,6 +99,14 @@ def cell_datasets(step_m: float = 0.1, n_val: int = 100, seed: int = 0, **config
 def true_effect_model(train, robot: str, families: tuple[str, ...]):
     """The model a user who knew the cell's effects would fit: geometry plus every candidate of those
     families the data can show (the yardstick of the diagnosis goals)."""
+    return true_effect_fit(train, robot, families).model
+
+
+def true_effect_fit(train, robot: str, families: tuple[str, ...], true_values: dict | None = None):
+    """`true_effect_model`'s fit (its CalibrationResult: the coefficients' standard errors too). With
+    `true_values` ({family: coefficient}, for effects of one coefficient) those families are held at the values
+    the simulated cell applies, and only the rest is fitted: the model of a user who knew those effects exactly,
+    not merely their families."""
     from hil.analysis.calibration.solve import calibrate
     from hil.data.dataset import joints_rad
     from hil.model.calibrated_model import initial_model
@@ -107,8 +115,11 @@ def true_effect_model(train, robot: str, families: tuple[str, ...]):
     model = initial_model(robot, train)
     ctx = EffectContext.from_frame(train, joints_rad(train))
     for eff in candidate_effects(ctx, model.nominal, [], families):
+        if true_values and eff.family in true_values:
+            eff.params = np.array([true_values[eff.family]], dtype=float)
+            eff.state["held"] = True
         model = model.with_effect(eff)
-    return calibrate(train, model, "ridge").model
+    return calibrate(train, model, "ridge")
 
 
 def compliant_ur10(
