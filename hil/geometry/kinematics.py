@@ -169,6 +169,12 @@ def link_frames(model: KinematicModel, q: np.ndarray) -> np.ndarray:
 
 def forward_kinematics(model: KinematicModel, q: np.ndarray) -> np.ndarray:
     """Flange poses T_base_flange (N, 4, 4) for joints q (N, n)."""
+    return flange_poses_and_last_origins(model, q)[0]
+
+
+def flange_poses_and_last_origins(model: KinematicModel, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Flange poses T_base_flange (N, 4, 4) and the last link's origin (N, 3) (see `last_link_origins`) from
+    one pass over the chain: a model whose links grow needs both for every prediction."""
     q = model.check_joints(q)
     R, p = _chain(model, q, None)
     T = np.zeros((q.shape[0], 4, 4))
@@ -177,8 +183,8 @@ def forward_kinematics(model: KinematicModel, q: np.ndarray) -> np.ndarray:
     T[:, 3, 3] = 1.0
     L = np.asarray(model.T_last_flange, dtype=float)
     if np.array_equal(L, np.eye(4)):
-        return T
-    return T @ L
+        return T, p
+    return T @ L, p
 
 
 def _chain(

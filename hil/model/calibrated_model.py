@@ -30,7 +30,13 @@ from hil.geometry.kinematics import (
 )
 from hil.geometry.robots import get_robot
 from hil.geometry.se3 import fit_rigid, invert, make_transform, transform_points
-from hil.model.effects import Effect, EffectContext, effect_from_dict, growth_direction, tool_points_rows
+from hil.model.effects import (
+    Effect,
+    EffectContext,
+    effect_from_dict,
+    tool_points_and_growth_direction,
+    tool_points_rows,
+)
 from hil.model.intervals import PredictionSpread
 from hil.model.residual_maps import map_from_dict
 
@@ -134,20 +140,25 @@ class CalibratedModel:
 
     def predict_ctx(self, ctx: EffectContext) -> np.ndarray:
         """Predicted SMR centres (N, 3) in the tracker frame, metres."""
+        return self._predict_and_growth_direction(ctx)[0]
+
+    def _predict_and_growth_direction(self, ctx: EffectContext) -> tuple[np.ndarray, np.ndarray]:
+        """`predict_ctx` and the links' growth direction (N, 3, base frame) at the effective joints, from one
+        pass over the chain (the Jacobian needs both)."""
         q_eff = ctx.q + self.joint_offsets(ctx)
-        p_base = tool_points_rows(self.kinematic, q_eff, _context_tools(ctx))
+        p_base, growth = tool_points_and_growth_direction(self.kinematic, q_eff, _context_tools(ctx))
         offset = np.zeros_like(p_base)
         scale = np.zeros(len(p_base))
         for eff in self.effects:
             if eff.kind == "growth":
                 g = eff.cached_regressors(ctx, self.nominal) @ eff.params
-                p_base = p_base + g[:, None] * growth_direction(self.kinematic, q_eff)
+                p_base = p_base + g[:, None] * growth
             elif eff.kind == "offset":
                 offset += eff.cached_regressors(ctx, self.nominal)[:, :1] * eff.params[None, :]
             elif eff.kind == "scale":
                 scale += eff.cached_regressors(ctx, self.nominal) @ eff.params
         R, t = self.T_tracker_base[:3, :3], self.T_tracker_base[:3, 3]
-        return (p_base @ R.T + t + offset) * (1.0 + scale)[:, None]  # the tracker scales what it sees
+        return (p_base @ R.T + t + offset) * (1.0 + scale)[:, None], growth  # the tracker scales what it sees
 
     def predict(self, df: pd.DataFrame, with_map: bool = True) -> np.ndarray:
         """Predicted SMR centres (N, 3) in the tracker frame (m) for the joints (and drivers) in df.
@@ -198,7 +209,7 @@ class CalibratedModel:
             self.kinematic.param_names.index(f"theta{j + 1}") for j in range(self.kinematic.n_joints)
         ]
         R = self.T_tracker_base[:3, :3]
-        p = self.predict_ctx(ctx)
+        p, growth = self._predict_and_growth_direction(ctx)
         scale = sum(
             (e.cached_regressors(ctx, self.nominal) @ e.params for e in self.effects if e.kind == "scale"),
             np.zeros(N),
@@ -209,7 +220,7 @@ class CalibratedModel:
                 col = J[:, :, theta_cols[eff.joint_index]]
                 J[:, :, sl] = col[:, :, None] * reg[:, None, :]
             elif eff.kind == "growth":
-                G = growth_direction(self.kinematic, q_eff) @ R.T
+                G = growth @ R.T
                 J[:, :, sl] = G[:, :, None] * reg[:, None, :]
             elif eff.kind == "scale":  # the point before the tracker's scale
                 J[:, :, sl] = (p / (1.0 + scale)[:, None])[:, :, None] * reg[:, None, :]

@@ -50,6 +50,7 @@ from hil.data.jsonable import to_jsonable
 from hil.geometry.kinematics import (
     KinematicModel,
     chain_axes,
+    flange_poses_and_last_origins,
     forward_kinematics,
     last_link_origins,
     tool_points,
@@ -784,3 +785,15 @@ def tool_points_rows(model: KinematicModel, q: np.ndarray, p_flange_tool_rows: n
         return tool_points(model, q, p_flange_tool_rows)
     T = forward_kinematics(model, q)
     return np.einsum("nij,nj->ni", T[:, :3, :3], p_flange_tool_rows) + T[:, :3, 3]
+
+
+def tool_points_and_growth_direction(
+    model: KinematicModel, q: np.ndarray, p_flange_tool_rows: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """`tool_points_rows` and `growth_direction` (N, 3) each, from one pass over the chain."""
+    T, growth = flange_poses_and_last_origins(model, q)
+    if np.ndim(p_flange_tool_rows) == 1:
+        points = T[:, :3, :3] @ np.asarray(p_flange_tool_rows, dtype=float) + T[:, :3, 3]
+    else:
+        points = np.einsum("nij,nj->ni", T[:, :3, :3], p_flange_tool_rows) + T[:, :3, 3]
+    return points, growth
