@@ -73,8 +73,9 @@ class Envelope:
         come closer than a margin to the arm itself, the tracker or a keep-out box."""
         q = np.atleast_2d(np.asarray(q, float))
         outside = self._outside_box(nominal, q, p_flange_tools_m)
-        if self.bodies is not None and len(q):
-            outside |= self.bodies.collides(nominal, q)
+        inside = np.flatnonzero(~outside)
+        if self.bodies is not None and inside.size:  # the costly check only where the box leaves it open
+            outside[inside] = self.bodies.collides(nominal, q[inside])
         return outside
 
     def _outside_box(
