@@ -270,6 +270,7 @@ class URRobot:
                         cfg.host, -1.0, rtde_control.RTDEControlInterface.FLAG_UPLOAD_SCRIPT
                     )
                 ctrl.setTcp([0.0] * 6)  # TCP pose = flange pose
+                self._await_program_on_receive_stream()
                 self._last_stamp, self._last_stamp_wall = rx.getTimestamp(), time.monotonic()
                 return
             except (EmergencyStopError, ProtectiveStopError, RobotNotReadyError):
@@ -281,6 +282,15 @@ class URRobot:
                 self._disconnect()
                 time.sleep(min(2.0, 0.2 * 2**attempt))
         raise RobotConnectionError(f"could not connect to the UR controller at {cfg.host}: {_reason(last)}")
+
+    def _await_program_on_receive_stream(self) -> None:
+        """The control interface saw its program start; the receive stream, another socket, may report it some
+        cycles later (more on a loaded PC), and the first command's check reads that stream: wait for it there,
+        bounded (if it never shows, that check names what the controller says)."""
+        rx = self._receive()
+        deadline = time.monotonic() + self.config.stream_sync_timeout_s
+        while rx.getRuntimeState() != _PLAYING and time.monotonic() < deadline:
+            time.sleep(0.002)
 
     def _require_arm_ready(self) -> None:
         """Before the control program is uploaded: the arm must be powered, brakes released, no stop."""
