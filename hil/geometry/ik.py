@@ -11,7 +11,7 @@ frame; errors are [dp (m), rotation vector (rad)] in the base frame, matching `g
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -282,23 +282,31 @@ class _Problem:
     wbar: float
     tol_position: float
     tol_rotation: float
+    tool_is_flange: bool = field(init=False)  # T_flange_tool is the identity: errors skip the product
+
+    def __post_init__(self) -> None:
+        self.tool_is_flange = bool(np.array_equal(self.T_flange_tool, np.eye(4)))
 
     def residual(self, q: np.ndarray, rows: np.ndarray) -> np.ndarray:
         """Error e (k, m) taking the current tool to the target, for targets `rows`."""
         return self._error(forward_kinematics(self.model, q), rows)
 
-    def residual_and_jacobian(self, q: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """`residual` and `jacobian` at q from one pass over the chain (the same numbers as each alone)."""
+    def residual_and_jacobian(self, q: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The residual at q for `target` (the rows' targets, `targets[rows]`) and the Jacobian, from one
+        pass over the chain (the same numbers as `residual` and `jacobian` alone)."""
         T, J = pose_and_jacobian(self.model, q, self.T_flange_tool[:3, 3])
-        return self._error(T, rows), (J if self.mode == "pose" else J[:, :3])
+        return self._error_to(T, target), (J if self.mode == "pose" else J[:, :3])
 
     def _error(self, T_base_flange: np.ndarray, rows: np.ndarray) -> np.ndarray:
-        T = T_base_flange @ self.T_flange_tool
+        return self._error_to(T_base_flange, self.targets[rows])
+
+    def _error_to(self, T_base_flange: np.ndarray, target: np.ndarray) -> np.ndarray:
+        """The error taking the tool at the flange poses `T_base_flange` to `target` (k targets)."""
+        T = T_base_flange if self.tool_is_flange else T_base_flange @ self.T_flange_tool
         if self.mode == "pose":
-            target = self.targets[rows]
             dp = target[:, :3, 3] - T[:, :3, 3]
             return np.concatenate([dp, rotation_log(target[:, :3, :3] @ np.swapaxes(T[:, :3, :3], 1, 2))], 1)
-        return self.targets[rows] - T[:, :3, 3]
+        return target - T[:, :3, 3]
 
     def jacobian(self, q: np.ndarray) -> np.ndarray:
         J = geometric_jacobian(self.model, q, self.T_flange_tool[:3, 3])
@@ -320,6 +328,8 @@ def _limited_step(model: KinematicModel, q: np.ndarray, A: np.ndarray, g: np.nda
     lo, hi = model.joint_limits[:, 0], model.joint_limits[:, 1]
     span_ok = (hi - lo) >= TWO_PI  # such a joint can always wrap back inside
     dq = np.linalg.solve(A, g[..., None])[..., 0]
+    if span_ok.all():  # no joint is ever held: the first solve is the step
+        return dq
     fixed = np.zeros(q.shape, bool)
     for _ in range(2):
         out = ~span_ok & ((q + dq < lo) | (q + dq > hi))
@@ -346,41 +356,80 @@ def _levenberg_marquardt(
     (`_limited_step`); the result is projected onto the limits (wrapped by 2 pi where that lands inside). A target stops when converged, hopelessly stuck (lam > 1e12) or stalled (E not
     reduced by STALL_FACTOR within STALL_WINDOW iterations). Each trial point's error and
     Jacobian come from one pass over the chain; the Jacobian is kept where the step is accepted.
+    The rows still iterating live in compact arrays (`_LMRows`), compressed only when some stop: an
+    iteration of a few hopeless rows costs its numpy calls, not gathers and scatters of every array.
     """
     q = project_to_limits(prob.model, q0)
-    k, n = q.shape
+    e, J = prob.residual_and_jacobian(q, prob.targets[rows])
+    lm = _LMRows.begin(prob, q, e, J, rows)
+    lo, hi = prob.model.joint_limits[:, 0], prob.model.joint_limits[:, 1]
     W = prob.weights
-    e, J = prob.residual_and_jacobian(q, rows)
-    E = 0.5 * np.einsum("km,m,km->k", e, W, e)
-    lam = np.ones(k)
-    iters = np.zeros(k, int)
-    active = ~prob.converged(e)
-    eye = np.eye(n)
-    E_check = E.copy()  # stall test: E must fall by STALL_FACTOR every STALL_WINDOW iterations
+    eye = np.eye(q.shape[1])
     for it in range(1, max_iter + 1):
-        idx = np.flatnonzero(active)
-        if idx.size == 0:
+        if lm.idx.size == 0:
             break
-        JtW = np.swapaxes(J[idx], 1, 2) * W
-        A = JtW @ J[idx] + (E[idx] + lam[idx] * prob.wbar)[:, None, None] * eye
-        g = np.einsum("knm,km->kn", JtW, e[idx])
-        dq = _limited_step(prob.model, q[idx], A, g)
-        q_new = project_to_limits(prob.model, q[idx] + dq)
-        e_new, J_new = prob.residual_and_jacobian(q_new, rows[idx])
+        JtW = np.swapaxes(lm.J, 1, 2) * W
+        A = JtW @ lm.J + (lm.cost + lm.lam * prob.wbar)[:, None, None] * eye
+        g = np.einsum("knm,km->kn", JtW, lm.e)
+        q_new = lm.q + _limited_step(prob.model, lm.q, A, g)
+        if not np.all((q_new >= lo) & (q_new <= hi)):
+            q_new = project_to_limits(prob.model, q_new)
+        e_new, J_new = prob.residual_and_jacobian(q_new, lm.target)
         E_new = 0.5 * np.einsum("km,m,km->k", e_new, W, e_new)
-        accept = E_new < E[idx]
-        acc = idx[accept]
-        q[acc], e[acc], E[acc], J[acc] = q_new[accept], e_new[accept], E_new[accept], J_new[accept]
-        lam[acc] = np.maximum(lam[acc] * LAM_DOWN, LAM_MIN)
-        rej = idx[~accept]
-        lam[rej] *= LAM_UP
-        iters[idx] += 1
-        done = prob.converged(e[idx]) | (lam[idx] > 1e12)
-        if it % STALL_WINDOW == 0:
-            done |= E[idx] > STALL_FACTOR * E_check[idx]
-            E_check[idx] = E[idx]
-        active[idx[done]] = False
-    return q, e, iters
+        accept = E_new < lm.cost
+        lm.q[accept], lm.e[accept] = q_new[accept], e_new[accept]
+        lm.cost[accept], lm.J[accept] = E_new[accept], J_new[accept]
+        lm.lam = np.where(accept, np.maximum(lm.lam * LAM_DOWN, LAM_MIN), lm.lam * LAM_UP)
+        lm.iters += 1
+        done = prob.converged(lm.e) | (lm.lam > 1e12)
+        if it % STALL_WINDOW == 0:  # E must fall by STALL_FACTOR every STALL_WINDOW iterations
+            done |= lm.cost > STALL_FACTOR * lm.cost_checked
+            lm.cost_checked = lm.cost.copy()
+        if done.any():
+            lm.leave(done, q, e)
+    lm.leave(np.ones(lm.idx.size, bool), q, e)
+    return q, e, lm.iters_all
+
+
+@dataclass
+class _LMRows:
+    """`_levenberg_marquardt`'s rows still iterating: their batch rows `idx` and compact copies of
+    their joints, residuals, costs, Jacobians, targets, bias multipliers, iteration counts and the cost
+    at the last stall check."""
+
+    idx: np.ndarray
+    q: np.ndarray
+    e: np.ndarray
+    cost: np.ndarray  # E = 1/2 e^T W_E e
+    J: np.ndarray
+    target: np.ndarray
+    lam: np.ndarray
+    iters: np.ndarray
+    cost_checked: np.ndarray  # E at the last stall check
+    iters_all: np.ndarray  # (k,) every row's iterations, written as rows stop
+
+    @classmethod
+    def begin(cls, prob: _Problem, q: np.ndarray, e: np.ndarray, J: np.ndarray, rows: np.ndarray) -> _LMRows:
+        """The rows not converged at the seeds q (their residuals e, Jacobians J), for targets `rows`."""
+        k = len(q)
+        live = np.flatnonzero(~prob.converged(e))
+        cost = _cost(prob, e[live])
+        return cls(
+            live, q[live], e[live], cost, J[live], prob.targets[rows[live]], np.ones(live.size),
+            np.zeros(live.size, int), cost.copy(), np.zeros(k, int),
+        )  # fmt: skip
+
+    def leave(self, mask: np.ndarray, q: np.ndarray, e: np.ndarray) -> None:
+        """The rows in `mask` stop: their joints, residuals and iterations are written into the batch's
+        q, e and `iters_all`; the others stay."""
+        rows = self.idx[mask]
+        q[rows], e[rows], self.iters_all[rows] = self.q[mask], self.e[mask], self.iters[mask]
+        if mask.all():
+            self.idx = self.idx[:0]
+            return
+        keep = ~mask
+        for name in ("idx", "q", "e", "cost", "J", "target", "lam", "iters", "cost_checked"):
+            setattr(self, name, getattr(self, name)[keep])
 
 
 # --------------------------------------------------------------------------------------------------

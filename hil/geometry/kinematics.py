@@ -287,11 +287,10 @@ def _chain_constants(model: KinematicModel) -> tuple:
     return got
 
 
-def _chain_small(
-    model: KinematicModel, q: np.ndarray, axes: tuple[np.ndarray, np.ndarray] | None
-) -> tuple[np.ndarray, np.ndarray]:
-    """`_chain` for a few rows: every joint's (4, 4) transform built at once, then n - 1 batched matmuls.
-    Fewer numpy calls than the column-wise loop, which wins from a few dozen rows on."""
+def _small_frames(model: KinematicModel, q: np.ndarray) -> np.ndarray:
+    """Every link frame (N, n + 1, 4, 4) for a few rows (index 0 the base): every joint's (4, 4) transform
+    built at once, then n - 1 batched matmuls, each written into its frame. Fewer numpy calls than the
+    column-wise loop of `_chain`, which wins from a few dozen rows on."""
     N, n = q.shape
     th = q + model.theta
     ct, st = np.cos(th)[..., None], np.sin(th)[..., None]  # (N, n, 1)
@@ -304,18 +303,24 @@ def _chain_small(
     A[..., 1, 3] = st[..., 0] * model.a
     A[..., 2, 3] = model.d
     A[..., 3, 3] = 1.0
-    T = A[:, 0]
-    if axes is not None:
-        axes[0][0] = np.array([[0.0], [0.0], [1.0]])
-        axes[1][0] = 0.0
+    F = np.empty((N, n + 1, 4, 4))
+    F[:, 0] = np.eye(4)
+    F[:, 1] = A[:, 0]
     for i in range(1, n):
-        if axes is not None:
-            axes[0][i] = T[:, :3, 2].T
-            axes[1][i] = T[:, :3, 3].T
-        T = T @ A[:, i]
+        np.matmul(F[:, i], A[:, i], out=F[:, i + 1])
+    return F
+
+
+def _chain_small(
+    model: KinematicModel, q: np.ndarray, axes: tuple[np.ndarray, np.ndarray] | None
+) -> tuple[np.ndarray, np.ndarray]:
+    """`_chain` for a few rows, from `_small_frames`."""
+    n = q.shape[1]
+    F = _small_frames(model, q)
     if axes is not None:
-        axes[1][n] = T[:, :3, 3].T
-    return T[:, :3, :3], T[:, :3, 3]
+        axes[0][:] = F[:, :n, :3, 2].transpose(1, 2, 0)
+        axes[1][:] = F[:, :, :3, 3].transpose(1, 2, 0)
+    return F[:, n, :3, :3], F[:, n, :3, 3]
 
 
 def last_link_origins(model: KinematicModel, q: np.ndarray) -> np.ndarray:
@@ -356,10 +361,13 @@ def chain_axes(model: KinematicModel, q: np.ndarray) -> tuple[np.ndarray, np.nda
     T[:, :3, :3] = R
     T[:, :3, 3] = p
     T[:, 3, 3] = 1.0
+    return _with_last_flange(model, T), Z, O
+
+
+def _with_last_flange(model: KinematicModel, T_base_last: np.ndarray) -> np.ndarray:
+    """The flange poses from the last link's (N, 4, 4): times the model's fixed T_last_flange."""
     L = np.asarray(model.T_last_flange, dtype=float)
-    if not np.array_equal(L, np.eye(4)):
-        T = T @ L
-    return T, Z, O
+    return T_base_last if np.array_equal(L, np.eye(4)) else T_base_last @ L
 
 
 def pose_and_jacobian(
@@ -367,8 +375,14 @@ def pose_and_jacobian(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Flange poses T_base_flange (N, 4, 4) and the geometric Jacobian (N, 6, n) at the tool point, in one
     pass over the chain (the Newton step of the IK needs both)."""
-    T, Z, O = chain_axes(model, q)
-    n, _, N = Z.shape
+    q = model.check_joints(q)
+    N, n = q.shape
+    if N <= SMALL_BATCH:  # the link frames at once: their z axes and origins are views
+        F = _small_frames(model, q)
+        T = _with_last_flange(model, F[:, n].copy())
+        Z, O = F[:, :n, :3, 2].transpose(1, 2, 0), F[:, :n, :3, 3].transpose(1, 2, 0)
+    else:
+        T, Z, O = chain_axes(model, q)
     tip = (
         T[:, :3, 3]
         if p_flange_tool is None

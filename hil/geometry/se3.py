@@ -51,6 +51,9 @@ def transform_to_pose(T: np.ndarray) -> np.ndarray:
     return np.concatenate([flat[:, :3, 3], rv], axis=1).reshape(T.shape[:-2] + (6,))
 
 
+_SKEW_ROWS, _SKEW_COLS = np.array([2, 0, 1]), np.array([1, 2, 0])  # the axial vector's (row, column) pairs
+
+
 def rotation_log(R: np.ndarray) -> np.ndarray:
     """Rotation vectors (..., 3), rad, of rotation matrices (..., 3, 3): the SO(3) logarithm.
 
@@ -60,7 +63,7 @@ def rotation_log(R: np.ndarray) -> np.ndarray:
     R = np.asarray(R, dtype=float)
     lead = R.shape[:-2]
     R = R.reshape(-1, 3, 3)
-    s = 0.5 * np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], axis=1)
+    s = 0.5 * (R[:, _SKEW_ROWS, _SKEW_COLS] - R[:, _SKEW_COLS, _SKEW_ROWS])  # R21 - R12, R02 - R20, R10 - R01
     c = 0.5 * (R[:, 0, 0] + R[:, 1, 1] + R[:, 2, 2] - 1.0)
     sn = np.sqrt(np.add.reduce(s * s, axis=1))  # np.linalg.norm's arithmetic without its call overhead
     angle = np.arctan2(sn, c)
