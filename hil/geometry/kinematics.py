@@ -181,10 +181,7 @@ def flange_poses_and_last_origins(model: KinematicModel, q: np.ndarray) -> tuple
     T[:, :3, :3] = R
     T[:, :3, 3] = p
     T[:, 3, 3] = 1.0
-    L = np.asarray(model.T_last_flange, dtype=float)
-    if np.array_equal(L, np.eye(4)):
-        return T, p
-    return T @ L, p
+    return _with_last_flange(model, T), p
 
 
 def _chain(
@@ -207,7 +204,7 @@ def _chain(
     if N <= SMALL_BATCH and frames is None and mids is None:
         return _chain_small(model, q, axes)
     th = (q + model.theta).T  # (n, N): every axis array below is (3, N), contiguous per component
-    ct, st = np.cos(th), np.sin(th)
+    ct, st = np.cos(th, order="C"), np.sin(th, order="C")  # rows contiguous too: faster products
     d, a, cal, sal, cbe, sbe, has_beta, _ = _chain_constants(model)
     x, y, z = np.zeros((3, N)), np.zeros((3, N)), np.zeros((3, N))
     x[0] = y[1] = z[2] = 1.0
@@ -364,10 +361,13 @@ def chain_axes(model: KinematicModel, q: np.ndarray) -> tuple[np.ndarray, np.nda
     return _with_last_flange(model, T), Z, O
 
 
+_IDENTITY_4 = np.eye(4).ravel().tolist()  # compared as a list: the check runs on every chain
+
+
 def _with_last_flange(model: KinematicModel, T_base_last: np.ndarray) -> np.ndarray:
     """The flange poses from the last link's (N, 4, 4): times the model's fixed T_last_flange."""
     L = np.asarray(model.T_last_flange, dtype=float)
-    return T_base_last if np.array_equal(L, np.eye(4)) else T_base_last @ L
+    return T_base_last if L.ravel().tolist() == _IDENTITY_4 else T_base_last @ L
 
 
 def pose_and_jacobian(
