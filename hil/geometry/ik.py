@@ -328,8 +328,6 @@ def _limited_step(model: KinematicModel, q: np.ndarray, A: np.ndarray, g: np.nda
     lo, hi = model.joint_limits[:, 0], model.joint_limits[:, 1]
     span_ok = (hi - lo) >= TWO_PI  # such a joint can always wrap back inside
     dq = np.linalg.solve(A, g[..., None])[..., 0]
-    if span_ok.all():  # no joint is ever held: the first solve is the step
-        return dq
     fixed = np.zeros(q.shape, bool)
     for _ in range(2):
         out = ~span_ok & ((q + dq < lo) | (q + dq > hi))
@@ -363,6 +361,7 @@ def _levenberg_marquardt(
     e, J = prob.residual_and_jacobian(q, prob.targets[rows])
     lm = _LMRows.begin(prob, q, e, J, rows)
     lo, hi = prob.model.joint_limits[:, 0], prob.model.joint_limits[:, 1]
+    wraps = bool(np.all(hi - lo >= TWO_PI))  # every joint can wrap back inside: no joint is ever held
     W = prob.weights
     eye = np.eye(q.shape[1])
     for it in range(1, max_iter + 1):
@@ -371,7 +370,10 @@ def _levenberg_marquardt(
         JtW = np.swapaxes(lm.J, 1, 2) * W
         A = JtW @ lm.J + (lm.cost + lm.lam * prob.wbar)[:, None, None] * eye
         g = np.einsum("knm,km->kn", JtW, lm.e)
-        q_new = lm.q + _limited_step(prob.model, lm.q, A, g)
+        if wraps:  # what _limited_step's first solve gives
+            q_new = lm.q + np.linalg.solve(A, g[..., None])[..., 0]
+        else:
+            q_new = lm.q + _limited_step(prob.model, lm.q, A, g)
         if not np.all((q_new >= lo) & (q_new <= hi)):
             q_new = project_to_limits(prob.model, q_new)
         e_new, J_new = prob.residual_and_jacobian(q_new, lm.target)

@@ -284,6 +284,10 @@ def _chain_constants(model: KinematicModel) -> tuple:
     return got
 
 
+_IDENTITY_4X4 = np.eye(4)
+_IDENTITY_4X4.flags.writeable = False
+
+
 def _small_frames(model: KinematicModel, q: np.ndarray) -> np.ndarray:
     """Every link frame (N, n + 1, 4, 4) for a few rows (index 0 the base): every joint's (4, 4) transform
     built at once, then n - 1 batched matmuls, each written into its frame. Fewer numpy calls than the
@@ -301,7 +305,7 @@ def _small_frames(model: KinematicModel, q: np.ndarray) -> np.ndarray:
     A[..., 2, 3] = model.d
     A[..., 3, 3] = 1.0
     F = np.empty((N, n + 1, 4, 4))
-    F[:, 0] = np.eye(4)
+    F[:, 0] = _IDENTITY_4X4
     F[:, 1] = A[:, 0]
     for i in range(1, n):
         np.matmul(F[:, i], A[:, i], out=F[:, i + 1])
