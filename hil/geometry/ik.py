@@ -374,7 +374,7 @@ def _levenberg_marquardt(
             q_new = lm.q + np.linalg.solve(A, g[..., None])[..., 0]
         else:
             q_new = lm.q + _limited_step(prob.model, lm.q, A, g)
-        if not np.all((q_new >= lo) & (q_new <= hi)):
+        if not ((q_new >= lo) & (q_new <= hi)).all():
             q_new = project_to_limits(prob.model, q_new)
         e_new, J_new = prob.residual_and_jacobian(q_new, lm.target)
         E_new = 0.5 * np.einsum("km,m,km->k", e_new, W, e_new)

@@ -205,7 +205,7 @@ def _chain(
         return _chain_small(model, q, axes)
     th = (q + model.theta).T  # (n, N): every axis array below is (3, N), contiguous per component
     ct, st = np.cos(th, order="C"), np.sin(th, order="C")  # rows contiguous too: faster products
-    d, a, cal, sal, cbe, sbe, has_beta, _ = _chain_constants(model)
+    d, a, cal, sal, cbe, sbe, has_beta, _, _ = _chain_constants(model)
     x, y, z = np.zeros((3, N)), np.zeros((3, N)), np.zeros((3, N))
     x[0] = y[1] = z[2] = 1.0
     p = np.zeros((3, N))
@@ -266,7 +266,13 @@ def _chain_constants(model: KinematicModel) -> tuple:
             np.stack([sa * sb, ca, -sa * cb], 1),
             np.stack([-ca * sb, sa, ca * cb], 1),
         )
-        for r in rows:
+        # `_small_frames`: A[:2, :3] = cos(th) P + sin(th) Q (the rows of Rz(th) times the rows above),
+        # and a template holding every joint transform's constant rows (c2 and d; 0 0 0 1).
+        P = np.stack([rows[0], rows[1]], 1)
+        Q = np.stack([-rows[1], rows[0]], 1)
+        template = np.zeros((len(d), 4, 4))
+        template[:, 2, :3], template[:, 2, 3], template[:, 3, 3] = rows[2], d, 1.0
+        for r in (*rows, P, Q, template):
             r.flags.writeable = False
         got = (
             d.tolist(),
@@ -277,6 +283,7 @@ def _chain_constants(model: KinematicModel) -> tuple:
             sb.tolist(),
             (beta != 0).tolist(),
             rows,
+            (P, Q, template, a[:, None]),
         )
         if len(_CONSTANTS) > 256:  # many models in one process (calibration sweeps): start again
             _CONSTANTS.clear()
@@ -294,16 +301,14 @@ def _small_frames(model: KinematicModel, q: np.ndarray) -> np.ndarray:
     column-wise loop of `_chain`, which wins from a few dozen rows on."""
     N, n = q.shape
     th = q + model.theta
-    ct, st = np.cos(th)[..., None], np.sin(th)[..., None]  # (N, n, 1)
-    c0, c1, c2 = _chain_constants(model)[-1]  # rows of Rx(alpha) Ry(beta); the joint turns Rz(th) times it
-    A = np.zeros((N, n, 4, 4))
-    A[..., 0, :3] = ct * c0 - st * c1
-    A[..., 1, :3] = st * c0 + ct * c1
-    A[..., 2, :3] = c2
-    A[..., 0, 3] = ct[..., 0] * model.a
-    A[..., 1, 3] = st[..., 0] * model.a
-    A[..., 2, 3] = model.d
-    A[..., 3, 3] = 1.0
+    P, Q, template, a = _chain_constants(model)[-1]
+    cs = np.empty((N, n, 2))  # cos, sin of every joint angle
+    np.cos(th, out=cs[..., 0])
+    np.sin(th, out=cs[..., 1])
+    A = np.empty((N, n, 4, 4))
+    A[:] = template
+    A[..., :2, 3] = cs * a  # a cos, a sin
+    A[..., :2, :3] = cs[..., :1, None] * P + cs[..., 1:, None] * Q  # Rz(th) Rx(alpha) Ry(beta)
     F = np.empty((N, n + 1, 4, 4))
     F[:, 0] = _IDENTITY_4X4
     F[:, 1] = A[:, 0]
