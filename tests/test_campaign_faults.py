@@ -70,7 +70,8 @@ def test_sigkill_at_random_moments_loses_and_duplicates_nothing(tmp_path, trials
     """20 kills are the soak (`make soak`); the default suite kills twice."""
     campaign = tmp_path / "campaign.sqlite"
     rng = random.Random(20261123)  # the 2-kill run uses the first two of the soak's moments
-    with running_cell(tmp_path, seed=6) as (cell, config):
+    # 20x: the kills come at random wall-clock moments (0.5-4 s), so the campaign must last long enough
+    with running_cell(tmp_path, seed=6, time_scale=20.0) as (cell, config):
         cell_toml = tmp_path / "cell.toml"
         done = subprocess.run(
             _hil_run("registration", cell_toml, campaign), capture_output=True, text=True, timeout=120
