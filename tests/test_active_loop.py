@@ -40,7 +40,7 @@ def loop(tmp_path_factory):
     1, then resumed."""
     folder = tmp_path_factory.mktemp("active_loop")
     path = folder / "campaign.sqlite"
-    with running_cell(folder, time_scale=50.0, seed=2, extra_args=EFFECTS) as (_, config):
+    with running_cell(folder, time_scale=200.0, seed=2, extra_args=EFFECTS) as (_, config):
         with session_on(config, path) as session:
             registration.PROCEDURE(session)
             # the paper-sized tool fit is tested in test_procedures_sim

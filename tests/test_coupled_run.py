@@ -58,7 +58,7 @@ def job(tmp_path_factory):
         assert code == 0, printed.getvalue()
         return printed.getvalue()
 
-    with sim_cell(robot=ROBOT, seed=3, time_scale=100.0, extra_args=("--effects", "none")) as cell:
+    with sim_cell(robot=ROBOT, seed=3, time_scale=200.0, extra_args=("--effects", "none")) as cell:
         write_sim_cell(folder / "cell.toml", cell.info, cell.control.call("ground_truth"), 100.0)
         run = ("--cell", "cell.toml", "--campaign", "job.sqlite")
         out["dry_run"] = hil("run", "grid_sampling", *run, *GRID, "--dry-run")

@@ -22,7 +22,7 @@ def campaign(tmp_path_factory):
     """Run the three procedures once on a fresh cell; yield results, truth and the campaign path."""
     folder = tmp_path_factory.mktemp("procedures")
     path = folder / "campaign.sqlite"
-    with running_cell(folder, seed=3, time_scale=50.0) as (cell, config):
+    with running_cell(folder, seed=3, time_scale=200.0) as (cell, config):
         truth = cell.control.call("ground_truth")
         with session_on(config, path) as session:
             reg = registration.PROCEDURE(session)

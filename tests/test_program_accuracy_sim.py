@@ -107,7 +107,7 @@ def cell(tmp_path_factory):
     truth = SimulatedCell(SimCellConfig(seed=SEED)).ground_truth()
     nest1 = np.asarray(truth["tool_nests_flange_m"][0])  # the design offset a cell engineer sets as TCP
     extra = ("--effects", ",".join(EFFECTS))
-    with running_cell(folder, seed=SEED, time_scale=50.0, extra_args=extra) as (running, config):
+    with running_cell(folder, seed=SEED, time_scale=200.0, extra_args=extra) as (running, config):
         q = clear_waypoints(config, sim, 9, seed=11)  # a taught home (measured too), then 8 waypoints
         T_tcp = forward_kinematics(sim.nominal, q[1:]) @ make_transform(np.eye(3), nest1)
         (folder / "check.script").write_text(polyscope_program(T_tcp, q[1:], nest1, q_home=q[0]))

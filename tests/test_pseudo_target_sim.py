@@ -33,7 +33,7 @@ def cell(tmp_path_factory):
     folder = tmp_path_factory.mktemp("ptloop")
     _, train, _ = cell_datasets(step_m=0.2, n_val=1, seed=SEED)
     model = true_effect_model(train, "ur10", ("gravity_compliance",))
-    with running_cell(folder, seed=SEED, time_scale=50.0) as (running, config):
+    with running_cell(folder, seed=SEED, time_scale=200.0) as (running, config):
         base = folder / "registered.sqlite"
         with session_on(config, base) as session:
             registration.PROCEDURE(session)
