@@ -52,7 +52,8 @@ def test_reference_rounds_before_between_and_after_the_grid():
 @pytest.mark.sim
 @pytest.mark.timeout(400)
 def test_reference_poses_are_measured_and_exported_with_time_and_temperature(tmp_path):
-    with running_cell(tmp_path, seed=5, extra_args=("--effects", "thermal_expansion")) as (_cell, config):
+    effects = ("--effects", "thermal_expansion")
+    with running_cell(tmp_path, time_scale=200.0, seed=5, extra_args=effects) as (_cell, config):
         config = dataclasses.replace(config, drift_poses=2, drift_every_points=6)
         path = tmp_path / "campaign.sqlite"
         with session_on(config, path) as session:

@@ -161,7 +161,7 @@ def test_an_installed_procedure_refuses_bad_parameters_before_connecting(plugin_
 @pytest.mark.timeout(300)
 def test_an_installed_procedure_runs_on_the_simulated_cell(plugin_env, tmp_path):
     campaign = tmp_path / "campaign.sqlite"
-    with running_cell(tmp_path, seed=2) as (_, config):
+    with running_cell(tmp_path, seed=2, time_scale=200.0) as (_, config):
         args = [
             "run",
             "distance_check",
