@@ -72,27 +72,31 @@ class KinematicModel:
             names.extend(f"{k}{i + 1}" for k in kinds)
         return tuple(names)
 
+    @cached_property
+    def _param_slots(self) -> tuple[np.ndarray, np.ndarray]:
+        """Where each identifiable parameter sits in the (5, n) table of theta, d, a, alpha, beta rows: its row
+        and its joint (built once per model, so reading and replacing the parameters is one indexing each)."""
+        rows = [_GEOMETRY_ROWS.index(_kind(nm)) for nm in self._param_names]
+        joints = [_joint(nm) for nm in self._param_names]
+        return np.array(rows, int), np.array(joints, int)
+
+    def _geometry_table(self) -> np.ndarray:
+        return np.array([np.asarray(getattr(self, k), dtype=float) for k in _GEOMETRY_ROWS])
+
     @property
     def params(self) -> np.ndarray:
         """Current values of the identifiable parameters, in `param_names` order."""
-        return np.array([getattr(self, _kind(nm))[_joint(nm)] for nm in self.param_names])
+        return self._geometry_table()[self._param_slots]
 
     def with_params(self, values: np.ndarray) -> KinematicModel:
         """A copy with the identifiable parameters replaced by `values` (same order as `param_names`)."""
         values = np.asarray(values, dtype=float)
-        if values.shape != (len(self.param_names),):
-            raise ValueError(f"expected {len(self.param_names)} parameter values, got {values.shape}")
-        arrays = {k: np.array(getattr(self, k), dtype=float) for k in ("theta", "d", "a", "alpha", "beta")}
-        for nm, v in zip(self.param_names, values, strict=True):
-            arrays[_kind(nm)][_joint(nm)] = v
-        return replace(
-            self,
-            theta=arrays["theta"],
-            d=arrays["d"],
-            a=arrays["a"],
-            alpha=arrays["alpha"],
-            beta=arrays["beta"],
-        )
+        if values.shape != (len(self._param_names),):
+            raise ValueError(f"expected {len(self._param_names)} parameter values, got {values.shape}")
+        table = self._geometry_table()
+        table[self._param_slots] = values
+        theta, d, a, alpha, beta = table
+        return replace(self, theta=theta, d=d, a=a, alpha=alpha, beta=beta)
 
     def with_errors(self, errors: dict[str, float]) -> KinematicModel:
         """A copy with named parameter errors added, e.g. {'a2': 2e-4, 'beta2': 1e-4}."""
@@ -120,6 +124,9 @@ class KinematicModel:
         q = self.check_joints(q)
         lo, hi = self.joint_limits[:, 0] - tol, self.joint_limits[:, 1] + tol
         return np.all((q >= lo) & (q <= hi), axis=1)
+
+
+_GEOMETRY_ROWS = ("theta", "d", "a", "alpha", "beta")
 
 
 def _kind(param_name: str) -> str:
@@ -255,6 +262,9 @@ def _chain_constants(model: KinematicModel) -> tuple:
     """A model's constant chain factors, computed once per geometry (the arrays are read-only):
     d, a, cos/sin alpha, cos/sin beta and which joints use beta as Python floats/bools, and the rows
     (c0, c1, c2) of every joint's Rx(alpha) Ry(beta), (n, 3) each."""
+    got = model.__dict__.get("_chain_constants")  # the model's own, once found (it is immutable)
+    if got is not None:
+        return got
     arrays = [np.asarray(v, float) for v in (model.d, model.a, model.alpha, model.beta)]
     key = tuple(v.tobytes() for v in arrays)
     got = _CONSTANTS.get(key)
@@ -288,6 +298,7 @@ def _chain_constants(model: KinematicModel) -> tuple:
         if len(_CONSTANTS) > 256:  # many models in one process (calibration sweeps): start again
             _CONSTANTS.clear()
         _CONSTANTS[key] = got
+    model.__dict__["_chain_constants"] = got
     return got
 
 
