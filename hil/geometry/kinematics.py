@@ -496,7 +496,7 @@ def identification_jacobian(
     R_LB = T_tracker_base[:3, :3]
     p_L = p_base @ R_LB.T + T_tracker_base[:3, 3]
     N = p_base.shape[0]
-    J_kin_L = np.einsum("ij,njk->nik", R_LB, J_kin)
+    J_kin_L = R_LB @ J_kin
     J_base_t = np.broadcast_to(np.eye(3), (N, 3, 3))
     # d/d(dr) of R_LB (p_B + dr x p_B) = R_LB @ (-[p_B]x)
     px, py, pz = p_base[:, 0], p_base[:, 1], p_base[:, 2]
@@ -504,8 +504,8 @@ def identification_jacobian(
     neg_skew = -np.stack(
         [np.stack([zero, -pz, py], -1), np.stack([pz, zero, -px], -1), np.stack([-py, px, zero], -1)], -2
     )
-    J_base_r = np.einsum("ij,njk->nik", R_LB, neg_skew)
-    J_tool = np.einsum("ij,njk->nik", R_LB, R_base_flange)
+    J_base_r = R_LB @ neg_skew
+    J_tool = R_LB @ R_base_flange
     J = np.concatenate([J_kin_L, J_base_t, J_base_r, J_tool], axis=2)
     return p_L, J
 

@@ -257,10 +257,10 @@ class CalibratedModel:
         q_eff = ctx.q + self.joint_offsets(ctx)
         R_BF, J_kin = kinematic_rotation_jacobian(self.kinematic, q_eff)
         R_LB = self.T_tracker_base[:3, :3]
-        R_LF = np.einsum("ij,njk->nik", R_LB, R_BF)
+        R_LF = R_LB @ R_BF
         N, nk, P = ctx.n, len(self.kinematic.param_names), len(self.param_names)
         J = np.zeros((N, 3, P))
-        J[:, :, :nk] = np.einsum("ij,njk->nik", R_LB, J_kin)
+        J[:, :, :nk] = R_LB @ J_kin
         J[:, :, nk + 3 : nk + 6] = R_LB
         start = nk + 6 + 3 * len(self.tools)
         for k, sid in enumerate(sorted(self.probes)):
