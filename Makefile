@@ -12,6 +12,9 @@ PY := $(VENV)/bin/python
 # four workers 250 s (388 CPU-s), six 230 s (421 CPU-s), eight 259 s (485 CPU-s).
 # PYTEST_PARALLEL= runs the suite in one process.
 PYTEST_PARALLEL ?= -n 6 --dist loadfile --no-loadscope-reorder
+# One BLAS thread per test process: six workers (and their cells and commands) already share two cores, and
+# OpenBLAS's own pool on the suite's small matrices only added work (the diagnosis tests: 28.3 -> 23.9 CPU-s).
+ONE_BLAS_THREAD := OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1
 
 .PHONY: demo test docs typecheck unit soak lint bench clean
 
@@ -60,7 +63,7 @@ $(VENV)/.system-deps: tools/system-deps $(VENV)/.installed
 unit: $(VENV)/.installed $(VENV)/.system-deps
 	PYTHONDONTWRITEBYTECODE= $(PY) -m compileall -q -j 2 hil fakes drivers procedures tests benchmarks docs/examples
 	PYTHONDONTWRITEBYTECODE= $(PY) -m pytest -q --collect-only -p no:cacheprovider > /dev/null
-	PYTHONDONTWRITEBYTECODE= $(PY) -m pytest -q --durations=15 $(PYTEST_PARALLEL)
+	PYTHONDONTWRITEBYTECODE= $(ONE_BLAS_THREAD) $(PY) -m pytest -q --durations=15 $(PYTEST_PARALLEL)
 
 # The long soaks (20 SIGKILLs of a campaign, a whole demo resumed): minutes; the default suite runs a short
 # version of each.
