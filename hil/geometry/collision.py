@@ -72,7 +72,7 @@ class CellBodies:
         pairs = self.body.self_pairs(model, self.self_margin_m)
         moving = np.flatnonzero(self.body.frame >= 1)
         own = np.empty((len(q), len(pairs)))
-        cell = np.full((len(q), len(moving), 1 + len(self.keep_out)), np.inf)
+        cell = np.empty((len(q), len(moving), 1 + len(self.keep_out)))  # every block fills its rows
         for start in range(0, len(q), _BLOCK_POSES):
             block = slice(start, start + _BLOCK_POSES)
             own[block], cell[block] = self._block_arrays(model, q[block], pairs, moving)

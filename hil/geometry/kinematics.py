@@ -184,11 +184,7 @@ def flange_poses_and_last_origins(model: KinematicModel, q: np.ndarray) -> tuple
     one pass over the chain: a model whose links grow needs both for every prediction."""
     q = model.check_joints(q)
     R, p = _chain(model, q, None)
-    T = np.zeros((q.shape[0], 4, 4))
-    T[:, :3, :3] = R
-    T[:, :3, 3] = p
-    T[:, 3, 3] = 1.0
-    return _with_last_flange(model, T), p
+    return _flange_poses(model, R, p), p
 
 
 def _chain(
@@ -374,14 +370,20 @@ def chain_axes(model: KinematicModel, q: np.ndarray) -> tuple[np.ndarray, np.nda
     N, n = q.shape
     Z, O = np.empty((n, 3, N)), np.empty((n + 1, 3, N))
     R, p = _chain(model, q, None, (Z, O))
-    T = np.zeros((N, 4, 4))
-    T[:, :3, :3] = R
-    T[:, :3, 3] = p
-    T[:, 3, 3] = 1.0
-    return _with_last_flange(model, T), Z, O
+    return _flange_poses(model, R, p), Z, O
 
 
 _IDENTITY_4 = np.eye(4).ravel().tolist()  # compared as a list: the check runs on every chain
+
+
+def _flange_poses(model: KinematicModel, R_base_last: np.ndarray, o_base_last: np.ndarray) -> np.ndarray:
+    """T_base_flange (N, 4, 4) from the last link's rotations (N, 3, 3) and origins (N, 3), as `_chain` gives
+    them."""
+    T = np.zeros((len(o_base_last), 4, 4))
+    T[:, :3, :3] = R_base_last
+    T[:, :3, 3] = o_base_last
+    T[:, 3, 3] = 1.0
+    return _with_last_flange(model, T)
 
 
 def _with_last_flange(model: KinematicModel, T_base_last: np.ndarray) -> np.ndarray:
@@ -452,11 +454,9 @@ def _point_jacobian(
     N, n = q.shape
     Z, O = np.empty((n, 3, N)), np.empty((n + 1, 3, N))
     X_mid, Y_alpha = np.empty((n, 3, N)), np.empty((n, 3, N))
-    R, o_last = _chain(model, q, None, (Z, O), (X_mid, Y_alpha))
-    L = np.asarray(model.T_last_flange, dtype=float)
-    R_flange = R @ L[:3, :3]
-    o_flange = R @ L[:3, 3] + o_last
-    tip = R_flange @ np.asarray(p_flange_tool, dtype=float) + o_flange  # (N, 3)
+    T_flange = _flange_poses(model, *_chain(model, q, None, (Z, O), (X_mid, Y_alpha)))
+    R_flange = T_flange[:, :3, :3]
+    tip = R_flange @ np.asarray(p_flange_tool, dtype=float) + T_flange[:, :3, 3]  # (N, 3)
     to_tip_prev = tip.T - O[:n]  # (n, 3, N): from the previous origin to the tip
     to_tip_here = tip.T - O[1:]  # from the joint's own origin (after Tz(d) Tx(a); beta does not translate)
     beta = np.asarray(model.uses_beta, bool)[:, None, None]
