@@ -121,13 +121,13 @@ class CalibratedModel:
         return ctx, p_flange_tool
 
     def _row_tools(self, smr: np.ndarray) -> np.ndarray:
-        missing = sorted(set(np.unique(smr).tolist()) - set(self.tools))
+        ids, inverse = np.unique(smr, return_inverse=True)  # one lookup per nest, not per row
+        missing = sorted(set(ids.tolist()) - set(self.tools))
         if missing:
             raise ValueError(
                 f"the model knows tool points for SMR nests {sorted(self.tools)}, the data uses {missing}; "
                 "calibrate with data that contains those nests"
             )
-        ids, inverse = np.unique(smr, return_inverse=True)  # one lookup per nest, not per row
         return np.array([self.tools[int(s)] for s in ids]).reshape(-1, 3)[inverse.ravel()]
 
     def joint_offsets(self, ctx: EffectContext) -> np.ndarray:
@@ -238,13 +238,13 @@ class CalibratedModel:
 
     def _row_probes(self, smr: np.ndarray) -> np.ndarray:
         """R_flange_probe of every row (N, 3, 3); a nest without one is named."""
-        missing = sorted(set(np.unique(smr).tolist()) - set(self.probes))
+        ids, inverse = np.unique(smr, return_inverse=True)
+        missing = sorted(set(ids.tolist()) - set(self.probes))
         if missing:
             raise ValueError(
                 f"the model knows probe orientations for SMR nests {sorted(self.probes)}, the data uses "
                 f"{missing}; calibrate with orientation data (rx_deg, ry_deg, rz_deg) of those nests"
             )
-        ids, inverse = np.unique(smr, return_inverse=True)
         return np.array([self.probes[int(s)] for s in ids]).reshape(-1, 3, 3)[inverse.ravel()]
 
     def rotation_jacobian_ctx(self, ctx: EffectContext, smr: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -119,7 +119,8 @@ def _correlations(result: CalibrationResult, problem: Problem, eff: Effect) -> l
             continue
         i = fnames.index(nm)
         geo = [k for k, n in enumerate(fnames) if "." not in n]
-        k = max(geo, key=lambda k: abs(corr[i, k]))
+        # the key returns a float of its own: through numpy's abs overloads mypy spent a second on this line
+        k = max(geo, key=lambda k: abs(float(corr[i, k])))
         out.append({"coefficient": nm, "parameter": fnames[k], "correlation": float(corr[i, k])})
     return out
 
