@@ -90,9 +90,14 @@ def test_a_fixed_air_temperature_in_a_warming_hall_is_told_apart_from_the_arms_g
     scale = next(e for e in report.model.effects if e.family == "tracker_scale")
     assert scale.params[0] == pytest.approx(-0.93e-6, rel=0.25)  # the hall's air warms as the arm does
     assert report.thermal["fitted_per_k"] == pytest.approx(23e-6, rel=0.05)  # the growth is the arm's
-    # Without the rival, the arm's growth takes the tracker's stretch for its own.
+    # The stuck air reading puts the scale in as physics, and the data find it (not its prior).
+    assert report.tracker_air["standing"] == "found" and report.tracker_air["data_share"] > 0.9
+    # Without the rival (an export that does not record the air, no scale among the candidates), the arm's
+    # growth takes the tracker's stretch for its own.
     others = tuple(f for f in EFFECT_FAMILIES if f != "tracker_scale")
-    alone = run_diagnosis(train, RIGID_UR10, options=DiagnosisOptions(families=others))
+    unrecorded = train.drop(columns="air_temperature_c")
+    alone = run_diagnosis(unrecorded, RIGID_UR10, options=DiagnosisOptions(families=others))
+    assert alone.tracker_air is None
     assert abs(alone.thermal["fitted_per_k"] - 23e-6) > 2 * abs(report.thermal["fitted_per_k"] - 23e-6)
     # The drift monitor's reference poses: the far one moves most, with the temperature (growth and scale).
     drift = report.drift

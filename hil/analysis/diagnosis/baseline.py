@@ -21,7 +21,7 @@ from hil.analysis.calibration.solve import (
 )
 from hil.analysis.diagnosis.physics_terms import held_rigid_start, physics_start
 from hil.model.calibrated_model import CalibratedModel, initial_model, with_initial_probes
-from hil.model.effects import gravity_physics_term, material_growth, yields_against_gravity
+from hil.model.effects import gravity_physics_term, material_growth, stuck_air_scale, yields_against_gravity
 
 
 def error_stats(err_m: np.ndarray) -> dict[str, float]:
@@ -155,9 +155,11 @@ def baseline_fit(
     progress=None,
     material=None,
     hold_gravity=None,
+    tracker_air=None,
 ) -> Baseline:
     """`material`: the links' material growth to fit instead of the one the robot file starts (what an
-    earlier selection's data made of it: hil.analysis.diagnosis.physics_terms.material_decision).
+    earlier selection's data made of it: hil.analysis.diagnosis.physics_terms.material_decision);
+    `tracker_air` the same for the tracker's scale from a stuck air reading (`tracker_air_decision`).
     `hold_gravity` ({joint: the compliance a fit made of it}): those joints' gravity terms held rigid
     (`held_rigid_start`); a gravity term the geometric fit makes negative is held rigid too, and the fit
     repeated."""
@@ -167,11 +169,12 @@ def baseline_fit(
     )
     tell("geometric calibration", 0, 2)
     start = physics_start(robot, df, tool_guess_m)
-    if material is not None and isinstance(start, CalibratedModel):
-        fresh = type(material)(
-            joint=material.joint, params=material.params.copy(), state=dict(material.state)
-        )
-        start = replace(start, effects=[fresh if material_growth(e) else e for e in start.effects])
+    for decided, which in ((material, material_growth), (tracker_air, stuck_air_scale)):
+        if decided is not None and isinstance(start, CalibratedModel):
+            fresh = type(decided)(
+                joint=decided.joint, params=decided.params.copy(), state=dict(decided.state)
+            )
+            start = replace(start, effects=[fresh if which(e) else e for e in start.effects])
     hold_gravity = dict(hold_gravity or {})
     ridge = calibrate(df, held_rigid_start(start, hold_gravity), "ridge", tool_guess_m=tool_guess_m)
     against = {e.joint: float(e.params[0]) for e in ridge.model.effects if yields_against_gravity(e)}
