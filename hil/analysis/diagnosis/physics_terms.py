@@ -33,10 +33,12 @@ from hil.model.effects import (
 )
 
 # A weather station that reads the hall's air moves with it: its readings change by a few hundredths of a K
-# within minutes (the hall is never still to that level, and a station resolves 0.01-0.1 K), and an arm that
-# warms by a kelvin warms the air round it by some part of that. An air reading that changes by no more than
-# this over the whole campaign was entered by hand, or the station is stuck, or not read at all.
-STUCK_AIR_TOLERANCE_K = 0.01
+# within minutes (a hall is never still to that level; stations report 0.01 K steps, the coarser ones 0.1 K),
+# and an arm that warms by a kelvin warms the air round it by some part of that. A hand-entered air or a stuck
+# station repeats one value exactly. An air reading that changes by less than half a station's finest step
+# over the whole campaign (room for a file's rounding, none for a live station's one-step flicker) was
+# entered by hand, or the station is stuck, or not read at all.
+STUCK_AIR_TOLERANCE_K = 0.005
 # ... and counts as stuck only where the recorded temperature spans at least this: 100x the tolerance, so a
 # working station in air that warmed by even a tenth of the recorded temperature's rise would have moved ten
 # times past it (and the same span below which the diagnosis calls the temperature not spanned:
