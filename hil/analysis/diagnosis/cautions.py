@@ -149,9 +149,9 @@ class TrackerAirStuck(Caution):
     prior_std_per_k: float
     fitted_per_k: float
     std_per_k: float
-    data_per_k: float | None
-    data_std_per_k: float | None
     standing: str
+    data_per_k: float | None = None
+    data_std_per_k: float | None = None
 
 
 @dataclass(frozen=True, kw_only=True)
