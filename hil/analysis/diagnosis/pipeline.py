@@ -299,33 +299,7 @@ def run_diagnosis(
     df = drop_duplicate_rows(df, "training data")  # copies would count twice in every test
     with one_blas_thread():  # small dense problems: threads only contend
         fit_args = (df, robot, o.folds, o.seed, o.repeatability_m, o.tool_guess_m, o.tracker_mpe_m, progress)
-        base = baseline_fit(*fit_args)
-        base.screening = screening
-        path = select_effects(base, df, alpha, families, max_effects)
-        material: Effect | None = None
-        scale: Effect | None = None
-        for _ in range(base.nominal.nominal.n_joints + 3):  # each pass settles a physics term or more joints
-            decided = material_decision(path.current, path.prob, alpha)
-            scale_decided = tracker_air_decision(path.current, path.prob, alpha)
-            against = {
-                e.joint: float(e.params[0]) for e in path.current.model.effects if yields_against_gravity(e)
-            }
-            if decided is None and scale_decided is None and not against:
-                # the yields the data carry but do not find stay only while they beat a rigid joint
-                against = yields_no_better(df, path, alpha)
-                if not against:
-                    break
-            # The data contradict the material's growth or find none (the recorded temperature follows the
-            # air, not the arm), or a joint's gravity term yields against gravity once the selected effects
-            # are in, or predicts no better than a rigid joint: select again with the growth as the data have
-            # it and those joints held rigid (and again if that selection turns another joint).
-            # Likewise the tracker's scale from a stuck air reading, where the data drop its prior or find none.
-            material = decided or material
-            scale = scale_decided or scale
-            held = {**base.held_gravity, **against}
-            base = baseline_fit(*fit_args, material=material, hold_gravity=held, tracker_air=scale)
-            base.screening = screening
-            path = select_effects(base, df, alpha, families, max_effects)
+        base, path = _settle_physics(df, fit_args, o)
         settle_rivals(base, df, path, alpha)
         if previous_effects:
             path = keep_previous(base, df, path, previous_effects, alpha, families, max_effects)
@@ -371,6 +345,37 @@ def run_diagnosis(
         report.undecided = undecided_questions(df, path, alpha, float(np.sqrt(base.sigma2)))
         report.verdict["cautions"] = without_decided_pairs(report.verdict["cautions"], report.undecided)
         return report
+
+
+def _settle_physics(df: pd.DataFrame, fit_args: tuple, o: DiagnosisOptions) -> tuple[Baseline, SelectionPath]:
+    """The baseline fit and the selection, repeated until the physics terms stand as the data have them: the
+    data contradict the material's growth or find none (the recorded temperature follows the air, not the
+    arm), or a joint's gravity term yields against gravity once the selected effects are in, or predicts no
+    better than a rigid joint, or the data drop or reject the tracker's scale from a stuck air reading: select
+    again with those terms as the data have them and those joints held rigid (and again if that selection
+    turns another joint)."""
+    alpha, families, max_effects = o.alpha, o.families, o.max_effects
+    base = baseline_fit(*fit_args)
+    base.screening = o.screening
+    path = select_effects(base, df, alpha, families, max_effects)
+    decided: dict[str, Effect] = {}  # physics terms as the data have them, by label
+    for _ in range(base.nominal.nominal.n_joints + 3):  # each pass settles a physics term or more joints
+        terms = [material_decision(path.current, path.prob, alpha)]
+        terms.append(tracker_air_decision(path.current, path.prob, alpha))
+        against = {
+            e.joint: float(e.params[0]) for e in path.current.model.effects if yields_against_gravity(e)
+        }
+        if all(t is None for t in terms) and not against:
+            # the yields the data carry but do not find stay only while they beat a rigid joint
+            against = yields_no_better(df, path, alpha)
+            if not against:
+                break
+        decided.update({t.label: t for t in terms if t is not None})
+        held = {**base.held_gravity, **against}
+        base = baseline_fit(*fit_args, decided=tuple(decided.values()), hold_gravity=held)
+        base.screening = o.screening
+        path = select_effects(base, df, alpha, families, max_effects)
+    return base, path
 
 
 def tracker_air_caution(summary: dict) -> TrackerAirStuck:
