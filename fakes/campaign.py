@@ -46,6 +46,10 @@ def simulate_campaign(
     `nests`: seat SMR k in tool nest k for every k given and read each of them at every pose (rows pose by
     pose, `smr` = nest); default: SMR `smr_id` where it sits. `probe`: every row also carries the probe's
     orientation (rx_deg, ry_deg, rz_deg, default convention) read with its angular noise.
+
+    Every row records `air_temperature_c` as a campaign export does (hil.data.store): the air temperature the
+    tracker's refraction used at that point, its weather station's reading of the hall's air, or the fixed
+    value a stuck station (or a hand entry) gives (`SimCellConfig.tracker_air_c`, `SimulatedCell.meteo`).
     """
     if nests is None:
         smrs = [smr_id]
@@ -76,7 +80,11 @@ def simulate_campaign(
             ]
         )[order]
     rep = len(smrs)
-    return make_dataset(
+    fixed_air_c = cell.config.tracker_air_c
+    air_c = np.asarray(cell.hall_air_c(r["t_s"]), float) + 0.0 * r["t_s"]
+    if fixed_air_c is not None:
+        air_c = np.full(N, float(fixed_air_c))
+    df = make_dataset(
         np.tile(r["q_encoder"], (rep, 1))[order],
         np.concatenate(p_meas)[order],
         t_s=np.tile(r["t_s"], rep)[order],
@@ -84,3 +92,5 @@ def simulate_campaign(
         smr=np.repeat(ids, N)[order],
         R_tracker_probe=R_probe,
     )
+    df["air_temperature_c"] = np.tile(air_c, rep)[order]
+    return df

@@ -8,9 +8,18 @@ import pytest
 from calib_data import true_effect_model
 
 from hil.analysis.calibration.solve import calibrate
-from hil.analysis.diagnosis.physics_terms import Coefficient
+from hil.analysis.diagnosis.cautions import TrackerAirStuck
+from hil.analysis.diagnosis.physics_terms import (
+    STUCK_AIR_MIN_SPAN_K,
+    STUCK_AIR_TOLERANCE_K,
+    Coefficient,
+    stuck_air,
+)
 from hil.analysis.diagnosis.pipeline import run_diagnosis
 from hil.geometry.robots import get_robot
+from hil.model.effects import REFRACTION_PER_K
+from hil.report.json_report import report_dict
+from hil.report.text import caution_text
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -44,6 +53,9 @@ def test_an_arm_that_does_not_grow_in_a_warming_hall_is_not_given_the_materials_
     report, named, validate = _diagnose(train, val, "ur10")
     assert named == set() and report.thermal["standing"] == "rejected"
     assert report.thermal["fitted_per_k"] == 0.0 and "held at the material" not in str(report.verdict)
+    # the weather station reads the hall's air as it warms: no scale from it
+    assert np.ptp(train["air_temperature_c"]) > 2.0
+    assert report.tracker_air is None and "tracker_scale" not in {e.family for e in report.model.effects}
     assert validate <= 1.1 * _rms_mm(calibrate(train, "ur10", "ridge").model, val)
 
 
@@ -74,6 +86,30 @@ def test_a_tracker_whose_air_reading_is_wrong_is_never_the_arms_growth():
     assert "thermal_expansion" not in named and named <= {"tracker_scale"}
     assert report.thermal["standing"] != "found"
     assert validate <= 1.1 * _rms_mm(true_effect_model(train, "ur10", ("tracker_scale",)), val)
+    # The station's fixed 20 degC beside a recorded temperature that rises: the tracker's scale is in the
+    # model as physics, carried by its prior (2.7 K do not resolve it), so assumed and not found.
+    assert (train["air_temperature_c"] == 20.0).all() and np.ptp(train["temperature_c"]) > 2.0
+    air = report.tracker_air
+    assert air is not None and air["standing"] == "assumed" and not air["data_led"]
+    assert air["prior_per_k"] == pytest.approx(0.5 * REFRACTION_PER_K)
+    assert named == set()  # the scale is assumed: not in effects_added
+    (assumed,) = [e for e in report.effects_assumed if e["name"] == "tracker_scale"]
+    assert assumed["shift_mm"] == air["shift_mm"] > 0
+    (scale,) = [e for e in report.model.effects if e.family == "tracker_scale"]  # one, never a second
+    assert scale.params[0] == air["fitted_per_k"] < 0 and not scale.held
+    # the prior narrows what the data alone say (between the prior's and the data's own values)
+    assert air["std_per_k"] < min(air["prior_std_per_k"], air["data_std_per_k"])
+    (caution,) = [c for c in report.verdict["cautions"] if isinstance(c, TrackerAirStuck)]
+    text = caution_text(caution)
+    assert (
+        "read 20.00 degC at every point" in text
+        and "weather station" in text
+        and "not the arm's growth" in text
+    )
+    assert report_dict(report)["tracker_air"]["text"].startswith("Tracker scale from a stuck air reading")
+    # a station that read the hall's air would have recorded its rise: without the column, no such term
+    unrecorded = run_diagnosis(train.drop(columns="air_temperature_c"), "ur10")
+    assert unrecorded.tracker_air is None
 
 
 def test_a_growth_the_data_alone_do_not_show_is_not_found_on_the_strength_of_its_prior():
@@ -96,3 +132,26 @@ def test_a_joint_error_that_follows_the_warming_raster_is_not_named_as_the_links
     report, named, validate = _diagnose(train, val, "ur10")
     assert "thermal_expansion" not in named and report.thermal["standing"] != "found"
     assert validate <= 1.1 * _rms_mm(true_effect_model(train, "ur10", ("cyclic",)), val)
+
+
+def test_an_air_reading_counts_as_stuck_only_when_it_stays_put_while_the_recorded_temperature_moves():
+    import pandas as pd
+
+    rises = np.linspace(20.0, 20.0 + 2 * STUCK_AIR_MIN_SPAN_K, 30)
+    stuck = stuck_air(pd.DataFrame({"temperature_c": rises, "air_temperature_c": 21.5}))
+    assert (
+        stuck is not None and stuck.air_c == 21.5 and stuck.span_k == pytest.approx(2 * STUCK_AIR_MIN_SPAN_K)
+    )
+    assert (stuck.start_c, stuck.end_c) == (rises[0], rises[-1])
+    # a file's rounding within the tolerance still reads as stuck; a live station's 0.01 K step does not
+    rounding = 21.5 + np.resize([0.0, 0.8 * STUCK_AIR_TOLERANCE_K], 30)
+    assert stuck_air(pd.DataFrame({"temperature_c": rises, "air_temperature_c": rounding})) is not None
+    moving = 21.5 + np.resize([0.0, 0.01], 30)
+    assert stuck_air(pd.DataFrame({"temperature_c": rises, "air_temperature_c": moving})) is None
+    # the recorded temperature spanning too little, being the air itself, or a row without either: nothing said
+    flat = np.linspace(20.0, 20.0 + 0.5 * STUCK_AIR_MIN_SPAN_K, 30)
+    assert stuck_air(pd.DataFrame({"temperature_c": flat, "air_temperature_c": 21.5})) is None
+    assert stuck_air(pd.DataFrame({"temperature_c": rises, "air_temperature_c": rises})) is None
+    assert stuck_air(pd.DataFrame({"temperature_c": rises})) is None
+    gap = np.where(np.arange(30) == 4, np.nan, 21.5)
+    assert stuck_air(pd.DataFrame({"temperature_c": rises, "air_temperature_c": gap})) is None

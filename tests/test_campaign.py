@@ -16,6 +16,7 @@ CONTRACT_COLUMNS = [f"q{i}_rad" for i in range(1, 7)] + [
     "t_s",
     "temperature_c",
     "smr",
+    "air_temperature_c",
 ]
 
 
@@ -62,6 +63,8 @@ def test_campaign_rows_follow_the_dataset_contract(cell):
     distances_m = np.linalg.norm(df[["x_mm", "y_mm", "z_mm"]].to_numpy(), axis=1) / 1e3
     assert np.all((distances_m > 1.0) & (distances_m < 4.5))  # tracker 2.5 m from the base
     assert set(df["smr"]) == {1}
+    # the air the tracker's station read: the hall's, at each point's time (a campaign export's column)
+    np.testing.assert_allclose(df["air_temperature_c"], cell.hall_air_c(df["t_s"].to_numpy()), atol=1e-12)
 
 
 def test_bad_grid_step_is_refused(cell):

@@ -12,6 +12,7 @@ from hil.analysis.diagnosis.pipeline import DiagnosisOptions, run_diagnosis
 from hil.geometry.robots import get_robot
 from hil.model.effects import EFFECT_FAMILIES, make_effect
 from hil.report.html import render_html
+from hil.report.text import conclusion
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -46,9 +47,10 @@ def test_a_tracker_scale_stretches_the_points_about_the_tracker_and_its_jacobian
     )
 
 
-def _campaign(tracker_air_c, seed=0):
+def _campaign(tracker_air_c, seed=0, **config):
     """An 80 mm grid while the arm and the hall's air warm ~9 K, with three reference poses (the nearest to
-    the base, the farthest, one between) re-measured every 15 grid points, the tracker 4 m away."""
+    the base, the farthest, one between) re-measured every 15 grid points, the tracker 4 m away; `config`:
+    further SimCellConfig fields."""
     from sim_campaigns import grid_joints
 
     from fakes.campaign import simulate_campaign
@@ -62,6 +64,7 @@ def _campaign(tracker_air_c, seed=0):
         compliance=False,
         tracker_air_c=tracker_air_c,
         tracker_distance_m=4.0,
+        **config,
     )
     cell = SimulatedCell(cfg)
     q = grid_joints(cell, step_m=0.08, seed=seed)
@@ -90,9 +93,14 @@ def test_a_fixed_air_temperature_in_a_warming_hall_is_told_apart_from_the_arms_g
     scale = next(e for e in report.model.effects if e.family == "tracker_scale")
     assert scale.params[0] == pytest.approx(-0.93e-6, rel=0.25)  # the hall's air warms as the arm does
     assert report.thermal["fitted_per_k"] == pytest.approx(23e-6, rel=0.05)  # the growth is the arm's
-    # Without the rival, the arm's growth takes the tracker's stretch for its own.
+    # The stuck air reading puts the scale in as physics, and the data find it (not its prior).
+    assert report.tracker_air["standing"] == "found" and report.tracker_air["data_share"] > 0.9
+    # Without the rival (an export that does not record the air, no scale among the candidates), the arm's
+    # growth takes the tracker's stretch for its own.
     others = tuple(f for f in EFFECT_FAMILIES if f != "tracker_scale")
-    alone = run_diagnosis(train, RIGID_UR10, options=DiagnosisOptions(families=others))
+    unrecorded = train.drop(columns="air_temperature_c")
+    alone = run_diagnosis(unrecorded, RIGID_UR10, options=DiagnosisOptions(families=others))
+    assert alone.tracker_air is None
     assert abs(alone.thermal["fitted_per_k"] - 23e-6) > 2 * abs(report.thermal["fitted_per_k"] - 23e-6)
     # The drift monitor's reference poses: the far one moves most, with the temperature (growth and scale).
     drift = report.drift
@@ -108,6 +116,22 @@ def test_a_fixed_air_temperature_in_a_warming_hall_is_told_apart_from_the_arms_g
     assert drift["span_k"] > 8.0 and "Drift monitor: 3 reference pose(s)" in drift_text(drift)
     page = render_html(report)
     assert "Drift monitor: reference poses re-measured" in page and "Thermal growth of the links" in page
+    assert "Tracker scale from a stuck air reading" in page and "the data show it" in conclusion(report)
+
+
+def test_a_fixed_air_reading_in_a_hall_whose_air_stays_put_is_tested_and_rejected():
+    # The arm warms 9 K, the hall's air stays at the 20 degC the station reads: the reading looks stuck, so the
+    # scale enters as physics, and this campaign (revisits over 9 K) finds none: held at zero, not assumed.
+    _, train = _campaign(tracker_air_c=20.0, air_warmup_fraction=0.0)
+    report = run_diagnosis(train, RIGID_UR10)
+    air = report.tracker_air
+    assert air is not None and air["standing"] == "rejected" and air["data_led"]
+    (scale,) = [e for e in report.model.effects if e.family == "tracker_scale"]
+    assert scale.held and scale.params[0] == 0.0 and air["fitted_per_k"] == 0.0
+    assert abs(air["data_per_k"]) < 0.3 * abs(air["prior_per_k"])  # what the data had made of it
+    names = {e["name"] for e in report.effects_added} | {e["name"] for e in report.effects_assumed}
+    assert "tracker_scale" not in names and report.thermal["fitted_per_k"] == pytest.approx(23e-6, rel=0.05)
+    assert "the data find no such scale" in conclusion(report)
 
 
 def test_a_weather_station_that_reads_the_hall_leaves_no_tracker_scale():

@@ -585,6 +585,11 @@ class TrackerScale(_Thermal):
     def coefficient_names(self) -> list[str]:
         return ["per_unit"]
 
+    def prior(self) -> tuple[np.ndarray, np.ndarray] | None:
+        if not stuck_air_scale(self) or self.state.get("prior_dropped"):
+            return None
+        return np.array([self.state["prior_mean_per_k"]]), np.array([self.state["prior_std_per_k"]])
+
 
 _CLASSES: dict[str, type[Effect]] = {
     c.family: c
@@ -615,8 +620,8 @@ EXPANSION_PRIOR_FRACTION = 0.3
 
 def physical(eff: Effect) -> bool:
     """A term the physics puts in the model (the links' material growth, the joints' yield under the link
-    masses' gravity): never selected or removed."""
-    return material_growth(eff) or "prior_std" in eff.state
+    masses' gravity, the tracker's scale from an air reading that stays put): never selected or removed."""
+    return material_growth(eff) or "prior_std" in eff.state or stuck_air_scale(eff)
 
 
 def material_growth(eff: Effect) -> bool:
@@ -640,6 +645,44 @@ def material_expansion(ctx: EffectContext, nominal: KinematicModel) -> ThermalEx
         "prior_std_per_k": float(EXPANSION_PRIOR_FRACTION * k0),
     }
     eff.params = np.array([float(k0)])
+    return eff
+
+
+# The tracker's scale when its air reading stays put while the recorded temperature rises
+# (`stuck_air_tracker_scale`): the distances scale by REFRACTION_PER_K per K the real air warmed, and how much
+# the air warmed per K of the recorded temperature (f) is not in the data. In a hall it lies between 0 (the air
+# stays put, only the arm warms: the reading may even be right) and 1 (the air warms as the arm does; a
+# little more where the structure's probe lags the air). A Gaussian of mean 0.5 and 1-sigma 0.5 in f spans that
+# range at one sigma either side and leaves room beyond it (sun on the tracker, a door opened), where a uniform
+# over [0, 1] would have half the width and forbid what the data might show. Taken from the physics of
+# refraction and of halls, not from any simulated cell.
+STUCK_AIR_PRIOR_FRACTION = 0.5
+STUCK_AIR_PRIOR_STD_FRACTION = 0.5
+
+
+def stuck_air_scale(eff: Effect) -> bool:
+    """The tracker's scale put in the model because its air reading stayed put (`stuck_air_tracker_scale`)."""
+    return eff.family == "tracker_scale" and "air_read_c" in eff.state
+
+
+def stuck_air_tracker_scale(ctx: EffectContext, air_read_c: float) -> TrackerScale | None:
+    """The tracker's scale driven by the recorded temperature, its coefficient starting at the prior's mean
+    (STUCK_AIR_PRIOR_FRACTION of REFRACTION_PER_K, 1-sigma STUCK_AIR_PRIOR_STD_FRACTION of it), for a
+    campaign whose air reading stayed at `air_read_c` (the caller decides that it did); None when some row
+    lacks a temperature."""
+    temps = ctx.temperature_c
+    if temps is None or len(temps) == 0 or not np.all(np.isfinite(temps)):
+        return None
+    eff = TrackerScale()
+    mean = STUCK_AIR_PRIOR_FRACTION * REFRACTION_PER_K
+    eff.state = {
+        "driver": "temperature_c",
+        "reference": float(np.mean(temps)),
+        "air_read_c": float(air_read_c),
+        "prior_mean_per_k": float(mean),
+        "prior_std_per_k": float(STUCK_AIR_PRIOR_STD_FRACTION * abs(REFRACTION_PER_K)),
+    }
+    eff.params = np.array([float(mean)])
     return eff
 
 

@@ -21,6 +21,7 @@ from hil.report.text import (
     intervals_text,
     plan_text,
     thermal_text,
+    tracker_air_text,
     undecided_text,
 )
 
@@ -129,6 +130,7 @@ def render_html(
         *_effects_html(report),
         *_thermal_html(report.thermal),
         *_gravity_html(report.gravity),
+        *_tracker_air_html(report.tracker_air),
         *_drift_html(report.drift),
         *_residual_html(report, d),
         _undecided_html(report),
@@ -269,6 +271,34 @@ def _thermal_html(thermal: dict | None) -> list[str]:
         "<h2>Thermal growth of the links (physics: found, assumed or rejected)</h2>",
         f"<p>{html.escape(thermal_text(thermal) or '')}</p>",
         _table([row], list(row), dict.fromkeys(row, ".3g")),
+    ]
+
+
+def _tracker_air_html(tracker_air: dict | None) -> list[str]:
+    """The tracker's scale from a stuck air reading: fitted against its prior, with the data's own value."""
+    if not tracker_air:
+        return []
+
+    def ppm(key: str) -> float | None:
+        value = tracker_air[key]
+        return None if value is None else value * 1e6
+
+    row = {
+        "air_read_degC": tracker_air["air_c"],
+        "span_K": tracker_air["span_k"],
+        "prior_ppm_per_K": ppm("prior_per_k"),
+        "prior_std_ppm_per_K": ppm("prior_std_per_k"),
+        "fitted_ppm_per_K": ppm("fitted_per_k"),
+        "std_ppm_per_K": ppm("std_per_k"),
+        "data_ppm_per_K": ppm("data_per_k"),
+        "data_std_ppm_per_K": ppm("data_std_per_k"),
+        "data_share": tracker_air["data_share"],
+        "standing": tracker_air["standing"],
+    }
+    return [
+        "<h2>Tracker scale from a stuck air reading (physics: found, assumed or rejected)</h2>",
+        f"<p>{html.escape(tracker_air_text(tracker_air) or '')}</p>",
+        _table([row], list(row), dict.fromkeys(list(row)[:-1], ".3g")),
     ]
 
 

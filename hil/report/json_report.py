@@ -9,7 +9,7 @@ from pathlib import Path
 from hil.analysis.diagnosis.pipeline import DiagnosisReport
 from hil.data.jsonable import to_jsonable
 from hil.data.store import OutcomeRecord
-from hil.report.text import caution_text, conclusion, gravity_text, thermal_text
+from hil.report.text import caution_text, conclusion, gravity_text, thermal_text, tracker_air_text
 
 
 def report_dict(report: DiagnosisReport) -> dict:
@@ -22,6 +22,8 @@ def report_dict(report: DiagnosisReport) -> dict:
             value = {**value, "cautions": [{**c.to_dict(), "text": caution_text(c)} for c in cautions]}
         if key == "thermal" and value is not None:
             value = {**value, "text": thermal_text(value)}
+        if key == "tracker_air" and value is not None:
+            value = {**value, "text": tracker_air_text(value)}
         if key == "gravity":  # one shape whether or not the robot file gives the masses
             value = {"joints": value, "text": gravity_text(value) if value else ""}
         out[key] = value

@@ -11,12 +11,13 @@ from hil.analysis.diagnosis.cautions import (
     PreviousEffectsKept,
     StageWorseThanPrevious,
     ThermalPriorContradicted,
+    TrackerAirStuck,
     ValidationJointsOutside,
     ValidationTemperaturesOutside,
     ValidationUnrepresented,
     ValidationWorseThanGeometric,
 )
-from hil.analysis.diagnosis.pipeline import DiagnosisReport
+from hil.analysis.diagnosis.pipeline import DiagnosisReport, tracker_air_caution
 from hil.analysis.diagnosis.questions import AmbiguousEffects as AmbiguousQuestion
 from hil.analysis.diagnosis.questions import (
     ConfoundedParameters,
@@ -31,6 +32,7 @@ from hil.analysis.diagnosis.questions import (
     as_question,
 )
 from hil.analysis.diagnosis.screening import effect_label
+from hil.model.effects import REFRACTION_PER_K
 from hil.model.residual_maps import MAP_MODES
 
 
@@ -93,12 +95,63 @@ def caution_text(c: Caution) -> str:
                 f"{c.material_per_k * 1e6:.1f} ppm/K in the robot file: the model {follows}; if the arm is of "
                 "another material, give its expansion_per_k in the robot file"
             )
+        case TrackerAirStuck():
+            return _tracker_air_words(c)
         case ValidationJointsOutside():
             return (
                 f"validation joint(s) {', '.join(map(str, c.joints))} leave the training's range by more than "
                 f"{c.margin_deg:g} deg: the model extrapolates there"
             )
     raise ValueError(f"no wording for the caution kind '{c.kind}'")
+
+
+def _ppm(value: float) -> str:
+    return f"{value * 1e6:.2f}"
+
+
+def _tracker_air_words(c: TrackerAirStuck) -> str:
+    """A stuck air reading in the user's terms: what was read, what it means, what the model holds and why,
+    and the remedy."""
+    rose = "rose" if c.end_c >= c.start_c else "fell"
+    data = (
+        "the data alone carry nothing of it"
+        if c.data_per_k is None
+        else f"the data alone make it {_ppm(c.data_per_k)} ppm/K"
+        if c.data_std_per_k is None
+        else f"the data alone: {_ppm(c.data_per_k)} +- {_ppm(c.data_std_per_k)} ppm/K"
+    )
+    prior = f"{_ppm(c.prior_per_k)} +- {_ppm(c.prior_std_per_k)} ppm/K"
+    if c.standing == "found":
+        held = (
+            f"the data show it: the model scales the tracker's distances by {_ppm(c.fitted_per_k)} +- "
+            f"{_ppm(c.std_per_k)} ppm per K of the recorded temperature (prior {prior}; {data})"
+        )
+    elif c.standing == "rejected":
+        held = f"the data find no such scale ({data}, no different from zero; prior {prior}): the model holds none"
+    else:
+        held = (
+            f"the data cannot tell how much the air warmed, so the model assumes the scale at "
+            f"{_ppm(c.fitted_per_k)} +- {_ppm(c.std_per_k)} ppm per K of the recorded temperature (prior "
+            f"{prior}; {data}); it is the tracker's scale, not the arm's growth"
+        )
+    return (
+        f"the tracker's air temperature read {c.air_c:.2f} degC at every point while the recorded temperature "
+        f"{rose} {abs(c.end_c - c.start_c):.1f} K ({c.start_c:.2f} to {c.end_c:.2f} degC): if the air was entered "
+        f"by hand or the weather station is stuck, the tracker's distances scale by about "
+        f"{abs(REFRACTION_PER_K) * 1e6:.2f} ppm per K the air warmed; {held}. Let the tracker read its weather "
+        "station, or record the hall's air; revisits of a few poses spread over several K resolve the scale"
+    )
+
+
+def tracker_air_text(tracker_air: dict | None) -> str | None:
+    """The tracker's scale from a stuck air reading in words (the caution's; None without such a term)."""
+    if not tracker_air:
+        return None
+    return (
+        "Tracker scale from a stuck air reading: "
+        + _tracker_air_words(tracker_air_caution(tracker_air))
+        + "."
+    )
 
 
 def conclusion(report: DiagnosisReport) -> str:

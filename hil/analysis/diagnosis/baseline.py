@@ -21,7 +21,7 @@ from hil.analysis.calibration.solve import (
 )
 from hil.analysis.diagnosis.physics_terms import held_rigid_start, physics_start
 from hil.model.calibrated_model import CalibratedModel, initial_model, with_initial_probes
-from hil.model.effects import gravity_physics_term, material_growth, yields_against_gravity
+from hil.model.effects import gravity_physics_term, physical, yields_against_gravity
 
 
 def error_stats(err_m: np.ndarray) -> dict[str, float]:
@@ -153,11 +153,13 @@ def baseline_fit(
     tool_guess_m,
     tracker_mpe_m,
     progress=None,
-    material=None,
+    *,
+    decided=(),
     hold_gravity=None,
 ) -> Baseline:
-    """`material`: the links' material growth to fit instead of the one the robot file starts (what an
-    earlier selection's data made of it: hil.analysis.diagnosis.physics_terms.material_decision).
+    """`decided`: physics terms to fit instead of the start's of the same label (what an earlier selection's
+    data made of them: the links' material growth, hil.analysis.diagnosis.physics_terms.material_decision;
+    the tracker's scale from a stuck air reading, `tracker_air_decision`).
     `hold_gravity` ({joint: the compliance a fit made of it}): those joints' gravity terms held rigid
     (`held_rigid_start`); a gravity term the geometric fit makes negative is held rigid too, and the fit
     repeated."""
@@ -167,11 +169,11 @@ def baseline_fit(
     )
     tell("geometric calibration", 0, 2)
     start = physics_start(robot, df, tool_guess_m)
-    if material is not None and isinstance(start, CalibratedModel):
-        fresh = type(material)(
-            joint=material.joint, params=material.params.copy(), state=dict(material.state)
-        )
-        start = replace(start, effects=[fresh if material_growth(e) else e for e in start.effects])
+    if decided and isinstance(start, CalibratedModel):
+        fresh = {
+            d.label: type(d)(joint=d.joint, params=d.params.copy(), state=dict(d.state)) for d in decided
+        }
+        start = replace(start, effects=[fresh.get(e.label, e) if physical(e) else e for e in start.effects])
     hold_gravity = dict(hold_gravity or {})
     ridge = calibrate(df, held_rigid_start(start, hold_gravity), "ridge", tool_guess_m=tool_guess_m)
     against = {e.joint: float(e.params[0]) for e in ridge.model.effects if yields_against_gravity(e)}

@@ -25,6 +25,7 @@ class CautionKind(enum.StrEnum):
     VALIDATION_TEMPERATURES_OUTSIDE = "validation_temperatures_outside"
     THERMAL_PRIOR_CONTRADICTED = "thermal_prior_contradicted"
     VALIDATION_JOINTS_OUTSIDE = "validation_joints_outside"
+    TRACKER_AIR_STUCK = "tracker_air_stuck"
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -132,6 +133,28 @@ class ThermalPriorContradicted(Caution):
 
 
 @dataclass(frozen=True, kw_only=True)
+class TrackerAirStuck(Caution):
+    """The tracker's air temperature read `air_c` at every point while the recorded temperature rose from
+    `start_c` to `end_c` (`span_k` between its extremes): the tracker's scale per K of the recorded temperature
+    (hil.analysis.diagnosis.physics_terms.tracker_air_summary) as the model holds it (`fitted_per_k` +-
+    `std_per_k`), its prior, what the data alone make of it (None: they carry nothing of it) and its
+    `standing` (found, assumed, rejected)."""
+
+    kind = CautionKind.TRACKER_AIR_STUCK
+    air_c: float
+    start_c: float
+    end_c: float
+    span_k: float
+    prior_per_k: float
+    prior_std_per_k: float
+    fitted_per_k: float
+    std_per_k: float
+    standing: str
+    data_per_k: float | None = None
+    data_std_per_k: float | None = None
+
+
+@dataclass(frozen=True, kw_only=True)
 class ValidationJointsOutside(Caution):
     """Validation joints (1-based) leave the training's range by more than `margin_deg`."""
 
@@ -153,5 +176,6 @@ CAUTIONS: dict[CautionKind, type[Caution]] = {
         ValidationTemperaturesOutside,
         ThermalPriorContradicted,
         ValidationJointsOutside,
+        TrackerAirStuck,
     )
 }

@@ -6,7 +6,7 @@ The diagnosis uses it to leave out questions the campaign already decides; the a
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import pandas as pd
@@ -104,6 +104,8 @@ def rival_for(df, model, camp: Problem, qu: Question) -> Rival | None:
         camp.ctx.p_flange_tool = model._row_tools(camp.smr)
         if not eff.prepare(camp.ctx, model.nominal):
             return None
+        # a term of the same label already in the model (a physics term its prior carries) is tested free
+        model = replace(model, effects=[e for e in model.effects if e.label != eff.label])
         trial = model.with_effect(eff)
         names = eff.param_names
         label = eff.label

@@ -1,6 +1,7 @@
 """The physics terms of a diagnosed model: where the geometric fit starts (the links' thermal growth when the
-robot file names their material, the joints' gravity yield when it names the link masses) and what the fit
-made of them against their priors (fitted beside prior, standard error, the data's share of what is known).
+robot file names their material, the joints' gravity yield when it names the link masses, the tracker's scale
+when its air reading stays put while the recorded temperature rises) and what the fit made of them against
+their priors (fitted beside prior, standard error, the data's share of what is known).
 The selection never adds or removes these terms; hil.analysis.diagnosis.pipeline reports them.
 """
 
@@ -26,8 +27,50 @@ from hil.model.effects import (
     hold_rigid,
     material_expansion,
     material_growth,
+    stuck_air_scale,
+    stuck_air_tracker_scale,
     without_prior,
 )
+
+# A weather station that reads the hall's air moves with it: its readings change by a few hundredths of a K
+# within minutes (a hall is never still to that level; stations report 0.01 K steps, the coarser ones 0.1 K),
+# and an arm that warms by a kelvin warms the air round it by some part of that. A hand-entered air or a stuck
+# station repeats one value exactly. An air reading that changes by less than half a station's finest step
+# over the whole campaign (room for a file's rounding, none for a live station's one-step flicker) was
+# entered by hand, or the station is stuck, or not read at all.
+STUCK_AIR_TOLERANCE_K = 0.005
+# ... and counts as stuck only where the recorded temperature spans at least this: 100x the tolerance, so a
+# working station in air that warmed by even a tenth of the recorded temperature's rise would have moved ten
+# times past it (and the same span below which the diagnosis calls the temperature not spanned:
+# hil.analysis.diagnosis.questions.MIN_TEMPERATURE_SPAN_K).
+STUCK_AIR_MIN_SPAN_K = 1.0
+
+
+@dataclass(frozen=True)
+class StuckAir:
+    """A campaign whose tracker's air reading stayed at `air_c` while the recorded temperature spanned
+    `span_k` (from `start_c` to `end_c`, its first and last rows' readings)."""
+
+    air_c: float
+    span_k: float
+    start_c: float
+    end_c: float
+
+
+def stuck_air(df: pd.DataFrame) -> StuckAir | None:
+    """The tracker's air reading stuck (`STUCK_AIR_TOLERANCE_K`) while the recorded temperature spans at least
+    STUCK_AIR_MIN_SPAN_K, on a campaign whose every row records both (`air_temperature_c`, `temperature_c`);
+    None otherwise (a campaign that does not record the air says nothing of it)."""
+    if not {"air_temperature_c", "temperature_c"} <= set(df.columns) or len(df) == 0:
+        return None
+    air = df["air_temperature_c"].to_numpy(float)
+    temps = df["temperature_c"].to_numpy(float)
+    if not (np.all(np.isfinite(air)) and np.all(np.isfinite(temps))):
+        return None
+    span = float(np.ptp(temps))
+    if float(np.ptp(air)) > STUCK_AIR_TOLERANCE_K or span < STUCK_AIR_MIN_SPAN_K:
+        return None
+    return StuckAir(float(np.median(air)), span, float(temps[0]), float(temps[-1]))
 
 
 def held_rigid_start(
@@ -51,11 +94,17 @@ def physics_start(
 ) -> str | KinematicModel | CalibratedModel:
     """Where the geometric fit starts: the registered nominal model with the physics the robot file allows
     (the links' thermal growth when it names their material and every row records a temperature, the joints'
-    gravity yield when it names the link masses), else `robot` itself."""
+    gravity yield when it names the link masses) and the campaign shows (the tracker's scale when its air
+    reading stayed put while the recorded temperature rose: `stuck_air`), else `robot` itself."""
     model = initial_model(robot, df, tool_guess_m)
     ctx = model.context(df)[0]
     growth = material_expansion(ctx, model.nominal)
-    effects = ([] if growth is None else [growth]) + list(gravity_physics(ctx, model.nominal))
+    effects: list[Effect] = [] if growth is None else [growth]
+    effects += gravity_physics(ctx, model.nominal)
+    air = stuck_air(df)
+    scale = None if air is None else stuck_air_tracker_scale(ctx, air.air_c)
+    if scale is not None:
+        effects.append(scale)
     for eff in effects:
         model = model.with_effect(eff)
     return model if effects else robot
@@ -111,7 +160,7 @@ def coefficient(result: CalibrationResult, prob: Problem, eff: Effect) -> Coeffi
     the posterior and the prior (var_data = 1 / (1 / var_post - 1 / var_prior))."""
     prior = eff.prior()
     if prior is None:  # the prior dropped: the fit is the data's
-        prior_mean = float(eff.state.get("material_per_k", 0.0))
+        prior_mean = float(eff.state.get("material_per_k", eff.state.get("prior_mean_per_k", 0.0)))
         prior_std = float(eff.state.get("prior_std_per_k", eff.state.get("prior_std", 0.0)))
     else:
         prior_mean, prior_std = float(prior[0][0]), float(prior[1][0])
@@ -179,6 +228,29 @@ def material_decision(result: CalibrationResult, prob: Problem, alpha: float) ->
         # no growth, or none of any material (the temperature's term follows a drift, the air): the links
         # are held at no growth and the selection tests what the temperature follows
         return hold_absent(eff, c.data_alone)
+    if c.data_show_it(z):
+        return None
+    return hold_absent(eff, c.fitted if c.data_alone is None else c.data_alone)
+
+
+def tracker_air_decision(result: CalibrationResult, prob: Problem, alpha: float) -> Effect | None:
+    """What the data make of the tracker's scale from a stuck air reading (`stuck_air_scale`), as the term to
+    fit instead (None: the fit stands): data that carry most of what is known of it and whose own value is not
+    clearly away from zero (the two-sided `alpha` level, `Coefficient.data_show_it`) hold it at zero
+    (`hold_absent`: the air did not warm, or the station was right); data that contradict the prior drop it
+    (`without_prior`) where their own value is clearly a scale, else hold it at zero. Where the prior carries
+    it, it stays assumed."""
+    eff = next((e for e in result.model.effects if stuck_air_scale(e)), None)
+    if eff is None or eff.held:
+        return None
+    c = coefficient(result, prob, eff)
+    z = float(stats.norm.isf(alpha / 2))
+    if c.data_share < DATA_LED_SHARE:
+        return None
+    if eff.state.get("prior_dropped"):
+        return None if c.away_from_zero(z) else hold_absent(eff, c.fitted)
+    if c.contradicts_prior():
+        return without_prior(eff, c.fitted) if c.data_show_it(z) else hold_absent(eff, c.fitted)
     if c.data_show_it(z):
         return None
     return hold_absent(eff, c.fitted if c.data_alone is None else c.data_alone)
@@ -283,3 +355,44 @@ def gravity_summary(result: CalibrationResult, prob: Problem, alpha: float) -> l
             }
         )
     return out
+
+
+def tracker_air_summary(
+    result: CalibrationResult, prob: Problem, air: StuckAir | None, alpha: float = 1e-3
+) -> dict | None:
+    """The tracker's scale from its stuck air reading (`stuck_air`) in the fitted model: the air it read, the
+    recorded temperature's span, the coefficient fitted beside its prior (per K of the recorded temperature),
+    what the data alone make of it, the data's share of what is known, and its `standing`: found (the data
+    alone put it clearly away from zero), assumed (the prior carries it; `shift_mm`: how much it moves the
+    prediction on the rows) or rejected (the data carry it and find no scale: held at zero). None without
+    such a term."""
+    eff = next((e for e in result.model.effects if stuck_air_scale(e)), None)
+    if eff is None or air is None:
+        return None
+    c = coefficient(result, prob, eff)
+    z = float(stats.norm.isf(alpha / 2))
+    if eff.held:
+        standing = REJECTED
+    elif c.data_share < DATA_LED_SHARE:
+        standing = ASSUMED
+    else:
+        standing = FOUND if c.data_show_it(z) else REJECTED
+    data_alone = float(eff.state["data_value"]) if eff.state.get("rejected") else c.data_alone
+    data_alone_std = None if eff.state.get("rejected") else c.data_alone_std
+    return {
+        "air_c": air.air_c,
+        "span_k": air.span_k,
+        "temperature_start_c": air.start_c,
+        "temperature_end_c": air.end_c,
+        "prior_per_k": float(eff.state["prior_mean_per_k"]),
+        "prior_std_per_k": float(eff.state["prior_std_per_k"]),
+        "fitted_per_k": c.fitted,
+        "std_per_k": c.std,
+        "data_per_k": data_alone,
+        "data_std_per_k": data_alone_std,
+        "data_share": 1.0 if eff.state.get("rejected") else c.data_share,
+        "data_led": standing != ASSUMED,
+        "prior_dropped": bool(eff.state.get("prior_dropped")),
+        "standing": standing,
+        "shift_mm": term_shift_mm(result.model, prob, eff),
+    }

@@ -33,7 +33,12 @@ under gravity when the robot file gives the links' masses: one compliance per jo
 torque, the torque computed from the masses, fitted with a prior centred on a rigid joint
 (hil.model.effects.gravity_physics); a yield the data carry but do not find stays only while it predicts
 held-out points better than a rigid joint (`yields_no_better`); the report gives each joint's stiffness and
-its standing (`gravity_summary`). The residual left is
+its standing (`gravity_summary`). So is the tracker's scale when the campaign records the tracker's air
+temperature and it stays put while the recorded temperature rises (a hand-entered air, a stuck weather
+station: hil.analysis.diagnosis.physics_terms.stuck_air): driven by the recorded temperature, fitted with a
+prior on how much of that rise the real air followed (hil.model.effects.stuck_air_tracker_scale), held at
+zero where the data find no scale (`tracker_air_decision`), reported found, assumed or rejected with a
+caution in the user's terms (`tracker_air_summary`); never as the arm's growth. The residual left is
 then tested against the noise floor; if it is larger and a residual map predicts it on held-out blocks of the
 volume (the spatial folds: better than no map, p < alpha), the report says structure remains that no
 candidate explains and adds the map as a fallback stage. A map that only interpolates (wins on random folds,
@@ -70,6 +75,7 @@ from hil.analysis.diagnosis.cautions import (
     Caution,
     StageWorseThanPrevious,
     ThermalPriorContradicted,
+    TrackerAirStuck,
     ValidationJointsOutside,
     ValidationTemperaturesOutside,
     ValidationUnrepresented,
@@ -89,7 +95,10 @@ from hil.analysis.diagnosis.physics_terms import (
     FOUND,
     gravity_summary,
     material_decision,
+    stuck_air,
     thermal_summary,
+    tracker_air_decision,
+    tracker_air_summary,
 )
 from hil.analysis.diagnosis.questions import ConfoundedParameters, Question, open_questions
 from hil.analysis.diagnosis.screening import Candidate, effect_label, held_out_gain
@@ -110,6 +119,7 @@ from hil.model.effects import (
     Effect,
     material_growth,
     physical,
+    stuck_air_scale,
     tool_points_rows,
     yields_against_gravity,
 )
@@ -143,6 +153,8 @@ class DiagnosisReport:
     drift: dict | None = (
         None  # reference poses re-measured (hil.analysis.diagnosis.drift_monitor.reference_drift)
     )
+    # the tracker's scale from an air reading that stayed put (`tracker_air_summary`)
+    tracker_air: dict | None = None
     # the 95 % prediction intervals' coverage (hil.analysis.diagnosis.intervals.Coverage, held-out, validate)
     intervals: list[dict] = field(default_factory=list)
 
@@ -150,7 +162,8 @@ class DiagnosisReport:
     def effects_added(self) -> list[dict]:
         """The effects the data found, in the order the final model holds them (the verdict's "Added"): every
         effect the selection added, and a physics term (the material's growth, a joint's gravity yield from
-        the link masses) only where `thermal` or `gravity` calls it found."""
+        the link masses, the tracker's scale from a stuck air reading) only where `thermal`, `gravity` or
+        `tracker_air` calls it found."""
         return [
             {"name": e.family, "joint": e.joint} for e in self.model.effects if self._standing(e) == FOUND
         ]
@@ -172,6 +185,8 @@ class DiagnosisReport:
             return None
         if material_growth(e):
             return self.thermal
+        if stuck_air_scale(e):
+            return self.tracker_air
         return next((g for g in self.gravity if g["joint"] == e.joint), None)
 
     def _standing(self, e: Effect) -> str:
@@ -200,6 +215,7 @@ class DiagnosisReport:
             "plan": self.plan,
             "thermal": self.thermal,
             "gravity": self.gravity,
+            "tracker_air": self.tracker_air,
             "drift": self.drift,
             "intervals": self.intervals,
             "calibration": self.calibration,
@@ -283,28 +299,7 @@ def run_diagnosis(
     df = drop_duplicate_rows(df, "training data")  # copies would count twice in every test
     with one_blas_thread():  # small dense problems: threads only contend
         fit_args = (df, robot, o.folds, o.seed, o.repeatability_m, o.tool_guess_m, o.tracker_mpe_m, progress)
-        base = baseline_fit(*fit_args)
-        base.screening = screening
-        path = select_effects(base, df, alpha, families, max_effects)
-        material: Effect | None = None
-        for _ in range(base.nominal.nominal.n_joints + 2):  # each pass settles the growth or more joints
-            decided = material_decision(path.current, path.prob, alpha)
-            against = {
-                e.joint: float(e.params[0]) for e in path.current.model.effects if yields_against_gravity(e)
-            }
-            if decided is None and not against:
-                # the yields the data carry but do not find stay only while they beat a rigid joint
-                against = yields_no_better(df, path, alpha)
-                if not against:
-                    break
-            # The data contradict the material's growth or find none (the recorded temperature follows the
-            # air, not the arm), or a joint's gravity term yields against gravity once the selected effects
-            # are in, or predicts no better than a rigid joint: select again with the growth as the data have
-            # it and those joints held rigid (and again if that selection turns another joint).
-            material = decided or material
-            base = baseline_fit(*fit_args, material=material, hold_gravity={**base.held_gravity, **against})
-            base.screening = screening
-            path = select_effects(base, df, alpha, families, max_effects)
+        base, path = _settle_physics(df, fit_args, o)
         settle_rivals(base, df, path, alpha)
         if previous_effects:
             path = keep_previous(base, df, path, previous_effects, alpha, families, max_effects)
@@ -312,6 +307,9 @@ def run_diagnosis(
         report = _verdict(base, path, stages, hist, steps, alpha, o.compare_maps)
         report.thermal = thermal_summary(path.current, path.prob, alpha)
         report.gravity = gravity_summary(path.current, path.prob, alpha)
+        report.tracker_air = tracker_air_summary(path.current, path.prob, stuck_air(df), alpha)
+        if report.tracker_air is not None:
+            report.verdict["cautions"].append(tracker_air_caution(report.tracker_air))
         if report.thermal and report.thermal["prior_contradicted"]:
             report.verdict["cautions"].append(
                 ThermalPriorContradicted(
@@ -347,6 +345,54 @@ def run_diagnosis(
         report.undecided = undecided_questions(df, path, alpha, float(np.sqrt(base.sigma2)))
         report.verdict["cautions"] = without_decided_pairs(report.verdict["cautions"], report.undecided)
         return report
+
+
+def _settle_physics(df: pd.DataFrame, fit_args: tuple, o: DiagnosisOptions) -> tuple[Baseline, SelectionPath]:
+    """The baseline fit and the selection, repeated until the physics terms stand as the data have them: the
+    data contradict the material's growth or find none (the recorded temperature follows the air, not the
+    arm), or a joint's gravity term yields against gravity once the selected effects are in, or predicts no
+    better than a rigid joint, or the data drop or reject the tracker's scale from a stuck air reading: select
+    again with those terms as the data have them and those joints held rigid (and again if that selection
+    turns another joint)."""
+    alpha, families, max_effects = o.alpha, o.families, o.max_effects
+    base = baseline_fit(*fit_args)
+    base.screening = o.screening
+    path = select_effects(base, df, alpha, families, max_effects)
+    decided: dict[str, Effect] = {}  # physics terms as the data have them, by label
+    for _ in range(base.nominal.nominal.n_joints + 3):  # each pass settles a physics term or more joints
+        terms = [material_decision(path.current, path.prob, alpha)]
+        terms.append(tracker_air_decision(path.current, path.prob, alpha))
+        against = {
+            e.joint: float(e.params[0]) for e in path.current.model.effects if yields_against_gravity(e)
+        }
+        if all(t is None for t in terms) and not against:
+            # the yields the data carry but do not find stay only while they beat a rigid joint
+            against = yields_no_better(df, path, alpha)
+            if not against:
+                break
+        decided.update({t.label: t for t in terms if t is not None})
+        held = {**base.held_gravity, **against}
+        base = baseline_fit(*fit_args, decided=tuple(decided.values()), hold_gravity=held)
+        base.screening = o.screening
+        path = select_effects(base, df, alpha, families, max_effects)
+    return base, path
+
+
+def tracker_air_caution(summary: dict) -> TrackerAirStuck:
+    """The caution of a tracker whose air reading stayed put (`tracker_air_summary`'s figures)."""
+    return TrackerAirStuck(
+        air_c=summary["air_c"],
+        start_c=summary["temperature_start_c"],
+        end_c=summary["temperature_end_c"],
+        span_k=summary["span_k"],
+        prior_per_k=summary["prior_per_k"],
+        prior_std_per_k=summary["prior_std_per_k"],
+        fitted_per_k=summary["fitted_per_k"],
+        std_per_k=summary["std_per_k"],
+        data_per_k=summary["data_per_k"],
+        data_std_per_k=summary["data_std_per_k"],
+        standing=summary["standing"],
+    )
 
 
 def undecided_questions(

@@ -50,7 +50,7 @@ import numpy as np
 import pandas as pd
 
 from hil.data.dataset import joints_rad, pose_ids
-from hil.model.effects import CYCLIC_MIN_PERIODS, Effect, approach_signs, temperature_driven
+from hil.model.effects import CYCLIC_MIN_PERIODS, Effect, approach_signs, stuck_air_scale, temperature_driven
 
 MARGINAL_P = 0.01  # held-out p-value below this but not below alpha: the data leans, it does not decide
 MIN_ROWS_PER_DIRECTION = 5  # the backlash candidate's own requirement (hil.model.effects.Backlash)
@@ -365,8 +365,10 @@ def parameter_questions(pairs: list[tuple]) -> list[Question]:
 
 def thermal_questions(df: pd.DataFrame, effects: list[Effect]) -> list[Question]:
     """The tracker's scale against the links' growth, when the model carries a temperature-driven growth and
-    no tracker scale, and the recorded temperature spans enough to show either."""
-    families = {e.family for e in effects if temperature_driven(e)}
+    no tracker scale the data chose (a scale put in from a stuck air reading, `stuck_air_scale`, leaves the
+    question to the evidence: its prior may carry it), and the recorded temperature spans enough to show
+    either."""
+    families = {e.family for e in effects if temperature_driven(e) and not stuck_air_scale(e)}
     if "thermal_expansion" not in families or "tracker_scale" in families:
         return []
     span_k = temperature_span_k(df)
