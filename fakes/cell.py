@@ -392,11 +392,12 @@ class SimulatedCell:
         """The controller commands joints q (6,); whether they changed. A change after standing still starts
         a motion, which draws its repeatability jitter and encoder noise from the seed and the motion's index."""
         q = np.asarray(q, dtype=float).reshape(-1)
-        if q.shape != self._q_cmd.shape or not np.all(np.isfinite(q)):
+        # the arrays' own all/any: called every controller cycle, np.all/np.any's dispatch cost more than the test
+        if q.shape != self._q_cmd.shape or not np.isfinite(q).all():
             raise ValueError(f"commanded joints must be {self._q_cmd.shape[0]} finite values, got {q}")
         step = q - self._q_cmd
         moved = np.abs(step) > 1e-12
-        if not np.any(moved):
+        if not moved.any():
             self._standing = True
             return False
         self._approach[moved] = np.sign(step[moved])
