@@ -46,10 +46,21 @@ log = logging.getLogger(__name__)
 # 100 us when no packet waits: with Linux's default timer slack of 50 us each wakes about 2 700 times a
 # second, some 7 % of a core per thread for as long as the robot is connected, whether it moves or not. A
 # thread inherits its creator's timer slack, so the interfaces are built with a coarser one: each poll may
-# then sleep up to this much longer, still well inside a CB3's 8 ms and an e-Series' 2 ms between packets (a
-# packet that waited is read at the next wake, and the loop reads on without sleeping while packets wait).
+# then sleep up to this much longer, half the controller's cycle between packets: 1 ms of an e-Series' 2 ms, 4 ms
+# of a CB3's 8 ms (a packet that waited is read at the next wake, and the loop reads on without sleeping while
+# packets wait). RECEIVE_TIMER_SLACK_NS, the finer, is also the slack of a controller whose version says nothing.
 RECEIVE_TIMER_SLACK_NS = 1_000_000
+CB3_RECEIVE_TIMER_SLACK_NS = 4_000_000
 _PR_SET_TIMERSLACK, _PR_GET_TIMERSLACK = 29, 30
+
+
+def receive_timer_slack_ns(version: str) -> int:
+    """The receive threads' timer slack for a controller of this version ('major.minor.bugfix.build'): a CB3's
+    (major 3, or below 5) streams every 8 ms, an e-Series' (major 5 and on) every 2 ms."""
+    major = version.split(".", 1)[0]
+    if major.isdigit() and int(major) < 5:
+        return CB3_RECEIVE_TIMER_SLACK_NS
+    return RECEIVE_TIMER_SLACK_NS
 
 
 @contextmanager
@@ -262,10 +273,10 @@ class URRobot:
                 self._dash = dash = dashboard_client.DashboardClient(cfg.host)
                 dash.connect(int(cfg.connect_timeout_s * 1000))
                 self.serial_number, self.model_name = _identity(dash)
-                with coarse_timer_slack():
+                with coarse_timer_slack(receive_timer_slack_ns(self.version)):
                     self._rx = rx = rtde_receive.RTDEReceiveInterface(cfg.host)
                 self._require_arm_ready()  # the control program would not start otherwise (a 5 s stall)
-                with coarse_timer_slack():
+                with coarse_timer_slack(receive_timer_slack_ns(self.version)):
                     self._ctrl = ctrl = rtde_control.RTDEControlInterface(
                         cfg.host, -1.0, rtde_control.RTDEControlInterface.FLAG_UPLOAD_SCRIPT
                     )
@@ -373,7 +384,7 @@ class URRobot:
             healthy = False
         if healthy:
             try:
-                with coarse_timer_slack():
+                with coarse_timer_slack(receive_timer_slack_ns(self.version)):
                     self._ctrl = ctrl = rtde_control.RTDEControlInterface(
                         self.config.host, -1.0, rtde_control.RTDEControlInterface.FLAG_UPLOAD_SCRIPT
                     )

@@ -261,6 +261,8 @@ class SimulatedCell:
         self._physics_cache: tuple[tuple, tuple[np.ndarray, np.ndarray]] | None = None
         self._encoder_noise = np.zeros(n)
         self._standing = True
+        # the array set_commanded_joints last tested, and the commanded joints it was tested against
+        self._taken: tuple[object, np.ndarray | None] = (None, None)
         self.motions = 0  # motions started (a change of the commanded joints after standing still)
         self.readings = 0  # tracker readings taken (measure_smr)
 
@@ -391,13 +393,22 @@ class SimulatedCell:
     def set_commanded_joints(self, q: np.ndarray) -> bool:
         """The controller commands joints q (6,); whether they changed. A change after standing still starts
         a motion, which draws its repeatability jitter and encoder noise from the seed and the motion's index."""
+        given = q
+        if given is self._taken[0] and self._q_cmd is self._taken[1]:
+            # the very array last tested, against the same commanded joints: no step, as the full test below
+            # would find again (the controller replaces its commanded joints, never writes into them), without
+            # its six numpy calls in every cycle of an arm standing still
+            self._standing = True
+            return False
         q = np.asarray(q, dtype=float).reshape(-1)
-        if q.shape != self._q_cmd.shape or not np.all(np.isfinite(q)):
+        # the arrays' own all/any: called every controller cycle, np.all/np.any's dispatch cost more than the test
+        if q.shape != self._q_cmd.shape or not np.isfinite(q).all():
             raise ValueError(f"commanded joints must be {self._q_cmd.shape[0]} finite values, got {q}")
         step = q - self._q_cmd
         moved = np.abs(step) > 1e-12
-        if not np.any(moved):
+        if not moved.any():
             self._standing = True
+            self._taken = (given, self._q_cmd)
             return False
         self._approach[moved] = np.sign(step[moved])
         if self._standing:
@@ -407,6 +418,7 @@ class SimulatedCell:
             self._jitter = _keyed(JITTER_STREAM, key).normal(0, cfg.repeatability_sigma_rad, q.shape)
             self._encoder_noise = _keyed(ENCODER_STREAM, key).normal(0, cfg.encoder_sigma_rad, q.shape)
         self._q_cmd = q
+        self._taken = (given, q)
         return True
 
     def encoder_joints(self) -> np.ndarray:

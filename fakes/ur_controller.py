@@ -21,6 +21,7 @@ import numpy as np
 
 from fakes import rtde_wire as w
 from fakes.fast_kinematics import ArmKinematics
+from fakes.rtde_output import OutputPacker
 from fakes.ur_dashboard import serve_dashboard
 from fakes.ur_modes import (
     IDLE,
@@ -69,6 +70,11 @@ class PlannedFault:
     fraction: float  # of the move's duration
     duration_s: float  # for stalls and latency spikes (wall seconds)
 
+
+# RTDE outputs this controller models with values that never change (`_output_getters`)
+FIXED_OUTPUTS = frozenset(
+    {"actual_main_voltage", "actual_robot_voltage", "actual_tool_accelerometer", "actual_execution_time"}
+)
 
 FAULT_KINDS = ("protective_stop", "emergency_stop", "drop_rtde", "stop_script", "stall", "latency")
 
@@ -167,7 +173,7 @@ class UrController(ScriptRuntime):
         self._planned: list[PlannedFault] = []
         self._stall_until = 0.0
         self._latency_until = 0.0
-        self._held: list[tuple[RtdeConnection, list]] = []
+        self._held: list[tuple[RtdeConnection, bytes]] = []  # data packages a latency spike holds back
         self.fault_log: list[dict] = []
         self.tick_count = 0
         self.kin = ArmKinematics(self.model)
@@ -573,27 +579,33 @@ class UrController(ScriptRuntime):
             return
         holding = now < self._latency_until
         if not holding and self._held:
-            for conn, values in self._held:
-                conn.send_data(values)
+            for conn, payload in self._held:
+                conn.send_package(payload)
             self._held.clear()
         for conn in self._rtde:
             if not conn.streaming or self.tick_count % conn.output_every_n_ticks:
                 continue
-            if conn.getters is None:
+            if conn.packer is None:
                 recipe = conn.output_recipe
                 assert recipe is not None  # a connection streams only once it has an output recipe
-                conn.getters = [self.getter(name) for name in recipe.names]
-            values = [getter() for getter in conn.getters]
+                sources = [self._output_source(name) for name in recipe.names]
+                conn.packer = OutputPacker(recipe, [g for g, _ in sources], [fixed for _, fixed in sources])
+            payload = conn.packer.package()
             if holding:
-                self._held.append((conn, values))
+                self._held.append((conn, payload))
             else:
-                conn.send_data(values)
+                conn.send_package(payload)
 
     def getter(self, name: str) -> Any:
         """A zero-argument function returning the current value of one RTDE output variable."""
+        return self._output_source(name)[0]
+
+    def _output_source(self, name: str) -> tuple[Any, bool]:
+        """The getter of one RTDE output variable, and whether its value is fixed (held constant, or not
+        modelled: zeros), so that a package may carry the value read once."""
         getter = self._outputs.get(name)
         if getter is not None:
-            return getter
+            return getter, name in FIXED_OUTPUTS
         for prefix, table in (
             ("output_int_register_", self.out_int),
             ("output_double_register_", self.out_double),
@@ -602,12 +614,12 @@ class UrController(ScriptRuntime):
         ):
             if name.startswith(prefix):
                 index = int(name[len(prefix) :])
-                return lambda table=table, index=index: table[index]
+                return (lambda table=table, index=index: table[index]), False
         if name.startswith("input_bit_register_"):
             bit = int(name.rsplit("_", 1)[1])
-            return lambda: bool(self.in_bits >> bit & 1)
+            return (lambda: bool(self.in_bits >> bit & 1)), False
         zero = _zero(w.output_type(name) or "DOUBLE")
-        return lambda: zero
+        return (lambda: zero), True
 
     def output_value(self, name: str) -> Any:
         """Current value of one RTDE output variable."""
@@ -663,7 +675,7 @@ class UrController(ScriptRuntime):
         return self._target_pose_cache[1]
 
     def _tcp_speed(self) -> Any:
-        if not np.any(self.qd_cmd):
+        if not self.qd_cmd.any():  # the array's own any: twice a package, np.any's dispatch cost more
             return (0.0,) * 6
         return self.kin.jacobian(self.q_cmd, self.T_flange_tcp[:3, 3]) @ self.qd_cmd
 

@@ -14,6 +14,7 @@ import struct
 from typing import Any, Protocol
 
 from fakes import rtde_wire as w
+from fakes.rtde_output import OutputPacker
 from fakes.ur_modes import Personality
 
 log = logging.getLogger(__name__)
@@ -45,7 +46,7 @@ class RtdeConnection:
         self.reader = reader
         self.writer = writer
         self.output_recipe: w.Recipe | None = None
-        self.getters: list | None = None  # value getters of the output recipe, built on first use
+        self.packer: OutputPacker | None = None  # packs the output recipe's data packages, built on first use
         self.output_every_n_ticks = 1
         self.input_recipes: dict[int, w.Recipe] = {}
         self.streaming = False
@@ -66,12 +67,9 @@ class RtdeConnection:
             return
         self.writer.write(w.frame(message_type, payload))
 
-    def send_data(self, values: list) -> None:
-        """Push one output data package (values in recipe order)."""
-        recipe = self.output_recipe
-        if recipe is None:
-            return
-        self.send(w.DATA_PACKAGE, bytes([recipe.recipe_id]) + recipe.pack(values))
+    def send_package(self, payload: bytes) -> None:
+        """Push one output data package (its payload from `OutputPacker.package`)."""
+        self.send(w.DATA_PACKAGE, payload)
 
     def abort(self) -> None:
         """Drop the connection at once (fault injection, protocol violation, backlog)."""
@@ -150,7 +148,7 @@ class RtdeConnection:
         recipe_id = self.controller.next_output_recipe_id() if ok else 0
         if ok:
             self.output_recipe = w.Recipe.build(recipe_id, names, types)
-            self.getters = None
+            self.packer = None
             self.output_every_n_ticks = max(1, round(base / frequency))
         self.send(w.CONTROL_PACKAGE_SETUP_OUTPUTS, bytes([recipe_id]) + ",".join(types).encode())
 

@@ -125,6 +125,25 @@ def test_encoder_and_repeatability_noise():
     np.testing.assert_allclose(np.std(visits, axis=0), cell.config.repeatability_sigma_rad, rtol=0.15)
 
 
+def test_the_same_array_commanded_again_and_again_stands_and_moves_as_fresh_copies_of_it_do():
+    """The controller hands the cell the same array every cycle while the arm stands (the cell then skips its
+    checks): the cell answers, counts motions and reads its encoders exactly as for a fresh copy every cycle,
+    also after a batch of commands and a change back to an array it saw before."""
+    q = np.array([0.1, -1.2, 1.3, -1.6, -1.5, 0.3])
+    same, fresh = SimulatedCell(SimCellConfig(seed=4)), SimulatedCell(SimCellConfig(seed=4))
+    a, b = q + 0.02, q - 0.03
+    for step, array in enumerate([a, a, b, b, a, a, a, a + 1e-13, a]):
+        if step == 5:
+            for cell in (same, fresh):
+                cell.run_sequence(np.array([q, q + 0.01]))
+        moved = same.set_commanded_joints(array)
+        assert moved == fresh.set_commanded_joints(array.copy())
+        assert moved == (step in (0, 2, 4, 5))
+        assert same.motions == fresh.motions
+        np.testing.assert_array_equal(same.encoder_joints(), fresh.encoder_joints())
+        np.testing.assert_array_equal(same.commanded_q, fresh.commanded_q)
+
+
 def test_flange_holes_follow_the_tool_paper_layout():
     cell = SimulatedCell(SimCellConfig(hole_position_sigma_m=0.0))
     holes = np.array(cell.ground_truth()["holes_flange_m"])

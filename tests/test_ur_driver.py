@@ -233,3 +233,29 @@ def test_threads_started_for_the_receive_interfaces_get_a_coarse_timer_slack_and
         worker.join()
     assert seen == [RECEIVE_TIMER_SLACK_NS]
     assert slack() == before != RECEIVE_TIMER_SLACK_NS
+
+
+def test_receive_threads_of_a_cb3_get_half_its_cycle_as_slack_and_an_e_series_or_unknown_controller_one_ms():
+    """The slack follows the controller's cycle, known from its version at connect: a CB3 (3.x) streams every
+    8 ms, its receive threads may oversleep 4 ms; an e-Series (5.x) every 2 ms, 1 ms; a version that says
+    nothing gets the finer. The CB3's is what a thread started inside `coarse_timer_slack` then runs with."""
+    import ctypes
+    import sys
+    import threading
+
+    from drivers.ur import CB3_RECEIVE_TIMER_SLACK_NS, RECEIVE_TIMER_SLACK_NS, coarse_timer_slack
+    from drivers.ur import receive_timer_slack_ns as slack_for
+
+    assert CB3_RECEIVE_TIMER_SLACK_NS == 4_000_000 and RECEIVE_TIMER_SLACK_NS == 1_000_000
+    assert slack_for("3.15.7.106331") == slack_for("3.0.0.0") == CB3_RECEIVE_TIMER_SLACK_NS
+    assert slack_for("5.11.1.108318") == slack_for("10.1.0.0") == RECEIVE_TIMER_SLACK_NS
+    assert slack_for("") == slack_for("x.1") == RECEIVE_TIMER_SLACK_NS
+    if not sys.platform.startswith("linux"):
+        return
+    libc = ctypes.CDLL(None, use_errno=True)
+    seen: list[int] = []
+    with coarse_timer_slack(slack_for("3.15.7.106331")):
+        worker = threading.Thread(target=lambda: seen.append(libc.prctl(30, 0, 0, 0, 0)))
+        worker.start()
+        worker.join()
+    assert seen == [CB3_RECEIVE_TIMER_SLACK_NS]
