@@ -7,6 +7,7 @@ The selection never adds or removes these terms; hil.analysis.diagnosis.pipeline
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -211,16 +212,8 @@ def material_decision(result: CalibrationResult, prob: Problem, alpha: float) ->
     (`hold_absent`), as do data whose own value is no growth of any material (EXPANSION_RANGE_PER_K: a
     temperature that follows a drift in time or the air). An arm whose links do not grow while the hall warms (the recorded temperature follows
     the air, not the arm) is so found out rather than given the material's growth."""
-    eff = next((e for e in result.model.effects if material_growth(e)), None)
-    if eff is None or eff.held:
-        return None
-    c = coefficient(result, prob, eff)
-    z = float(stats.norm.isf(alpha / 2))
-    if c.data_share < DATA_LED_SHARE:
-        return None  # assumed: the prior carries it
-    if eff.state.get("prior_dropped"):
-        return None if c.away_from_zero(z) else hold_absent(eff, c.fitted)
-    if c.contradicts_prior():
+
+    def contradicted(eff: Effect, c: Coefficient, z: float) -> Effect:
         assert c.data_alone is not None and c.data_alone_std is not None
         lo, hi = EXPANSION_RANGE_PER_K
         if abs(c.data_alone) > z * c.data_alone_std and lo <= c.data_alone <= hi:
@@ -228,9 +221,8 @@ def material_decision(result: CalibrationResult, prob: Problem, alpha: float) ->
         # no growth, or none of any material (the temperature's term follows a drift, the air): the links
         # are held at no growth and the selection tests what the temperature follows
         return hold_absent(eff, c.data_alone)
-    if c.data_show_it(z):
-        return None
-    return hold_absent(eff, c.fitted if c.data_alone is None else c.data_alone)
+
+    return _prior_decision(result, prob, alpha, material_growth, contradicted)
 
 
 def tracker_air_decision(result: CalibrationResult, prob: Problem, alpha: float) -> Effect | None:
@@ -240,20 +232,49 @@ def tracker_air_decision(result: CalibrationResult, prob: Problem, alpha: float)
     (`hold_absent`: the air did not warm, or the station was right); data that contradict the prior drop it
     (`without_prior`) where their own value is clearly a scale, else hold it at zero. Where the prior carries
     it, it stays assumed."""
-    eff = next((e for e in result.model.effects if stuck_air_scale(e)), None)
+
+    def contradicted(eff: Effect, c: Coefficient, z: float) -> Effect:
+        return without_prior(eff, c.fitted) if c.data_show_it(z) else hold_absent(eff, c.fitted)
+
+    return _prior_decision(result, prob, alpha, stuck_air_scale, contradicted)
+
+
+def _prior_decision(
+    result: CalibrationResult,
+    prob: Problem,
+    alpha: float,
+    chosen: Callable[[Effect], bool],
+    contradicted: Callable[[Effect, Coefficient, float], Effect],
+) -> Effect | None:
+    """The rule both physics terms with a Gaussian prior follow (the `chosen` one of the fitted model), as
+    the term to fit instead (None: the fit stands): the prior carries it (assumed), or its prior was dropped
+    and the data leave it at zero (held there), or the data contradict the prior (`contradicted` says what
+    then), or the data alone put it clearly away from zero (found), else the data reject it (held at zero)."""
+    eff = next((e for e in result.model.effects if chosen(e)), None)
     if eff is None or eff.held:
         return None
     c = coefficient(result, prob, eff)
     z = float(stats.norm.isf(alpha / 2))
     if c.data_share < DATA_LED_SHARE:
-        return None
+        return None  # assumed: the prior carries it
     if eff.state.get("prior_dropped"):
         return None if c.away_from_zero(z) else hold_absent(eff, c.fitted)
     if c.contradicts_prior():
-        return without_prior(eff, c.fitted) if c.data_show_it(z) else hold_absent(eff, c.fitted)
+        return contradicted(eff, c, z)
     if c.data_show_it(z):
         return None
     return hold_absent(eff, c.fitted if c.data_alone is None else c.data_alone)
+
+
+def _standing(eff: Effect, c: Coefficient, z: float) -> str:
+    """A physics term with a Gaussian prior as the report says it: rejected (held at zero), assumed (the prior
+    carries it), else found where the data alone put it beyond `z` of their standard errors, rejected where
+    they do not."""
+    if eff.held:
+        return REJECTED
+    if c.data_share < DATA_LED_SHARE:
+        return ASSUMED
+    return FOUND if c.data_show_it(z) else REJECTED
 
 
 def term_shift_mm(model: CalibratedModel, prob: Problem, eff: Effect) -> float:
@@ -277,12 +298,7 @@ def thermal_summary(result: CalibrationResult, prob: Problem, alpha: float = 1e-
     c = coefficient(result, prob, eff)
     z = float(stats.norm.isf(alpha / 2))
     temps = prob.ctx.temperature_c
-    if eff.held:
-        standing = REJECTED
-    elif c.data_share < DATA_LED_SHARE:
-        standing = ASSUMED
-    else:
-        standing = FOUND if c.data_show_it(z) else REJECTED
+    standing = _standing(eff, c, z)
     extra: dict = {}
     if eff.state.get("rejected"):
         extra["data_per_k"] = float(eff.state["data_value"])
@@ -371,12 +387,7 @@ def tracker_air_summary(
         return None
     c = coefficient(result, prob, eff)
     z = float(stats.norm.isf(alpha / 2))
-    if eff.held:
-        standing = REJECTED
-    elif c.data_share < DATA_LED_SHARE:
-        standing = ASSUMED
-    else:
-        standing = FOUND if c.data_show_it(z) else REJECTED
+    standing = _standing(eff, c, z)
     data_alone = float(eff.state["data_value"]) if eff.state.get("rejected") else c.data_alone
     data_alone_std = None if eff.state.get("rejected") else c.data_alone_std
     return {
