@@ -17,7 +17,8 @@ from hil.analysis.diagnosis.physics_terms import (
 )
 from hil.analysis.diagnosis.pipeline import run_diagnosis
 from hil.geometry.robots import get_robot
-from hil.model.effects import REFRACTION_PER_K
+from hil.model.calibrated_model import CalibratedModel
+from hil.model.effects import REFRACTION_PER_K, physical, stuck_air_scale
 from hil.report.json_report import report_dict
 from hil.report.text import caution_text
 
@@ -107,6 +108,13 @@ def test_a_tracker_whose_air_reading_is_wrong_is_never_the_arms_growth():
         and "not the arm's growth" in text
     )
     assert report_dict(report)["tracker_air"]["text"].startswith("Tracker scale from a stuck air reading")
+    # the model file keeps the term as physics, with its prior: a model read back predicts and refits alike
+    (read_back,) = [
+        e for e in CalibratedModel.from_dict(report.model.to_dict()).effects if e.family == "tracker_scale"
+    ]
+    assert stuck_air_scale(read_back) and physical(read_back)
+    assert [a.tolist() for a in read_back.prior()] == [a.tolist() for a in scale.prior()]
+    assert read_back.params.tolist() == scale.params.tolist()
     # a station that read the hall's air would have recorded its rise: without the column, no such term
     unrecorded = run_diagnosis(train.drop(columns="air_temperature_c"), "ur10")
     assert unrecorded.tracker_air is None
