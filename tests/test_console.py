@@ -13,6 +13,7 @@ import re
 import socket
 import sqlite3
 import threading
+import time
 import urllib.error
 import urllib.request
 from collections.abc import Iterator
@@ -25,8 +26,8 @@ from playwright.sync_api import Browser, Page, expect, sync_playwright
 from sim_session import running_cell
 
 from hil.cli import main
-from hil.console.app import TOKEN_COOKIE, ConsoleOptions, build_app
-from hil.console.station import Station
+from hil.console.app import CLIENT_COOKIE, TOKEN_COOKIE, ConsoleOptions, build_app
+from hil.console.station import CONTROL_LAPSE_S, Station
 from hil.console.views import reference_poses
 from hil.data.campaign_lock import CampaignLock, Holder
 from hil.data.store import CampaignStore
@@ -392,6 +393,32 @@ def test_a_second_browser_watches_and_is_refused_control_until_it_is_released(
     expect(operator_page.locator("#control")).to_have_text(
         "Another browser controls this console: this one watches."
     )
+
+
+def test_a_controlling_page_that_reloads_keeps_control_for_the_lapse_from_its_reload(cell, tmp_path):
+    """Control lapses CONTROL_LAPSE_S after the controller's page went, counted from when its event stream
+    closed (a reload), not from the stream's last state (sent only on a change or a keepalive): a page that
+    reloads slowly on a busy machine finds its control again, and another browser gets it only after that."""
+    now = [0.0]
+    station = Station(cell[1], tmp_path, address="the test's console", clock=lambda: now[0])
+
+    def request(url: str, client: str, data: bytes | None = None) -> urllib.request.Request:
+        return urllib.request.Request(url, data=data, headers={"Cookie": f"{CLIENT_COOKIE}={client}"})
+
+    with console_server(station, ConsoleOptions()) as url:
+        with urllib.request.urlopen(request(url + "/api/control", "a", b"{}"), timeout=30) as answer:
+            assert answer.status == 200
+        with urllib.request.urlopen(request(url + "/api/stream", "a"), timeout=30) as stream:
+            assert stream.readline().startswith(b"data: ")  # the page's first state, sent at 0 s
+            now[0] = 25.0  # the page reloads 25 s later: its stream closes
+        now[0] = 25.0 + CONTROL_LAPSE_S - 0.5
+        deadline = time.monotonic() + 30
+        while not station.controlled_by_another("b"):  # the state to wait for: the close seen by the server
+            assert time.monotonic() < deadline, "control lapsed from the stream's last state, not its close"
+            time.sleep(0.02)
+        assert not station.claim("b") and station.claim("a")  # the reloaded page claims it back
+        now[0] += CONTROL_LAPSE_S + 1.0  # a's page never came back this time
+        assert station.claim("b")
 
 
 def test_a_request_by_another_host_name_is_refused(console):

@@ -207,6 +207,9 @@ class _Api:
                         await asyncio.wait_for(changed.wait(), STREAM_KEEPALIVE_S)
             finally:
                 stop()
+                # a page that goes (a reload, a closed tab) was there until now: a controller's lapse counts
+                # from here, not from its stream's last state, so a reloaded page finds its control again
+                self.station.seen(client)
 
         return StreamingResponse(
             events(), media_type="text/event-stream", headers={"Cache-Control": "no-cache"}

@@ -99,7 +99,7 @@ class Station:
             return self.controller == client
 
     def seen(self, client: str | None) -> None:
-        """The client's page is still there (its event stream is open)."""
+        """The client's page is still there (its event stream sends), or was until now (its stream closed)."""
         with self._lock:
             if client is not None and client == self.controller:
                 self._controller_seen_s = self._clock()
