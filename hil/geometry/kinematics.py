@@ -344,9 +344,18 @@ def last_link_origins(model: KinematicModel, q: np.ndarray) -> np.ndarray:
 
 
 def tool_points(model: KinematicModel, q: np.ndarray, p_flange_tool: np.ndarray) -> np.ndarray:
-    """Tool point(s) in the base frame (N, 3) for a point p_flange_tool (3,) given in the flange."""
-    T = forward_kinematics(model, q)
-    return T[:, :3, :3] @ np.asarray(p_flange_tool, dtype=float) + T[:, :3, 3]
+    """Tool points in the base frame (N, 3) for a point p_flange_tool (3,) given in the flange, or one per row
+    (N, 3)."""
+    return points_on_flanges(forward_kinematics(model, q), p_flange_tool)
+
+
+def points_on_flanges(T_base_flange: np.ndarray, p_flange_tool: np.ndarray) -> np.ndarray:
+    """Tool points (N, 3) in the base frame on flange poses (N, 4, 4): one tool point (3,) for every row, or
+    one per row (N, 3)."""
+    R, t = T_base_flange[:, :3, :3], T_base_flange[:, :3, 3]
+    if np.ndim(p_flange_tool) == 1:
+        return R @ np.asarray(p_flange_tool, dtype=float) + t
+    return np.einsum("nij,nj->ni", R, p_flange_tool) + t
 
 
 def tool_poses(model: KinematicModel, q: np.ndarray, T_flange_tool: np.ndarray) -> np.ndarray:
@@ -373,7 +382,7 @@ def chain_axes(model: KinematicModel, q: np.ndarray) -> tuple[np.ndarray, np.nda
     return _flange_poses(model, R, p), Z, O
 
 
-_IDENTITY_4 = np.eye(4).ravel().tolist()  # compared as a list: the check runs on every chain
+_IDENTITY_4 = _IDENTITY_4X4.ravel().tolist()  # compared as a list: the check runs on every chain
 
 
 def _flange_poses(model: KinematicModel, R_base_last: np.ndarray, o_base_last: np.ndarray) -> np.ndarray:

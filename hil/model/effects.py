@@ -51,8 +51,8 @@ from hil.geometry.kinematics import (
     KinematicModel,
     chain_axes,
     flange_poses_and_last_origins,
-    forward_kinematics,
     last_link_origins,
+    points_on_flanges,
     tool_points,
 )
 
@@ -824,10 +824,7 @@ def growth_direction(model: KinematicModel, q: np.ndarray) -> np.ndarray:
 
 def tool_points_rows(model: KinematicModel, q: np.ndarray, p_flange_tool_rows: np.ndarray) -> np.ndarray:
     """Tool points (N, 3) in the base frame with one tool point per row."""
-    if np.ndim(p_flange_tool_rows) == 1:
-        return tool_points(model, q, p_flange_tool_rows)
-    T = forward_kinematics(model, q)
-    return np.einsum("nij,nj->ni", T[:, :3, :3], p_flange_tool_rows) + T[:, :3, 3]
+    return tool_points(model, q, p_flange_tool_rows)
 
 
 def tool_points_and_growth_direction(
@@ -835,8 +832,4 @@ def tool_points_and_growth_direction(
 ) -> tuple[np.ndarray, np.ndarray]:
     """`tool_points_rows` and `growth_direction` (N, 3) each, from one pass over the chain."""
     T, growth = flange_poses_and_last_origins(model, q)
-    if np.ndim(p_flange_tool_rows) == 1:
-        points = T[:, :3, :3] @ np.asarray(p_flange_tool_rows, dtype=float) + T[:, :3, 3]
-    else:
-        points = np.einsum("nij,nj->ni", T[:, :3, :3], p_flange_tool_rows) + T[:, :3, 3]
-    return points, growth
+    return points_on_flanges(T, p_flange_tool_rows), growth

@@ -138,7 +138,7 @@ def _tracker_air_words(c: TrackerAirStuck) -> str:
         f"the tracker's air temperature read {c.air_c:.2f} degC at every point while the recorded temperature "
         f"{rose} {abs(c.end_c - c.start_c):.1f} K ({c.start_c:.2f} to {c.end_c:.2f} degC): if the air was entered "
         f"by hand or the weather station is stuck, the tracker's distances scale by about "
-        f"{abs(REFRACTION_PER_K) * 1e6:.2f} ppm per K the air warmed; {held}. Let the tracker read its weather "
+        f"{_ppm(abs(REFRACTION_PER_K))} ppm per K the air warmed; {held}. Let the tracker read its weather "
         "station, or record the hall's air; revisits of a few poses spread over several K resolve the scale"
     )
 
