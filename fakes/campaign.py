@@ -49,7 +49,7 @@ def simulate_campaign(
 
     Every row records `air_temperature_c` as a campaign export does (hil.data.store): the air temperature the
     tracker's refraction used at that point, its weather station's reading of the hall's air, or the fixed
-    value a stuck station (or a hand entry) gives (`SimCellConfig.tracker_air_c`, `SimulatedCell.meteo`).
+    value a stuck station (or a hand entry) gives (`SimulatedCell.station_air_c`).
     """
     if nests is None:
         smrs = [smr_id]
@@ -80,10 +80,7 @@ def simulate_campaign(
             ]
         )[order]
     rep = len(smrs)
-    fixed_air_c = cell.config.tracker_air_c
-    air_c = np.asarray(cell.hall_air_c(r["t_s"]), float) + 0.0 * r["t_s"]
-    if fixed_air_c is not None:
-        air_c = np.full(N, float(fixed_air_c))
+    air_c = cell.station_air_c(r["t_s"])
     df = make_dataset(
         np.tile(r["q_encoder"], (rep, 1))[order],
         np.concatenate(p_meas)[order],

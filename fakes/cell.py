@@ -364,6 +364,13 @@ class SimulatedCell:
         arm_c = self.structure_temperature_c(time_s)
         return cfg.ambient_c + cfg.air_warmup_fraction * (np.asarray(arm_c) - cfg.ambient_c)
 
+    def station_air_c(self, time_s: np.ndarray | float | None = None) -> np.ndarray:
+        """The air temperature the tracker's weather station reads at the given physics time(s) (default: now):
+        the hall's air, or the fixed `tracker_air_c` of a stuck station or a hand entry."""
+        hall = np.asarray(self.hall_air_c(time_s), float)
+        fixed = self.config.tracker_air_c
+        return hall if fixed is None else np.full(hall.shape, float(fixed))
+
     def tracker_scale(
         self, time_s: np.ndarray | float | None = None, air_c: float | None = None
     ) -> np.ndarray | float:
@@ -379,7 +386,7 @@ class SimulatedCell:
         cfg = self.config
         t = self._physics_s
         return Meteo(
-            temperature_c=float(self.hall_air_c()) if cfg.tracker_air_c is None else cfg.tracker_air_c,
+            temperature_c=float(self.station_air_c()),
             pressure_hpa=float(cfg.pressure_hpa + 0.5 * np.sin(2 * np.pi * t / 7200.0)),
             humidity_pct=float(cfg.humidity_pct + 2.0 * np.sin(2 * np.pi * t / 5400.0)),
         )
