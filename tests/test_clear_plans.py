@@ -11,7 +11,7 @@ import pytest
 from hil.geometry.collision import clear_range_rad
 from hil.geometry.ik import ur_branch_index
 from hil.runner.cell_config import parse_cell_config
-from hil.runner.clear_joints import NO_CLEAR, plan_clear_joints
+from hil.runner.clear_joints import NO_CLEAR, ORDER_CANDIDATES, clear_travel_order, plan_clear_joints
 from hil.runner.envelope import EnvelopeError
 from hil.runner.plan import NO_SAFE_PATH, Plan, PlannedPose
 from hil.runner.planners import facing_poses, plan_joints, workspace_box
@@ -137,3 +137,48 @@ def test_a_move_whose_direct_path_collides_gets_a_detour_whose_every_leg_keeps_c
         starts = [q[i[k]], *legs[:-1]]
         assert env.path_problems(config.nominal, np.array(starts), np.array(legs)) == [None] * len(legs)
     assert found
+
+
+def _passes(env, nominal, q_from, q_to, tools) -> bool:
+    try:
+        env.check_joint_move(nominal, q_from, q_to, tools)
+    except EnvelopeError:
+        return False
+    return True
+
+
+def test_moves_checked_at_once_are_judged_as_one_by_one(config):
+    """Envelope.clear_moves (a plan's moves in one pass) against check_joint_move move by move: moves that
+    leave the box, cross a joint limit or collide on the way, and moves that keep clear, long and short."""
+    env, tools, nominal = config.envelope, config.nests_flange_m, config.nominal
+    lo, hi = np.array(nominal.joint_limits).T
+    rng = np.random.default_rng(5)
+    near = config.q_home_rad + rng.uniform(-1, 1, (60, 6)) * np.deg2rad([40, 20, 30, 150, 150, 90])
+    q_from = np.vstack([near[:30], rng.uniform(lo, hi, (30, 6)), near[:1]])
+    q_to = np.vstack([near[30:], rng.uniform(lo, hi, (30, 6)), near[:1] + 1e-4])
+    one_by_one = [_passes(env, nominal, a, b, tools) for a, b in zip(q_from, q_to, strict=True)]
+    assert 10 < sum(one_by_one) < len(one_by_one) - 10  # both kinds, many of each
+    assert env.clear_moves(nominal, q_from, q_to, tools).tolist() == one_by_one
+
+
+def test_the_travel_order_laid_out_ahead_is_the_order_step_by_step(config):
+    """clear_travel_order checks the plain order's moves ahead at once; where the nearest move collides it
+    must still pick as step by step: the nearest candidate whose move keeps clear, else the nearest."""
+    env, nominal = config.envelope, config.nominal
+    rng = np.random.default_rng(1)
+    q = config.q_home_rad + rng.uniform(-1, 1, (90, 6)) * np.deg2rad([120, 60, 80, 180, 180, 180])
+    q = q[~env.outside(nominal, q, config.nests_flange_m)]
+    left, current, expected, swerves = np.ones(len(q), bool), config.q_home_rad, [], 0
+    for _ in range(len(q)):
+        cost = np.where(left, np.max(np.abs(q - current), axis=1), np.inf)
+        nearest = np.argsort(cost)[: min(ORDER_CANDIDATES, int(left.sum()))]
+        ok = np.flatnonzero(
+            np.isnan(config.bodies.path_collisions(nominal, np.tile(current, (len(nearest), 1)), q[nearest]))
+        )
+        pick = int(nearest[ok[0]]) if ok.size else int(nearest[0])
+        swerves += pick != nearest[0]
+        expected.append(pick)
+        left[pick] = False
+        current = q[pick]
+    assert swerves >= 2  # the case the look-ahead must not get wrong
+    assert clear_travel_order(nominal, env, q, config.q_home_rad).tolist() == expected

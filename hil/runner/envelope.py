@@ -176,6 +176,30 @@ class Envelope:
                 "intermediate pose) or move the keep-out"
             )
 
+    def clear_moves(
+        self, nominal: KinematicModel, q_from: np.ndarray, q_to: np.ndarray, p_flange_tools_m: np.ndarray
+    ) -> np.ndarray:
+        """(M,) bool: which joint moves (M, n) -> (M, n) `check_joint_move` passes, all checked at once (a
+        plan's moves: one pass over every path's samples and one collision check of every path, where move
+        by move the same checks cost a thousand small passes)."""
+        q_from, q_to = np.atleast_2d(np.asarray(q_from, float)), np.atleast_2d(np.asarray(q_to, float))
+        if not len(q_from):
+            return np.zeros(0, bool)
+        travel = np.max(np.abs(q_to - q_from), axis=1)
+        samples = np.maximum(_MIN_SAMPLES, np.ceil(travel / _PATH_STEP_RAD).astype(int) + 1)
+        move = np.repeat(np.arange(len(q_from)), samples)
+        start = np.repeat(np.cumsum(samples) - samples, samples)
+        s = (np.arange(len(move)) - start) * (1.0 / (samples[move] - 1.0))  # as np.linspace(0, 1, samples)
+        s[np.cumsum(samples) - 1] = 1.0
+        path = q_from[move] + s[:, None] * (q_to[move] - q_from[move])
+        outside = np.zeros(len(q_from), bool)
+        np.logical_or.at(outside, move, self._outside_box(nominal, path, p_flange_tools_m))
+        clear = ~outside
+        if self.bodies is not None and clear.any():
+            inside = np.flatnonzero(clear)
+            clear[inside] = np.isnan(self.bodies.path_collisions(nominal, q_from[inside], q_to[inside]))
+        return clear
+
     def detour(
         self,
         nominal: KinematicModel,

@@ -73,12 +73,12 @@ class Plan:
         which poses cannot be reached inside the envelope at all (Envelope.detour tries the ways round)."""
         cfg = self.config
         env, tools, home = cfg.envelope, cfg.nests_flange_m, cfg.q_home_rad
+        chain = [home, *(pose.q_rad for pose in self.poses)]
+        direct = _clear_chain(cfg, chain)
         detours, impossible = 0, []
         previous = home
-        for pose in self.poses:
-            try:
-                env.check_joint_move(cfg.nominal, previous, pose.q_rad, tools)
-            except EnvelopeError:
+        for k, pose in enumerate(self.poses):
+            if not _clear(cfg, previous, pose.q_rad, direct[k] if previous is chain[k] else None):
                 if env.detour(cfg.nominal, previous, pose.q_rad, tools, home) is None:
                     impossible.append(pose.point_id)
                     continue
@@ -92,19 +92,26 @@ class Plan:
         "no safe path", so the dry run says so; the run then moves from the pose before to the next one."""
         cfg = self.config
         env, tools, home = cfg.envelope, cfg.nests_flange_m, cfg.q_home_rad
+        legs_of = [
+            [*([pose.approach_q_rad] if pose.approach_q_rad is not None else []), pose.q_rad]
+            for pose in self.poses
+        ]
+        chain = [home, *(leg for legs in legs_of for leg in legs)]  # every pose reached: its moves at once
+        direct = _clear_chain(cfg, chain)
         kept: list[PlannedPose] = []
-        previous = home
-        for pose in self.poses:
-            legs = [*([pose.approach_q_rad] if pose.approach_q_rad is not None else []), pose.q_rad]
+        previous, first = home, 0  # chain[first]: where the pose's first leg starts if every pose is kept
+        for pose, legs in zip(self.poses, legs_of, strict=True):
             start, safe = previous, True
-            for leg in legs:
-                try:
-                    env.check_joint_move(cfg.nominal, start, leg, tools)
-                except EnvelopeError:
-                    if env.detour(cfg.nominal, start, leg, tools, home) is None:
-                        safe = False
-                        break
+            for k, leg in enumerate(legs, start=first):
+                known = direct[k] if start is chain[k] else None
+                if (
+                    not _clear(cfg, start, leg, known)
+                    and env.detour(cfg.nominal, start, leg, tools, home) is None
+                ):
+                    safe = False
+                    break
                 start = leg
+            first += len(legs)
             if safe:
                 kept.append(pose)
                 previous = pose.q_rad
@@ -181,3 +188,23 @@ class Plan:
             if len(self.poses) > max_rows:
                 lines.append(f"  ... and {len(self.poses) - max_rows} more")
         return "\n".join(lines)
+
+
+def _clear_chain(cfg: CellConfig, chain: list[np.ndarray]) -> np.ndarray:
+    """Which of the direct moves chain[k] -> chain[k + 1] keep inside the envelope, all checked at once."""
+    if len(chain) < 2:
+        return np.zeros(0, bool)
+    q = np.array(chain, float)
+    return cfg.envelope.clear_moves(cfg.nominal, q[:-1], q[1:], cfg.nests_flange_m)
+
+
+def _clear(cfg: CellConfig, q_from: np.ndarray, q_to: np.ndarray, known: bool | None) -> bool:
+    """Whether the direct move keeps inside the envelope: `known` when the chain's check already says,
+    else checked now."""
+    if known is not None:
+        return bool(known)
+    try:
+        cfg.envelope.check_joint_move(cfg.nominal, q_from, q_to, cfg.nests_flange_m)
+    except EnvelopeError:
+        return False
+    return True
