@@ -18,7 +18,6 @@ from dataclasses import asdict, dataclass
 from typing import Literal, TypedDict, cast
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from fakes.physics import chain_frames, gravity_torques
 from hil.data.jsonable import to_jsonable
@@ -282,7 +281,7 @@ class SimulatedCell:
         azimuth = rng.uniform(0, 2 * np.pi)
         p_base_tracker = self.config.tracker_distance_m * np.array([np.cos(azimuth), np.sin(azimuth), 0.0])
         p_base_tracker[2] = rng.uniform(-0.3, 0.3)
-        R_base_tracker = Rotation.random(random_state=rng.integers(2**31)).as_matrix()
+        R_base_tracker = random_rotation(int(rng.integers(2**31)))
         T_base_tracker = np.eye(4)
         T_base_tracker[:3, :3] = R_base_tracker
         T_base_tracker[:3, 3] = p_base_tracker
@@ -679,3 +678,22 @@ def _keyed(stream: int, key: tuple[int, int]) -> np.random.Generator:
     """The generator of one draw: seed, stream and counter, independent of every other draw."""
     seed, index = key
     return np.random.default_rng([seed, stream, index])
+
+
+def random_rotation(seed: int) -> np.ndarray:
+    """A uniformly distributed rotation matrix: four standard normal draws of the legacy generator seeded with
+    `seed`, taken as a quaternion (x, y, z, w) and normalised. The draw scipy's `Rotation.random` makes for
+    an integer seed, written out so that a cell starts without importing scipy.spatial (half of its import
+    time): the same matrix bit for bit, so every seed's cell stays the cell it was (tests/test_cell.py)."""
+    x, y, z, w = np.random.RandomState(seed).normal(size=4)
+    norm = np.sqrt(x * x + y * y + z * z + w * w)
+    x, y, z, w = x / norm, y / norm, z / norm, w / norm
+    xx, yy, zz, ww = x * x, y * y, z * z, w * w
+    xy, zw, xz, yw, yz, xw = x * y, z * w, x * z, y * w, y * z, x * w
+    return np.array(
+        [
+            [xx - yy - zz + ww, 2 * (xy - zw), 2 * (xz + yw)],
+            [2 * (xy + zw), -xx + yy - zz + ww, 2 * (yz - xw)],
+            [2 * (xz - yw), 2 * (yz + xw), -xx - yy + zz + ww],
+        ]
+    )

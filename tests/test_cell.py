@@ -1,11 +1,14 @@
 """The simulated cell: determinism, the size of each physical effect, noise statistics, geometry."""
 
 import json
+import subprocess
+import sys
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
-from fakes.cell import SMR_RADIUS_M, SimCellConfig, SimulatedCell, SmrLocation
+from fakes.cell import SMR_RADIUS_M, SimCellConfig, SimulatedCell, SmrLocation, random_rotation
 from fakes.physics import chain_frames
 from hil.geometry.kinematics import forward_kinematics
 
@@ -25,6 +28,21 @@ def test_same_seed_same_cell_and_noise():
     np.testing.assert_array_equal(ra["p_tracker_measured"], rb["p_tracker_measured"])
     c = SimulatedCell(SimCellConfig(seed=4))
     assert not np.allclose(a.T_tracker_base, c.T_tracker_base)
+
+
+def test_the_tracker_is_turned_by_the_rotation_scipy_draws_for_the_seed_bit_for_bit():
+    """The cell draws its tracker's orientation without scipy (its start-up imports no scipy.spatial): the
+    same matrices as Rotation.random for each integer seed, so no seed's cell changed."""
+    seeds = [0, 1, 7, *np.random.default_rng(2).integers(2**31, size=300).tolist(), 2**31 - 1]
+    for seed in seeds:
+        np.testing.assert_array_equal(
+            random_rotation(seed), Rotation.random(random_state=seed).as_matrix(), err_msg=str(seed)
+        )
+    loaded = subprocess.run(
+        [sys.executable, "-c", "import sys, fakes.sim; print(sorted(m for m in sys.modules if 'spatial' in m))"],
+        capture_output=True, text=True, check=True,
+    )  # fmt: skip
+    assert loaded.stdout.strip() == "[]"
 
 
 def test_true_chain_matches_hil_kinematics_when_effects_are_off():

@@ -12,7 +12,6 @@ from dataclasses import dataclass, field, replace
 from functools import cached_property
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from hil.geometry.se3 import rot_y
 
@@ -524,6 +523,8 @@ def perturb_base(T_tracker_base: np.ndarray, delta: np.ndarray) -> np.ndarray:
     T_t = np.eye(4)
     T_t[:3, 3] = delta[:3]
     T_r = np.eye(4)
+    from scipy.spatial.transform import Rotation  # imported here: hil.geometry.se3 says why
+
     T_r[:3, :3] = Rotation.from_rotvec(delta[3:6]).as_matrix()
     return T_t @ T_tracker_base @ T_r
 

@@ -1,13 +1,14 @@
 """SE(3) helpers: homogeneous transforms, UR pose vectors, rigid point-set fits, plane and circle fits.
 
 Rotation vectors come from `rotation_log`, the one SO(3) logarithm of the project; the exponential goes
-through scipy's `Rotation`. Everything is vectorised over leading axes where it matters.
+through scipy's `Rotation`, imported where it is used: scipy.spatial takes 0.2 s to import, more than a simulated
+cell or a `hil` command that never turns a rotation vector needs. Everything is vectorised over leading axes
+where it matters.
 """
 
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 
 def make_transform(R: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -39,6 +40,8 @@ def pose_to_transform(pose: np.ndarray) -> np.ndarray:
     """UR pose vector(s) [x, y, z, rx, ry, rz] (metres, rotation vector in rad) -> (...,4,4)."""
     pose = np.asarray(pose, dtype=float)
     flat = pose.reshape(-1, 6)
+    from scipy.spatial.transform import Rotation  # see the module docstring
+
     R = Rotation.from_rotvec(flat[:, 3:]).as_matrix()
     return make_transform(R, flat[:, :3]).reshape(pose.shape[:-1] + (4, 4))
 

@@ -26,7 +26,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 URDF_SUFFIXES: tuple[str, ...] = (".urdf",)
 XACRO_SUFFIXES: tuple[str, ...] = (".xacro",)
@@ -312,6 +311,8 @@ def _origin(path: str, where: str, origin: ET.Element | None) -> np.ndarray:
     xyz = _vector(path, f"{where} <origin xyz>", origin.get("xyz") if origin is not None else None)
     rpy = _vector(path, f"{where} <origin rpy>", origin.get("rpy") if origin is not None else None)
     T = np.eye(4)
+    from scipy.spatial.transform import Rotation  # imported here: hil.geometry.se3 says why
+
     T[:3, :3] = Rotation.from_euler("xyz", rpy).as_matrix()  # URDF: fixed-axis roll, pitch, yaw
     T[:3, 3] = xyz
     return T
