@@ -117,8 +117,13 @@ def sim_cell(**kwargs) -> Iterator[RunningCell]:
 
 
 def _die_with_parent() -> None:
-    """In the child: ask Linux to SIGTERM it when the parent dies (a crashed or killed test run must
-    not leave cells running). Elsewhere a no-op; the context manager still stops the cell normally."""
+    """In the child: ignore SIGINT, and ask Linux to SIGTERM it when the parent dies (a crashed or killed
+    test run must not leave cells running; elsewhere that part is a no-op and the context manager still
+    stops the cell normally). A Ctrl-C in a terminal reaches the whole foreground process group, the cell
+    too; but the cell stands for a robot controller and a tracker, which a Ctrl-C on the PC does not switch
+    off: the program that started it must still be able to stop the robot and record that it was
+    interrupted, then stop the cell itself (or the kernel does, when that program is gone)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     if not sys.platform.startswith("linux"):
         return
     try:

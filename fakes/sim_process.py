@@ -222,7 +222,9 @@ class SimProcess:
             raise
         stop = asyncio.Event()
         loop = asyncio.get_running_loop()
-        for sig in (signal.SIGINT, signal.SIGTERM):
+        # SIGINT ignored when the cell started (fakes.launch: its starter stops it) stays ignored
+        ignored = {signal.SIGINT} if signal.getsignal(signal.SIGINT) == signal.SIG_IGN else set()
+        for sig in {signal.SIGINT, signal.SIGTERM} - ignored:
             with contextlib.suppress(NotImplementedError):
                 loop.add_signal_handler(sig, stop.set)
         clock_task = asyncio.create_task(self.built()[1].run())

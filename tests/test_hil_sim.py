@@ -1,4 +1,5 @@
-"""The simulated cell as a process (`python -m fakes.sim`, `hil sim`): its ready line, its control channel, and a clean exit on SIGINT/SIGTERM."""
+"""The simulated cell as a process (`python -m fakes.sim`, `hil sim`): its ready line, its control channel, a clean exit
+on SIGINT/SIGTERM, and a started cell that a Ctrl-C leaves to its starter."""
 
 from __future__ import annotations
 
@@ -75,9 +76,29 @@ def test_control_channel_commands(cell):
 @pytest.mark.timeout(30)
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
 def test_exits_cleanly_on_signals(sig):
+    """`python -m fakes.sim` as a user starts it: Ctrl-C or SIGTERM ends it cleanly."""
+    args = [sys.executable, "-m", "fakes.sim", "--host", random_loopback_host(), "--robot", "ur10"]
+    process = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, cwd=ROOT)
+    try:
+        assert json.loads(process.stdout.readline())["robot"]["model"] == "ur10"  # ready
+        process.send_signal(sig)
+        assert process.wait(10) == 0
+    finally:
+        stop_process(process)
+
+
+@pytest.mark.timeout(30)
+def test_a_started_cell_outlives_a_ctrl_c_and_its_starter_stops_it():
+    """A cell started for a program (fakes.launch: hil demo, the tests) stands for a controller and a tracker:
+    a Ctrl-C in the terminal, which reaches the whole process group, leaves it running so the program can
+    still stop the robot and record the interruption; the program stops it with SIGTERM."""
     cell = start_cell(robot="ur10", time_scale=1.0)
     try:
-        cell.process.send_signal(sig)
+        cell.process.send_signal(signal.SIGINT)
+        with pytest.raises(subprocess.TimeoutExpired):  # a cell that took it exits within milliseconds
+            cell.process.wait(1.0)
+        assert cell.control.call("time_scale") == 1.0  # still answering after the Ctrl-C
+        cell.process.send_signal(signal.SIGTERM)
         assert cell.process.wait(10) == 0
     finally:
         stop_cell(cell)
