@@ -463,7 +463,7 @@ def test_a_resumed_round_reads_its_recorded_plan_back_as_records(tmp_path):
     """The active loop pins a round's plan in the campaign before its first motion; a resumed round reads it
     back with its questions as records (a campaign written before them included) and records it unchanged."""
     from hil.analysis.diagnosis.questions import as_question, with_questions
-    from procedures.active_loop import _Rows
+    from procedures.active_rounds import _Rows
 
     period = PeriodNotCovered(effect={"name": "cyclic", "joint": 2}, range_deg=80.0, needs_deg=288.0)
     one_way = OneApproachDirection(

@@ -18,7 +18,7 @@ from hil.data.store import CampaignStore
 from hil.model.calibrated_model import CalibratedModel
 from hil.runner.session import Session
 from hil.runner.sight import measurable
-from procedures import active_loop, grid_sampling, registration, tool_fit
+from procedures import active_loop, active_rounds, grid_sampling, registration, tool_fit
 from tests.cell_fixtures import sim_cell_toml
 from tests.sim_session import running_cell, session_on
 
@@ -267,24 +267,24 @@ def test_the_same_campaign_is_diagnosed_once_for_the_plan_and_the_first_round(mo
 
     calls: list[int] = []
     monkeypatch.setattr(
-        active_loop, "run_diagnosis", lambda train, *a, **k: calls.append(len(train)) or len(calls)
+        active_rounds, "run_diagnosis", lambda train, *a, **k: calls.append(len(train)) or len(calls)
     )
-    monkeypatch.setattr(active_loop._Campaign, "validation", lambda self: None)
+    monkeypatch.setattr(active_rounds._Campaign, "validation", lambda self: None)
     store = SimpleNamespace(step_result=lambda *a: None)
     config = SimpleNamespace(nominal="ur10")
     train = pd.DataFrame({"q1_rad": [0.1, 0.2], "x_mm": [1.0, 2.0], "smr": [1, 1]})
-    first = active_loop._Campaign(store, config, 0).diagnose(train)
-    again = active_loop._Campaign(store, config, 0).diagnose(train.copy())
+    first = active_rounds._Campaign(store, config, 0).diagnose(train)
+    again = active_rounds._Campaign(store, config, 0).diagnose(train.copy())
     assert first == again and calls == [2]
     longer = pd.concat([train, train.iloc[:1].assign(x_mm=3.0)], ignore_index=True)
-    assert active_loop._Campaign(store, config, 0).diagnose(longer) != first and calls == [2, 3]
+    assert active_rounds._Campaign(store, config, 0).diagnose(longer) != first and calls == [2, 3]
     moved = train.assign(x_mm=[1.0, 2.5])
-    active_loop._Campaign(store, config, 0).diagnose(moved)
+    active_rounds._Campaign(store, config, 0).diagnose(moved)
     assert calls == [2, 3, 2]
     # a round resumed in the same process asks again for earlier rows' diagnoses: the last few are kept
-    assert active_loop._Campaign(store, config, 0).diagnose(train.copy()) == first and calls == [2, 3, 2]
-    for k in range(active_loop._DIAGNOSES_KEPT):
-        active_loop._Campaign(store, config, 0).diagnose(train.assign(x_mm=[1.0, 10.0 + k]))
-    assert len(calls) == 3 + active_loop._DIAGNOSES_KEPT  # a bounded cache: the oldest made room
-    active_loop._Campaign(store, config, 0).diagnose(train)
-    assert len(calls) == 4 + active_loop._DIAGNOSES_KEPT
+    assert active_rounds._Campaign(store, config, 0).diagnose(train.copy()) == first and calls == [2, 3, 2]
+    for k in range(active_rounds._DIAGNOSES_KEPT):
+        active_rounds._Campaign(store, config, 0).diagnose(train.assign(x_mm=[1.0, 10.0 + k]))
+    assert len(calls) == 3 + active_rounds._DIAGNOSES_KEPT  # a bounded cache: the oldest made room
+    active_rounds._Campaign(store, config, 0).diagnose(train)
+    assert len(calls) == 4 + active_rounds._DIAGNOSES_KEPT

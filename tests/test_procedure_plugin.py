@@ -186,3 +186,20 @@ def test_an_installed_procedure_runs_on_the_simulated_cell(plugin_env, tmp_path)
         (judged,) = [o for o in store.outcomes() if o.procedure == "distance_check"][-1:]
     assert judged.verdict == "pass" and judged.limit_value == pytest.approx(3e-3)
     assert 0.0 < result["max_distance_error_mm"] < 3.0  # a real measurement: the arm's error, not zero
+
+
+def test_finding_who_publishes_a_step_imports_no_diagnosis():
+    """`hil run` reads every registered declaration to find the step a procedure needs (the registration):
+    the declarations are light, the diagnosis and the reports are imported when a procedure runs them."""
+    found = subprocess.run(
+        [
+            sys.executable, "-c",
+            "import sys\n"
+            "from hil.runner.procedure import Role\n"
+            "from hil.runner.registry import publisher\n"
+            "print(publisher(Role.REGISTRATION))\n"
+            "print(sorted(m for m in sys.modules if m.startswith(('hil.analysis.diagnosis', 'hil.report.html'))))",
+        ],
+        capture_output=True, text=True, check=True,
+    )  # fmt: skip
+    assert found.stdout.splitlines() == ["('registration', 'fit')", "[]"], found.stdout

@@ -3,9 +3,7 @@ self-contained HTML page with embedded plots. The diagnosis returns its verdict 
 
 from __future__ import annotations
 
-import base64
 import html
-import io
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +13,7 @@ from hil.analysis.diagnosis.drift_monitor import drift_text
 from hil.analysis.diagnosis.pipeline import DiagnosisReport
 from hil.analysis.diagnosis.screening import effect_label
 from hil.report.json_report import report_dict
+from hil.report.png import png_img
 from hil.report.text import (
     final_orientation_text,
     gravity_text,
@@ -24,16 +23,6 @@ from hil.report.text import (
     tracker_air_text,
     undecided_text,
 )
-
-
-def png_img(fig) -> str:
-    """A matplotlib figure as an <img> that carries its PNG (the page needs no other file); closes it."""
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
-    import matplotlib.pyplot as plt
-
-    plt.close(fig)
-    return '<img src="data:image/png;base64,' + base64.b64encode(buf.getvalue()).decode() + '">'
 
 
 def _plots(report: DiagnosisReport) -> list[tuple[str, str]]:

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from hil.report.html import png_img
+from hil.report.png import png_img
 
 
 @dataclass(frozen=True)

@@ -39,6 +39,7 @@ import numpy as np
 import pandas as pd
 
 from hil.analysis.calibration.solve import Problem
+from hil.analysis.design import BLOCK_ROWS
 from hil.analysis.diagnosis.evidence import DECISIVE_Z, Rival, rival_for, scaled_rows, unmeasured_problem
 from hil.analysis.diagnosis.questions import (
     MIN_REVISITS,
@@ -65,7 +66,6 @@ SWEEP_POINTS = 12
 APPROACH_STEP_RAD = float(np.deg2rad(3.0))
 POOL_SIZE = 1500
 POOL_PERTURB_RAD = float(np.deg2rad(30.0))
-BLOCK_ROWS = 25  # a round is measured in blocks this long and re-judged after each (sequential stopping)
 
 Admissible = Callable[[np.ndarray], np.ndarray]  # (M, n) joints -> (M,) bool: reachable and measurable
 
