@@ -36,7 +36,7 @@ from hil.runner.procedure import Role
 from hil.runner.registry import publisher
 from hil.runner.session import Session
 from hil.runner.sight import measurable
-from procedures.active_loop import NAME, ActiveLoopOptions, ActiveLoopResult, model_path_for
+from procedures.active_records import NAME, ActiveLoopOptions, ActiveLoopResult, model_path_for
 
 
 @dataclass(frozen=True)
