@@ -5,7 +5,7 @@ PYTHON ?= python3
 VENV ?= .venv
 PY := $(VENV)/bin/python
 # pytest-xdist: six workers, each test module on one worker (its module-scoped fixtures, a simulated cell or
-# a campaign, are built once), the modules with sim tests first (tests/conftest.py). Six on two cores: the
+# a campaign, are built once), a module with sim tests and one without in turn (tests/conftest.py). Six on two cores: the
 # sim tests spend much of their time waiting for the simulated cell, and more workers than cores overlap those
 # waits; but every connected cell and driver also costs CPU for as long as it waits, so eight cost more than
 # they overlap. Measured on a 2-core machine, the whole suite of 1304 tests, one run each, caches warm:

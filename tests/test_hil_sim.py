@@ -70,7 +70,8 @@ def test_control_channel_commands(cell):
     with socket.create_connection((host, int(port)), timeout=2) as sock:
         sock.sendall(b"this is not json\n")
         assert json.loads(sock.makefile().readline())["ok"] is False
-    assert ControlClient(cell.info["control"]).call("time_scale") == 4.0
+    with ControlClient(cell.info["control"]) as again:
+        assert again.call("time_scale") == 4.0
 
 
 @pytest.mark.timeout(30)
