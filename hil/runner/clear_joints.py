@@ -57,8 +57,8 @@ TWO_PI = 2.0 * np.pi
 # cell margin's default, about a forearm's radius.
 COMFORT_M = 0.10
 # Neighbours tried per step of the order before a move that needs a detour is accepted.
-ORDER_LOOKAHEAD = 32  # steps of the plain travel order checked at once (clear_travel_order)
 ORDER_CANDIDATES = 8
+ORDER_LOOKAHEAD = 32  # steps of the plain travel order whose moves are checked at once (clear_travel_order)
 NO_CLEAR = "no clear configuration"  # the reason a pose is left out when none of its configurations is clear
 # the joints that fold a UR-shaped arm onto itself when turned far from its reference posture: the elbow
 # (joint 3: the forearm onto the upper arm) and joint 5 (the tool onto the forearm)
