@@ -12,6 +12,7 @@ from contextlib import contextmanager
 
 from fakes.control_client import ControlClient
 from fakes.launch import RunningCell
+from hil.instruments.plugins import ControlChannel
 
 
 class SimulatedCellPlugin:
@@ -82,9 +83,8 @@ class SimulatedCellPlugin:
         """A client of the cell's control channel."""
         return ControlClient(address)
 
-    def clock(self, address: str) -> Callable[[], float]:
+    def clock(self, control: ControlChannel) -> Callable[[], float]:
         """The cell's physics clock as UNIX seconds (the cell's start plus its simulated seconds of activity)."""
-        control = ControlClient(address)
         return lambda: float(control.call("cell.clock")["unix_s"])
 
 

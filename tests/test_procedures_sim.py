@@ -3,10 +3,13 @@ grid sampling; the figures are judged against the simulated cell's hidden truth.
 
 from __future__ import annotations
 
+import gc
+
 import numpy as np
 import pytest
 
 from fakes.cell import SimCellConfig, SimulatedCell
+from fakes.control_client import ControlClient
 from hil.data.store import CampaignStore
 from hil.geometry.kinematics import tool_points
 from hil.geometry.se3 import fit_rigid, transform_points
@@ -33,10 +36,23 @@ def campaign(tmp_path_factory):
         with session_on(config, path) as session:  # the same job again: a resume with nothing left to do
             again = grid_sampling.PROCEDURE(session, step_m=0.2, validation=8)
             measured_again = len(session.store.measurements())
+        # the sessions' own channels to the cell (the simulated operator's hands, the cell's clock), still open
+        left_open = [
+            c for c in gc.get_objects()
+            if isinstance(c, ControlClient) and c is not cell.control and c.port == cell.control.port
+            and c._sock is not None
+        ]  # fmt: skip
         yield {
             "truth": truth, "config": config, "registration": reg, "tool_fit": fit, "grid": grid, "plan": plan,
             "measured": measured, "again": again, "measured_again": measured_again, "path": path, "folder": folder,
+            "left_open": len(left_open),
         }  # fmt: skip
+
+
+def test_a_closed_session_leaves_no_channel_to_the_cell_open(campaign):
+    """A session on a simulated cell opens the cell's control channel for the operator's hands and for the
+    cell's clock; its close lets both go (a console serving run after run would otherwise hold one per run)."""
+    assert campaign["left_open"] == 0
 
 
 def test_registration_is_within_the_noise_of_the_best_possible_fit(campaign):

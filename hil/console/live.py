@@ -231,6 +231,10 @@ class PageOperator(Operator):
         if self.hands is not None:
             self.hands.perform(step)
 
+    def close(self) -> None:
+        if self.hands is not None:
+            self.hands.close()
+
 
 class PageProgress(Progress):
     """The engine's progress, counted into the live state (and read the instruments after each point)."""

@@ -138,8 +138,9 @@ class CellSimulator(Protocol):
         """A client of the control channel at `address` ("host:port", from the cell's ready line)."""
         ...
 
-    def clock(self, address: str) -> Callable[[], float]:
-        """The cell's own clock at `address` as UNIX seconds: the session's timestamps on this cell, so that the
+    def clock(self, control: ControlChannel) -> Callable[[], float]:
+        """The cell's own clock, read through `control` (a channel `connect_control` opened; whoever opened it
+        closes it), as UNIX seconds: the session's timestamps on this cell, so that the
         same seed and commands give the same times however loaded the machine."""
         ...
 

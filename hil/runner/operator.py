@@ -43,6 +43,10 @@ class Operator(Protocol):
         """Carry out the step, returning once it is done; raise OperatorAbortError to stop the procedure."""
         ...
 
+    def close(self) -> None:
+        """Let go of what the operator holds (a simulated cell's control channel); the session's end calls it."""
+        ...
+
 
 class ConsoleOperator:
     """Prints the instruction and waits for Enter; 'q' aborts the procedure."""
@@ -58,14 +62,26 @@ class ConsoleOperator:
         if answer == "" or answer.strip().lower() in ("q", "quit", "stop"):
             raise OperatorAbortError(f"the operator stopped at: {step.text}")
 
+    def close(self) -> None:
+        """A person at the console holds nothing."""
+
 
 class ScriptedOperator:
     """Carries out steps with functions per action (e.g. moving the simulated SMR through the cell's
-    control channel); keeps a transcript of what it was asked."""
+    control channel); keeps a transcript of what it was asked. `release`: what `close` lets go of (the
+    channel the actions use), once."""
 
-    def __init__(self, actions: dict[str, Callable[[OperatorStep], None]]):
+    def __init__(
+        self, actions: dict[str, Callable[[OperatorStep], None]], release: Callable[[], None] | None = None
+    ):
         self.actions = actions
         self.transcript: list[OperatorStep] = []
+        self._release = release
+
+    def close(self) -> None:
+        release, self._release = self._release, None
+        if release is not None:
+            release()
 
     def perform(self, step: OperatorStep) -> None:
         self.transcript.append(step)

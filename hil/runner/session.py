@@ -130,8 +130,8 @@ class Session:
         self.close(interrupted=exc_type is not None and issubclass(exc_type, KeyboardInterrupt))
 
     def close(self, interrupted: bool = False) -> None:
-        """Stop the robot, release the instruments and close the store; never hangs: robot and tracker are
-        released side by side and given a bounded time (1 s after Ctrl-C, 10 s otherwise)."""
+        """Stop the robot, release the instruments and the operator, close the store; never hangs: robot and
+        tracker are released side by side and given a bounded time (1 s after Ctrl-C, 10 s otherwise)."""
         if self._closed:
             return
         self._closed = True
@@ -146,8 +146,11 @@ class Session:
                 self.robot.close()
 
         _bounded([("robot", release_robot), ("tracker", self.tracker.close)], 1.0 if interrupted else 10.0)
-        log.removeHandler(self._log_handler)
-        self.store.close()
+        try:
+            self.operator.close()
+        finally:
+            log.removeHandler(self._log_handler)
+            self.store.close()
 
     # ------------------------------------------------------------------ store shortcuts
     def event(self, kind: str, message: str, **where) -> None:

@@ -65,7 +65,8 @@ def simulated_operator(control_address: str | None) -> ScriptedOperator:
             "lock_beam": lock_beam,
             "unmount_tool": lambda step: control.call("unmount_tool"),
             "mount_tool": lambda step: control.call("mount_tool"),
-        }
+        },
+        release=control.close,
     )
 
 
@@ -94,15 +95,18 @@ def drivers_of(config: CellConfig) -> tuple[RobotDriver, TrackerDriver]:
         ) from exc
 
 
-def _cell_clock(config: CellConfig) -> Callable[[], float] | None:
-    """On a simulated cell its own clock (the same seed and commands give the same timestamps); else None:
-    the tracker's timestamps, from the host's clock."""
+def _cell_clock(config: CellConfig, stack: ExitStack) -> Callable[[], float] | None:
+    """On a simulated cell its own clock (the same seed and commands give the same timestamps), over a
+    control channel `stack` closes; else None: the tracker's timestamps, from the host's clock."""
     if not config.simulator_control:
         return None
     try:
-        return cell_simulator().clock(config.simulator_control)
+        simulator = cell_simulator()
+        control = simulator.connect_control(config.simulator_control)
     except PluginError as exc:
         raise SessionSetupError(exc.message, exc.remedy) from exc
+    stack.callback(control.close)
+    return simulator.clock(control)
 
 
 def continuing_clock(cell_clock: Callable[[], float], store: Campaign) -> Callable[[], float]:
@@ -139,6 +143,8 @@ def open_session(
         raise SessionSetupError(
             str(exc), "wait until it ends or stop it there, then run this again; nothing moved"
         ) from exc
+    # the cell's clock first: its channel closes after the session's close, which stamps its last events
+    cell_clock = _cell_clock(config, stack)
     with ExitStack() as opening:  # a failure half-way closes what was opened so far
         robot = robots.open(config.robot_mapping())
         opening.callback(robot.close)
@@ -154,7 +160,6 @@ def open_session(
             "cell_name": config.cell_name,
             "operator_name": operator_name or config.operator_name,
         }
-        cell_clock = _cell_clock(config)
         clock = None if cell_clock is None else continuing_clock(cell_clock, store)
         shown = progress if isinstance(progress, Progress) else Progress(enabled=progress)
         session = Session(config, robot, tracker, store, operator, shown, station=station, clock=clock)
