@@ -39,11 +39,10 @@ from hil.analysis.calibration.solve import Problem, calibrate, solve_ridge_igg3
 from hil.analysis.diagnosis.baseline import error_stats
 from hil.data.dataset import make_dataset
 from hil.geometry.ik import IKOptions, solve_ik
-from hil.geometry.kinematics import KinematicModel, measured_point
+from hil.geometry.kinematics import KinematicModel, measured_point, tool_points
 from hil.geometry.robots import get_robot
 from hil.geometry.se3 import make_transform
 from hil.model.calibrated_model import initial_model
-from hil.model.effects import tool_points_rows
 from hil.model.residual_maps import MAP_KINDS, IDWGridMap, kfold_map_errors, make_map
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
@@ -170,9 +169,9 @@ def grid_paper(seed: int) -> None:
     # + IDW on the grid: the residual at each grid vertex, interpolated in the cube around each target.
     gprob = Problem.from_frame(kin, train)
     r_grid = gprob.residuals(kin)
-    p_grid = tool_points_rows(kin.kinematic, gprob.ctx.q, kin._row_tools(gprob.smr))
+    p_grid = tool_points(kin.kinematic, gprob.ctx.q, kin._row_tools(gprob.smr))
     idw = IDWGridMap(step_m=0.2).fit(gprob.ctx.q, p_grid, r_grid, 10e-6)
-    p_test = tool_points_rows(kin.kinematic, tprob.ctx.q, kin._row_tools(tprob.smr))
+    p_test = tool_points(kin.kinematic, tprob.ctx.q, kin._row_tools(tprob.smr))
     r_test_idw = r_test_kin - idw.predict_raw(tprob.ctx.q, p_test)
     ours = {
         "uncompensated": error_stats(r_test_nom),

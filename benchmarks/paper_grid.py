@@ -90,7 +90,7 @@ def evaluate(nominal_robot, tool_m, train, test) -> tuple[dict[str, np.ndarray],
     """Errors (N,) mm at the test points after each of the paper's stages, and facts about the IDW grid."""
     from hil.analysis.calibration.cube_svr import registered_nominal
     from hil.analysis.calibration.solve import Problem, calibrate
-    from hil.model.effects import tool_points_rows
+    from hil.geometry.kinematics import tool_points
     from hil.model.grid_frame import SAME_LOCATION_M, locations
     from hil.model.residual_maps import IDWGridMap, make_map
 
@@ -99,7 +99,7 @@ def evaluate(nominal_robot, tool_m, train, test) -> tuple[dict[str, np.ndarray],
 
     def residual_and_points(df):
         prob = Problem.from_frame(kin, df)
-        p = tool_points_rows(kin.kinematic, prob.ctx.q, kin._row_tools(prob.smr))
+        p = tool_points(kin.kinematic, prob.ctx.q, kin._row_tools(prob.smr))
         return prob.ctx.q, p, prob.residuals(kin)[:, :3]
 
     q_grid, p_grid, r_grid = residual_and_points(train)

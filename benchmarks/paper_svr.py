@@ -74,7 +74,7 @@ def evaluate(
     """Errors (N,) mm at each cube's test points: raw, per-cube SVR (the paper), LM calibration, ours."""
     from hil.analysis.calibration.cube_svr import fit_cube_svr, registered_nominal
     from hil.analysis.calibration.solve import Problem, calibrate
-    from hil.model.effects import tool_points_rows
+    from hil.geometry.kinematics import tool_points
     from hil.model.residual_maps import SVRMap
 
     nominal = registered_nominal(nominal_robot, train, tool_m)
@@ -84,7 +84,7 @@ def evaluate(
 
     def fitted(df):
         prob = Problem.from_frame(ridge, df)
-        p = tool_points_rows(ridge.kinematic, prob.ctx.q, ridge._row_tools(prob.smr))
+        p = tool_points(ridge.kinematic, prob.ctx.q, ridge._row_tools(prob.smr))
         return prob.ctx.q, p, prob.residuals(ridge)[:, :3]
 
     ours = SVRMap().fit(*fitted(train), 10e-6)

@@ -27,6 +27,7 @@ from hil.geometry.kinematics import (
     identification_jacobian,
     kinematic_rotation_jacobian,
     perturb_base,
+    tool_points,
 )
 from hil.geometry.robots import get_robot
 from hil.geometry.se3 import fit_rigid, invert, make_transform, transform_points
@@ -35,7 +36,6 @@ from hil.model.effects import (
     EffectContext,
     effect_from_dict,
     tool_points_and_growth_direction,
-    tool_points_rows,
 )
 from hil.model.intervals import PredictionSpread
 from hil.model.residual_maps import map_from_dict
@@ -170,7 +170,7 @@ class CalibratedModel:
         p = self.predict_ctx(ctx)
         if with_map and self.residual_map is not None:
             q_eff = ctx.q + self.joint_offsets(ctx)
-            p_base = tool_points_rows(self.kinematic, q_eff, _context_tools(ctx))
+            p_base = tool_points(self.kinematic, q_eff, _context_tools(ctx))
             p = p + map_from_dict(self.residual_map).predict(ctx.q, p_base)
         return p
 

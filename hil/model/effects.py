@@ -53,7 +53,6 @@ from hil.geometry.kinematics import (
     flange_poses_and_last_origins,
     last_link_origins,
     points_on_flanges,
-    tool_points,
 )
 
 # Names used in reports and model files (the documented vocabulary).
@@ -822,14 +821,9 @@ def growth_direction(model: KinematicModel, q: np.ndarray) -> np.ndarray:
     return last_link_origins(model, q)
 
 
-def tool_points_rows(model: KinematicModel, q: np.ndarray, p_flange_tool_rows: np.ndarray) -> np.ndarray:
-    """Tool points (N, 3) in the base frame with one tool point per row."""
-    return tool_points(model, q, p_flange_tool_rows)
-
-
 def tool_points_and_growth_direction(
     model: KinematicModel, q: np.ndarray, p_flange_tool_rows: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """`tool_points_rows` and `growth_direction` (N, 3) each, from one pass over the chain."""
+    """`tool_points` (one tool point per row) and `growth_direction` (N, 3) each, from one pass over the chain."""
     T, growth = flange_poses_and_last_origins(model, q)
     return points_on_flanges(T, p_flange_tool_rows), growth

@@ -13,9 +13,8 @@ import numpy as np
 import pandas as pd
 
 from hil.analysis.calibration.solve import Problem, solve_ridge_igg3
-from hil.geometry.kinematics import KinematicModel
+from hil.geometry.kinematics import KinematicModel, tool_points
 from hil.model.calibrated_model import CalibratedModel, initial_model
-from hil.model.effects import tool_points_rows
 from hil.model.residual_maps import SVRMap
 
 
@@ -32,7 +31,7 @@ def raw_error(model: CalibratedModel, df: pd.DataFrame) -> tuple[np.ndarray, np.
     """Joints (N, 6), the model's tool positions in the base frame (N, 3) and measured - model (N, 3), m."""
     prob = Problem.from_frame(model, df)
     error = prob.residuals(model)[:, :3]
-    p_base = tool_points_rows(model.kinematic, prob.ctx.q, model._row_tools(prob.smr))
+    p_base = tool_points(model.kinematic, prob.ctx.q, model._row_tools(prob.smr))
     return prob.ctx.q, p_base, error
 
 

@@ -113,14 +113,13 @@ from hil.analysis.diagnosis.selection import (
     settle_rivals,
 )
 from hil.data.dataset import drop_duplicate_rows, has_orientation, joints_rad
-from hil.geometry.kinematics import KinematicModel
+from hil.geometry.kinematics import KinematicModel, tool_points
 from hil.model.calibrated_model import CalibratedModel
 from hil.model.effects import (
     Effect,
     material_growth,
     physical,
     stuck_air_scale,
-    tool_points_rows,
     yields_against_gravity,
 )
 from hil.model.residual_maps import MAP_KINDS, MAP_MODES, kfold_map_errors, make_map, map_from_dict
@@ -647,7 +646,7 @@ def content_sha256(df: pd.DataFrame) -> str:
 
 def _p_base(model: CalibratedModel, problem: Problem) -> np.ndarray:
     q_eff = problem.ctx.q + model.joint_offsets(problem.ctx)
-    return tool_points_rows(model.kinematic, q_eff, model._row_tools(problem.smr))
+    return tool_points(model.kinematic, q_eff, model._row_tools(problem.smr))
 
 
 def _map_verdict(base: Baseline, path: SelectionPath, model: CalibratedModel, alpha: float) -> dict:
