@@ -40,7 +40,7 @@ def test_the_tracker_is_turned_by_the_rotation_scipy_draws_for_the_seed_bit_for_
         )
     loaded = subprocess.run(
         [sys.executable, "-c", "import sys, fakes.sim; print(sorted(m for m in sys.modules if 'spatial' in m))"],
-        capture_output=True, text=True, check=True,
+        capture_output=True, text=True, check=True, timeout=60,
     )  # fmt: skip
     assert loaded.stdout.strip() == "[]"
 

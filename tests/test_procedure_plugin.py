@@ -200,6 +200,6 @@ def test_finding_who_publishes_a_step_imports_no_diagnosis():
             "print(publisher(Role.REGISTRATION))\n"
             "print(sorted(m for m in sys.modules if m.startswith(('hil.analysis.diagnosis', 'hil.report.html'))))",
         ],
-        capture_output=True, text=True, check=True,
+        capture_output=True, text=True, check=True, timeout=60,
     )  # fmt: skip
     assert found.stdout.splitlines() == ["('registration', 'fit')", "[]"], found.stdout
