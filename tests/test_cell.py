@@ -31,15 +31,20 @@ def test_same_seed_same_cell_and_noise():
 
 
 def test_the_tracker_is_turned_by_the_rotation_scipy_draws_for_the_seed_bit_for_bit():
-    """The cell draws its tracker's orientation without scipy (its start-up imports no scipy.spatial): the
-    same matrices as Rotation.random for each integer seed, so no seed's cell changed."""
+    """The cell draws its tracker's orientation without scipy (a simulated cell imports no scipy.spatial, at
+    start-up or when it turns the first commanded pose): the same matrices as Rotation.random for each integer
+    seed, so no seed's cell changed."""
     seeds = [0, 1, 7, *np.random.default_rng(2).integers(2**31, size=300).tolist(), 2**31 - 1]
     for seed in seeds:
         np.testing.assert_array_equal(
             random_rotation(seed), Rotation.random(random_state=seed).as_matrix(), err_msg=str(seed)
         )
     loaded = subprocess.run(
-        [sys.executable, "-c", "import sys, fakes.sim; print(sorted(m for m in sys.modules if 'spatial' in m))"],
+        [
+            sys.executable, "-c",
+            "import sys, fakes.sim, fakes.ur_script_runtime as rt; rt.pose_to_transform([0.1, 0, 0.4, 0, 3.1, 0.2]); "
+            "print(sorted(m for m in sys.modules if 'spatial' in m))",
+        ],
         capture_output=True, text=True, check=True, timeout=60,
     )  # fmt: skip
     assert loaded.stdout.strip() == "[]"

@@ -257,6 +257,22 @@ def test_pose_vector_round_trip_inverse_and_pose_error():
     np.testing.assert_allclose(se3.pose_error(T, T_moved), np.broadcast_to(step, (10, 6)), atol=1e-12)
 
 
+@pytest.mark.parametrize("scale", [0.0, 1e-9, 5e-4, 1e-3, 2e-3, 1.0, np.pi, 20.0])
+def test_rotation_exp_is_scipys_rotation_of_the_vector_and_inverts_the_log(scale):
+    """The exponential the simulated cell turns every commanded pose with: scipy's matrices (to the last
+    bit or two, whatever scipy's version), either side of the small-angle series' 1 mrad switch, and
+    `rotation_log`'s inverse (up to the 2 pi wrap of a vector longer than pi)."""
+    rv = np.random.default_rng(3).normal(size=(400, 3)) * scale
+    R = se3.rotation_exp(rv)
+    np.testing.assert_allclose(R, Rotation.from_rotvec(rv).as_matrix(), rtol=0, atol=2e-15)
+    np.testing.assert_allclose(R @ np.swapaxes(R, 1, 2), np.broadcast_to(np.eye(3), R.shape), atol=1e-14)
+    np.testing.assert_allclose(se3.rotation_exp(se3.rotation_log(R)), R, atol=1e-12)
+    short = np.linalg.norm(rv, axis=1) < np.pi - 1e-6  # longer vectors come back wrapped
+    np.testing.assert_allclose(se3.rotation_log(R[short]), rv[short], atol=1e-12)
+    assert se3.rotation_exp(rv[0]).shape == (3, 3)
+    assert se3.rotation_exp(rv.reshape(20, 20, 3)).shape == (20, 20, 3, 3)
+
+
 # ------------------------------------------------------------------------------------------ parameters
 
 

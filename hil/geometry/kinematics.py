@@ -13,7 +13,7 @@ from functools import cached_property
 
 import numpy as np
 
-from hil.geometry.se3 import rot_y
+from hil.geometry.se3 import rot_y, rotation_exp
 
 SMALL_BATCH = 24  # up to this many rows the chain is built from (4, 4) matmuls (fewer numpy calls)
 PARAM_KINDS_DH: tuple[str, ...] = ("theta", "d", "a", "alpha")
@@ -523,9 +523,7 @@ def perturb_base(T_tracker_base: np.ndarray, delta: np.ndarray) -> np.ndarray:
     T_t = np.eye(4)
     T_t[:3, 3] = delta[:3]
     T_r = np.eye(4)
-    from scipy.spatial.transform import Rotation  # imported here: hil.geometry.se3 says why
-
-    T_r[:3, :3] = Rotation.from_rotvec(delta[3:6]).as_matrix()
+    T_r[:3, :3] = rotation_exp(delta[3:6])
     return T_t @ T_tracker_base @ T_r
 
 

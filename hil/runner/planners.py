@@ -11,10 +11,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from hil.geometry.ik import IKOptions, default_home, solve_ik
 from hil.geometry.kinematics import KinematicModel, geometric_jacobian, link_frames
+from hil.geometry.se3 import rotation_exp
 
 # Smallest singular value of the position Jacobian (m/rad) below which a pose counts as near-singular:
 # a joint error of 1e-5 rad would then move the tool by less than ~0.5 um in some direction, and
@@ -103,7 +103,7 @@ def facing_poses(
     tilt_vec = np.column_stack([tilt_axis * tilt_angle[:, None], np.zeros(count)])
     roll = np.deg2rad(roll_deg) * rng.uniform(-1, 1, count)
     roll_vec = np.column_stack([np.zeros((count, 2)), roll])
-    tilt = Rotation.from_rotvec(tilt_vec).as_matrix() @ Rotation.from_rotvec(roll_vec).as_matrix()
+    tilt = rotation_exp(tilt_vec) @ rotation_exp(roll_vec)
     T = np.zeros((count, 4, 4))
     T[:, :3, :3] = R @ tilt
     T[:, :3, 3] = points
@@ -125,6 +125,8 @@ def facing_rotations(points_base_m: np.ndarray, p_base_tracker_m: np.ndarray) ->
 
 def rpy_rotation(rpy_rad: np.ndarray) -> np.ndarray:
     """R (3, 3) from roll, pitch, yaw about the base x, y, z axes: R = Rz(yaw) Ry(pitch) Rx(roll)."""
+    from scipy.spatial.transform import Rotation  # imported here: hil.geometry.se3 says why
+
     return Rotation.from_euler("xyz", np.asarray(rpy_rad, float)).as_matrix()
 
 
