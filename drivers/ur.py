@@ -17,6 +17,7 @@ import logging
 import math
 import socket
 import struct
+import threading
 import time
 import weakref
 from collections.abc import Callable, Iterator, Mapping
@@ -240,6 +241,14 @@ def _reason(exc: Exception | None) -> str:
     return exc.message if isinstance(exc, RobotError) else str(exc)
 
 
+def _disconnect_quietly(client: Any) -> None:
+    """One ur-rtde client's disconnect(); a dead peer must not stop the rest of the teardown."""
+    try:
+        client.disconnect()
+    except Exception as exc:
+        log.debug("disconnect failed: %s", exc)
+
+
 class URRobot:
     """`Robot` on a UR controller through ur-rtde (receive + control + dashboard)."""
 
@@ -360,14 +369,28 @@ class URRobot:
 
     @staticmethod
     def _release(clients: list) -> None:
-        """Disconnect control first, then receive, then dashboard; each may already be gone."""
-        for client in clients:
-            if client is None:
-                continue
+        """Disconnect the clients (control, receive, dashboard; any may be None or already gone) side by side.
+
+        ur-rtde's disconnect() of an interface ends in a fixed 500 ms wait, with the GIL released: one after the
+        other, control and receive took 1 s, side by side 0.5 s. (Each interface's destructor disconnects and
+        waits once more, then with the GIL held: that second wait is ur-rtde's and stays.)
+        """
+        live = [client for client in clients if client is not None]
+        helpers = []
+        for client in live[1:]:
+            helper = threading.Thread(
+                target=_disconnect_quietly, args=(client,), name="ur-disconnect", daemon=True
+            )
             try:
-                client.disconnect()
-            except Exception as exc:  # a dead peer must not stop the rest of the teardown
-                log.debug("disconnect failed: %s", exc)
+                helper.start()
+            except RuntimeError:  # no new thread at interpreter shutdown (a finalizer): one after the other
+                _disconnect_quietly(client)
+                continue
+            helpers.append(helper)
+        if live:
+            _disconnect_quietly(live[0])
+        for helper in helpers:
+            helper.join()
 
     def _rebuild(self) -> None:
         """Rebuild the control interface; everything if the receive stream is not provably alive too."""
@@ -736,7 +759,7 @@ class URRobot:
         dash.connect(int(self.config.connect_timeout_s * 1000))
 
     def close(self) -> None:
-        """Stop any motion, then disconnect control, receive and dashboard (in that order)."""
+        """Stop any motion, then disconnect control, receive and dashboard (side by side: `_release`)."""
         if self._ctrl is not None:
             self._try_stop()
         self._finalizer.detach()
