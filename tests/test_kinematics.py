@@ -12,6 +12,7 @@ from hil.geometry.kinematics import (
     BASE_PARAM_NAMES,
     TOOL_PARAM_NAMES,
     chain_axes,
+    flange_poses_and_last_origins,
     forward_kinematics,
     geometric_jacobian,
     identification_jacobian,
@@ -271,6 +272,41 @@ def test_rotation_exp_is_scipys_rotation_of_the_vector_and_inverts_the_log(scale
     np.testing.assert_allclose(se3.rotation_log(R[short]), rv[short], atol=1e-12)
     assert se3.rotation_exp(rv[0]).shape == (3, 3)
     assert se3.rotation_exp(rv.reshape(20, 20, 3)).shape == (20, 20, 3, 3)
+
+
+def test_a_chain_asked_again_comes_from_the_memo_and_is_never_stale():
+    """A fit's Jacobian and prediction ask for the same chain one after the other: the second is served from
+    `_chain`'s memo, equal to a fresh computation; joints changed in place or another geometry are computed
+    anew; what leaves the module is the caller's own copy."""
+    from hil.geometry.kinematics import _chain, _chain_loop
+
+    m = get_robot("ur10")
+    q = random_joints(m, 100, seed=11)
+    n = m.n_joints
+    Z, O, X, Y = (
+        np.empty((n, 3, 100)),
+        np.empty((n + 1, 3, 100)),
+        np.empty((n, 3, 100)),
+        np.empty((n, 3, 100)),
+    )
+    R, p = _chain(m, q, None, (Z, O), (X, Y))
+    R_again, p_again = _chain(m, q.copy(), None)
+    assert R_again is R and p_again is p and not R.flags.writeable  # served, read-only
+    fresh = [np.empty_like(a) for a in (Z, O, X, Y)]
+    R_fresh, p_fresh = _chain_loop(m, q, None, (fresh[0], fresh[1]), (fresh[2], fresh[3]))
+    np.testing.assert_array_equal(R, R_fresh)
+    np.testing.assert_array_equal(p, p_fresh)
+    for filled, computed in zip((Z, O, X, Y), fresh, strict=True):
+        np.testing.assert_array_equal(filled, computed)
+    q[3, 1] += 0.2  # the same array, changed in place
+    R_moved, _ = _chain(m, q, None)
+    assert R_moved is not R
+    np.testing.assert_array_equal(R_moved, _chain_loop(m, q, None)[0])
+    other = m.with_errors({"a2": 1e-4})
+    np.testing.assert_array_equal(_chain(other, q, None)[1], _chain_loop(other, q, None)[1])
+    T, origins = flange_poses_and_last_origins(m, q)
+    origins += 1.0  # the caller's own
+    np.testing.assert_array_equal(flange_poses_and_last_origins(m, q)[1], _chain_loop(m, q, None)[1])
 
 
 # ------------------------------------------------------------------------------------------ parameters

@@ -8,6 +8,8 @@ For a standard DH joint beta_i is fixed at 0. Lengths in metres, angles in radia
 
 from __future__ import annotations
 
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass, field, replace
 from functools import cached_property
 
@@ -183,7 +185,7 @@ def flange_poses_and_last_origins(model: KinematicModel, q: np.ndarray) -> tuple
     one pass over the chain: a model whose links grow needs both for every prediction."""
     q = model.check_joints(q)
     R, p = _chain(model, q, None)
-    return _flange_poses(model, R, p), p
+    return _flange_poses(model, R, p), p.copy()  # the chain's own arrays stay read-only in its memo
 
 
 def _chain(
@@ -197,14 +199,86 @@ def _chain(
     every frame's z axis and origin into `axes` = (Z (n, 3, N), O (n + 1, 3, N)), and each joint's x axis
     after Rz(theta) and y axis after Rx(alpha) into `mids` = (X (n, 3, N), Y (n, 3, N)), base frame.
 
-    Same product as `joint_transforms` chained, written column by column on (3, N) axis arrays: a
-    batched 4x4 matmul per joint costs an order of magnitude more for small matrices. The constant
-    factors are Python floats and zero lengths are skipped: the loop's cost is its number of numpy calls.
-    Rz(th) turns x, y about z; Tz(d) Tx(a) moves the origin by d z + a x'; Rx(alpha), Ry(beta) turn again.
+    A fit asks for the same chain twice in a row: its Jacobian, then the prediction at the same parameters
+    (or the prediction at an accepted step, then the Jacobian there). `_ChainMemo` keeps the last few whole
+    chains by content, so the second asks for nothing new. The returned arrays are read-only.
     """
     N, n = q.shape
     if N <= SMALL_BATCH and frames is None and mids is None:
         return _chain_small(model, q, axes)
+    if frames is not None or N > _ChainMemo.MAX_ROWS:
+        return _chain_loop(model, q, frames, axes, mids)
+    key = (_geometry_key(model), q.shape, q.tobytes())
+    chain = _CHAIN_MEMO.get(key)
+    if chain is None:
+        Z, O = np.empty((n, 3, N)), np.empty((n + 1, 3, N))
+        X, Y = np.empty((n, 3, N)), np.empty((n, 3, N))
+        R, p = _chain_loop(model, q, None, (Z, O), (X, Y))
+        chain = (R, p, Z, O, X, Y)
+        for array in chain:
+            array.flags.writeable = False
+        _CHAIN_MEMO.put(key, chain)
+    R, p, Z, O, X, Y = chain
+    if axes is not None:
+        axes[0][...], axes[1][...] = Z, O
+    if mids is not None:
+        mids[0][...], mids[1][...] = X, Y
+    return R, p
+
+
+class _ChainMemo:
+    """The last `SIZE` chains `_chain` built, by the model's geometry and the joints' bytes (exact: a key
+    holds the bytes themselves). Campaigns up to MAX_ROWS rows: a chain holds 25 (3, N) arrays."""
+
+    SIZE = 4
+    MAX_ROWS = 20_000
+
+    def __init__(self) -> None:
+        self._chains: OrderedDict[tuple, tuple[np.ndarray, ...]] = OrderedDict()
+        self._lock = threading.Lock()  # a console thread and the engine may fit at once
+
+    def get(self, key: tuple) -> tuple[np.ndarray, ...] | None:
+        with self._lock:
+            chain = self._chains.get(key)
+            if chain is not None:
+                self._chains.move_to_end(key)
+            return chain
+
+    def put(self, key: tuple, chain: tuple[np.ndarray, ...]) -> None:
+        with self._lock:
+            self._chains[key] = chain
+            while len(self._chains) > self.SIZE:
+                self._chains.popitem(last=False)
+
+
+_CHAIN_MEMO = _ChainMemo()
+
+
+def _geometry_key(model: KinematicModel) -> bytes:
+    """The bytes of everything `_chain` reads of a model (its joint offsets and link geometry), once per
+    model (it is immutable)."""
+    got = model.__dict__.get("_geometry_key")
+    if got is None:
+        got = b"".join(
+            np.asarray(v, float).tobytes() for v in (model.theta, model.d, model.a, model.alpha, model.beta)
+        )
+        model.__dict__["_geometry_key"] = got
+    return got
+
+
+def _chain_loop(
+    model: KinematicModel,
+    q: np.ndarray,
+    frames: np.ndarray | None,
+    axes: tuple[np.ndarray, np.ndarray] | None = None,
+    mids: tuple[np.ndarray, np.ndarray] | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """`_chain` computed: the same product as `joint_transforms` chained, written column by column on (3, N)
+    axis arrays: a batched 4x4 matmul per joint costs an order of magnitude more for small matrices. The
+    constant factors are Python floats and zero lengths are skipped: the loop's cost is its number of numpy
+    calls. Rz(th) turns x, y about z; Tz(d) Tx(a) moves the origin by d z + a x'; Rx(alpha), Ry(beta) turn
+    again."""
+    N, n = q.shape
     th = (q + model.theta).T  # (n, N): every axis array below is (3, N), contiguous per component
     ct, st = np.cos(th, order="C"), np.sin(th, order="C")  # rows contiguous too: faster products
     d, a, cal, sal, cbe, sbe, has_beta, _, _ = _chain_constants(model)
@@ -339,7 +413,7 @@ def last_link_origins(model: KinematicModel, q: np.ndarray) -> np.ndarray:
     """The last link's origin (N, 3) in the base frame, before the fixed flange transform: the sum of every
     link's length (a, d) along its axes, so it grows in proportion when all link lengths are scaled."""
     q = model.check_joints(q)
-    return np.asarray(_chain(model, q, None)[1])
+    return _chain(model, q, None)[1].copy()  # the chain's own arrays stay read-only in its memo
 
 
 def tool_points(model: KinematicModel, q: np.ndarray, p_flange_tool: np.ndarray) -> np.ndarray:
