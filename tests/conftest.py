@@ -2,6 +2,7 @@
 profiles (`ci` when the CI variable is set, as CI sets it to `true`; `dev` otherwise; HYPOTHESIS_PROFILE
 overrides)."""
 
+import gc
 import os
 from pathlib import Path
 
@@ -53,6 +54,17 @@ def pytest_collection_modifyitems(config, items):
         sim, other = sim[1:], other[1:]
     rank = {m: k for k, m in enumerate(order)}
     items.sort(key=lambda item: rank[item.path])  # stable: a module's tests in file order
+
+
+def pytest_collection_finish(session):
+    """The collected process's objects (the imported numpy, scipy, pandas, the test modules) live to the end:
+    frozen, the collector stops walking them in every full collection, and it runs a young-generation pass
+    a tenth as often (what the tests leave is still collected, in bigger batches). The collector's time in
+    the six workers of the non-sim tests, timed with gc.callbacks: 6.8 CPU-s before, 4.9 so."""
+    gc.collect()
+    gc.freeze()
+    young, middle, old = gc.get_threshold()
+    gc.set_threshold(10 * young, middle, old)
 
 
 @pytest.fixture(scope="session")
