@@ -4,7 +4,6 @@ middle of recording, the server lost mid-run, resume. No mock of the database.""
 
 from __future__ import annotations
 
-import os
 import signal
 import subprocess
 import sys
@@ -12,6 +11,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pandas as pd
@@ -33,6 +33,7 @@ from hil.data.store import (
     ResultRecord,
     Verdict,
 )
+from tests.cli_in_process import run_hil
 
 WRITER = [sys.executable, str(Path(__file__).with_name("pg_writer.py"))]
 
@@ -148,7 +149,9 @@ def test_a_campaign_is_opened_by_its_label_or_its_uuid_and_never_made_up(databas
         PgCampaignStore(database)
 
 
-def test_a_wrong_password_is_a_clear_refusal_and_no_password_is_ever_shown(pg_server, database, monkeypatch):
+def test_a_wrong_password_is_a_clear_refusal_and_no_password_is_ever_shown(
+    pg_server, database, monkeypatch, tmp_path, capsys
+):
     monkeypatch.setenv("PGPASSWORD", "not-the-password")
     with pytest.raises(CampaignLoginRefused, match="refused the login") as refused:
         PgCampaignStore(database + "?campaign=contract")
@@ -156,9 +159,8 @@ def test_a_wrong_password_is_a_clear_refusal_and_no_password_is_ever_shown(pg_se
     with pytest.raises(CampaignURLError, match="password in a campaign URL is refused") as in_url:
         PgCampaignStore(database.replace("hil@", f"hil:{PASSWORD}@") + "?campaign=contract")
     assert PASSWORD not in str(in_url.value)
-    done = subprocess.run(
-        [sys.executable, "-m", "hil", "calibrate", database + "?campaign=contract", "--robot", "ur10", "-o", "m.json"],
-        capture_output=True, text=True, env={**os.environ, "PGPASSWORD": "not-the-password"}, timeout=60,
+    done = run_hil(  # PGPASSWORD is still the wrong one
+        "calibrate", database + "?campaign=contract", "--robot", "ur10", "-o", "m.json", cwd=tmp_path, capsys=capsys
     )  # fmt: skip
     assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr
     assert "refused the login" in done.stderr and "PGPASSWORD" in done.stderr
@@ -292,21 +294,21 @@ def test_a_campaign_is_keyed_by_its_robot_controller_tracker_cell_operator_dates
     assert (keys["temperature_min_c"], keys["temperature_max_c"]) == (20.0, 22.0)
 
 
-def _push(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "hil", "campaign", "push", *args], capture_output=True, text=True, timeout=60
-    )
+def _push(capsys, *args: str) -> SimpleNamespace:
+    """`hil campaign push ARGS` in this process (what it prints and its exit code, as the command line gives
+    them)."""
+    return run_hil("campaign", "push", *args, cwd=".", capsys=capsys)
 
 
-def test_push_copies_a_file_campaign_by_its_uuid_and_pushing_again_adds_nothing(database, tmp_path):
+def test_push_copies_a_file_campaign_by_its_uuid_and_pushing_again_adds_nothing(database, tmp_path, capsys):
     path = tmp_path / "cell9-offline.sqlite"
     with CampaignStore(path) as file:
         _fill(file)
         identity = file.uuid
-    first = _push(str(path), database)
+    first = _push(capsys, str(path), database)
     assert first.returncode == 0, first.stderr
     assert f"campaign {identity}" in first.stdout and "added 1 snapshots, 5 measurements" in first.stdout
-    again = _push(str(path), database)
+    again = _push(capsys, str(path), database)
     assert again.returncode == 0 and "nothing new to add" in again.stdout, again.stdout + again.stderr
     with CampaignStore(path) as file, PgCampaignStore(database + f"?campaign={identity}", create=False) as pg:
         assert pg.label == "cell9-offline" and pg.created_s == file.created_s
@@ -318,7 +320,7 @@ def test_push_copies_a_file_campaign_by_its_uuid_and_pushing_again_adds_nothing(
         assert pg.outcomes() == file.outcomes() and pg.results() == file.results()
         file.record_measurement(record("grid", 7))  # the cell measured on after its first push
         file.record_event("resumed", "one more point")
-    grown = _push(str(path), database)
+    grown = _push(capsys, str(path), database)
     assert grown.returncode == 0 and "added 1 measurements, 1 events" in grown.stdout, (
         grown.stdout + grown.stderr
     )
@@ -326,13 +328,13 @@ def test_push_copies_a_file_campaign_by_its_uuid_and_pushing_again_adds_nothing(
         assert len(pg.measurements()) == 6 and len(pg.events()) == 3
 
 
-def test_push_refuses_a_label_another_campaign_holds(database, tmp_path):
+def test_push_refuses_a_label_another_campaign_holds(database, tmp_path, capsys):
     with PgCampaignStore(database + "?campaign=taken-label"):
         pass
     path = tmp_path / "other.sqlite"
     with CampaignStore(path) as file:
         file.add_snapshot({"cell": {}})
-    taken = _push(str(path), database + "?campaign=taken-label")
+    taken = _push(capsys, str(path), database + "?campaign=taken-label")
     assert taken.returncode == 2 and "is taken by another campaign" in taken.stderr, taken.stderr
     assert "Traceback" not in taken.stderr
 

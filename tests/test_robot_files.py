@@ -1,8 +1,6 @@
 """Robot definitions from TOML files: the built-ins are such files, and any serial 6R is one more."""
 
 import json
-import subprocess
-import sys
 
 import numpy as np
 import pandas as pd
@@ -16,6 +14,7 @@ from hil.geometry.kinematics import forward_kinematics, measured_point, tool_poi
 from hil.geometry.robots import ROBOT_DIR, ROBOT_NAMES, get_robot, load_robot_file
 from hil.geometry.se3 import make_transform
 from hil.model.calibrated_model import CalibratedModel, model_from_dict, model_to_dict
+from tests.cli_in_process import run_hil
 
 
 def test_every_builtin_is_a_robot_file():
@@ -290,7 +289,7 @@ def test_a_bad_mdh_file_is_named_with_the_key_and_what_to_fix(tmp_path, edit, me
     assert str(path) in str(exc.value) and message in str(exc.value)
 
 
-def test_calibrate_and_diagnose_take_an_mdh_robot_file(tmp_path):
+def test_calibrate_and_diagnose_take_an_mdh_robot_file(tmp_path, capsys):
     """`hil calibrate/diagnose --robot my.toml` on a simulated LR Mate 200iD campaign with hidden
     geometric errors: the calibrated model predicts held-out poses to the noise, the nominal one is mm off."""
     text = (
@@ -311,10 +310,8 @@ def test_calibrate_and_diagnose_take_an_mdh_robot_file(tmp_path):
     make_dataset(q[:200], p[:200]).to_csv(tmp_path / "train.csv", index=False)
     make_dataset(q[200:], p[200:]).to_csv(tmp_path / "val.csv", index=False)
 
-    def hil(*args):
-        out = subprocess.run(
-            [sys.executable, "-m", "hil", *args], capture_output=True, text=True, cwd=tmp_path
-        )
+    def hil(*args):  # in this process: what is tested is the robot file, not the interpreter's start
+        out = run_hil(*args, cwd=tmp_path, capsys=capsys)
         assert out.returncode == 0, out.stderr
         return out
 
