@@ -278,7 +278,7 @@ def test_a_chain_asked_again_comes_from_the_memo_and_is_never_stale():
     """A fit's Jacobian and prediction ask for the same chain one after the other: the second is served from
     `_chain`'s memo, equal to a fresh computation; joints changed in place or another geometry are computed
     anew; what leaves the module is the caller's own copy."""
-    from hil.geometry.kinematics import _chain, _chain_loop
+    from hil.geometry.kinematics import _chain, _chain_loop, _ChainOut
 
     m = get_robot("ur10")
     q = random_joints(m, 100, seed=11)
@@ -293,7 +293,7 @@ def test_a_chain_asked_again_comes_from_the_memo_and_is_never_stale():
     R_again, p_again = _chain(m, q.copy(), None)
     assert R_again is R and p_again is p and not R.flags.writeable  # served, read-only
     fresh = [np.empty_like(a) for a in (Z, O, X, Y)]
-    R_fresh, p_fresh = _chain_loop(m, q, None, (fresh[0], fresh[1]), (fresh[2], fresh[3]))
+    R_fresh, p_fresh = _chain_loop(m, q, _ChainOut(axes=(fresh[0], fresh[1]), mids=(fresh[2], fresh[3])))
     np.testing.assert_array_equal(R, R_fresh)
     np.testing.assert_array_equal(p, p_fresh)
     for filled, computed in zip((Z, O, X, Y), fresh, strict=True):
@@ -301,12 +301,12 @@ def test_a_chain_asked_again_comes_from_the_memo_and_is_never_stale():
     q[3, 1] += 0.2  # the same array, changed in place
     R_moved, _ = _chain(m, q, None)
     assert R_moved is not R
-    np.testing.assert_array_equal(R_moved, _chain_loop(m, q, None)[0])
+    np.testing.assert_array_equal(R_moved, _chain_loop(m, q, _ChainOut())[0])
     other = m.with_errors({"a2": 1e-4})
-    np.testing.assert_array_equal(_chain(other, q, None)[1], _chain_loop(other, q, None)[1])
+    np.testing.assert_array_equal(_chain(other, q, None)[1], _chain_loop(other, q, _ChainOut())[1])
     T, origins = flange_poses_and_last_origins(m, q)
     origins += 1.0  # the caller's own
-    np.testing.assert_array_equal(flange_poses_and_last_origins(m, q)[1], _chain_loop(m, q, None)[1])
+    np.testing.assert_array_equal(flange_poses_and_last_origins(m, q)[1], _chain_loop(m, q, _ChainOut())[1])
 
 
 # ------------------------------------------------------------------------------------------ parameters

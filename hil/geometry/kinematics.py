@@ -188,12 +188,15 @@ def flange_poses_and_last_origins(model: KinematicModel, q: np.ndarray) -> tuple
     return _flange_poses(model, R, p), p.copy()  # the chain's own arrays stay read-only in its memo
 
 
+AxisPair = tuple[np.ndarray, np.ndarray]  # per-joint axis arrays (n, 3, N) `_chain` fills: (Z, O) or (X, Y)
+
+
 def _chain(
     model: KinematicModel,
     q: np.ndarray,
     frames: np.ndarray | None,
-    axes: tuple[np.ndarray, np.ndarray] | None = None,
-    mids: tuple[np.ndarray, np.ndarray] | None = None,
+    axes: AxisPair | None = None,
+    mids: AxisPair | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Last-link rotation (N, 3, 3) and origin (N, 3), optionally filling every link frame into `frames`,
     every frame's z axis and origin into `axes` = (Z (n, 3, N), O (n + 1, 3, N)), and each joint's x axis
@@ -207,13 +210,13 @@ def _chain(
     if N <= SMALL_BATCH and frames is None and mids is None:
         return _chain_small(model, q, axes)
     if frames is not None or N > _ChainMemo.MAX_ROWS:
-        return _chain_loop(model, q, frames, axes, mids)
+        return _chain_loop(model, q, _ChainOut(frames, axes, mids))
     key = (_geometry_key(model), q.shape, q.tobytes())
     chain = _CHAIN_MEMO.get(key)
     if chain is None:
         Z, O = np.empty((n, 3, N)), np.empty((n + 1, 3, N))
         X, Y = np.empty((n, 3, N)), np.empty((n, 3, N))
-        R, p = _chain_loop(model, q, None, (Z, O), (X, Y))
+        R, p = _chain_loop(model, q, _ChainOut(axes=(Z, O), mids=(X, Y)))
         chain = (R, p, Z, O, X, Y)
         for array in chain:
             array.flags.writeable = False
@@ -266,18 +269,23 @@ def _geometry_key(model: KinematicModel) -> bytes:
     return got
 
 
-def _chain_loop(
-    model: KinematicModel,
-    q: np.ndarray,
-    frames: np.ndarray | None,
-    axes: tuple[np.ndarray, np.ndarray] | None = None,
-    mids: tuple[np.ndarray, np.ndarray] | None = None,
-) -> tuple[np.ndarray, np.ndarray]:
+@dataclass(frozen=True)
+class _ChainOut:
+    """What `_chain_loop` fills besides its result: every link frame (N, n + 1, 4, 4), every frame's z axis and
+    origin (Z, O), every joint's mid axes (X, Y), as `_chain` says; None: not wanted."""
+
+    frames: np.ndarray | None = None
+    axes: AxisPair | None = None
+    mids: AxisPair | None = None
+
+
+def _chain_loop(model: KinematicModel, q: np.ndarray, out: _ChainOut) -> tuple[np.ndarray, np.ndarray]:
     """`_chain` computed: the same product as `joint_transforms` chained, written column by column on (3, N)
     axis arrays: a batched 4x4 matmul per joint costs an order of magnitude more for small matrices. The
     constant factors are Python floats and zero lengths are skipped: the loop's cost is its number of numpy
     calls. Rz(th) turns x, y about z; Tz(d) Tx(a) moves the origin by d z + a x'; Rx(alpha), Ry(beta) turn
     again."""
+    frames, axes, mids = out.frames, out.axes, out.mids
     N, n = q.shape
     th = (q + model.theta).T  # (n, N): every axis array below is (3, N), contiguous per component
     ct, st = np.cos(th, order="C"), np.sin(th, order="C")  # rows contiguous too: faster products
