@@ -381,6 +381,45 @@ def test_spatial_folds_of_fewer_distinct_points_than_folds():
     assert [len(f) for f in spatial_folds(pts[:1], 5, 0)] == [1]
 
 
+def _kmeans_folds_one_cluster_at_a_time(points: np.ndarray, k: int, seed: int, iters: int = 25) -> list:
+    """spatial_folds as it was written first: every distance through an (N, K, 3) array, every cluster's mean
+    on its own rows. The reference the vectorised one must equal, fold for fold."""
+    rng = np.random.default_rng(seed)
+    x = (points - points.mean(axis=0)) / (points.std(axis=0) + 1e-12)
+    k = max(1, min(k, len(np.unique(x, axis=0))))
+    centres = x[[rng.integers(len(x))]]
+    for _ in range(1, k):
+        d2 = np.min(((x[:, None, :] - centres[None]) ** 2).sum(axis=2), axis=1)
+        if d2.sum() <= 0:
+            break
+        centres = np.vstack([centres, x[rng.choice(len(x), p=d2 / d2.sum())]])
+    for _ in range(iters):
+        label = np.argmin(((x[:, None, :] - centres[None]) ** 2).sum(axis=2), axis=1)
+        new = np.array(
+            [x[label == c].mean(axis=0) if np.any(label == c) else centres[c] for c in range(len(centres))]
+        )
+        if np.allclose(new, centres):
+            break
+        centres = new
+    return [f for f in (np.flatnonzero(label == c) for c in range(len(centres))) if len(f)]
+
+
+def test_spatial_folds_are_the_per_cluster_k_means_folds_exactly():
+    """The folds decide every held-out figure: the vectorised k-means gives the same folds as the per-cluster
+    one on spread, flat and duplicated points (same sums in the same order, so the same labels)."""
+    rng = np.random.default_rng(12)
+    for trial in range(300):
+        n = int(rng.integers(5, 500))
+        pts = rng.normal(size=(n, 3)) * rng.uniform(0.05, 2.0, 3)
+        if trial % 3 == 0:
+            pts = np.round(pts, 1)  # repeated points and ties
+        k, seed = int(rng.integers(1, 8)), int(rng.integers(0, 50))
+        got, want = spatial_folds(pts, k, seed), _kmeans_folds_one_cluster_at_a_time(pts, k, seed)
+        assert len(got) == len(want), trial
+        for a, b in zip(got, want, strict=True):
+            np.testing.assert_array_equal(a, b)
+
+
 def test_one_orientation_copied_onto_every_smr_row_of_a_pose_counts_once():
     cell = _cell(2)
     q = grid_joints(cell, step_m=0.2, seed=2)

@@ -24,19 +24,34 @@ def spatial_folds(points: np.ndarray, k: int, seed: int, iters: int = 25) -> lis
     k = max(1, min(k, len(np.unique(x, axis=0))))
     centres = x[[rng.integers(len(x))]]
     for _ in range(1, k):  # k-means++ seeding: spread the first centres
-        d2 = np.min(((x[:, None, :] - centres[None]) ** 2).sum(axis=2), axis=1)
+        d2 = np.min(_squared_distances(x, centres), axis=1)
         if d2.sum() <= 0:  # every point sits on a centre already
             break
         centres = np.vstack([centres, x[rng.choice(len(x), p=d2 / d2.sum())]])
     k = len(centres)
     for _ in range(iters):
-        label = np.argmin(((x[:, None, :] - centres[None]) ** 2).sum(axis=2), axis=1)
-        new = np.array([x[label == c].mean(axis=0) if np.any(label == c) else centres[c] for c in range(k)])
+        label = np.argmin(_squared_distances(x, centres), axis=1)
+        # every cluster's mean at once: its points summed in row order, as a mean over its rows sums them
+        sums = np.zeros_like(centres)
+        np.add.at(sums, label, x)
+        counts = np.bincount(label, minlength=k)
+        new = np.where(counts[:, None] > 0, sums / np.maximum(counts, 1)[:, None], centres)  # empty: stays
         if np.allclose(new, centres):
             break
         centres = new
     folds = [np.flatnonzero(label == c) for c in range(k)]
     return [f for f in folds if len(f) > 0]
+
+
+def _squared_distances(x: np.ndarray, centres: np.ndarray) -> np.ndarray:
+    """Squared distances (N, K) of the points (N, D) to the centres (K, D), summed over the coordinates in
+    order: the numbers of the (N, K, D) difference array summed over D, without building it."""
+    d = x[:, None, 0] - centres[None, :, 0]
+    out = d * d
+    for j in range(1, x.shape[1]):
+        d = x[:, None, j] - centres[None, :, j]
+        out += d * d
+    return out
 
 
 # A joint counts as moved between two consecutive poses when it turned more than this (rad): well above a
