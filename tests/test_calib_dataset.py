@@ -4,7 +4,15 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from hil.data.dataset import DatasetError, load_dataset, make_dataset, validate_dataset, write_dataset
+from hil.data.dataset import (
+    DatasetError,
+    float_columns,
+    joints_rad,
+    load_dataset,
+    make_dataset,
+    validate_dataset,
+    write_dataset,
+)
 
 
 def _frame(n=5):
@@ -16,6 +24,17 @@ def test_missing_column_is_named():
     df = _frame().drop(columns=["q4_rad"])
     with pytest.raises(DatasetError, match="q4_rad"):
         validate_dataset(df)
+
+
+def test_float_columns_read_as_the_frame_selection_does():
+    df = _frame(40)
+    df["q2_rad"] = df["q2_rad"].astype(np.float32)  # another dtype is converted as the frame's to_numpy does
+    df["point_id"] = [f"p{i}" for i in range(40)]
+    cols = [f"q{j}_rad" for j in range(1, 7)]
+    np.testing.assert_array_equal(joints_rad(df), df[cols].to_numpy(float))
+    assert float_columns(df, []).shape == (40, 0)
+    with pytest.raises(KeyError, match=r"\['q7_rad', 'q8_rad'\] not in index"):
+        float_columns(df, [*cols, "q7_rad", "q8_rad"])
 
 
 def test_bad_value_names_row_and_column():

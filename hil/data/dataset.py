@@ -16,6 +16,7 @@ from __future__ import annotations
 import hashlib
 import re
 import warnings
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -148,7 +149,7 @@ def _convert_units(df: pd.DataFrame, n_joints: int) -> pd.DataFrame:
 
 def _check_positions_are_mm(df: pd.DataFrame, source: str) -> None:
     """A robot campaign spans hundreds of millimetres: positions within a few units are metres."""
-    p = df[list(POSITION_COLUMNS)].to_numpy(float)
+    p = float_columns(df, POSITION_COLUMNS)
     if len(p) >= 5 and np.max(np.abs(p)) < 20.0 and np.max(np.ptp(p, axis=0)) < 10.0:
         raise DatasetError(
             f"{source}: x_mm, y_mm, z_mm span only {np.max(np.ptp(p, axis=0)):.3g} and stay within "
@@ -269,12 +270,26 @@ def make_dataset(
     return pd.DataFrame(data)
 
 
+def float_columns(df: pd.DataFrame, columns: Sequence[str]) -> np.ndarray:
+    """The columns (N, len(columns)) as floats: what df[list(columns)].to_numpy(float) gives, a column at a
+    time (a fit reads the joints hundreds of times, and selecting them as a frame first took 4x as long);
+    a missing column raises pandas' own KeyError naming every missing one."""
+    out = np.empty((len(df), len(columns)))
+    try:
+        for j, column in enumerate(columns):
+            out[:, j] = df[column].to_numpy(float)
+    except KeyError:
+        df[list(columns)]  # raises the KeyError that names every missing column
+        raise
+    return out
+
+
 def joints_rad(df: pd.DataFrame, n_joints: int = 6) -> np.ndarray:
-    return df[joint_columns(n_joints)].to_numpy(float)
+    return float_columns(df, joint_columns(n_joints))
 
 
 def points_m(df: pd.DataFrame) -> np.ndarray:
-    return df[list(POSITION_COLUMNS)].to_numpy(float) / 1000.0
+    return float_columns(df, POSITION_COLUMNS) / 1000.0
 
 
 def commanded_points_m(df: pd.DataFrame) -> np.ndarray:
@@ -284,7 +299,7 @@ def commanded_points_m(df: pd.DataFrame) -> np.ndarray:
 
 def angles_rad(df: pd.DataFrame, columns: tuple[str, ...] = ORIENTATION_COLUMNS) -> np.ndarray:
     """Angle columns given in degrees (the probe's rx/ry/rz_deg by default), in radians."""
-    return np.deg2rad(df[list(columns)].to_numpy(float))
+    return np.deg2rad(float_columns(df, columns))
 
 
 def smr_ids(df: pd.DataFrame) -> np.ndarray:
@@ -350,7 +365,7 @@ def pose_ids(df: pd.DataFrame) -> np.ndarray:
     if "pose" in df.columns:
         label = np.unique(df["pose"].astype(str).to_numpy(), return_inverse=True)[1].ravel()
     else:
-        q = df[[c for c in df.columns if re.fullmatch(r"q\d+_rad", str(c))]].to_numpy(float)
+        q = float_columns(df, [c for c in df.columns if re.fullmatch(r"q\d+_rad", str(c))])
         if len(q) == 0:
             return np.zeros(0, int)
         label = _near_groups(q, SAME_POSE_RAD)
