@@ -25,6 +25,7 @@ from hil.geometry.coupling import JointCoupling
 from hil.geometry.ik import default_home, is_ur_like
 from hil.geometry.kinematics import KinematicModel
 from hil.geometry.robots import get_robot, robot_coupling
+from hil.geometry.se3 import quaternion_matrix
 
 SMR_RADIUS_M = 0.01905  # 1.5" sphere
 
@@ -687,13 +688,4 @@ def random_rotation(seed: int) -> np.ndarray:
     time): the same matrix bit for bit, so every seed's cell stays the cell it was (tests/test_cell.py)."""
     x, y, z, w = np.random.RandomState(seed).normal(size=4)
     norm = np.sqrt(x * x + y * y + z * z + w * w)
-    x, y, z, w = x / norm, y / norm, z / norm, w / norm
-    xx, yy, zz, ww = x * x, y * y, z * z, w * w
-    xy, zw, xz, yw, yz, xw = x * y, z * w, x * z, y * w, y * z, x * w
-    return np.array(
-        [
-            [xx - yy - zz + ww, 2 * (xy - zw), 2 * (xz + yw)],
-            [2 * (xy + zw), -xx + yy - zz + ww, 2 * (yz - xw)],
-            [2 * (xz - yw), 2 * (yz + xw), -xx - yy + zz + ww],
-        ]
-    )
+    return quaternion_matrix(x / norm, y / norm, z / norm, w / norm)

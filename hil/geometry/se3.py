@@ -97,14 +97,20 @@ def rotation_exp(rotvec: np.ndarray) -> np.ndarray:
     half_sinc = np.where(
         small, 0.5 - a2 / 48 + a2 * a2 / 3840, np.sin(angle / 2) / np.where(small, 1.0, angle)
     )
-    x, y, z, w = vx * half_sinc, vy * half_sinc, vz * half_sinc, np.cos(angle / 2)
+    R = quaternion_matrix(vx * half_sinc, vy * half_sinc, vz * half_sinc, np.cos(angle / 2))
+    return R.reshape(lead + (3, 3))
+
+
+def quaternion_matrix(x: np.ndarray, y: np.ndarray, z: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) of unit quaternions x i + y j + z k + w, given component by component
+    (arrays of one shape, or scalars), in the order of operations scipy's `Rotation.as_matrix` uses."""
     x2, y2, z2, w2 = x * x, y * y, z * z, w * w
     xy, zw, xz, yw, yz, xw = x * y, z * w, x * z, y * w, y * z, x * w
-    R = np.empty((len(v), 3, 3))
-    R[:, 0, 0], R[:, 0, 1], R[:, 0, 2] = x2 - y2 - z2 + w2, 2 * (xy - zw), 2 * (xz + yw)
-    R[:, 1, 0], R[:, 1, 1], R[:, 1, 2] = 2 * (xy + zw), -x2 + y2 - z2 + w2, 2 * (yz - xw)
-    R[:, 2, 0], R[:, 2, 1], R[:, 2, 2] = 2 * (xz - yw), 2 * (yz + xw), -x2 - y2 + z2 + w2
-    return R.reshape(lead + (3, 3))
+    R = np.empty(np.shape(x) + (3, 3))
+    R[..., 0, 0], R[..., 0, 1], R[..., 0, 2] = x2 - y2 - z2 + w2, 2 * (xy - zw), 2 * (xz + yw)
+    R[..., 1, 0], R[..., 1, 1], R[..., 1, 2] = 2 * (xy + zw), -x2 + y2 - z2 + w2, 2 * (yz - xw)
+    R[..., 2, 0], R[..., 2, 1], R[..., 2, 2] = 2 * (xz - yw), 2 * (yz + xw), -x2 - y2 + z2 + w2
+    return R
 
 
 def rot_x(angle: np.ndarray | float) -> np.ndarray:
