@@ -50,10 +50,12 @@ lint: $(VENV)/.installed
 docs: $(VENV)/.installed
 	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict
 
-# mypy and the docs build alongside pytest: a cold mypy (a fresh clone has no .mypy_cache) takes 25-40 s of one core, and the
-# pytest workers leave a core idle while the simulated cells run in scaled wall-clock time.
+# mypy beside pytest, at a lower priority: a cold mypy (a fresh clone has no .mypy_cache) takes 21-23 CPU-s,
+# and the pytest workers leave part of a core idle while the simulated cells run in scaled wall-clock time
+# (65-120 s into a fresh run on a 2-core machine, 19 core-s in all); niced, mypy runs in those gaps instead of
+# holding back the tests' start.
 typecheck: $(VENV)/.installed
-	$(VENV)/bin/mypy
+	nice -n 10 $(VENV)/bin/mypy
 
 # The server and the browser some tests drive for real (PostgreSQL, Chromium), installed from the distribution's
 # packages where missing (tools/system-deps): part of the set-up, never assumed by a test.
