@@ -32,7 +32,7 @@ demo: $(VENV)/.installed
 	$(VENV)/bin/hil demo
 
 # Every part of the check starts as soon as what it needs is there: the system programs' install
-# (tools/system-deps: apt, on a fresh machine Chromium and some 25 libraries, 8.7 s of a 2-core machine with
+# (tools/system-deps: apt, on a fresh machine headless Chromium and 18 libraries, 7.1 s of a 2-core machine with
 # the packages already downloaded) beside the venv's, not after it; then ruff and the import layers, the docs
 # build, mypy and the tests' bytecode side by side; pytest once the bytecode and the system programs are
 # there. A failing ruff or layer check (0.6 s) stops make before pytest starts.

@@ -36,7 +36,7 @@ from hil.runner.registry import load
 
 pytestmark = pytest.mark.sim
 
-CHROMIUM = "/usr/bin/chromium"
+CHROMIUM = "/usr/bin/chromium-headless-shell"  # Debian's headless build of Chromium (tools/system-deps)
 # what a root CI user needs, and nothing that reaches out (Playwright adds a fresh --user-data-dir itself)
 CHROMIUM_FLAGS = [
     "--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-background-networking",

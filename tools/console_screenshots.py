@@ -3,7 +3,7 @@
     .venv/bin/python tools/console_screenshots.py        # writes docs/img/console-*.png
 
 It starts a simulated cell and `hil serve` on loopback, drives the page in headless Chromium (the Debian
-package's, as the tests do) through a registration: the plan before the start, the operator's prompt, a
+package chromium-headless-shell, as the tests do) through a registration: the plan before the start, the operator's prompt, a
 second browser watching the run, and the finished run with its campaign in the history; then a coarse grid on
 the same campaign with the drift monitor on: the deviation of every point and the reference poses' drift (the
 simulated arm and hall warm up as the run goes).
@@ -50,7 +50,9 @@ def main() -> int:
             assert server.stdout is not None
             print(server.stdout.readline().strip())  # the console's address, once it is configured
             with sync_playwright() as playwright:
-                browser = playwright.chromium.launch(executable_path="/usr/bin/chromium", args=CHROMIUM_FLAGS)
+                browser = playwright.chromium.launch(
+                    executable_path="/usr/bin/chromium-headless-shell", args=CHROMIUM_FLAGS
+                )
                 page = browser.new_page(viewport={"width": 1400, "height": 1000})
                 page.goto(f"http://127.0.0.1:{PORT}/", wait_until="networkidle")
                 take(page, "plan", lambda: plan(page))
