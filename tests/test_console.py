@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from chromium import CHROMIUM, launch_chromium
 from playwright.sync_api import Browser, Page, expect, sync_playwright
 from sim_session import running_cell
 
@@ -36,12 +37,6 @@ from hil.runner.registry import load
 
 pytestmark = pytest.mark.sim
 
-CHROMIUM = "/usr/bin/chromium-headless-shell"  # Debian's headless build of Chromium (tools/system-deps)
-# what a root CI user needs, and nothing that reaches out (Playwright adds a fresh --user-data-dir itself)
-CHROMIUM_FLAGS = [
-    "--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-background-networking",
-    "--disable-component-update", "--disable-sync",
-]  # fmt: skip
 WAIT_MS = 30_000  # a page state the run must reach (the simulated cell runs 20x faster than real time)
 DIAGNOSIS_WAIT_MS = 100_000  # `hil diagnose` in its own process: 3 s alone, over 30 s on a loaded machine
 POSES = 12
@@ -95,12 +90,10 @@ def console(cell) -> Iterator[tuple[str, Station]]:
 
 @pytest.fixture(scope="module")
 def browser() -> Iterator[Browser]:
-    if not Path(CHROMIUM).exists():
+    if not CHROMIUM.exists():
         pytest.fail(f"{CHROMIUM} is missing: tools/system-deps installs it (make runs it)")
     with sync_playwright() as playwright:
-        chromium = playwright.chromium.launch(
-            executable_path=CHROMIUM, args=CHROMIUM_FLAGS, headless=True, timeout=120_000
-        )
+        chromium = launch_chromium(playwright, timeout=120_000)
         yield chromium
         chromium.close()
 

@@ -22,10 +22,6 @@ from playwright.sync_api import Page, expect, sync_playwright
 
 ROOT = Path(__file__).resolve().parents[1]
 IMAGES = ROOT / "docs" / "img"
-CHROMIUM_FLAGS = [
-    "--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-background-networking",
-    "--disable-component-update", "--disable-sync",
-]  # fmt: skip
 PORT = 18036  # loopback only
 WAIT_MS = 60_000
 WARMING = ("--effects", "gravity_compliance,thermal_expansion")  # the arm and the hall warm: drift to show
@@ -35,6 +31,7 @@ def main() -> int:
     sys.path.insert(0, str(ROOT))
     from fakes.launch import sim_cell
     from hil.commands.sim_cell import write_sim_cell
+    from tests.chromium import launch_chromium
 
     expect.set_options(timeout=WAIT_MS)
     with tempfile.TemporaryDirectory() as folder, sim_cell(time_scale=10.0, extra_args=WARMING) as cell:
@@ -50,9 +47,7 @@ def main() -> int:
             assert server.stdout is not None
             print(server.stdout.readline().strip())  # the console's address, once it is configured
             with sync_playwright() as playwright:
-                browser = playwright.chromium.launch(
-                    executable_path="/usr/bin/chromium-headless-shell", args=CHROMIUM_FLAGS
-                )
+                browser = launch_chromium(playwright)
                 page = browser.new_page(viewport={"width": 1400, "height": 1000})
                 page.goto(f"http://127.0.0.1:{PORT}/", wait_until="networkidle")
                 take(page, "plan", lambda: plan(page))
