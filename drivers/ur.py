@@ -263,6 +263,7 @@ class URRobot:
         self.model_name = ""
         self._last_stamp = -1.0
         self._last_stamp_wall = 0.0
+        self._program_restarted_s = -math.inf  # monotonic time ur-rtde last restarted the control program
         self._connect()
         # make sure the clients are disconnected before the interpreter (or the fake) goes away
         self._finalizer = weakref.finalize(self, URRobot._release, [self._ctrl, self._rx, self._dash])
@@ -459,21 +460,42 @@ class URRobot:
         """Raise the typed error for the controller's current condition, if any; else return the state.
 
         All fields come from one receive package, so a stop that also ended the program is reported as
-        the stop, never as "program not running" read from a newer package than the safety bits."""
+        the stop, never as "program not running" read from a newer package than the safety bits. Just
+        after ur-rtde restarted the control program, a package without it is read again (see
+        `_receive_may_lag_restart`)."""
         if self._rx is None or self._ctrl is None:
             raise RobotConnectionError(f"not connected to {self.config.host}")
-        self._check_stream()
-        snapshot = self._snapshot()
-        bits = snapshot.safety_bits
-        if bits & (_ANY_ESTOP_BIT | _ROBOT_ESTOP_BIT):
-            raise EmergencyStopError("the robot is emergency stopped")
-        if bits & _PROTECTIVE_BIT:
-            raise ProtectiveStopError("the robot is protective stopped")
-        if not self._ctrl.isConnected():
-            raise RobotConnectionError(f"RTDE control connection to {self.config.host} lost")
-        if snapshot.runtime_state != _PLAYING:
-            raise ProgramNotRunningError("the control program is not running on the controller")
-        return snapshot
+        while True:
+            self._check_stream()
+            snapshot = self._snapshot()
+            bits = snapshot.safety_bits
+            if bits & (_ANY_ESTOP_BIT | _ROBOT_ESTOP_BIT):
+                raise EmergencyStopError("the robot is emergency stopped")
+            if bits & _PROTECTIVE_BIT:
+                raise ProtectiveStopError("the robot is protective stopped")
+            if not self._ctrl.isConnected():
+                raise RobotConnectionError(f"RTDE control connection to {self.config.host} lost")
+            if snapshot.runtime_state == _PLAYING:
+                return snapshot
+            if not self._receive_may_lag_restart():
+                raise ProgramNotRunningError("the control program is not running on the controller")
+            time.sleep(0.002)
+
+    def _receive_may_lag_restart(self) -> bool:
+        """Whether a receive package without a running program may be late news rather than a stop.
+
+        ur-rtde restarts the control program for a path move (it stops the script, uploads it again with
+        the path injected, and returns once its own stream shows it running) and when recovery rebuilds
+        the control interface. The receive stream is another socket: for a while it can still deliver
+        packages from the gap, even after one that showed the old program running. Within
+        `stream_sync_timeout_s` of a restart, and while the control stream says the program runs, such a
+        package is read again; a program that really stopped ends the control stream's "running" too."""
+        ctrl = self._ctrl
+        return (
+            time.monotonic() - self._program_restarted_s < self.config.stream_sync_timeout_s
+            and ctrl is not None
+            and bool(ctrl.isProgramRunning())
+        )
 
     def _supervise_async(self, op_before: int, expected_s: float, what: str) -> None:
         """Wait for the async operation started after `op_before` to finish, checking faults meanwhile."""
@@ -622,7 +644,9 @@ class URRobot:
         ctrl = self._control()
         op_before = ctrl.getAsyncOperationProgressEx().operationId()
         path = [[*map(float, p), speed, accel, 0.0] for p in poses]
-        if not ctrl.moveL(path, True):
+        moved = ctrl.moveL(path, True)
+        self._program_restarted_s = time.monotonic()  # a path runs in a freshly uploaded control program
+        if not moved:
             self._check()
             raise RobotError(
                 "the controller refused the moveL path", "check that every waypoint is reachable"
@@ -738,16 +762,9 @@ class URRobot:
                     raise RobotError("the arm did not reach RUNNING after power on and brake release")
                 time.sleep(0.05)
         self._rebuild()
+        self._program_restarted_s = time.monotonic()
         self._sync_stream()  # the receive stream may report the restarted program a cycle late
-        deadline = time.monotonic() + self.config.stream_sync_timeout_s
-        while True:
-            try:
-                self._check()
-                return
-            except ProgramNotRunningError:
-                if time.monotonic() > deadline:
-                    raise
-                time.sleep(0.005)
+        self._check()
 
     def _ensure_dashboard(self) -> None:
         if self._dash is not None and self._dash.isConnected():

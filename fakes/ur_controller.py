@@ -68,7 +68,7 @@ class PlannedFault:
     kind: str
     at_move: int  # absolute move number (1-based) it fires in; 0 = at once
     fraction: float  # of the move's duration
-    duration_s: float  # for stalls and latency spikes (wall seconds)
+    duration_s: float  # for stalls and latency spikes (wall seconds); a reader lag's delay
 
 
 # RTDE outputs this controller models with values that never change (`_output_getters`)
@@ -76,7 +76,15 @@ FIXED_OUTPUTS = frozenset(
     {"actual_main_voltage", "actual_robot_voltage", "actual_tool_accelerometer", "actual_execution_time"}
 )
 
-FAULT_KINDS = ("protective_stop", "emergency_stop", "drop_rtde", "stop_script", "stall", "latency")
+FAULT_KINDS = (
+    "protective_stop",
+    "emergency_stop",
+    "drop_rtde",
+    "stop_script",
+    "stall",
+    "latency",
+    "reader_lag",
+)
 
 
 class UrController(ScriptRuntime):
@@ -169,17 +177,23 @@ class UrController(ScriptRuntime):
         self.last_move: dict = {}
         self._move_started_at = 0.0
         self._still_ticks = 0
-        # faults
-        self._planned: list[PlannedFault] = []
-        self._stall_until = 0.0
-        self._latency_until = 0.0
-        self._held: list[tuple[RtdeConnection, bytes]] = []  # data packages a latency spike holds back
-        self.fault_log: list[dict] = []
+        self._init_faults()
         self.tick_count = 0
         self.kin = ArmKinematics(self.model)
         self._outputs = self._output_getters()
         self._target_pose_cache: tuple = (None, None)
         self._actual_pose_cache: tuple = (None, None)
+
+    def _init_faults(self) -> None:
+        """No fault armed, none active, none logged yet."""
+        self._planned: list[PlannedFault] = []
+        self._stall_until = 0.0
+        self._latency_until = 0.0
+        self._held: list[tuple[RtdeConnection, bytes]] = []  # data packages a latency spike holds back
+        self._reader_lag_s = 0.0  # how late a reader lag delivers each package to read-only clients (0: none)
+        # packages a reader lag delays: (when due, client, package), in the order they were made
+        self._lagged: collections.deque[tuple[float, RtdeConnection, bytes]] = collections.deque()
+        self.fault_log: list[dict] = []
 
     # ---------------------------------------------------------------- servers
     async def start(self) -> None:
@@ -527,6 +541,8 @@ class UrController(ScriptRuntime):
             self._stall_until = time.monotonic() + fault.duration_s
         elif fault.kind == "latency":
             self._latency_until = time.monotonic() + fault.duration_s
+        elif fault.kind == "reader_lag":
+            self._reader_lag_s = fault.duration_s
 
     def _rtde_outage(self, duration_s: float) -> None:
         """Drop every RTDE client and refuse new ones for duration_s (a network outage)."""
@@ -570,6 +586,7 @@ class UrController(ScriptRuntime):
     def clear_faults(self) -> None:
         self._planned.clear()
         self._stall_until = self._latency_until = 0.0
+        self._reader_lag_s = 0.0  # what is already late still arrives, in order
 
     # ---------------------------------------------------------------- data out
     def _publish(self, now: float) -> None:
@@ -593,8 +610,26 @@ class UrController(ScriptRuntime):
             payload = conn.packer.package()
             if holding:
                 self._held.append((conn, payload))
+            elif not conn.input_recipes and (self._reader_lag_s > 0 or self._lagged):
+                self._send_late(conn, payload, now)
             else:
                 conn.send_package(payload)
+        self._deliver_late(now)
+
+    def _send_late(self, conn: RtdeConnection, payload: bytes, now: float) -> None:
+        """A reader lag: a client that only reads (no input recipe, like ur-rtde's receive interface) gets
+        each package `_reader_lag_s` after it was made, as from a loaded PC whose receive thread runs behind,
+        while the control interface's stream keeps time. Packages stay in order; after the lag ends, new
+        ones queue behind the late ones until those are out."""
+        due = now + self._reader_lag_s
+        if self._lagged:
+            due = max(due, self._lagged[-1][0])
+        self._lagged.append((due, conn, payload))
+
+    def _deliver_late(self, now: float) -> None:
+        while self._lagged and self._lagged[0][0] <= now:
+            _, conn, payload = self._lagged.popleft()
+            conn.send_package(payload)
 
     def getter(self, name: str) -> Any:
         """A zero-argument function returning the current value of one RTDE output variable."""

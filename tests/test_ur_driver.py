@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import threading
 import time
 
 import numpy as np
@@ -26,6 +27,7 @@ pytestmark = pytest.mark.sim  # starts a simulated cell or a fake server over so
 
 pytest.importorskip("rtde_control")
 
+PLAYING = 2  # RTDE runtime_state of a running program
 HOME = np.array([0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0])
 
 
@@ -90,6 +92,41 @@ def test_moves_and_readings(robot, cell):
     np.testing.assert_allclose(robot.flange_pose()[:3, 3], T_goal[:3, 3], atol=1e-4)
     state = robot.state()
     assert state.ready and state.robot_mode == "RUNNING" and state.safety_mode == "NORMAL"
+
+
+@pytest.mark.timeout(30)
+def test_a_path_is_driven_while_the_receive_stream_still_reports_the_program_restart(ready_robot, cell):
+    """ur-rtde runs a path in a control program it uploads anew, and returns once its own stream shows that
+    program running. The receive stream is another socket: on a loaded PC it still delivers packages from
+    the restart's gap after that. The driver must read those as late news while the control stream says
+    the program runs, not refuse the path with "program not running" (CI once failed so, by chance)."""
+    robot = ready_robot
+    robot.move_joints(HOME + [0.3, -0.2, 0.25, 0.1, 0.0, 0.2])
+    robot.wait_settled(dwell_s=0.0)
+    corners = np.tile(robot.flange_pose(), (2, 1, 1))
+    corners[:, :3, 3] += [[0.02, 0.0, 0.0], [0.02, 0.02, 0.0]]
+    rx, ctrl = robot._rx, robot._ctrl  # the driver's own ur-rtde interfaces, read beside it
+    late_news: list[int] = []  # receive-stream states without a program while the control stream has one
+    sampling = threading.Event()
+
+    def sample() -> None:
+        while not sampling.is_set():
+            state, running = rx.getRuntimeState(), ctrl.isProgramRunning()
+            if running and state != PLAYING:
+                late_news.append(state)
+            time.sleep(0.001)
+
+    sampler = threading.Thread(target=sample, daemon=True)
+    cell.control.call("robot.fault", kind="reader_lag", duration_s=0.25)  # read-only clients' packages late
+    sampler.start()
+    try:
+        robot.move_path(corners, speed=0.1)
+    finally:
+        cell.control.call("robot.clear_faults")
+        sampling.set()
+        sampler.join()
+    assert late_news, "the receive stream never lagged the restart: the test did not test the lag"
+    np.testing.assert_allclose(robot.flange_pose()[:3, 3], corners[-1, :3, 3], atol=1e-4)
 
 
 @pytest.mark.timeout(20)
