@@ -291,6 +291,7 @@ class URRobot:
                         cfg.host, -1.0, rtde_control.RTDEControlInterface.FLAG_UPLOAD_SCRIPT
                     )
                 ctrl.setTcp([0.0] * 6)  # TCP pose = flange pose
+                self._program_restarted_s = time.monotonic()  # ur-rtde (re)started its program just now
                 self._await_program_on_receive_stream()
                 self._last_stamp, self._last_stamp_wall = rx.getTimestamp(), time.monotonic()
                 return
@@ -413,6 +414,7 @@ class URRobot:
                         self.config.host, -1.0, rtde_control.RTDEControlInterface.FLAG_UPLOAD_SCRIPT
                     )
                 ctrl.setTcp([0.0] * 6)
+                self._program_restarted_s = time.monotonic()  # ur-rtde (re)started its program just now
             except (RuntimeError, RobotConnectionError) as exc:
                 log.warning("rebuilding the control interface failed (%s); reconnecting everything", exc)
                 healthy = False
@@ -484,12 +486,13 @@ class URRobot:
     def _receive_may_lag_restart(self) -> bool:
         """Whether a receive package without a running program may be late news rather than a stop.
 
-        ur-rtde restarts the control program for a path move (it stops the script, uploads it again with
-        the path injected, and returns once its own stream shows it running) and when recovery rebuilds
-        the control interface. The receive stream is another socket: for a while it can still deliver
-        packages from the gap, even after one that showed the old program running. Within
-        `stream_sync_timeout_s` of a restart, and while the control stream says the program runs, such a
-        package is read again; a program that really stopped ends the control stream's "running" too."""
+        ur-rtde restarts the control program whenever it builds the control interface (`_connect`,
+        `_rebuild`: a script still running is stopped and uploaded again) and for a path move (the script
+        uploaded again with the path injected); each time it returns once its own stream shows the program
+        running. The receive stream is another socket: for a while it can still deliver packages from the
+        gap, even after one that showed the old program running. Within `stream_sync_timeout_s` of a
+        restart, and while the control stream says the program runs, such a package is read again; a
+        program that really stopped ends the control stream's "running" too."""
         ctrl = self._ctrl
         return (
             time.monotonic() - self._program_restarted_s < self.config.stream_sync_timeout_s
@@ -762,7 +765,6 @@ class URRobot:
                     raise RobotError("the arm did not reach RUNNING after power on and brake release")
                 time.sleep(0.05)
         self._rebuild()
-        self._program_restarted_s = time.monotonic()
         self._sync_stream()  # the receive stream may report the restarted program a cycle late
         self._check()
 

@@ -10,6 +10,7 @@ import pytest
 
 from drivers.ur import URConfig, URRobot
 from fakes.launch import random_loopback_host, sim_cell
+from fakes.ur_modes import PLAYING
 from hil.geometry.kinematics import forward_kinematics
 from hil.geometry.robots import get_robot
 from hil.instruments.robot import (
@@ -27,7 +28,6 @@ pytestmark = pytest.mark.sim  # starts a simulated cell or a fake server over so
 
 pytest.importorskip("rtde_control")
 
-PLAYING = 2  # RTDE runtime_state of a running program
 HOME = np.array([0.0, -1.5708, 1.5708, -1.5708, -1.5708, 0.0])
 
 

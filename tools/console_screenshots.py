@@ -3,10 +3,10 @@
     .venv/bin/python tools/console_screenshots.py        # writes docs/img/console-*.png
 
 It starts a simulated cell and `hil serve` on loopback, drives the page in headless Chromium (the Debian
-package chromium-headless-shell, as the tests do) through a registration: the plan before the start, the operator's prompt, a
-second browser watching the run, and the finished run with its campaign in the history; then a coarse grid on
-the same campaign with the drift monitor on: the deviation of every point and the reference poses' drift (the
-simulated arm and hall warm up as the run goes).
+package chromium-headless-shell, as the tests do) through a registration: the plan before the start, the
+operator's prompt, a second browser watching the run, and the finished run with its campaign in the history;
+then a coarse grid on the same campaign with the drift monitor on: the deviation of every point and the
+reference poses' drift (the simulated arm and hall warm up as the run goes).
 About two minutes.
 """
 
