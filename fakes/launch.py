@@ -87,7 +87,7 @@ def start_cell(
         if line:
             info = json.loads(line)
             return RunningCell(info, process, ControlClient(info["control"]), log.name, args)
-        code = process.poll()
+        code = exit_status(process)
         stop_process(process)
         with open(log.name, errors="replace") as f:
             last_error = f.read()[-2000:]
@@ -153,6 +153,17 @@ def _read_line(process: subprocess.Popen, timeout_s: float) -> str | None:
         elif process.poll() is not None:
             return None
     return data.split(b"\n", 1)[0].decode()
+
+
+def exit_status(process: subprocess.Popen, within_s: float = 5.0) -> int | None:
+    """The exit status of a child that ended its output without the ready line; None if it still runs after
+    `within_s` (a start that hung). Its stdout reaches its end a moment before the kernel reports the exit,
+    longer on a busy machine: a poll() in that moment reads None, and the "address in use" status, which
+    asks for another address, was lost."""
+    try:
+        return process.wait(within_s)
+    except subprocess.TimeoutExpired:
+        return None
 
 
 def stop_process(process: subprocess.Popen, sig: int = signal.SIGTERM) -> None:

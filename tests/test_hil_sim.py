@@ -15,8 +15,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from fakes import launch
 from fakes.control_client import ControlClient, ControlError
-from fakes.launch import random_loopback_host, sim_cell, start_cell, stop_cell, stop_process
+from fakes.launch import (
+    EXIT_ADDRESS_IN_USE,
+    exit_status,
+    random_loopback_host,
+    sim_cell,
+    start_cell,
+    stop_cell,
+    stop_process,
+)
 
 pytestmark = pytest.mark.sim  # starts a simulated cell or a fake server over sockets
 
@@ -110,6 +119,38 @@ def test_second_cell_on_a_taken_address_fails_clearly(cell):
     # the second process exits as soon as it finds the address taken; the wait only bounds a loaded start-up
     with pytest.raises(RuntimeError, match="address in use"):
         start_cell(host=cell.host, ready_timeout_s=120)
+
+
+@pytest.mark.timeout(60)
+def test_a_start_whose_address_is_taken_moves_to_another(monkeypatch):
+    """A cell started on an address of its own choosing (hil demo's first, the tests') that finds it taken
+    exits with EXIT_ADDRESS_IN_USE, and the start tries another address."""
+    taken = random_loopback_host()
+    hosts = iter([taken])
+    monkeypatch.setattr(launch, "random_loopback_host", lambda: next(hosts, None) or random_loopback_host())
+    with socket.socket() as holder:
+        holder.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        holder.bind((taken, 30004))  # the RTDE port, the first the cell binds
+        holder.listen()
+        with sim_cell(robot="ur10", time_scale=10.0) as cell:
+            assert cell.host != taken and cell.control.call("time_scale") == 10.0
+    assert next(hosts, None) is None  # the taken address was tried first
+
+
+@pytest.mark.timeout(30)
+def test_the_exit_status_of_a_child_that_ended_its_output_first_is_read_not_lost():
+    """A child's stdout reaches its end a moment before it has exited: a poll() then still reads None.
+    Held in that moment here (output closed, the child waiting on its stdin), the status is still read."""
+    code = f"import os, sys; os.close(1); sys.stdin.read(); raise SystemExit({EXIT_ADDRESS_IN_USE})"
+    child = subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+    try:
+        assert child.stdout is not None and child.stdin is not None
+        assert child.stdout.read() == b""  # the end of its output
+        assert child.poll() is None  # not exited yet: what a poll() here used to take for the status
+        child.stdin.close()  # let it exit
+        assert exit_status(child) == EXIT_ADDRESS_IN_USE
+    finally:
+        stop_process(child)
 
 
 @pytest.mark.timeout(40)
